@@ -1,0 +1,1 @@
+"""The catalog of robots, runs, entities and timelines (SQLAlchemy models and queries)."""

@@ -1,0 +1,71 @@
+"""The one error hierarchy of the service, and the one table mapping its codes to HTTP and gRPC.
+
+Every error a user can see is a `FleetError` with an `ErrorCode`; REST and gRPC handlers map
+it through `http_status()` / `grpc_status()` and nowhere else.
+"""
+
+from __future__ import annotations
+
+import enum
+
+
+class ErrorCode(enum.Enum):
+    INVALID_ARGUMENT = "INVALID_ARGUMENT"
+    INVALID_RRD = "INVALID_RRD"
+    UNSUPPORTED_RRD_VERSION = "UNSUPPORTED_RRD_VERSION"
+    MESSAGE_TOO_LARGE = "MESSAGE_TOO_LARGE"
+    NOT_FOUND = "NOT_FOUND"
+    ALREADY_EXISTS = "ALREADY_EXISTS"
+    CONFLICT = "CONFLICT"
+    UNAUTHENTICATED = "UNAUTHENTICATED"
+    PERMISSION_DENIED = "PERMISSION_DENIED"
+    RESOURCE_EXHAUSTED = "RESOURCE_EXHAUSTED"
+    INSUFFICIENT_STORAGE = "INSUFFICIENT_STORAGE"
+    UNAVAILABLE = "UNAVAILABLE"
+    INTERNAL = "INTERNAL"
+
+
+# code -> (HTTP status, gRPC status code name). The only place statuses are chosen.
+_STATUS: dict[ErrorCode, tuple[int, str]] = {
+    ErrorCode.INVALID_ARGUMENT: (422, "INVALID_ARGUMENT"),
+    ErrorCode.INVALID_RRD: (400, "INVALID_ARGUMENT"),
+    ErrorCode.UNSUPPORTED_RRD_VERSION: (400, "INVALID_ARGUMENT"),
+    ErrorCode.MESSAGE_TOO_LARGE: (413, "RESOURCE_EXHAUSTED"),
+    ErrorCode.NOT_FOUND: (404, "NOT_FOUND"),
+    ErrorCode.ALREADY_EXISTS: (409, "ALREADY_EXISTS"),
+    ErrorCode.CONFLICT: (409, "FAILED_PRECONDITION"),
+    ErrorCode.UNAUTHENTICATED: (401, "UNAUTHENTICATED"),
+    ErrorCode.PERMISSION_DENIED: (403, "PERMISSION_DENIED"),
+    ErrorCode.RESOURCE_EXHAUSTED: (429, "RESOURCE_EXHAUSTED"),
+    ErrorCode.INSUFFICIENT_STORAGE: (507, "RESOURCE_EXHAUSTED"),
+    ErrorCode.UNAVAILABLE: (503, "UNAVAILABLE"),
+    ErrorCode.INTERNAL: (500, "INTERNAL"),
+}
+
+
+class FleetError(Exception):
+    """Base of every error the service reports to a user."""
+
+    code: ErrorCode = ErrorCode.INTERNAL
+
+    def __init__(self, message: str) -> None:
+        super().__init__(message)
+        self.message = message
+
+    def http_status(self) -> int:
+        return http_status(self.code)
+
+    def grpc_status(self) -> str:
+        return grpc_status(self.code)
+
+    def to_dict(self) -> dict[str, str]:
+        return {"code": self.code.value, "message": self.message}
+
+
+def http_status(code: ErrorCode) -> int:
+    return _STATUS[code][0]
+
+
+def grpc_status(code: ErrorCode) -> str:
+    """The name of the `grpc.StatusCode` member for `code`."""
+    return _STATUS[code][1]

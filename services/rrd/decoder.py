@@ -1,0 +1,307 @@
+"""Incremental RRD stream reader.
+
+Feed it bytes as they arrive (an HTTP body, a socket, a file read in pieces): it keeps only the
+bytes of the message in progress and returns the typed messages completed so far, with their
+byte offsets. It handles several stores in one stream, repeated SetStoreInfo, files with or
+without footer, concatenated streams (with or without End between them), and reports a torn
+last message from `finish()` after everything before it was returned.
+"""
+
+from __future__ import annotations
+
+import enum
+import os
+from collections.abc import Iterator
+from typing import BinaryIO
+
+from google.protobuf.message import DecodeError
+
+from services.rrd import errors
+from services.rrd.frames import (
+    FOOTER_ENTRY_SIZE,
+    FOOTER_FIXED_SIZE,
+    FOOTER_MAGIC,
+    MESSAGE_HEADER_SIZE,
+    STREAM_HEADER_SIZE,
+    MessageKind,
+    RerunVersion,
+    decode_footer_entry,
+    decode_message_header,
+    decode_stream_header,
+    footer_crc,
+    looks_like_stream_header,
+)
+from services.rrd.messages import (
+    ArrowMessage,
+    BlueprintActivationMessage,
+    Compression,
+    EndMessage,
+    Event,
+    StoreId,
+    StoreInfoMessage,
+    StreamFooter,
+    StreamStart,
+    tuid_bytes,
+)
+from services.rrd.pb import log_msg_pb2
+
+DEFAULT_MAX_MESSAGE_SIZE = 256 * 1024 * 1024
+READ_SIZE = 1024 * 1024
+
+
+class _State(enum.Enum):
+    STREAM_HEADER = 0
+    MESSAGE_HEADER = 1
+    PAYLOAD = 2
+    AFTER_END = 3
+
+
+class RrdDecoder:
+    """Push decoder: `feed(data)` returns the events completed by `data`; `finish()` at EOF."""
+
+    def __init__(self, *, max_message_size: int = DEFAULT_MAX_MESSAGE_SIZE, start_offset: int = 0) -> None:
+        self.max_message_size = max_message_size
+        self._buf = bytearray()
+        self._buf_offset = start_offset  # absolute offset of _buf[0]
+        self._state = _State.STREAM_HEADER
+        self._streams = 0
+        self._stream_offset = start_offset
+        self._msg_offset = 0
+        self._kind = 0
+        self._length = 0
+        self._end: tuple[int, int, bytes] | None = None  # (stream-relative start, len, payload)
+        self._footer_entries: list[tuple[int, int, int]] = []
+
+    @property
+    def offset(self) -> int:
+        """Absolute offset of the first byte not yet consumed."""
+        return self._buf_offset
+
+    @property
+    def streams(self) -> int:
+        return self._streams
+
+    def feed(self, data: bytes | bytearray | memoryview) -> list[Event]:
+        if not data:
+            return []
+        self._buf += data
+        events: list[Event] = []
+        pos = 0
+        buf = self._buf
+        try:
+            while True:
+                step = self._step(buf, pos, events)
+                if step == 0:
+                    break
+                pos += step
+        finally:
+            if pos:
+                del buf[:pos]
+                self._buf_offset += pos
+        return events
+
+    def finish(self) -> list[Event]:
+        """Call at end of input: returns nothing more, or raises if the input ended badly."""
+        events: list[Event] = []
+        remaining = len(self._buf)
+        if self._state is _State.STREAM_HEADER:
+            if self._streams == 0 and remaining == 0:
+                raise errors.NotAnRrdError("input is empty", self._buf_offset)
+            if remaining:
+                if self._streams == 0 or looks_like_stream_header(bytes(self._buf[:4])):
+                    raise errors.TruncatedError(
+                        f"stream header needs {STREAM_HEADER_SIZE} bytes, only {remaining} remain",
+                        self._buf_offset,
+                    )
+                raise errors.FooterError(f"{remaining} unexpected bytes after the end of the stream",
+                                         self._buf_offset)
+        elif self._state is _State.MESSAGE_HEADER:
+            if remaining:
+                raise errors.TruncatedError(
+                    f"message header needs {MESSAGE_HEADER_SIZE} bytes, only {remaining} remain",
+                    self._buf_offset,
+                )
+        elif self._state is _State.PAYLOAD:
+            raise errors.TruncatedError(
+                f"{MessageKind(self._kind).name} message declares {self._length} bytes, "
+                f"only {remaining} remain",
+                self._msg_offset,
+            )
+        elif remaining:  # AFTER_END: a partial stream footer
+            raise errors.TruncatedError(f"stream footer cut off after {remaining} bytes", self._buf_offset)
+        return events
+
+    # --- state machine -------------------------------------------------------------------
+
+    def _step(self, buf: bytearray, pos: int, events: list[Event]) -> int:
+        """Consume one unit at `pos` if complete; return the bytes consumed (0 = need more)."""
+        available = len(buf) - pos
+        here = self._buf_offset + pos
+        state = self._state
+        if state is _State.MESSAGE_HEADER:
+            if available < MESSAGE_HEADER_SIZE:
+                # A new stream header may follow without an End message (concatenation).
+                if available >= 4 and looks_like_stream_header(bytes(buf[pos:pos + 4])):
+                    self._state = _State.STREAM_HEADER
+                return 0
+            if looks_like_stream_header(bytes(buf[pos:pos + 4])):
+                self._state = _State.STREAM_HEADER
+                return self._step(buf, pos, events)
+            kind, length = decode_message_header(buf, pos)
+            if kind > MessageKind.BLUEPRINT_ACTIVATION:
+                raise errors.UnknownMessageKindError(f"kind {kind}, expected 0 to 3", here)
+            if length > self.max_message_size:
+                raise errors.MessageTooLargeError(
+                    f"{MessageKind(kind).name} message declares {length} bytes, over the limit of "
+                    f"{self.max_message_size} (raise max_message_size if this is expected)",
+                    here,
+                )
+            self._msg_offset, self._kind, self._length = here, kind, length
+            self._state = _State.PAYLOAD
+            return MESSAGE_HEADER_SIZE
+        if state is _State.PAYLOAD:
+            if available < self._length:
+                return 0
+            raw = bytes(buf[pos:pos + self._length])
+            self._state = _State.MESSAGE_HEADER
+            event = self._decode_message(raw)
+            if event is not None:
+                events.append(event)
+            return self._length
+        if state is _State.STREAM_HEADER:
+            if available < STREAM_HEADER_SIZE:
+                if available >= 4 and not looks_like_stream_header(bytes(buf[pos:pos + 4])):
+                    decode_stream_header(bytes(buf[pos:pos + 4]).ljust(STREAM_HEADER_SIZE, b"\0"), here)
+                return 0
+            header = decode_stream_header(bytes(buf[pos:pos + STREAM_HEADER_SIZE]), here)
+            events.append(StreamStart(here, self._streams, header))
+            self._streams += 1
+            self._stream_offset = here
+            self._state = _State.MESSAGE_HEADER
+            return STREAM_HEADER_SIZE
+        return self._step_after_end(buf, pos, available, here, events)
+
+    def _step_after_end(self, buf: bytearray, pos: int, available: int, here: int,
+                        events: list[Event]) -> int:
+        assert self._end is not None
+        end_start, end_len, end_payload = self._end
+        if available < 8:
+            if available >= 4 and looks_like_stream_header(bytes(buf[pos:pos + 4])):
+                self._state = _State.STREAM_HEADER
+            return 0
+        head = bytes(buf[pos:pos + 8])
+        if head == FOOTER_MAGIC:
+            if available < FOOTER_FIXED_SIZE:
+                return 0
+            count = int.from_bytes(buf[pos + 8:pos + 12], "little")
+            if count != len(self._footer_entries):
+                raise errors.FooterError(
+                    f"stream footer says {count} entries, {len(self._footer_entries)} precede it", here
+                )
+            self._footer_entries.clear()
+            self._state = _State.STREAM_HEADER
+            return FOOTER_FIXED_SIZE
+        if int.from_bytes(head, "little") != end_start:
+            if looks_like_stream_header(head):
+                self._state = _State.STREAM_HEADER
+                return self._step(buf, pos, events)
+            raise errors.FooterError(
+                f"expected a stream footer pointing at byte {end_start} of the stream, "
+                f"or a new stream; found {head.hex()}", here,
+            )
+        if available < FOOTER_ENTRY_SIZE:
+            return 0
+        start, length, crc = decode_footer_entry(buf, pos)
+        if length != end_len:
+            raise errors.FooterError(f"stream footer length {length} != End payload length {end_len}", here)
+        if crc != footer_crc(end_payload):
+            raise errors.FooterError(
+                f"stream footer CRC {crc:08x} does not match the End payload ({footer_crc(end_payload):08x})",
+                here,
+            )
+        self._footer_entries.append((start, length, crc))
+        events.append(StreamFooter(here, self._streams - 1, start, length, crc))
+        return FOOTER_ENTRY_SIZE
+
+    def _decode_message(self, raw: bytes) -> Event | None:
+        offset, kind = self._msg_offset, self._kind
+        where = (offset, self._stream_offset, self._streams - 1)
+        try:
+            if kind == MessageKind.ARROW_MSG:
+                return _arrow_message(raw, *where)
+            if kind == MessageKind.SET_STORE_INFO:
+                return _store_info_message(raw, *where)
+            if kind == MessageKind.BLUEPRINT_ACTIVATION:
+                pb = log_msg_pb2.BlueprintActivationCommand.FromString(raw)
+                return BlueprintActivationMessage(*where, raw, StoreId.from_proto(pb.blueprint_id),
+                                                  pb.make_active, pb.make_default)
+            footer = log_msg_pb2.RrdFooter.FromString(raw) if raw else None
+        except DecodeError as exc:
+            raise errors.ProtobufError(f"{MessageKind(kind).name} payload: {exc}", offset) from exc
+        self._end = (offset + MESSAGE_HEADER_SIZE - self._stream_offset, len(raw), raw)
+        self._state = _State.AFTER_END
+        return EndMessage(*where, raw, footer)
+
+
+def _store_info_message(raw: bytes, offset: int, stream_offset: int, stream_index: int) -> StoreInfoMessage:
+    pb = log_msg_pb2.SetStoreInfo.FromString(raw)
+    info = pb.info
+    if not info.HasField("store_id"):
+        raise errors.ProtobufError("SetStoreInfo has no store_id", offset)
+    store_id = StoreId.from_proto(info.store_id)
+    if not store_id.application_id and info.HasField("application_id"):
+        store_id = StoreId(store_id.kind, info.application_id.id, store_id.recording_id)
+    version = (RerunVersion.from_bits(info.store_version.crate_version_bits)
+               if info.HasField("store_version") else None)
+    return StoreInfoMessage(offset, stream_offset, stream_index, raw, store_id, version, _source(info))
+
+
+def _source(info: log_msg_pb2.StoreInfo) -> str:
+    source = info.store_source
+    name = log_msg_pb2.StoreSourceKind.Name(source.kind) if source.kind in (0, 1, 2, 3, 4, 5, 6) else "?"
+    label = name.removeprefix("STORE_SOURCE_KIND_").lower()
+    if source.kind == log_msg_pb2.STORE_SOURCE_KIND_PYTHON_SDK and source.extra.payload:
+        try:
+            py = log_msg_pb2.PythonVersion.FromString(source.extra.payload)
+            label += f" (python {py.major}.{py.minor}.{py.patch}{py.suffix})"
+        except DecodeError:
+            pass
+    return label
+
+
+def _arrow_message(raw: bytes, offset: int, stream_offset: int, stream_index: int) -> ArrowMessage:
+    pb = log_msg_pb2.ArrowMsg.FromString(raw)
+    if pb.compression not in (Compression.UNSPECIFIED, Compression.NONE, Compression.LZ4):
+        raise errors.UnknownCompressionError(
+            f"ArrowMsg compression {pb.compression}, expected 1 (none) or 2 (LZ4)", offset
+        )
+    if pb.encoding not in (log_msg_pb2.ENCODING_UNSPECIFIED, log_msg_pb2.ENCODING_ARROW_IPC):
+        raise errors.ProtobufError(f"ArrowMsg encoding {pb.encoding}, expected 1 (Arrow IPC)", offset)
+    return ArrowMessage(
+        offset, stream_offset, stream_index, raw,
+        store_id=StoreId.from_proto(pb.store_id),
+        chunk_id=tuid_bytes(pb.chunk_id) if pb.HasField("chunk_id") else None,
+        is_static=pb.is_static if pb.HasField("is_static") else None,
+        compression=Compression(pb.compression),
+        uncompressed_size=pb.uncompressed_size,
+        payload=pb.payload,
+    )
+
+
+def iter_events(source: BinaryIO | str | os.PathLike[str], *, max_message_size: int = DEFAULT_MAX_MESSAGE_SIZE,
+                read_size: int = READ_SIZE) -> Iterator[Event]:
+    """Every event of a file or binary stream, read in pieces of `read_size` bytes.
+
+    Raises the codec error at the end (after yielding everything before it) if the input is bad.
+    """
+    if isinstance(source, (str, os.PathLike)):
+        with open(source, "rb") as fh:
+            yield from iter_events(fh, max_message_size=max_message_size, read_size=read_size)
+        return
+    decoder = RrdDecoder(max_message_size=max_message_size)
+    while True:
+        data = source.read(read_size)
+        if not data:
+            break
+        yield from decoder.feed(data)
+    yield from decoder.finish()

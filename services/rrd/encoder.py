@@ -1,0 +1,89 @@
+"""RRD stream writer: header, messages passed through byte for byte, End and a footer.
+
+The footer holds one RRD manifest per store that has chunks, with offsets counted from the
+start of this stream, so footer readers (`rerun rrd verify`, the catalog server) can seek.
+"""
+
+from __future__ import annotations
+
+from typing import BinaryIO
+
+from services.rrd.chunk import ChunkMeta, chunk_meta
+from services.rrd.frames import (
+    HEADER_COMPRESSION_LZ4,
+    MESSAGE_HEADER_SIZE,
+    MessageKind,
+    RerunVersion,
+    StreamHeader,
+    encode_message_header,
+    encode_stream_footer,
+)
+from services.rrd.manifest import ManifestEntry, build_manifest
+from services.rrd.messages import ArrowMessage, EndMessage, Message, StoreId
+from services.rrd.pb import log_msg_pb2
+
+
+class RrdEncoder:
+    """Writes one RRD stream to `sink` (any binary file-like; it need not be seekable)."""
+
+    def __init__(self, sink: BinaryIO, version: RerunVersion, *,
+                 compression: int = HEADER_COMPRESSION_LZ4, write_footer: bool = True) -> None:
+        self._sink = sink
+        self._write_footer = write_footer
+        self._entries: dict[StoreId, list[ManifestEntry]] = {}
+        self._finished = False
+        header = StreamHeader(version, compression).encode()
+        sink.write(header)
+        self.position = len(header)  # bytes written so far; offsets are relative to this stream
+
+    def write(self, msg: Message, meta: ChunkMeta | None = None) -> None:
+        """Append a message read by the decoder. End messages are skipped: `finish()` writes
+        this stream's own. `meta` spares re-reading an Arrow chunk when the caller has it."""
+        if isinstance(msg, EndMessage):
+            return
+        if isinstance(msg, ArrowMessage):
+            self.write_arrow(msg, meta)
+            return
+        self._frame(msg.kind, msg.raw)
+
+    def write_arrow(self, msg: ArrowMessage, meta: ChunkMeta | None = None) -> None:
+        if self._write_footer:
+            entry = ManifestEntry(meta or chunk_meta(msg), self.position + MESSAGE_HEADER_SIZE)
+            self._entries.setdefault(msg.store_id, []).append(entry)
+        self._frame(MessageKind.ARROW_MSG, msg.raw)
+
+    def write_raw(self, kind: MessageKind, raw: bytes, *, store_id: StoreId | None = None,
+                  meta: ChunkMeta | None = None) -> None:
+        """Append a message given as protobuf bytes (for example from a gRPC LogMsg)."""
+        if kind == MessageKind.ARROW_MSG and self._write_footer:
+            if store_id is None or meta is None:
+                raise ValueError("an Arrow message needs its store id and chunk metadata for the footer")
+            self._entries.setdefault(store_id, []).append(
+                ManifestEntry(meta, self.position + MESSAGE_HEADER_SIZE))
+        self._frame(kind, raw)
+
+    def finish(self) -> None:
+        """Write End (with the footer) and the stream trailer. Idempotent."""
+        if self._finished:
+            return
+        if not self._write_footer:
+            self._frame(MessageKind.END, b"")
+            self._finished = True
+            return
+        footer = log_msg_pb2.RrdFooter(
+            manifests=[build_manifest(store, entries) for store, entries in self._entries.items()]
+        )
+        payload = footer.SerializeToString()
+        footer_start = self.position + MESSAGE_HEADER_SIZE
+        self._frame(MessageKind.END, payload)
+        self._finished = True
+        trailer = encode_stream_footer(footer_start, payload)
+        self._sink.write(trailer)
+        self.position += len(trailer)
+
+    def _frame(self, kind: int, raw: bytes) -> None:
+        if self._finished:
+            raise ValueError("stream already finished")
+        self._sink.write(encode_message_header(kind, len(raw)))
+        self._sink.write(raw)
+        self.position += MESSAGE_HEADER_SIZE + len(raw)
