@@ -162,7 +162,8 @@ def chunk_meta(msg: ArrowMessage) -> ChunkMeta:
 def _int64_values(column: pa.Array) -> np.ndarray:
     """The int64 storage of an int64/timestamp/duration column, without copying."""
     values = column.view(pa.int64()) if column.type != pa.int64() else column
-    return values.to_numpy(zero_copy_only=column.null_count == 0, writable=False)
+    array: np.ndarray = values.to_numpy(zero_copy_only=column.null_count == 0, writable=False)
+    return array
 
 
 def _timeline(fld: pa.Field, column: pa.Array, offset: int) -> tuple[TimelineMeta, np.ndarray] | None:

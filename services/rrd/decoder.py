@@ -271,7 +271,7 @@ def _source(info: log_msg_pb2.StoreInfo) -> str:
 
 def _arrow_message(raw: bytes, offset: int, stream_offset: int, stream_index: int) -> ArrowMessage:
     pb = log_msg_pb2.ArrowMsg.FromString(raw)
-    if pb.compression not in (Compression.UNSPECIFIED, Compression.NONE, Compression.LZ4):
+    if int(pb.compression) not in (Compression.UNSPECIFIED, Compression.NONE, Compression.LZ4):
         raise errors.UnknownCompressionError(
             f"ArrowMsg compression {pb.compression}, expected 1 (none) or 2 (LZ4)", offset
         )

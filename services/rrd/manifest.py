@@ -130,7 +130,7 @@ def manifest_batch(entries: list[ManifestEntry]) -> pa.RecordBatch:
         seen.add(name)
         md = {k: v for k, v in _descriptor_metadata(comp, "rerun:static").items()}
         add(pa.field(name, pa.bool_(), nullable=False, metadata=md),
-            [m.is_static and key in comps for m, comps in zip(metas, by_descriptor)])
+            [m.is_static and key in comps for m, comps in zip(metas, by_descriptor, strict=True)])
 
     for tl_name in sorted(timeline_types):
         tl_type = timeline_types[tl_name]
@@ -154,8 +154,9 @@ def manifest_batch(entries: list[ManifestEntry]) -> pa.RecordBatch:
             seen.add(base + ":start")
             add(pa.field(base + ":start", tl_type, metadata=md), [r.min if r else None for r in comp_ranges])
             add(pa.field(base + ":end", tl_type, metadata=md), [r.max if r else None for r in comp_ranges])
-            add(pa.field(base + ":num_rows", u64, metadata=md),
-                [c.num_rows if c is not None and r is not None else 0 for c, r in zip(per_chunk, comp_ranges)])
+            rows = [c.num_rows if c is not None and r is not None else 0
+                    for c, r in zip(per_chunk, comp_ranges, strict=True)]
+            add(pa.field(base + ":num_rows", u64, metadata=md), rows)
 
     return pa.RecordBatch.from_arrays([columns[f.name] for f in fields], schema=pa.schema(fields))
 
@@ -183,7 +184,7 @@ def build_manifest(store_id: StoreId, entries: list[ManifestEntry]) -> log_msg_p
 def read_manifest(manifest: log_msg_pb2.RrdManifest) -> pa.Table:
     """The manifest dataframe of one store, as written by any Rerun writer."""
     raw = manifest.data.payload
-    if manifest.data.compression == Compression.LZ4:
+    if int(manifest.data.compression) == Compression.LZ4:
         raw = lz4.block.decompress(raw, uncompressed_size=manifest.data.uncompressed_size)
     return pa.ipc.open_stream(raw).read_all()
 

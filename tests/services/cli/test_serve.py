@@ -1,0 +1,58 @@
+import os
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import httpx
+
+FLEET = str(Path(sys.executable).with_name("fleet"))
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def _wait_healthy(url: str, proc: subprocess.Popen[bytes], timeout: float = 30.0) -> httpx.Response:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        assert proc.poll() is None, proc.stderr.read().decode() if proc.stderr else "exited"
+        try:
+            return httpx.get(url, timeout=1.0)
+        except httpx.TransportError:
+            time.sleep(0.05)  # polling for the condition, bounded by the deadline
+    raise AssertionError(f"{url} did not answer within {timeout}s")
+
+
+def test_serve_answers_health_on_the_configured_address(tmp_path):
+    port = _free_port()
+    env = {**os.environ, "FLEET_DATA_DIR": str(tmp_path / "data")}
+    proc = subprocess.Popen([FLEET, "serve", "--http-addr", f"127.0.0.1:{port}"], env=env,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    try:
+        response = _wait_healthy(f"http://127.0.0.1:{port}/healthz", proc)
+        assert response.status_code == 200
+        assert response.json()["status"] == "ok"
+        assert httpx.get(f"http://127.0.0.1:{port}/openapi.json").status_code == 200
+        assert (tmp_path / "data").is_dir()
+    finally:
+        proc.terminate()
+        proc.wait(timeout=10)
+
+
+def test_serve_help_documents_every_setting():
+    out = subprocess.run([FLEET, "serve", "--help"], capture_output=True, text=True, check=True).stdout
+    for env in ("FLEET_DATA_DIR", "FLEET_HTTP_ADDR", "FLEET_GRPC_ADDR", "FLEET_CATALOG_URL",
+                "FLEET_WARM_URL", "FLEET_COLD_URL", "FLEET_S3_ENDPOINT_URL", "FLEET_CONFIG"):
+        assert env in out
+
+
+def test_bad_address_is_one_clear_error(tmp_path):
+    result = subprocess.run([FLEET, "serve", "--data-dir", str(tmp_path), "--http-addr", "nonsense"],
+                            capture_output=True, text=True, timeout=30)
+    assert result.returncode != 0
+    assert "HOST:PORT" in result.stderr
+    assert "Traceback" not in result.stderr

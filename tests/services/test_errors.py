@@ -1,0 +1,28 @@
+import pytest
+
+from services.errors import ErrorCode, FleetError, grpc_status, http_status
+from services.rrd import errors as rrd_errors
+
+
+def test_every_code_has_an_http_and_grpc_status():
+    import grpc
+
+    for code in ErrorCode:
+        assert 400 <= http_status(code) < 600
+        assert hasattr(grpc.StatusCode, grpc_status(code))
+
+
+@pytest.mark.parametrize(
+    ("exc", "status"),
+    [
+        (rrd_errors.NotAnRrdError("x", 0), 400),
+        (rrd_errors.UnsupportedVersionError("x", 0), 400),
+        (rrd_errors.TruncatedError("x", 5), 400),
+        (rrd_errors.MessageTooLargeError("x", 12), 413),
+    ],
+)
+def test_rrd_errors_are_fleet_errors_with_offsets(exc: rrd_errors.RrdError, status: int) -> None:
+    assert isinstance(exc, FleetError)
+    assert exc.http_status() == status
+    assert f"at byte {exc.offset}" in str(exc)
+    assert exc.to_dict()["code"] == exc.code.value

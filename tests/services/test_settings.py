@@ -1,0 +1,41 @@
+from pathlib import Path
+
+import pytest
+from pydantic import ValidationError
+
+from services.settings import load_settings
+
+
+def test_embedded_defaults_live_in_the_data_dir(tmp_path, monkeypatch):
+    monkeypatch.delenv("FLEET_CONFIG", raising=False)
+    settings = load_settings(data_dir=tmp_path)
+    assert settings.catalog_url == f"duckdb:///{tmp_path.resolve() / 'catalog.duckdb'}"
+    assert settings.warm_url == (tmp_path.resolve() / "warm").as_uri()
+    assert settings.cold_url == (tmp_path.resolve() / "cold").as_uri()
+    assert settings.http_addr == "0.0.0.0:8080"
+    assert settings.grpc_addr == "0.0.0.0:9876"
+
+
+def test_environment_then_toml_then_defaults(tmp_path, monkeypatch):
+    config = tmp_path / "fleet.toml"
+    config.write_text('http_addr = "127.0.0.1:1111"\ngrpc_addr = "127.0.0.1:2222"\n')
+    monkeypatch.setenv("FLEET_CONFIG", str(config))
+    monkeypatch.setenv("FLEET_HTTP_ADDR", "127.0.0.1:3333")
+    settings = load_settings()
+    assert settings.http_addr == "127.0.0.1:3333"  # environment wins over the file
+    assert settings.grpc_addr == "127.0.0.1:2222"  # the file wins over defaults
+    assert load_settings(http_addr="127.0.0.1:4444").http_addr == "127.0.0.1:4444"  # flags win
+
+
+def test_unknown_toml_key_is_refused(tmp_path, monkeypatch):
+    config = tmp_path / "fleet.toml"
+    config.write_text('htp_addr = "127.0.0.1:1111"\n')
+    monkeypatch.setenv("FLEET_CONFIG", str(config))
+    with pytest.raises(ValidationError, match="htp_addr"):
+        load_settings()
+
+
+def test_max_message_size_must_be_positive(monkeypatch):
+    monkeypatch.setenv("FLEET_MAX_MESSAGE_SIZE", "0")
+    with pytest.raises(ValidationError, match="max_message_size"):
+        load_settings(data_dir=Path("x"))
