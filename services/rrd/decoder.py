@@ -162,7 +162,8 @@ class RrdDecoder:
         if state is _State.PAYLOAD:
             if available < self._length:
                 return 0
-            raw = bytes(buf[pos:pos + self._length])
+            with memoryview(buf) as view:  # one copy, and the view is released before resizing
+                raw = bytes(view[pos:pos + self._length])
             self._state = _State.MESSAGE_HEADER
             event = self._decode_message(raw)
             if event is not None:
@@ -185,9 +186,7 @@ class RrdDecoder:
                         events: list[Event]) -> int:
         assert self._end is not None
         end_start, end_len, end_payload = self._end
-        if available < 8:
-            if available >= 4 and looks_like_stream_header(bytes(buf[pos:pos + 4])):
-                self._state = _State.STREAM_HEADER
+        if available < 8:  # "RRF2" may begin a new stream or the b"RRF2FOOT" marker: wait
             return 0
         head = bytes(buf[pos:pos + 8])
         if head == FOOTER_MAGIC:
