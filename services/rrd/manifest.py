@@ -11,7 +11,7 @@ Plus the recording's Sorbet schema (every column of every entity) and its SHA-25
 from __future__ import annotations
 
 import hashlib
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 
 import lz4.block
@@ -99,7 +99,7 @@ def manifest_batch(entries: list[ManifestEntry]) -> pa.RecordBatch:
     columns: dict[str, pa.Array] = {}
     fields: list[pa.Field] = []
 
-    def add(fld: pa.Field, values: list[object]) -> None:
+    def add(fld: pa.Field, values: Sequence[object]) -> None:
         fields.append(fld)
         columns[fld.name] = pa.array(values, type=fld.type)
 
