@@ -28,6 +28,8 @@ COMPONENT_TYPE_KEY = b"rerun:component_type"
 _CONTROL_KINDS = (b"control", b"row_id")
 _INDEX_KINDS = (b"index", b"time")
 
+_LZ4_MAX_RATIO = 255
+
 TIMELINE_TYPES = {"int64": "sequence", "timestamp": "timestamp", "duration": "duration"}
 
 
@@ -83,9 +85,15 @@ def decompress_payload(msg: ArrowMessage) -> bytes:
     exactly `uncompressed_size` bytes."""
     if msg.compression != Compression.LZ4:
         return msg.payload
+    if msg.uncompressed_size > _LZ4_MAX_RATIO * len(msg.payload) + 64:
+        # Refuse before allocating: no LZ4 block expands more than ~255x.
+        raise errors.DecompressionError(
+            f"LZ4 block of {len(msg.payload)} bytes cannot decompress to the declared "
+            f"{msg.uncompressed_size} bytes", msg.offset,
+        )
     try:
         data: bytes = lz4.block.decompress(msg.payload, uncompressed_size=msg.uncompressed_size)
-    except (lz4.block.LZ4BlockError, ValueError, MemoryError) as exc:
+    except (lz4.block.LZ4BlockError, ValueError, MemoryError, OverflowError) as exc:
         raise errors.DecompressionError(
             f"LZ4 block of {len(msg.payload)} bytes does not decompress to the declared "
             f"{msg.uncompressed_size} bytes ({exc})", msg.offset,
@@ -105,7 +113,9 @@ def read_chunk(msg: ArrowMessage) -> pa.RecordBatch:
         reader = pa.BufferReader(pa.py_buffer(data))
         schema = pa.ipc.read_schema(pa.ipc.read_message(reader))
         batch = pa.ipc.read_record_batch(pa.ipc.read_message(reader), schema)
-    except (pa.ArrowInvalid, pa.ArrowNotImplementedError, StopIteration, OSError, TypeError) as exc:
+        # Cheap structural check (buffer sizes against lengths), so no later read goes out of bounds.
+        batch.validate()
+    except (pa.ArrowInvalid, pa.ArrowNotImplementedError, StopIteration, EOFError, OSError, TypeError) as exc:
         raise errors.NotAChunkError(f"payload is not an Arrow IPC record batch ({exc})", msg.offset) from exc
     metadata = batch.schema.metadata or {}
     if ENTITY_PATH_KEY not in metadata:
@@ -121,6 +131,13 @@ def parse_chunk_id(text: str) -> bytes:
 def chunk_meta(msg: ArrowMessage) -> ChunkMeta:
     """Metadata of the chunk in `msg`; raises a codec error if it is not a valid chunk."""
     batch = read_chunk(msg)
+    try:
+        return _chunk_meta(msg, batch)
+    except (UnicodeDecodeError, pa.ArrowInvalid, ValueError) as exc:
+        raise errors.NotAChunkError(f"chunk metadata is unreadable ({exc})", msg.offset) from exc
+
+
+def _chunk_meta(msg: ArrowMessage, batch: pa.RecordBatch) -> ChunkMeta:
     schema = batch.schema
     metadata = schema.metadata or {}
     try:

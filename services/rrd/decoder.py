@@ -21,6 +21,7 @@ from services.rrd.frames import (
     FOOTER_ENTRY_SIZE,
     FOOTER_FIXED_SIZE,
     FOOTER_MAGIC,
+    FOURCC,
     MESSAGE_HEADER_SIZE,
     STREAM_HEADER_SIZE,
     MessageKind,
@@ -70,7 +71,8 @@ class RrdDecoder:
         self._kind = 0
         self._length = 0
         self._end: tuple[int, int, bytes] | None = None  # (stream-relative start, len, payload)
-        self._footer_entries: list[tuple[int, int, int]] = []
+        self._footer_entries: list[tuple[int, int, int, int, int]] = []  # StreamFooter fields
+        self._error: errors.RrdError | None = None
 
     @property
     def offset(self) -> int:
@@ -82,6 +84,11 @@ class RrdDecoder:
         return self._streams
 
     def feed(self, data: bytes | bytearray | memoryview) -> list[Event]:
+        """Take the next bytes; return the events they complete.
+
+        A fault found in `data` is raised by the *next* call (`feed` or `finish`), so the events
+        completed before the fault are always returned first."""
+        self._raise_pending()
         if not data:
             return []
         self._buf += data
@@ -91,24 +98,34 @@ class RrdDecoder:
         try:
             while True:
                 step = self._step(buf, pos, events)
-                if step == 0:
+                if step is None:
                     break
                 pos += step
+        except errors.RrdError as exc:
+            self._error = exc
         finally:
             if pos:
                 del buf[:pos]
                 self._buf_offset += pos
         return events
 
+    def _raise_pending(self) -> None:
+        if self._error is not None:
+            raise self._error
+
     def finish(self) -> list[Event]:
         """Call at end of input: returns nothing more, or raises if the input ended badly."""
+        self._raise_pending()
         events: list[Event] = []
         remaining = len(self._buf)
         if self._state is _State.STREAM_HEADER:
             if self._streams == 0 and remaining == 0:
                 raise errors.NotAnRrdError("input is empty", self._buf_offset)
             if remaining:
-                if self._streams == 0 or looks_like_stream_header(bytes(self._buf[:4])):
+                head = bytes(self._buf[:4])
+                if self._streams == 0 and not (FOURCC.startswith(head) or looks_like_stream_header(head)):
+                    raise errors.NotAnRrdError(f"expected magic b'RRF2', found {head!r}", self._buf_offset)
+                if self._streams == 0 or looks_like_stream_header(head):
                     raise errors.TruncatedError(
                         f"stream header needs {STREAM_HEADER_SIZE} bytes, only {remaining} remain",
                         self._buf_offset,
@@ -127,14 +144,15 @@ class RrdDecoder:
                 f"only {remaining} remain",
                 self._msg_offset,
             )
-        elif remaining:  # AFTER_END: a partial stream footer
-            raise errors.TruncatedError(f"stream footer cut off after {remaining} bytes", self._buf_offset)
+        elif remaining or self._footer_entries:  # AFTER_END: a partial stream footer
+            start = self._footer_entries[0][0] if self._footer_entries else self._buf_offset
+            raise errors.TruncatedError("stream footer cut off", start)
         return events
 
     # --- state machine -------------------------------------------------------------------
 
-    def _step(self, buf: bytearray, pos: int, events: list[Event]) -> int:
-        """Consume one unit at `pos` if complete; return the bytes consumed (0 = need more)."""
+    def _step(self, buf: bytearray, pos: int, events: list[Event]) -> int | None:
+        """Consume one unit at `pos` if complete; return the bytes consumed (None = need more)."""
         available = len(buf) - pos
         here = self._buf_offset + pos
         state = self._state
@@ -143,7 +161,8 @@ class RrdDecoder:
                 # A new stream header may follow without an End message (concatenation).
                 if available >= 4 and looks_like_stream_header(bytes(buf[pos:pos + 4])):
                     self._state = _State.STREAM_HEADER
-                return 0
+                    return self._step(buf, pos, events)
+                return None
             if looks_like_stream_header(bytes(buf[pos:pos + 4])):
                 self._state = _State.STREAM_HEADER
                 return self._step(buf, pos, events)
@@ -161,7 +180,7 @@ class RrdDecoder:
             return MESSAGE_HEADER_SIZE
         if state is _State.PAYLOAD:
             if available < self._length:
-                return 0
+                return None
             with memoryview(buf) as view:  # one copy, and the view is released before resizing
                 raw = bytes(view[pos:pos + self._length])
             self._state = _State.MESSAGE_HEADER
@@ -173,7 +192,7 @@ class RrdDecoder:
             if available < STREAM_HEADER_SIZE:
                 if available >= 4 and not looks_like_stream_header(bytes(buf[pos:pos + 4])):
                     decode_stream_header(bytes(buf[pos:pos + 4]).ljust(STREAM_HEADER_SIZE, b"\0"), here)
-                return 0
+                return None
             header = decode_stream_header(bytes(buf[pos:pos + STREAM_HEADER_SIZE]), here)
             events.append(StreamStart(here, self._streams, header))
             self._streams += 1
@@ -183,20 +202,22 @@ class RrdDecoder:
         return self._step_after_end(buf, pos, available, here, events)
 
     def _step_after_end(self, buf: bytearray, pos: int, available: int, here: int,
-                        events: list[Event]) -> int:
+                        events: list[Event]) -> int | None:
         assert self._end is not None
         end_start, end_len, end_payload = self._end
         if available < 8:  # "RRF2" may begin a new stream or the b"RRF2FOOT" marker: wait
-            return 0
+            return None
         head = bytes(buf[pos:pos + 8])
         if head == FOOTER_MAGIC:
             if available < FOOTER_FIXED_SIZE:
-                return 0
+                return None
             count = int.from_bytes(buf[pos + 8:pos + 12], "little")
             if count != len(self._footer_entries):
                 raise errors.FooterError(
                     f"stream footer says {count} entries, {len(self._footer_entries)} precede it", here
                 )
+            # The trailer is reported once whole, so a cut one reads as truncated, not as present.
+            events.extend(StreamFooter(*entry) for entry in self._footer_entries)
             self._footer_entries.clear()
             self._state = _State.STREAM_HEADER
             return FOOTER_FIXED_SIZE
@@ -209,7 +230,7 @@ class RrdDecoder:
                 f"or a new stream; found {head.hex()}", here,
             )
         if available < FOOTER_ENTRY_SIZE:
-            return 0
+            return None
         start, length, crc = decode_footer_entry(buf, pos)
         if length != end_len:
             raise errors.FooterError(f"stream footer length {length} != End payload length {end_len}", here)
@@ -218,8 +239,7 @@ class RrdDecoder:
                 f"stream footer CRC {crc:08x} does not match the End payload ({footer_crc(end_payload):08x})",
                 here,
             )
-        self._footer_entries.append((start, length, crc))
-        events.append(StreamFooter(here, self._streams - 1, start, length, crc))
+        self._footer_entries.append((here, self._streams - 1, start, length, crc))
         return FOOTER_ENTRY_SIZE
 
     def _decode_message(self, raw: bytes) -> Event | None:

@@ -155,7 +155,9 @@ def format_time(timeline_type: str, value: int) -> str:
             return str(value)
         return f"{stamp}.{nanos:09d}Z"
     if timeline_type == "duration":
-        return f"{value / 1e9:.9f}".rstrip("0").rstrip(".") + "s"
+        sign = "-" if value < 0 else ""
+        seconds, nanos = divmod(abs(value), 1_000_000_000)
+        return f"{sign}{seconds}.{nanos:09d}".rstrip("0").rstrip(".") + "s"
     return str(value)
 
 
