@@ -1,0 +1,242 @@
+"""Chunk layouts: what each column of a chunk schema is, worked out once per distinct schema.
+
+A recording repeats a handful of chunk schemas (one or a few per entity) that differ only in the
+chunk id stored in the schema metadata. Indexing tens of thousands of small chunks is dominated by
+per-chunk Arrow overhead, so the layout (column roles, timelines, components, and where each
+column's nodes and buffers sit in an IPC record batch) is cached by the schema message with the
+chunk id blanked, and the record batch header is read directly (Arrow IPC flatbuffers) to get the
+row count and the index values. Anything unusual (nulls in an index, IPC buffer compression,
+types whose buffers are not counted here, any inconsistency) falls back to reading with pyarrow.
+"""
+
+from __future__ import annotations
+
+import operator
+import struct
+from dataclasses import dataclass
+
+import pyarrow as pa
+
+from services.rrd import errors
+
+ENTITY_PATH_KEY = b"rerun:entity_path"
+KIND_KEY = b"rerun:kind"
+INDEX_NAME_KEY = b"rerun:index_name"
+IS_SORTED_KEY = b"rerun:is_sorted"
+ARCHETYPE_KEY = b"rerun:archetype"
+COMPONENT_KEY = b"rerun:component"
+COMPONENT_TYPE_KEY = b"rerun:component_type"
+
+# Rerun accepts both the current and the legacy names of column kinds.
+_CONTROL_KINDS = (b"control", b"row_id")
+_INDEX_KINDS = (b"index", b"time")
+TIMELINE_TYPES = {"int64": "sequence", "timestamp": "timestamp", "duration": "duration"}
+
+_CONTINUATION = b"\xff\xff\xff\xff"
+_RECORD_BATCH = 3  # flatbuffers MessageHeader union tag
+_MAX_LAYOUTS = 4096
+
+
+@dataclass(frozen=True, slots=True)
+class IndexColumn:
+    position: int  # column position in the schema
+    name: str  # timeline name
+    type: str  # sequence | timestamp | duration
+    is_sorted: bool
+    field: pa.Field
+    node: int  # its FieldNode in a record batch
+    data_buffer: int  # its values buffer in a record batch
+
+
+@dataclass(frozen=True, slots=True)
+class DataColumn:
+    position: int
+    column: str
+    component: str
+    archetype: str | None
+    component_type: str | None
+    field: pa.Field
+    node: int
+
+    @property
+    def descriptor(self) -> tuple[str, str, str]:
+        return (self.archetype or "", self.component, self.component_type or "")
+
+
+@dataclass(frozen=True, slots=True)
+class ChunkLayout:
+    entity_path: str
+    schema: pa.Schema
+    row_id_field: pa.Field | None
+    indexes: tuple[IndexColumn, ...]
+    data: tuple[DataColumn, ...]
+    top_nodes: tuple[int, ...]
+    num_nodes: int
+    num_buffers: int
+    direct: bool  # record batches of this schema can be read without pyarrow
+
+
+def _counts(t: pa.DataType) -> tuple[int, int] | None:
+    """(field nodes, buffers) a column of type `t` takes in an IPC record batch; None if not counted here."""
+    if pa.types.is_null(t):
+        return 1, 0
+    if (pa.types.is_boolean(t) or pa.types.is_integer(t) or pa.types.is_floating(t)
+            or pa.types.is_temporal(t) or pa.types.is_fixed_size_binary(t) or pa.types.is_decimal(t)):
+        return 1, 2
+    if pa.types.is_string(t) or pa.types.is_binary(t) or pa.types.is_large_string(t) or pa.types.is_large_binary(t):
+        return 1, 3
+    if pa.types.is_map(t):
+        child = _counts(pa.struct([t.key_field, t.item_field]))
+        return None if child is None else (1 + child[0], 2 + child[1])
+    if pa.types.is_list(t) or pa.types.is_large_list(t) or pa.types.is_fixed_size_list(t):
+        child = _counts(t.value_type)
+        own = 1 if pa.types.is_fixed_size_list(t) else 2
+        return None if child is None else (1 + child[0], own + child[1])
+    if pa.types.is_struct(t):
+        nodes, buffers = 1, 1
+        for i in range(t.num_fields):
+            child = _counts(t.field(i).type)
+            if child is None:
+                return None
+            nodes, buffers = nodes + child[0], buffers + child[1]
+        return nodes, buffers
+    return None
+
+
+def build_layout(schema: pa.Schema, offset: int) -> ChunkLayout:
+    """The layout of a chunk schema; raises NotAChunkError if it is not a Rerun chunk schema."""
+    metadata = schema.metadata or {}
+    if ENTITY_PATH_KEY not in metadata:
+        raise errors.NotAChunkError("Arrow schema has no rerun:entity_path metadata", offset)
+    row_id_field = None
+    indexes: list[IndexColumn] = []
+    data: list[DataColumn] = []
+    top_nodes: list[int] = []
+    nodes = buffers = 0
+    direct = True
+    for position, fld in enumerate(schema):
+        counts = _counts(fld.type)
+        direct = direct and counts is not None
+        fmeta = fld.metadata or {}
+        kind = fmeta.get(KIND_KEY)
+        if kind in _CONTROL_KINDS:
+            row_id_field = fld
+        elif kind in _INDEX_KINDS:
+            type_name = TIMELINE_TYPES.get(str(fld.type).split("[")[0])
+            if type_name is None:
+                raise errors.NotAChunkError(f"index column {fld.name!r} has unsupported type {fld.type}", offset)
+            name = fmeta.get(INDEX_NAME_KEY, fld.name.encode()).decode()
+            indexes.append(IndexColumn(position, name, type_name, fmeta.get(IS_SORTED_KEY) == b"true", fld,
+                                       nodes, buffers + 1))
+        else:
+            archetype = fmeta.get(ARCHETYPE_KEY)
+            component_type = fmeta.get(COMPONENT_TYPE_KEY)
+            data.append(DataColumn(
+                position, fld.name, fmeta.get(COMPONENT_KEY, fld.name.encode()).decode(),
+                archetype.decode() if archetype else None,
+                component_type.decode() if component_type else None, fld, nodes))
+        top_nodes.append(nodes)
+        if counts is not None:
+            nodes, buffers = nodes + counts[0], buffers + counts[1]
+    return ChunkLayout(metadata[ENTITY_PATH_KEY].decode(), schema, row_id_field, tuple(indexes), tuple(data),
+                       tuple(top_nodes), nodes, buffers, direct)
+
+
+class LayoutCache:
+    """Layouts by schema message (chunk id blanked); bounded, cleared when full."""
+
+    def __init__(self, max_size: int = _MAX_LAYOUTS) -> None:
+        self._layouts: dict[bytes, ChunkLayout] = {}
+        self._max_size = max_size
+
+    def get(self, schema_message: bytes, chunk_id_text: bytes, offset: int) -> ChunkLayout:
+        key = schema_message.replace(chunk_id_text, b"") if chunk_id_text else schema_message
+        layout = self._layouts.get(key)
+        if layout is None:
+            try:
+                schema = pa.ipc.read_schema(pa.py_buffer(_CONTINUATION + struct.pack("<i", len(schema_message))
+                                                         + schema_message))
+            except (pa.ArrowInvalid, pa.ArrowNotImplementedError, OSError, TypeError, EOFError) as exc:
+                raise errors.NotAChunkError(f"payload is not an Arrow IPC stream ({exc})", offset) from exc
+            layout = build_layout(schema, offset)
+            if len(self._layouts) >= self._max_size:
+                self._layouts.clear()
+            self._layouts[key] = layout
+        return layout
+
+
+def split_ipc(data: bytes) -> tuple[bytes, int] | None:
+    """(schema message flatbuffer, position of the next message) of an IPC stream, or None."""
+    if len(data) < 8 or data[:4] != _CONTINUATION:
+        return None
+    (size,) = struct.unpack_from("<i", data, 4)
+    if size <= 0 or 8 + size > len(data):
+        return None
+    return data[8:8 + size], 8 + size
+
+
+@dataclass(slots=True)
+class BatchHeader:
+    length: int
+    nodes: tuple[int, ...]  # flat (length, null_count) pairs
+    buffers: tuple[int, ...]  # flat (offset, length) pairs
+    body: int  # position of the body in the data
+
+
+_I32 = struct.Struct("<i")
+_U32 = struct.Struct("<I")
+_U16 = struct.Struct("<H")
+_I64 = struct.Struct("<q")
+
+
+def read_batch_header(data: bytes, pos: int, layout: ChunkLayout) -> BatchHeader | None:
+    """The record batch header at `pos`, if it is a plain one matching `layout`; else None.
+
+    Reads the IPC flatbuffers inline (Message: 1 header_type, 2 header, 3 bodyLength;
+    RecordBatch: 0 length, 1 nodes, 2 buffers, 3 compression): this runs once per chunk."""
+    try:
+        if data[pos:pos + 4] != _CONTINUATION:
+            return None
+        size = _I32.unpack_from(data, pos + 4)[0]
+        base = pos + 8
+        body = base + size
+        if size <= 0 or body > len(data):
+            return None
+        message = base + _U32.unpack_from(data, base)[0]
+        vtable = message - _I32.unpack_from(data, message)[0]
+        if _U16.unpack_from(data, vtable)[0] < 12:
+            return None
+        o_type, o_header, o_body = struct.unpack_from("<3H", data, vtable + 6)
+        if not o_type or not o_header or data[message + o_type] != _RECORD_BATCH:
+            return None
+        body_length = _I64.unpack_from(data, message + o_body)[0] if o_body else 0
+        at = message + o_header
+        batch = at + _U32.unpack_from(data, at)[0]
+        vtable = batch - _I32.unpack_from(data, batch)[0]
+        slots = (_U16.unpack_from(data, vtable)[0] - 4) // 2
+        if slots < 3:
+            return None
+        o_length, o_nodes, o_buffers = struct.unpack_from("<3H", data, vtable + 4)
+        if slots > 3 and _U16.unpack_from(data, vtable + 10)[0]:
+            return None  # IPC buffer compression: not used by Rerun
+        length = _I64.unpack_from(data, batch + o_length)[0] if o_length else 0
+        nodes = _struct_vector(data, batch, o_nodes, layout.num_nodes)
+        buffers = _struct_vector(data, batch, o_buffers, layout.num_buffers)
+        if nodes is None or buffers is None or length < 0 or body + body_length > len(data):
+            return None
+        if buffers and (min(buffers) < 0 or max(map(operator.add, buffers[::2], buffers[1::2])) > body_length):
+            return None
+        return BatchHeader(length, nodes, buffers, body)
+    except (struct.error, IndexError):
+        return None
+
+
+def _struct_vector(data: bytes, table: int, field_offset: int, expected: int) -> tuple[int, ...] | None:
+    """A flatbuffers vector of 16-byte (int64, int64) structs as a flat tuple, if it has `expected` items."""
+    if not field_offset:
+        return () if expected == 0 else None
+    at = table + field_offset
+    vector = at + _U32.unpack_from(data, at)[0]
+    if _U32.unpack_from(data, vector)[0] != expected:
+        return None
+    return struct.unpack_from(f"<{2 * expected}q", data, vector + 4)
