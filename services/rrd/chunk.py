@@ -80,7 +80,7 @@ def decompress_payload(msg: ArrowMessage) -> bytes:
     """The Arrow IPC bytes of `msg`; raises DecompressionError if LZ4 does not give
     exactly `uncompressed_size` bytes."""
     if msg.compression != Compression.LZ4:
-        return msg.payload
+        return bytes(msg.payload)
     if msg.uncompressed_size > _LZ4_MAX_RATIO * len(msg.payload) + 64:
         # Refuse before allocating: no LZ4 block expands more than ~255x.
         raise errors.DecompressionError(

@@ -48,6 +48,8 @@ from services.rrd.pb import log_msg_pb2
 
 DEFAULT_MAX_MESSAGE_SIZE = 256 * 1024 * 1024
 READ_SIZE = 1024 * 1024
+LARGE_MESSAGE = 256 * 1024
+LARGE_STEP = 8 * 1024 * 1024
 
 
 class _State(enum.Enum):
@@ -73,6 +75,8 @@ class RrdDecoder:
         self._end: tuple[int, int, bytes] | None = None  # (stream-relative start, len, payload)
         self._footer_entries: list[tuple[int, int, int, int, int]] = []  # StreamFooter fields
         self._error: errors.RrdError | None = None
+        self._large: bytearray | None = None  # the message being read when it is large
+        self._filled = 0
 
     @property
     def offset(self) -> int:
@@ -91,8 +95,13 @@ class RrdDecoder:
         self._raise_pending()
         if not data:
             return []
-        self._buf += data
         events: list[Event] = []
+        if self._large is not None:
+            taken = self._fill_large(data, events)
+            if taken == len(data) or self._error is not None:
+                return events
+            data = memoryview(data)[taken:]
+        self._buf += data
         pos = 0
         buf = self._buf
         try:
@@ -112,6 +121,46 @@ class RrdDecoder:
     def _raise_pending(self) -> None:
         if self._error is not None:
             raise self._error
+
+    def payload_target(self) -> memoryview | None:
+        """While a large message is being read: room for its next bytes, so a file reader can
+        `readinto` it directly, then call `payload_filled`. Release the view before the next call."""
+        if self._large is None:
+            return None
+        have = len(self._large)
+        self._large += bytes(min(self._length - have, LARGE_STEP))  # grows only as data arrives
+        return memoryview(self._large)[have:]
+
+    def payload_filled(self, count: int) -> list[Event]:
+        """`count` bytes were written at the start of the last `payload_target()`."""
+        assert self._large is not None
+        del self._large[self._filled + count:]
+        events: list[Event] = []
+        self._advance_large(count, events)
+        return events
+
+    def _fill_large(self, data: bytes | bytearray | memoryview, events: list[Event]) -> int:
+        assert self._large is not None
+        count = min(len(data), self._length - self._filled)
+        self._large += memoryview(data)[:count]
+        self._advance_large(count, events)
+        return count
+
+    def _advance_large(self, count: int, events: list[Event]) -> None:
+        assert self._large is not None
+        self._filled += count
+        self._buf_offset += count
+        if self._filled < self._length:
+            return
+        raw, self._large = self._large, None
+        self._state = _State.MESSAGE_HEADER
+        try:
+            event = self._decode_message(raw)
+        except errors.RrdError as exc:
+            self._error = exc
+            return
+        if event is not None:
+            events.append(event)
 
     def finish(self) -> list[Event]:
         """Call at end of input: returns nothing more, or raises if the input ended badly."""
@@ -139,9 +188,10 @@ class RrdDecoder:
                     self._buf_offset,
                 )
         elif self._state is _State.PAYLOAD:
+            have = self._filled if self._large is not None else remaining
             raise errors.TruncatedError(
                 f"{MessageKind(self._kind).name} message declares {self._length} bytes, "
-                f"only {remaining} remain",
+                f"only {have} remain",
                 self._msg_offset,
             )
         elif remaining or self._footer_entries:  # AFTER_END: a partial stream footer
@@ -179,7 +229,16 @@ class RrdDecoder:
             self._state = _State.PAYLOAD
             return MESSAGE_HEADER_SIZE
         if state is _State.PAYLOAD:
+            if self._large is not None:
+                return None
             if available < self._length:
+                if self._length >= LARGE_MESSAGE:
+                    # Large messages get their own buffer, filled in place (not re-copied), which
+                    # grows with the data received, never to the declared size up front.
+                    with memoryview(buf) as view:
+                        self._large = bytearray(view[pos:pos + available])
+                    self._filled = available
+                    return available
                 return None
             with memoryview(buf) as view:  # one copy, and the view is released before resizing
                 raw = bytes(view[pos:pos + self._length])
@@ -242,12 +301,13 @@ class RrdDecoder:
         self._footer_entries.append((here, self._streams - 1, start, length, crc))
         return FOOTER_ENTRY_SIZE
 
-    def _decode_message(self, raw: bytes) -> Event | None:
+    def _decode_message(self, raw: bytes | bytearray) -> Event | None:
         offset, kind = self._msg_offset, self._kind
         where = (offset, self._stream_offset, self._streams - 1)
         try:
             if kind == MessageKind.ARROW_MSG:
                 return _arrow_message(raw, *where)
+            raw = bytes(raw)  # no copy unless a rare large non-chunk message came in a bytearray
             if kind == MessageKind.SET_STORE_INFO:
                 return _store_info_message(raw, *where)
             if kind == MessageKind.BLUEPRINT_ACTIVATION:
@@ -288,8 +348,16 @@ def _source(info: log_msg_pb2.StoreInfo) -> str:
     return label
 
 
-def _arrow_message(raw: bytes, offset: int, stream_offset: int, stream_index: int) -> ArrowMessage:
-    pb = log_msg_pb2.ArrowMsg.FromString(raw)
+def _arrow_message(raw: bytes | bytearray, offset: int, stream_offset: int, stream_index: int) -> ArrowMessage:
+    payload: bytes | memoryview
+    if len(raw) >= LARGE_MESSAGE:
+        # Parse everything but the payload, which stays a view into `raw` (never copied).
+        start, value, end = _last_len_field(raw, _ARROW_PAYLOAD_FIELD, offset)
+        pb = log_msg_pb2.ArrowMsg.FromString(bytes(raw[:start]) + bytes(raw[end:]))
+        payload = memoryview(raw)[value:end]
+    else:
+        pb = log_msg_pb2.ArrowMsg.FromString(bytes(raw))  # small messages arrive as bytes: no copy
+        payload = pb.payload
     if int(pb.compression) not in (Compression.UNSPECIFIED, Compression.NONE, Compression.LZ4):
         raise errors.UnknownCompressionError(
             f"ArrowMsg compression {pb.compression}, expected 1 (none) or 2 (LZ4)", offset
@@ -303,8 +371,49 @@ def _arrow_message(raw: bytes, offset: int, stream_offset: int, stream_index: in
         is_static=pb.is_static if pb.HasField("is_static") else None,
         compression=Compression(pb.compression),
         uncompressed_size=pb.uncompressed_size,
-        payload=pb.payload,
+        payload=payload,
     )
+
+
+_ARROW_PAYLOAD_FIELD = 5
+
+
+def _varint(raw: bytes | bytearray, pos: int, offset: int) -> tuple[int, int]:
+    result = shift = 0
+    while True:
+        if pos >= len(raw) or shift > 63:
+            raise errors.ProtobufError("ArrowMsg: bad varint", offset)
+        byte = raw[pos]
+        pos += 1
+        result |= (byte & 0x7F) << shift
+        if not byte & 0x80:
+            return result, pos
+        shift += 7
+
+
+def _last_len_field(raw: bytes | bytearray, number: int, offset: int) -> tuple[int, int, int]:
+    """(tag start, value start, value end) of the last length-delimited field `number`."""
+    pos, found = 0, (len(raw), len(raw), len(raw))
+    while pos < len(raw):
+        tag_start = pos
+        key, pos = _varint(raw, pos, offset)
+        wire, field = key & 7, key >> 3
+        if wire == 0:
+            _, pos = _varint(raw, pos, offset)
+        elif wire == 1:
+            pos += 8
+        elif wire == 5:
+            pos += 4
+        elif wire == 2:
+            length, pos = _varint(raw, pos, offset)
+            if field == number:
+                found = (tag_start, pos, pos + length)
+            pos += length
+        else:
+            raise errors.ProtobufError(f"ArrowMsg: wire type {wire} in field {field}", offset)
+        if pos > len(raw):
+            raise errors.ProtobufError(f"ArrowMsg: field {field} runs past the end of the message", offset)
+    return found
 
 
 def iter_events(source: BinaryIO | str | os.PathLike[str], *, max_message_size: int = DEFAULT_MAX_MESSAGE_SIZE,
@@ -318,7 +427,17 @@ def iter_events(source: BinaryIO | str | os.PathLike[str], *, max_message_size: 
             yield from iter_events(fh, max_message_size=max_message_size, read_size=read_size)
         return
     decoder = RrdDecoder(max_message_size=max_message_size)
+    can_readinto = hasattr(source, "readinto")
     while True:
+        target = decoder.payload_target() if can_readinto else None
+        if target is not None:
+            with target:  # large messages are read straight into their buffer
+                count = source.readinto(target) or 0  # type: ignore[attr-defined]
+            events = decoder.payload_filled(count)
+            if not count:
+                break
+            yield from events
+            continue
         data = source.read(read_size)
         if not data:
             break

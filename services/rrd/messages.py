@@ -104,7 +104,7 @@ class StreamStart:
 
 @dataclass(slots=True)
 class StoreInfoMessage(Located):
-    raw: bytes
+    raw: bytes | bytearray
     store_id: StoreId
     sdk_version: RerunVersion | None
     source: str
@@ -113,13 +113,13 @@ class StoreInfoMessage(Located):
 
 @dataclass(slots=True)
 class ArrowMessage(Located):
-    raw: bytes
+    raw: bytes | bytearray  # large messages keep the buffer they were read into
     store_id: StoreId
     chunk_id: bytes | None
     is_static: bool | None
     compression: Compression
     uncompressed_size: int
-    payload: bytes
+    payload: bytes | memoryview  # a view into `raw` for large messages
     kind: MessageKind = MessageKind.ARROW_MSG
 
     @property
@@ -130,7 +130,7 @@ class ArrowMessage(Located):
 
 @dataclass(slots=True)
 class BlueprintActivationMessage(Located):
-    raw: bytes
+    raw: bytes | bytearray
     blueprint_id: StoreId
     make_active: bool
     make_default: bool
@@ -141,7 +141,7 @@ class BlueprintActivationMessage(Located):
 class EndMessage(Located):
     """End of a stream; `footer` is the parsed RrdFooter payload (None when empty)."""
 
-    raw: bytes
+    raw: bytes | bytearray
     footer: log_msg_pb2.RrdFooter | None
     kind: MessageKind = MessageKind.END
 

@@ -37,7 +37,7 @@ def all_chunks(rec: Recording) -> list[tuple[ArrowMessage, ChunkMeta]]:
 
 def independent_batch(msg: ArrowMessage) -> tuple[pa.RecordBatch, log_msg_pb2.ArrowMsg, bytes]:
     """The chunk read straight from the protobuf bytes, without services.rrd.chunk."""
-    pb = log_msg_pb2.ArrowMsg.FromString(msg.raw)
+    pb = log_msg_pb2.ArrowMsg.FromString(bytes(msg.raw))
     assert pb.compression == 2  # LZ4: what 0.41 writes
     ipc = lz4.block.decompress(pb.payload, uncompressed_size=pb.uncompressed_size)
     table = pa.ipc.open_stream(ipc).read_all()
