@@ -29,13 +29,13 @@ CHUNK_ID_KEY = b"rerun:id"
 _LZ4_MAX_RATIO = 255
 
 
-@dataclass(frozen=True, slots=True)
+@dataclass(slots=True)
 class TimeRange:
     min: int
     max: int
 
 
-@dataclass(frozen=True, slots=True)
+@dataclass(slots=True)
 class TimelineMeta:
     name: str
     type: str  # sequence | timestamp | duration
@@ -44,7 +44,7 @@ class TimelineMeta:
     field: pa.Field
 
 
-@dataclass(frozen=True, slots=True)
+@dataclass(slots=True)
 class ComponentMeta:
     column: str  # the chunk's column name, e.g. "Points3D:positions"
     component: str  # rerun:component
@@ -59,7 +59,7 @@ class ComponentMeta:
         return (self.archetype or "", self.component, self.component_type or "")
 
 
-@dataclass(frozen=True, slots=True)
+@dataclass(slots=True)
 class ChunkMeta:
     chunk_id: bytes
     entity_path: str
@@ -151,13 +151,13 @@ def _chunk_meta(msg: ArrowMessage, data: bytes) -> ChunkMeta:
     values = _direct_values(data, layout, header) if header is not None else None
     if values is not None:
         num_rows, ranges = values
-        components = tuple(ComponentMeta(c.column, c.component, c.archetype, c.component_type, num_rows,
-                                         ranges, c.field) for c in layout.data)
+        components = tuple([ComponentMeta(c.column, c.component, c.archetype, c.component_type, num_rows,
+                                          ranges, c.field) for c in layout.data])
     else:
         batch = _read_batch(msg, data)
         num_rows, ranges, components = _arrow_values(batch, layout, msg.offset)
-    timelines = tuple(TimelineMeta(ix.name, ix.type, ranges[ix.name], ix.is_sorted, ix.field)
-                      for ix in layout.indexes if ix.name in ranges)
+    timelines = tuple([TimelineMeta(ix.name, ix.type, ranges[ix.name], ix.is_sorted, ix.field)
+                       for ix in layout.indexes if ix.name in ranges])
     if msg.chunk_id:
         chunk_id = msg.chunk_id
     else:

@@ -44,12 +44,13 @@ from services.rrd.messages import (
     StreamStart,
     tuid_bytes,
 )
-from services.rrd.pb import log_msg_pb2
+from services.rrd.pb import common_pb2, log_msg_pb2
 
 DEFAULT_MAX_MESSAGE_SIZE = 256 * 1024 * 1024
 READ_SIZE = 1024 * 1024
 LARGE_MESSAGE = 256 * 1024
 LARGE_STEP = 8 * 1024 * 1024
+_R = ord("R")
 
 
 class _State(enum.Enum):
@@ -213,7 +214,8 @@ class RrdDecoder:
                     self._state = _State.STREAM_HEADER
                     return self._step(buf, pos, events)
                 return None
-            if looks_like_stream_header(bytes(buf[pos:pos + 4])):
+            # A message header starts with its kind (0-3); b"R" may start a concatenated stream.
+            if buf[pos] == _R and looks_like_stream_header(bytes(buf[pos:pos + 4])):
                 self._state = _State.STREAM_HEADER
                 return self._step(buf, pos, events)
             kind, length = decode_message_header(buf, pos)
@@ -358,7 +360,8 @@ def _arrow_message(raw: bytes | bytearray, offset: int, stream_offset: int, stre
     else:
         pb = log_msg_pb2.ArrowMsg.FromString(bytes(raw))  # small messages arrive as bytes: no copy
         payload = pb.payload
-    if int(pb.compression) not in (Compression.UNSPECIFIED, Compression.NONE, Compression.LZ4):
+    compression = _COMPRESSIONS.get(pb.compression)
+    if compression is None:
         raise errors.UnknownCompressionError(
             f"ArrowMsg compression {pb.compression}, expected 1 (none) or 2 (LZ4)", offset
         )
@@ -366,13 +369,28 @@ def _arrow_message(raw: bytes | bytearray, offset: int, stream_offset: int, stre
         raise errors.ProtobufError(f"ArrowMsg encoding {pb.encoding}, expected 1 (Arrow IPC)", offset)
     return ArrowMessage(
         offset, stream_offset, stream_index, raw,
-        store_id=StoreId.from_proto(pb.store_id),
+        store_id=_store_id(pb.store_id),
         chunk_id=tuid_bytes(pb.chunk_id) if pb.HasField("chunk_id") else None,
         is_static=pb.is_static if pb.HasField("is_static") else None,
-        compression=Compression(pb.compression),
+        compression=compression,
         uncompressed_size=pb.uncompressed_size,
         payload=payload,
     )
+
+
+_COMPRESSIONS = {int(c): c for c in Compression}
+_STORE_IDS: dict[tuple[int, str, str], StoreId] = {}
+
+
+def _store_id(pb: common_pb2.StoreId) -> StoreId:
+    """StoreId objects are shared: a stream repeats the same few on every chunk."""
+    key = (pb.kind, pb.application_id.id, pb.recording_id)
+    store_id = _STORE_IDS.get(key)
+    if store_id is None:
+        if len(_STORE_IDS) > 10_000:
+            _STORE_IDS.clear()
+        store_id = _STORE_IDS[key] = StoreId.from_proto(pb)
+    return store_id
 
 
 _ARROW_PAYLOAD_FIELD = 5

@@ -7,6 +7,7 @@ untouched; an Arrow message's `payload` is never decompressed or re-encoded here
 from __future__ import annotations
 
 import enum
+import struct
 from dataclasses import dataclass
 
 from services.rrd.frames import MESSAGE_HEADER_SIZE, MessageKind, RerunVersion, StreamHeader
@@ -53,9 +54,12 @@ class StoreId:
         return f"{self.kind.name.lower()}:{self.application_id}/{self.recording_id}"
 
 
+_TUID = struct.Struct(">QQ")
+
+
 def tuid_bytes(pb: common_pb2.Tuid) -> bytes:
     """A TUID as Rerun stores it in Arrow: time_ns big-endian then inc big-endian (16 bytes)."""
-    return pb.time_ns.to_bytes(8, "big") + pb.inc.to_bytes(8, "big")
+    return _TUID.pack(pb.time_ns, pb.inc)
 
 
 def tuid_str(raw: bytes) -> str:
