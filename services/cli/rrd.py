@@ -14,6 +14,7 @@ from rich.progress import BarColumn, DownloadColumn, Progress, TransferSpeedColu
 from rich.table import Table
 
 from services.rrd.decoder import DEFAULT_MAX_MESSAGE_SIZE, READ_SIZE, RrdDecoder
+from services.rrd.footer import summarize_from_footer
 from services.rrd.messages import Event
 from services.rrd.summary import RrdSummary, StoreSummary, format_time, summarize
 
@@ -54,19 +55,26 @@ def _inspect_one(name: str, fh: BinaryIO, size: int | None, max_message_size: in
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON document (a list, one item per file).")
 @click.option("--max-message-size", type=int, default=DEFAULT_MAX_MESSAGE_SIZE, show_default=True,
               help="Refuse messages larger than this many bytes.")
-def inspect(files: tuple[str, ...], as_json: bool, max_message_size: int) -> None:
+@click.option("--scan", is_flag=True,
+              help="Read and check every chunk even when the file has an RRD footer (slower).")
+def inspect(files: tuple[str, ...], as_json: bool, max_message_size: int, scan: bool) -> None:
     """Show what .rrd FILES hold (stdin when none or '-'): stores, application and recording ids,
     SDK version, entities with chunk and row counts, timelines with ranges.
 
-    Exits 1 if any file is not valid RRD data (what was read before the fault is still shown)."""
+    A file with an RRD footer is indexed from its footer (milliseconds for any size) unless --scan;
+    others are read chunk by chunk. Exits 1 if any file is not valid RRD data (what was read
+    before the fault is still shown)."""
     summaries = []
     for name in files or ("-",):
         try:
             if name == "-":
                 summaries.append(_inspect_one("<stdin>", sys.stdin.buffer, None, max_message_size, as_json))
-            else:
+                continue
+            summary = None if scan or not os.path.isfile(name) else summarize_from_footer(name)
+            if summary is None:
                 with open(name, "rb") as fh:
-                    summaries.append(_inspect_one(name, fh, os.path.getsize(name), max_message_size, as_json))
+                    summary = _inspect_one(name, fh, os.path.getsize(name), max_message_size, as_json)
+            summaries.append(summary)
         except OSError as exc:
             raise click.ClickException(f"cannot read {name}: {exc.strerror or exc}") from exc
     if as_json:
@@ -85,7 +93,7 @@ def inspect(files: tuple[str, ...], as_json: bool, max_message_size: int) -> Non
 def _print_summary(console: Console, summary: RrdSummary) -> None:
     versions = ", ".join(sorted(set(summary.rerun_versions))) or "-"
     console.print(f"[bold]{summary.source}[/bold]: {summary.bytes_read:,} bytes, {summary.streams} stream(s) "
-                  f"(Rerun {versions}), footer: {'yes' if summary.footers else 'no'}")
+                  f"(Rerun {versions}), footer: {'yes' if summary.footers else 'no'}, indexed by {summary.index}")
     for store in summary.stores.values():
         _print_store(console, store)
 

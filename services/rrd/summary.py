@@ -85,6 +85,7 @@ class RrdSummary:
     footers: int = 0
     stores: dict[StoreId, StoreSummary] = field(default_factory=dict)
     error: errors.RrdError | None = None
+    index: str = "scan"  # "scan": every chunk read; "footer": from the file's RRD footer
 
     def store(self, store_id: StoreId) -> StoreSummary:
         return self.stores.setdefault(store_id, StoreSummary(store_id))
@@ -114,6 +115,7 @@ class RrdSummary:
             "streams": self.streams,
             "rerun_versions": self.rerun_versions,
             "footers": self.footers,
+            "index": self.index,
             "error": None if self.error is None else {
                 "type": type(self.error).__name__, "offset": self.error.offset, "message": str(self.error)},
             "stores": [_store_dict(s) for s in self.stores.values()],

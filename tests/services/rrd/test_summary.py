@@ -19,6 +19,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from services.rrd import ArrowMessage, StoreKind, errors, iter_events
+from services.rrd.footer import summarize_from_footer
 from services.rrd.summary import RrdSummary, StoreSummary, format_time, summarize
 from tests.services.rrd.recordings import CLI_FILES, Recording, walk_frames
 
@@ -292,7 +293,29 @@ def test_inspect_stdin(recordings: dict[str, Recording], args: tuple[str, ...]):
     assert doc["source"] == "<stdin>"
     check_inspect_doc(doc, rec)
     (file_doc,) = json.loads(from_file.stdout)
-    assert {**doc, "source": None} == {**file_doc, "source": None}
+    assert (doc["index"], file_doc["index"]) == ("scan", "footer")  # stdin cannot seek to the footer
+    assert {**doc, "source": None, "index": None} == {**file_doc, "source": None, "index": None}
+
+
+@sdk
+def test_footer_summary_equals_full_scan(footer_file: Recording):
+    from_footer = summarize_from_footer(str(footer_file.path))
+    assert from_footer is not None and from_footer.index == "footer"
+    scanned = summarize(iter_events(footer_file.path), str(footer_file.path))
+    assert {**from_footer.to_dict(), "bytes": 0, "index": None} == {**scanned.to_dict(), "index": None}
+
+
+@sdk
+def test_footer_summary_refuses_what_it_cannot_trust(recordings: dict[str, Recording], tmp_path: Path):
+    assert summarize_from_footer(str(recordings["no_footer"].path)) is None
+    concatenated = tmp_path / "cat.rrd"
+    concatenated.write_bytes(recordings["merge_a"].data + recordings["merge_b"].data)
+    assert summarize_from_footer(str(concatenated)) is None  # offsets are relative to the last stream
+    damaged = bytearray(recordings["points"].data)
+    damaged[-40] ^= 0xFF  # inside the footer payload: the CRC no longer matches
+    (tmp_path / "damaged.rrd").write_bytes(damaged)
+    assert summarize_from_footer(str(tmp_path / "damaged.rrd")) is None
+    assert fleet("rrd", "inspect", "--json", "--scan", recordings["points"].path).returncode == 0
 
 
 @sdk
