@@ -14,8 +14,10 @@
 2. Times on each file (page cache warm, best of ``--repeat``, wall clock with ``time.perf_counter``):
    * ours, scan + index: ``summarize(iter_events(path), path)`` (what ``fleet rrd inspect`` does: every
      message decoded, ``chunk_meta`` for every chunk), in a worker process, timed in-process;
+   * ours, footer index: ``summarize_from_footer(path)`` (the same summary from the RRD footer);
    * ours, scan only: ``iter_events(path)`` (framing + protobuf, no LZ4 / Arrow);
-   * ours, whole process: ``fleet rrd inspect FILE`` (interpreter start and imports included);
+   * ours, whole process: ``fleet rrd inspect --scan FILE`` and ``fleet rrd inspect FILE`` (footer),
+     interpreter start and imports included;
    * the peer: ``rerun rrd stats FILE`` (the native ``rerun`` binary of rerun-sdk, full decode; its
      output is captured, never printed), and for reference ``rerun rrd stats --no-decode FILE``
      (transport-level statistics only, no Arrow decoding: less work than ours). Its only other flag,
@@ -152,6 +154,7 @@ def worker_ours(mode: str, path: str, repeat: int) -> dict[str, Any]:
     import resource
 
     from services.rrd.decoder import iter_events
+    from services.rrd.footer import summarize_from_footer
     from services.rrd.messages import ArrowMessage
     from services.rrd.summary import summarize
 
@@ -174,6 +177,12 @@ def worker_ours(mode: str, path: str, repeat: int) -> dict[str, Any]:
                 "timelines": sorted({t for s in stores for t in s.timelines}),
                 "stores": len(stores),
             }
+        elif mode == "footer":
+            footer_summary = summarize_from_footer(path)
+            wall, cpu = time.perf_counter() - wall0, time.process_time() - cpu0
+            if footer_summary is None:
+                raise SystemExit(f"{path}: no usable RRD footer")
+            counts = {"chunks": sum(s.chunks for s in footer_summary.stores.values())}
         elif mode == "scan":
             chunks = payload = 0
             for event in iter_events(path):
@@ -262,8 +271,11 @@ def measure_ours(mode: str, path: Path, repeat: int) -> Measurement:
     result = checked(run_process(worker_argv("ours", mode, str(path), str(repeat))), f"ours {mode}")
     data = json.loads(result.stdout)
     best = min(range(repeat), key=lambda i: data["walls"][i])
-    name = "ours scan+index (in-process)" if mode == "index" else "ours scan only (in-process)"
-    note = ("summarize(iter_events(path))" if mode == "index" else "iter_events(path), no chunk_meta")
+    name, note = {
+        "index": ("ours scan+index (in-process)", "summarize(iter_events(path)): every chunk read"),
+        "footer": ("ours footer index (in-process)", "summarize_from_footer(path): the RRD footer"),
+        "scan": ("ours scan only (in-process)", "iter_events(path), no chunk_meta"),
+    }[mode]
     extra = {k: v for k, v in data.items() if k not in ("walls", "cpus")}
     return Measurement(name, data["walls"][best], data["walls"], data["cpus"][best], result.peak_rss_mb,
                        note + f"; RSS after imports {data['baseline_rss_mb']:.0f} MB", extra)
@@ -313,12 +325,17 @@ def bench_file(label: str, path: Path, info: dict[str, Any], rerun_bin: str, rep
     log(f"timing {label}: {size / MB:.1f} MB, {info['chunks']} chunks, best of {repeat} ...")
     warm_page_cache(path)
     index = measure_ours("index", path, repeat)
+    footer = measure_ours("footer", path, repeat)
     scan = measure_ours("scan", path, repeat)
     chunks = int(index.extra["chunks"])
+    if int(footer.extra["chunks"]) != chunks:
+        log(f"WARNING: {label}: the footer lists {footer.extra['chunks']} chunks, the scan {chunks}")
     fleet_code = f"import sys; sys.path.insert(0, {str(ROOT)!r}); from services.cli.main import main; main()"
-    fleet_argv = [sys.executable, "-c", fleet_code, "rrd", "inspect", str(path)]
-    fleet, _ = measure_process("ours: fleet rrd inspect (whole process)", fleet_argv, repeat,
+    fleet_argv = [sys.executable, "-c", fleet_code, "rrd", "inspect", "--scan", str(path)]
+    fleet, _ = measure_process("ours: fleet rrd inspect --scan (whole process)", fleet_argv, repeat,
                                "interpreter start + imports included")
+    fleet_footer, _ = measure_process("ours: fleet rrd inspect (whole process)", [*fleet_argv[:-2], str(path)],
+                                      repeat, "footer index; interpreter start + imports included")
     peer, peer_run = measure_process("rerun rrd stats", [rerun_bin, "rrd", "stats", str(path)], repeat,
                                      "default invocation: decodes every chunk")
     no_decode, _ = measure_process("rerun rrd stats --no-decode",
@@ -328,7 +345,7 @@ def bench_file(label: str, path: Path, info: dict[str, Any], rerun_bin: str, rep
     peer.extra = {"num_chunks": peer_chunks, "stdout_lines": peer_run.stdout.count("\n")}
     if peer_chunks is not None and peer_chunks != chunks:
         log(f"WARNING: {label}: rerun rrd stats counts {peer_chunks} chunks, we count {chunks}")
-    measurements = [index, scan, fleet, peer, no_decode]
+    measurements = [index, footer, scan, fleet, fleet_footer, peer, no_decode]
     return {
         "file": label,
         "path": str(path),
@@ -344,6 +361,7 @@ def bench_file(label: str, path: Path, info: dict[str, Any], rerun_bin: str, rep
         "rerun_mb_s": round(size / MB / peer.best_s, 2),
         "rerun_chunks_s": round(chunks / peer.best_s, 1),
         "ratio_ours_rerun": round(peer.best_s / index.best_s, 3),
+        "ratio_footer_rerun": round(peer.best_s / footer.best_s, 3),
         "ratio_whole_process": round(peer.best_s / fleet.best_s, 3),
         "measurements": [
             {**asdict(m), "mb_s": round(m.rates(size, chunks)[0], 2), "chunks_s": round(m.rates(size, chunks)[1], 1)}
@@ -376,15 +394,17 @@ def print_report(report: dict[str, Any]) -> None:
     files = report["files"]
     print(format_table(
         ["file", "size MB", "chunks", "ours MB/s", "ours chunks/s", "rrd stats MB/s", "rrd stats chunks/s",
-         "ours/rerun", "(whole process)"],
+         "ours/rerun", "(whole process)", "footer/rerun"],
         [[f["file"], f"{f['size_mb']:.1f}", f"{f['chunks']:,}", f"{f['ours_mb_s']:.1f}",
           f"{f['ours_chunks_s']:,.0f}", f"{f['rerun_mb_s']:.1f}", f"{f['rerun_chunks_s']:,.0f}",
-          f"{f['ratio_ours_rerun']:.2f}x", f"{f['ratio_whole_process']:.2f}x"] for f in files],
-        "lrrrrrrrr",
+          f"{f['ratio_ours_rerun']:.2f}x", f"{f['ratio_whole_process']:.2f}x", f"{f['ratio_footer_rerun']:.1f}x"]
+         for f in files],
+        "lrrrrrrrrr",
     ))
     print()
-    print("ours/rerun = rerun time / our scan+index time (>= 1.00x meets the target); "
-          "(whole process) = same with `fleet rrd inspect FILE` as a process")
+    print("ours/rerun = rerun time / our scan+index time, every chunk read (>= 1.00x meets the target); "
+          "(whole process) = same with `fleet rrd inspect --scan FILE` as a process; "
+          "footer/rerun = with the index read from the file's RRD footer instead")
     print()
     rows = []
     for f in files:

@@ -6,8 +6,6 @@ from pathlib import Path
 
 import click
 
-from services.settings import Settings, load_settings
-
 
 def _split_addr(addr: str) -> tuple[str, int]:
     host, _, port = addr.rpartition(":")
@@ -29,11 +27,12 @@ def _split_addr(addr: str) -> tuple[str, int]:
 def serve(**flags: object) -> None:
     """Run the service. Every flag can also be set as the FLEET_* variable named in its help,
     or in a TOML file named by FLEET_CONFIG."""
-    import uvicorn
+    import uvicorn  # imported here: other commands start faster without the server stack
 
     from services.api.app import create_app
+    from services.settings import load_settings
 
-    settings: Settings = load_settings(**flags)
+    settings = load_settings(**flags)
     settings.data_dir.mkdir(parents=True, exist_ok=True)
     host, port = _split_addr(settings.http_addr)
     click.echo(f"fleet: data in {settings.data_dir.resolve()}, REST on http://{settings.http_addr}")

@@ -70,10 +70,15 @@ class ChunkMeta:
     byte_size: int  # the ArrowMsg protobuf, as stored
     uncompressed_size: int  # the Arrow IPC payload once decompressed
     row_id_field: pa.Field | None
+    layout: ChunkLayout
 
     @property
-    def archetypes(self) -> set[str]:
-        return {c.archetype for c in self.components if c.archetype}
+    def archetypes(self) -> frozenset[str]:
+        return self.layout.archetypes
+
+    @property
+    def component_names(self) -> frozenset[str]:
+        return self.layout.component_names
 
 
 def decompress_payload(msg: ArrowMessage) -> bytes:
@@ -175,6 +180,7 @@ def _chunk_meta(msg: ArrowMessage, data: bytes) -> ChunkMeta:
         byte_size=msg.size,
         uncompressed_size=msg.uncompressed_size or len(msg.payload),
         row_id_field=layout.row_id_field,
+        layout=layout,
     )
 
 

@@ -74,6 +74,8 @@ class ChunkLayout:
     num_nodes: int
     num_buffers: int
     direct: bool  # record batches of this schema can be read without pyarrow
+    archetypes: frozenset[str]
+    component_names: frozenset[str]
 
 
 def _counts(t: pa.DataType) -> tuple[int, int] | None:
@@ -139,7 +141,8 @@ def build_layout(schema: pa.Schema, offset: int) -> ChunkLayout:
         if counts is not None:
             nodes, buffers = nodes + counts[0], buffers + counts[1]
     return ChunkLayout(metadata[ENTITY_PATH_KEY].decode(), schema, row_id_field, tuple(indexes), tuple(data),
-                       tuple(top_nodes), nodes, buffers, direct)
+                       tuple(top_nodes), nodes, buffers, direct,
+                       frozenset(c.archetype for c in data if c.archetype), frozenset(c.component for c in data))
 
 
 class LayoutCache:

@@ -58,22 +58,28 @@ class StoreSummary:
     timelines: dict[str, TimelineSummary] = field(default_factory=dict)
 
     def add_chunk(self, meta: ChunkMeta) -> None:
+        # Runs once per chunk: plain lookups, no objects built for what is already known.
         self.chunks += 1
         self.rows += meta.num_rows
         self.bytes += meta.byte_size
-        entity = self.entities.setdefault(meta.entity_path, EntitySummary(meta.entity_path))
+        entity = self.entities.get(meta.entity_path)
+        if entity is None:
+            entity = self.entities[meta.entity_path] = EntitySummary(meta.entity_path)
         entity.chunks += 1
         entity.static_chunks += meta.is_static
         entity.rows += meta.num_rows
         entity.bytes += meta.byte_size
         entity.archetypes |= meta.archetypes
-        entity.components.update(c.component for c in meta.components)
+        entity.components |= meta.component_names
         for tl in meta.timelines:
             known = self.timelines.get(tl.name)
             if known is None:
                 self.timelines[tl.name] = TimelineSummary(tl.name, tl.type, tl.range.min, tl.range.max)
             else:
-                known.widen(tl.range)
+                if tl.range.min < known.min:
+                    known.min = tl.range.min
+                if tl.range.max > known.max:
+                    known.max = tl.range.max
 
 
 @dataclass
@@ -100,7 +106,7 @@ class RrdSummary:
             store.sdk_version = str(event.sdk_version) if event.sdk_version else store.sdk_version
             store.source = event.source
         elif isinstance(event, ArrowMessage):
-            self.store(event.store_id).add_chunk(chunk_meta(event))
+            (self.stores.get(event.store_id) or self.store(event.store_id)).add_chunk(chunk_meta(event))
         elif isinstance(event, BlueprintActivationMessage):
             self.store(event.blueprint_id).blueprint_activations += 1
         elif isinstance(event, StreamFooter):
