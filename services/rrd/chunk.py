@@ -192,19 +192,14 @@ def _direct_values(data: bytes, layout: ChunkLayout, header: BatchHeader) -> tup
     nulls that matter (else None: the pyarrow path handles them)."""
     rows = header.length
     nodes = header.nodes
-    for node in layout.top_nodes:
-        if nodes[2 * node] != rows:
-            return None
-    for col in layout.data:
-        if nodes[2 * col.node + 1]:
-            return None
+    if layout.pick_top_lengths(nodes).count(rows) != len(layout.top_nodes) or any(layout.pick_null_counts(nodes)):
+        return None
     ranges: dict[str, TimeRange] = {}
     if rows == 0:
         return rows, ranges
-    for ix in layout.indexes:
-        if nodes[2 * ix.node + 1]:
-            return None
-        offset, size = header.buffers[2 * ix.data_buffer], header.buffers[2 * ix.data_buffer + 1]
+    index_buffers = layout.pick_index_buffers(header.buffers)
+    for i, ix in enumerate(layout.indexes):
+        offset, size = index_buffers[2 * i], index_buffers[2 * i + 1]
         if size < 8 * rows:
             return None
         start = header.body + offset

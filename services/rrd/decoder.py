@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import enum
 import os
+import struct
 from collections.abc import Iterator
 from typing import BinaryIO
 
@@ -51,6 +52,7 @@ READ_SIZE = 1024 * 1024
 LARGE_MESSAGE = 256 * 1024
 LARGE_STEP = 8 * 1024 * 1024
 _R = ord("R")
+_MESSAGE_HEADER = struct.Struct("<QQ")
 
 
 class _State(enum.Enum):
@@ -107,6 +109,8 @@ class RrdDecoder:
         buf = self._buf
         try:
             while True:
+                if self._state is _State.MESSAGE_HEADER:
+                    pos = self._whole_messages(buf, pos, events)
                 step = self._step(buf, pos, events)
                 if step is None:
                     break
@@ -118,6 +122,26 @@ class RrdDecoder:
                 del buf[:pos]
                 self._buf_offset += pos
         return events
+
+    def _whole_messages(self, buf: bytearray, pos: int, events: list[Event]) -> int:
+        """Decode the ordinary messages lying whole in `buf` from `pos` in one loop (the common
+        case, once per chunk); stop at anything else, which `_step` handles. Returns the new pos."""
+        size, base, limit = len(buf), self._buf_offset, self.max_message_size
+        with memoryview(buf) as view:
+            while size - pos >= MESSAGE_HEADER_SIZE and buf[pos] != _R:
+                kind, length = _MESSAGE_HEADER.unpack_from(buf, pos)
+                start = pos + MESSAGE_HEADER_SIZE
+                end = start + length
+                if kind > MessageKind.BLUEPRINT_ACTIVATION or length > limit or end > size:
+                    break
+                self._msg_offset, self._kind, self._length = base + pos, kind, length
+                event = self._decode_message(bytes(view[start:end]))
+                pos = end
+                if event is not None:
+                    events.append(event)
+                if self._state is not _State.MESSAGE_HEADER:
+                    break
+        return pos
 
     def _raise_pending(self) -> None:
         if self._error is not None:

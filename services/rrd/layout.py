@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import operator
 import struct
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import pyarrow as pa
@@ -76,6 +77,11 @@ class ChunkLayout:
     direct: bool  # record batches of this schema can be read without pyarrow
     archetypes: frozenset[str]
     component_names: frozenset[str]
+    # From a record batch's flat node / buffer tuples: top-level lengths, the null counts of the
+    # index and data columns, and (offset, length) of each index column's values buffer.
+    pick_top_lengths: Callable[[tuple[int, ...]], tuple[int, ...]]
+    pick_null_counts: Callable[[tuple[int, ...]], tuple[int, ...]]
+    pick_index_buffers: Callable[[tuple[int, ...]], tuple[int, ...]]
 
 
 def _counts(t: pa.DataType) -> tuple[int, int] | None:
@@ -140,9 +146,24 @@ def build_layout(schema: pa.Schema, offset: int) -> ChunkLayout:
         top_nodes.append(nodes)
         if counts is not None:
             nodes, buffers = nodes + counts[0], buffers + counts[1]
-    return ChunkLayout(metadata[ENTITY_PATH_KEY].decode(), schema, row_id_field, tuple(indexes), tuple(data),
-                       tuple(top_nodes), nodes, buffers, direct,
-                       frozenset(c.archetype for c in data if c.archetype), frozenset(c.component for c in data))
+    return ChunkLayout(
+        metadata[ENTITY_PATH_KEY].decode(), schema, row_id_field, tuple(indexes), tuple(data),
+        tuple(top_nodes), nodes, buffers, direct,
+        frozenset(c.archetype for c in data if c.archetype), frozenset(c.component for c in data),
+        _picker([2 * n for n in top_nodes]),
+        _picker([2 * ix.node + 1 for ix in indexes] + [2 * c.node + 1 for c in data]),
+        _picker([i for ix in indexes for i in (2 * ix.data_buffer, 2 * ix.data_buffer + 1)]),
+    )
+
+
+def _picker(positions: list[int]) -> Callable[[tuple[int, ...]], tuple[int, ...]]:
+    """A function taking those positions of a tuple, always as a tuple (itemgetter runs in C)."""
+    if not positions:
+        return lambda _: ()
+    if len(positions) == 1:
+        (only,) = positions
+        return lambda values: (values[only],)
+    return operator.itemgetter(*positions)
 
 
 class LayoutCache:
