@@ -14,7 +14,7 @@ from __future__ import annotations
 import operator
 import struct
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import pyarrow as pa
 
@@ -82,6 +82,7 @@ class ChunkLayout:
     pick_top_lengths: Callable[[tuple[int, ...]], tuple[int, ...]]
     pick_null_counts: Callable[[tuple[int, ...]], tuple[int, ...]]
     pick_index_buffers: Callable[[tuple[int, ...]], tuple[int, ...]]
+    batch_templates: list[BatchTemplate] = field(default_factory=list)  # filled by the first batch read
 
 
 def _counts(t: pa.DataType) -> tuple[int, int] | None:
@@ -214,53 +215,130 @@ _I64 = struct.Struct("<q")
 
 
 def read_batch_header(data: bytes, pos: int, layout: ChunkLayout) -> BatchHeader | None:
-    """The record batch header at `pos`, if it is a plain one matching `layout`; else None.
-
-    Reads the IPC flatbuffers inline (Message: 1 header_type, 2 header, 3 bodyLength;
-    RecordBatch: 0 length, 1 nodes, 2 buffers, 3 compression): this runs once per chunk."""
+    """The record batch header at `pos`, if it is a plain one matching `layout`; else None."""
+    templates = layout.batch_templates
+    if templates:
+        header = templates[0].match(data, pos)
+        if header is not None:
+            return header
     try:
-        if data[pos:pos + 4] != _CONTINUATION:
-            return None
-        size = _I32.unpack_from(data, pos + 4)[0]
-        base = pos + 8
-        body = base + size
-        if size <= 0 or body > len(data):
-            return None
-        message = base + _U32.unpack_from(data, base)[0]
-        vtable = message - _I32.unpack_from(data, message)[0]
-        if _U16.unpack_from(data, vtable)[0] < 12:
-            return None
-        o_type, o_header, o_body = struct.unpack_from("<3H", data, vtable + 6)
-        if not o_type or not o_header or data[message + o_type] != _RECORD_BATCH:
-            return None
-        body_length = _I64.unpack_from(data, message + o_body)[0] if o_body else 0
-        at = message + o_header
-        batch = at + _U32.unpack_from(data, at)[0]
-        vtable = batch - _I32.unpack_from(data, batch)[0]
-        slots = (_U16.unpack_from(data, vtable)[0] - 4) // 2
-        if slots < 3:
-            return None
-        o_length, o_nodes, o_buffers = struct.unpack_from("<3H", data, vtable + 4)
-        if slots > 3 and _U16.unpack_from(data, vtable + 10)[0]:
-            return None  # IPC buffer compression: not used by Rerun
-        length = _I64.unpack_from(data, batch + o_length)[0] if o_length else 0
-        nodes = _struct_vector(data, batch, o_nodes, layout.num_nodes)
-        buffers = _struct_vector(data, batch, o_buffers, layout.num_buffers)
-        if nodes is None or buffers is None or length < 0 or body + body_length > len(data):
-            return None
-        if buffers and (min(buffers) < 0 or max(map(operator.add, buffers[::2], buffers[1::2])) > body_length):
-            return None
-        return BatchHeader(length, nodes, buffers, body)
+        parsed = _parse_batch_header(data, pos, layout)
     except (struct.error, IndexError):
         return None
+    if parsed is None:
+        return None
+    header, template = parsed
+    if template is not None and not templates:
+        templates.append(template)
+    return header
 
 
-def _struct_vector(data: bytes, table: int, field_offset: int, expected: int) -> tuple[int, ...] | None:
-    """A flatbuffers vector of 16-byte (int64, int64) structs as a flat tuple, if it has `expected` items."""
+def _checked_header(data: bytes, length: int, body_length: int, nodes: tuple[int, ...],
+                    buffers: tuple[int, ...], body: int) -> BatchHeader | None:
+    if length < 0 or body_length < 0 or body + body_length > len(data):
+        return None
+    if buffers and (min(buffers) < 0 or max(map(operator.add, buffers[::2], buffers[1::2])) > body_length):
+        return None
+    return BatchHeader(length, nodes, buffers, body)
+
+
+def _parse_batch_header(data: bytes, pos: int,
+                        layout: ChunkLayout) -> tuple[BatchHeader | None, BatchTemplate | None] | None:
+    """Reads the IPC flatbuffers (Message: 1 header_type, 2 header, 3 bodyLength; RecordBatch:
+    0 length, 1 nodes, 2 buffers, 3 compression) and notes where the values sit, as a template."""
+    if data[pos:pos + 4] != _CONTINUATION:
+        return None
+    size = _I32.unpack_from(data, pos + 4)[0]
+    base = pos + 8
+    body = base + size
+    if size <= 0 or body > len(data):
+        return None
+    message = base + _U32.unpack_from(data, base)[0]
+    vtable = message - _I32.unpack_from(data, message)[0]
+    if _U16.unpack_from(data, vtable)[0] < 12:
+        return None
+    o_type, o_header, o_body = struct.unpack_from("<3H", data, vtable + 6)
+    if not o_type or not o_header or not o_body or data[message + o_type] != _RECORD_BATCH:
+        return None
+    body_length = _I64.unpack_from(data, message + o_body)[0]
+    at = message + o_header
+    batch = at + _U32.unpack_from(data, at)[0]
+    vtable = batch - _I32.unpack_from(data, batch)[0]
+    slots = (_U16.unpack_from(data, vtable)[0] - 4) // 2
+    if slots < 3:
+        return None
+    o_length, o_nodes, o_buffers = struct.unpack_from("<3H", data, vtable + 4)
+    if slots > 3 and _U16.unpack_from(data, vtable + 10)[0]:
+        return None  # IPC buffer compression: not used by Rerun
+    if not o_length:
+        return None
+    length = _I64.unpack_from(data, batch + o_length)[0]
+    nodes = _struct_vector(data, batch, o_nodes, layout.num_nodes)
+    buffers = _struct_vector(data, batch, o_buffers, layout.num_buffers)
+    if nodes is None or buffers is None:
+        return None
+    header = _checked_header(data, length, body_length, nodes[0], buffers[0], body)
+    values = [(batch + o_length - base, 8), (message + o_body - base, 8),
+              (nodes[1] - base, 16 * layout.num_nodes), (buffers[1] - base, 16 * layout.num_buffers)]
+    return header, BatchTemplate.build(data, pos, size, values, layout)
+
+
+def _struct_vector(data: bytes, table: int, field_offset: int,
+                   expected: int) -> tuple[tuple[int, ...], int] | None:
+    """A flatbuffers vector of 16-byte (int64, int64) structs as a flat tuple, if it has `expected`
+    items, and where its items start."""
     if not field_offset:
-        return () if expected == 0 else None
+        return None
     at = table + field_offset
     vector = at + _U32.unpack_from(data, at)[0]
     if _U32.unpack_from(data, vector)[0] != expected:
         return None
-    return struct.unpack_from(f"<{2 * expected}q", data, vector + 4)
+    return struct.unpack_from(f"<{2 * expected}q", data, vector + 4), vector + 4
+
+
+@dataclass(slots=True)
+class BatchTemplate:
+    """A record batch header of a layout with its values blanked: any header whose other bytes are
+    identical has its values at the same places (flatbuffers navigation only reads those bytes)."""
+
+    prefix: bytes  # continuation marker and metadata size
+    size: int  # metadata size
+    gaps: tuple[tuple[int, int, bytes], ...]  # (start, end, bytes) outside the values
+    at_length: int
+    at_body_length: int
+    at_nodes: int
+    at_buffers: int
+    nodes_format: struct.Struct
+    buffers_format: struct.Struct
+
+    @classmethod
+    def build(cls, data: bytes, pos: int, size: int, values: list[tuple[int, int]],
+              layout: ChunkLayout) -> BatchTemplate | None:
+        """`values`: (start, length) in the metadata of length, bodyLength, nodes, buffers."""
+        base, gaps, cursor = pos + 8, [], 0
+        for start, length in sorted(values):
+            if start < cursor or start + length > size:
+                return None  # overlapping or out of the metadata: do not template
+            if start > cursor:
+                gaps.append((cursor, start, bytes(data[base + cursor:base + start])))
+            cursor = start + length
+        if cursor < size:
+            gaps.append((cursor, size, bytes(data[base + cursor:base + size])))
+        (at_length, _), (at_body, _), (at_nodes, _), (at_buffers, _) = values
+        return cls(bytes(data[pos:base]), size, tuple(gaps), at_length, at_body, at_nodes, at_buffers,
+                   struct.Struct(f"<{2 * layout.num_nodes}q"), struct.Struct(f"<{2 * layout.num_buffers}q"))
+
+    def match(self, data: bytes, pos: int) -> BatchHeader | None:
+        base = pos + 8
+        if data[pos:base] != self.prefix:
+            return None
+        for start, end, expected in self.gaps:
+            if data[base + start:base + end] != expected:
+                return None
+        return _checked_header(
+            data, _I64.unpack_from(data, base + self.at_length)[0],
+            _I64.unpack_from(data, base + self.at_body_length)[0],
+            self.nodes_format.unpack_from(data, base + self.at_nodes),
+            self.buffers_format.unpack_from(data, base + self.at_buffers),
+            base + self.size,
+        )
