@@ -170,18 +170,8 @@ def _chunk_meta(msg: ArrowMessage, data: bytes) -> ChunkMeta:
             chunk_id = parse_chunk_id((layout.schema.metadata or {})[CHUNK_ID_KEY].decode())
         except (KeyError, ValueError, UnicodeDecodeError) as exc:
             raise errors.NotAChunkError(f"chunk has no valid rerun:id ({exc})", msg.offset) from exc
-    return ChunkMeta(
-        chunk_id=chunk_id,
-        entity_path=layout.entity_path,
-        is_static=not layout.indexes,
-        num_rows=num_rows,
-        timelines=timelines,
-        components=components,
-        byte_size=msg.size,
-        uncompressed_size=msg.uncompressed_size or len(msg.payload),
-        row_id_field=layout.row_id_field,
-        layout=layout,
-    )
+    return ChunkMeta(chunk_id, layout.entity_path, not layout.indexes, num_rows, timelines, components,
+                     len(msg.raw), msg.uncompressed_size or len(msg.payload), layout.row_id_field, layout)
 
 
 _INT64 = struct.Struct("<q")

@@ -30,12 +30,12 @@ from typing import Any
 # Scenes that each produce one .rrd file with one recording (two for "merged" inputs).
 SCENES = (
     "points", "image", "scalars", "textlogs", "transforms", "static", "properties", "blueprint",
-    "no_footer", "merge_a", "merge_b",
+    "no_footer", "merge_a", "merge_b", "large",
 )
 
 # Files written by the SDK in one piece (two SetStoreInfo per store, as the SDK always sends).
 SDK_FILES = ("points", "image", "scalars", "textlogs", "transforms", "static", "properties", "blueprint",
-             "no_footer", "merge_a", "merge_b")
+             "no_footer", "merge_a", "merge_b", "large")
 # Re-encoded by the rerun CLI (one SetStoreInfo per store).
 CLI_FILES = ("merged", "optimized")
 # Everything that decodes without error.
@@ -259,6 +259,20 @@ def _scene_image(rr: Any, out: Path) -> list[Truth]:
         t.set_time("capture", timestamp=BASE_TS + 33_333_333 * i)
         t.log("/camera/rgb", rr.Image(np.full((4, 6, 3), i, dtype=np.uint8)))
         t.log("/camera/gray", rr.Image(np.arange(24, dtype=np.uint8).reshape(4, 6) + i))
+    return [t]
+
+
+def _scene_large(rr: Any, out: Path) -> list[Truth]:
+    """Chunks of about 1 MB (random, so LZ4 cannot shrink them): the decoder's large-message path."""
+    import numpy as np
+
+    rng = np.random.default_rng(7)
+    t = Truth(rr, "fleet_large", "rec-large")
+    t.rec.save(out)
+    for i in range(3):
+        t.set_time("frame", sequence=i)
+        t.log("/camera/rgb", rr.Image(rng.integers(0, 255, (480, 640, 3), dtype=np.uint8)))
+        t.log("/lidar", rr.Points3D(rng.random((30_000, 3), dtype=np.float32)))
     return [t]
 
 
