@@ -26,6 +26,7 @@ from services.rrd.frames import (
     decode_stream_header,
     footer_crc,
 )
+from services.rrd.layout import timeline_type
 from services.rrd.manifest import read_manifest, read_sorbet_schema
 from services.rrd.messages import (
     ArrowMessage,
@@ -38,7 +39,6 @@ from services.rrd.pb import log_msg_pb2
 from services.rrd.summary import EntitySummary, RrdSummary, StoreSummary, TimelineSummary
 
 _TRAILER = FOOTER_ENTRY_SIZE + FOOTER_FIXED_SIZE
-_TIMELINE_TYPES = {"int64": "sequence", "timestamp": "timestamp", "duration": "duration"}
 _STORE_INFO_SCAN_LIMIT = 64 * 1024 * 1024
 
 
@@ -98,10 +98,7 @@ def _add_store_infos(summary: RrdSummary, fh: BinaryIO) -> None:
             if isinstance(event, StreamStart):
                 summary.rerun_versions.append(str(event.version))
             elif isinstance(event, StoreInfoMessage):
-                store = summary.store(event.store_id)
-                store.store_infos += 1
-                store.sdk_version = str(event.sdk_version) if event.sdk_version else store.sdk_version
-                store.source = event.source
+                summary.add_store_info(event)
                 missing.discard(event.store_id)
                 if event.store_id not in order:
                     order.append(event.store_id)
@@ -159,7 +156,7 @@ def _add_timelines(store: StoreSummary, schema: pa.Schema, table: pa.Table) -> N
         if md.get(b"rerun:kind") != b"index":
             continue
         name = md.get(b"rerun:index_name", fld.name.encode()).decode()
-        type_name = _TIMELINE_TYPES.get(str(fld.type).split("[")[0])
+        type_name = timeline_type(fld.type)
         starts = [c for c in table.schema if c.name.endswith(":start") and c.metadata
                   and c.metadata.get(b"rerun:index") == name.encode() and b"rerun:component" not in c.metadata]
         if type_name is None or not starts:

@@ -31,7 +31,12 @@ COMPONENT_TYPE_KEY = b"rerun:component_type"
 # Rerun accepts both the current and the legacy names of column kinds.
 _CONTROL_KINDS = (b"control", b"row_id")
 _INDEX_KINDS = (b"index", b"time")
-TIMELINE_TYPES = {"int64": "sequence", "timestamp": "timestamp", "duration": "duration"}
+_TIMELINE_TYPES = {"int64": "sequence", "timestamp": "timestamp", "duration": "duration"}
+
+
+def timeline_type(arrow_type: pa.DataType) -> str | None:
+    """sequence | timestamp | duration for an index column's Arrow type (None: not an index type)."""
+    return _TIMELINE_TYPES.get(str(arrow_type).split("[")[0])
 
 _CONTINUATION = b"\xff\xff\xff\xff"
 _RECORD_BATCH = 3  # flatbuffers MessageHeader union tag
@@ -131,7 +136,7 @@ def build_layout(schema: pa.Schema, offset: int) -> ChunkLayout:
         if kind in _CONTROL_KINDS:
             row_id_field = fld
         elif kind in _INDEX_KINDS:
-            type_name = TIMELINE_TYPES.get(str(fld.type).split("[")[0])
+            type_name = timeline_type(fld.type)
             if type_name is None:
                 raise errors.NotAChunkError(f"index column {fld.name!r} has unsupported type {fld.type}", offset)
             name = fmeta.get(INDEX_NAME_KEY, fld.name.encode()).decode()

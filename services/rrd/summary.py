@@ -96,15 +96,18 @@ class RrdSummary:
     def store(self, store_id: StoreId) -> StoreSummary:
         return self.stores.setdefault(store_id, StoreSummary(store_id))
 
+    def add_store_info(self, event: StoreInfoMessage) -> None:
+        store = self.store(event.store_id)
+        store.store_infos += 1
+        store.sdk_version = str(event.sdk_version) if event.sdk_version else store.sdk_version
+        store.source = event.source
+
     def add(self, event: Event) -> None:
         if isinstance(event, StreamStart):
             self.streams += 1
             self.rerun_versions.append(str(event.version))
         elif isinstance(event, StoreInfoMessage):
-            store = self.store(event.store_id)
-            store.store_infos += 1
-            store.sdk_version = str(event.sdk_version) if event.sdk_version else store.sdk_version
-            store.source = event.source
+            self.add_store_info(event)
         elif isinstance(event, ArrowMessage):
             (self.stores.get(event.store_id) or self.store(event.store_id)).add_chunk(chunk_meta(event))
         elif isinstance(event, BlueprintActivationMessage):
