@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+import sys
+
 import click
 
 from services import __version__
+from services.cli.db import db
 from services.cli.rrd import rrd
 from services.cli.serve import serve
 
@@ -17,7 +20,21 @@ def cli() -> None:
 
 cli.add_command(serve)
 cli.add_command(rrd)
+cli.add_command(db)
 
 
 def main() -> None:
-    cli()
+    """Errors users can fix are one line on stderr and exit status 1, never a traceback."""
+    from pydantic import ValidationError
+
+    from services.errors import FleetError
+
+    try:
+        cli()
+    except FleetError as exc:
+        click.echo(f"Error: {exc}", err=True)
+        sys.exit(1)
+    except ValidationError as exc:
+        problems = "; ".join(f"{'.'.join(map(str, e['loc'])) or 'settings'}: {e['msg']}" for e in exc.errors())
+        click.echo(f"Error: invalid settings: {problems}", err=True)
+        sys.exit(1)

@@ -29,11 +29,16 @@ def serve(**flags: object) -> None:
     or in a TOML file named by FLEET_CONFIG."""
     import uvicorn  # imported here: other commands start faster without the server stack
 
+    from catalog.db import create_engine, prepare_for_service
     from services.api.app import create_app
     from services.settings import load_settings
 
     settings = load_settings(**flags)
     settings.data_dir.mkdir(parents=True, exist_ok=True)
+    engine = create_engine(settings.catalog_url)
+    done = prepare_for_service(engine)  # a catalog that is behind: one line naming `fleet db upgrade`
+    if done:
+        click.echo(f"fleet: {done}")
     host, port = _split_addr(settings.http_addr)
     click.echo(f"fleet: data in {settings.data_dir.resolve()}, REST on http://{settings.http_addr}")
     uvicorn.run(create_app(settings), host=host, port=port, log_level="info")

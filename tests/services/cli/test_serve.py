@@ -37,10 +37,19 @@ def test_serve_answers_health_on_the_configured_address(tmp_path):
         assert response.status_code == 200
         assert response.json()["status"] == "ok"
         assert httpx.get(f"http://127.0.0.1:{port}/openapi.json").status_code == 200
-        assert (tmp_path / "data").is_dir()
+        assert (tmp_path / "data" / "catalog.duckdb").is_file()
     finally:
         proc.terminate()
-        proc.wait(timeout=10)
+        out, _ = proc.communicate(timeout=10)
+    assert b"created the embedded catalog" in out  # said once, on first start
+
+
+def test_serve_refuses_a_postgres_catalog_that_is_behind(empty_postgres_url: str, tmp_path):
+    result = subprocess.run([FLEET, "serve", "--data-dir", str(tmp_path), "--catalog-url", empty_postgres_url],
+                            capture_output=True, text=True, timeout=60)
+    assert result.returncode == 1
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and "fleet db upgrade" in lines[0], result.stderr
 
 
 def test_serve_help_documents_every_setting():

@@ -1,0 +1,118 @@
+"""Catalog connections: one engine per URL, one session helper, and the schema-version checks.
+
+The service never migrates silently: `fleet db upgrade` (or the embedded default on first start,
+which says so) brings the schema to the head of `migrations/`; a catalog that is behind refuses
+to start with one line naming the command.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+import sqlalchemy as sa
+from alembic.config import Config
+from alembic.ddl.impl import DefaultImpl
+from alembic.runtime.migration import MigrationContext
+from alembic.script import ScriptDirectory
+from sqlalchemy.orm import Session, sessionmaker
+
+from services.errors import ErrorCode, FleetError
+
+MIGRATIONS_DIR = Path(__file__).resolve().parent.parent / "migrations"
+
+
+class CatalogError(FleetError):
+    code = ErrorCode.UNAVAILABLE
+
+
+class DuckDBImpl(DefaultImpl):
+    """Lets Alembic drive DuckDB (the embedded catalog) like any transactional SQL database."""
+
+    __dialect__ = "duckdb"
+    transactional_ddl = True
+
+
+def create_engine(url: str) -> sa.Engine:
+    """An engine for `duckdb:///PATH` (embedded) or `postgresql+psycopg://...`."""
+    if url.startswith("duckdb:///"):
+        Path(url.removeprefix("duckdb:///")).parent.mkdir(parents=True, exist_ok=True)
+        return sa.create_engine(url, poolclass=sa.pool.SingletonThreadPool)
+    if url.startswith("postgresql"):
+        return sa.create_engine(url, pool_pre_ping=True)
+    raise CatalogError(f"unsupported catalog URL {url!r}: use duckdb:///PATH or postgresql+psycopg://USER@HOST/DB")
+
+
+def is_embedded(engine: sa.Engine) -> bool:
+    return engine.dialect.name == "duckdb"
+
+
+@contextmanager
+def session_scope(factory: sessionmaker[Session]) -> Iterator[Session]:
+    """The one way to use the catalog: a session committed on success, rolled back on error."""
+    session = factory()
+    try:
+        yield session
+        session.commit()
+    except BaseException:
+        session.rollback()
+        raise
+    finally:
+        session.close()
+
+
+def alembic_config(engine: sa.Engine | None = None) -> Config:
+    config = Config()
+    config.set_main_option("script_location", str(MIGRATIONS_DIR))
+    if engine is not None:
+        config.attributes["connection_engine"] = engine
+    return config
+
+
+def head_revision() -> str:
+    heads = ScriptDirectory.from_config(alembic_config()).get_heads()
+    if len(heads) != 1:
+        raise CatalogError(f"migrations have {len(heads)} heads ({', '.join(heads)}); expected one")
+    return heads[0]
+
+
+def current_revision(engine: sa.Engine) -> str | None:
+    with engine.connect() as conn:
+        return MigrationContext.configure(conn).get_current_revision()
+
+
+def upgrade(engine: sa.Engine) -> tuple[str | None, str]:
+    """Bring the catalog to the head revision; returns (before, after)."""
+    from alembic import command
+
+    before = current_revision(engine)
+    with engine.begin() as conn:
+        config = alembic_config()
+        config.attributes["connection"] = conn
+        command.upgrade(config, "head")
+    return before, head_revision()
+
+
+def check_schema(engine: sa.Engine) -> None:
+    """Raise CatalogError (one line naming the fix) unless the catalog is at the head revision."""
+    current, head = current_revision(engine), head_revision()
+    if current != head:
+        state = "empty" if current is None else f"at revision {current}"
+        raise CatalogError(f"the catalog is {state}, the service needs {head}: run `fleet db upgrade`")
+
+
+def prepare_for_service(engine: sa.Engine) -> str | None:
+    """At service start: an embedded catalog is created or upgraded (returns what was done, to be
+    said); any other catalog must already be at head (CatalogError naming `fleet db upgrade`)."""
+    if not is_embedded(engine):
+        check_schema(engine)
+        return None
+    before = current_revision(engine)
+    if before == head_revision():
+        return None
+    _, after = upgrade(engine)
+    url = engine.url.render_as_string(hide_password=True)
+    if before is None:
+        return f"created the embedded catalog {url} at revision {after}"
+    return f"upgraded the embedded catalog {url} from revision {before} to {after}"
