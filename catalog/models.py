@@ -1,14 +1,17 @@
 """Catalog tables: robots, runs, and per-run entities and timelines.
 
 The same models serve Postgres (production) and DuckDB (embedded default); types are chosen to
-mean the same on both (JSON kept as text, timestamps with time zone, 64-bit integers).
+mean the same on both (JSON kept as text, timestamps with time zone, 64-bit integers). There are
+no foreign keys: DuckDB refuses to update a row that another table references within the same
+transaction, and the catalog writes a run with its entities and timelines together
+(`catalog.queries.save_run`), which keeps them consistent.
 """
 
 from __future__ import annotations
 
 import datetime as dt
 
-from sqlalchemy import BigInteger, Boolean, Date, DateTime, ForeignKey, MetaData, String, Text
+from sqlalchemy import BigInteger, Boolean, Date, DateTime, MetaData, String, Text
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column
 
 ID_LENGTH = 128  # ids used in object keys: [A-Za-z0-9._-]{1,128}
@@ -39,7 +42,7 @@ class Run(Base):
     __tablename__ = "runs"
 
     id: Mapped[str] = mapped_column(String(ID_LENGTH), primary_key=True)
-    robot_id: Mapped[str] = mapped_column(String(ID_LENGTH), ForeignKey("robots.id"), index=True)
+    robot_id: Mapped[str] = mapped_column(String(ID_LENGTH), index=True)
     application_id: Mapped[str] = mapped_column(String(256), index=True)
     date: Mapped[dt.date] = mapped_column(Date, index=True)  # UTC date of the run's start
     status: Mapped[str] = mapped_column(String(16), index=True)  # live | closed
@@ -60,7 +63,7 @@ class Run(Base):
 class RunEntity(Base):
     __tablename__ = "run_entities"
 
-    run_id: Mapped[str] = mapped_column(String(ID_LENGTH), ForeignKey("runs.id"), primary_key=True)
+    run_id: Mapped[str] = mapped_column(String(ID_LENGTH), primary_key=True)
     path: Mapped[str] = mapped_column(Text, primary_key=True)
     chunks: Mapped[int] = mapped_column(BigInteger, default=0)
     static_chunks: Mapped[int] = mapped_column(BigInteger, default=0)
@@ -73,7 +76,7 @@ class RunEntity(Base):
 class RunTimeline(Base):
     __tablename__ = "run_timelines"
 
-    run_id: Mapped[str] = mapped_column(String(ID_LENGTH), ForeignKey("runs.id"), primary_key=True)
+    run_id: Mapped[str] = mapped_column(String(ID_LENGTH), primary_key=True)
     name: Mapped[str] = mapped_column(String(256), primary_key=True)
     type: Mapped[str] = mapped_column(String(16))  # sequence | timestamp | duration
     min: Mapped[int] = mapped_column(BigInteger)

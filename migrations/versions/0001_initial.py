@@ -41,7 +41,6 @@ def upgrade() -> None:
     sa.Column('pinned', sa.Boolean(), nullable=False),
     sa.Column('created_at', sa.DateTime(timezone=True), nullable=False),
     sa.Column('updated_at', sa.DateTime(timezone=True), nullable=False),
-    sa.ForeignKeyConstraint(['robot_id'], ['robots.id'], name=op.f('fk_runs_robot_id_robots')),
     sa.PrimaryKeyConstraint('id', name=op.f('pk_runs'))
     )
     op.create_index(op.f('ix_runs_application_id'), 'runs', ['application_id'], unique=False)
@@ -59,7 +58,6 @@ def upgrade() -> None:
     sa.Column('bytes', sa.BigInteger(), nullable=False),
     sa.Column('archetypes', sa.Text(), nullable=False),
     sa.Column('components', sa.Text(), nullable=False),
-    sa.ForeignKeyConstraint(['run_id'], ['runs.id'], name=op.f('fk_run_entities_run_id_runs')),
     sa.PrimaryKeyConstraint('run_id', 'path', name=op.f('pk_run_entities'))
     )
     op.create_table('run_timelines',
@@ -68,7 +66,6 @@ def upgrade() -> None:
     sa.Column('type', sa.String(length=16), nullable=False),
     sa.Column('min', sa.BigInteger(), nullable=False),
     sa.Column('max', sa.BigInteger(), nullable=False),
-    sa.ForeignKeyConstraint(['run_id'], ['runs.id'], name=op.f('fk_run_timelines_run_id_runs')),
     sa.PrimaryKeyConstraint('run_id', 'name', name=op.f('pk_run_timelines'))
     )
 

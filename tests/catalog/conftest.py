@@ -75,7 +75,7 @@ def session(engine: sa.Engine) -> Iterator[Session]:
     """A session inside a transaction that is rolled back after the test."""
     with engine.connect() as conn:
         outer = conn.begin()
-        session = Session(bind=conn, join_transaction_mode="create_savepoint")
+        session = Session(bind=conn, join_transaction_mode="rollback_only")  # DuckDB has no savepoints
         try:
             yield session
         finally:

@@ -1,0 +1,190 @@
+"""The hot tier: one append-only RRD file per run on the ingest node's disk.
+
+`hot/<run>/run.rrd` is a stream header followed by whole messages (no End: the run is still
+open), so it is a valid footer-less RRD at every moment a write completed. A message is written
+with one `writev`; if that fails part-way the file is cut back, so there is never a half-written
+chunk. After a crash, `recover()` trims a torn tail and rebuilds the run from what is on disk.
+Durability: `always` fsyncs when a caller asks (an upload before it is answered, a stream at its
+end), `interval` fsyncs dirty runs every `interval_ms` from a group-commit thread, `off` never.
+"""
+
+from __future__ import annotations
+
+import enum
+import logging
+import os
+import shutil
+import threading
+from collections.abc import Iterator
+from pathlib import Path
+
+from services.errors import ErrorCode, FleetError
+from services.rrd import errors as rrd_errors
+from services.rrd.decoder import iter_events
+from services.rrd.frames import MESSAGE_HEADER_SIZE, RerunVersion, StreamHeader, encode_message_header
+from services.rrd.messages import Event, StreamStart
+
+log = logging.getLogger(__name__)
+
+RUN_FILE = "run.rrd"
+
+
+class Durability(enum.StrEnum):
+    ALWAYS = "always"
+    INTERVAL = "interval"
+    OFF = "off"
+
+
+class InsufficientStorageError(FleetError):
+    code = ErrorCode.INSUFFICIENT_STORAGE
+
+
+class HotRun:
+    """The append-only file of one run."""
+
+    def __init__(self, directory: Path, fd: int, size: int) -> None:
+        self.directory = directory
+        self.run_id = directory.name
+        self._fd = fd
+        self.size = size
+        self.dirty = False
+
+    @property
+    def path(self) -> Path:
+        return self.directory / RUN_FILE
+
+    @classmethod
+    def create(cls, directory: Path, version: RerunVersion) -> HotRun:
+        directory.mkdir(parents=True, exist_ok=False)
+        header = StreamHeader(version).encode()
+        fd = os.open(directory / RUN_FILE, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_APPEND, 0o644)
+        os.write(fd, header)
+        os.fsync(fd)
+        _fsync_dir(directory.parent)  # the new run survives a crash even with durability off
+        return cls(directory, fd, len(header))
+
+    @classmethod
+    def recover(cls, directory: Path) -> tuple[HotRun, list[Event]]:
+        """Reopen a run after a restart: every whole message is kept, a torn tail is cut off."""
+        path = directory / RUN_FILE
+        events: list[Event] = []
+        good = 0
+        try:
+            for event in iter_events(path):
+                events.append(event)
+                good = _end_of(event)
+        except rrd_errors.TruncatedError:
+            pass  # a crash cut the last message: everything before it is kept
+        except rrd_errors.RrdError as exc:
+            log.error("hot run %s is damaged at byte %d (%s): keeping what precedes it", directory.name,
+                      exc.offset, exc)
+        size = path.stat().st_size
+        if good < size:
+            log.warning("hot run %s: cut a torn tail of %d bytes at byte %d", directory.name, size - good, good)
+            os.truncate(path, good)
+        fd = os.open(path, os.O_WRONLY | os.O_APPEND)
+        return cls(directory, fd, good), events
+
+    def append(self, kind: int, raw: bytes | bytearray) -> int:
+        """Write one whole message; returns the offset of its header."""
+        offset = self.size
+        header = encode_message_header(kind, len(raw))
+        try:
+            written = os.writev(self._fd, [header, raw])
+            if written != MESSAGE_HEADER_SIZE + len(raw):
+                raise OSError(f"short write: {written} of {MESSAGE_HEADER_SIZE + len(raw)} bytes")
+        except OSError as exc:
+            os.ftruncate(self._fd, offset)  # never leave half a message behind
+            raise InsufficientStorageError(f"cannot write run {self.run_id} to the hot tier: {exc}") from exc
+        self.size = offset + written
+        self.dirty = True
+        return offset
+
+    def sync(self) -> None:
+        if self.dirty:
+            self.dirty = False
+            os.fsync(self._fd)
+
+    def close(self) -> None:
+        self.sync()
+        os.close(self._fd)
+
+
+def _end_of(event: Event) -> int:
+    if isinstance(event, StreamStart):
+        return event.offset + len(event.header.encode())
+    return event.offset + MESSAGE_HEADER_SIZE + len(getattr(event, "raw", b""))
+
+
+def _fsync_dir(directory: Path) -> None:
+    fd = os.open(directory, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+class HotStore:
+    """All hot runs under `root`, the disk guard and the group commit."""
+
+    def __init__(self, root: Path, *, durability: Durability, interval_ms: int, min_free_bytes: int) -> None:
+        self.root = root
+        self.durability = durability
+        self.interval_ms = interval_ms
+        self.min_free_bytes = min_free_bytes
+        self.runs: dict[str, HotRun] = {}
+        self._stop = threading.Event()
+        self._committer: threading.Thread | None = None
+        root.mkdir(parents=True, exist_ok=True)
+
+    def existing(self) -> Iterator[Path]:
+        for directory in sorted(self.root.iterdir()):
+            if (directory / RUN_FILE).is_file():
+                yield directory
+
+    def create(self, run_id: str, version: RerunVersion) -> HotRun:
+        run = HotRun.create(self.root / run_id, version)
+        self.runs[run_id] = run
+        return run
+
+    def recover(self, directory: Path) -> tuple[HotRun, list[Event]]:
+        run, events = HotRun.recover(directory)
+        self.runs[run.run_id] = run
+        return run, events
+
+    def check_space(self, incoming: int) -> None:
+        """Refuse new data before the disk fills (INSUFFICIENT_STORAGE: HTTP 507, gRPC RESOURCE_EXHAUSTED)."""
+        free = shutil.disk_usage(self.root).free
+        if free - incoming < self.min_free_bytes:
+            raise InsufficientStorageError(
+                f"hot tier {self.root} has {free} bytes free, the guard keeps {self.min_free_bytes}: "
+                "new data is refused until runs are promoted or space is freed (FLEET_MIN_FREE_BYTES)"
+            )
+
+    def sync(self, runs: list[HotRun] | None = None) -> None:
+        for run in runs if runs is not None else list(self.runs.values()):
+            run.sync()
+
+    def sync_if_always(self, runs: list[HotRun]) -> None:
+        if self.durability is Durability.ALWAYS:
+            self.sync(runs)
+
+    def start(self) -> None:
+        if self.durability is Durability.INTERVAL and self._committer is None:
+            self._committer = threading.Thread(target=self._group_commit, name="hot-group-commit", daemon=True)
+            self._committer.start()
+
+    def _group_commit(self) -> None:
+        while not self._stop.wait(self.interval_ms / 1000):
+            try:
+                self.sync()
+            except OSError:
+                log.exception("group commit failed")
+
+    def close(self) -> None:
+        self._stop.set()
+        if self._committer is not None:
+            self._committer.join(timeout=5)
+        for run in self.runs.values():
+            run.close()
+        self.runs.clear()
