@@ -5,6 +5,7 @@ from __future__ import annotations
 import datetime as dt
 import json
 from dataclasses import dataclass, field
+from typing import Any
 
 import sqlalchemy as sa
 from sqlalchemy.orm import Session
@@ -48,7 +49,7 @@ class RunRecord:
     chunks: int
     rows: int
     bytes: int
-    properties: dict[str, object]
+    properties: dict[str, Any]
     entities: list[EntityRecord] = field(default_factory=list)
     timelines: list[TimelineRecord] = field(default_factory=list)
 

@@ -15,6 +15,7 @@ from pydantic_settings import (
     TomlConfigSettingsSource,
 )
 
+from services.ingest.hot import Durability
 from services.rrd.decoder import DEFAULT_MAX_MESSAGE_SIZE
 
 
@@ -32,6 +33,17 @@ class Settings(BaseSettings):
     api_url: str = Field("http://127.0.0.1:8080", description="where CLI commands reach the service")
     max_message_size: int = Field(DEFAULT_MAX_MESSAGE_SIZE, gt=0,
                                   description="largest RRD/gRPC message accepted, in bytes")
+    durability: Durability = Field(Durability.INTERVAL, description="hot-tier fsync: always | interval | off")
+    group_commit_ms: int = Field(200, gt=0, description="with durability=interval, fsync every this many ms")
+    min_free_bytes: int = Field(1 << 30, ge=0, description="refuse new data when the hot disk has less free")
+    max_streams: int = Field(1000, gt=0, description="most concurrent gRPC streams on this node")
+    close_after_s: float = Field(60.0, gt=0, description="a live run with no data for this long is closed")
+    default_robot: str = Field("unknown-robot", pattern=r"^[A-Za-z0-9._-]{1,128}$",
+                               description="robot id of runs that name none")
+
+    @property
+    def hot_dir(self) -> Path:
+        return self.data_dir / "hot"
 
     @model_validator(mode="after")
     def _embedded_defaults(self) -> Settings:

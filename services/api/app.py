@@ -7,12 +7,17 @@ from fastapi.responses import JSONResponse
 
 from services import __version__
 from services.errors import FleetError
+from services.ingest import rest as ingest_rest
+from services.ingest.service import IngestService
 from services.settings import Settings
 
 
-def create_app(settings: Settings) -> FastAPI:
+def create_app(settings: Settings, ingest: IngestService | None = None) -> FastAPI:
     app = FastAPI(title="Fleet telemetry depot", version=__version__)
     app.state.settings = settings
+    app.state.ingest = ingest
+    if ingest is not None:
+        app.include_router(ingest_rest.router)
 
     @app.exception_handler(FleetError)
     async def _fleet_error(_: Request, exc: FleetError) -> JSONResponse:

@@ -7,13 +7,6 @@ from pathlib import Path
 import click
 
 
-def _split_addr(addr: str) -> tuple[str, int]:
-    host, _, port = addr.rpartition(":")
-    if not host or not port.isdigit():
-        raise click.BadParameter(f"{addr!r} is not HOST:PORT (for example 0.0.0.0:8080)")
-    return host.strip("[]"), int(port)
-
-
 @click.command()
 @click.option("--data-dir", type=click.Path(path_type=Path), help="FLEET_DATA_DIR: hot tier and embedded "
               "defaults live here [default: ./fleet-data]")
@@ -24,21 +17,38 @@ def _split_addr(addr: str) -> tuple[str, int]:
 @click.option("--cold-url", help="FLEET_COLD_URL: file:///PATH or s3://bucket/prefix")
 @click.option("--s3-endpoint-url", help="FLEET_S3_ENDPOINT_URL: S3-compatible endpoint")
 @click.option("--max-message-size", type=int, help="FLEET_MAX_MESSAGE_SIZE: largest message in bytes")
+@click.option("--durability", type=click.Choice(["always", "interval", "off"]),
+              help="FLEET_DURABILITY: hot-tier fsync: always (before answering), interval (group commit, "
+              "default), off")
+@click.option("--group-commit-ms", type=int, help="FLEET_GROUP_COMMIT_MS: fsync period with durability=interval")
+@click.option("--min-free-bytes", type=int, help="FLEET_MIN_FREE_BYTES: refuse new data below this free disk")
+@click.option("--max-streams", type=int, help="FLEET_MAX_STREAMS: most concurrent gRPC streams")
+@click.option("--close-after-s", type=float, help="FLEET_CLOSE_AFTER_S: close a live run idle this long")
+@click.option("--default-robot", help="FLEET_DEFAULT_ROBOT: robot id of runs that name none")
 def serve(**flags: object) -> None:
     """Run the service. Every flag can also be set as the FLEET_* variable named in its help,
     or in a TOML file named by FLEET_CONFIG."""
-    import uvicorn  # imported here: other commands start faster without the server stack
+    import asyncio
+    import logging
 
     from catalog.db import create_engine, prepare_for_service
-    from services.api.app import create_app
+    from services.server import serve as run_server
+    from services.server import split_addr
     from services.settings import load_settings
 
     settings = load_settings(**flags)
+    for addr in (settings.http_addr, settings.grpc_addr):
+        try:
+            split_addr(addr)
+        except ValueError as exc:
+            raise click.BadParameter(str(exc)) from exc
     settings.data_dir.mkdir(parents=True, exist_ok=True)
     engine = create_engine(settings.catalog_url)
     done = prepare_for_service(engine)  # a catalog that is behind: one line naming `fleet db upgrade`
+    engine.dispose()
     if done:
         click.echo(f"fleet: {done}")
-    host, port = _split_addr(settings.http_addr)
-    click.echo(f"fleet: data in {settings.data_dir.resolve()}, REST on http://{settings.http_addr}")
-    uvicorn.run(create_app(settings), host=host, port=port, log_level="info")
+    logging.basicConfig(level=logging.INFO, format="%(levelname)s:     %(name)s: %(message)s")
+    click.echo(f"fleet: data in {settings.data_dir.resolve()}, REST on http://{settings.http_addr}, "
+               f"Rerun gRPC on rerun+http://{settings.grpc_addr}/proxy, durability {settings.durability}")
+    asyncio.run(run_server(settings))

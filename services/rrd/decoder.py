@@ -17,7 +17,7 @@ from typing import BinaryIO
 
 from google.protobuf.message import DecodeError
 
-from services.rrd import errors
+from services.rrd import errors, protowire
 from services.rrd.frames import (
     FOOTER_ENTRY_SIZE,
     FOOTER_FIXED_SIZE,
@@ -39,6 +39,7 @@ from services.rrd.messages import (
     Compression,
     EndMessage,
     Event,
+    Message,
     StoreId,
     StoreInfoMessage,
     StreamFooter,
@@ -329,23 +330,32 @@ class RrdDecoder:
 
     def _decode_message(self, raw: bytes | bytearray) -> Event | None:
         offset, kind = self._msg_offset, self._kind
-        where = (offset, self._stream_offset, self._streams - 1)
-        try:
-            if kind == MessageKind.ARROW_MSG:
-                return _arrow_message(raw, *where)
-            raw = bytes(raw)  # no copy unless a rare large non-chunk message came in a bytearray
-            if kind == MessageKind.SET_STORE_INFO:
-                return _store_info_message(raw, *where)
-            if kind == MessageKind.BLUEPRINT_ACTIVATION:
-                pb = log_msg_pb2.BlueprintActivationCommand.FromString(raw)
-                return BlueprintActivationMessage(*where, raw, StoreId.from_proto(pb.blueprint_id),
-                                                  pb.make_active, pb.make_default)
-            footer = log_msg_pb2.RrdFooter.FromString(raw) if raw else None
-        except DecodeError as exc:
-            raise errors.ProtobufError(f"{MessageKind(kind).name} payload: {exc}", offset) from exc
-        self._end = (offset + MESSAGE_HEADER_SIZE - self._stream_offset, len(raw), raw)
-        self._state = _State.AFTER_END
-        return EndMessage(*where, raw, footer)
+        message = decode_message(kind, raw, offset, self._stream_offset, self._streams - 1)
+        if isinstance(message, EndMessage):
+            self._end = (offset + MESSAGE_HEADER_SIZE - self._stream_offset, len(message.raw), bytes(message.raw))
+            self._state = _State.AFTER_END
+        return message
+
+
+def decode_message(kind: int, raw: bytes | bytearray, offset: int = 0, stream_offset: int = 0,
+                   stream_index: int = 0) -> Message:
+    """A typed message from its kind and protobuf bytes (from an RRD frame or a gRPC LogMsg)."""
+    where = (offset, stream_offset, stream_index)
+    try:
+        if kind == MessageKind.ARROW_MSG:
+            return _arrow_message(raw, *where)
+        raw = bytes(raw)  # no copy unless a rare large non-chunk message came in a bytearray
+        if kind == MessageKind.SET_STORE_INFO:
+            return _store_info_message(raw, *where)
+        if kind == MessageKind.BLUEPRINT_ACTIVATION:
+            pb = log_msg_pb2.BlueprintActivationCommand.FromString(raw)
+            return BlueprintActivationMessage(*where, raw, StoreId.from_proto(pb.blueprint_id),
+                                              pb.make_active, pb.make_default)
+        if kind == MessageKind.END:
+            return EndMessage(*where, raw, log_msg_pb2.RrdFooter.FromString(raw) if raw else None)
+    except DecodeError as exc:
+        raise errors.ProtobufError(f"{MessageKind(kind).name} payload: {exc}", offset) from exc
+    raise errors.UnknownMessageKindError(f"kind {kind}, expected 0 to 3", offset)
 
 
 def _store_info_message(raw: bytes, offset: int, stream_offset: int, stream_index: int) -> StoreInfoMessage:
@@ -378,7 +388,8 @@ def _arrow_message(raw: bytes | bytearray, offset: int, stream_offset: int, stre
     payload: bytes | memoryview
     if len(raw) >= LARGE_MESSAGE:
         # Parse everything but the payload, which stays a view into `raw` (never copied).
-        start, value, end = _last_len_field(raw, _ARROW_PAYLOAD_FIELD, offset)
+        found = protowire.last_field(raw, _ARROW_PAYLOAD_FIELD, offset)
+        start, value, end = found if found is not None else (len(raw), len(raw), len(raw))
         pb = log_msg_pb2.ArrowMsg.FromString(bytes(raw[:start]) + bytes(raw[end:]))
         payload = memoryview(raw)[value:end]
     else:
@@ -418,44 +429,6 @@ def _store_id(pb: common_pb2.StoreId) -> StoreId:
 
 
 _ARROW_PAYLOAD_FIELD = 5
-
-
-def _varint(raw: bytes | bytearray, pos: int, offset: int) -> tuple[int, int]:
-    result = shift = 0
-    while True:
-        if pos >= len(raw) or shift > 63:
-            raise errors.ProtobufError("ArrowMsg: bad varint", offset)
-        byte = raw[pos]
-        pos += 1
-        result |= (byte & 0x7F) << shift
-        if not byte & 0x80:
-            return result, pos
-        shift += 7
-
-
-def _last_len_field(raw: bytes | bytearray, number: int, offset: int) -> tuple[int, int, int]:
-    """(tag start, value start, value end) of the last length-delimited field `number`."""
-    pos, found = 0, (len(raw), len(raw), len(raw))
-    while pos < len(raw):
-        tag_start = pos
-        key, pos = _varint(raw, pos, offset)
-        wire, field = key & 7, key >> 3
-        if wire == 0:
-            _, pos = _varint(raw, pos, offset)
-        elif wire == 1:
-            pos += 8
-        elif wire == 5:
-            pos += 4
-        elif wire == 2:
-            length, pos = _varint(raw, pos, offset)
-            if field == number:
-                found = (tag_start, pos, pos + length)
-            pos += length
-        else:
-            raise errors.ProtobufError(f"ArrowMsg: wire type {wire} in field {field}", offset)
-        if pos > len(raw):
-            raise errors.ProtobufError(f"ArrowMsg: field {field} runs past the end of the message", offset)
-    return found
 
 
 def iter_events(source: BinaryIO | str | os.PathLike[str], *, max_message_size: int = DEFAULT_MAX_MESSAGE_SIZE,

@@ -1,0 +1,86 @@
+"""gRPC `rerun.sdk_comms.v1alpha1.MessageProxyService.WriteMessages`: what the SDK's GrpcSink calls.
+
+The handler only unwraps each request (the inner message bytes are taken as sent, never
+re-encoded), hands it to the ingest service and maps errors to a gRPC status.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import AsyncIterator
+
+import grpc
+
+from services.errors import FleetError
+from services.ingest.service import IngestService
+from services.rrd import errors as rrd_errors
+from services.rrd import protowire
+from services.rrd.decoder import decode_message
+from services.rrd.pb import sdk_comms_pb2
+
+log = logging.getLogger(__name__)
+
+SERVICE_NAME = "rerun.sdk_comms.v1alpha1.MessageProxyService"
+_LOG_MSG_FIELD = 1  # WriteMessagesRequest.log_msg; inside, oneof fields 1-3 = message kinds 1-3
+
+
+def unwrap(request: bytes, offset: int) -> tuple[int, memoryview]:
+    """(message kind, inner message bytes) of a serialized WriteMessagesRequest."""
+    found = protowire.last_field(request, _LOG_MSG_FIELD, offset)
+    if found is None:
+        raise rrd_errors.ProtobufError("WriteMessagesRequest without log_msg", offset)
+    log_msg = memoryview(request)[found[1]:found[2]]
+    for number, _, start, end in protowire.fields(log_msg, offset):
+        if number in (1, 2, 3):
+            return number, log_msg[start:end]
+    raise rrd_errors.ProtobufError("LogMsg holds no message", offset)
+
+
+class MessageProxy:
+    def __init__(self, service: IngestService) -> None:
+        self.service = service
+
+    async def write_messages(self, requests: AsyncIterator[bytes],
+                             context: grpc.aio.ServicerContext) -> sdk_comms_pb2.WriteMessagesResponse:
+        try:
+            source = self.service.open_source(live=True)
+        except FleetError as exc:
+            await context.abort(grpc.StatusCode[exc.grpc_status()], str(exc))
+        received = 0  # bytes of requests so far: where errors are placed
+        try:
+            async for request in requests:
+                kind, raw = unwrap(request, received)
+                self.service.accept(source, decode_message(kind, bytes(raw), received))
+                received += len(request)
+        except FleetError as exc:
+            log.warning("stream from %s refused: %s", context.peer(), exc)
+            await context.abort(grpc.StatusCode[exc.grpc_status()], str(exc))
+        finally:
+            self.service.close_source(source)
+        return sdk_comms_pb2.WriteMessagesResponse()
+
+
+def server_options(max_message_size: int) -> list[tuple[str, int]]:
+    """Long-lived streams: keepalive pings both ways, never a limit on client pings."""
+    return [
+        ("grpc.max_receive_message_length", max_message_size + 1024),
+        ("grpc.max_send_message_length", max_message_size + 1024),
+        ("grpc.keepalive_time_ms", 10_000),
+        ("grpc.keepalive_timeout_ms", 20_000),
+        ("grpc.keepalive_permit_without_calls", 1),
+        ("grpc.http2.min_recv_ping_interval_without_data_ms", 1_000),
+        ("grpc.http2.max_ping_strikes", 0),
+        ("grpc.max_connection_idle_ms", 2**31 - 1),
+        ("grpc.max_connection_age_ms", 2**31 - 1),
+    ]
+
+
+def add_to_server(server: grpc.aio.Server, proxy: MessageProxy) -> None:
+    handler = grpc.method_handlers_generic_handler(SERVICE_NAME, {
+        "WriteMessages": grpc.stream_unary_rpc_method_handler(
+            proxy.write_messages,
+            request_deserializer=None,  # raw bytes: the inner messages are kept exactly as sent
+            response_serializer=sdk_comms_pb2.WriteMessagesResponse.SerializeToString,
+        ),
+    })
+    server.add_generic_rpc_handlers((handler,))

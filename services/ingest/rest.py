@@ -1,0 +1,37 @@
+"""REST: `POST /v1/uploads`, an `.rrd` body streamed into the ingest service."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from fastapi import APIRouter, Request
+from fastapi.responses import JSONResponse
+
+from services.errors import FleetError
+from services.ingest.service import IngestService
+from services.rrd.decoder import RrdDecoder
+
+router = APIRouter()
+
+
+@router.post("/v1/uploads", summary="Upload an .rrd file (idempotent: chunks already held are skipped)",
+             responses={400: {"description": "the body is not valid RRD from the byte named on"},
+                        507: {"description": "the hot tier is full"}})
+async def upload(request: Request) -> Any:
+    """Streams the body (any size, constant memory) into the runs it names. Answers the runs
+    touched, chunks new and duplicate, and bytes. If the body turns bad part-way, the chunks
+    before the fault are kept and the answer (4xx) names the byte offset."""
+    service: IngestService = request.app.state.ingest
+    decoder = RrdDecoder(max_message_size=request.app.state.settings.max_message_size)
+    source = service.open_source(live=False)
+    try:
+        async for piece in request.stream():
+            for event in decoder.feed(piece):
+                service.accept(source, event)
+        for event in decoder.finish():
+            service.accept(source, event)
+    except FleetError as exc:
+        report = service.close_source(source)
+        body = {**exc.to_dict(), "offset": getattr(exc, "offset", None), "accepted": report.to_dict()}
+        return JSONResponse(body, status_code=exc.http_status())
+    return service.close_source(source).to_dict()

@@ -1,0 +1,360 @@
+"""Ingest: messages from live gRPC streams and from uploads, filed into runs, each chunk once.
+
+A *source* is one gRPC `WriteMessages` stream or one upload. Its SetStoreInfo messages name the
+recordings it carries; each recording is a run (run id = recording id). Blueprint stores are
+kept with the recording they arrive beside. A chunk whose id the run already holds (sent live,
+then uploaded from the FileSink copy) is counted as a duplicate and not written again.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import logging
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+from sqlalchemy.orm import Session, sessionmaker
+
+from catalog import queries
+from catalog.db import session_scope
+from catalog.queries import EntityRecord, RunRecord, TimelineRecord
+from services.errors import ErrorCode, FleetError
+from services.ingest.hot import HotRun, HotStore
+from services.ingest.identity import (
+    IDENTITY_PROPERTY,
+    ROBOT_FIELD,
+    START_TIME_COMPONENT,
+    check_id,
+    is_property_entity,
+    read_property_chunk,
+    run_date,
+)
+from services.rrd.chunk import ChunkMeta, chunk_meta
+from services.rrd.frames import MessageKind, RerunVersion
+from services.rrd.messages import (
+    ArrowMessage,
+    BlueprintActivationMessage,
+    Event,
+    StoreId,
+    StoreInfoMessage,
+    StoreKind,
+    StreamStart,
+)
+from services.rrd.summary import StoreSummary
+
+log = logging.getLogger(__name__)
+
+DEFAULT_VERSION = RerunVersion(0, 41, 0)
+LOG_TIME = "log_time"
+_PENDING_LIMIT = 64 * 1024 * 1024
+
+
+class InvalidStreamError(FleetError):
+    code = ErrorCode.INVALID_ARGUMENT
+
+
+class TooManyStreamsError(FleetError):
+    code = ErrorCode.RESOURCE_EXHAUSTED
+
+
+def utcnow() -> dt.datetime:
+    return dt.datetime.now(dt.UTC)
+
+
+@dataclass
+class IngestReport:
+    """What a source brought: the runs it touched and the chunks that were new or already held."""
+
+    runs: list[str] = field(default_factory=list)
+    chunks_new: int = 0
+    chunks_duplicate: int = 0
+    bytes_new: int = 0
+    messages: int = 0
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"runs": self.runs, "chunks_new": self.chunks_new, "chunks_duplicate": self.chunks_duplicate,
+                "bytes_new": self.bytes_new, "messages": self.messages}
+
+
+@dataclass
+class Source:
+    live: bool  # a gRPC stream (its runs are live while it lasts) rather than an upload
+    version: RerunVersion | None = None
+    run_of_store: dict[StoreId, str] = field(default_factory=dict)
+    recording_run: str | None = None  # where this source's blueprints go
+    pending: list[Event] = field(default_factory=list)  # blueprint messages before any recording
+    pending_bytes: int = 0
+    report: IngestReport = field(default_factory=IngestReport)
+
+
+class RunState:
+    """A hot run: its file, the chunk ids it holds, and what the catalog will say about it."""
+
+    def __init__(self, hot: HotRun, now: dt.datetime) -> None:
+        self.hot = hot
+        self.run_id = hot.run_id
+        self.application_id = ""
+        self.stores_written: set[StoreId] = set()
+        self.activations: set[bytes] = set()
+        self.chunk_ids: set[bytes] = set()
+        self.summary: StoreSummary | None = None
+        self.sdk_version: str | None = None
+        self.robot_id: str | None = None
+        self.properties: dict[str, dict[str, Any]] = {}
+        self.start_time_ns: int | None = None
+        self.first_log_time_ns: int | None = None
+        self.created_at = now
+        self.last_data_at = now
+        self.live_sources = 0
+        self.status = "live"
+        self.ended_at: dt.datetime | None = None
+        self.dirty = True
+
+    def observe_store_info(self, msg: StoreInfoMessage) -> None:
+        self.stores_written.add(msg.store_id)
+        if msg.store_id.kind == StoreKind.RECORDING:
+            self.application_id = msg.store_id.application_id
+            self.sdk_version = str(msg.sdk_version) if msg.sdk_version else self.sdk_version
+            if self.summary is None:
+                self.summary = StoreSummary(msg.store_id)
+        self.dirty = True
+
+    def observe_chunk(self, msg: ArrowMessage, meta: ChunkMeta, now: dt.datetime) -> None:
+        self.chunk_ids.add(meta.chunk_id)
+        self.last_data_at = now
+        self.dirty = True
+        if msg.store_id.kind != StoreKind.RECORDING or self.summary is None:
+            return
+        self.summary.add_chunk(meta)
+        for tl in meta.timelines:
+            if tl.name == LOG_TIME and (self.first_log_time_ns is None or tl.range.min < self.first_log_time_ns):
+                self.first_log_time_ns = tl.range.min
+
+    def observe_property(self, name: str, values: dict[str, Any]) -> None:
+        self.properties.setdefault(name or "recording", {}).update(values)
+        if name == IDENTITY_PROPERTY and ROBOT_FIELD in values:
+            self.robot_id = check_id("robot id", str(values[ROBOT_FIELD]))
+        start = values.get(START_TIME_COMPONENT)
+        if not name and isinstance(start, int):
+            self.start_time_ns = start
+
+    def record(self, default_robot: str) -> RunRecord:
+        summary = self.summary
+        started = self.start_time_ns or self.first_log_time_ns
+        return RunRecord(
+            id=self.run_id,
+            robot_id=self.robot_id or default_robot,
+            application_id=self.application_id,
+            date=run_date(self.start_time_ns, self.first_log_time_ns, self.created_at),
+            status=self.status,
+            tier="hot",
+            started_at=dt.datetime.fromtimestamp(started / 1e9, dt.UTC) if started else None,
+            ended_at=self.ended_at,
+            last_data_at=self.last_data_at,
+            sdk_version=self.sdk_version,
+            chunks=summary.chunks if summary else 0,
+            rows=summary.rows if summary else 0,
+            bytes=self.hot.size,
+            properties=self.properties,
+            entities=[EntityRecord(e.path, e.chunks, e.static_chunks, e.rows, e.bytes, sorted(e.archetypes),
+                                   sorted(e.components)) for e in summary.entities.values()] if summary else [],
+            timelines=[TimelineRecord(t.name, t.type, t.min, t.max)
+                       for t in summary.timelines.values()] if summary else [],
+        )
+
+
+class IngestService:
+    def __init__(self, hot: HotStore, catalog: sessionmaker[Session] | None, *, default_robot: str,
+                 max_streams: int, close_after: dt.timedelta, clock: Callable[[], dt.datetime] = utcnow) -> None:
+        self.hot = hot
+        self.catalog = catalog
+        self.default_robot = default_robot
+        self.max_streams = max_streams
+        self.close_after = close_after
+        self.clock = clock
+        self.runs: dict[str, RunState] = {}
+        self.live_streams = 0
+
+    # --- sources ---------------------------------------------------------------------------
+
+    def open_source(self, *, live: bool) -> Source:
+        if live:
+            if self.live_streams >= self.max_streams:
+                raise TooManyStreamsError(
+                    f"this node already holds {self.live_streams} streams, its limit (FLEET_MAX_STREAMS); "
+                    "retry later or send to another node")
+            self.live_streams += 1
+        return Source(live=live)
+
+    def close_source(self, source: Source) -> IngestReport:
+        """End of a stream or upload: its runs are closed unless another stream still feeds them."""
+        if source.live:
+            self.live_streams -= 1
+        if source.pending:
+            log.warning("dropped %d blueprint messages that came with no recording", len(source.pending))
+        runs = [self.runs[r] for r in source.report.runs]
+        self.hot.sync_if_always([r.hot for r in runs])
+        now = self.clock()
+        for run in runs:
+            if source.live:
+                run.live_sources -= 1
+            if run.live_sources == 0 and run.status == "live":
+                run.status, run.ended_at, run.dirty = "closed", now, True
+        self.flush_catalog()
+        return source.report
+
+    def accept(self, source: Source, event: Event) -> None:
+        """File one message of `source`."""
+        source.report.messages += 1
+        if isinstance(event, StreamStart):
+            source.version = event.version
+        elif isinstance(event, StoreInfoMessage):
+            self._store_info(source, event)
+        elif isinstance(event, ArrowMessage):
+            self._arrow(source, event)
+        elif isinstance(event, BlueprintActivationMessage):
+            self._activation(source, event)
+
+    # --- messages --------------------------------------------------------------------------
+
+    def _store_info(self, source: Source, msg: StoreInfoMessage) -> None:
+        store = msg.store_id
+        if store.kind == StoreKind.BLUEPRINT:
+            if source.recording_run is None:
+                self._hold(source, msg)
+                return
+            run = self.runs[source.recording_run]
+        else:
+            run_id = check_id("recording id", store.recording_id)
+            run = self._run_for(source, run_id, msg.sdk_version)
+            source.recording_run = source.recording_run or run_id
+        source.run_of_store[store] = run.run_id
+        if store not in run.stores_written:
+            run.hot.append(MessageKind.SET_STORE_INFO, msg.raw)
+            run.observe_store_info(msg)
+        if source.pending and source.recording_run == run.run_id:
+            pending, source.pending, source.pending_bytes = source.pending, [], 0
+            for event in pending:
+                self.accept(source, event)
+                source.report.messages -= 1  # counted when it arrived
+
+    def _run_for(self, source: Source, run_id: str, version: RerunVersion | None) -> RunState:
+        run = self.runs.get(run_id)
+        now = self.clock()
+        if run is None:
+            self.hot.check_space(0)
+            hot = self.hot.create(run_id, version or source.version or DEFAULT_VERSION)
+            run = self.runs[run_id] = RunState(hot, now)
+        if run_id not in source.report.runs:
+            source.report.runs.append(run_id)
+            if source.live:
+                run.live_sources += 1
+        if source.live and run.status != "live":
+            run.status, run.ended_at, run.dirty = "live", None, True
+        return run
+
+    def _arrow(self, source: Source, msg: ArrowMessage) -> None:
+        run = self._run_of(source, msg.store_id, msg)
+        if run is None:
+            return
+        if msg.chunk_id is not None and msg.chunk_id in run.chunk_ids:
+            source.report.chunks_duplicate += 1
+            return
+        meta = chunk_meta(msg)
+        if meta.chunk_id in run.chunk_ids:
+            source.report.chunks_duplicate += 1
+            return
+        if msg.store_id.kind == StoreKind.RECORDING and is_property_entity(meta.entity_path):
+            prop = read_property_chunk(msg, meta)
+            run.observe_property(prop.name, prop.values)
+            msg = prop.message  # without its secret fields, if it had any
+        self.hot.check_space(len(msg.raw))
+        run.hot.append(MessageKind.ARROW_MSG, msg.raw)
+        run.observe_chunk(msg, meta, self.clock())
+        source.report.chunks_new += 1
+        source.report.bytes_new += len(msg.raw)
+
+    def _activation(self, source: Source, msg: BlueprintActivationMessage) -> None:
+        run = self._run_of(source, msg.blueprint_id, msg)
+        if run is not None and bytes(msg.raw) not in run.activations:
+            run.hot.append(MessageKind.BLUEPRINT_ACTIVATION, msg.raw)
+            run.activations.add(bytes(msg.raw))
+
+    def _run_of(self, source: Source, store: StoreId, msg: Event) -> RunState | None:
+        run_id = source.run_of_store.get(store)
+        if run_id is not None:
+            return self.runs[run_id]
+        if store.kind == StoreKind.BLUEPRINT:
+            self._hold(source, msg)
+            return None
+        raise InvalidStreamError(
+            f"a message for recording {store.recording_id!r} came before its SetStoreInfo "
+            f"(at byte {getattr(msg, 'offset', 0)}): send the recording from its start")
+
+    def _hold(self, source: Source, msg: Event) -> None:
+        """Blueprints are sent before their recording: keep them until it is known (bounded)."""
+        size = len(getattr(msg, "raw", b""))
+        if source.pending_bytes + size > _PENDING_LIMIT:
+            raise InvalidStreamError(f"more than {_PENDING_LIMIT} bytes of blueprint with no recording")
+        source.pending.append(msg)
+        source.pending_bytes += size
+
+    # --- recovery, catalog, closing ----------------------------------------------------------
+
+    def recover(self) -> list[str]:
+        """Rebuild every hot run from disk after a restart (torn tails trimmed); returns their ids."""
+        recovered = []
+        for directory in self.hot.existing():
+            hot, events = self.hot.recover(directory)
+            mtime = dt.datetime.fromtimestamp(hot.path.stat().st_mtime, dt.UTC)
+            run = self.runs[hot.run_id] = RunState(hot, mtime)
+            for event in events:
+                self._replay(run, event)
+            run.last_data_at = mtime
+            recovered.append(hot.run_id)
+        self.flush_catalog()
+        return recovered
+
+    def _replay(self, run: RunState, event: Event) -> None:
+        if isinstance(event, StoreInfoMessage):
+            run.observe_store_info(event)
+        elif isinstance(event, BlueprintActivationMessage):
+            run.activations.add(bytes(event.raw))
+        elif isinstance(event, ArrowMessage):
+            meta = chunk_meta(event)
+            if event.store_id.kind == StoreKind.RECORDING and is_property_entity(meta.entity_path):
+                prop = read_property_chunk(event, meta)
+                run.observe_property(prop.name, prop.values)
+            run.observe_chunk(event, meta, run.last_data_at)
+
+    def close_idle(self) -> list[str]:
+        """Close live runs that received nothing for `close_after`."""
+        now = self.clock()
+        closed = []
+        for run in self.runs.values():
+            if run.status == "live" and now - run.last_data_at >= self.close_after:
+                run.status, run.ended_at, run.dirty = "closed", now, True
+                closed.append(run.run_id)
+        return closed
+
+    def flush_catalog(self) -> None:
+        """Write every run that changed to the catalog, in one transaction."""
+        dirty = [run for run in self.runs.values() if run.dirty]
+        if not dirty or self.catalog is None:
+            return
+        now = self.clock()
+        for run in dirty:
+            run.dirty = False
+        try:
+            with session_scope(self.catalog) as session:
+                for run in dirty:
+                    queries.save_run(session, run.record(self.default_robot), now)
+        except Exception:
+            for run in dirty:
+                run.dirty = True  # retried at the next flush
+            raise
+
+    def close(self) -> None:
+        self.flush_catalog()
+        self.hot.close()

@@ -1,0 +1,73 @@
+"""`fleet serve`: the REST API and the gRPC message proxy in one process, one event loop."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import datetime as dt
+import logging
+
+import grpc
+import uvicorn
+from sqlalchemy.orm import sessionmaker
+
+from catalog.db import create_engine
+from services.api.app import create_app
+from services.ingest import grpc_handler
+from services.ingest.hot import HotStore
+from services.ingest.service import IngestService
+from services.settings import Settings
+
+log = logging.getLogger("fleet")
+
+
+def split_addr(addr: str) -> tuple[str, int]:
+    host, _, port = addr.rpartition(":")
+    if not host or not port.isdigit():
+        raise ValueError(f"{addr!r} is not HOST:PORT (for example 0.0.0.0:8080)")
+    return host.strip("[]"), int(port)
+
+
+def build_ingest(settings: Settings) -> IngestService:
+    hot = HotStore(settings.hot_dir, durability=settings.durability, interval_ms=settings.group_commit_ms,
+                   min_free_bytes=settings.min_free_bytes)
+    engine = create_engine(settings.catalog_url)
+    return IngestService(hot, sessionmaker(engine), default_robot=settings.default_robot,
+                         max_streams=settings.max_streams, close_after=dt.timedelta(seconds=settings.close_after_s))
+
+
+async def _housekeeping(ingest: IngestService, every: float = 1.0) -> None:
+    """Close idle runs and write what changed to the catalog, once a second."""
+    while True:
+        await asyncio.sleep(every)
+        try:
+            ingest.close_idle()
+            ingest.flush_catalog()
+        except Exception:
+            log.exception("catalog update failed; retrying")
+
+
+async def serve(settings: Settings) -> None:
+    ingest = build_ingest(settings)
+    recovered = ingest.recover()
+    if recovered:
+        log.info("recovered %d hot runs", len(recovered))
+    ingest.hot.start()
+    grpc_server = grpc.aio.server(options=grpc_handler.server_options(settings.max_message_size))
+    grpc_handler.add_to_server(grpc_server, grpc_handler.MessageProxy(ingest))
+    grpc_host, grpc_port = split_addr(settings.grpc_addr)
+    grpc_server.add_insecure_port(f"{grpc_host}:{grpc_port}")
+    http_host, http_port = split_addr(settings.http_addr)
+    app = create_app(settings, ingest)
+    http = uvicorn.Server(uvicorn.Config(app, host=http_host, port=http_port, log_level="info",
+                                         lifespan="off"))
+    await grpc_server.start()
+    housekeeping = asyncio.create_task(_housekeeping(ingest))
+    try:
+        await http.serve()
+    finally:
+        housekeeping.cancel()
+        with contextlib.suppress(asyncio.CancelledError):
+            await housekeeping
+        await grpc_server.stop(grace=5)
+        ingest.close()
