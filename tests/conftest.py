@@ -12,6 +12,8 @@ from pathlib import Path
 
 import pytest
 
+from tests.services.rrd.recordings import SCENES, Recording, cut_mid_arrow, generate_scenes, rerun_rrd
+
 
 def find_rerun() -> str | None:
     """The `rerun` CLI installed next to this Python (the venv's), else the one on PATH."""
@@ -36,5 +38,22 @@ def rerun_bin(rerun_analytics_disabled: None) -> str:
     """Path of the `rerun` executable (skips the test when it is not installed)."""
     exe = find_rerun()
     if exe is None:
-        pytest.skip("the rerun CLI is not installed")
+        pytest.fail("the rerun CLI is not installed: pip install -e '.[dev]' installs rerun-sdk")
     return exe
+
+
+CUT_ARROW_INDEX = 2
+
+
+@pytest.fixture(scope="session")
+def recordings_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return tmp_path_factory.mktemp("recordings")
+
+
+@pytest.fixture(scope="session")
+def recordings(rerun_bin: str, recordings_dir: Path) -> dict[str, Recording]:
+    recs = generate_scenes(SCENES, recordings_dir)
+    recs["merged"] = rerun_rrd(rerun_bin, "merge", [recs["merge_a"], recs["merge_b"]], recordings_dir, "merged")
+    recs["optimized"] = rerun_rrd(rerun_bin, "optimize", [recs["points"]], recordings_dir, "optimized")
+    recs["cut"] = cut_mid_arrow(recs["points"], recordings_dir, "cut", CUT_ARROW_INDEX)
+    return recs

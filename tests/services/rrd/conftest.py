@@ -11,36 +11,9 @@ Names (keys of the `recordings` fixture):
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import pytest
 
-from tests.services.rrd.recordings import (
-    FOOTER_FILES,
-    SCENES,
-    SDK_FILES,
-    WHOLE_FILES,
-    Recording,
-    cut_mid_arrow,
-    generate_scenes,
-    rerun_rrd,
-)
-
-CUT_ARROW_INDEX = 2
-
-
-@pytest.fixture(scope="session")
-def recordings_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    return tmp_path_factory.mktemp("recordings")
-
-
-@pytest.fixture(scope="session")
-def recordings(rerun_bin: str, recordings_dir: Path) -> dict[str, Recording]:
-    recs = generate_scenes(SCENES, recordings_dir)
-    recs["merged"] = rerun_rrd(rerun_bin, "merge", [recs["merge_a"], recs["merge_b"]], recordings_dir, "merged")
-    recs["optimized"] = rerun_rrd(rerun_bin, "optimize", [recs["points"]], recordings_dir, "optimized")
-    recs["cut"] = cut_mid_arrow(recs["points"], recordings_dir, "cut", CUT_ARROW_INDEX)
-    return recs
+from tests.services.rrd.recordings import FOOTER_FILES, SDK_FILES, WHOLE_FILES, Recording
 
 
 @pytest.fixture(scope="session", params=WHOLE_FILES)

@@ -1,0 +1,36 @@
+from __future__ import annotations
+
+import datetime as dt
+from collections.abc import Callable, Iterator
+from pathlib import Path
+
+import pytest
+from sqlalchemy.orm import sessionmaker
+
+from catalog.db import create_engine, upgrade
+from services.ingest.hot import Durability, HotStore
+from services.ingest.service import IngestService, utcnow
+
+Factory = Callable[..., IngestService]
+
+
+@pytest.fixture
+def make_service(tmp_path: Path) -> Iterator[Factory]:
+    """Build ingest services on one data dir (a second one = a restart), with a DuckDB catalog."""
+    engine = create_engine(f"duckdb:///{tmp_path / 'catalog.duckdb'}")
+    upgrade(engine)
+    made: list[IngestService] = []
+
+    def make(*, durability: Durability = Durability.OFF, min_free_bytes: int = 0, max_streams: int = 10,
+             close_after_s: float = 60.0, clock: Callable[[], dt.datetime] = utcnow) -> IngestService:
+        hot = HotStore(tmp_path / "hot", durability=durability, interval_ms=50, min_free_bytes=min_free_bytes)
+        service = IngestService(hot, sessionmaker(engine), default_robot="default-robot",
+                                max_streams=max_streams, close_after=dt.timedelta(seconds=close_after_s),
+                                clock=clock)
+        made.append(service)
+        return service
+
+    yield make
+    for service in made:
+        service.hot.close()
+    engine.dispose()
