@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from fastapi import FastAPI, Request
-from fastapi.responses import JSONResponse
+from fastapi.responses import JSONResponse, PlainTextResponse
 
 from services import __version__
 from services.errors import FleetError
@@ -27,6 +27,21 @@ def create_app(settings: Settings, ingest: IngestService | None = None) -> FastA
     async def healthz() -> dict[str, str]:
         """The process is up."""
         return {"status": "ok", "version": __version__}
+
+    @app.get("/metrics", response_class=PlainTextResponse)
+    async def metrics() -> str:
+        """Prometheus text exposition."""
+        lines = [f"fleet_build_info{{version=\"{__version__}\"}} 1"]
+        if ingest is not None:
+            lines += [
+                "# TYPE fleet_live_streams gauge", f"fleet_live_streams {ingest.live_streams}",
+                "# TYPE fleet_hot_runs gauge", f"fleet_hot_runs {len(ingest.runs)}",
+                "# TYPE fleet_live_runs gauge",
+                f"fleet_live_runs {sum(r.status == 'live' for r in ingest.runs.values())}",
+            ]
+            for key, value in ingest.totals.items():  # counted when a stream or upload ends
+                lines += [f"# TYPE fleet_ingest_{key}_total counter", f"fleet_ingest_{key}_total {value}"]
+        return "\n".join(lines) + "\n"
 
     @app.get("/readyz")
     async def readyz() -> dict[str, str]:

@@ -175,6 +175,7 @@ class IngestService:
         self.clock = clock
         self.runs: dict[str, RunState] = {}
         self.live_streams = 0
+        self.totals = {"chunks_new": 0, "chunks_duplicate": 0, "bytes_new": 0, "messages": 0}
 
     # --- sources ---------------------------------------------------------------------------
 
@@ -191,6 +192,8 @@ class IngestService:
         """End of a stream or upload: its runs are closed unless another stream still feeds them."""
         if source.live:
             self.live_streams -= 1
+        for key in self.totals:
+            self.totals[key] += getattr(source.report, key)
         if source.pending:
             log.warning("dropped %d blueprint messages that came with no recording", len(source.pending))
         runs = [self.runs[r] for r in source.report.runs]

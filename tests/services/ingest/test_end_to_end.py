@@ -1,0 +1,92 @@
+"""The real SDK streams into a real `fleet serve`, which is killed part-way; the FileSink copy is
+uploaded afterwards; the run held equals the copy, every chunk once, the token never stored."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from collections.abc import Iterator
+from pathlib import Path
+
+import httpx
+import pytest
+
+from services.rrd import ArrowMessage, iter_events
+from services.rrd.chunk import read_chunk
+from tests.services.ingest.live_server import LiveServer
+
+pytestmark = pytest.mark.sdk
+ROBOT = str(Path(__file__).with_name("robot.py"))
+
+
+@pytest.fixture
+def server(tmp_path: Path) -> Iterator[LiveServer]:
+    live = LiveServer(tmp_path / "data").start()
+    yield live
+    live.stop()
+
+
+def _chunk_ids(path: Path) -> list[bytes]:
+    return [e.chunk_id for e in iter_events(path) if isinstance(e, ArrowMessage)]  # type: ignore[misc]
+
+
+def test_kill_during_stream_then_upload_the_copy(server: LiveServer, tmp_path: Path, rerun_bin: str):
+    copy, run_id = tmp_path / "copy.rrd", "e2e-run-1"
+    robot = subprocess.Popen([sys.executable, ROBOT, "scene", server.grpc_url, str(copy), run_id],
+                             stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    assert robot.stdout is not None and robot.stdin is not None
+    assert robot.stdout.readline().strip() == "HALF"
+    hot = server.data_dir / "hot" / run_id / "run.rrd"
+    server.wait_for(lambda: hot.exists() and len(_chunk_ids(hot)) > 10, what="the first half on disk")
+    server.kill()  # kill -9 in the middle of the robot's stream
+    server.start()  # recovery: torn tails trimmed, runs back in the catalog
+    robot.stdin.write("go\n")
+    robot.stdin.flush()
+    _, err = robot.communicate(timeout=120)
+    assert robot.returncode == 0, err
+
+    received = set(_chunk_ids(hot))
+    answer = httpx.post(f"{server.url}/v1/uploads", content=copy.read_bytes(), timeout=120).json()
+    everything = _chunk_ids(copy)
+    assert answer["runs"] == [run_id]
+    assert answer["chunks_new"] + answer["chunks_duplicate"] == len(everything)
+    assert answer["chunks_duplicate"] == len(received) > 0
+    held = _chunk_ids(hot)
+    assert len(held) == len(set(held)) == len(everything)  # every chunk, once
+
+    # Equal to the robot's copy, with the property entity that carried the token set apart.
+    filtered = {}
+    for name, path in (("copy", copy), ("held", hot)):
+        out = tmp_path / f"{name}-filtered.rrd"
+        subprocess.run([rerun_bin, "rrd", "filter", "--drop-entity", "/__properties/fleet", str(path), "-o", str(out)],
+                       check=True, capture_output=True)
+        filtered[name] = out
+    compare = subprocess.run([rerun_bin, "rrd", "compare", "--unordered", str(filtered["copy"]),
+                              str(filtered["held"])], capture_output=True, text=True)
+    assert compare.returncode == 0, compare.stdout + compare.stderr
+    properties = [read_chunk(e).to_pylist() for e in iter_events(hot)
+                  if isinstance(e, ArrowMessage) and read_chunk(e).schema.metadata[b"rerun:entity_path"]
+                  == b"/__properties/fleet"]
+    assert len(properties) == 1
+    (row,) = properties[0]
+    assert row["robot_id"] == ["robot-e2e"] and row["site"] == ["lab-3"]
+    assert "token" not in row  # every field kept but the token
+    assert b"do-not-store" not in hot.read_bytes()
+
+
+def test_two_hundred_streams_at_once(server: LiveServer):
+    n = 200
+    robot = subprocess.Popen([sys.executable, ROBOT, "many", server.grpc_url, str(n)],
+                             stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    assert robot.stdout is not None and robot.stdin is not None
+    try:
+        assert robot.stdout.readline().strip() == "READY"
+        server.wait_for(lambda: server.metric("fleet_live_streams") == n, what=f"{n} open streams")
+        assert server.metric("fleet_live_runs") == n
+    finally:
+        robot.stdin.write("done\n")
+        robot.stdin.flush()
+        robot.communicate(timeout=120)
+    server.wait_for(lambda: server.metric("fleet_live_streams") == 0, what="streams to end")
+    assert server.metric("fleet_live_runs") == 0  # every run closed when its stream ended
+    assert server.metric("fleet_ingest_chunks_new_total") >= 2 * n  # RecordingInfo + one scalar each
