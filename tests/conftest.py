@@ -7,11 +7,14 @@ import os
 import shutil
 import subprocess
 import sys
+import uuid
 from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
+import sqlalchemy as sa
 
+from tests.catalog.conftest import PG_ADMIN_URL, _admin_engine
 from tests.services.rrd.recordings import SCENES, Recording, cut_mid_arrow, generate_scenes, rerun_rrd
 
 
@@ -57,3 +60,16 @@ def recordings(rerun_bin: str, recordings_dir: Path) -> dict[str, Recording]:
     recs["optimized"] = rerun_rrd(rerun_bin, "optimize", [recs["points"]], recordings_dir, "optimized")
     recs["cut"] = cut_mid_arrow(recs["points"], recordings_dir, "cut", CUT_ARROW_INDEX)
     return recs
+
+
+@pytest.fixture
+def empty_postgres_url() -> Iterator[str]:
+    admin = _admin_engine()
+    name = f"fleet_cli_{uuid.uuid4().hex[:12]}"
+    with admin.connect() as conn:
+        conn.execute(sa.text(f'CREATE DATABASE "{name}"'))
+    try:
+        yield PG_ADMIN_URL.rsplit("/", 1)[0] + f"/{name}"
+    finally:
+        with admin.connect() as conn:
+            conn.execute(sa.text(f'DROP DATABASE IF EXISTS "{name}" WITH (FORCE)'))

@@ -10,6 +10,7 @@ from services import __version__
 from services.cli.db import db
 from services.cli.rrd import rrd
 from services.cli.serve import serve
+from services.cli.upload import upload
 
 
 @click.group(context_settings={"help_option_names": ["-h", "--help"]})
@@ -21,6 +22,7 @@ def cli() -> None:
 cli.add_command(serve)
 cli.add_command(rrd)
 cli.add_command(db)
+cli.add_command(upload)
 
 
 def main() -> None:
