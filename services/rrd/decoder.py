@@ -249,7 +249,7 @@ class RrdDecoder:
             if length > self.max_message_size:
                 raise errors.MessageTooLargeError(
                     f"{MessageKind(kind).name} message declares {length} bytes, over the limit of "
-                    f"{self.max_message_size} (raise max_message_size if this is expected)",
+                    f"{self.max_message_size} (raise the limit, FLEET_MAX_MESSAGE_SIZE, if this is expected)",
                     here,
                 )
             self._msg_offset, self._kind, self._length = here, kind, length

@@ -129,3 +129,13 @@ def test_postgres_catalog(tmp_path: Path, recordings: dict[str, Recording], requ
         assert row.status == "closed" and row.chunks > 0 and entities == len(rec.recordings[0]["entities"])
     finally:
         live.stop()
+
+
+def test_message_over_the_limit_is_413(tmp_path: Path, recordings: dict[str, Recording]):
+    live = LiveServer(tmp_path / "small-limit", max_message_size="1000").start()
+    try:
+        response = httpx.post(f"{live.url}/v1/uploads", content=recordings["large"].data, timeout=60)
+        assert response.status_code == 413
+        assert response.json()["code"] == "MESSAGE_TOO_LARGE" and "FLEET_MAX_MESSAGE_SIZE" in response.json()["message"]
+    finally:
+        live.stop()

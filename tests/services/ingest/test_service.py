@@ -210,3 +210,17 @@ def test_idle_live_run_is_closed(make_service: Factory, recordings: dict[str, Re
 def test_errors_are_fleet_errors():
     for exc_type in (UnsafeIdError, InvalidStreamError, TooManyStreamsError, InsufficientStorageError):
         assert issubclass(exc_type, FleetError)
+
+
+def test_several_recordings_in_one_source(make_service: Factory, recordings: dict[str, Recording]):
+    service = make_service()
+    merged = recordings["merged"]
+    report = upload(service, merged.path)
+    ids = [r["recording_id"] for r in merged.recordings]
+    assert sorted(report.runs) == sorted(ids)
+    by_store: dict[str, list[bytes]] = {}
+    for event in iter_events(merged.path):
+        if isinstance(event, ArrowMessage):
+            by_store.setdefault(event.store_id.recording_id, []).append(event.chunk_id)  # type: ignore[arg-type]
+    for run_id in ids:
+        assert sorted(chunk_ids(service.runs[run_id].hot.path)) == sorted(by_store[run_id])
