@@ -36,13 +36,14 @@ def build_ingest(settings: Settings) -> IngestService:
                          max_streams=settings.max_streams, close_after=dt.timedelta(seconds=settings.close_after_s))
 
 
-async def _housekeeping(ingest: IngestService, every: float = 1.0) -> None:
-    """Close idle runs and write what changed to the catalog, once a second."""
+async def _housekeeping(ingest: IngestService, every: float) -> None:
+    """Close idle runs and write what changed to the catalog, every `every` seconds. The catalog
+    write runs on a worker thread so that ingest never waits for the database."""
     while True:
         await asyncio.sleep(every)
         try:
             ingest.close_idle()
-            ingest.flush_catalog()
+            await asyncio.to_thread(ingest.save_records, ingest.take_dirty_records())
         except Exception:
             log.exception("catalog update failed; retrying")
 
@@ -62,7 +63,7 @@ async def serve(settings: Settings) -> None:
     http = uvicorn.Server(uvicorn.Config(app, host=http_host, port=http_port, log_level="info",
                                          lifespan="off"))
     await grpc_server.start()
-    housekeeping = asyncio.create_task(_housekeeping(ingest))
+    housekeeping = asyncio.create_task(_housekeeping(ingest, settings.catalog_flush_s))
     try:
         await http.serve()
     finally:

@@ -204,7 +204,8 @@ class IngestService:
                 run.live_sources -= 1
             if run.live_sources == 0 and run.status == "live":
                 run.status, run.ended_at, run.dirty = "closed", now, True
-        self.flush_catalog()
+        if not source.live:
+            self.flush_catalog()  # an upload is answered with the catalog already up to date
         return source.report
 
     def accept(self, source: Source, event: Event) -> None:
@@ -343,19 +344,31 @@ class IngestService:
 
     def flush_catalog(self) -> None:
         """Write every run that changed to the catalog, in one transaction."""
-        dirty = [run for run in self.runs.values() if run.dirty]
-        if not dirty or self.catalog is None:
+        self.save_records(self.take_dirty_records())
+
+    def take_dirty_records(self) -> list[RunRecord]:
+        """Snapshots of the runs that changed since the last flush (cheap: taken on the ingest
+        thread, then saved with `save_records`, which may run on another thread)."""
+        records = []
+        for run in self.runs.values():
+            if run.dirty:
+                run.dirty = False
+                records.append(run.record(self.default_robot))
+        return records
+
+    def save_records(self, records: list[RunRecord]) -> None:
+        if not records or self.catalog is None:
             return
         now = self.clock()
-        for run in dirty:
-            run.dirty = False
         try:
             with session_scope(self.catalog) as session:
-                for run in dirty:
-                    queries.save_run(session, run.record(self.default_robot), now)
+                for record in records:
+                    queries.save_run(session, record, now)
         except Exception:
-            for run in dirty:
-                run.dirty = True  # retried at the next flush
+            for record in records:
+                run = self.runs.get(record.id)
+                if run is not None:
+                    run.dirty = True  # retried at the next flush
             raise
 
     def close(self) -> None:

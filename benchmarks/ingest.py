@@ -1,0 +1,647 @@
+"""Benchmark: gRPC ingest of real Rerun recordings by R robots at once, ours next to `rerun --serve-grpc`.
+
+    /work/venv/bin/python benchmarks/ingest.py [--robots 8] [--procs 2] [--repeat 2] [--workload big,small]
+                                               [--big-mb 220] [--small-chunks 50000] [--json]
+
+1. The recordings are those of ``benchmarks/codec.py`` (``benchmarks/data/big.rrd``: 93 chunks of
+   2.4-2.6 MB, point clouds and images; ``small.rrd``: 50,001 one-row chunks of scalars), generated
+   with the real SDK by its helpers if missing.
+2. For each workload and each repetition, each server is started fresh on free loopback ports:
+   * ours: ``fleet serve`` with ``FLEET_DURABILITY=interval`` (group commit, the default) and a new
+     empty ``FLEET_DATA_DIR``; ready when ``/healthz`` answers;
+   * the peer: the native ``rerun`` binary of rerun-sdk, ``rerun --serve-grpc --bind 127.0.0.1
+     --port P --server-memory-limit L`` (no viewer: it keeps every message in memory for viewers that
+     connect later). L (``--rerun-memory-limit``, default 16GiB) is chosen so that it never drops data:
+     both servers keep everything they are sent (ours on disk, rerun in memory). With rerun's
+     default of 1GiB it would start dropping its oldest messages part-way through the big workload.
+3. ``--procs`` load processes (children of this script) replay the recording's messages as R robots
+   (``--robots``), R/P each: robot k sends every SetStoreInfo / ArrowMsg / BlueprintActivationCommand
+   of the file in order, with the recording id of RECORDING stores changed to ``<id>-r<k>`` (chunk
+   payloads untouched), each robot on its own gRPC channel (own TCP connection) in its own thread, as
+   one client-streaming ``MessageProxyService/WriteMessages`` call of pre-serialized
+   ``WriteMessagesRequest``s. Preparing the requests and connecting are not timed: each load process
+   reports READY, and when all are, this script writes "go" to all of them at once.
+4. Timed: from "go" until the last robot's call has returned (the server answers once it consumed the
+   whole stream; ours has then written every chunk to its hot files). Measured meanwhile: the server's
+   peak RSS (``VmHWM`` of /proc/PID/status: the peak over its whole life, start-up included; RSS also
+   sampled every 20 ms to show its course) and CPU time (/proc/PID/stat), and the load processes' CPU.
+   After the calls: "drain", how long the server's CPU stays busy (it might still be working on what
+   it acknowledged), and for ours a check that ``/metrics`` counts robots x chunks new chunks.
+
+MB = 10**6 bytes; bytes = sum of the inner messages sent (protobuf LogMsg contents, as in an RRD file).
+``ours/rerun`` = our MB/s / rerun's MB/s on the same workload (best run of each); targets: >= 1.0x on
+big chunks, >= 0.5x on 1-row chunks. Both servers and the load share the machine's CPUs.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import importlib.metadata
+import json
+import os
+import platform
+import resource
+import shutil
+import socket
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import IO, Any
+
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:  # run as `python benchmarks/ingest.py` without the editable install
+    sys.path.insert(0, str(ROOT))
+
+from benchmarks.codec import (  # noqa: E402 - after the sys.path fix above
+    MB,
+    checked,
+    ensure_recording,
+    find_rerun_binary,
+    format_table,
+    log,
+    run_process,
+)
+
+METHOD = "/rerun.sdk_comms.v1alpha1.MessageProxyService/WriteMessages"
+MAX_SEND = 512 * 1024 * 1024
+CALL_TIMEOUT_S = 900.0
+RSS_POLL_S = 0.02
+TARGETS = {"big": 1.0, "small": 0.5}
+CLK_TCK = os.sysconf("SC_CLK_TCK")
+
+
+# --- load processes (`ingest.py _load ...`) --------------------------------------------------------
+
+
+def _renamed(store_id: Any, suffix: str, base: str) -> None:
+    """Give a RECORDING store id (kind 1) the robot's recording id; blueprint ids are left alone."""
+    if store_id.kind == 1:
+        store_id.recording_id = base + suffix
+
+
+def prepare_requests(path: str, robots: list[int]) -> tuple[dict[int, list[bytes]], dict[int, dict[str, int]]]:
+    """For each robot: every message of the recording as a serialized WriteMessagesRequest with the
+    robot's own recording id, and what that amounts to (messages, chunks, inner message bytes)."""
+    from services.rrd.decoder import iter_events
+    from services.rrd.messages import ArrowMessage, BlueprintActivationMessage, StoreInfoMessage
+    from services.rrd.pb import log_msg_pb2, sdk_comms_pb2
+
+    requests: dict[int, list[bytes]] = {k: [] for k in robots}
+    counts = {k: {"messages": 0, "chunks": 0, "bytes": 0} for k in robots}
+    suffixes = {k: f"-r{k}" for k in robots}
+    for event in iter_events(path):
+        inner: Any
+        if isinstance(event, StoreInfoMessage):
+            inner, field_name = log_msg_pb2.SetStoreInfo.FromString(bytes(event.raw)), "set_store_info"
+            store_id = inner.info.store_id
+        elif isinstance(event, ArrowMessage):
+            inner, field_name = log_msg_pb2.ArrowMsg.FromString(bytes(event.raw)), "arrow_msg"
+            store_id = inner.store_id
+        elif isinstance(event, BlueprintActivationMessage):
+            inner = log_msg_pb2.BlueprintActivationCommand.FromString(bytes(event.raw))
+            field_name, store_id = "blueprint_activation_command", inner.blueprint_id
+        else:
+            continue  # stream headers, End, footers: not sent over gRPC
+        base = store_id.recording_id
+        for k in robots:
+            _renamed(store_id, suffixes[k], base)
+            request = sdk_comms_pb2.WriteMessagesRequest(log_msg=log_msg_pb2.LogMsg(**{field_name: inner}))
+            requests[k].append(request.SerializeToString())
+            c = counts[k]
+            c["messages"] += 1
+            c["bytes"] += inner.ByteSize()
+            c["chunks"] += field_name == "arrow_msg"
+        del inner
+    return requests, counts
+
+
+def load_main(args: list[str]) -> None:
+    """`_load PATH HOST:PORT K1,K2,...`: prepare, print READY, wait for a line on stdin, send, print DONE."""
+    import grpc
+
+    from services.rrd.pb import sdk_comms_pb2
+
+    path, target, robots = args[0], args[1], [int(k) for k in args[2].split(",")]
+    t0 = time.perf_counter()
+    requests, counts = prepare_requests(path, robots)
+    prepare_s = time.perf_counter() - t0
+    options = [
+        ("grpc.max_send_message_length", MAX_SEND),
+        ("grpc.max_receive_message_length", MAX_SEND),
+        ("grpc.use_local_subchannel_pool", 1),  # each robot its own TCP connection, as separate machines
+    ]
+    channels = {k: grpc.insecure_channel(target, options=options) for k in robots}
+    for channel in channels.values():
+        grpc.channel_ready_future(channel).result(timeout=60)
+    go = threading.Event()
+    results: dict[int, dict[str, Any]] = {}
+
+    def robot(k: int) -> None:
+        call = channels[k].stream_unary(METHOD, request_serializer=None,
+                                        response_deserializer=sdk_comms_pb2.WriteMessagesResponse.FromString)
+        go.wait()
+        start = time.time()
+        error = None
+        try:
+            call(iter(requests[k]), timeout=CALL_TIMEOUT_S)
+        except grpc.RpcError as exc:
+            error = f"{exc.code().name}: {exc.details()}"  # the call object is also the error
+        results[k] = {"start": start, "end": time.time(), "error": error, **counts[k]}
+
+    threads = [threading.Thread(target=robot, args=(k,), name=f"robot-{k}") for k in robots]
+    for thread in threads:
+        thread.start()
+    usage0 = resource.getrusage(resource.RUSAGE_SELF)
+    print("READY " + json.dumps({"prepare_s": prepare_s, "pid": os.getpid()}), flush=True)
+    sys.stdin.readline()
+    go.set()
+    for thread in threads:
+        thread.join()
+    usage1 = resource.getrusage(resource.RUSAGE_SELF)
+    cpu = (usage1.ru_utime - usage0.ru_utime) + (usage1.ru_stime - usage0.ru_stime)
+    print("DONE " + json.dumps({"robots": results, "cpu_s": cpu,
+                                "peak_rss_mb": usage1.ru_maxrss * 1024 / MB}), flush=True)
+    for channel in channels.values():
+        channel.close()
+
+
+# --- servers --------------------------------------------------------------------------------------
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def proc_status_kb(pid: int, key: str) -> int:
+    with open(f"/proc/{pid}/status") as fh:
+        for line in fh:
+            if line.startswith(key + ":"):
+                return int(line.split()[1])
+    raise RuntimeError(f"no {key} in /proc/{pid}/status")
+
+
+def proc_cpu_s(pid: int) -> float:
+    with open(f"/proc/{pid}/stat") as fh:
+        fields = fh.read().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / CLK_TCK  # utime, stime (fields 14 and 15 of stat)
+
+
+def http_get(port: int, path: str, timeout: float = 10) -> tuple[int, str]:
+    import httpx
+
+    response = httpx.get(f"http://127.0.0.1:{port}{path}", timeout=timeout)
+    return response.status_code, response.text
+
+
+class Server:
+    """A server process under test: started, polled for RSS, stopped."""
+
+    name = ""
+
+    def __init__(self, workdir: Path) -> None:
+        self.workdir = workdir
+        self.grpc_port = free_port()
+        self.proc: subprocess.Popen[bytes] | None = None
+        self.log_path = workdir / f"{self.name}.log"
+        self.samples: list[tuple[float, int]] = []  # (time.time(), VmRSS KiB)
+        self._stop_polling = threading.Event()
+        self._poller: threading.Thread | None = None
+
+    @property
+    def pid(self) -> int:
+        assert self.proc is not None
+        return self.proc.pid
+
+    def argv_env(self) -> tuple[list[str], dict[str, str]]:
+        raise NotImplementedError
+
+    def ready(self) -> bool:
+        raise NotImplementedError
+
+    def start(self, timeout: float = 60) -> None:
+        argv, env = self.argv_env()
+        with open(self.log_path, "wb") as out:
+            self.proc = subprocess.Popen(argv, env=env, stdin=subprocess.DEVNULL, stdout=out,
+                                         stderr=subprocess.STDOUT, cwd=self.workdir)
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if self.proc.poll() is not None:
+                raise SystemExit(f"{self.name} exited ({self.proc.returncode}) at start:\n{self.log_tail()}")
+            with contextlib.suppress(OSError):
+                if self.ready():
+                    return
+            time.sleep(0.05)  # polling for readiness, bounded by the deadline
+        raise SystemExit(f"{self.name} did not become ready within {timeout} s:\n{self.log_tail()}")
+
+    def log_tail(self, lines: int = 30) -> str:
+        try:
+            return "\n".join(self.log_path.read_text(errors="replace").splitlines()[-lines:])
+        except OSError:
+            return ""
+
+    def rss_mb(self) -> float:
+        return proc_status_kb(self.pid, "VmRSS") * 1024 / MB
+
+    def peak_rss_mb(self) -> float:
+        return proc_status_kb(self.pid, "VmHWM") * 1024 / MB
+
+    def start_polling(self) -> None:
+        def poll() -> None:
+            while not self._stop_polling.is_set():
+                with contextlib.suppress(OSError, RuntimeError):
+                    self.samples.append((time.time(), proc_status_kb(self.pid, "VmRSS")))
+                self._stop_polling.wait(RSS_POLL_S)
+
+        self._poller = threading.Thread(target=poll, name=f"rss-{self.name}", daemon=True)
+        self._poller.start()
+
+    def stop_polling(self) -> None:
+        self._stop_polling.set()
+        if self._poller is not None:
+            self._poller.join()
+
+    def stop(self) -> None:
+        self.stop_polling()
+        if self.proc is not None and self.proc.poll() is None:
+            self.proc.terminate()
+            try:
+                self.proc.wait(timeout=30)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
+
+
+class FleetServer(Server):
+    name = "ours"
+
+    def __init__(self, workdir: Path) -> None:
+        super().__init__(workdir)
+        self.http_port = free_port()
+        self.data_dir = workdir / "fleet-data"
+
+    def argv_env(self) -> tuple[list[str], dict[str, str]]:
+        env = {**os.environ, "FLEET_DATA_DIR": str(self.data_dir), "FLEET_DURABILITY": "interval",
+               "FLEET_HTTP_ADDR": f"127.0.0.1:{self.http_port}", "FLEET_GRPC_ADDR": f"127.0.0.1:{self.grpc_port}"}
+        fleet = Path(sys.executable).with_name("fleet")
+        if fleet.is_file():
+            return [str(fleet), "serve"], env
+        code = f"import sys; sys.path.insert(0, {str(ROOT)!r}); from services.cli.main import main; main()"
+        return [sys.executable, "-c", code, "serve"], env
+
+    def ready(self) -> bool:
+        import httpx
+
+        try:
+            return http_get(self.http_port, "/healthz", timeout=1)[0] == 200
+        except httpx.TransportError:
+            return False
+
+    def metrics(self) -> dict[str, float]:
+        status, text = http_get(self.http_port, "/metrics")
+        if status != 200:
+            raise SystemExit(f"GET /metrics: HTTP {status}")
+        values = {}
+        for line in text.splitlines():
+            if line.startswith("fleet_") and not line.startswith("fleet_build_info"):
+                name, value = line.split()
+                values[name] = float(value)
+        return values
+
+
+class RerunServer(Server):
+    name = "rerun"
+
+    def __init__(self, workdir: Path, binary: str, memory_limit: str) -> None:
+        super().__init__(workdir)
+        self.binary = binary
+        self.memory_limit = memory_limit
+
+    def argv_env(self) -> tuple[list[str], dict[str, str]]:
+        argv = [self.binary, "--serve-grpc", "--bind", "127.0.0.1", "--port", str(self.grpc_port),
+                "--server-memory-limit", self.memory_limit]
+        return argv, {**os.environ, "RERUN_ANALYTICS": "0"}
+
+    def ready(self) -> bool:
+        with socket.create_connection(("127.0.0.1", self.grpc_port), timeout=1):
+            return True
+
+
+# --- one run ---------------------------------------------------------------------------------------
+
+
+@dataclass
+class Run:
+    server: str
+    workload: str
+    wall_s: float
+    bytes: int
+    chunks: int
+    messages: int
+    server_cpu_s: float
+    load_cpu_s: float
+    peak_rss_mb: float  # VmHWM: the server's peak over its life
+    rss_start_mb: float  # just before "go"
+    rss_end_mb: float  # after the drain
+    rss_course_mb: list[float]  # sampled RSS at 0, 25, 50, 75, 100 % of the timed part
+    drain_s: float
+    drain_cpu_s: float
+    prepare_s: float
+    robot_walls_s: list[float]
+    check: str = ""
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def mb_s(self) -> float:
+        return self.bytes / MB / self.wall_s
+
+    @property
+    def chunks_s(self) -> float:
+        return self.chunks / self.wall_s
+
+
+def read_line(proc: subprocess.Popen[str], prefix: str, what: str) -> dict[str, Any]:
+    assert proc.stdout is not None
+    line = proc.stdout.readline()
+    if not line.startswith(prefix + " "):
+        proc.wait()
+        raise SystemExit(f"{what}: expected {prefix}, got {line!r} (exit {proc.returncode})")
+    result: dict[str, Any] = json.loads(line[len(prefix) + 1:])
+    return result
+
+
+def wait_idle(pid: int, quiet_s: float = 0.5, threshold_s: float = 0.05, limit_s: float = 60) -> tuple[float, float]:
+    """Wait until the process uses less than `threshold_s` CPU in `quiet_s`; returns (seconds until
+    then, excluding the quiet window that proved it, CPU seconds used meanwhile)."""
+    start, cpu0 = time.perf_counter(), proc_cpu_s(pid)
+    busy_until, last = start, cpu0
+    while time.perf_counter() - start < limit_s:
+        time.sleep(quiet_s)
+        now = proc_cpu_s(pid)
+        if now - last < threshold_s:
+            break
+        busy_until, last = time.perf_counter(), now
+    return busy_until - start, last - cpu0
+
+
+def course(samples: list[tuple[float, int]], t0: float, t1: float) -> list[float]:
+    """RSS (MB) at 0, 25, 50, 75 and 100 % of [t0, t1]: the sample nearest each point."""
+    if not samples:
+        return []
+    points = [t0 + (t1 - t0) * q / 4 for q in range(5)]
+    return [min(samples, key=lambda s: abs(s[0] - p))[1] * 1024 / MB for p in points]
+
+
+def run_once(server: Server, workload: str, path: Path, robots: int, procs: int, expect_chunks: int) -> Run:
+    groups = [list(range(robots))[i::procs] for i in range(procs)]
+    groups = [g for g in groups if g]
+    server.start()
+    loaders: list[subprocess.Popen[str]] = []
+    logs: list[IO[bytes]] = []
+    try:
+        target = f"127.0.0.1:{server.grpc_port}"
+        for i, group in enumerate(groups):
+            err = open(server.workdir / f"load-{i}.log", "wb")  # noqa: SIM115 - closed below
+            logs.append(err)
+            argv = [sys.executable, str(Path(__file__).resolve()), "_load", str(path), target,
+                    ",".join(map(str, group))]
+            loaders.append(subprocess.Popen(argv, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=err,
+                                            text=True))
+        ready = [read_line(p, "READY", f"load process {i}") for i, p in enumerate(loaders)]
+        time.sleep(0.5)  # let the preparation's page cache and allocator churn settle
+        rss_start = server.rss_mb()
+        cpu0 = proc_cpu_s(server.pid)
+        server.start_polling()
+        t_go = time.time()
+        for p in loaders:
+            assert p.stdin is not None
+            p.stdin.write("go\n")
+            p.stdin.flush()
+        done = [read_line(p, "DONE", f"load process {i}") for i, p in enumerate(loaders)]
+        t_end = max(r["end"] for d in done for r in d["robots"].values())
+        cpu1 = proc_cpu_s(server.pid)
+        drain_s, drain_cpu = wait_idle(server.pid)
+        server.stop_polling()
+        for p in loaders:
+            p.wait(timeout=60)
+        results = [r for d in done for r in d["robots"].values()]
+        errors = [f"robot: {r['error']}" for r in results if r["error"]]
+        if errors:
+            tails = "\n".join(server.log_tail().splitlines()[-10:])
+            raise SystemExit(f"{server.name} {workload}: {len(errors)} calls failed: {errors[:3]}\n{tails}")
+        run = Run(
+            server=server.name, workload=workload, wall_s=t_end - t_go,
+            bytes=sum(r["bytes"] for r in results), chunks=sum(r["chunks"] for r in results),
+            messages=sum(r["messages"] for r in results),
+            server_cpu_s=cpu1 - cpu0, load_cpu_s=sum(d["cpu_s"] for d in done),
+            peak_rss_mb=server.peak_rss_mb(), rss_start_mb=rss_start, rss_end_mb=server.rss_mb(),
+            rss_course_mb=course(server.samples, t_go, t_end), drain_s=drain_s, drain_cpu_s=drain_cpu,
+            prepare_s=max(r["prepare_s"] for r in ready),
+            robot_walls_s=sorted(round(r["end"] - t_go, 3) for r in results),
+        )
+        if isinstance(server, FleetServer):
+            run.check, run.extra = check_ours(server, run, robots * expect_chunks)
+        else:
+            run.check = "not checked (rerun has no counter; its calls all succeeded)"
+        return run
+    finally:
+        for p in loaders:
+            if p.poll() is None:
+                p.kill()
+                p.wait()
+        for fh in logs:
+            fh.close()
+        server.stop()
+
+
+def check_ours(server: FleetServer, run: Run, expected: int) -> tuple[str, dict[str, Any]]:
+    """Every chunk new, once, on disk: the counters of /metrics (updated when a stream ends)."""
+    deadline = time.monotonic() + 30
+    metrics = server.metrics()
+    while metrics.get("fleet_live_streams", 0) > 0 and time.monotonic() < deadline:
+        time.sleep(0.1)  # polling for the streams to be closed, bounded by the deadline
+        metrics = server.metrics()
+    new = int(metrics.get("fleet_ingest_chunks_new_total", -1))
+    dup = int(metrics.get("fleet_ingest_chunks_duplicate_total", -1))
+    hot = server.data_dir / "hot"
+    hot_bytes = sum(p.stat().st_size for p in hot.glob("*/run.rrd")) if hot.is_dir() else 0
+    extra = {"metrics": metrics, "hot_runs": len(list(hot.glob("*/run.rrd"))) if hot.is_dir() else 0,
+             "hot_bytes": hot_bytes}
+    if new != expected or dup != 0:
+        return f"MISMATCH: {new} new + {dup} duplicate chunks, expected {expected} new", extra
+    return f"ok: {new:,} new chunks in /metrics, {extra['hot_runs']} hot runs, {hot_bytes / MB:,.1f} MB on disk", extra
+
+
+# --- report ----------------------------------------------------------------------------------------
+
+
+def best(runs: list[Run], server: str, workload: str) -> Run:
+    return min((r for r in runs if r.server == server and r.workload == workload), key=lambda r: r.wall_s)
+
+
+def summarize(runs: list[Run], workloads: list[str]) -> list[dict[str, Any]]:
+    out = []
+    for w in workloads:
+        ours, peer = best(runs, "ours", w), best(runs, "rerun", w)
+        ratio = ours.mb_s / peer.mb_s
+        all_ours = [r for r in runs if r.server == "ours" and r.workload == w]
+        out.append({
+            "workload": w, "ratio_mb_s": round(ratio, 3), "target": TARGETS[w], "met": ratio >= TARGETS[w],
+            "ours": {"mb_s": round(ours.mb_s, 1), "chunks_s": round(ours.chunks_s, 1), "wall_s": round(ours.wall_s, 3)},
+            "rerun": {"mb_s": round(peer.mb_s, 1), "chunks_s": round(peer.chunks_s, 1),
+                      "wall_s": round(peer.wall_s, 3)},
+            "ours_peak_rss_mb": round(max(r.peak_rss_mb for r in all_ours), 1),
+            "rerun_peak_rss_mb": round(max(r.peak_rss_mb for r in runs if r.server == "rerun" and r.workload == w), 1),
+            "ours_rss_growth_mb_per_gb": round(max((r.peak_rss_mb - r.rss_start_mb) / (r.bytes / 1e9)
+                                                   for r in all_ours), 2),
+        })
+    return out
+
+
+def print_report(report: dict[str, Any]) -> None:
+    env = report["environment"]
+    print(f"rerun: {env['rerun_binary']} ({env['rerun_version']}), --serve-grpc "
+          f"--server-memory-limit {env['rerun_memory_limit']} (memory only, drops nothing here)")
+    print(f"ours: fleet serve, FLEET_DURABILITY=interval (group commit), hot tier in {env['tmp']}")
+    print(f"load: {env['robots']} robots (distinct recording ids) from {env['procs']} processes, one gRPC channel "
+          f"and thread per robot, one WriteMessages call per robot; best of {env['repeat']}")
+    print(f"python {env['python']}, grpcio {env['grpcio']}, {env['cpus']} CPUs shared by server and load "
+          f"(load average {env['load_average_1m_at_start']} at start); MB = 10^6 bytes")
+    print()
+    rows = []
+    for r in report["runs"]:
+        rows.append([r["workload"], r["server"], f"{r['bytes'] / MB:,.1f}", f"{r['chunks']:,}", f"{r['wall_s']:.2f}",
+                     f"{r['bytes'] / MB / r['wall_s']:,.1f}", f"{r['chunks'] / r['wall_s']:,.0f}",
+                     f"{r['peak_rss_mb']:,.0f}", f"{r['server_cpu_s']:.1f}", f"{r['load_cpu_s']:.1f}",
+                     f"{r['drain_s']:.1f}"])
+    print(format_table(["workload", "server", "MB sent", "chunks", "wall s", "MB/s", "chunks/s", "peak RSS MB",
+                        "server CPU s", "load CPU s", "drain s"], rows, "llrrrrrrrrr"))
+    print()
+    print("wall s: from 'go' to the last call answered; peak RSS: the server's VmHWM; server CPU s: during the "
+          "wall time; load CPU s: all load processes; drain s: server CPU still busy after the last answer")
+    print()
+    rows = []
+    for s in report["summary"]:
+        rows.append([s["workload"], f"{s['ours']['mb_s']:,.1f}", f"{s['ours']['chunks_s']:,.0f}",
+                     f"{s['rerun']['mb_s']:,.1f}", f"{s['rerun']['chunks_s']:,.0f}", f"{s['ratio_mb_s']:.2f}x",
+                     f">= {s['target']:.1f}x", "met" if s["met"] else "MISSED",
+                     f"{s['ours_peak_rss_mb']:,.0f} / {s['rerun_peak_rss_mb']:,.0f}"])
+    print(format_table(["workload", "ours MB/s", "ours chunks/s", "rerun MB/s", "rerun chunks/s", "ours/rerun",
+                        "target", "", "peak RSS MB ours / rerun"], rows, "lrrrrrrll"))
+    print()
+    print("ours, memory over each run (RSS MB at 0/25/50/75/100 % of the timed part; growth = peak - start):")
+    for r in report["runs"]:
+        if r["server"] != "ours":
+            continue
+        growth = r["peak_rss_mb"] - r["rss_start_mb"]
+        print(f"  {r['workload']:5} start {r['rss_start_mb']:.0f}, course "
+              f"{' / '.join(f'{v:.0f}' for v in r['rss_course_mb'])}, peak {r['peak_rss_mb']:.0f}, after "
+              f"{r['rss_end_mb']:.0f}: +{growth:.0f} MB for {r['bytes'] / 1e9:.2f} GB ingested "
+              f"({growth / (r['bytes'] / 1e9):.1f} MB per GB)")
+    print()
+    for r in report["runs"]:
+        print(f"{r['workload']:5} {r['server']:5} check: {r['check']}")
+
+
+# --- main ------------------------------------------------------------------------------------------
+
+
+def main(argv: list[str] | None = None) -> None:
+    argv = sys.argv[1:] if argv is None else argv
+    if argv[:1] == ["_load"]:
+        load_main(argv[1:])
+        return
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--data-dir", type=Path, default=ROOT / "benchmarks" / "data",
+                        help="where codec.py's recordings live (default: benchmarks/data, gitignored)")
+    parser.add_argument("--robots", type=int, default=8, help="robots = concurrent streams (default 8)")
+    parser.add_argument("--procs", type=int, default=2, help="load processes the robots are spread over (default 2)")
+    parser.add_argument("--repeat", type=int, default=2, help="runs per server and workload, best counts (default 2)")
+    parser.add_argument("--workload", default="big,small", help="comma-separated: big, small (default both)")
+    parser.add_argument("--big-mb", type=float, default=220, help="minimum size of big.rrd in MB (default 220)")
+    parser.add_argument("--small-chunks", type=int, default=50_000,
+                        help="1-row chunks in small.rrd (default 50000)")
+    parser.add_argument("--small-entities", type=int, default=100, help="entities of small.rrd (default 100)")
+    parser.add_argument("--rerun", help="the rerun executable (default: the native binary of rerun-sdk)")
+    parser.add_argument("--rerun-memory-limit", default="16GiB",
+                        help="rerun --server-memory-limit: large enough that it drops nothing (default 16GiB)")
+    parser.add_argument("--tmp", type=Path, default=None, help="where our server's data dirs go (default: $TMPDIR)")
+    parser.add_argument("--json", action="store_true", help="print the results as JSON on stdout instead of tables")
+    args = parser.parse_args(argv)
+    workloads = [w.strip() for w in args.workload.split(",") if w.strip()]
+    if not workloads or any(w not in TARGETS for w in workloads):
+        parser.error("--workload takes big, small or big,small")
+    if min(args.robots, args.procs, args.repeat, args.small_chunks, args.small_entities) < 1 or args.big_mb <= 0:
+        parser.error("--robots, --procs, --repeat, --small-chunks, --small-entities and --big-mb must be positive")
+
+    load = os.getloadavg()[0]
+    if load > 0.5 * (os.cpu_count() or 1):
+        log(f"WARNING: load average {load:.2f}: other processes compete for the CPUs, timings will be noisy")
+    data_dir: Path = args.data_dir.resolve()
+    infos = {}
+    if "big" in workloads:
+        infos["big"] = ensure_recording(data_dir, "big.rrd", {"kind": "big", "big_mb": args.big_mb},
+                                        ["gen-big", str(args.big_mb)])
+    if "small" in workloads:
+        infos["small"] = ensure_recording(
+            data_dir, "small.rrd", {"kind": "small", "chunks": args.small_chunks, "entities": args.small_entities},
+            ["gen-small", str(args.small_chunks), str(args.small_entities)])
+    rerun_bin, _ = find_rerun_binary(args.rerun)
+    version = checked(run_process([rerun_bin, "--version"]), "rerun --version").stdout.split("(")[0].strip()
+
+    runs: list[Run] = []
+    tmp_root = Path(tempfile.mkdtemp(prefix="ingest-bench-", dir=args.tmp))
+    try:
+        for w in workloads:
+            path = data_dir / f"{w}.rrd"
+            for i in range(args.repeat):
+                order: list[str] = ["ours", "rerun"] if i % 2 == 0 else ["rerun", "ours"]
+                for name in order:
+                    workdir = tmp_root / f"{w}-{name}-{i}"
+                    workdir.mkdir()
+                    server: Server = (FleetServer(workdir) if name == "ours"
+                                      else RerunServer(workdir, rerun_bin, args.rerun_memory_limit))
+                    log(f"{w} #{i + 1}: {name} ...")
+                    run = run_once(server, w, path, args.robots, args.procs, int(infos[w]["chunks"]))
+                    log(f"  {run.wall_s:.2f} s, {run.mb_s:,.1f} MB/s, {run.chunks_s:,.0f} chunks/s, peak RSS "
+                        f"{run.peak_rss_mb:,.0f} MB, server CPU {run.server_cpu_s:.1f} s, "
+                        f"load CPU {run.load_cpu_s:.1f} s, drain {run.drain_s:.1f} s; {run.check}")
+                    runs.append(run)
+                    shutil.rmtree(workdir, ignore_errors=True)
+    finally:
+        shutil.rmtree(tmp_root, ignore_errors=True)
+
+    report: dict[str, Any] = {
+        "environment": {
+            "python": platform.python_version(),
+            "platform": platform.platform(),
+            "cpus": os.cpu_count(),
+            "load_average_1m_at_start": round(load, 2),
+            "robots": args.robots,
+            "procs": args.procs,
+            "repeat": args.repeat,
+            "rerun_binary": rerun_bin,
+            "rerun_version": version,
+            "rerun_memory_limit": args.rerun_memory_limit,
+            "rerun_sdk": importlib.metadata.version("rerun-sdk"),
+            "grpcio": importlib.metadata.version("grpcio"),
+            "tmp": str(tmp_root.parent),
+        },
+        "runs": [{k: v for k, v in asdict(r).items() if k != "extra"} | {"extra": r.extra} for r in runs],
+        "summary": summarize(runs, workloads),
+    }
+    if args.json:
+        print(json.dumps(report, indent=2))
+    else:
+        print_report(report)
+
+
+if __name__ == "__main__":
+    main()
