@@ -315,7 +315,8 @@ class IngestService:
             run = self.runs[hot.run_id] = RunState(hot, mtime)
             for event in events:
                 self._replay(run, event)
-            run.last_data_at = mtime
+            # No stream survives a restart (the SDK never reconnects): what follows comes by upload.
+            run.last_data_at, run.status, run.ended_at = mtime, "closed", mtime
             recovered.append(hot.run_id)
         self.flush_catalog()
         return recovered

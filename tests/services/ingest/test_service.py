@@ -162,7 +162,8 @@ def test_restart_recovers_runs_and_trims_a_torn_tail(make_service: Factory, reco
     assert path.stat().st_size == whole
     assert restarted.runs[run_id].chunk_ids == set(chunk_ids(rec.path))
     assert upload(restarted, rec.path).chunks_new == 0  # exactly once across the restart
-    assert catalog_run(restarted, run_id)["chunks"] == len(chunk_ids(rec.path))
+    row = catalog_run(restarted, run_id)
+    assert row["chunks"] == len(chunk_ids(rec.path)) and row["status"] == "closed"
 
 
 def test_durability_always_syncs_before_answering(make_service: Factory, recordings: dict[str, Recording]):
