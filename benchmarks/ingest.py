@@ -121,12 +121,10 @@ def prepare_requests(path: str, robots: list[int]) -> tuple[dict[int, list[bytes
 
 
 def load_main(args: list[str]) -> None:
-    """`_load PATH HOST:PORT K1,K2,...`: prepare, print READY, wait for a line on stdin, send, print DONE."""
-    import grpc
-
-    from services.rrd.pb import sdk_comms_pb2
-
-    path, target, robots = args[0], args[1], [int(k) for k in args[2].split(",")]
+    """`_load CLIENT PATH HOST:PORT K1,K2,...`: prepare, print READY, wait for a line on stdin, send, print
+    DONE. CLIENT is `aio` (grpc.aio, one task per robot on one event loop) or `thread` (the blocking API,
+    one thread per robot)."""
+    client, path, target, robots = args[0], args[1], args[2], [int(k) for k in args[3].split(",")]
     t0 = time.perf_counter()
     requests, counts = prepare_requests(path, robots)
     prepare_s = time.perf_counter() - t0
@@ -135,7 +133,74 @@ def load_main(args: list[str]) -> None:
         ("grpc.max_receive_message_length", MAX_SEND),
         ("grpc.use_local_subchannel_pool", 1),  # each robot its own TCP connection, as separate machines
     ]
-    channels = {k: grpc.insecure_channel(target, options=options) for k in robots}
+    ready = {"prepare_s": prepare_s, "pid": os.getpid()}
+    if client == "aio":
+        import asyncio
+
+        results = asyncio.run(_send_aio(target, options, requests, ready))
+    else:
+        results = _send_threads(target, options, requests, ready)
+    usage = resource.getrusage(resource.RUSAGE_SELF)
+    for k, result in results.items():
+        result.update(counts[k])
+    print("DONE " + json.dumps({"robots": results, "cpu_s": usage.ru_utime + usage.ru_stime - ready["cpu0"],
+                                "peak_rss_mb": usage.ru_maxrss * 1024 / MB}), flush=True)
+
+
+def _cpu_now() -> float:
+    usage = resource.getrusage(resource.RUSAGE_SELF)
+    return usage.ru_utime + usage.ru_stime
+
+
+def _barrier(ready: dict[str, Any]) -> None:
+    """Tell the orchestrator we are ready, wait for its go."""
+    ready["cpu0"] = _cpu_now()
+    print("READY " + json.dumps(ready), flush=True)
+    sys.stdin.readline()
+
+
+async def _send_aio(target: str, options: list[tuple[str, int]], requests: dict[int, list[bytes]],
+                    ready: dict[str, Any]) -> dict[int, dict[str, Any]]:
+    import asyncio
+
+    import grpc
+
+    from services.rrd.pb import sdk_comms_pb2
+
+    channels = {k: grpc.aio.insecure_channel(target, options=options) for k in requests}
+    for channel in channels.values():
+        await asyncio.wait_for(channel.channel_ready(), 60)
+    results: dict[int, dict[str, Any]] = {}
+
+    async def robot(k: int) -> None:
+        call = channels[k].stream_unary(METHOD, request_serializer=None,
+                                        response_deserializer=sdk_comms_pb2.WriteMessagesResponse.FromString)
+        start = time.time()
+        error = None
+        try:
+            stream = call(timeout=CALL_TIMEOUT_S)
+            for request in requests[k]:
+                await stream.write(request)
+            await stream.done_writing()
+            await stream
+        except grpc.RpcError as exc:
+            error = f"{exc.code().name}: {exc.details()}"
+        results[k] = {"start": start, "end": time.time(), "error": error}
+
+    await asyncio.get_running_loop().run_in_executor(None, _barrier, ready)
+    await asyncio.gather(*(robot(k) for k in requests))
+    for channel in channels.values():
+        await channel.close()
+    return results
+
+
+def _send_threads(target: str, options: list[tuple[str, int]], requests: dict[int, list[bytes]],
+                  ready: dict[str, Any]) -> dict[int, dict[str, Any]]:
+    import grpc
+
+    from services.rrd.pb import sdk_comms_pb2
+
+    channels = {k: grpc.insecure_channel(target, options=options) for k in requests}
     for channel in channels.values():
         grpc.channel_ready_future(channel).result(timeout=60)
     go = threading.Event()
@@ -151,23 +216,18 @@ def load_main(args: list[str]) -> None:
             call(iter(requests[k]), timeout=CALL_TIMEOUT_S)
         except grpc.RpcError as exc:
             error = f"{exc.code().name}: {exc.details()}"  # the call object is also the error
-        results[k] = {"start": start, "end": time.time(), "error": error, **counts[k]}
+        results[k] = {"start": start, "end": time.time(), "error": error}
 
-    threads = [threading.Thread(target=robot, args=(k,), name=f"robot-{k}") for k in robots]
+    threads = [threading.Thread(target=robot, args=(k,), name=f"robot-{k}") for k in requests]
     for thread in threads:
         thread.start()
-    usage0 = resource.getrusage(resource.RUSAGE_SELF)
-    print("READY " + json.dumps({"prepare_s": prepare_s, "pid": os.getpid()}), flush=True)
-    sys.stdin.readline()
+    _barrier(ready)
     go.set()
     for thread in threads:
         thread.join()
-    usage1 = resource.getrusage(resource.RUSAGE_SELF)
-    cpu = (usage1.ru_utime - usage0.ru_utime) + (usage1.ru_stime - usage0.ru_stime)
-    print("DONE " + json.dumps({"robots": results, "cpu_s": cpu,
-                                "peak_rss_mb": usage1.ru_maxrss * 1024 / MB}), flush=True)
     for channel in channels.values():
         channel.close()
+    return results
 
 
 # --- servers --------------------------------------------------------------------------------------

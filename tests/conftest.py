@@ -7,14 +7,12 @@ import os
 import shutil
 import subprocess
 import sys
-import uuid
 from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-import sqlalchemy as sa
 
-from tests.catalog.conftest import PG_ADMIN_URL, _admin_engine
+from tests.postgres import temporary_database
 from tests.services.rrd.recordings import SCENES, Recording, cut_mid_arrow, generate_scenes, rerun_rrd
 
 
@@ -64,12 +62,6 @@ def recordings(rerun_bin: str, recordings_dir: Path) -> dict[str, Recording]:
 
 @pytest.fixture
 def empty_postgres_url() -> Iterator[str]:
-    admin = _admin_engine()
-    name = f"fleet_cli_{uuid.uuid4().hex[:12]}"
-    with admin.connect() as conn:
-        conn.execute(sa.text(f'CREATE DATABASE "{name}"'))
-    try:
-        yield PG_ADMIN_URL.rsplit("/", 1)[0] + f"/{name}"
-    finally:
-        with admin.connect() as conn:
-            conn.execute(sa.text(f'DROP DATABASE IF EXISTS "{name}" WITH (FORCE)'))
+    """A new, empty database on the local PostgreSQL server."""
+    with temporary_database("fleet_empty") as url:
+        yield url

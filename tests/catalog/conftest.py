@@ -7,9 +7,6 @@ back, so tests do not see each other's rows.
 
 from __future__ import annotations
 
-import os
-import subprocess
-import uuid
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -18,37 +15,13 @@ import sqlalchemy as sa
 from sqlalchemy.orm import Session
 
 from catalog.db import create_engine, upgrade
-
-PG_ADMIN_URL = os.environ.get("FLEET_TEST_PG_URL", "postgresql+psycopg://postgres@127.0.0.1:5432/test")
-
-
-def _admin_engine() -> sa.Engine:
-    engine = sa.create_engine(PG_ADMIN_URL, isolation_level="AUTOCOMMIT")
-    try:
-        with engine.connect():
-            return engine
-    except sa.exc.OperationalError:
-        # The machine's server may be stopped: start it (as the developers' guide says), once.
-        versions = os.listdir("/etc/postgresql") if os.path.isdir("/etc/postgresql") else []
-        if versions:
-            subprocess.run(["pg_ctlcluster", "--skip-systemctl-redirect", versions[0], "main", "start"],
-                           check=False, capture_output=True, timeout=60)
-        with engine.connect():
-            return engine
+from tests.postgres import temporary_database
 
 
 @pytest.fixture(scope="session")
 def postgres_url() -> Iterator[str]:
-    admin = _admin_engine()
-    name = f"fleet_test_{uuid.uuid4().hex[:12]}"
-    with admin.connect() as conn:
-        conn.execute(sa.text(f'CREATE DATABASE "{name}"'))
-    try:
-        yield PG_ADMIN_URL.rsplit("/", 1)[0] + f"/{name}"
-    finally:
-        with admin.connect() as conn:
-            conn.execute(sa.text(f'DROP DATABASE IF EXISTS "{name}" WITH (FORCE)'))
-        admin.dispose()
+    with temporary_database("fleet_test") as url:
+        yield url
 
 
 @pytest.fixture(scope="session")
@@ -89,12 +62,5 @@ def empty_catalog_url(catalog_url: str, tmp_path: Path) -> Iterator[str]:
     if catalog_url.startswith("duckdb"):
         yield f"duckdb:///{tmp_path / 'empty.duckdb'}"
         return
-    admin = _admin_engine()
-    name = f"fleet_empty_{uuid.uuid4().hex[:12]}"
-    with admin.connect() as conn:
-        conn.execute(sa.text(f'CREATE DATABASE "{name}"'))
-    try:
-        yield PG_ADMIN_URL.rsplit("/", 1)[0] + f"/{name}"
-    finally:
-        with admin.connect() as conn:
-            conn.execute(sa.text(f'DROP DATABASE IF EXISTS "{name}" WITH (FORCE)'))
+    with temporary_database("fleet_empty") as url:
+        yield url
