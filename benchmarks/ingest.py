@@ -84,16 +84,20 @@ def _renamed(store_id: Any, suffix: str, base: str) -> None:
         store_id.recording_id = base + suffix
 
 
-def prepare_requests(path: str, robots: list[int]) -> tuple[dict[int, list[bytes]], dict[int, dict[str, int]]]:
+def prepare_requests(path: str, robots: list[int], passes: int = 1
+                     ) -> tuple[dict[int, list[bytes]], dict[int, dict[str, int]]]:
     """For each robot: every message of the recording as a serialized WriteMessagesRequest with the
-    robot's own recording id, and what that amounts to (messages, chunks, inner message bytes)."""
+    robot's own recording id, and what that amounts to (messages, chunks, inner message bytes).
+    With `passes` > 1 the robot sends the recording that many times in a row, each time as a new
+    recording (`<id>-r<k>`, then `<id>-r<k>-p1`, ...): more bytes through the same streams."""
     from services.rrd.decoder import iter_events
     from services.rrd.messages import ArrowMessage, BlueprintActivationMessage, StoreInfoMessage
     from services.rrd.pb import log_msg_pb2, sdk_comms_pb2
 
-    requests: dict[int, list[bytes]] = {k: [] for k in robots}
+    sends = [(k, p) for k in robots for p in range(passes)]
+    lists: dict[tuple[int, int], list[bytes]] = {s: [] for s in sends}
     counts = {k: {"messages": 0, "chunks": 0, "bytes": 0} for k in robots}
-    suffixes = {k: f"-r{k}" for k in robots}
+    suffixes = {(k, p): f"-r{k}" + (f"-p{p}" if p else "") for k, p in sends}
     for event in iter_events(path):
         inner: Any
         if isinstance(event, StoreInfoMessage):
@@ -108,25 +112,27 @@ def prepare_requests(path: str, robots: list[int]) -> tuple[dict[int, list[bytes
         else:
             continue  # stream headers, End, footers: not sent over gRPC
         base = store_id.recording_id
-        for k in robots:
-            _renamed(store_id, suffixes[k], base)
+        for send in sends:
+            _renamed(store_id, suffixes[send], base)
             request = sdk_comms_pb2.WriteMessagesRequest(log_msg=log_msg_pb2.LogMsg(**{field_name: inner}))
-            requests[k].append(request.SerializeToString())
-            c = counts[k]
+            lists[send].append(request.SerializeToString())
+            c = counts[send[0]]
             c["messages"] += 1
             c["bytes"] += inner.ByteSize()
             c["chunks"] += field_name == "arrow_msg"
         del inner
+    requests = {k: [r for p in range(passes) for r in lists[k, p]] for k in robots}
     return requests, counts
 
 
 def load_main(args: list[str]) -> None:
-    """`_load CLIENT PATH HOST:PORT K1,K2,...`: prepare, print READY, wait for a line on stdin, send, print
+    """`_load CLIENT PASSES PATH HOST:PORT K1,K2,...`: prepare, print READY, wait for a line on stdin, send, print
     DONE. CLIENT is `aio` (grpc.aio, one task per robot on one event loop) or `thread` (the blocking API,
     one thread per robot)."""
-    client, path, target, robots = args[0], args[1], args[2], [int(k) for k in args[3].split(",")]
+    client, passes, path, target = args[0], int(args[1]), args[2], args[3]
+    robots = [int(k) for k in args[4].split(",")]
     t0 = time.perf_counter()
-    requests, counts = prepare_requests(path, robots)
+    requests, counts = prepare_requests(path, robots, passes)
     prepare_s = time.perf_counter() - t0
     options = [
         ("grpc.max_send_message_length", MAX_SEND),
@@ -247,10 +253,15 @@ def proc_status_kb(pid: int, key: str) -> int:
     raise RuntimeError(f"no {key} in /proc/{pid}/status")
 
 
-def proc_cpu_s(pid: int) -> float:
+def proc_times(pid: int) -> tuple[float, float]:
+    """(user, system) CPU seconds of a process, all its threads."""
     with open(f"/proc/{pid}/stat") as fh:
         fields = fh.read().rsplit(")", 1)[1].split()
-    return (int(fields[11]) + int(fields[12])) / CLK_TCK  # utime, stime (fields 14 and 15 of stat)
+    return int(fields[11]) / CLK_TCK, int(fields[12]) / CLK_TCK  # utime, stime (fields 14 and 15 of stat)
+
+
+def proc_cpu_s(pid: int) -> float:
+    return sum(proc_times(pid))
 
 
 def http_get(port: int, path: str, timeout: float = 10) -> tuple[int, str]:
@@ -405,6 +416,7 @@ class Run:
     chunks: int
     messages: int
     server_cpu_s: float
+    server_sys_s: float  # the kernel's part of server_cpu_s: sockets, page cache, fsync
     load_cpu_s: float
     peak_rss_mb: float  # VmHWM: the server's peak over its life
     rss_start_mb: float  # just before "go"
@@ -414,6 +426,7 @@ class Run:
     drain_cpu_s: float
     prepare_s: float
     robot_walls_s: list[float]
+    passes: int = 1  # times each robot sent the recording (as new recordings)
     check: str = ""
     extra: dict[str, Any] = field(default_factory=dict)
 
@@ -458,7 +471,9 @@ def course(samples: list[tuple[float, int]], t0: float, t1: float) -> list[float
     return [min(samples, key=lambda s: abs(s[0] - p))[1] * 1024 / MB for p in points]
 
 
-def run_once(server: Server, workload: str, path: Path, robots: int, procs: int, expect_chunks: int) -> Run:
+def run_once(server: Server, workload: str, path: Path, robots: int, procs: int, expect_chunks: int,
+             client: str, passes: int = 1) -> Run:
+    """One timed run: `server` started, the load processes prepared, "go", all calls answered."""
     groups = [list(range(robots))[i::procs] for i in range(procs)]
     groups = [g for g in groups if g]
     server.start()
@@ -469,14 +484,14 @@ def run_once(server: Server, workload: str, path: Path, robots: int, procs: int,
         for i, group in enumerate(groups):
             err = open(server.workdir / f"load-{i}.log", "wb")  # noqa: SIM115 - closed below
             logs.append(err)
-            argv = [sys.executable, str(Path(__file__).resolve()), "_load", str(path), target,
+            argv = [sys.executable, str(Path(__file__).resolve()), "_load", client, str(passes), str(path), target,
                     ",".join(map(str, group))]
             loaders.append(subprocess.Popen(argv, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=err,
                                             text=True))
         ready = [read_line(p, "READY", f"load process {i}") for i, p in enumerate(loaders)]
         time.sleep(0.5)  # let the preparation's page cache and allocator churn settle
         rss_start = server.rss_mb()
-        cpu0 = proc_cpu_s(server.pid)
+        times0 = proc_times(server.pid)
         server.start_polling()
         t_go = time.time()
         for p in loaders:
@@ -485,7 +500,7 @@ def run_once(server: Server, workload: str, path: Path, robots: int, procs: int,
             p.stdin.flush()
         done = [read_line(p, "DONE", f"load process {i}") for i, p in enumerate(loaders)]
         t_end = max(r["end"] for d in done for r in d["robots"].values())
-        cpu1 = proc_cpu_s(server.pid)
+        times1 = proc_times(server.pid)
         drain_s, drain_cpu = wait_idle(server.pid)
         server.stop_polling()
         for p in loaders:
@@ -499,14 +514,15 @@ def run_once(server: Server, workload: str, path: Path, robots: int, procs: int,
             server=server.name, workload=workload, wall_s=t_end - t_go,
             bytes=sum(r["bytes"] for r in results), chunks=sum(r["chunks"] for r in results),
             messages=sum(r["messages"] for r in results),
-            server_cpu_s=cpu1 - cpu0, load_cpu_s=sum(d["cpu_s"] for d in done),
+            server_cpu_s=sum(times1) - sum(times0), server_sys_s=times1[1] - times0[1],
+            load_cpu_s=sum(d["cpu_s"] for d in done),
             peak_rss_mb=server.peak_rss_mb(), rss_start_mb=rss_start, rss_end_mb=server.rss_mb(),
             rss_course_mb=course(server.samples, t_go, t_end), drain_s=drain_s, drain_cpu_s=drain_cpu,
             prepare_s=max(r["prepare_s"] for r in ready),
-            robot_walls_s=sorted(round(r["end"] - t_go, 3) for r in results),
+            robot_walls_s=sorted(round(r["end"] - t_go, 3) for r in results), passes=passes,
         )
         if isinstance(server, FleetServer):
-            run.check, run.extra = check_ours(server, run, robots * expect_chunks)
+            run.check, run.extra = check_ours(server, run, robots * passes * expect_chunks)
         else:
             run.check = "not checked (rerun has no counter; its calls all succeeded)"
         return run
@@ -541,27 +557,44 @@ def check_ours(server: FleetServer, run: Run, expected: int) -> tuple[str, dict[
 # --- report ----------------------------------------------------------------------------------------
 
 
-def best(runs: list[Run], server: str, workload: str) -> Run:
-    return min((r for r in runs if r.server == server and r.workload == workload), key=lambda r: r.wall_s)
+def best(runs: list[Run], server: str, workload: str) -> Run | None:
+    mine = [r for r in runs if r.server == server and r.workload == workload and r.passes == 1]
+    return min(mine, key=lambda r: r.wall_s) if mine else None
 
 
 def summarize(runs: list[Run], workloads: list[str]) -> list[dict[str, Any]]:
+    """Per workload: the best run of each server, the ratio (when both ran) and the memory figures."""
     out = []
     for w in workloads:
-        ours, peer = best(runs, "ours", w), best(runs, "rerun", w)
-        ratio = ours.mb_s / peer.mb_s
-        all_ours = [r for r in runs if r.server == "ours" and r.workload == w]
-        out.append({
-            "workload": w, "ratio_mb_s": round(ratio, 3), "target": TARGETS[w], "met": ratio >= TARGETS[w],
-            "ours": {"mb_s": round(ours.mb_s, 1), "chunks_s": round(ours.chunks_s, 1), "wall_s": round(ours.wall_s, 3)},
-            "rerun": {"mb_s": round(peer.mb_s, 1), "chunks_s": round(peer.chunks_s, 1),
-                      "wall_s": round(peer.wall_s, 3)},
-            "ours_peak_rss_mb": round(max(r.peak_rss_mb for r in all_ours), 1),
-            "rerun_peak_rss_mb": round(max(r.peak_rss_mb for r in runs if r.server == "rerun" and r.workload == w), 1),
-            "ours_rss_growth_mb_per_gb": round(max((r.peak_rss_mb - r.rss_start_mb) / (r.bytes / 1e9)
-                                                   for r in all_ours), 2),
-        })
+        entry: dict[str, Any] = {"workload": w, "target": TARGETS[w], "ratio_mb_s": None, "met": None}
+        for name in ("ours", "rerun"):
+            top = best(runs, name, w)
+            if top is not None:
+                entry[name] = {"mb_s": round(top.mb_s, 1), "chunks_s": round(top.chunks_s, 1),
+                               "wall_s": round(top.wall_s, 3),
+                               "peak_rss_mb": round(max(r.peak_rss_mb for r in runs
+                                                        if r.server == name and r.workload == w and r.passes == 1), 1)}
+        if "ours" in entry and "rerun" in entry:
+            ratio = entry["ours"]["mb_s"] / entry["rerun"]["mb_s"]
+            entry["ratio_mb_s"], entry["met"] = round(ratio, 3), ratio >= TARGETS[w]
+        out.append(entry)
     return out
+
+
+def memory_verdict(runs: list[Run]) -> dict[str, Any] | None:
+    """Ours on big chunks, 1 pass against N passes: the extra peak RSS per extra GB ingested. Bounded
+    memory gives about 0; buffering what was ingested would give about 1000 MB per GB."""
+    ours = [r for r in runs if r.server == "ours" and r.workload == "big"]
+    one = [r for r in ours if r.passes == 1]
+    more = [r for r in ours if r.passes > 1]
+    if not one or not more:
+        return None
+    base, big = max(one, key=lambda r: r.peak_rss_mb), more[0]
+    extra_gb = (big.bytes - base.bytes) / 1e9
+    slope = (big.peak_rss_mb - base.peak_rss_mb) / extra_gb
+    return {"passes": big.passes, "gb_1": round(base.bytes / 1e9, 3), "peak_1_mb": round(base.peak_rss_mb, 1),
+            "gb_n": round(big.bytes / 1e9, 3), "peak_n_mb": round(big.peak_rss_mb, 1),
+            "mb_per_extra_gb": round(slope, 1), "bounded": slope < 50}
 
 
 def print_report(report: dict[str, Any]) -> None:
@@ -569,44 +602,59 @@ def print_report(report: dict[str, Any]) -> None:
     print(f"rerun: {env['rerun_binary']} ({env['rerun_version']}), --serve-grpc "
           f"--server-memory-limit {env['rerun_memory_limit']} (memory only, drops nothing here)")
     print(f"ours: fleet serve, FLEET_DURABILITY=interval (group commit), hot tier in {env['tmp']}")
+    per_robot = "task on a grpc.aio event loop" if env["client"] == "aio" else "thread (blocking gRPC API)"
     print(f"load: {env['robots']} robots (distinct recording ids) from {env['procs']} processes, one gRPC channel "
-          f"and thread per robot, one WriteMessages call per robot; best of {env['repeat']}")
+          f"(TCP connection), one WriteMessages call and one {per_robot} per robot; best of {env['repeat']}")
     print(f"python {env['python']}, grpcio {env['grpcio']}, {env['cpus']} CPUs shared by server and load "
           f"(load average {env['load_average_1m_at_start']} at start); MB = 10^6 bytes")
     print()
     rows = []
     for r in report["runs"]:
-        rows.append([r["workload"], r["server"], f"{r['bytes'] / MB:,.1f}", f"{r['chunks']:,}", f"{r['wall_s']:.2f}",
+        label = r["workload"] + (f" x{r['passes']}" if r["passes"] > 1 else "")
+        rows.append([label, r["server"], f"{r['bytes'] / MB:,.1f}", f"{r['chunks']:,}", f"{r['wall_s']:.2f}",
                      f"{r['bytes'] / MB / r['wall_s']:,.1f}", f"{r['chunks'] / r['wall_s']:,.0f}",
-                     f"{r['peak_rss_mb']:,.0f}", f"{r['server_cpu_s']:.1f}", f"{r['load_cpu_s']:.1f}",
-                     f"{r['drain_s']:.1f}"])
+                     f"{r['peak_rss_mb']:,.0f}", f"{r['server_cpu_s']:.1f} ({r['server_sys_s']:.1f})",
+                     f"{r['load_cpu_s']:.1f}", f"{r['drain_s']:.1f}"])
     print(format_table(["workload", "server", "MB sent", "chunks", "wall s", "MB/s", "chunks/s", "peak RSS MB",
-                        "server CPU s", "load CPU s", "drain s"], rows, "llrrrrrrrrr"))
+                        "server CPU s (sys)", "load CPU s", "drain s"], rows, "llrrrrrrrrr"))
     print()
     print("wall s: from 'go' to the last call answered; peak RSS: the server's VmHWM; server CPU s: during the "
           "wall time; load CPU s: all load processes; drain s: server CPU still busy after the last answer")
     print()
     rows = []
     for s in report["summary"]:
-        rows.append([s["workload"], f"{s['ours']['mb_s']:,.1f}", f"{s['ours']['chunks_s']:,.0f}",
-                     f"{s['rerun']['mb_s']:,.1f}", f"{s['rerun']['chunks_s']:,.0f}", f"{s['ratio_mb_s']:.2f}x",
-                     f">= {s['target']:.1f}x", "met" if s["met"] else "MISSED",
-                     f"{s['ours_peak_rss_mb']:,.0f} / {s['rerun_peak_rss_mb']:,.0f}"])
+        ours, peer = s.get("ours"), s.get("rerun")
+        rows.append([s["workload"],
+                     f"{ours['mb_s']:,.1f}" if ours else "-", f"{ours['chunks_s']:,.0f}" if ours else "-",
+                     f"{peer['mb_s']:,.1f}" if peer else "-", f"{peer['chunks_s']:,.0f}" if peer else "-",
+                     f"{s['ratio_mb_s']:.2f}x" if s["ratio_mb_s"] is not None else "-", f">= {s['target']:.1f}x",
+                     {True: "met", False: "MISSED", None: "-"}[s["met"]],
+                     f"{ours['peak_rss_mb']:,.0f}" if ours else "-", f"{peer['peak_rss_mb']:,.0f}" if peer else "-"])
     print(format_table(["workload", "ours MB/s", "ours chunks/s", "rerun MB/s", "rerun chunks/s", "ours/rerun",
-                        "target", "", "peak RSS MB ours / rerun"], rows, "lrrrrrrll"))
+                        "target", "", "ours peak RSS MB", "rerun peak RSS MB"], rows, "lrrrrrrlrr"))
+    print()
+    print("ours/rerun: our MB/s / rerun's MB/s, best run of each (the same bytes and chunks: also the chunks/s "
+          "ratio); peak RSS: the highest of the runs")
     print()
     print("ours, memory over each run (RSS MB at 0/25/50/75/100 % of the timed part; growth = peak - start):")
     for r in report["runs"]:
         if r["server"] != "ours":
             continue
         growth = r["peak_rss_mb"] - r["rss_start_mb"]
-        print(f"  {r['workload']:5} start {r['rss_start_mb']:.0f}, course "
+        label = r["workload"] + (f" x{r['passes']}" if r["passes"] > 1 else "")
+        print(f"  {label:8} start {r['rss_start_mb']:.0f}, course "
               f"{' / '.join(f'{v:.0f}' for v in r['rss_course_mb'])}, peak {r['peak_rss_mb']:.0f}, after "
-              f"{r['rss_end_mb']:.0f}: +{growth:.0f} MB for {r['bytes'] / 1e9:.2f} GB ingested "
-              f"({growth / (r['bytes'] / 1e9):.1f} MB per GB)")
+              f"{r['rss_end_mb']:.0f}: +{growth:.0f} MB over start, {r['bytes'] / 1e9:.2f} GB ingested")
+    verdict = report.get("memory")
+    if verdict:
+        print(f"  bounded? {verdict['passes']} passes ({verdict['gb_n']:.2f} GB) peak {verdict['peak_n_mb']:.0f} MB vs "
+              f"1 pass ({verdict['gb_1']:.2f} GB) peak {verdict['peak_1_mb']:.0f} MB: "
+              f"{verdict['mb_per_extra_gb']:+.1f} MB per extra GB ingested -> "
+              + ("bounded (< 50 MB/GB)" if verdict["bounded"] else "GROWS with bytes ingested"))
     print()
     for r in report["runs"]:
-        print(f"{r['workload']:5} {r['server']:5} check: {r['check']}")
+        label = r["workload"] + (f" x{r['passes']}" if r["passes"] > 1 else "")
+        print(f"{label:8} {r['server']:5} check: {r['check']}")
 
 
 # --- main ------------------------------------------------------------------------------------------
@@ -629,13 +677,24 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--small-chunks", type=int, default=50_000,
                         help="1-row chunks in small.rrd (default 50000)")
     parser.add_argument("--small-entities", type=int, default=100, help="entities of small.rrd (default 100)")
+    parser.add_argument("--servers", default="ours,rerun",
+                        help="comma-separated: ours, rerun (default both; the ratios need both)")
+    parser.add_argument("--client", choices=["aio", "thread"], default="aio",
+                        help="load client: grpc.aio, one task per robot (default; half the CPU per message of "
+                        "the blocking API), or the blocking API, one thread per robot")
     parser.add_argument("--rerun", help="the rerun executable (default: the native binary of rerun-sdk)")
     parser.add_argument("--rerun-memory-limit", default="16GiB",
                         help="rerun --server-memory-limit: large enough that it drops nothing (default 16GiB)")
+    parser.add_argument("--memory-passes", type=int, default=3,
+                        help="then one more run of ours on big chunks with each robot sending the recording this "
+                        "many times (as new recordings): memory must not grow with the bytes (default 3; 0: skip)")
     parser.add_argument("--tmp", type=Path, default=None, help="where our server's data dirs go (default: $TMPDIR)")
     parser.add_argument("--json", action="store_true", help="print the results as JSON on stdout instead of tables")
     args = parser.parse_args(argv)
     workloads = [w.strip() for w in args.workload.split(",") if w.strip()]
+    servers = [s.strip() for s in args.servers.split(",") if s.strip()]
+    if not servers or any(s not in ("ours", "rerun") for s in servers):
+        parser.error("--servers takes ours, rerun or ours,rerun")
     if not workloads or any(w not in TARGETS for w in workloads):
         parser.error("--workload takes big, small or big,small")
     if min(args.robots, args.procs, args.repeat, args.small_chunks, args.small_entities) < 1 or args.big_mb <= 0:
@@ -662,19 +721,28 @@ def main(argv: list[str] | None = None) -> None:
         for w in workloads:
             path = data_dir / f"{w}.rrd"
             for i in range(args.repeat):
-                order: list[str] = ["ours", "rerun"] if i % 2 == 0 else ["rerun", "ours"]
+                order = servers if i % 2 == 0 else servers[::-1]  # alternate who goes first
                 for name in order:
                     workdir = tmp_root / f"{w}-{name}-{i}"
                     workdir.mkdir()
                     server: Server = (FleetServer(workdir) if name == "ours"
                                       else RerunServer(workdir, rerun_bin, args.rerun_memory_limit))
                     log(f"{w} #{i + 1}: {name} ...")
-                    run = run_once(server, w, path, args.robots, args.procs, int(infos[w]["chunks"]))
+                    run = run_once(server, w, path, args.robots, args.procs, int(infos[w]["chunks"]), args.client)
                     log(f"  {run.wall_s:.2f} s, {run.mb_s:,.1f} MB/s, {run.chunks_s:,.0f} chunks/s, peak RSS "
                         f"{run.peak_rss_mb:,.0f} MB, server CPU {run.server_cpu_s:.1f} s, "
                         f"load CPU {run.load_cpu_s:.1f} s, drain {run.drain_s:.1f} s; {run.check}")
                     runs.append(run)
                     shutil.rmtree(workdir, ignore_errors=True)
+        if args.memory_passes > 1 and "big" in workloads and "ours" in servers:
+            workdir = tmp_root / "memory-ours"
+            workdir.mkdir()
+            log(f"memory: ours, big, each robot sending the recording {args.memory_passes} times ...")
+            run = run_once(FleetServer(workdir), "big", data_dir / "big.rrd", args.robots, args.procs,
+                           int(infos["big"]["chunks"]), args.client, args.memory_passes)
+            log(f"  {run.wall_s:.2f} s, {run.mb_s:,.1f} MB/s, peak RSS {run.peak_rss_mb:,.0f} MB; {run.check}")
+            runs.append(run)
+            shutil.rmtree(workdir, ignore_errors=True)
     finally:
         shutil.rmtree(tmp_root, ignore_errors=True)
 
@@ -686,6 +754,7 @@ def main(argv: list[str] | None = None) -> None:
             "load_average_1m_at_start": round(load, 2),
             "robots": args.robots,
             "procs": args.procs,
+            "client": args.client,
             "repeat": args.repeat,
             "rerun_binary": rerun_bin,
             "rerun_version": version,
@@ -696,6 +765,7 @@ def main(argv: list[str] | None = None) -> None:
         },
         "runs": [{k: v for k, v in asdict(r).items() if k != "extra"} | {"extra": r.extra} for r in runs],
         "summary": summarize(runs, workloads),
+        "memory": memory_verdict(runs),
     }
     if args.json:
         print(json.dumps(report, indent=2))

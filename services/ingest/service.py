@@ -276,6 +276,8 @@ class IngestService:
         self.hot.check_space(len(msg.raw))
         run.hot.append(MessageKind.ARROW_MSG, msg.raw)
         run.observe_chunk(msg, meta, self.clock())
+        if source.live and run.status != "live":  # closed as idle, and its stream speaks again
+            run.status, run.ended_at = "live", None
         source.report.chunks_new += 1
         source.report.bytes_new += len(msg.raw)
 
