@@ -1,14 +1,17 @@
 """Benchmark: gRPC ingest of real Rerun recordings by R robots at once, ours next to `rerun --serve-grpc`.
 
     /work/venv/bin/python benchmarks/ingest.py [--robots 8] [--procs 2] [--repeat 2] [--workload big,small]
+                                               [--servers ours,rerun] [--client aio|thread] [--memory-passes 3]
                                                [--big-mb 220] [--small-chunks 50000] [--json]
 
 1. The recordings are those of ``benchmarks/codec.py`` (``benchmarks/data/big.rrd``: 93 chunks of
    2.4-2.6 MB, point clouds and images; ``small.rrd``: 50,001 one-row chunks of scalars), generated
-   with the real SDK by its helpers if missing.
-2. For each workload and each repetition, each server is started fresh on free loopback ports:
+   with the real SDK by its helpers if missing (same parameters, same files).
+2. For each workload and each repetition (the two servers take turns going first), each server is
+   started fresh on free loopback ports:
    * ours: ``fleet serve`` with ``FLEET_DURABILITY=interval`` (group commit, the default) and a new
-     empty ``FLEET_DATA_DIR``; ready when ``/healthz`` answers;
+     empty ``FLEET_DATA_DIR`` (other ``FLEET_*`` variables of the environment are passed on);
+     ready when ``/healthz`` answers;
    * the peer: the native ``rerun`` binary of rerun-sdk, ``rerun --serve-grpc --bind 127.0.0.1
      --port P --server-memory-limit L`` (no viewer: it keeps every message in memory for viewers that
      connect later). L (``--rerun-memory-limit``, default 16GiB) is chosen so that it never drops data:
@@ -17,20 +20,29 @@
 3. ``--procs`` load processes (children of this script) replay the recording's messages as R robots
    (``--robots``), R/P each: robot k sends every SetStoreInfo / ArrowMsg / BlueprintActivationCommand
    of the file in order, with the recording id of RECORDING stores changed to ``<id>-r<k>`` (chunk
-   payloads untouched), each robot on its own gRPC channel (own TCP connection) in its own thread, as
-   one client-streaming ``MessageProxyService/WriteMessages`` call of pre-serialized
-   ``WriteMessagesRequest``s. Preparing the requests and connecting are not timed: each load process
-   reports READY, and when all are, this script writes "go" to all of them at once.
+   payloads untouched), each robot on its own gRPC channel (own TCP connection), as one
+   client-streaming ``MessageProxyService/WriteMessages`` call of pre-serialized
+   ``WriteMessagesRequest``s: by default a grpc.aio task per robot (``--client thread``: the blocking
+   API, a thread per robot, which costs the load processes about twice the CPU per message).
+   Preparing the requests and connecting are not timed: each load process reports READY, and when all
+   are, this script writes "go" to all of them at once.
 4. Timed: from "go" until the last robot's call has returned (the server answers once it consumed the
    whole stream; ours has then written every chunk to its hot files). Measured meanwhile: the server's
    peak RSS (``VmHWM`` of /proc/PID/status: the peak over its whole life, start-up included; RSS also
-   sampled every 20 ms to show its course) and CPU time (/proc/PID/stat), and the load processes' CPU.
-   After the calls: "drain", how long the server's CPU stays busy (it might still be working on what
-   it acknowledged), and for ours a check that ``/metrics`` counts robots x chunks new chunks.
+   sampled every 20 ms to show its course), its CPU time, user + system (/proc/PID/stat), and the load
+   processes' CPU. After the calls: "drain", how long the server's CPU stays busy (it might still be
+   working on what it acknowledged), then the check that everything arrived: for ours, ``/metrics``
+   counts robots x chunks new chunks and no duplicates; for rerun (first run of each workload), its
+   history read back with ``ReadMessages`` as a viewer would: robots x chunks chunks of R recordings.
+5. Memory: one more run of ours on big chunks where each robot sends the recording ``--memory-passes``
+   times in a row (as new recordings each time): bounded memory means the same peak RSS for 3x the
+   bytes. Printed in MB of RSS per GB ingested (bounded: < 50 both ways): its peak against the 1-pass
+   runs' peaks, and the highest RSS of its last third against its first third.
 
 MB = 10**6 bytes; bytes = sum of the inner messages sent (protobuf LogMsg contents, as in an RRD file).
 ``ours/rerun`` = our MB/s / rerun's MB/s on the same workload (best run of each); targets: >= 1.0x on
-big chunks, >= 0.5x on 1-row chunks. Both servers and the load share the machine's CPUs.
+big chunks, >= 0.5x on 1-row chunks. Both servers and the load share the machine's CPUs: on a small
+machine the load processes' CPU (shown) caps the faster server's figure.
 """
 
 from __future__ import annotations
@@ -397,7 +409,7 @@ class RerunServer(Server):
     def argv_env(self) -> tuple[list[str], dict[str, str]]:
         argv = [self.binary, "--serve-grpc", "--bind", "127.0.0.1", "--port", str(self.grpc_port),
                 "--server-memory-limit", self.memory_limit]
-        return argv, {**os.environ, "RERUN_ANALYTICS": "0"}
+        return argv, dict(os.environ)
 
     def ready(self) -> bool:
         with socket.create_connection(("127.0.0.1", self.grpc_port), timeout=1):
@@ -422,6 +434,7 @@ class Run:
     rss_start_mb: float  # just before "go"
     rss_end_mb: float  # after the drain
     rss_course_mb: list[float]  # sampled RSS at 0, 25, 50, 75, 100 % of the timed part
+    rss_thirds_mb: list[float]  # highest sampled RSS in each third of the timed part
     drain_s: float
     drain_cpu_s: float
     prepare_s: float
@@ -439,12 +452,14 @@ class Run:
         return self.chunks / self.wall_s
 
 
-def read_line(proc: subprocess.Popen[str], prefix: str, what: str) -> dict[str, Any]:
+def read_line(proc: subprocess.Popen[str], prefix: str, what: str, log_path: Path) -> dict[str, Any]:
+    """The JSON of the next `PREFIX {...}` line a load process prints."""
     assert proc.stdout is not None
     line = proc.stdout.readline()
     if not line.startswith(prefix + " "):
         proc.wait()
-        raise SystemExit(f"{what}: expected {prefix}, got {line!r} (exit {proc.returncode})")
+        tail = "\n".join(log_path.read_text(errors="replace").splitlines()[-20:])
+        raise SystemExit(f"{what}: expected {prefix}, got {line!r} (exit {proc.returncode})\n{tail}")
     result: dict[str, Any] = json.loads(line[len(prefix) + 1:])
     return result
 
@@ -463,6 +478,16 @@ def wait_idle(pid: int, quiet_s: float = 0.5, threshold_s: float = 0.05, limit_s
     return busy_until - start, last - cpu0
 
 
+def thirds(samples: list[tuple[float, int]], t0: float, t1: float) -> list[float]:
+    """The highest RSS (MB) sampled in each third of [t0, t1]."""
+    out = []
+    for i in range(3):
+        lo, hi = t0 + (t1 - t0) * i / 3, t0 + (t1 - t0) * (i + 1) / 3
+        inside = [kb for t, kb in samples if lo <= t <= hi]
+        out.append(max(inside) * 1024 / MB if inside else 0.0)
+    return out
+
+
 def course(samples: list[tuple[float, int]], t0: float, t1: float) -> list[float]:
     """RSS (MB) at 0, 25, 50, 75 and 100 % of [t0, t1]: the sample nearest each point."""
     if not samples:
@@ -472,7 +497,7 @@ def course(samples: list[tuple[float, int]], t0: float, t1: float) -> list[float
 
 
 def run_once(server: Server, workload: str, path: Path, robots: int, procs: int, expect_chunks: int,
-             client: str, passes: int = 1) -> Run:
+             client: str, passes: int = 1, check_rerun: bool = False) -> Run:
     """One timed run: `server` started, the load processes prepared, "go", all calls answered."""
     groups = [list(range(robots))[i::procs] for i in range(procs)]
     groups = [g for g in groups if g]
@@ -488,7 +513,8 @@ def run_once(server: Server, workload: str, path: Path, robots: int, procs: int,
                     ",".join(map(str, group))]
             loaders.append(subprocess.Popen(argv, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=err,
                                             text=True))
-        ready = [read_line(p, "READY", f"load process {i}") for i, p in enumerate(loaders)]
+        load_logs = [server.workdir / f"load-{i}.log" for i in range(len(loaders))]
+        ready = [read_line(p, "READY", f"load process {i}", load_logs[i]) for i, p in enumerate(loaders)]
         time.sleep(0.5)  # let the preparation's page cache and allocator churn settle
         rss_start = server.rss_mb()
         times0 = proc_times(server.pid)
@@ -498,7 +524,7 @@ def run_once(server: Server, workload: str, path: Path, robots: int, procs: int,
             assert p.stdin is not None
             p.stdin.write("go\n")
             p.stdin.flush()
-        done = [read_line(p, "DONE", f"load process {i}") for i, p in enumerate(loaders)]
+        done = [read_line(p, "DONE", f"load process {i}", load_logs[i]) for i, p in enumerate(loaders)]
         t_end = max(r["end"] for d in done for r in d["robots"].values())
         times1 = proc_times(server.pid)
         drain_s, drain_cpu = wait_idle(server.pid)
@@ -517,14 +543,17 @@ def run_once(server: Server, workload: str, path: Path, robots: int, procs: int,
             server_cpu_s=sum(times1) - sum(times0), server_sys_s=times1[1] - times0[1],
             load_cpu_s=sum(d["cpu_s"] for d in done),
             peak_rss_mb=server.peak_rss_mb(), rss_start_mb=rss_start, rss_end_mb=server.rss_mb(),
-            rss_course_mb=course(server.samples, t_go, t_end), drain_s=drain_s, drain_cpu_s=drain_cpu,
+            rss_course_mb=course(server.samples, t_go, t_end), rss_thirds_mb=thirds(server.samples, t_go, t_end),
+            drain_s=drain_s, drain_cpu_s=drain_cpu,
             prepare_s=max(r["prepare_s"] for r in ready),
             robot_walls_s=sorted(round(r["end"] - t_go, 3) for r in results), passes=passes,
         )
         if isinstance(server, FleetServer):
             run.check, run.extra = check_ours(server, run, robots * passes * expect_chunks)
+        elif check_rerun:
+            run.check, run.extra = check_peer(server, robots * passes * expect_chunks, robots * passes)
         else:
-            run.check = "not checked (rerun has no counter; its calls all succeeded)"
+            run.check = "not read back (only the first run of rerun is); its calls all succeeded"
         return run
     finally:
         for p in loaders:
@@ -534,6 +563,65 @@ def run_once(server: Server, workload: str, path: Path, robots: int, procs: int,
         for fh in logs:
             fh.close()
         server.stop()
+
+
+def check_peer(server: Server, expected: int, recordings: int, idle_s: float = 5) -> tuple[str, dict[str, Any]]:
+    """Rerun has no counters: read its history back as a viewer would (`ReadMessages` replays every
+    message it holds, then stays open for new ones) and count the chunks and recordings. Done after
+    the peak RSS was read (serving a reader costs memory)."""
+    import grpc
+
+    from services.rrd import protowire
+    from services.rrd.pb import log_msg_pb2, sdk_comms_pb2
+
+    channel = grpc.insecure_channel(f"127.0.0.1:{server.grpc_port}",
+                                    options=[("grpc.max_receive_message_length", MAX_SEND)])
+    read = channel.unary_stream("/rerun.sdk_comms.v1alpha1.MessageProxyService/ReadMessages",
+                                request_serializer=sdk_comms_pb2.ReadMessagesRequest.SerializeToString,
+                                response_deserializer=None)
+    stream = read(sdk_comms_pb2.ReadMessagesRequest(), timeout=600)
+    chunks = 0
+    ids: set[str] = set()
+    last = [time.monotonic()]
+    done = threading.Event()
+
+    def watchdog() -> None:  # the stream never ends by itself: stop once it stays quiet
+        while not done.wait(0.25):
+            if time.monotonic() - last[0] > idle_s:
+                stream.cancel()
+                return
+
+    threading.Thread(target=watchdog, name="read-back-watchdog", daemon=True).start()
+    t0 = time.perf_counter()
+    try:
+        for response in stream:
+            last[0] = time.monotonic()
+            found = protowire.last_field(response, 1)  # ReadMessagesResponse.log_msg
+            if found is None:
+                continue
+            log_msg = memoryview(response)[found[1]:found[2]]
+            for number, _, start, end in protowire.fields(log_msg):
+                if number == 2:  # arrow_msg
+                    chunks += 1
+                elif number == 1:  # set_store_info
+                    info = log_msg_pb2.SetStoreInfo.FromString(bytes(log_msg[start:end])).info
+                    if info.store_id.kind == 1:
+                        ids.add(info.store_id.recording_id)
+            if chunks >= expected and len(ids) >= recordings:
+                break
+    except grpc.RpcError as exc:
+        if exc.code() != grpc.StatusCode.CANCELLED:
+            raise
+    finally:
+        done.set()
+        stream.cancel()
+        channel.close()
+    extra = {"read_back_chunks": chunks, "read_back_recordings": len(ids),
+             "read_back_s": round(time.perf_counter() - t0, 2)}
+    if chunks != expected or len(ids) != recordings:
+        return (f"MISMATCH: read back {chunks:,} chunks of {len(ids)} recordings, "
+                f"expected {expected:,} of {recordings}"), extra
+    return f"ok: {chunks:,} chunks of {len(ids)} recordings read back with ReadMessages", extra
 
 
 def check_ours(server: FleetServer, run: Run, expected: int) -> tuple[str, dict[str, Any]]:
@@ -582,19 +670,26 @@ def summarize(runs: list[Run], workloads: list[str]) -> list[dict[str, Any]]:
 
 
 def memory_verdict(runs: list[Run]) -> dict[str, Any] | None:
-    """Ours on big chunks, 1 pass against N passes: the extra peak RSS per extra GB ingested. Bounded
-    memory gives about 0; buffering what was ingested would give about 1000 MB per GB."""
+    """Does our memory grow with the bytes ingested? Two measures, each in MB of RSS per GB ingested
+    (about 0 if memory is bounded, about 1000 if what is ingested stays in memory):
+    * across runs: the peak of the run where each robot sends the recording N times against the
+      highest peak of the 1-pass runs, per extra GB;
+    * within that run: the highest RSS of its last third against its first third, per GB ingested
+      in between.
+    Bounded means both stay under 50 MB per GB."""
     ours = [r for r in runs if r.server == "ours" and r.workload == "big"]
     one = [r for r in ours if r.passes == 1]
     more = [r for r in ours if r.passes > 1]
-    if not one or not more:
+    if not more or not one or len(more[0].rss_thirds_mb) != 3:
         return None
-    base, big = max(one, key=lambda r: r.peak_rss_mb), more[0]
-    extra_gb = (big.bytes - base.bytes) / 1e9
-    slope = (big.peak_rss_mb - base.peak_rss_mb) / extra_gb
-    return {"passes": big.passes, "gb_1": round(base.bytes / 1e9, 3), "peak_1_mb": round(base.peak_rss_mb, 1),
-            "gb_n": round(big.bytes / 1e9, 3), "peak_n_mb": round(big.peak_rss_mb, 1),
-            "mb_per_extra_gb": round(slope, 1), "bounded": slope < 50}
+    run, base = more[0], max(one, key=lambda r: r.peak_rss_mb)
+    within = (run.rss_thirds_mb[2] - run.rss_thirds_mb[0]) / (run.bytes * 2 / 3 / 1e9)
+    across = (run.peak_rss_mb - base.peak_rss_mb) / ((run.bytes - base.bytes) / 1e9)
+    return {"passes": run.passes, "gb": round(run.bytes / 1e9, 3), "peak_mb": round(run.peak_rss_mb, 1),
+            "thirds_mb": [round(v, 1) for v in run.rss_thirds_mb], "rss_after_mb": round(run.rss_end_mb, 1),
+            "gb_1_pass": round(base.bytes / 1e9, 3), "peaks_1_pass_mb": [round(r.peak_rss_mb, 1) for r in one],
+            "mb_per_gb_across": round(across, 1), "mb_per_gb_within": round(within, 1),
+            "bounded": across < 50 and within < 50}
 
 
 def print_report(report: dict[str, Any]) -> None:
@@ -647,10 +742,15 @@ def print_report(report: dict[str, Any]) -> None:
               f"{r['rss_end_mb']:.0f}: +{growth:.0f} MB over start, {r['bytes'] / 1e9:.2f} GB ingested")
     verdict = report.get("memory")
     if verdict:
-        print(f"  bounded? {verdict['passes']} passes ({verdict['gb_n']:.2f} GB) peak {verdict['peak_n_mb']:.0f} MB vs "
-              f"1 pass ({verdict['gb_1']:.2f} GB) peak {verdict['peak_1_mb']:.0f} MB: "
-              f"{verdict['mb_per_extra_gb']:+.1f} MB per extra GB ingested -> "
-              + ("bounded (< 50 MB/GB)" if verdict["bounded"] else "GROWS with bytes ingested"))
+        t = verdict["thirds_mb"]
+        peaks = ", ".join(f"{p:.0f}" for p in verdict["peaks_1_pass_mb"])
+        print(f"  across runs: peak {verdict['peak_mb']:.0f} MB for {verdict['gb']:.2f} GB (x{verdict['passes']}) "
+              f"against {peaks} MB for {verdict['gb_1_pass']:.2f} GB: "
+              f"{verdict['mb_per_gb_across']:+.1f} MB per extra GB")
+        print(f"  within the x{verdict['passes']} run: highest RSS per third {t[0]:.0f} / {t[1]:.0f} / {t[2]:.0f} MB: "
+              f"{verdict['mb_per_gb_within']:+.1f} MB per GB; RSS {verdict['rss_after_mb']:.0f} MB after the run")
+        print("  memory " + ("bounded: < 50 MB per GB both ways" if verdict["bounded"]
+                             else "NOT bounded: grows by >= 50 MB per GB ingested"))
     print()
     for r in report["runs"]:
         label = r["workload"] + (f" x{r['passes']}" if r["passes"] > 1 else "")
@@ -685,6 +785,9 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--rerun", help="the rerun executable (default: the native binary of rerun-sdk)")
     parser.add_argument("--rerun-memory-limit", default="16GiB",
                         help="rerun --server-memory-limit: large enough that it drops nothing (default 16GiB)")
+    parser.add_argument("--no-read-back", action="store_true",
+                        help="skip reading rerun's history back after its first run of each workload (the check "
+                        "that it holds every chunk; ~30 s for the 1-row chunks)")
     parser.add_argument("--memory-passes", type=int, default=3,
                         help="then one more run of ours on big chunks with each robot sending the recording this "
                         "many times (as new recordings): memory must not grow with the bytes (default 3; 0: skip)")
@@ -728,7 +831,8 @@ def main(argv: list[str] | None = None) -> None:
                     server: Server = (FleetServer(workdir) if name == "ours"
                                       else RerunServer(workdir, rerun_bin, args.rerun_memory_limit))
                     log(f"{w} #{i + 1}: {name} ...")
-                    run = run_once(server, w, path, args.robots, args.procs, int(infos[w]["chunks"]), args.client)
+                    run = run_once(server, w, path, args.robots, args.procs, int(infos[w]["chunks"]), args.client,
+                                   check_rerun=i == 0 and not args.no_read_back)
                     log(f"  {run.wall_s:.2f} s, {run.mb_s:,.1f} MB/s, {run.chunks_s:,.0f} chunks/s, peak RSS "
                         f"{run.peak_rss_mb:,.0f} MB, server CPU {run.server_cpu_s:.1f} s, "
                         f"load CPU {run.load_cpu_s:.1f} s, drain {run.drain_s:.1f} s; {run.check}")
