@@ -80,14 +80,16 @@ def save_run(session: Session, record: RunRecord, now: dt.datetime) -> None:
     session.flush()
     session.execute(sa.delete(RunEntity).where(RunEntity.run_id == record.id))
     session.execute(sa.delete(RunTimeline).where(RunTimeline.run_id == record.id))
-    session.add_all(
-        RunEntity(run_id=record.id, path=e.path, chunks=e.chunks, static_chunks=e.static_chunks, rows=e.rows,
-                  bytes=e.bytes, archetypes=json.dumps(sorted(e.archetypes)),
-                  components=json.dumps(sorted(e.components)))
-        for e in record.entities
-    )
-    session.add_all(RunTimeline(run_id=record.id, name=t.name, type=t.type, min=t.min, max=t.max)
-                    for t in record.timelines)
+    # One multi-row statement each (not one per row): a flush rewrites every live run.
+    if record.entities:
+        session.execute(sa.insert(RunEntity), [
+            {"run_id": record.id, "path": e.path, "chunks": e.chunks, "static_chunks": e.static_chunks,
+             "rows": e.rows, "bytes": e.bytes, "archetypes": json.dumps(sorted(e.archetypes)),
+             "components": json.dumps(sorted(e.components))} for e in record.entities])
+    if record.timelines:
+        session.execute(sa.insert(RunTimeline), [
+            {"run_id": record.id, "name": t.name, "type": t.type, "min": t.min, "max": t.max}
+            for t in record.timelines])
 
 
 def set_status(session: Session, run_id: str, status: str, ended_at: dt.datetime | None, now: dt.datetime) -> None:

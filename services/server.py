@@ -16,6 +16,7 @@ from services.api.app import create_app
 from services.ingest import grpc_handler
 from services.ingest.hot import HotStore
 from services.ingest.service import IngestService
+from services.runtime import tune_allocator
 from services.settings import Settings
 
 log = logging.getLogger("fleet")
@@ -49,6 +50,7 @@ async def _housekeeping(ingest: IngestService, every: float) -> None:
 
 
 async def serve(settings: Settings) -> None:
+    tune_allocator()
     ingest = build_ingest(settings)
     recovered = ingest.recover()
     if recovered:

@@ -50,7 +50,7 @@ class MessageProxy:
         try:
             async for request in requests:
                 kind, raw = unwrap(request, received)
-                self.service.accept(source, decode_message(kind, bytes(raw), received))
+                self.service.accept(source, decode_message(kind, raw, received))  # a view: no copy
                 received += len(request)
         except FleetError as exc:
             log.warning("stream from %s refused: %s", context.peer(), exc)
@@ -72,6 +72,8 @@ def server_options(max_message_size: int) -> list[tuple[str, int]]:
         ("grpc.http2.max_ping_strikes", 0),
         ("grpc.max_connection_idle_ms", 2**31 - 1),
         ("grpc.max_connection_age_ms", 2**31 - 1),
+        # Without this the HTTP/2 window grows with how long a fast stream lasts, and memory with it.
+        ("grpc.http2.bdp_probe", 0),
     ]
 
 

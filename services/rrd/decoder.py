@@ -36,6 +36,7 @@ from services.rrd.frames import (
 from services.rrd.messages import (
     ArrowMessage,
     BlueprintActivationMessage,
+    Buffer,
     Compression,
     EndMessage,
     Event,
@@ -328,7 +329,7 @@ class RrdDecoder:
         self._footer_entries.append((here, self._streams - 1, start, length, crc))
         return FOOTER_ENTRY_SIZE
 
-    def _decode_message(self, raw: bytes | bytearray) -> Event | None:
+    def _decode_message(self, raw: Buffer) -> Event | None:
         offset, kind = self._msg_offset, self._kind
         message = decode_message(kind, raw, offset, self._stream_offset, self._streams - 1)
         if isinstance(message, EndMessage):
@@ -337,7 +338,7 @@ class RrdDecoder:
         return message
 
 
-def decode_message(kind: int, raw: bytes | bytearray, offset: int = 0, stream_offset: int = 0,
+def decode_message(kind: int, raw: Buffer, offset: int = 0, stream_offset: int = 0,
                    stream_index: int = 0) -> Message:
     """A typed message from its kind and protobuf bytes (from an RRD frame or a gRPC LogMsg)."""
     where = (offset, stream_offset, stream_index)
@@ -384,7 +385,8 @@ def _source(info: log_msg_pb2.StoreInfo) -> str:
     return label
 
 
-def _arrow_message(raw: bytes | bytearray, offset: int, stream_offset: int, stream_index: int) -> ArrowMessage:
+def _arrow_message(raw: Buffer, offset: int, stream_offset: int,
+                   stream_index: int) -> ArrowMessage:
     payload: bytes | memoryview
     if len(raw) >= LARGE_MESSAGE:
         # Parse everything but the payload, which stays a view into `raw` (never copied).

@@ -19,7 +19,7 @@ from services.rrd.frames import (
     encode_stream_footer,
 )
 from services.rrd.manifest import ManifestEntry, build_manifest
-from services.rrd.messages import ArrowMessage, EndMessage, Message, StoreId
+from services.rrd.messages import ArrowMessage, Buffer, EndMessage, Message, StoreId
 from services.rrd.pb import log_msg_pb2
 
 
@@ -52,7 +52,7 @@ class RrdEncoder:
             self._entries.setdefault(msg.store_id, []).append(entry)
         self._frame(MessageKind.ARROW_MSG, msg.raw)
 
-    def write_raw(self, kind: MessageKind, raw: bytes | bytearray, *, store_id: StoreId | None = None,
+    def write_raw(self, kind: MessageKind, raw: Buffer, *, store_id: StoreId | None = None,
                   meta: ChunkMeta | None = None) -> None:
         """Append a message given as protobuf bytes (for example from a gRPC LogMsg)."""
         if kind == MessageKind.ARROW_MSG and self._write_footer:
@@ -81,7 +81,7 @@ class RrdEncoder:
         self._sink.write(trailer)
         self.position += len(trailer)
 
-    def _frame(self, kind: int, raw: bytes | bytearray) -> None:
+    def _frame(self, kind: int, raw: Buffer) -> None:
         if self._finished:
             raise ValueError("stream already finished")
         self._sink.write(encode_message_header(kind, len(raw)))

@@ -13,6 +13,8 @@ from dataclasses import dataclass
 from services.rrd.frames import MESSAGE_HEADER_SIZE, MessageKind, RerunVersion, StreamHeader
 from services.rrd.pb import common_pb2, log_msg_pb2
 
+Buffer = bytes | bytearray | memoryview  # message bytes: a copy, a read buffer, or a view into one
+
 
 class StoreKind(enum.IntEnum):
     UNSPECIFIED = 0
@@ -108,7 +110,7 @@ class StreamStart:
 
 @dataclass(slots=True)
 class StoreInfoMessage(Located):
-    raw: bytes | bytearray
+    raw: Buffer
     store_id: StoreId
     sdk_version: RerunVersion | None
     source: str
@@ -117,7 +119,7 @@ class StoreInfoMessage(Located):
 
 @dataclass(slots=True)
 class ArrowMessage(Located):
-    raw: bytes | bytearray  # large messages keep the buffer they were read into
+    raw: Buffer  # large messages keep the buffer they were read into; gRPC ones are views
     store_id: StoreId
     chunk_id: bytes | None
     is_static: bool | None
@@ -134,7 +136,7 @@ class ArrowMessage(Located):
 
 @dataclass(slots=True)
 class BlueprintActivationMessage(Located):
-    raw: bytes | bytearray
+    raw: Buffer
     blueprint_id: StoreId
     make_active: bool
     make_default: bool
@@ -145,7 +147,7 @@ class BlueprintActivationMessage(Located):
 class EndMessage(Located):
     """End of a stream; `footer` is the parsed RrdFooter payload (None when empty)."""
 
-    raw: bytes | bytearray
+    raw: Buffer
     footer: log_msg_pb2.RrdFooter | None
     kind: MessageKind = MessageKind.END
 
