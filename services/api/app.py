@@ -3,12 +3,14 @@
 from __future__ import annotations
 
 from fastapi import FastAPI, Request
+from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse, PlainTextResponse
 
 from services import __version__
-from services.errors import FleetError
+from services.errors import ErrorCode, FleetError, http_status
 from services.ingest import rest as ingest_rest
 from services.ingest.service import IngestService
+from services.runs import rest as runs_rest
 from services.settings import Settings
 
 
@@ -17,7 +19,15 @@ def create_app(settings: Settings, ingest: IngestService | None = None) -> FastA
     app.state.settings = settings
     app.state.ingest = ingest
     if ingest is not None:
+        app.state.catalog = ingest.catalog
         app.include_router(ingest_rest.router)
+        app.include_router(runs_rest.router)
+
+    @app.exception_handler(RequestValidationError)
+    async def _bad_parameter(_: Request, exc: RequestValidationError) -> JSONResponse:
+        problems = "; ".join(f"parameter {e['loc'][-1]!r}: {e['msg']}" for e in exc.errors())
+        return JSONResponse({"code": ErrorCode.INVALID_ARGUMENT.value, "message": problems},
+                            status_code=http_status(ErrorCode.INVALID_ARGUMENT))
 
     @app.exception_handler(FleetError)
     async def _fleet_error(_: Request, exc: FleetError) -> JSONResponse:

@@ -1,0 +1,82 @@
+"""REST: `GET /v1/robots`, `GET /v1/runs`, `GET /v1/runs/{run}`. Handlers parse, call the runs
+service, and shape JSON; errors are mapped once by the app (`FleetError` -> status)."""
+
+from __future__ import annotations
+
+import datetime as dt
+import json
+from typing import Annotated, Any
+
+from fastapi import APIRouter, Query, Request
+
+from catalog import queries
+from catalog.db import session_scope
+from catalog.models import Run
+from services.runs import service
+from services.runs.service import RunFilter, parse_properties, parse_time
+
+router = APIRouter()
+
+
+def _time(value: dt.datetime | None) -> str | None:
+    if value is None:
+        return None
+    return (value if value.tzinfo else value.replace(tzinfo=dt.UTC)).isoformat().replace("+00:00", "Z")
+
+
+def run_summary(run: Run) -> dict[str, Any]:
+    return {
+        "id": run.id, "robot_id": run.robot_id, "application_id": run.application_id,
+        "date": run.date.isoformat(), "status": run.status, "tier": run.tier,
+        "started_at": _time(run.started_at), "ended_at": _time(run.ended_at),
+        "last_data_at": _time(run.last_data_at), "sdk_version": run.sdk_version,
+        "chunks": run.chunks, "rows": run.rows, "bytes": run.bytes, "pinned": run.pinned,
+        "properties": json.loads(run.properties),
+    }
+
+
+@router.get("/v1/robots", summary="Robots and how many runs each has")
+def robots(request: Request) -> dict[str, Any]:
+    with session_scope(request.app.state.catalog) as session:
+        return {"robots": [{"id": robot.id, "runs": count, "created_at": _time(robot.created_at),
+                            "last_seen_at": _time(robot.last_seen_at)}
+                           for robot, count in service.list_robots(session)]}
+
+
+@router.get("/v1/runs", summary="Runs, filtered, sorted, a page at a time")
+def runs(
+    request: Request,
+    robot: Annotated[list[str] | None, Query(description="robot id (repeatable)")] = None,
+    application: Annotated[list[str] | None, Query(description="application id (repeatable)")] = None,
+    since: Annotated[str | None, Query(description="started at or after (ISO-8601)")] = None,
+    until: Annotated[str | None, Query(description="started before (ISO-8601)")] = None,
+    status: Annotated[str | None, Query(description="live | closed")] = None,
+    tier: Annotated[str | None, Query(description="hot | warm | cold | deleted")] = None,
+    entity: Annotated[list[str] | None, Query(description="has an entity: `/world/**` or an exact path")] = None,
+    prop: Annotated[list[str] | None, Query(alias="property",
+                                            description="NAME.FIELD=VALUE, e.g. fleet.robot_id=robot-7")] = None,
+    sort: Annotated[str, Query(description=" | ".join(service.SORTS))] = "-started_at",
+    limit: Annotated[int, Query(description=f"1 to {service.MAX_LIMIT}")] = 100,
+    cursor: Annotated[str | None, Query(description="`next_cursor` of the previous page")] = None,
+) -> dict[str, Any]:
+    flt = RunFilter(robot=robot or [], application=application or [], since=parse_time("since", since),
+                    until=parse_time("until", until), status=status, tier=tier, entity=entity or [],
+                    properties=parse_properties(prop or []), sort=sort, limit=limit, cursor=cursor)
+    with session_scope(request.app.state.catalog) as session:
+        page, next_cursor = service.list_runs(session, flt)
+        return {"runs": [run_summary(run) for run in page], "next_cursor": next_cursor}
+
+
+@router.get("/v1/runs/{run_id}", summary="One run: metadata, entities, timelines, sizes, tier")
+def run(request: Request, run_id: str) -> dict[str, Any]:
+    with session_scope(request.app.state.catalog) as session:
+        found = service.get_run(session, run_id)
+        return {
+            **run_summary(found),
+            "entities": [{"path": e.path, "chunks": e.chunks, "static_chunks": e.static_chunks, "rows": e.rows,
+                          "bytes": e.bytes, "archetypes": json.loads(e.archetypes),
+                          "components": json.loads(e.components)}
+                         for e in queries.run_entities(session, run_id)],
+            "timelines": [{"name": t.name, "type": t.type, "min": t.min, "max": t.max}
+                          for t in queries.run_timelines(session, run_id)],
+        }

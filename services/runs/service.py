@@ -1,0 +1,174 @@
+"""Finding runs: robots, runs with filters, sort and an opaque cursor, and one run in detail."""
+
+from __future__ import annotations
+
+import base64
+import datetime as dt
+import json
+from dataclasses import dataclass, field
+from typing import Any
+
+import sqlalchemy as sa
+from sqlalchemy.dialects.postgresql import JSONB
+from sqlalchemy.orm import Session
+
+from catalog import queries
+from catalog.models import Robot, Run, RunEntity
+from services.errors import ErrorCode, FleetError
+
+MAX_LIMIT = 1000
+SORTS = ("-started_at", "started_at", "-bytes", "bytes", "id", "-id")
+STATUSES = ("live", "closed")
+TIERS = ("hot", "warm", "cold", "deleted")
+
+
+class RunNotFoundError(FleetError):
+    code = ErrorCode.NOT_FOUND
+
+
+class BadParameterError(FleetError):
+    code = ErrorCode.INVALID_ARGUMENT
+
+    def __init__(self, name: str, problem: str) -> None:
+        super().__init__(f"parameter {name!r}: {problem}")
+        self.parameter = name
+
+
+@dataclass
+class RunFilter:
+    robot: list[str] = field(default_factory=list)
+    application: list[str] = field(default_factory=list)
+    since: dt.datetime | None = None
+    until: dt.datetime | None = None
+    status: str | None = None
+    tier: str | None = None
+    entity: list[str] = field(default_factory=list)  # `/world/**` (subtree) or an exact path
+    properties: dict[str, str] = field(default_factory=dict)  # "fleet.robot_id" -> value
+    sort: str = "-started_at"
+    limit: int = 100
+    cursor: str | None = None
+
+    def check(self) -> None:
+        if self.sort not in SORTS:
+            raise BadParameterError("sort", f"{self.sort!r} is not one of {', '.join(SORTS)}")
+        if not 1 <= self.limit <= MAX_LIMIT:
+            raise BadParameterError("limit", f"{self.limit} is not between 1 and {MAX_LIMIT}")
+        if self.status is not None and self.status not in STATUSES:
+            raise BadParameterError("status", f"{self.status!r} is not one of {', '.join(STATUSES)}")
+        if self.tier is not None and self.tier not in TIERS:
+            raise BadParameterError("tier", f"{self.tier!r} is not one of {', '.join(TIERS)}")
+        for key in self.properties:
+            if key.count(".") != 1 or not all(key.split(".")):
+                raise BadParameterError("property", f"{key!r} is not NAME.FIELD=VALUE (e.g. fleet.robot_id=robot-7)")
+
+
+def parse_time(name: str, text: str | None) -> dt.datetime | None:
+    """ISO-8601 (a date, or a date and time; UTC when no zone is given)."""
+    if text is None:
+        return None
+    try:
+        value = dt.datetime.fromisoformat(text.replace("Z", "+00:00"))
+    except ValueError:
+        raise BadParameterError(name, f"{text!r} is not ISO-8601, e.g. 2026-11-21 or 2026-11-21T08:00:00Z") from None
+    return value if value.tzinfo is not None else value.replace(tzinfo=dt.UTC)
+
+
+def parse_properties(items: list[str]) -> dict[str, str]:
+    out = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep:
+            raise BadParameterError("property", f"{item!r} is not NAME.FIELD=VALUE (e.g. fleet.robot_id=robot-7)")
+        out[key] = value
+    return out
+
+
+def _entity_condition(pattern: str) -> sa.ColumnElement[bool]:
+    if pattern.endswith("/**"):
+        root = pattern[:-3].rstrip("/")
+        prefix = (root + "/").replace("\\", "\\\\").replace("%", "\\%").replace("_", "\\_")
+        return sa.or_(RunEntity.path == (root or "/"), RunEntity.path.like(prefix + "%", escape="\\"))
+    return RunEntity.path == pattern
+
+
+def _property_value(session: Session, name: str, field_name: str) -> sa.ColumnElement[Any]:
+    if session.get_bind().dialect.name == "postgresql":
+        return sa.func.jsonb_extract_path_text(sa.cast(Run.properties, JSONB), name, field_name)
+    return sa.func.json_extract_string(Run.properties, f'$."{name}"."{field_name}"')
+
+
+def _sort_key(sort: str) -> sa.ColumnElement[Any]:
+    column = sort.lstrip("-")
+    if column == "started_at":
+        return sa.func.coalesce(Run.started_at, Run.created_at)
+    return getattr(Run, column)  # type: ignore[no-any-return]
+
+
+def _encode_cursor(value: Any, run_id: str) -> str:
+    if isinstance(value, dt.datetime):
+        value = (value if value.tzinfo else value.replace(tzinfo=dt.UTC)).isoformat()
+    return base64.urlsafe_b64encode(json.dumps([value, run_id]).encode()).decode().rstrip("=")
+
+
+def _decode_cursor(cursor: str, sort: str) -> tuple[Any, str]:
+    try:
+        value, run_id = json.loads(base64.urlsafe_b64decode(cursor + "=" * (-len(cursor) % 4)))
+        if sort.lstrip("-") == "started_at":
+            value = dt.datetime.fromisoformat(value)
+    except (ValueError, TypeError):
+        raise BadParameterError("cursor", "not a cursor this service gave out: pass `next_cursor` as is") from None
+    return value, str(run_id)
+
+
+def list_runs(session: Session, flt: RunFilter) -> tuple[list[Run], str | None]:
+    """A page of runs and the cursor of the next page (None at the end)."""
+    flt.check()
+    query = sa.select(Run).where(Run.tier != "deleted") if flt.tier is None else sa.select(Run)
+    if flt.robot:
+        query = query.where(Run.robot_id.in_(flt.robot))
+    if flt.application:
+        query = query.where(Run.application_id.in_(flt.application))
+    started = sa.func.coalesce(Run.started_at, Run.created_at)
+    if flt.since is not None:
+        query = query.where(started >= flt.since)
+    if flt.until is not None:
+        query = query.where(started < flt.until)
+    if flt.status is not None:
+        query = query.where(Run.status == flt.status)
+    if flt.tier is not None:
+        query = query.where(Run.tier == flt.tier)
+    for pattern in flt.entity:
+        query = query.where(sa.exists().where(RunEntity.run_id == Run.id, _entity_condition(pattern)))
+    for prop, value in flt.properties.items():
+        name, field_name = prop.split(".")
+        query = query.where(_property_value(session, name, field_name) == value)
+    key = _sort_key(flt.sort)
+    descending = flt.sort.startswith("-")
+    if flt.cursor:
+        last_value, last_id = _decode_cursor(flt.cursor, flt.sort)
+        if descending:
+            query = query.where(sa.or_(key < last_value, sa.and_(key == last_value, Run.id < last_id)))
+        else:
+            query = query.where(sa.or_(key > last_value, sa.and_(key == last_value, Run.id > last_id)))
+    order = (key.desc(), Run.id.desc()) if descending else (key.asc(), Run.id.asc())
+    rows = list(session.execute(query.add_columns(key).order_by(*order).limit(flt.limit + 1)))
+    runs = [row[0] for row in rows[: flt.limit]]
+    next_cursor = None
+    if len(rows) > flt.limit:
+        last = rows[flt.limit - 1]
+        next_cursor = _encode_cursor(last[1], last[0].id)
+    return runs, next_cursor
+
+
+def get_run(session: Session, run_id: str) -> Run:
+    run = queries.get_run(session, run_id)
+    if run is None:
+        raise RunNotFoundError(f"no run {run_id!r}: list runs with GET /v1/runs or `fleet runs ls`")
+    return run
+
+
+def list_robots(session: Session) -> list[tuple[Robot, int]]:
+    """Robots with their number of runs."""
+    counts = dict(session.execute(sa.select(Run.robot_id, sa.func.count()).where(Run.tier != "deleted")
+                                  .group_by(Run.robot_id)).all())
+    return [(robot, int(counts.get(robot.id, 0))) for robot in queries.list_robots(session)]
