@@ -34,20 +34,9 @@ class DuckDBImpl(DefaultImpl):
     transactional_ddl = True
 
 
-def _remember_missing_pandas() -> None:
-    """DuckDB tries `import pandas` on every parameterised query; Python does not cache a failed
-    import, so without pandas each query pays several file-system searches. Record the absence."""
-    import importlib.util
-    import sys
-
-    if "pandas" not in sys.modules and importlib.util.find_spec("pandas") is None:
-        sys.modules["pandas"] = None  # type: ignore[assignment]  # makes `import pandas` fail at once
-
-
 def create_engine(url: str) -> sa.Engine:
     """An engine for `duckdb:///PATH` (embedded) or `postgresql+psycopg://...`."""
     if url.startswith("duckdb:///"):
-        _remember_missing_pandas()
         Path(url.removeprefix("duckdb:///")).parent.mkdir(parents=True, exist_ok=True)
         return sa.create_engine(url, poolclass=sa.pool.SingletonThreadPool)
     if url.startswith("postgresql"):

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
+from fastapi.middleware.cors import CORSMiddleware
 from fastapi.responses import JSONResponse, PlainTextResponse
 
 from services import __version__
@@ -16,6 +17,9 @@ from services.settings import Settings
 
 def create_app(settings: Settings, ingest: IngestService | None = None) -> FastAPI:
     app = FastAPI(title="Fleet telemetry depot", version=__version__)
+    # Browser viewers (app.rerun.io, a local web viewer) fetch recordings cross-origin.
+    app.add_middleware(CORSMiddleware, allow_origins=["*"], allow_methods=["GET", "HEAD"],
+                       expose_headers=["Content-Disposition", "ETag"])
     app.state.settings = settings
     app.state.ingest = ingest
     if ingest is not None:

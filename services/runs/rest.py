@@ -4,15 +4,17 @@ service, and shape JSON; errors are mapped once by the app (`FleetError` -> stat
 from __future__ import annotations
 
 import datetime as dt
+import hashlib
 import json
 from typing import Annotated, Any
 
 from fastapi import APIRouter, Query, Request
+from fastapi.responses import StreamingResponse
 
 from catalog import queries
 from catalog.db import session_scope
 from catalog.models import Run
-from services.runs import service
+from services.runs import download, service
 from services.runs.service import RunFilter, parse_properties, parse_time
 
 router = APIRouter()
@@ -80,3 +82,26 @@ def run(request: Request, run_id: str) -> dict[str, Any]:
             "timelines": [{"name": t.name, "type": t.type, "min": t.min, "max": t.max}
                           for t in queries.run_timelines(session, run_id)],
         }
+
+
+@router.get("/v1/runs/{run_id}/recording.rrd", summary="The run as an .rrd stream the Rerun viewer opens",
+            response_class=StreamingResponse,
+            responses={200: {"content": {"application/octet-stream": {}}}})
+def recording(
+    request: Request,
+    run_id: str,
+    include: Annotated[list[str] | None, Query(description="entity patterns to keep: /a/b or /a/** (repeatable)")]
+    = None,
+    exclude: Annotated[list[str] | None, Query(description="entity patterns to drop; wins over include")] = None,
+    blueprint: Annotated[bool, Query(description="include the run's blueprint")] = True,
+) -> StreamingResponse:
+    """`rerun "http://HOST:8080/v1/runs/RUN/recording.rrd?include=/world/**"` opens it in the viewer."""
+    entities = download.EntityFilter(include or [], exclude or [])
+    path, size = download.locate(request.app.state.ingest, run_id)
+    filters = json.dumps([sorted(entities.include), sorted(entities.exclude), blueprint])
+    etag = f'"{run_id}-{size}-{hashlib.sha256(filters.encode()).hexdigest()[:16]}"'
+    return StreamingResponse(
+        download.stream_run(path, size, entities, blueprint=blueprint),
+        media_type="application/octet-stream",
+        headers={"Content-Disposition": f'attachment; filename="{run_id}.rrd"', "ETag": etag},
+    )

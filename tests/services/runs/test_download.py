@@ -1,0 +1,109 @@
+"""Downloads the real Rerun tools accept: whole runs, entity filters, and the viewer's own loader."""
+
+from __future__ import annotations
+
+import subprocess
+from collections.abc import Iterator
+from pathlib import Path
+
+import httpx
+import pytest
+
+from services.rrd import ArrowMessage, StoreKind, iter_events
+from services.rrd.chunk import chunk_meta
+from tests.services.ingest.live_server import LiveServer
+from tests.services.rrd.recordings import Recording
+
+pytestmark = pytest.mark.sdk
+NAMES = ("points", "blueprint", "transforms")
+
+
+@pytest.fixture(scope="module")
+def server(tmp_path_factory: pytest.TempPathFactory, recordings: dict[str, Recording]) -> Iterator[LiveServer]:
+    live = LiveServer(Path(tmp_path_factory.mktemp("download")) / "data").start()
+    for name in NAMES:
+        assert httpx.post(f"{live.url}/v1/uploads", content=recordings[name].data, timeout=60).status_code == 200
+    yield live
+    live.stop()
+
+
+def _download(server: LiveServer, run_id: str, out: Path, **params: object) -> httpx.Response:
+    response = httpx.get(f"{server.url}/v1/runs/{run_id}/recording.rrd", params=params,  # type: ignore[arg-type]
+                         headers={"Origin": "http://localhost:9090"}, timeout=120)  # as a browser viewer asks
+    out.write_bytes(response.content)
+    return response
+
+
+def _run(*args: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(list(args), capture_output=True, text=True, timeout=120)
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_full_download_equals_the_original(server: LiveServer, recordings: dict[str, Recording], name: str,
+                                           rerun_bin: str, tmp_path: Path):
+    rec = recordings[name]
+    out = tmp_path / "run.rrd"
+    response = _download(server, rec.recordings[0]["recording_id"], out)
+    assert response.status_code == 200
+    assert response.headers["content-disposition"] == f'attachment; filename="{rec.recordings[0]["recording_id"]}.rrd"'
+    assert response.headers["etag"] and response.headers["access-control-allow-origin"] == "*"
+    verify = _run(rerun_bin, "rrd", "verify", str(out))  # footers checked
+    assert verify.returncode == 0, verify.stderr
+    compare = _run(rerun_bin, "rrd", "compare", "--unordered", str(rec.path), str(out))
+    assert compare.returncode == 0, compare.stdout + compare.stderr
+
+
+def test_entity_filter_equals_rerun_rrd_filter(server: LiveServer, recordings: dict[str, Recording], rerun_bin: str,
+                                               tmp_path: Path):
+    rec = recordings["transforms"]
+    entities = sorted(rec.recordings[0]["entities"])
+    dropped = next(e for e in entities if not e.startswith("/__properties"))
+    ours = tmp_path / "ours.rrd"
+    assert _download(server, rec.recordings[0]["recording_id"], ours, exclude=dropped).status_code == 200
+    theirs = tmp_path / "theirs.rrd"
+    assert _run(rerun_bin, "rrd", "filter", "--drop-entity", dropped, str(rec.path), "-o", str(theirs)).returncode == 0
+    assert _run(rerun_bin, "rrd", "verify", str(ours)).returncode == 0
+    compare = _run(rerun_bin, "rrd", "compare", "--unordered", str(theirs), str(ours))
+    assert compare.returncode == 0, compare.stdout + compare.stderr
+
+
+def test_include_subtree_and_exclude_wins(server: LiveServer, recordings: dict[str, Recording], tmp_path: Path):
+    rec = recordings["points"]
+    run_id = rec.recordings[0]["recording_id"]
+    all_paths = set(rec.recordings[0]["entities"])
+    out = tmp_path / "sub.rrd"
+    assert _download(server, run_id, out, include="/world/**").status_code == 200
+    got = {chunk_meta(e).entity_path for e in iter_events(out)
+           if isinstance(e, ArrowMessage) and e.store_id.kind == StoreKind.RECORDING}
+    assert got == {p for p in all_paths if p == "/world" or p.startswith("/world/")} and got
+    excluded = sorted(got)[0]
+    _download(server, run_id, out, include="/world/**", exclude=excluded)
+    assert excluded not in {chunk_meta(e).entity_path for e in iter_events(out) if isinstance(e, ArrowMessage)}
+
+
+def test_blueprint_can_be_left_out(server: LiveServer, recordings: dict[str, Recording], tmp_path: Path):
+    run_id = recordings["blueprint"].recordings[0]["recording_id"]
+    out = tmp_path / "nobp.rrd"
+    _download(server, run_id, out, blueprint="false")
+    kinds = {e.store_id.kind for e in iter_events(out) if isinstance(e, ArrowMessage)}
+    assert kinds == {StoreKind.RECORDING}
+
+
+def test_the_viewer_loader_saves_the_same(server: LiveServer, recordings: dict[str, Recording], rerun_bin: str,
+                                          tmp_path: Path):
+    run_id = recordings["points"].recordings[0]["recording_id"]
+    url = f"{server.url}/v1/runs/{run_id}/recording.rrd"
+    saved = tmp_path / "saved.rrd"
+    result = _run(rerun_bin, "--save", str(saved), url)
+    assert result.returncode == 0, result.stderr
+    ours = tmp_path / "ours.rrd"
+    _download(server, run_id, ours)
+    compare = _run(rerun_bin, "rrd", "compare", "--unordered", str(ours), str(saved))
+    assert compare.returncode == 0, compare.stdout + compare.stderr
+
+
+def test_errors(server: LiveServer):
+    missing = httpx.get(f"{server.url}/v1/runs/nope/recording.rrd", timeout=30)
+    assert missing.status_code == 404 and "nope" in missing.json()["message"]
+    bad = httpx.get(f"{server.url}/v1/runs/nope/recording.rrd", params={"include": "world"}, timeout=30)
+    assert bad.status_code == 422 and "'include'" in bad.json()["message"]
