@@ -57,6 +57,40 @@ class FleetClient:
         return self._request("POST", "/v1/uploads", content=pieces(),
                              headers={"Content-Type": "application/vnd.rerun.rrd"})
 
+    def runs(self, **params: Any) -> dict[str, Any]:
+        """`GET /v1/runs` with its filters (robot, application, since, until, status, tier, entity,
+        property, sort, limit, cursor)."""
+        return self._request("GET", "/v1/runs", params={k: v for k, v in params.items() if v not in (None, [], ())})
+
+    def run(self, run_id: str) -> dict[str, Any]:
+        return self._request("GET", f"/v1/runs/{run_id}")
+
+    def recording_url(self, run_id: str, **params: Any) -> str:
+        query = httpx.QueryParams({k: v for k, v in params.items() if v not in (None, [], ())})
+        return f"{self.api_url}/v1/runs/{run_id}/recording.rrd" + (f"?{query}" if query else "")
+
+    def download(self, run_id: str, out: Path, on_progress: Callable[[int], None] | None = None,
+                 **params: Any) -> int:
+        """Stream a run's recording to `out`; returns the bytes written."""
+        url = self.recording_url(run_id, **params)
+        written = 0
+        try:
+            with self._http.stream("GET", url) as response:
+                if response.status_code >= 400:
+                    response.read()
+                    body = response.json()
+                    raise ServiceError(str(body.get("message", response.reason_phrase)), response.status_code, body)
+                with open(out, "wb") as fh:
+                    for piece in response.iter_bytes():
+                        fh.write(piece)
+                        written += len(piece)
+                        if on_progress is not None:
+                            on_progress(len(piece))
+        except httpx.TransportError as exc:
+            raise UnreachableError(f"cannot reach the fleet service at {self.api_url} ({exc}); "
+                                   "is it running? set FLEET_API_URL") from exc
+        return written
+
     def _request(self, method: str, url: str, **kwargs: Any) -> dict[str, Any]:
         try:
             response = self._http.request(method, url, **kwargs)

@@ -9,6 +9,7 @@ import click
 from services import __version__
 from services.cli.db import db
 from services.cli.rrd import rrd
+from services.cli.runs import download, runs, view
 from services.cli.serve import serve
 from services.cli.upload import upload
 
@@ -23,6 +24,9 @@ cli.add_command(serve)
 cli.add_command(rrd)
 cli.add_command(db)
 cli.add_command(upload)
+cli.add_command(runs)
+cli.add_command(download)
+cli.add_command(view)
 
 
 def main() -> None:

@@ -13,6 +13,7 @@ from rich.console import Console
 from rich.progress import BarColumn, DownloadColumn, Progress, TransferSpeedColumn
 from rich.table import Table
 
+from services.cli.output import stdout_console
 from services.rrd.decoder import DEFAULT_MAX_MESSAGE_SIZE, READ_SIZE, RrdDecoder
 from services.rrd.footer import summarize_from_footer
 from services.rrd.messages import Event
@@ -80,7 +81,7 @@ def inspect(files: tuple[str, ...], as_json: bool, max_message_size: int, scan: 
     if as_json:
         click.echo(json.dumps([s.to_dict() for s in summaries], indent=2))
     else:
-        console = Console()
+        console = stdout_console()
         for summary in summaries:
             _print_summary(console, summary)
     failed = [s for s in summaries if s.error is not None]

@@ -1,0 +1,146 @@
+"""`fleet runs ls|show`, `fleet download`, `fleet view`: finding runs and opening them (over REST)."""
+
+from __future__ import annotations
+
+import functools
+import json
+import shlex
+import shutil
+import subprocess
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import click
+from rich.console import Console
+from rich.progress import BarColumn, DownloadColumn, Progress, TaskID, TransferSpeedColumn
+from rich.table import Table
+
+from services.cli.output import stdout_console
+
+if TYPE_CHECKING:
+    from sdk_client.rest import FleetClient
+
+_api = click.option("--api-url", envvar="FLEET_API_URL", default="http://127.0.0.1:8080", show_default=True,
+                    help="Where the service answers (FLEET_API_URL).")
+
+
+def _client(api_url: str) -> FleetClient:
+    from sdk_client.rest import FleetClient
+
+    return FleetClient(api_url)
+
+
+def _entity_options(func: Any) -> Any:
+    func = click.option("--include", multiple=True, help="keep only these entities: /a/b or /a/** (repeatable)")(func)
+    func = click.option("--exclude", multiple=True, help="drop these entities (wins over --include)")(func)
+    return click.option("--no-blueprint", is_flag=True, help="leave the run's blueprint out")(func)
+
+
+def _recording_params(include: tuple[str, ...], exclude: tuple[str, ...], no_blueprint: bool) -> dict[str, Any]:
+    return {"include": list(include), "exclude": list(exclude), "blueprint": "false" if no_blueprint else None}
+
+
+@click.group()
+def runs() -> None:
+    """Find runs."""
+
+
+@runs.command("ls")
+@_api
+@click.option("--robot", multiple=True, help="robot id (repeatable)")
+@click.option("--application", multiple=True, help="application id (repeatable)")
+@click.option("--since", help="started at or after (ISO-8601)")
+@click.option("--until", help="started before (ISO-8601)")
+@click.option("--status", type=click.Choice(["live", "closed"]))
+@click.option("--tier", type=click.Choice(["hot", "warm", "cold", "deleted"]))
+@click.option("--entity", multiple=True, help="has an entity: /a/b or /a/** (repeatable)")
+@click.option("--property", "prop", multiple=True, help="NAME.FIELD=VALUE, e.g. fleet.robot_id=robot-7")
+@click.option("--sort", default="-started_at", show_default=True)
+@click.option("--limit", type=int, default=100, show_default=True)
+@click.option("--json", "as_json", is_flag=True, help="print JSON (the service's answer) instead of a table")
+def runs_ls(api_url: str, as_json: bool, prop: tuple[str, ...], **filters: Any) -> None:
+    """List runs, newest first."""
+    with _client(api_url) as client:
+        page = client.runs(property=list(prop), **{k: list(v) if isinstance(v, tuple) else v
+                                                   for k, v in filters.items()})
+    if as_json:
+        click.echo(json.dumps(page, indent=2))
+        return
+    table = Table("run", "robot", "application", "started", "status", "tier", "chunks", "MB", box=None,
+                  padding=(0, 2))
+    for run in page["runs"]:
+        table.add_row(run["id"], run["robot_id"], run["application_id"], run["started_at"] or "-", run["status"],
+                      run["tier"], f"{run['chunks']:,}", f"{run['bytes'] / 1e6:,.1f}")
+    stdout_console().print(table)
+    if page["next_cursor"]:
+        click.echo(f"(more: --limit, or GET /v1/runs?cursor={page['next_cursor']})")
+
+
+@runs.command("show")
+@_api
+@click.argument("run_id")
+@click.option("--json", "as_json", is_flag=True)
+def runs_show(api_url: str, run_id: str, as_json: bool) -> None:
+    """One run: metadata, entities, timelines."""
+    with _client(api_url) as client:
+        run = client.run(run_id)
+    if as_json:
+        click.echo(json.dumps(run, indent=2))
+        return
+    console = stdout_console()
+    console.print(f"[bold]{run['id']}[/bold]  robot {run['robot_id']}  application {run['application_id']}  "
+                  f"{run['status']}, {run['tier']}  SDK {run['sdk_version']}  {run['chunks']:,} chunks, "
+                  f"{run['bytes']:,} bytes  started {run['started_at']}")
+    if run["properties"]:
+        console.print(f"properties: {json.dumps(run['properties'])}", markup=False)
+    entities = Table("entity", "chunks", "rows", "bytes", "archetypes", box=None, padding=(0, 2))
+    for e in run["entities"]:
+        entities.add_row(e["path"], f"{e['chunks']:,}", f"{e['rows']:,}", f"{e['bytes']:,}",
+                         ", ".join(a.rsplit(".", 1)[-1] for a in e["archetypes"]))
+    console.print(entities)
+    timelines = Table("timeline", "type", "min", "max", box=None, padding=(0, 2))
+    for t in run["timelines"]:
+        timelines.add_row(t["name"], t["type"], str(t["min"]), str(t["max"]))
+    console.print(timelines)
+
+
+@click.command()
+@_api
+@click.argument("run_id")
+@click.option("-o", "--output", type=click.Path(dir_okay=False, path_type=Path), help="file to write [RUN.rrd]")
+@_entity_options
+def download(api_url: str, run_id: str, output: Path | None, include: tuple[str, ...], exclude: tuple[str, ...],
+             no_blueprint: bool) -> None:
+    """Download a run (or the entities you pick) as an .rrd file."""
+    output = output or Path(f"{run_id}.rrd")
+    with _client(api_url) as client, Progress("{task.description}", BarColumn(), DownloadColumn(),
+                                              TransferSpeedColumn(), console=Console(stderr=True),
+                                              transient=True) as progress:
+        task = progress.add_task(run_id, total=None)
+        written = client.download(run_id, output, functools.partial(_advance, progress, task),
+                                  **_recording_params(include, exclude, no_blueprint))
+    click.echo(f"{output}: {written:,} bytes")
+
+
+def _advance(progress: Progress, task: TaskID, count: int) -> None:
+    progress.update(task, advance=count)
+
+
+@click.command()
+@_api
+@click.argument("run_id")
+@_entity_options
+@click.option("--open", "open_viewer", is_flag=True, help="run the command instead of printing it")
+def view(api_url: str, run_id: str, include: tuple[str, ...], exclude: tuple[str, ...], no_blueprint: bool,
+         open_viewer: bool) -> None:
+    """Print the `rerun` command that opens a run (or a part of it) in the viewer."""
+    with _client(api_url) as client:
+        client.run(run_id)  # a clear error now rather than an empty viewer
+        url = client.recording_url(run_id, **_recording_params(include, exclude, no_blueprint))
+    command = ["rerun", url]
+    if not open_viewer:
+        click.echo(shlex.join(command))
+        return
+    if shutil.which("rerun") is None:
+        raise click.ClickException("the Rerun viewer is not installed: pip install rerun-sdk")
+    raise SystemExit(subprocess.call(command))
