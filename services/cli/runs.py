@@ -33,11 +33,18 @@ def _client(api_url: str) -> FleetClient:
 def _entity_options(func: Any) -> Any:
     func = click.option("--include", multiple=True, help="keep only these entities: /a/b or /a/** (repeatable)")(func)
     func = click.option("--exclude", multiple=True, help="drop these entities (wins over --include)")(func)
+    func = click.option("--timeline", help="keep chunks overlapping --start/--end on this timeline")(func)
+    func = click.option("--start", help="sequence number, duration (12.5s) or timestamp (ISO-8601 or ns)")(func)
+    func = click.option("--end", help="as --start; inclusive")(func)
+    func = click.option("--no-latest-at", is_flag=True, help="leave out the data from before --start")(func)
     return click.option("--no-blueprint", is_flag=True, help="leave the run's blueprint out")(func)
 
 
-def _recording_params(include: tuple[str, ...], exclude: tuple[str, ...], no_blueprint: bool) -> dict[str, Any]:
-    return {"include": list(include), "exclude": list(exclude), "blueprint": "false" if no_blueprint else None}
+def _recording_params(include: tuple[str, ...], exclude: tuple[str, ...], no_blueprint: bool,
+                      timeline: str | None, start: str | None, end: str | None,
+                      no_latest_at: bool) -> dict[str, Any]:
+    return {"include": list(include), "exclude": list(exclude), "blueprint": "false" if no_blueprint else None,
+            "timeline": timeline, "start": start, "end": end, "latest_at": "false" if no_latest_at else None}
 
 
 @click.group()
@@ -109,8 +116,7 @@ def runs_show(api_url: str, run_id: str, as_json: bool) -> None:
 @click.argument("run_id")
 @click.option("-o", "--output", type=click.Path(dir_okay=False, path_type=Path), help="file to write [RUN.rrd]")
 @_entity_options
-def download(api_url: str, run_id: str, output: Path | None, include: tuple[str, ...], exclude: tuple[str, ...],
-             no_blueprint: bool) -> None:
+def download(api_url: str, run_id: str, output: Path | None, **filters: Any) -> None:
     """Download a run (or the entities you pick) as an .rrd file."""
     output = output or Path(f"{run_id}.rrd")
     with _client(api_url) as client, Progress("{task.description}", BarColumn(), DownloadColumn(),
@@ -118,7 +124,7 @@ def download(api_url: str, run_id: str, output: Path | None, include: tuple[str,
                                               transient=True) as progress:
         task = progress.add_task(run_id, total=None)
         written = client.download(run_id, output, functools.partial(_advance, progress, task),
-                                  **_recording_params(include, exclude, no_blueprint))
+                                  **_recording_params(**filters))
     click.echo(f"{output}: {written:,} bytes")
 
 
@@ -131,12 +137,11 @@ def _advance(progress: Progress, task: TaskID, count: int) -> None:
 @click.argument("run_id")
 @_entity_options
 @click.option("--open", "open_viewer", is_flag=True, help="run the command instead of printing it")
-def view(api_url: str, run_id: str, include: tuple[str, ...], exclude: tuple[str, ...], no_blueprint: bool,
-         open_viewer: bool) -> None:
+def view(api_url: str, run_id: str, open_viewer: bool, **filters: Any) -> None:
     """Print the `rerun` command that opens a run (or a part of it) in the viewer."""
     with _client(api_url) as client:
         client.run(run_id)  # a clear error now rather than an empty viewer
-        url = client.recording_url(run_id, **_recording_params(include, exclude, no_blueprint))
+        url = client.recording_url(run_id, **_recording_params(**filters))
     command = ["rerun", url]
     if not open_viewer:
         click.echo(shlex.join(command))

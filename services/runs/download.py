@@ -7,20 +7,23 @@ memory). A live run is served as it stands when the request starts (whole messag
 
 from __future__ import annotations
 
+import datetime as dt
 import io
+import re
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import BinaryIO, cast
 
 from services.ingest.service import IngestService
-from services.rrd.chunk import chunk_meta
+from services.rrd.chunk import ChunkMeta, chunk_meta
 from services.rrd.decoder import iter_events
 from services.rrd.encoder import RrdEncoder
 from services.rrd.frames import RerunVersion
 from services.rrd.messages import (
     ArrowMessage,
     BlueprintActivationMessage,
+    Event,
     StoreInfoMessage,
     StoreKind,
     StreamStart,
@@ -102,33 +105,140 @@ class _Bounded(io.RawIOBase):
         super().close()
 
 
-def stream_run(path: Path, size: int, entities: EntityFilter, *, blueprint: bool = True) -> Iterator[bytes]:
+@dataclass(frozen=True)
+class TimeWindow:
+    """Chunks overlapping [start, end] on `timeline` (inclusive; None = open); with `latest_at`, also
+    per entity and component the newest chunk before `start`, so the scene at `start` is complete."""
+
+    timeline: str
+    start: int | None = None
+    end: int | None = None
+    latest_at: bool = True
+
+
+_UNITS_NS = {"ns": 1, "us": 1_000, "ms": 1_000_000, "s": 1_000_000_000, "m": 60_000_000_000,
+             "h": 3_600_000_000_000}
+_DURATION = re.compile(r"^(-?\d+(?:\.\d+)?)(ns|us|ms|s|m|h)$")
+_ISO = re.compile(r"^(\d{4}-\d{2}-\d{2}(?:[T ]\d{2}:\d{2}(?::\d{2})?)?)(?:\.(\d{1,9}))?(Z|[+-]\d{2}:?\d{2})?$")
+
+
+def parse_time_value(name: str, timeline_type: str, text: str) -> int:
+    """A `start`/`end` value by the timeline's type: sequence integers; durations like `12.5s`,
+    `250ms` or ns; timestamps as ISO-8601 (to the nanosecond) or ns since the epoch."""
+    if re.fullmatch(r"-?\d+", text):
+        return int(text)
+    if timeline_type == "duration" and (m := _DURATION.match(text)):
+        number, unit = m.groups()
+        whole, _, frac = number.partition(".")
+        scale = _UNITS_NS[unit]
+        value = abs(int(whole)) * scale + (int(frac.ljust(9, "0")[:9]) * scale // 10**9 if frac else 0)
+        return -value if number.startswith("-") else value
+    if timeline_type == "timestamp" and (m := _ISO.match(text)):
+        base, frac, zone = m.groups()
+        try:
+            stamp = dt.datetime.fromisoformat(base + (zone or "").replace("Z", "+00:00"))
+        except ValueError:
+            stamp = None
+        if stamp is not None:
+            stamp = stamp if stamp.tzinfo else stamp.replace(tzinfo=dt.UTC)
+            seconds = int(stamp.timestamp())
+            return seconds * 1_000_000_000 + int((frac or "0").ljust(9, "0"))
+    forms = {"sequence": "an integer", "duration": "a duration like 12.5s, 250ms or nanoseconds",
+             "timestamp": "ISO-8601 like 2026-11-21T08:00:00.5Z, or nanoseconds since the epoch"}
+    accepted = forms.get(timeline_type, "an integer")
+    raise BadParameterError(name, f"{text!r} is not a {timeline_type} value: use {accepted}")
+
+
+def window_from_query(types: dict[str, str], timeline: str | None, start: str | None, end: str | None,
+                      latest_at: bool) -> TimeWindow | None:
+    """The time window of a request; BadParameterError naming what is wrong and what is accepted."""
+    if timeline is None:
+        if start is not None or end is not None:
+            raise BadParameterError("timeline", f"start/end need a timeline: one of {', '.join(sorted(types))}")
+        return None
+    if timeline not in types:
+        raise BadParameterError("timeline", f"{timeline!r} is not a timeline of this run: "
+                                            f"{', '.join(sorted(types)) or 'it has none'}")
+    kind = types[timeline]
+    lo = parse_time_value("start", kind, start) if start is not None else None
+    hi = parse_time_value("end", kind, end) if end is not None else None
+    if lo is not None and hi is not None and lo > hi:
+        raise BadParameterError("end", f"end {end!r} is before start {start!r}")
+    return TimeWindow(timeline, lo, hi, latest_at)
+
+
+def _select(metas: list[tuple[ChunkMeta, bool]], window: TimeWindow) -> set[bytes]:
+    """Chunk ids to keep: static ones, those overlapping the window, and the latest-at ones."""
+    keep: set[bytes] = set()
+    before: dict[tuple[str, str], tuple[int, bytes]] = {}
+    lo = window.start if window.start is not None else -(2**63)
+    hi = window.end if window.end is not None else 2**63 - 1
+    for meta, is_recording in metas:
+        if not is_recording or meta.is_static:
+            keep.add(meta.chunk_id)
+            continue
+        timeline = next((t for t in meta.timelines if t.name == window.timeline), None)
+        if timeline is None:
+            continue  # not on the chosen timeline
+        if timeline.range.max >= lo and timeline.range.min <= hi:
+            keep.add(meta.chunk_id)  # overlaps the window (by its index column)
+        elif timeline.range.max < lo and window.latest_at:
+            for comp in meta.components:
+                rng = comp.ranges.get(window.timeline)
+                key = (meta.entity_path, comp.component)
+                if rng is not None and (key not in before or rng.max > before[key][0]):
+                    before[key] = (rng.max, meta.chunk_id)
+    keep.update(chunk_id for _, chunk_id in before.values())
+    return keep
+
+
+def _events(path: Path, size: int) -> Iterator[Event]:
+    with _Bounded(path, size) as source:
+        yield from iter_events(cast(BinaryIO, source))
+
+
+def stream_run(path: Path, size: int, entities: EntityFilter, *, blueprint: bool = True,
+               window: TimeWindow | None = None) -> Iterator[bytes]:
     """The run in `path` (its first `size` bytes) as an RRD stream, in pieces of about 1 MiB."""
+    metas: dict[bytes, ChunkMeta] = {}
+    keep: set[bytes] | None = None
+    if window is not None:  # a first pass picks the chunks; payloads are only read in the second
+        found = []
+        for event in _events(path, size):
+            if isinstance(event, ArrowMessage):
+                meta = metas[event_key(event)] = chunk_meta(event)
+                found.append((meta, event.store_id.kind == StoreKind.RECORDING))
+        keep = _select(found, window)
     sink = _Chunks()
     out = cast(BinaryIO, sink)
     encoder: RrdEncoder | None = None
-    with _Bounded(path, size) as source:
-        for event in iter_events(cast(BinaryIO, source)):
-            if isinstance(event, StreamStart):
-                encoder = encoder or RrdEncoder(out, event.version)  # the run's own SDK version
+    for event in _events(path, size):
+        if isinstance(event, StreamStart):
+            encoder = encoder or RrdEncoder(out, event.version)  # the run's own SDK version
+            continue
+        if not isinstance(event, StoreInfoMessage | ArrowMessage | BlueprintActivationMessage):
+            continue
+        encoder = encoder or RrdEncoder(out, DEFAULT_VERSION)
+        store = event.blueprint_id if isinstance(event, BlueprintActivationMessage) else event.store_id
+        if store.kind == StoreKind.BLUEPRINT and not blueprint:
+            continue
+        if isinstance(event, ArrowMessage):
+            meta = metas.get(event_key(event)) or chunk_meta(event)
+            if store.kind == StoreKind.RECORDING and not entities(meta.entity_path):
                 continue
-            if not isinstance(event, StoreInfoMessage | ArrowMessage | BlueprintActivationMessage):
+            if keep is not None and meta.chunk_id not in keep:
                 continue
-            encoder = encoder or RrdEncoder(out, DEFAULT_VERSION)
-            store = event.blueprint_id if isinstance(event, BlueprintActivationMessage) else event.store_id
-            if store.kind == StoreKind.BLUEPRINT and not blueprint:
-                continue
-            if isinstance(event, ArrowMessage):
-                meta = chunk_meta(event)
-                if store.kind == StoreKind.RECORDING and not entities(meta.entity_path):
-                    continue
-                encoder.write_arrow(event, meta)
-            else:
-                encoder.write(event)
-            if sink.size >= FLUSH_BYTES:
-                yield sink.take()
+            encoder.write_arrow(event, meta)
+        else:
+            encoder.write(event)
+        if sink.size >= FLUSH_BYTES:
+            yield sink.take()
     (encoder or RrdEncoder(out, DEFAULT_VERSION)).finish()
     yield sink.take()
+
+
+def event_key(event: ArrowMessage) -> bytes:
+    return event.chunk_id or event.offset.to_bytes(8, "little")
 
 
 def locate(ingest: IngestService, run_id: str) -> tuple[Path, int]:

@@ -94,14 +94,26 @@ def recording(
     = None,
     exclude: Annotated[list[str] | None, Query(description="entity patterns to drop; wins over include")] = None,
     blueprint: Annotated[bool, Query(description="include the run's blueprint")] = True,
+    timeline: Annotated[str | None, Query(description="keep chunks overlapping [start, end] on this timeline")]
+    = None,
+    start: Annotated[str | None, Query(description="sequence number, duration (12.5s) or timestamp "
+                                                   "(ISO-8601 or ns), by the timeline's type")] = None,
+    end: Annotated[str | None, Query(description="as start; inclusive")] = None,
+    latest_at: Annotated[bool, Query(description="also the newest data before start, per entity and "
+                                                 "component, so the scene at start is complete")] = True,
 ) -> StreamingResponse:
-    """`rerun "http://HOST:8080/v1/runs/RUN/recording.rrd?include=/world/**"` opens it in the viewer."""
+    """`rerun "http://HOST:8080/v1/runs/RUN/recording.rrd?include=/world/**"` opens it in the viewer.
+    Static data is always kept unless its entity is excluded; payloads are copied untouched."""
     entities = download.EntityFilter(include or [], exclude or [])
+    with session_scope(request.app.state.catalog) as session:
+        service.get_run(session, run_id)  # 404 naming the run
+        types = {t.name: t.type for t in queries.run_timelines(session, run_id)}
+    window = download.window_from_query(types, timeline, start, end, latest_at)
     path, size = download.locate(request.app.state.ingest, run_id)
-    filters = json.dumps([sorted(entities.include), sorted(entities.exclude), blueprint])
+    filters = json.dumps([sorted(entities.include), sorted(entities.exclude), blueprint, repr(window)])
     etag = f'"{run_id}-{size}-{hashlib.sha256(filters.encode()).hexdigest()[:16]}"'
     return StreamingResponse(
-        download.stream_run(path, size, entities, blueprint=blueprint),
+        download.stream_run(path, size, entities, blueprint=blueprint, window=window),
         media_type="application/octet-stream",
         headers={"Content-Disposition": f'attachment; filename="{run_id}.rrd"', "ETag": etag},
     )

@@ -107,3 +107,55 @@ def test_errors(server: LiveServer):
     assert missing.status_code == 404 and "nope" in missing.json()["message"]
     bad = httpx.get(f"{server.url}/v1/runs/nope/recording.rrd", params={"include": "world"}, timeout=30)
     assert bad.status_code == 422 and "'include'" in bad.json()["message"]
+
+
+def _recording_chunks(path: Path) -> dict[bytes, object]:
+    return {e.chunk_id: chunk_meta(e) for e in iter_events(path)  # type: ignore[misc]
+            if isinstance(e, ArrowMessage) and e.store_id.kind == StoreKind.RECORDING}
+
+
+@pytest.mark.parametrize(("timeline", "start", "end", "lo", "hi"), [
+    ("frame", "104", "105", 104, 105),
+    ("sim", "0.75s", "1s", 750_000_000, 1_000_000_000),
+])
+def test_time_window(server: LiveServer, recordings: dict[str, Recording], tmp_path: Path, rerun_bin: str,
+                     timeline: str, start: str, end: str, lo: int, hi: int):
+    rec = recordings["points"]
+    run_id = rec.recordings[0]["recording_id"]
+    original = _recording_chunks(rec.path)
+
+    def window_range(meta: object) -> tuple[int, int] | None:
+        tl = next((t for t in meta.timelines if t.name == timeline), None)  # type: ignore[attr-defined]
+        return None if tl is None else (tl.range.min, tl.range.max)
+
+    overlapping = {cid for cid, m in original.items()
+                   if (r := window_range(m)) is not None and r[1] >= lo and r[0] <= hi}
+    static = {cid for cid, m in original.items() if m.is_static}  # type: ignore[attr-defined]
+    assert overlapping and overlapping != set(original) - static  # the window leaves something out
+
+    exact = tmp_path / "exact.rrd"
+    assert _download(server, run_id, exact, timeline=timeline, start=start, end=end,
+                     latest_at="false").status_code == 200
+    assert set(_recording_chunks(exact)) == overlapping | static
+    assert _run(rerun_bin, "rrd", "verify", str(exact)).returncode == 0
+
+    scene = tmp_path / "scene.rrd"
+    _download(server, run_id, scene, timeline=timeline, start=start, end=end)
+    got = set(_recording_chunks(scene))
+    assert overlapping | static <= got
+    for cid in got - overlapping - static:  # latest-at chunks lie before the window
+        r = window_range(original[cid])
+        assert r is not None and r[1] < lo
+    assert got - overlapping - static  # this window starts after data it needs
+    assert _run(rerun_bin, "rrd", "verify", str(scene)).returncode == 0
+
+
+@pytest.mark.parametrize(("params", "name"), [
+    ({"timeline": "nope"}, "timeline"), ({"start": "1"}, "timeline"),
+    ({"timeline": "frame", "start": "soon"}, "start"), ({"timeline": "sim", "start": "2 weeks"}, "start"),
+    ({"timeline": "frame", "start": "5", "end": "1"}, "end"),
+])
+def test_bad_windows(server: LiveServer, recordings: dict[str, Recording], params: dict[str, str], name: str):
+    run_id = recordings["points"].recordings[0]["recording_id"]
+    bad = httpx.get(f"{server.url}/v1/runs/{run_id}/recording.rrd", params=params, timeout=30)
+    assert bad.status_code == 422 and f"'{name}'" in bad.json()["message"], bad.text

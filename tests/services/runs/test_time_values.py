@@ -1,0 +1,32 @@
+import pytest
+
+from services.runs.download import parse_time_value
+from services.runs.service import BadParameterError
+
+
+@pytest.mark.parametrize(("kind", "text", "value"), [
+    ("sequence", "42", 42),
+    ("sequence", "-3", -3),
+    ("duration", "12.5s", 12_500_000_000),
+    ("duration", "250ms", 250_000_000),
+    ("duration", "1.000000001s", 1_000_000_001),
+    ("duration", "3us", 3_000),
+    ("duration", "2m", 120_000_000_000),
+    ("duration", "-0.5s", -500_000_000),
+    ("duration", "77", 77),
+    ("timestamp", "2026-11-21T08:00:00Z", 1_795_248_000_000_000_000),
+    ("timestamp", "2026-11-21T08:00:00.123456789Z", 1_795_248_000_123_456_789),
+    ("timestamp", "2026-11-21T09:00:00+01:00", 1_795_248_000_000_000_000),
+    ("timestamp", "2026-11-21", 1_795_219_200_000_000_000),
+    ("timestamp", "1795248000000000000", 1_795_248_000_000_000_000),
+])
+def test_values_by_timeline_type(kind: str, text: str, value: int):
+    assert parse_time_value("start", kind, text) == value
+
+
+@pytest.mark.parametrize(("kind", "text"), [("sequence", "1.5"), ("duration", "12 s"), ("duration", "5 days"),
+                                            ("timestamp", "yesterday"), ("timestamp", "2026-13-40")])
+def test_bad_values_say_what_is_accepted(kind: str, text: str):
+    with pytest.raises(BadParameterError) as info:
+        parse_time_value("start", kind, text)
+    assert info.value.parameter == "start" and "use " in str(info.value)
