@@ -10,14 +10,15 @@ from __future__ import annotations
 import datetime as dt
 import io
 import re
-from collections.abc import Iterator
+import time
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import BinaryIO, cast
 
 from services.ingest.service import IngestService
 from services.rrd.chunk import ChunkMeta, chunk_meta
-from services.rrd.decoder import iter_events
+from services.rrd.decoder import RrdDecoder, iter_events
 from services.rrd.encoder import RrdEncoder
 from services.rrd.frames import RerunVersion
 from services.rrd.messages import (
@@ -31,6 +32,8 @@ from services.rrd.messages import (
 from services.runs.service import BadParameterError, RunNotFoundError
 
 FLUSH_BYTES = 1024 * 1024
+FOLLOW_POLL_S = 0.1
+Follow = Callable[[], tuple[int, bool]]
 DEFAULT_VERSION = RerunVersion(0, 41, 0)
 
 
@@ -197,22 +200,54 @@ def _events(path: Path, size: int) -> Iterator[Event]:
         yield from iter_events(cast(BinaryIO, source))
 
 
+def _follow_events(path: Path, size: int, follow: Follow | None) -> Iterator[Event | None]:
+    """Events of the first `size` bytes, then, with `follow`, of what is appended while the run is
+    live; None marks a pause (the caller sends what it holds before waiting)."""
+    decoder = RrdDecoder()
+    position = 0
+    with open(path, "rb") as fh:
+        while True:
+            while position < size:
+                piece = fh.read(min(FLUSH_BYTES, size - position))
+                if not piece:
+                    break
+                position += len(piece)
+                yield from decoder.feed(piece)
+            if follow is None:
+                break
+            grown, live = follow()
+            if grown > size:
+                size = grown
+                continue
+            if not live:
+                break
+            yield None
+            time.sleep(FOLLOW_POLL_S)  # waiting for the run to grow; ends when it closes
+    yield from decoder.finish()
+
+
 def stream_run(path: Path, size: int, entities: EntityFilter, *, blueprint: bool = True,
-               window: TimeWindow | None = None) -> Iterator[bytes]:
-    """The run in `path` (its first `size` bytes) as an RRD stream, in pieces of about 1 MiB."""
+               window: TimeWindow | None = None, follow: Follow | None = None) -> Iterator[bytes]:
+    """The run in `path` (its first `size` bytes) as an RRD stream, in pieces of about 1 MiB. With
+    `follow` (run -> (whole bytes now, still live)), new chunks are sent as they are written and the
+    stream ends, with its footer, when the run closes."""
     metas: dict[bytes, ChunkMeta] = {}
     keep: set[bytes] | None = None
     if window is not None:  # a first pass picks the chunks; payloads are only read in the second
         found = []
-        for event in _events(path, size):
-            if isinstance(event, ArrowMessage):
-                meta = metas[event_key(event)] = chunk_meta(event)
-                found.append((meta, event.store_id.kind == StoreKind.RECORDING))
+        for first in _events(path, size):
+            if isinstance(first, ArrowMessage):
+                meta = metas[event_key(first)] = chunk_meta(first)
+                found.append((meta, first.store_id.kind == StoreKind.RECORDING))
         keep = _select(found, window)
     sink = _Chunks()
     out = cast(BinaryIO, sink)
     encoder: RrdEncoder | None = None
-    for event in _events(path, size):
+    for event in _follow_events(path, size, follow):
+        if event is None:
+            if sink.size:
+                yield sink.take()
+            continue
         if isinstance(event, StreamStart):
             encoder = encoder or RrdEncoder(out, event.version)  # the run's own SDK version
             continue
@@ -241,9 +276,23 @@ def event_key(event: ArrowMessage) -> bytes:
     return event.chunk_id or event.offset.to_bytes(8, "little")
 
 
-def locate(ingest: IngestService, run_id: str) -> tuple[Path, int]:
-    """The hot file of a run and how many bytes of it are whole messages now."""
+@dataclass(frozen=True)
+class HotRecording:
+    path: Path
+    size: int  # bytes of whole messages when the request came
+    timeline_types: dict[str, str]
+    follow: Follow
+
+
+def locate(ingest: IngestService, run_id: str) -> HotRecording:
+    """A run in the hot tier: its file as it stands, its timelines, and how to follow it. Taken from
+    the ingest side directly, so a run is served from its first chunk (the catalog lags a little)."""
     run = ingest.runs.get(run_id)
     if run is None:
         raise RunNotFoundError(f"no run {run_id!r}: list runs with GET /v1/runs or `fleet runs ls`")
-    return run.hot.path, run.hot.size
+
+    def follow() -> tuple[int, bool]:
+        return run.hot.size, run.status == "live"
+
+    types = {t.name: t.type for t in run.summary.timelines.values()} if run.summary else {}
+    return HotRecording(run.hot.path, run.hot.size, types, follow)

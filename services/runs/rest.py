@@ -101,19 +101,21 @@ def recording(
     end: Annotated[str | None, Query(description="as start; inclusive")] = None,
     latest_at: Annotated[bool, Query(description="also the newest data before start, per entity and "
                                                  "component, so the scene at start is complete")] = True,
+    follow: Annotated[bool, Query(description="keep the response open and send new chunks until the run "
+                                              "closes: a live view over plain HTTP")] = False,
 ) -> StreamingResponse:
     """`rerun "http://HOST:8080/v1/runs/RUN/recording.rrd?include=/world/**"` opens it in the viewer.
     Static data is always kept unless its entity is excluded; payloads are copied untouched."""
     entities = download.EntityFilter(include or [], exclude or [])
-    with session_scope(request.app.state.catalog) as session:
-        service.get_run(session, run_id)  # 404 naming the run
-        types = {t.name: t.type for t in queries.run_timelines(session, run_id)}
-    window = download.window_from_query(types, timeline, start, end, latest_at)
-    path, size = download.locate(request.app.state.ingest, run_id)
+    hot = download.locate(request.app.state.ingest, run_id)  # 404 naming the run
+    window = download.window_from_query(hot.timeline_types, timeline, start, end, latest_at)
+    if follow and window is not None:
+        raise service.BadParameterError("follow", "follow=true streams what comes next: it takes no time window")
     filters = json.dumps([sorted(entities.include), sorted(entities.exclude), blueprint, repr(window)])
-    etag = f'"{run_id}-{size}-{hashlib.sha256(filters.encode()).hexdigest()[:16]}"'
+    etag = f'"{run_id}-{hot.size}-{hashlib.sha256(filters.encode()).hexdigest()[:16]}"'
     return StreamingResponse(
-        download.stream_run(path, size, entities, blueprint=blueprint, window=window),
+        download.stream_run(hot.path, hot.size, entities, blueprint=blueprint, window=window,
+                            follow=hot.follow if follow else None),
         media_type="application/octet-stream",
         headers={"Content-Disposition": f'attachment; filename="{run_id}.rrd"', "ETag": etag},
     )

@@ -2,6 +2,8 @@
 
     python robot.py scene GRPC_URL COPY_PATH RUN_ID   logs half a scene, prints HALF, waits for a
                                                       line on stdin, logs the rest, exits
+    python robot.py live GRPC_URL COPY_PATH RUN_ID    logs ten frames, prints READY, waits for a line,
+                                                      logs ten more, ends its stream
     python robot.py many GRPC_URL N                   opens N recordings at once, prints READY,
                                                       waits for a line on stdin, exits
 """
@@ -45,6 +47,21 @@ def scene(url: str, copy: str, run_id: str) -> None:
     rec.disconnect()
 
 
+def live(url: str, copy: str, run_id: str) -> None:
+    """Ten frames, READY, wait for a line, ten more frames, then end the stream."""
+    rec = rr.RecordingStream("fleet_live", recording_id=run_id)
+    rec.set_sinks(rr.GrpcSink(url), rr.FileSink(copy))
+    for i in range(10):
+        log_frame(rec, i)
+    rec.flush(timeout_sec=30)
+    print("READY", flush=True)
+    sys.stdin.readline()
+    for i in range(10, 20):
+        log_frame(rec, i)
+    rec.flush(timeout_sec=30)
+    rec.disconnect()
+
+
 def many(url: str, n: int) -> None:
     recs = []
     for k in range(n):
@@ -64,5 +81,7 @@ def many(url: str, n: int) -> None:
 if __name__ == "__main__":
     if sys.argv[1] == "scene":
         scene(sys.argv[2], sys.argv[3], sys.argv[4])
+    elif sys.argv[1] == "live":
+        live(sys.argv[2], sys.argv[3], sys.argv[4])
     else:
         many(sys.argv[2], int(sys.argv[3]))

@@ -1,0 +1,64 @@
+"""`recording.rrd?follow=true`: a live view over plain HTTP, ending with a footer when the run closes."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import threading
+from collections.abc import Iterator
+from pathlib import Path
+
+import httpx
+import pytest
+
+from tests.services.ingest.live_server import LiveServer
+
+pytestmark = pytest.mark.sdk
+ROBOT = str(Path(__file__).parents[1] / "ingest" / "robot.py")
+
+
+@pytest.fixture
+def server(tmp_path: Path) -> Iterator[LiveServer]:
+    live = LiveServer(tmp_path / "data").start()
+    yield live
+    live.stop()
+
+
+def test_follow_streams_a_live_run_until_it_closes(server: LiveServer, tmp_path: Path, rerun_bin: str):
+    copy, run_id = tmp_path / "copy.rrd", "follow-run-1"
+    robot = subprocess.Popen([sys.executable, ROBOT, "live", server.grpc_url, str(copy), run_id],
+                             stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    assert robot.stdout is not None and robot.stdin is not None
+    assert robot.stdout.readline().strip() == "READY"
+    received = bytearray()
+    first_data = threading.Event()
+    done = threading.Event()
+
+    def read() -> None:
+        url = f"{server.url}/v1/runs/{run_id}/recording.rrd"
+        with httpx.stream("GET", url, params={"follow": "true"}, timeout=120) as response:
+            for piece in response.iter_raw():
+                received.extend(piece)
+                first_data.set()
+        done.set()
+
+    reader = threading.Thread(target=read, daemon=True)
+    reader.start()
+    assert first_data.wait(60), "nothing arrived while the run was live"
+    assert not done.is_set()  # still open: the run is live
+    robot.stdin.write("go\n")
+    robot.stdin.flush()
+    _, err = robot.communicate(timeout=120)
+    assert robot.returncode == 0, err
+    assert done.wait(60), "the response did not end when the run closed"
+    out = tmp_path / "followed.rrd"
+    out.write_bytes(bytes(received))
+    verify = subprocess.run([rerun_bin, "rrd", "verify", str(out)], capture_output=True, text=True)
+    assert verify.returncode == 0, verify.stderr  # ends with End and a footer
+    compare = subprocess.run([rerun_bin, "rrd", "compare", "--unordered", str(copy), str(out)],
+                             capture_output=True, text=True)
+    assert compare.returncode == 0, compare.stdout + compare.stderr  # every chunk, the later ones too
+
+    windowed = httpx.get(f"{server.url}/v1/runs/{run_id}/recording.rrd",
+                         params={"follow": "true", "timeline": "frame"}, timeout=30)
+    assert windowed.status_code == 422 and "'follow'" in windowed.json()["message"]
