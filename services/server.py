@@ -15,6 +15,7 @@ from catalog.db import create_engine
 from services.api.app import create_app
 from services.ingest import grpc_handler
 from services.ingest.hot import HotStore
+from services.ingest.replay import ReplayHub
 from services.ingest.service import IngestService
 from services.runtime import tune_allocator
 from services.settings import Settings
@@ -33,8 +34,10 @@ def build_ingest(settings: Settings) -> IngestService:
     hot = HotStore(settings.hot_dir, durability=settings.durability, interval_ms=settings.group_commit_ms,
                    min_free_bytes=settings.min_free_bytes)
     engine = create_engine(settings.catalog_url)
+    replay = ReplayHub(settings.replay_bytes) if settings.replay_bytes else None
     return IngestService(hot, sessionmaker(engine), default_robot=settings.default_robot,
-                         max_streams=settings.max_streams, close_after=dt.timedelta(seconds=settings.close_after_s))
+                         max_streams=settings.max_streams, close_after=dt.timedelta(seconds=settings.close_after_s),
+                         replay=replay)
 
 
 async def _housekeeping(ingest: IngestService, every: float) -> None:

@@ -38,6 +38,8 @@ class Settings(BaseSettings):
     min_free_bytes: int = Field(1 << 30, ge=0, description="refuse new data when the hot disk has less free")
     max_streams: int = Field(1000, gt=0, description="most concurrent gRPC streams on this node")
     close_after_s: float = Field(60.0, gt=0, description="a live run with no data for this long is closed")
+    replay_bytes: int = Field(64 * 1024 * 1024, ge=0,
+                              description="recent live data kept for ReadMessages readers (0: none)")
     catalog_flush_s: float = Field(2.0, gt=0, description="how often live runs' figures are written to the catalog")
     default_robot: str = Field("unknown-robot", pattern=r"^[A-Za-z0-9._-]{1,128}$",
                                description="robot id of runs that name none")

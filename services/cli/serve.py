@@ -25,6 +25,7 @@ import click
 @click.option("--max-streams", type=int, help="FLEET_MAX_STREAMS: most concurrent gRPC streams")
 @click.option("--close-after-s", type=float, help="FLEET_CLOSE_AFTER_S: close a live run idle this long")
 @click.option("--default-robot", help="FLEET_DEFAULT_ROBOT: robot id of runs that name none")
+@click.option("--replay-bytes", type=int, help="FLEET_REPLAY_BYTES: recent live data kept for ReadMessages readers")
 @click.option("--catalog-flush-s", type=float, help="FLEET_CATALOG_FLUSH_S: how often live runs reach the catalog")
 def serve(**flags: object) -> None:
     """Run the service. Every flag can also be set as the FLEET_* variable named in its help,

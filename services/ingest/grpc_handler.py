@@ -60,6 +60,27 @@ class MessageProxy:
         return sdk_comms_pb2.WriteMessagesResponse()
 
 
+    async def read_messages(self, request: bytes, context: grpc.aio.ServicerContext) -> AsyncIterator[bytes]:
+        """What `rerun --connect rerun+http://HOST:9876/proxy` calls: recent history, then live."""
+        hub = self.service.replay
+        if hub is None:
+            await context.abort(grpc.StatusCode.UNAVAILABLE, "this node keeps no replay (FLEET_REPLAY_BYTES=0)")
+            return
+        history, queue = hub.subscribe()
+        try:
+            for response in history:
+                yield response
+            while True:
+                live = await queue.get()
+                if live is None:
+                    await context.abort(grpc.StatusCode.RESOURCE_EXHAUSTED,
+                                        "this reader fell too far behind the live streams; connect again")
+                    return
+                yield live
+        finally:
+            hub.unsubscribe(queue)
+
+
 def server_options(max_message_size: int) -> list[tuple[str, int]]:
     """Long-lived streams: keepalive pings both ways, never a limit on client pings."""
     return [
@@ -83,6 +104,11 @@ def add_to_server(server: grpc.aio.Server, proxy: MessageProxy) -> None:
             proxy.write_messages,
             request_deserializer=None,  # raw bytes: the inner messages are kept exactly as sent
             response_serializer=sdk_comms_pb2.WriteMessagesResponse.SerializeToString,
+        ),
+        "ReadMessages": grpc.unary_stream_rpc_method_handler(
+            proxy.read_messages,
+            request_deserializer=None,
+            response_serializer=None,  # responses are built around the stored message bytes
         ),
     })
     server.add_generic_rpc_handlers((handler,))

@@ -30,11 +30,13 @@ from services.ingest.identity import (
     read_property_chunk,
     run_date,
 )
+from services.ingest.replay import ReplayHub
 from services.rrd.chunk import ChunkMeta, chunk_meta
 from services.rrd.frames import MessageKind, RerunVersion
 from services.rrd.messages import (
     ArrowMessage,
     BlueprintActivationMessage,
+    Buffer,
     Event,
     StoreId,
     StoreInfoMessage,
@@ -166,8 +168,10 @@ class RunState:
 
 class IngestService:
     def __init__(self, hot: HotStore, catalog: sessionmaker[Session] | None, *, default_robot: str,
-                 max_streams: int, close_after: dt.timedelta, clock: Callable[[], dt.datetime] = utcnow) -> None:
+                 max_streams: int, close_after: dt.timedelta, clock: Callable[[], dt.datetime] = utcnow,
+                 replay: ReplayHub | None = None) -> None:
         self.hot = hot
+        self.replay = replay  # what live streams bring, for ReadMessages readers
         self.catalog = catalog
         self.default_robot = default_robot
         self.max_streams = max_streams
@@ -237,6 +241,7 @@ class IngestService:
         if store not in run.stores_written:
             run.hot.append(MessageKind.SET_STORE_INFO, msg.raw)
             run.observe_store_info(msg)
+            self._publish(source, MessageKind.SET_STORE_INFO, msg.raw, persistent=True)
         if source.pending and source.recording_run == run.run_id:
             pending, source.pending, source.pending_bytes = source.pending, [], 0
             for event in pending:
@@ -276,6 +281,8 @@ class IngestService:
         self.hot.check_space(len(msg.raw))
         run.hot.append(MessageKind.ARROW_MSG, msg.raw)
         run.observe_chunk(msg, meta, self.clock())
+        self._publish(source, MessageKind.ARROW_MSG, msg.raw, persistent=msg.store_id.is_blueprint,
+                      static=meta.is_static)
         if source.live and run.status != "live":  # closed as idle, and its stream speaks again
             run.status, run.ended_at = "live", None
         source.report.chunks_new += 1
@@ -286,6 +293,12 @@ class IngestService:
         if run is not None and bytes(msg.raw) not in run.activations:
             run.hot.append(MessageKind.BLUEPRINT_ACTIVATION, msg.raw)
             run.activations.add(bytes(msg.raw))
+            self._publish(source, MessageKind.BLUEPRINT_ACTIVATION, msg.raw, persistent=True)
+
+    def _publish(self, source: Source, kind: MessageKind, raw: Buffer, *, persistent: bool,
+                 static: bool = False) -> None:
+        if source.live and self.replay is not None:
+            self.replay.publish(kind, raw, persistent=persistent, static=static)
 
     def _run_of(self, source: Source, store: StoreId, msg: Event) -> RunState | None:
         run_id = source.run_of_store.get(store)
