@@ -12,6 +12,7 @@ from collections.abc import AsyncIterator
 import grpc
 
 from services.errors import FleetError
+from services.ingest.replay import read_response
 from services.ingest.service import IngestService
 from services.rrd import errors as rrd_errors
 from services.rrd import protowire
@@ -68,15 +69,15 @@ class MessageProxy:
             return
         history, queue = hub.subscribe()
         try:
-            for response in history:
-                yield response
+            for kind, raw in history:
+                yield read_response(kind, raw)
             while True:
                 live = await queue.get()
                 if live is None:
                     await context.abort(grpc.StatusCode.RESOURCE_EXHAUSTED,
                                         "this reader fell too far behind the live streams; connect again")
                     return
-                yield live
+                yield read_response(*live)
         finally:
             hub.unsubscribe(queue)
 

@@ -16,6 +16,7 @@ import logging
 log = logging.getLogger(__name__)
 
 READER_QUEUE = 4096
+Message = tuple[int, bytes | bytearray | memoryview]  # (kind, the message's protobuf bytes)
 
 
 def _varint(value: int) -> bytes:
@@ -40,28 +41,29 @@ def read_response(kind: int, raw: bytes | bytearray | memoryview) -> bytes:
 class ReplayHub:
     def __init__(self, budget_bytes: int) -> None:
         self.budget = budget_bytes
-        self._persistent: list[bytes] = []
-        self._static: collections.deque[bytes] = collections.deque()
-        self._temporal: collections.deque[bytes] = collections.deque()
+        self._persistent: list[Message] = []
+        self._static: collections.deque[Message] = collections.deque()
+        self._temporal: collections.deque[Message] = collections.deque()
         self._size = 0
-        self._readers: set[asyncio.Queue[bytes | None]] = set()
+        self._readers: set[asyncio.Queue[Message | None]] = set()
 
     @property
     def held_bytes(self) -> int:
         return self._size
 
     def publish(self, kind: int, raw: bytes | bytearray | memoryview, *, persistent: bool, static: bool) -> None:
-        response = read_response(kind, raw)
+        # Kept as the message's own bytes (a view of the request, no copy); wrapped when sent.
+        response: Message = (kind, raw)
         if persistent:
             self._persistent.append(response)
         elif static:
             self._static.append(response)
         else:
             self._temporal.append(response)
-        self._size += len(response)
+        self._size += len(raw)
         while self._size > self.budget and (self._temporal or self._static):
             dropped = self._temporal.popleft() if self._temporal else self._static.popleft()
-            self._size -= len(dropped)
+            self._size -= len(dropped[1])
         for queue in list(self._readers):
             try:
                 queue.put_nowait(response)
@@ -70,11 +72,12 @@ class ReplayHub:
                 queue.get_nowait()
                 queue.put_nowait(None)
 
-    def subscribe(self) -> tuple[list[bytes], asyncio.Queue[bytes | None]]:
-        """The history to send first (persistent, static, temporal), and a queue of what follows."""
-        queue: asyncio.Queue[bytes | None] = asyncio.Queue(READER_QUEUE)
+    def subscribe(self) -> tuple[list[Message], asyncio.Queue[Message | None]]:
+        """The history to send first (persistent, static, temporal), and a queue of what follows;
+        wrap each with `read_response` to send it."""
+        queue: asyncio.Queue[Message | None] = asyncio.Queue(READER_QUEUE)
         self._readers.add(queue)
         return [*self._persistent, *self._static, *self._temporal], queue
 
-    def unsubscribe(self, queue: asyncio.Queue[bytes | None]) -> None:
+    def unsubscribe(self, queue: asyncio.Queue[Message | None]) -> None:
         self._readers.discard(queue)
