@@ -30,6 +30,7 @@ from services.rrd.messages import (
     StreamStart,
 )
 from services.runs.service import BadParameterError, RunNotFoundError
+from services.runs.trim import trim
 
 FLUSH_BYTES = 1024 * 1024
 FOLLOW_POLL_S = 0.1
@@ -117,6 +118,11 @@ class TimeWindow:
     start: int | None = None
     end: int | None = None
     latest_at: bool = True
+    exact: bool = False  # cut straddling chunks to the rows in the window (re-encoded, new ids)
+
+    @property
+    def bounds(self) -> tuple[int, int]:
+        return (self.start if self.start is not None else -(2**63), self.end if self.end is not None else 2**63 - 1)
 
 
 _UNITS_NS = {"ns": 1, "us": 1_000, "ms": 1_000_000, "s": 1_000_000_000, "m": 60_000_000_000,
@@ -153,9 +159,11 @@ def parse_time_value(name: str, timeline_type: str, text: str) -> int:
 
 
 def window_from_query(types: dict[str, str], timeline: str | None, start: str | None, end: str | None,
-                      latest_at: bool) -> TimeWindow | None:
+                      latest_at: bool, exact: bool = False) -> TimeWindow | None:
     """The time window of a request; BadParameterError naming what is wrong and what is accepted."""
     if timeline is None:
+        if exact:
+            raise BadParameterError("exact", "exact=true trims rows to a time window: give timeline, start, end")
         if start is not None or end is not None:
             raise BadParameterError("timeline", f"start/end need a timeline: one of {', '.join(sorted(types))}")
         return None
@@ -167,11 +175,12 @@ def window_from_query(types: dict[str, str], timeline: str | None, start: str | 
     hi = parse_time_value("end", kind, end) if end is not None else None
     if lo is not None and hi is not None and lo > hi:
         raise BadParameterError("end", f"end {end!r} is before start {start!r}")
-    return TimeWindow(timeline, lo, hi, latest_at)
+    return TimeWindow(timeline, lo, hi, latest_at, exact)
 
 
-def _select(metas: list[tuple[ChunkMeta, bool]], window: TimeWindow) -> set[bytes]:
-    """Chunk ids to keep: static ones, those overlapping the window, and the latest-at ones."""
+def _select(metas: list[tuple[ChunkMeta, bool]], window: TimeWindow) -> tuple[set[bytes], dict[bytes, int]]:
+    """Chunk ids to keep: static ones, those overlapping the window, and the latest-at ones (also
+    returned apart, with the time of the row each is kept for)."""
     keep: set[bytes] = set()
     before: dict[tuple[str, str], tuple[int, bytes]] = {}
     lo = window.start if window.start is not None else -(2**63)
@@ -191,8 +200,11 @@ def _select(metas: list[tuple[ChunkMeta, bool]], window: TimeWindow) -> set[byte
                 key = (meta.entity_path, comp.component)
                 if rng is not None and (key not in before or rng.max > before[key][0]):
                     before[key] = (rng.max, meta.chunk_id)
-    keep.update(chunk_id for _, chunk_id in before.values())
-    return keep
+    latest: dict[bytes, int] = {}
+    for at, chunk_id in before.values():
+        latest[chunk_id] = max(at, latest.get(chunk_id, at))
+    keep.update(latest)
+    return keep, latest
 
 
 def _events(path: Path, size: int) -> Iterator[Event]:
@@ -233,13 +245,14 @@ def stream_run(path: Path, size: int, entities: EntityFilter, *, blueprint: bool
     stream ends, with its footer, when the run closes."""
     metas: dict[bytes, ChunkMeta] = {}
     keep: set[bytes] | None = None
+    latest: dict[bytes, int] = {}  # latest-at chunk id -> the time of the row it is kept for
     if window is not None:  # a first pass picks the chunks; payloads are only read in the second
         found = []
         for first in _events(path, size):
             if isinstance(first, ArrowMessage):
                 meta = metas[event_key(first)] = chunk_meta(first)
                 found.append((meta, first.store_id.kind == StoreKind.RECORDING))
-        keep = _select(found, window)
+        keep, latest = _select(found, window)
     sink = _Chunks()
     out = cast(BinaryIO, sink)
     encoder: RrdEncoder | None = None
@@ -263,6 +276,14 @@ def stream_run(path: Path, size: int, entities: EntityFilter, *, blueprint: bool
                 continue
             if keep is not None and meta.chunk_id not in keep:
                 continue
+            if window is not None and window.exact and store.kind == StoreKind.RECORDING and not meta.is_static:
+                lo, hi = window.bounds
+                if meta.chunk_id in latest:
+                    lo, hi = latest[meta.chunk_id], latest[meta.chunk_id]  # just its newest row before start
+                cut = trim(event, meta, window.timeline, lo, hi)
+                if cut is None:
+                    continue
+                event, meta = cut
             encoder.write_arrow(event, meta)
         else:
             encoder.write(event)

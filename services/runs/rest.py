@@ -103,12 +103,14 @@ def recording(
                                                  "component, so the scene at start is complete")] = True,
     follow: Annotated[bool, Query(description="keep the response open and send new chunks until the run "
                                               "closes: a live view over plain HTTP")] = False,
+    exact: Annotated[bool, Query(description="cut chunks to the rows inside the window (re-encoded, new "
+                                             "chunk ids); otherwise whole chunks that overlap it")] = False,
 ) -> StreamingResponse:
     """`rerun "http://HOST:8080/v1/runs/RUN/recording.rrd?include=/world/**"` opens it in the viewer.
     Static data is always kept unless its entity is excluded; payloads are copied untouched."""
     entities = download.EntityFilter(include or [], exclude or [])
     hot = download.locate(request.app.state.ingest, run_id)  # 404 naming the run
-    window = download.window_from_query(hot.timeline_types, timeline, start, end, latest_at)
+    window = download.window_from_query(hot.timeline_types, timeline, start, end, latest_at, exact)
     if follow and window is not None:
         raise service.BadParameterError("follow", "follow=true streams what comes next: it takes no time window")
     filters = json.dumps([sorted(entities.include), sorted(entities.exclude), blueprint, repr(window)])

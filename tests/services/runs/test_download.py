@@ -159,3 +159,47 @@ def test_bad_windows(server: LiveServer, recordings: dict[str, Recording], param
     run_id = recordings["points"].recordings[0]["recording_id"]
     bad = httpx.get(f"{server.url}/v1/runs/{run_id}/recording.rrd", params=params, timeout=30)
     assert bad.status_code == 422 and f"'{name}'" in bad.json()["message"], bad.text
+
+
+def test_exact_trims_rows_to_the_window(server: LiveServer, recordings: dict[str, Recording], tmp_path: Path,
+                                        rerun_bin: str):
+    from services.rrd.chunk import read_chunk
+
+    rec = recordings["points"]
+    run_id = rec.recordings[0]["recording_id"]
+    original = _recording_chunks(rec.path)
+    out = tmp_path / "exact.rrd"
+    response = _download(server, run_id, out, timeline="frame", start="101", end="104", exact="true",
+                         latest_at="false")
+    assert response.status_code == 200
+    assert _run(rerun_bin, "rrd", "verify", str(out)).returncode == 0
+    frames: list[int] = []
+    new_ids = 0
+    for event in iter_events(out):
+        if not isinstance(event, ArrowMessage) or event.store_id.kind != StoreKind.RECORDING:
+            continue
+        batch = read_chunk(event)
+        if "frame" in batch.schema.names:
+            values = batch.column("frame").to_pylist()
+            assert all(101 <= v <= 104 for v in values), values
+            frames += values
+        new_ids += event.chunk_id not in original
+    assert sorted(set(frames)) == [101, 102, 103, 104]  # every row in the window, none outside
+    assert new_ids > 0  # cut chunks are new chunks
+    bad = httpx.get(f"{server.url}/v1/runs/{run_id}/recording.rrd", params={"exact": "true"}, timeout=30)
+    assert bad.status_code == 422 and "'exact'" in bad.json()["message"]
+
+
+def test_exact_keeps_only_the_latest_row_before_the_window(server: LiveServer, recordings: dict[str, Recording],
+                                                           tmp_path: Path):
+    from services.rrd.chunk import read_chunk
+
+    run_id = recordings["points"].recordings[0]["recording_id"]
+    out = tmp_path / "exact-latest.rrd"
+    _download(server, run_id, out, timeline="frame", start="104", end="105", exact="true")
+    frames = sorted(v for e in iter_events(out)
+                    if isinstance(e, ArrowMessage) and e.store_id.kind == StoreKind.RECORDING
+                    and chunk_meta(e).entity_path == "/world/points"
+                    for v in read_chunk(e).column("frame").to_pylist())
+    # The window's rows, plus the last row of the chunk wholly before it (its latest-at chunk).
+    assert frames == [102, 104, 105]
