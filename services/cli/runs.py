@@ -37,14 +37,16 @@ def _entity_options(func: Any) -> Any:
     func = click.option("--start", help="sequence number, duration (12.5s) or timestamp (ISO-8601 or ns)")(func)
     func = click.option("--end", help="as --start; inclusive")(func)
     func = click.option("--no-latest-at", is_flag=True, help="leave out the data from before --start")(func)
+    func = click.option("--exact", is_flag=True, help="cut chunks to the rows inside the window")(func)
     return click.option("--no-blueprint", is_flag=True, help="leave the run's blueprint out")(func)
 
 
 def _recording_params(include: tuple[str, ...], exclude: tuple[str, ...], no_blueprint: bool,
                       timeline: str | None, start: str | None, end: str | None,
-                      no_latest_at: bool) -> dict[str, Any]:
+                      no_latest_at: bool, exact: bool) -> dict[str, Any]:
     return {"include": list(include), "exclude": list(exclude), "blueprint": "false" if no_blueprint else None,
-            "timeline": timeline, "start": start, "end": end, "latest_at": "false" if no_latest_at else None}
+            "timeline": timeline, "start": start, "end": end, "latest_at": "false" if no_latest_at else None,
+            "exact": "true" if exact else None}
 
 
 @click.group()
