@@ -1,0 +1,1 @@
+"""Object storage for the warm and cold tiers: one small interface, backends chosen by URL scheme."""

@@ -1,0 +1,81 @@
+"""A local folder as an object store (the embedded default of the warm and cold tiers)."""
+
+from __future__ import annotations
+
+import datetime as dt
+import os
+import shutil
+import tempfile
+from collections.abc import Iterator
+from pathlib import Path
+from typing import BinaryIO
+from urllib.parse import urlparse
+
+from services.storage.objectstore import ObjectInfo, ObjectNotFoundError, check_key
+
+
+class LocalStore:
+    def __init__(self, url: str) -> None:
+        self.url = url
+        self.root = Path(urlparse(url).path)
+        self.root.mkdir(parents=True, exist_ok=True)
+
+    def _path(self, key: str) -> Path:
+        return self.root / check_key(key)
+
+    def put(self, key: str, data: bytes | BinaryIO) -> ObjectInfo:
+        path = self._path(key)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        # Written beside, synced, then renamed: a reader never sees half an object.
+        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=".tmp-")
+        try:
+            with os.fdopen(fd, "wb") as out:
+                if isinstance(data, bytes | bytearray | memoryview):
+                    out.write(data)
+                else:
+                    shutil.copyfileobj(data, out, 8 * 1024 * 1024)
+                out.flush()
+                os.fsync(out.fileno())
+            os.replace(tmp, path)
+        except BaseException:
+            Path(tmp).unlink(missing_ok=True)
+            raise
+        return self.head(key)
+
+    def get_range(self, key: str, start: int = 0, length: int | None = None) -> bytes:
+        try:
+            with open(self._path(key), "rb") as fh:
+                fh.seek(start)
+                return fh.read() if length is None else fh.read(length)
+        except FileNotFoundError:
+            raise ObjectNotFoundError(f"no object {key!r} in {self.url}") from None
+
+    def head(self, key: str) -> ObjectInfo:
+        try:
+            stat = self._path(key).stat()
+        except FileNotFoundError:
+            raise ObjectNotFoundError(f"no object {key!r} in {self.url}") from None
+        return ObjectInfo(key, stat.st_size, dt.datetime.fromtimestamp(stat.st_mtime, dt.UTC))
+
+    def list(self, prefix: str = "") -> Iterator[ObjectInfo]:
+        keys = []
+        for directory, _, files in os.walk(self.root):
+            for name in files:
+                if name.startswith(".tmp-"):
+                    continue
+                key = (Path(directory) / name).relative_to(self.root).as_posix()
+                if key.startswith(prefix):
+                    keys.append(key)
+        for key in sorted(keys):
+            yield self.head(key)
+
+    def delete(self, key: str) -> None:
+        path = self._path(key)
+        path.unlink(missing_ok=True)
+        for parent in path.parents:  # no empty folders left behind
+            if parent == self.root or not parent.is_relative_to(self.root):
+                break
+            try:
+                parent.rmdir()
+            except OSError:
+                break
