@@ -1,4 +1,5 @@
-"""One behaviour suite for every object-store backend: a local folder and S3 (moto, in-process)."""
+"""One behaviour suite for every object-store backend: a local folder, S3 via moto (in-process),
+and a real S3-compatible server (SeaweedFS) started on loopback."""
 
 from __future__ import annotations
 
@@ -10,18 +11,36 @@ from pathlib import Path
 import pytest
 
 from services.storage.objectstore import ObjectNotFoundError, ObjectStore, StorageError, check_key, open_store
+from tests.seaweedfs import seaweedfs
+
+BUCKET = "fleet-warm"
 
 
-@pytest.fixture(params=["file", "s3"])
+@pytest.fixture(scope="module")
+def seaweed_endpoint(tmp_path_factory: pytest.TempPathFactory) -> Iterator[str]:
+    import boto3
+
+    with seaweedfs(tmp_path_factory.mktemp("seaweedfs")) as endpoint:
+        # One bucket, a prefix per test: each SeaweedFS bucket reserves volumes of its own.
+        boto3.client("s3", endpoint_url=endpoint, region_name="us-east-1", aws_access_key_id="test",
+                     aws_secret_access_key="test").create_bucket(Bucket=BUCKET)
+        yield endpoint
+
+
+@pytest.fixture(params=["file", "s3-moto", pytest.param("s3-seaweedfs", marks=pytest.mark.s3server)])
 def store(request: pytest.FixtureRequest, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Iterator[ObjectStore]:
     if request.param == "file":
         yield open_store((tmp_path / "warm").as_uri())
         return
-    from moto import mock_aws
-
     for name, value in (("AWS_ACCESS_KEY_ID", "test"), ("AWS_SECRET_ACCESS_KEY", "test"),
                         ("AWS_DEFAULT_REGION", "us-east-1")):
         monkeypatch.setenv(name, value)
+    if request.param == "s3-seaweedfs":
+        endpoint = request.getfixturevalue("seaweed_endpoint")
+        yield open_store(f"s3://{BUCKET}/{tmp_path.name}", endpoint_url=endpoint, region="us-east-1")
+        return
+    from moto import mock_aws
+
     with mock_aws():
         import boto3
 
