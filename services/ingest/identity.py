@@ -12,14 +12,12 @@ import re
 from dataclasses import dataclass
 from typing import Any
 
-import lz4.block
 import pyarrow as pa
 
 from services.errors import ErrorCode, FleetError
-from services.rrd.chunk import ChunkMeta, read_chunk
+from services.rrd.chunk import ChunkMeta, read_chunk, with_batch
 from services.rrd.manifest import PROPERTIES_ENTITY
-from services.rrd.messages import ArrowMessage, Compression
-from services.rrd.pb import log_msg_pb2
+from services.rrd.messages import ArrowMessage
 
 SAFE_ID = re.compile(r"[A-Za-z0-9._-]{1,128}")
 SECRET_FIELDS = frozenset({"token"})  # never written to disk nor served
@@ -80,7 +78,7 @@ def read_property_chunk(msg: ArrowMessage, meta: ChunkMeta) -> PropertyChunk:
     if not secret:
         return PropertyChunk(msg, name, values, had_secret=False)
     kept = batch.select([i for i in range(batch.num_columns) if i not in secret])
-    return PropertyChunk(_with_batch(msg, kept), name, values, had_secret=True)
+    return PropertyChunk(with_batch(msg, kept), name, values, had_secret=True)
 
 
 def _component(fld: pa.Field) -> str:
@@ -97,20 +95,6 @@ def _plain(value: Any) -> Any:
     if isinstance(value, dt.datetime | dt.date):
         return value.isoformat()
     return value
-
-
-def _with_batch(msg: ArrowMessage, batch: pa.RecordBatch) -> ArrowMessage:
-    sink = pa.BufferOutputStream()
-    with pa.ipc.new_stream(sink, batch.schema) as writer:
-        writer.write_batch(batch)
-    ipc = sink.getvalue().to_pybytes()
-    pb = log_msg_pb2.ArrowMsg.FromString(bytes(msg.raw))
-    pb.payload = lz4.block.compress(ipc, store_size=False)
-    pb.compression = int(Compression.LZ4)  # type: ignore[assignment]
-    pb.uncompressed_size = len(ipc)
-    raw = pb.SerializeToString()
-    return ArrowMessage(msg.offset, msg.stream_offset, msg.stream_index, raw, msg.store_id, msg.chunk_id,
-                        msg.is_static, Compression.LZ4, len(ipc), pb.payload)
 
 
 def run_date(start_time_ns: int | None, first_log_time_ns: int | None, now: dt.datetime) -> dt.date:

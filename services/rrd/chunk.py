@@ -23,7 +23,8 @@ from services.rrd.layout import (
     read_batch_header,
     split_ipc,
 )
-from services.rrd.messages import ArrowMessage, Compression, chunk_id_str
+from services.rrd.messages import ArrowMessage, Compression, chunk_id_str, tuid_proto
+from services.rrd.pb import log_msg_pb2
 
 CHUNK_ID_KEY = b"rerun:id"
 _LZ4_MAX_RATIO = 255
@@ -244,3 +245,24 @@ def _component(col: DataColumn, column: pa.Array,
                 picked = values[mask]
                 ranges[name] = TimeRange(int(picked.min()), int(picked.max()))
     return ComponentMeta(col.column, col.component, col.archetype, col.component_type, num_rows, ranges, col.field)
+
+
+def with_batch(msg: ArrowMessage, batch: pa.RecordBatch, chunk_id: bytes | None = None) -> ArrowMessage:
+    """`msg` holding `batch` instead of its own chunk (re-encoded, LZ4), in the same store. With
+    `chunk_id`, the new chunk gets that id (in the Arrow metadata and the message); else it keeps
+    its id (the same chunk, e.g. with a secret column removed)."""
+    if chunk_id is not None:
+        batch = batch.replace_schema_metadata({**(batch.schema.metadata or {}),
+                                               CHUNK_ID_KEY: chunk_id_str(chunk_id).encode()})
+    sink = pa.BufferOutputStream()
+    with pa.ipc.new_stream(sink, batch.schema) as writer:
+        writer.write_batch(batch)
+    ipc = sink.getvalue().to_pybytes()
+    pb = log_msg_pb2.ArrowMsg.FromString(bytes(msg.raw))
+    pb.payload = lz4.block.compress(ipc, store_size=False)
+    pb.compression = int(Compression.LZ4)  # type: ignore[assignment]
+    pb.uncompressed_size = len(ipc)
+    if chunk_id is not None:
+        pb.chunk_id.CopyFrom(tuid_proto(chunk_id))
+    return ArrowMessage(msg.offset, msg.stream_offset, msg.stream_index, pb.SerializeToString(), msg.store_id,
+                        chunk_id or msg.chunk_id, msg.is_static, Compression.LZ4, len(ipc), pb.payload)

@@ -1,6 +1,6 @@
 """`exact=true`: a chunk that straddles the time window is cut to the rows inside it.
 
-The only place a payload is re-encoded: the kept rows become a new chunk with a new chunk id (the
+The only case where a download re-encodes a payload: the kept rows become a new chunk with a new id (the
 old id names the whole chunk, which another download may still hold), same entity, same columns.
 """
 
@@ -10,15 +10,11 @@ import os
 import struct
 import time
 
-import lz4.block
 import pyarrow as pa
 import pyarrow.compute as pc
 
-from services.rrd.chunk import ChunkMeta, chunk_meta, read_chunk
-from services.rrd.messages import ArrowMessage, Compression, chunk_id_str, tuid_proto
-from services.rrd.pb import log_msg_pb2
-
-_CHUNK_ID_KEY = b"rerun:id"
+from services.rrd.chunk import ChunkMeta, chunk_meta, read_chunk, with_batch
+from services.rrd.messages import ArrowMessage
 
 
 def new_chunk_id() -> bytes:
@@ -47,21 +43,6 @@ def trim(msg: ArrowMessage, meta: ChunkMeta, timeline: str, lo: int, hi: int) ->
 
 
 def reencode(msg: ArrowMessage, batch: pa.RecordBatch) -> tuple[ArrowMessage, ChunkMeta]:
-    """A new chunk (new id) holding `batch`, in the store and with the compression of `msg`."""
-    chunk_id = new_chunk_id()
-    metadata = dict(batch.schema.metadata or {})
-    metadata[_CHUNK_ID_KEY] = chunk_id_str(chunk_id).encode()
-    batch = batch.replace_schema_metadata(metadata)
-    sink = pa.BufferOutputStream()
-    with pa.ipc.new_stream(sink, batch.schema) as writer:
-        writer.write_batch(batch)
-    ipc = sink.getvalue().to_pybytes()
-    pb = log_msg_pb2.ArrowMsg.FromString(bytes(msg.raw))
-    pb.payload = lz4.block.compress(ipc, store_size=False)
-    pb.compression = int(Compression.LZ4)  # type: ignore[assignment]
-    pb.uncompressed_size = len(ipc)
-    pb.chunk_id.CopyFrom(tuid_proto(chunk_id))
-    raw = pb.SerializeToString()
-    trimmed = ArrowMessage(msg.offset, msg.stream_offset, msg.stream_index, raw, msg.store_id, chunk_id,
-                           msg.is_static, Compression.LZ4, len(ipc), pb.payload)
+    """A new chunk (new id) holding `batch`, in the store of `msg`."""
+    trimmed = with_batch(msg, batch, chunk_id=new_chunk_id())
     return trimmed, chunk_meta(trimmed)
