@@ -92,10 +92,6 @@ def save_run(session: Session, record: RunRecord, now: dt.datetime) -> None:
             for t in record.timelines])
 
 
-def set_status(session: Session, run_id: str, status: str, ended_at: dt.datetime | None, now: dt.datetime) -> None:
-    session.execute(sa.update(Run).where(Run.id == run_id).values(status=status, ended_at=ended_at, updated_at=now))
-
-
 def get_run(session: Session, run_id: str) -> Run | None:
     return session.get(Run, run_id)
 

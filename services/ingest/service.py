@@ -32,7 +32,7 @@ from services.ingest.identity import (
 )
 from services.ingest.replay import ReplayHub
 from services.rrd.chunk import ChunkMeta, chunk_meta
-from services.rrd.frames import MessageKind, RerunVersion
+from services.rrd.frames import DEFAULT_VERSION, MessageKind, RerunVersion
 from services.rrd.messages import (
     ArrowMessage,
     BlueprintActivationMessage,
@@ -47,7 +47,6 @@ from services.rrd.summary import StoreSummary
 
 log = logging.getLogger(__name__)
 
-DEFAULT_VERSION = RerunVersion(0, 41, 0)
 LOG_TIME = "log_time"
 _PENDING_LIMIT = 64 * 1024 * 1024
 

@@ -94,6 +94,9 @@ class RerunVersion:
         return text
 
 
+DEFAULT_VERSION = RerunVersion(0, 41, 0)  # for a stream whose writer named no version
+
+
 @dataclass(frozen=True)
 class StreamHeader:
     version: RerunVersion

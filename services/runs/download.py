@@ -18,9 +18,9 @@ from typing import BinaryIO, cast
 
 from services.ingest.service import IngestService
 from services.rrd.chunk import ChunkMeta, chunk_meta
-from services.rrd.decoder import RrdDecoder, iter_events
+from services.rrd.decoder import RrdDecoder
 from services.rrd.encoder import RrdEncoder
-from services.rrd.frames import RerunVersion
+from services.rrd.frames import DEFAULT_VERSION
 from services.rrd.messages import (
     ArrowMessage,
     BlueprintActivationMessage,
@@ -29,13 +29,12 @@ from services.rrd.messages import (
     StoreKind,
     StreamStart,
 )
-from services.runs.service import BadParameterError, RunNotFoundError
+from services.runs.service import BadParameterError, run_not_found
 from services.runs.trim import trim
 
 FLUSH_BYTES = 1024 * 1024
 FOLLOW_POLL_S = 0.1
 Follow = Callable[[], tuple[int, bool]]
-DEFAULT_VERSION = RerunVersion(0, 41, 0)
 
 
 @dataclass(frozen=True)
@@ -86,27 +85,6 @@ class _Chunks(io.RawIOBase):
         out = b"".join(self.pending)
         self.pending, self.size = [], 0
         return out
-
-
-class _Bounded(io.RawIOBase):
-    """The first `limit` bytes of a file: a live run is read as it stood when the request began."""
-
-    def __init__(self, path: Path, limit: int) -> None:
-        self._fh = open(path, "rb")  # noqa: SIM115 - closed by close()
-        self._left = limit
-
-    def readable(self) -> bool:
-        return True
-
-    def readinto(self, buffer: object) -> int:
-        view = memoryview(buffer)  # type: ignore[arg-type]
-        n = self._fh.readinto(view[: min(len(view), self._left)]) or 0
-        self._left -= n
-        return n
-
-    def close(self) -> None:
-        self._fh.close()
-        super().close()
 
 
 @dataclass(frozen=True)
@@ -207,11 +185,6 @@ def _select(metas: list[tuple[ChunkMeta, bool]], window: TimeWindow) -> tuple[se
     return keep, latest
 
 
-def _events(path: Path, size: int) -> Iterator[Event]:
-    with _Bounded(path, size) as source:
-        yield from iter_events(cast(BinaryIO, source))
-
-
 def _follow_events(path: Path, size: int, follow: Follow | None) -> Iterator[Event | None]:
     """Events of the first `size` bytes, then, with `follow`, of what is appended while the run is
     live; None marks a pause (the caller sends what it holds before waiting)."""
@@ -248,7 +221,7 @@ def stream_run(path: Path, size: int, entities: EntityFilter, *, blueprint: bool
     latest: dict[bytes, int] = {}  # latest-at chunk id -> the time of the row it is kept for
     if window is not None:  # a first pass picks the chunks; payloads are only read in the second
         found = []
-        for first in _events(path, size):
+        for first in _follow_events(path, size, None):
             if isinstance(first, ArrowMessage):
                 meta = metas[event_key(first)] = chunk_meta(first)
                 found.append((meta, first.store_id.kind == StoreKind.RECORDING))
@@ -310,7 +283,7 @@ def locate(ingest: IngestService, run_id: str) -> HotRecording:
     the ingest side directly, so a run is served from its first chunk (the catalog lags a little)."""
     run = ingest.runs.get(run_id)
     if run is None:
-        raise RunNotFoundError(f"no run {run_id!r}: list runs with GET /v1/runs or `fleet runs ls`")
+        raise run_not_found(run_id)
 
     def follow() -> tuple[int, bool]:
         return run.hot.size, run.status == "live"

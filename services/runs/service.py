@@ -160,10 +160,14 @@ def list_runs(session: Session, flt: RunFilter) -> tuple[list[Run], str | None]:
     return runs, next_cursor
 
 
+def run_not_found(run_id: str) -> RunNotFoundError:
+    return RunNotFoundError(f"no run {run_id!r}: list runs with GET /v1/runs or `fleet runs ls`")
+
+
 def get_run(session: Session, run_id: str) -> Run:
     run = queries.get_run(session, run_id)
     if run is None:
-        raise RunNotFoundError(f"no run {run_id!r}: list runs with GET /v1/runs or `fleet runs ls`")
+        raise run_not_found(run_id)
     return run
 
 

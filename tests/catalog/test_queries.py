@@ -62,15 +62,6 @@ def test_save_again_replaces_entities_and_timelines(session: Session):
     assert queries._aware(robot.last_seen_at) == later  # timestamps come back as the same instant
 
 
-def test_set_status(session: Session):
-    queries.save_run(session, _record(), NOW)
-    queries.set_status(session, "run-1", "closed", NOW, NOW)
-    session.expire_all()
-    run = queries.get_run(session, "run-1")
-    assert run is not None and run.status == "closed"
-    assert queries._aware(run.ended_at) == NOW  # type: ignore[arg-type]
-
-
 def test_unknown_run_is_none(session: Session):
     assert queries.get_run(session, "nope") is None
     assert queries.run_entities(session, "nope") == []
