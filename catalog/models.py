@@ -81,3 +81,66 @@ class RunTimeline(Base):
     type: Mapped[str] = mapped_column(String(16))  # sequence | timestamp | duration
     min: Mapped[int] = mapped_column(BigInteger)
     max: Mapped[int] = mapped_column(BigInteger)
+
+
+class RunLifecycle(Base):
+    """Where a run's sealed objects are and what retention has done to it (one row per promoted run).
+
+    Kept apart from `runs` so that ingest, which rewrites run rows while a run is hot, never
+    touches tier state; a run's `tier` column is switched in the same transaction as this row."""
+
+    __tablename__ = "run_lifecycle"
+
+    run_id: Mapped[str] = mapped_column(String(ID_LENGTH), primary_key=True)
+    prefix: Mapped[str] = mapped_column(Text)  # ROBOT/YYYY-MM-DD/RUN in the warm (and cold) store
+    promoted_at: Mapped[dt.datetime] = mapped_column(DateTime(timezone=True))
+    archived_at: Mapped[dt.datetime | None] = mapped_column(DateTime(timezone=True))
+    archive_mode: Mapped[str | None] = mapped_column(String(32))  # "store" or a storage class
+    restore_state: Mapped[str | None] = mapped_column(String(16))  # restoring | restored
+    restore_requested_at: Mapped[dt.datetime | None] = mapped_column(DateTime(timezone=True))
+    restore_until: Mapped[dt.datetime | None] = mapped_column(DateTime(timezone=True))
+    pinned_by: Mapped[str | None] = mapped_column(String(256))
+    deleted_at: Mapped[dt.datetime | None] = mapped_column(DateTime(timezone=True))
+    deleted_by: Mapped[str | None] = mapped_column(String(256))  # who: a user or "retention"
+    deleted_policy: Mapped[str | None] = mapped_column(String(256))  # which policy expired it
+
+
+class RunObject(Base):
+    """One sealed object of a run: recording.rrd, chunks.parquet, run.json."""
+
+    __tablename__ = "run_objects"
+
+    run_id: Mapped[str] = mapped_column(String(ID_LENGTH), primary_key=True)
+    name: Mapped[str] = mapped_column(String(64), primary_key=True)
+    key: Mapped[str] = mapped_column(Text)
+    tier: Mapped[str] = mapped_column(String(16))  # warm | cold
+    size: Mapped[int] = mapped_column(BigInteger)
+    sha256: Mapped[str] = mapped_column(String(64))
+
+
+class RetentionEvent(Base):
+    """What happened to a run and why: promote, archive, restore, pin, unpin, expire, delete."""
+
+    __tablename__ = "retention_events"
+
+    id: Mapped[str] = mapped_column(String(32), primary_key=True)
+    run_id: Mapped[str] = mapped_column(String(ID_LENGTH), index=True)
+    action: Mapped[str] = mapped_column(String(16))
+    occurred_at: Mapped[dt.datetime] = mapped_column(DateTime(timezone=True))
+    actor: Mapped[str] = mapped_column(String(256))
+    policy: Mapped[str | None] = mapped_column(String(256))
+    detail: Mapped[str] = mapped_column(Text, default="")
+
+
+class JobRun(Base):
+    """One run of a scheduled job on one node (so overlaps and failures can be seen)."""
+
+    __tablename__ = "job_runs"
+
+    id: Mapped[str] = mapped_column(String(32), primary_key=True)
+    job: Mapped[str] = mapped_column(String(64), index=True)
+    node: Mapped[str] = mapped_column(String(256))
+    started_at: Mapped[dt.datetime] = mapped_column(DateTime(timezone=True))
+    finished_at: Mapped[dt.datetime | None] = mapped_column(DateTime(timezone=True))
+    outcome: Mapped[str] = mapped_column(String(16))  # running | ok | failed
+    detail: Mapped[str] = mapped_column(Text, default="")

@@ -4,13 +4,14 @@ from __future__ import annotations
 
 import datetime as dt
 import json
+import uuid
 from dataclasses import dataclass, field
 from typing import Any
 
 import sqlalchemy as sa
 from sqlalchemy.orm import Session
 
-from catalog.models import Robot, Run, RunEntity, RunTimeline
+from catalog.models import JobRun, RetentionEvent, Robot, Run, RunEntity, RunLifecycle, RunObject, RunTimeline
 
 
 @dataclass
@@ -59,12 +60,18 @@ def save_run(session: Session, record: RunRecord, now: dt.datetime) -> None:
     robot = session.get(Robot, record.robot_id)
     if robot is None:
         session.add(Robot(id=record.robot_id, created_at=now, last_seen_at=record.last_data_at))
-    elif robot.last_seen_at is None or _aware(robot.last_seen_at) < record.last_data_at:
+    elif robot.last_seen_at is None or aware(robot.last_seen_at) < record.last_data_at:
         robot.last_seen_at = record.last_data_at
     run = session.get(Run, record.id)
     if run is None:
         run = Run(id=record.id, created_at=now, pinned=False)
         session.add(run)
+    elif run.tier != "hot" and record.tier == "hot":
+        # Data for a run already sealed (a late upload): the sealed figures stand until it is
+        # sealed again with the new chunks; only its liveliness is news.
+        run.status, run.ended_at, run.last_data_at, run.updated_at = (
+            record.status, record.ended_at, max(aware(run.last_data_at), record.last_data_at), now)
+        return
     run.robot_id = record.robot_id
     run.application_id = record.application_id
     run.date = record.date
@@ -92,6 +99,78 @@ def save_run(session: Session, record: RunRecord, now: dt.datetime) -> None:
             for t in record.timelines])
 
 
+@dataclass
+class ObjectRecord:
+    name: str
+    key: str
+    tier: str
+    size: int
+    sha256: str
+
+
+def record_promotion(session: Session, record: RunRecord, prefix: str, objects: list[ObjectRecord],
+                     now: dt.datetime, detail: str) -> None:
+    """The catalog side of sealing a run into the warm tier, in the caller's transaction."""
+    save_run(session, record, now)
+    life = session.get(RunLifecycle, record.id)
+    if life is None:
+        session.add(RunLifecycle(run_id=record.id, prefix=prefix, promoted_at=now))
+    else:  # sealed again with chunks that came later
+        life.prefix, life.promoted_at = prefix, now
+    replace_objects(session, record.id, objects)
+    add_event(session, record.id, "promote", now, "retention", None, detail)
+
+
+def replace_objects(session: Session, run_id: str, objects: list[ObjectRecord]) -> None:
+    session.execute(sa.delete(RunObject).where(RunObject.run_id == run_id))
+    if objects:
+        session.execute(sa.insert(RunObject), [
+            {"run_id": run_id, "name": o.name, "key": o.key, "tier": o.tier, "size": o.size, "sha256": o.sha256}
+            for o in objects])
+
+
+def add_event(session: Session, run_id: str, action: str, now: dt.datetime, actor: str, policy: str | None,
+              detail: str = "") -> None:
+    session.add(RetentionEvent(id=uuid.uuid4().hex, run_id=run_id, action=action, occurred_at=now, actor=actor,
+                               policy=policy, detail=detail))
+
+
+def run_events(session: Session, run_id: str) -> list[RetentionEvent]:
+    return list(session.scalars(sa.select(RetentionEvent).where(RetentionEvent.run_id == run_id)
+                                .order_by(RetentionEvent.occurred_at, RetentionEvent.id)))
+
+
+def lifecycle(session: Session, run_id: str) -> RunLifecycle | None:
+    return session.get(RunLifecycle, run_id)
+
+
+def run_objects(session: Session, run_id: str) -> dict[str, RunObject]:
+    return {o.name: o for o in session.scalars(sa.select(RunObject).where(RunObject.run_id == run_id))}
+
+
+def sealed_runs(session: Session, tiers: tuple[str, ...]) -> list[tuple[Run, RunLifecycle]]:
+    """Runs in the given tiers with their lifecycle rows, oldest end first."""
+    query = (sa.select(Run, RunLifecycle).join(RunLifecycle, RunLifecycle.run_id == Run.id)
+             .where(Run.tier.in_(tiers)).order_by(sa.func.coalesce(Run.ended_at, Run.last_data_at), Run.id))
+    return [(run, life) for run, life in session.execute(query).all()]
+
+
+def start_job(session: Session, job: str, node: str, now: dt.datetime) -> str:
+    job_id = uuid.uuid4().hex
+    session.add(JobRun(id=job_id, job=job, node=node, started_at=now, outcome="running", detail=""))
+    return job_id
+
+
+def finish_job(session: Session, job_id: str, now: dt.datetime, outcome: str, detail: str) -> None:
+    row = session.get(JobRun, job_id)
+    if row is not None:
+        row.finished_at, row.outcome, row.detail = now, outcome, detail[:2000]
+
+
+def recent_jobs(session: Session, limit: int = 20) -> list[JobRun]:
+    return list(session.scalars(sa.select(JobRun).order_by(JobRun.started_at.desc()).limit(limit)))
+
+
 def get_run(session: Session, run_id: str) -> Run | None:
     return session.get(Run, run_id)
 
@@ -109,6 +188,6 @@ def list_robots(session: Session) -> list[Robot]:
     return list(session.scalars(sa.select(Robot).order_by(Robot.id)))
 
 
-def _aware(value: dt.datetime) -> dt.datetime:
+def aware(value: dt.datetime) -> dt.datetime:
     """DuckDB hands timestamps back without a zone; they are stored in UTC."""
     return value if value.tzinfo is not None else value.replace(tzinfo=dt.UTC)

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import getpass
+import json
+import socket
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
@@ -31,9 +34,11 @@ class UnreachableError(FleetError):
 
 
 class FleetClient:
-    def __init__(self, api_url: str, *, timeout: float = 300.0) -> None:
+    def __init__(self, api_url: str, *, timeout: float = 300.0, user: str | None = None) -> None:
         self.api_url = api_url.rstrip("/")
-        self._http = httpx.Client(base_url=self.api_url, timeout=timeout)
+        # Who asks, recorded by the service with pins, restores and deletes.
+        self._http = httpx.Client(base_url=self.api_url, timeout=timeout,
+                                  headers={"X-Fleet-User": user or _default_user()})
 
     def close(self) -> None:
         self._http.close()
@@ -91,6 +96,44 @@ class FleetClient:
                                    "is it running? set FLEET_API_URL") from exc
         return written
 
+    def retention(self) -> dict[str, Any]:
+        """Policies, settings and recent job runs (`GET /v1/retention`)."""
+        return self._request("GET", "/v1/retention")
+
+    def retention_plan(self, actions: list[str] | None = None) -> dict[str, Any]:
+        return self._request("GET", "/v1/retention/plan", params={"action": actions or []})
+
+    def retention_run(self, actions: list[str] | None = None) -> Iterator[dict[str, Any]]:
+        """Do what is due now; yields the service's progress events as they come."""
+        return self._events("POST", "/v1/retention/run", params={"action": actions or []})
+
+    def rebuild_catalog(self) -> Iterator[dict[str, Any]]:
+        """Add to the catalog every sealed run the stores hold that it lacks; yields progress events."""
+        return self._events("POST", "/v1/catalog/rebuild")
+
+    def pin(self, run_id: str, pinned: bool = True) -> dict[str, Any]:
+        return self._request("POST" if pinned else "DELETE", f"/v1/runs/{run_id}/pin")
+
+    def restore(self, run_id: str) -> dict[str, Any]:
+        return self._request("POST", f"/v1/runs/{run_id}/restore")
+
+    def delete_run(self, run_id: str) -> dict[str, Any]:
+        return self._request("DELETE", f"/v1/runs/{run_id}")
+
+    def _events(self, method: str, url: str, **kwargs: Any) -> Iterator[dict[str, Any]]:
+        try:
+            with self._http.stream(method, url, timeout=None, **kwargs) as response:
+                if response.status_code >= 400:
+                    response.read()
+                    body = response.json()
+                    raise ServiceError(str(body.get("message", response.reason_phrase)), response.status_code, body)
+                for line in response.iter_lines():
+                    if line.strip():
+                        yield json.loads(line)
+        except httpx.TransportError as exc:
+            raise UnreachableError(f"cannot reach the fleet service at {self.api_url} ({exc}); "
+                                   "is it running? set FLEET_API_URL") from exc
+
     def _request(self, method: str, url: str, **kwargs: Any) -> dict[str, Any]:
         try:
             response = self._http.request(method, url, **kwargs)
@@ -105,3 +148,11 @@ class FleetClient:
         if response.status_code >= 400:
             raise ServiceError(str(body.get("message", response.reason_phrase)), response.status_code, body)
         return body
+
+
+def _default_user() -> str:
+    try:
+        user = getpass.getuser()
+    except (KeyError, OSError):
+        user = "unknown"
+    return f"{user}@{socket.gethostname()}"

@@ -17,6 +17,9 @@ from services.ingest import grpc_handler
 from services.ingest.hot import HotStore
 from services.ingest.replay import ReplayHub
 from services.ingest.service import IngestService
+from services.retention.schedule import start_scheduler
+from services.retention.service import Retention
+from services.retention.tiers import open_tiers, sealed_lookup
 from services.runtime import tune_allocator
 from services.settings import Settings
 
@@ -30,14 +33,21 @@ def split_addr(addr: str) -> tuple[str, int]:
     return host.strip("[]"), int(port)
 
 
-def build_ingest(settings: Settings) -> IngestService:
+def build(settings: Settings) -> tuple[IngestService, Retention]:
+    """The ingest side and the retention side of one node, sharing the catalog and the stores."""
     hot = HotStore(settings.hot_dir, durability=settings.durability, interval_ms=settings.group_commit_ms,
                    min_free_bytes=settings.min_free_bytes)
-    engine = create_engine(settings.catalog_url)
+    catalog = sessionmaker(create_engine(settings.catalog_url))
+    tiers = open_tiers(settings)
     replay = ReplayHub(settings.replay_bytes) if settings.replay_bytes else None
-    return IngestService(hot, sessionmaker(engine), default_robot=settings.default_robot,
-                         max_streams=settings.max_streams, close_after=dt.timedelta(seconds=settings.close_after_s),
-                         replay=replay)
+    ingest = IngestService(hot, catalog, default_robot=settings.default_robot,
+                           max_streams=settings.max_streams, close_after=dt.timedelta(seconds=settings.close_after_s),
+                           replay=replay, sealed_lookup=sealed_lookup(catalog, tiers))
+    retention = Retention(catalog, tiers, settings.policies, ingest,
+                          promote_after=dt.timedelta(seconds=settings.promote_after_s),
+                          promote_below_free_bytes=settings.promote_below_free_bytes,
+                          restore_days=settings.restore_days)
+    return ingest, retention
 
 
 async def _housekeeping(ingest: IngestService, every: float) -> None:
@@ -54,7 +64,7 @@ async def _housekeeping(ingest: IngestService, every: float) -> None:
 
 async def serve(settings: Settings) -> None:
     tune_allocator()
-    ingest = build_ingest(settings)
+    ingest, retention = build(settings)
     recovered = ingest.recover()
     if recovered:
         log.info("recovered %d hot runs", len(recovered))
@@ -64,14 +74,18 @@ async def serve(settings: Settings) -> None:
     grpc_host, grpc_port = split_addr(settings.grpc_addr)
     grpc_server.add_insecure_port(f"{grpc_host}:{grpc_port}")
     http_host, http_port = split_addr(settings.http_addr)
-    app = create_app(settings, ingest)
+    app = create_app(settings, ingest, retention)
     http = uvicorn.Server(uvicorn.Config(app, host=http_host, port=http_port, log_level="info",
                                          lifespan="off"))
     await grpc_server.start()
     housekeeping = asyncio.create_task(_housekeeping(ingest, settings.catalog_flush_s))
+    scheduler = (start_scheduler(retention, settings.promote_interval_s, settings.retention_interval_s)
+                 if settings.scheduler else None)
     try:
         await http.serve()
     finally:
+        if scheduler is not None:
+            scheduler.shutdown(wait=True)
         housekeeping.cancel()
         with contextlib.suppress(asyncio.CancelledError):
             await housekeeping

@@ -16,6 +16,7 @@ from pydantic_settings import (
 )
 
 from services.ingest.hot import Durability
+from services.retention.policy import Policies, Policy, PolicyOverride
 from services.rrd.decoder import DEFAULT_MAX_MESSAGE_SIZE
 
 
@@ -30,6 +31,9 @@ class Settings(BaseSettings):
     warm_url: str = Field("", description="file:///PATH or s3://bucket/prefix (default: data dir/warm)")
     cold_url: str = Field("", description="file:///PATH or s3://bucket/prefix (default: data dir/cold)")
     s3_endpoint_url: str | None = Field(None, description="S3-compatible endpoint; credentials from AWS_*")
+    s3_region: str | None = Field(None, description="S3 region (default: from AWS_* settings)")
+    cold_storage_class: str = Field("", description="archive by moving warm objects to this S3 storage class "
+                                    "(GLACIER, DEEP_ARCHIVE, STANDARD_IA, ...) instead of copying to cold_url")
     api_url: str = Field("http://127.0.0.1:8080", description="where CLI commands reach the service")
     max_message_size: int = Field(DEFAULT_MAX_MESSAGE_SIZE, gt=0,
                                   description="largest RRD/gRPC message accepted, in bytes")
@@ -41,12 +45,28 @@ class Settings(BaseSettings):
     replay_bytes: int = Field(64 * 1024 * 1024, ge=0,
                               description="recent live data kept for ReadMessages readers (0: none)")
     catalog_flush_s: float = Field(2.0, gt=0, description="how often live runs' figures are written to the catalog")
+    promote_after_s: float = Field(600.0, ge=0, description="a closed run idle this long is sealed into the warm tier")
+    promote_below_free_bytes: int = Field(4 << 30, ge=0, description="hot high-water mark: with less free disk, "
+                                          "closed runs are promoted oldest first ahead of promote_after_s")
+    warm_days: float = Field(30.0, ge=0, description="default policy: days warm before archiving to cold")
+    cold_days: float = Field(365.0, ge=0, description="default policy: days cold before deletion (0: none)")
+    restore_days: float = Field(7.0, gt=0, description="a restored cold run serves for this many days")
+    retention_policies: list[PolicyOverride] = Field(
+        default_factory=list, description="overrides by robot or application: a JSON list or TOML "
+        "[[retention_policies]] tables of name, robot|application, warm_days, cold_days")
+    promote_interval_s: float = Field(30.0, gt=0, description="how often the promotion job runs")
+    retention_interval_s: float = Field(600.0, gt=0, description="how often archive, restore and expiry jobs run")
+    scheduler: bool = Field(True, description="run the retention jobs inside fleet serve")
     default_robot: str = Field("unknown-robot", pattern=r"^[A-Za-z0-9._-]{1,128}$",
                                description="robot id of runs that name none")
 
     @property
     def hot_dir(self) -> Path:
         return self.data_dir / "hot"
+
+    @property
+    def policies(self) -> Policies:
+        return Policies(Policy("default", self.warm_days, self.cold_days), tuple(self.retention_policies))
 
     @model_validator(mode="after")
     def _embedded_defaults(self) -> Settings:

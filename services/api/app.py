@@ -11,17 +11,24 @@ from services import __version__
 from services.errors import ErrorCode, FleetError, http_status
 from services.ingest import rest as ingest_rest
 from services.ingest.service import IngestService
+from services.retention import rest as retention_rest
+from services.retention.service import Retention
 from services.runs import rest as runs_rest
 from services.settings import Settings
 
 
-def create_app(settings: Settings, ingest: IngestService | None = None) -> FastAPI:
+def create_app(settings: Settings, ingest: IngestService | None = None,
+               retention: Retention | None = None) -> FastAPI:
     app = FastAPI(title="Fleet telemetry depot", version=__version__)
     # Browser viewers (app.rerun.io, a local web viewer) fetch recordings cross-origin.
     app.add_middleware(CORSMiddleware, allow_origins=["*"], allow_methods=["GET", "HEAD"],
                        expose_headers=["Content-Disposition", "ETag"])
     app.state.settings = settings
     app.state.ingest = ingest
+    app.state.retention = retention
+    if retention is not None:
+        app.state.tiers = retention.tiers
+        app.include_router(retention_rest.router)
     if ingest is not None:
         app.state.catalog = ingest.catalog
         app.include_router(ingest_rest.router)

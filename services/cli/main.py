@@ -8,6 +8,7 @@ import click
 
 from services import __version__
 from services.cli.db import db
+from services.cli.retention import catalog, retention
 from services.cli.rrd import rrd
 from services.cli.runs import download, runs, view
 from services.cli.serve import serve
@@ -27,6 +28,8 @@ cli.add_command(upload)
 cli.add_command(runs)
 cli.add_command(download)
 cli.add_command(view)
+cli.add_command(retention)
+cli.add_command(catalog)
 
 
 def main() -> None:

@@ -113,6 +113,58 @@ def runs_show(api_url: str, run_id: str, as_json: bool) -> None:
     console.print(timelines)
 
 
+@runs.command("pin")
+@_api
+@click.argument("run_id")
+@click.option("--unpin", is_flag=True, help="let the run's retention policy apply again")
+def runs_pin(api_url: str, run_id: str, unpin: bool) -> None:
+    """Pin a run: retention never deletes it (it may still be archived to cold)."""
+    with _client(api_url) as client:
+        answer = client.pin(run_id, not unpin)
+    click.echo(f"{run_id}: {'pinned' if answer['pinned'] else 'unpinned'} by {answer['by']}")
+
+
+@runs.command("restore")
+@_api
+@click.argument("run_id")
+@click.option("--wait", is_flag=True, help="wait until the run can be downloaded")
+@click.option("--timeout", type=float, default=3600.0, show_default=True, help="with --wait, give up after seconds")
+def runs_restore(api_url: str, run_id: str, wait: bool, timeout: float) -> None:
+    """Make a cold (archived) run downloadable again for the service's restore_days."""
+    import time
+
+    with _client(api_url) as client:
+        answer = client.restore(run_id)
+        deadline = time.monotonic() + timeout
+        with Console(stderr=True).status(f"restoring {run_id}") if wait else _nothing():
+            while wait and answer.get("restore_state") != "restored":
+                if time.monotonic() > deadline:
+                    raise click.ClickException(f"{run_id} is still restoring after {timeout:g}s; check again later")
+                time.sleep(2)  # polling the service: a restore takes minutes to hours
+                life = client.run(run_id).get("lifecycle") or {}
+                answer = {**answer, "restore_state": life.get("restore_state")}
+    click.echo(f"{run_id}: {answer['restore_state']}, readable until {answer.get('restore_until')}")
+
+
+def _nothing() -> Any:
+    import contextlib
+
+    return contextlib.nullcontext()
+
+
+@runs.command("rm")
+@_api
+@click.argument("run_id")
+@click.option("--yes", is_flag=True, help="do not ask for confirmation")
+def runs_rm(api_url: str, run_id: str, yes: bool) -> None:
+    """Delete a sealed run now: its objects first, then the run is marked deleted (a tombstone stays)."""
+    if not yes:
+        click.confirm(f"delete run {run_id} and all its data?", abort=True)
+    with _client(api_url) as client:
+        answer = client.delete_run(run_id)
+    click.echo(f"{run_id}: {answer['detail']}")
+
+
 @click.command()
 @_api
 @click.argument("run_id")

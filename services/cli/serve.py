@@ -27,6 +27,21 @@ import click
 @click.option("--default-robot", help="FLEET_DEFAULT_ROBOT: robot id of runs that name none")
 @click.option("--replay-bytes", type=int, help="FLEET_REPLAY_BYTES: recent live data kept for ReadMessages readers")
 @click.option("--catalog-flush-s", type=float, help="FLEET_CATALOG_FLUSH_S: how often live runs reach the catalog")
+@click.option("--s3-region", help="FLEET_S3_REGION: S3 region")
+@click.option("--cold-storage-class", help="FLEET_COLD_STORAGE_CLASS: archive by moving warm objects to this S3 "
+              "storage class (GLACIER, DEEP_ARCHIVE, STANDARD_IA) instead of copying them to the cold URL")
+@click.option("--promote-after-s", type=float, help="FLEET_PROMOTE_AFTER_S: seal a closed run idle this long "
+              "into the warm tier [default: 600]")
+@click.option("--promote-below-free-bytes", type=int, help="FLEET_PROMOTE_BELOW_FREE_BYTES: hot high-water mark; "
+              "below this free disk, closed runs are promoted oldest first at once")
+@click.option("--warm-days", type=float, help="FLEET_WARM_DAYS: default policy, days warm before archiving")
+@click.option("--cold-days", type=float, help="FLEET_COLD_DAYS: default policy, days cold before deletion")
+@click.option("--restore-days", type=float, help="FLEET_RESTORE_DAYS: a restored run serves this many days")
+@click.option("--promote-interval-s", type=float, help="FLEET_PROMOTE_INTERVAL_S: how often promotion runs")
+@click.option("--retention-interval-s", type=float, help="FLEET_RETENTION_INTERVAL_S: how often archive, "
+              "restore and expiry run")
+@click.option("--scheduler/--no-scheduler", default=None, help="FLEET_SCHEDULER: run the retention jobs here "
+              "[default: on]. Overrides by robot or application: FLEET_RETENTION_POLICIES or TOML.")
 def serve(**flags: object) -> None:
     """Run the service. Every flag can also be set as the FLEET_* variable named in its help,
     or in a TOML file named by FLEET_CONFIG."""
@@ -51,6 +66,7 @@ def serve(**flags: object) -> None:
     if done:
         click.echo(f"fleet: {done}")
     logging.basicConfig(level=logging.INFO, format="%(levelname)s:     %(name)s: %(message)s")
+    logging.getLogger("apscheduler").setLevel(logging.WARNING)  # not a line per job run
     click.echo(f"fleet: data in {settings.data_dir.resolve()}, REST on http://{settings.http_addr}, "
                f"Rerun gRPC on rerun+http://{settings.grpc_addr}/proxy, durability {settings.durability}")
     asyncio.run(run_server(settings))

@@ -50,6 +50,7 @@ class HotRun:
         self._fd = fd
         self.size = size
         self.dirty = False
+        self.closed = False
 
     @property
     def path(self) -> Path:
@@ -108,8 +109,10 @@ class HotRun:
             os.fsync(self._fd)
 
     def close(self) -> None:
-        self.sync()
-        os.close(self._fd)
+        if not self.closed:
+            self.sync()
+            self.closed = True
+            os.close(self._fd)
 
 
 def _end_of(event: Event) -> int:
@@ -175,9 +178,21 @@ class HotStore:
                 "new data is refused until runs are promoted or space is freed (FLEET_MIN_FREE_BYTES)"
             )
 
+    def forget(self, run: HotRun) -> None:
+        """The run left the hot tier: stop syncing it and close its file (the caller removes it)."""
+        self.runs.pop(run.run_id, None)
+        run.close()
+
+    def discard(self, run: HotRun) -> None:
+        """Forget a run and remove its files."""
+        self.forget(run)
+        shutil.rmtree(run.directory, ignore_errors=True)
+        _fsync_dir(self.root)
+
     def sync(self, runs: list[HotRun] | None = None) -> None:
         for run in runs if runs is not None else list(self.runs.values()):
-            run.sync()
+            if not run.closed:
+                run.sync()
 
     def sync_if_always(self, runs: list[HotRun]) -> None:
         if self.durability is Durability.ALWAYS:

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import datetime as dt
 import logging
+import threading
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
@@ -59,6 +60,24 @@ class TooManyStreamsError(FleetError):
     code = ErrorCode.RESOURCE_EXHAUSTED
 
 
+class SealedRunError(FleetError):
+    code = ErrorCode.CONFLICT
+
+
+@dataclass(frozen=True)
+class SealedInfo:
+    """What the catalog knows of a run that left the hot tier (given by the retention side)."""
+
+    tier: str  # warm | cold | deleted
+    prefix: str  # ROBOT/YYYY-MM-DD/RUN
+    robot_id: str
+    date: dt.date
+    chunk_ids: frozenset[bytes]
+
+
+SealedLookup = Callable[[str], SealedInfo | None]
+
+
 def utcnow() -> dt.datetime:
     return dt.datetime.now(dt.UTC)
 
@@ -86,15 +105,16 @@ class Source:
     recording_run: str | None = None  # where this source's blueprints go
     pending: list[Event] = field(default_factory=list)  # blueprint messages before any recording
     pending_bytes: int = 0
+    store_infos: dict[StoreId, StoreInfoMessage] = field(default_factory=dict)  # to reopen a sealed run
     report: IngestReport = field(default_factory=IngestReport)
 
 
-class RunState:
-    """A hot run: its file, the chunk ids it holds, and what the catalog will say about it."""
+class RunFacts:
+    """What the catalog will say about a run, learnt from its messages (live, recovered or sealed)."""
 
-    def __init__(self, hot: HotRun, now: dt.datetime) -> None:
-        self.hot = hot
-        self.run_id = hot.run_id
+    def __init__(self, run_id: str, now: dt.datetime) -> None:
+        self.run_id = run_id
+        self.size = 0  # bytes of the recording
         self.application_id = ""
         self.stores_written: set[StoreId] = set()
         self.activations: set[bytes] = set()
@@ -140,6 +160,19 @@ class RunState:
         if not name and isinstance(start, int):
             self.start_time_ns = start
 
+    def replay(self, event: Event, at: dt.datetime, meta: ChunkMeta | None = None) -> None:
+        """Learn a message already written (recovery after a restart, sealing)."""
+        if isinstance(event, StoreInfoMessage):
+            self.observe_store_info(event)
+        elif isinstance(event, BlueprintActivationMessage):
+            self.activations.add(bytes(event.raw))
+        elif isinstance(event, ArrowMessage):
+            meta = meta or chunk_meta(event)
+            if event.store_id.kind == StoreKind.RECORDING and is_property_entity(meta.entity_path):
+                prop = read_property_chunk(event, meta)
+                self.observe_property(prop.name, prop.values)
+            self.observe_chunk(event, meta, at)
+
     def record(self, default_robot: str) -> RunRecord:
         summary = self.summary
         started = self.start_time_ns or self.first_log_time_ns
@@ -156,7 +189,7 @@ class RunState:
             sdk_version=self.sdk_version,
             chunks=summary.chunks if summary else 0,
             rows=summary.rows if summary else 0,
-            bytes=self.hot.size,
+            bytes=self.size,
             properties=self.properties,
             entities=[EntityRecord(e.path, e.chunks, e.static_chunks, e.rows, e.bytes, sorted(e.archetypes),
                                    sorted(e.components)) for e in summary.entities.values()] if summary else [],
@@ -165,11 +198,33 @@ class RunState:
         )
 
 
+class RunState(RunFacts):
+    """A hot run: its file, the chunk ids it holds, and what the catalog will say about it."""
+
+    def __init__(self, hot: HotRun, now: dt.datetime) -> None:
+        super().__init__(hot.run_id, now)
+        self.hot = hot
+        self.sealing = threading.Lock()  # held by ingest per write, and by promotion as it hands the run over
+        self.sealed = False  # handed to the warm tier: new data for this run starts a new hot run
+        self.sealed_as: SealedInfo | None = None  # this hot run adds chunks to a run already sealed
+        self.promote_failures = 0
+        self.next_promote_at: dt.datetime | None = None  # backoff after a failed promotion
+
+    @property  # type: ignore[override]
+    def size(self) -> int:
+        return self.hot.size
+
+    @size.setter
+    def size(self, value: int) -> None:
+        pass  # the hot file knows its size
+
+
 class IngestService:
     def __init__(self, hot: HotStore, catalog: sessionmaker[Session] | None, *, default_robot: str,
                  max_streams: int, close_after: dt.timedelta, clock: Callable[[], dt.datetime] = utcnow,
-                 replay: ReplayHub | None = None) -> None:
+                 replay: ReplayHub | None = None, sealed_lookup: SealedLookup | None = None) -> None:
         self.hot = hot
+        self.sealed_lookup = sealed_lookup  # asked when a run id is not hot here: was it sealed?
         self.replay = replay  # what live streams bring, for ReadMessages readers
         self.catalog = catalog
         self.default_robot = default_robot
@@ -199,7 +254,7 @@ class IngestService:
             self.totals[key] += getattr(source.report, key)
         if source.pending:
             log.warning("dropped %d blueprint messages that came with no recording", len(source.pending))
-        runs = [self.runs[r] for r in source.report.runs]
+        runs = [self.runs[r] for r in source.report.runs if r in self.runs]
         self.hot.sync_if_always([r.hot for r in runs])
         now = self.clock()
         for run in runs:
@@ -231,14 +286,15 @@ class IngestService:
             if source.recording_run is None:
                 self._hold(source, msg)
                 return
-            run = self.runs[source.recording_run]
+            run = self._state(source, source.recording_run)
         else:
             run_id = check_id("recording id", store.recording_id)
             run = self._run_for(source, run_id, msg.sdk_version)
             source.recording_run = source.recording_run or run_id
         source.run_of_store[store] = run.run_id
+        source.store_infos[store] = msg
         if store not in run.stores_written:
-            run.hot.append(MessageKind.SET_STORE_INFO, msg.raw)
+            run = self._append(source, run, MessageKind.SET_STORE_INFO, msg.raw)
             run.observe_store_info(msg)
             self._publish(source, MessageKind.SET_STORE_INFO, msg.raw, persistent=True)
         if source.pending and source.recording_run == run.run_id:
@@ -249,11 +305,8 @@ class IngestService:
 
     def _run_for(self, source: Source, run_id: str, version: RerunVersion | None) -> RunState:
         run = self.runs.get(run_id)
-        now = self.clock()
-        if run is None:
-            self.hot.check_space(0)
-            hot = self.hot.create(run_id, version or source.version or DEFAULT_VERSION)
-            run = self.runs[run_id] = RunState(hot, now)
+        if run is None or run.sealed:
+            run = self._new_run(run_id, version or source.version or DEFAULT_VERSION)
         if run_id not in source.report.runs:
             source.report.runs.append(run_id)
             if source.live:
@@ -261,6 +314,49 @@ class IngestService:
         if source.live and run.status != "live":
             run.status, run.ended_at, run.dirty = "live", None, True
         return run
+
+    def _new_run(self, run_id: str, version: RerunVersion) -> RunState:
+        sealed = self.sealed_lookup(run_id) if self.sealed_lookup is not None else None
+        if sealed is not None and sealed.tier != "warm":
+            fix = ("restore it first (fleet runs restore)" if sealed.tier == "cold"
+                   else "send it under a new recording id")
+            raise SealedRunError(f"run {run_id!r} is {sealed.tier}: it takes no new data; {fix}")
+        self.hot.check_space(0)
+        run = self.runs[run_id] = RunState(self.hot.create(run_id, version), self.clock())
+        if sealed is not None:  # chunks sent after it was sealed: kept, and sealed in with the rest later
+            run.sealed_as = sealed
+            run.chunk_ids |= sealed.chunk_ids
+        return run
+
+    def _state(self, source: Source, run_id: str) -> RunState:
+        run = self.runs.get(run_id)
+        return self._reopen(source, run_id) if run is None or run.sealed else run
+
+    def _reopen(self, source: Source, run_id: str) -> RunState:
+        """The run was sealed into the warm tier while this source was still sending: what follows
+        starts a new hot run (with the source's store infos), sealed in with the rest later."""
+        run = self._new_run(run_id, source.version or DEFAULT_VERSION)
+        run.live_sources = 1 if source.live else 0
+        for store, info in source.store_infos.items():
+            if source.run_of_store.get(store) == run_id:
+                run.hot.append(MessageKind.SET_STORE_INFO, info.raw)
+                run.observe_store_info(info)
+        return run
+
+    def _append(self, source: Source, run: RunState, kind: MessageKind, raw: Buffer) -> RunState:
+        """Write one message to the run's hot file, unless promotion has just taken the run."""
+        while True:
+            with run.sealing:
+                if not run.sealed:
+                    run.hot.append(kind, raw)
+                    return run
+            run = self._reopen(source, run.run_id)
+
+    def forget(self, run: RunState) -> None:
+        """Promotion sealed this run: it leaves the hot tier (called with `run.sealing` held)."""
+        if self.runs.get(run.run_id) is run:
+            del self.runs[run.run_id]
+        self.hot.forget(run.hot)
 
     def _arrow(self, source: Source, msg: ArrowMessage) -> None:
         run = self._run_of(source, msg.store_id, msg)
@@ -278,7 +374,7 @@ class IngestService:
             run.observe_property(prop.name, prop.values)
             msg = prop.message  # without its secret fields, if it had any
         self.hot.check_space(len(msg.raw))
-        run.hot.append(MessageKind.ARROW_MSG, msg.raw)
+        run = self._append(source, run, MessageKind.ARROW_MSG, msg.raw)
         run.observe_chunk(msg, meta, self.clock())
         self._publish(source, MessageKind.ARROW_MSG, msg.raw, persistent=msg.store_id.is_blueprint,
                       static=meta.is_static)
@@ -290,7 +386,7 @@ class IngestService:
     def _activation(self, source: Source, msg: BlueprintActivationMessage) -> None:
         run = self._run_of(source, msg.blueprint_id, msg)
         if run is not None and bytes(msg.raw) not in run.activations:
-            run.hot.append(MessageKind.BLUEPRINT_ACTIVATION, msg.raw)
+            run = self._append(source, run, MessageKind.BLUEPRINT_ACTIVATION, msg.raw)
             run.activations.add(bytes(msg.raw))
             self._publish(source, MessageKind.BLUEPRINT_ACTIVATION, msg.raw, persistent=True)
 
@@ -302,7 +398,7 @@ class IngestService:
     def _run_of(self, source: Source, store: StoreId, msg: Event) -> RunState | None:
         run_id = source.run_of_store.get(store)
         if run_id is not None:
-            return self.runs[run_id]
+            return self._state(source, run_id)
         if store.kind == StoreKind.BLUEPRINT:
             self._hold(source, msg)
             return None
@@ -328,30 +424,28 @@ class IngestService:
             mtime = dt.datetime.fromtimestamp(hot.path.stat().st_mtime, dt.UTC)
             run = self.runs[hot.run_id] = RunState(hot, mtime)
             for event in events:
-                self._replay(run, event)
+                run.replay(event, mtime)
             # No stream survives a restart (the SDK never reconnects): what follows comes by upload.
             run.last_data_at, run.status, run.ended_at = mtime, "closed", mtime
+            sealed = self.sealed_lookup(hot.run_id) if self.sealed_lookup is not None else None
+            if sealed is not None and run.chunk_ids <= sealed.chunk_ids:
+                # Promotion sealed it and stopped before removing the hot copy: finish that now.
+                log.info("hot run %s is already sealed in the %s tier: removing the hot copy", hot.run_id, sealed.tier)
+                del self.runs[hot.run_id]
+                self.hot.discard(hot)
+                continue
+            if sealed is not None:
+                run.sealed_as = sealed
+                run.chunk_ids |= sealed.chunk_ids
             recovered.append(hot.run_id)
         self.flush_catalog()
         return recovered
-
-    def _replay(self, run: RunState, event: Event) -> None:
-        if isinstance(event, StoreInfoMessage):
-            run.observe_store_info(event)
-        elif isinstance(event, BlueprintActivationMessage):
-            run.activations.add(bytes(event.raw))
-        elif isinstance(event, ArrowMessage):
-            meta = chunk_meta(event)
-            if event.store_id.kind == StoreKind.RECORDING and is_property_entity(meta.entity_path):
-                prop = read_property_chunk(event, meta)
-                run.observe_property(prop.name, prop.values)
-            run.observe_chunk(event, meta, run.last_data_at)
 
     def close_idle(self) -> list[str]:
         """Close live runs that received nothing for `close_after`."""
         now = self.clock()
         closed = []
-        for run in self.runs.values():
+        for run in list(self.runs.values()):  # promotion may take runs away meanwhile
             if run.status == "live" and now - run.last_data_at >= self.close_after:
                 run.status, run.ended_at, run.dirty = "closed", now, True
                 closed.append(run.run_id)
@@ -365,7 +459,7 @@ class IngestService:
         """Snapshots of the runs that changed since the last flush (cheap: taken on the ingest
         thread, then saved with `save_records`, which may run on another thread)."""
         records = []
-        for run in self.runs.values():
+        for run in list(self.runs.values()):
             if run.dirty:
                 run.dirty = False
                 records.append(run.record(self.default_robot))

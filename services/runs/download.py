@@ -11,7 +11,7 @@ import datetime as dt
 import io
 import re
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import BinaryIO, cast
@@ -29,7 +29,7 @@ from services.rrd.messages import (
     StoreKind,
     StreamStart,
 )
-from services.runs.service import BadParameterError, run_not_found
+from services.runs.service import BadParameterError
 from services.runs.trim import trim
 
 FLUSH_BYTES = 1024 * 1024
@@ -156,28 +156,45 @@ def window_from_query(types: dict[str, str], timeline: str | None, start: str | 
     return TimeWindow(timeline, lo, hi, latest_at, exact)
 
 
-def _select(metas: list[tuple[ChunkMeta, bool]], window: TimeWindow) -> tuple[set[bytes], dict[bytes, int]]:
+@dataclass(frozen=True)
+class ChunkEntry:
+    """What choosing chunks for a time window needs to know of one chunk (from its metadata, or
+    from a sealed run's chunk index without reading the chunk)."""
+
+    chunk_id: bytes
+    entity_path: str
+    is_static: bool
+    is_recording: bool
+    span: tuple[int, int] | None  # on the window's timeline; None: not on it
+    component_spans: dict[str, tuple[int, int]]  # component -> where it has data on that timeline
+
+    @classmethod
+    def of_meta(cls, meta: ChunkMeta, is_recording: bool, timeline: str) -> ChunkEntry:
+        span = next(((t.range.min, t.range.max) for t in meta.timelines if t.name == timeline), None)
+        comps = {c.component: (c.ranges[timeline].min, c.ranges[timeline].max) for c in meta.components
+                 if timeline in c.ranges}
+        return cls(meta.chunk_id, meta.entity_path, meta.is_static, is_recording, span, comps)
+
+
+def select_chunks(entries: list[ChunkEntry], window: TimeWindow) -> tuple[set[bytes], dict[bytes, int]]:
     """Chunk ids to keep: static ones, those overlapping the window, and the latest-at ones (also
     returned apart, with the time of the row each is kept for)."""
     keep: set[bytes] = set()
     before: dict[tuple[str, str], tuple[int, bytes]] = {}
-    lo = window.start if window.start is not None else -(2**63)
-    hi = window.end if window.end is not None else 2**63 - 1
-    for meta, is_recording in metas:
-        if not is_recording or meta.is_static:
-            keep.add(meta.chunk_id)
+    lo, hi = window.bounds
+    for entry in entries:
+        if not entry.is_recording or entry.is_static:
+            keep.add(entry.chunk_id)
             continue
-        timeline = next((t for t in meta.timelines if t.name == window.timeline), None)
-        if timeline is None:
+        if entry.span is None:
             continue  # not on the chosen timeline
-        if timeline.range.max >= lo and timeline.range.min <= hi:
-            keep.add(meta.chunk_id)  # overlaps the window (by its index column)
-        elif timeline.range.max < lo and window.latest_at:
-            for comp in meta.components:
-                rng = comp.ranges.get(window.timeline)
-                key = (meta.entity_path, comp.component)
-                if rng is not None and (key not in before or rng.max > before[key][0]):
-                    before[key] = (rng.max, meta.chunk_id)
+        if entry.span[1] >= lo and entry.span[0] <= hi:
+            keep.add(entry.chunk_id)  # overlaps the window (by its index column)
+        elif entry.span[1] < lo and window.latest_at:
+            for component, span in entry.component_spans.items():
+                key = (entry.entity_path, component)
+                if key not in before or span[1] > before[key][0]:
+                    before[key] = (span[1], entry.chunk_id)
     latest: dict[bytes, int] = {}
     for at, chunk_id in before.values():
         latest[chunk_id] = max(at, latest.get(chunk_id, at))
@@ -185,7 +202,7 @@ def _select(metas: list[tuple[ChunkMeta, bool]], window: TimeWindow) -> tuple[se
     return keep, latest
 
 
-def _follow_events(path: Path, size: int, follow: Follow | None) -> Iterator[Event | None]:
+def read_events(path: Path, size: int, follow: Follow | None) -> Iterator[Event | None]:
     """Events of the first `size` bytes, then, with `follow`, of what is appended while the run is
     live; None marks a pause (the caller sends what it holds before waiting)."""
     decoder = RrdDecoder()
@@ -221,15 +238,24 @@ def stream_run(path: Path, size: int, entities: EntityFilter, *, blueprint: bool
     latest: dict[bytes, int] = {}  # latest-at chunk id -> the time of the row it is kept for
     if window is not None:  # a first pass picks the chunks; payloads are only read in the second
         found = []
-        for first in _follow_events(path, size, None):
+        for first in read_events(path, size, None):
             if isinstance(first, ArrowMessage):
                 meta = metas[event_key(first)] = chunk_meta(first)
-                found.append((meta, first.store_id.kind == StoreKind.RECORDING))
-        keep, latest = _select(found, window)
+                found.append(ChunkEntry.of_meta(meta, first.store_id.kind == StoreKind.RECORDING, window.timeline))
+        keep, latest = select_chunks(found, window)
+    yield from encode_run(read_events(path, size, follow), entities, blueprint=blueprint, window=window,
+                          keep=keep, latest=latest, metas=metas)
+
+
+def encode_run(events: Iterable[Event | None], entities: EntityFilter, *, blueprint: bool,
+               window: TimeWindow | None, keep: set[bytes] | None, latest: dict[bytes, int],
+               metas: dict[bytes, ChunkMeta]) -> Iterator[bytes]:
+    """The chosen messages of a run as one RRD stream with a footer, in pieces of about 1 MiB; None
+    among `events` is a pause (what is held is sent)."""
     sink = _Chunks()
     out = cast(BinaryIO, sink)
     encoder: RrdEncoder | None = None
-    for event in _follow_events(path, size, follow):
+    for event in events:
         if event is None:
             if sink.size:
                 yield sink.take()
@@ -278,12 +304,13 @@ class HotRecording:
     follow: Follow
 
 
-def locate(ingest: IngestService, run_id: str) -> HotRecording:
+def find_hot(ingest: IngestService | None, run_id: str) -> HotRecording | None:
     """A run in the hot tier: its file as it stands, its timelines, and how to follow it. Taken from
-    the ingest side directly, so a run is served from its first chunk (the catalog lags a little)."""
-    run = ingest.runs.get(run_id)
-    if run is None:
-        raise run_not_found(run_id)
+    the ingest side directly, so a run is served from its first chunk (the catalog lags a little).
+    None when the run is not hot here, or is sealed and only its late additions are hot."""
+    run = ingest.runs.get(run_id) if ingest is not None else None
+    if run is None or run.sealed_as is not None:
+        return None
 
     def follow() -> tuple[int, bool]:
         return run.hot.size, run.status == "live"

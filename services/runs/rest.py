@@ -10,11 +10,12 @@ from typing import Annotated, Any
 
 from fastapi import APIRouter, Query, Request
 from fastapi.responses import StreamingResponse
+from sqlalchemy.orm import Session
 
 from catalog import queries
 from catalog.db import session_scope
 from catalog.models import Run
-from services.runs import download, service
+from services.runs import download, sealed, service
 from services.runs.service import RunFilter, parse_properties, parse_time
 
 router = APIRouter()
@@ -81,7 +82,29 @@ def run(request: Request, run_id: str) -> dict[str, Any]:
                          for e in queries.run_entities(session, run_id)],
             "timelines": [{"name": t.name, "type": t.type, "min": t.min, "max": t.max}
                           for t in queries.run_timelines(session, run_id)],
+            **_lifecycle(request, session, found),
         }
+
+
+def _lifecycle(request: Request, session: Session, run: Run) -> dict[str, Any]:
+    """Where a sealed run's objects are, what retention did to it, and which policy applies."""
+    life = queries.lifecycle(session, run.id)
+    retention = request.app.state.retention
+    policy = retention.policies.for_run(run.robot_id, run.application_id).to_dict() if retention else None
+    if life is None:
+        return {"policy": policy, "lifecycle": None, "objects": [], "events": []}
+    return {
+        "policy": policy,
+        "lifecycle": {"prefix": life.prefix, "promoted_at": _time(life.promoted_at),
+                      "archived_at": _time(life.archived_at), "archive_mode": life.archive_mode,
+                      "restore_state": life.restore_state, "restore_until": _time(life.restore_until),
+                      "pinned_by": life.pinned_by, "deleted_at": _time(life.deleted_at),
+                      "deleted_by": life.deleted_by, "deleted_policy": life.deleted_policy},
+        "objects": [{"name": o.name, "key": o.key, "tier": o.tier, "size": o.size, "sha256": o.sha256}
+                    for o in queries.run_objects(session, run.id).values()],
+        "events": [{"action": e.action, "at": _time(e.occurred_at), "actor": e.actor, "policy": e.policy,
+                    "detail": e.detail} for e in queries.run_events(session, run.id)],
+    }
 
 
 @router.get("/v1/runs/{run_id}/recording.rrd", summary="The run as an .rrd stream the Rerun viewer opens",
@@ -109,15 +132,22 @@ def recording(
     """`rerun "http://HOST:8080/v1/runs/RUN/recording.rrd?include=/world/**"` opens it in the viewer.
     Static data is always kept unless its entity is excluded; payloads are copied untouched."""
     entities = download.EntityFilter(include or [], exclude or [])
-    hot = download.locate(request.app.state.ingest, run_id)  # 404 naming the run
-    window = download.window_from_query(hot.timeline_types, timeline, start, end, latest_at, exact)
+    hot = download.find_hot(request.app.state.ingest, run_id)
+    if hot is not None:
+        types, size = hot.timeline_types, hot.size
+    else:  # 404 naming the run, 409 for a cold run not restored, 410 for a deleted one
+        found = sealed.locate_sealed(request.app.state.catalog, request.app.state.tiers.warm, run_id,
+                                     dt.datetime.now(dt.UTC))
+        types, size = found.timeline_types(), found.size
+    window = download.window_from_query(types, timeline, start, end, latest_at, exact)
     if follow and window is not None:
         raise service.BadParameterError("follow", "follow=true streams what comes next: it takes no time window")
     filters = json.dumps([sorted(entities.include), sorted(entities.exclude), blueprint, repr(window)])
-    etag = f'"{run_id}-{hot.size}-{hashlib.sha256(filters.encode()).hexdigest()[:16]}"'
-    return StreamingResponse(
-        download.stream_run(hot.path, hot.size, entities, blueprint=blueprint, window=window,
-                            follow=hot.follow if follow else None),
-        media_type="application/octet-stream",
-        headers={"Content-Disposition": f'attachment; filename="{run_id}.rrd"', "ETag": etag},
-    )
+    etag = f'"{run_id}-{size}-{hashlib.sha256(filters.encode()).hexdigest()[:16]}"'
+    if hot is not None:
+        body = download.stream_run(hot.path, hot.size, entities, blueprint=blueprint, window=window,
+                                   follow=hot.follow if follow else None)
+    else:
+        body = sealed.stream_sealed(found, entities, blueprint=blueprint, window=window)
+    return StreamingResponse(body, media_type="application/octet-stream",
+                             headers={"Content-Disposition": f'attachment; filename="{run_id}.rrd"', "ETag": etag})

@@ -23,12 +23,20 @@ class StorageError(FleetError):
     code = ErrorCode.UNAVAILABLE
 
 
+class ObjectArchivedError(FleetError):
+    """The object is in an archive storage class and must be restored before it can be read."""
+
+    code = ErrorCode.CONFLICT
+
+
 @dataclass(frozen=True)
 class ObjectInfo:
     key: str
     size: int
     last_modified: dt.datetime
     storage_class: str | None = None
+    restore: str | None = None  # archived objects: "ongoing" while restoring, "restored" once readable
+    etag: str | None = None
 
 
 class ObjectStore(Protocol):
@@ -51,6 +59,48 @@ class ObjectStore(Protocol):
     def delete(self, key: str) -> None:
         """Remove `key`; removing a missing key is not an error (deletes are retried)."""
         ...
+
+
+class ArchiveStore(ObjectStore, Protocol):
+    """A store with archive storage classes (S3): objects move to a class in place and are
+    restored for a number of days before they can be read again."""
+
+    def set_storage_class(self, key: str, storage_class: str) -> ObjectInfo: ...
+
+    def restore(self, key: str, days: int) -> None:
+        """Ask for a readable copy of an archived object for `days` (it takes time: see head().restore)."""
+        ...
+
+
+def supports_archive(store: ObjectStore) -> bool:
+    return hasattr(store, "set_storage_class") and hasattr(store, "restore")
+
+
+class RangeReader:
+    """An object read as a file, in ranged pieces: lets a copy between stores run in constant memory."""
+
+    def __init__(self, store: ObjectStore, key: str, size: int, piece: int = 8 * 1024 * 1024) -> None:
+        self._store, self._key, self._size, self._piece = store, key, size, piece
+        self._position = 0
+        self._buffer = b""
+
+    def read(self, n: int = -1) -> bytes:
+        want = self._size - self._position if n is None or n < 0 else n
+        while len(self._buffer) < want and self._position < self._size:
+            length = min(max(self._piece, want - len(self._buffer)), self._size - self._position)
+            self._buffer += self._store.get_range(self._key, self._position, length)
+            self._position += length
+        out, self._buffer = self._buffer[:want], self._buffer[want:]
+        return out
+
+
+def copy_object(source: ObjectStore, target: ObjectStore, key: str) -> ObjectInfo:
+    """Copy `key` from one store to another (streamed); the copy's size is checked."""
+    size = source.head(key).size
+    info = target.put(key, RangeReader(source, key, size))  # type: ignore[arg-type]
+    if info.size != size:
+        raise StorageError(f"copy of {key!r} to {target.url} has {info.size} bytes, expected {size}")
+    return info
 
 
 def check_key(key: str) -> str:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import hashlib
 from collections.abc import Iterator
 from typing import Any, BinaryIO
 from urllib.parse import urlparse
@@ -11,7 +12,13 @@ from boto3.s3.transfer import TransferConfig
 from botocore.config import Config
 from botocore.exceptions import BotoCoreError, ClientError
 
-from services.storage.objectstore import ObjectInfo, ObjectNotFoundError, StorageError, check_key
+from services.storage.objectstore import (
+    ObjectArchivedError,
+    ObjectInfo,
+    ObjectNotFoundError,
+    StorageError,
+    check_key,
+)
 
 MULTIPART_BYTES = 64 * 1024 * 1024
 
@@ -24,8 +31,10 @@ class S3Store:
         self.url = url
         self.bucket = parsed.netloc
         self.prefix = parsed.path.strip("/")
+        # Short connect timeout: during an outage callers learn quickly and retry on their own schedule.
         self._client: Any = boto3.client("s3", endpoint_url=endpoint_url, region_name=region,
-                                         config=Config(retries={"max_attempts": 5, "mode": "standard"}))
+                                         config=Config(retries={"max_attempts": 3, "mode": "standard"},
+                                                       connect_timeout=5, read_timeout=60))
         self._transfer = TransferConfig(multipart_threshold=MULTIPART_BYTES, multipart_chunksize=MULTIPART_BYTES)
 
     def _key(self, key: str) -> str:
@@ -36,14 +45,24 @@ class S3Store:
         return full[len(self.prefix) + 1:] if self.prefix else full
 
     def put(self, key: str, data: bytes | BinaryIO) -> ObjectInfo:
+        """Upload, then check the server's ETag against the MD5 of what was sent (of each part,
+        for a multipart upload), so a corrupted upload is never taken as stored."""
+        digests = _PartDigests()
         try:
             if isinstance(data, bytes | bytearray | memoryview):
+                digests.update(bytes(data))
                 self._client.put_object(Bucket=self.bucket, Key=self._key(key), Body=bytes(data))
             else:  # multipart above MULTIPART_BYTES
-                self._client.upload_fileobj(data, self.bucket, self._key(key), Config=self._transfer)
+                self._client.upload_fileobj(_Digesting(data, digests), self.bucket, self._key(key),
+                                            Config=self._transfer)
         except (ClientError, BotoCoreError) as exc:
             raise StorageError(f"cannot write {key!r} to {self.url}: {exc}") from exc
-        return self.head(key)
+        info = self.head(key)
+        if info.size != digests.size or (info.etag is not None and info.etag not in digests.etags()):
+            self.delete(key)
+            raise StorageError(f"upload of {key!r} to {self.url} does not match what was sent "
+                               f"({info.size} bytes, ETag {info.etag}; sent {digests.size} bytes): retry")
+        return info
 
     def get_range(self, key: str, start: int = 0, length: int | None = None) -> bytes:
         wanted = f"bytes={start}-" if length is None else f"bytes={start}-{start + length - 1}"
@@ -64,7 +83,32 @@ class S3Store:
             raise self._error(key, exc) from exc
         except BotoCoreError as exc:
             raise StorageError(f"cannot reach {self.url}: {exc}") from exc
-        return ObjectInfo(key, int(answer["ContentLength"]), answer["LastModified"], answer.get("StorageClass"))
+        restore = answer.get("Restore")
+        state = None if restore is None else "ongoing" if 'ongoing-request="true"' in restore else "restored"
+        return ObjectInfo(key, int(answer["ContentLength"]), answer["LastModified"], answer.get("StorageClass"),
+                          state, answer.get("ETag", "").strip('"') or None)
+
+    def set_storage_class(self, key: str, storage_class: str) -> ObjectInfo:
+        """Move an object to another storage class in place (a copy onto itself)."""
+        full = self._key(key)
+        try:
+            self._client.copy_object(Bucket=self.bucket, Key=full, CopySource={"Bucket": self.bucket, "Key": full},
+                                     StorageClass=storage_class, MetadataDirective="COPY")
+        except ClientError as exc:
+            raise self._error(key, exc) from exc
+        except BotoCoreError as exc:
+            raise StorageError(f"cannot reach {self.url}: {exc}") from exc
+        return self.head(key)
+
+    def restore(self, key: str, days: int) -> None:
+        try:
+            self._client.restore_object(Bucket=self.bucket, Key=self._key(key), RestoreRequest={"Days": days})
+        except ClientError as exc:
+            if exc.response.get("Error", {}).get("Code") == "RestoreAlreadyInProgress":
+                return
+            raise self._error(key, exc) from exc
+        except BotoCoreError as exc:
+            raise StorageError(f"cannot reach {self.url}: {exc}") from exc
 
     def list(self, prefix: str = "") -> Iterator[ObjectInfo]:
         full = self._key(prefix) if prefix else (self.prefix + "/" if self.prefix else "")
@@ -86,7 +130,51 @@ class S3Store:
         code = exc.response.get("Error", {}).get("Code", "")
         if code in ("404", "NoSuchKey", "NotFound"):
             return ObjectNotFoundError(f"no object {key!r} in {self.url}")
+        if code == "InvalidObjectState":
+            return ObjectArchivedError(f"{key!r} in {self.url} is archived: restore it before reading")
         return StorageError(f"{self.url}: {key!r}: {code or exc}")
 
 
-FleetErrorLike = ObjectNotFoundError | StorageError
+FleetErrorLike = ObjectNotFoundError | StorageError | ObjectArchivedError
+
+
+class _PartDigests:
+    """MD5 of the whole body and of each MULTIPART_BYTES part: S3's ETag is the MD5 of a single
+    upload, or the MD5 of the parts' MD5s followed by "-N" for a multipart one."""
+
+    def __init__(self) -> None:
+        self.whole = hashlib.md5(usedforsecurity=False)
+        self.parts: list[bytes] = []
+        self._part = hashlib.md5(usedforsecurity=False)
+        self._in_part = 0
+        self.size = 0
+
+    def update(self, data: bytes) -> None:
+        self.whole.update(data)
+        self.size += len(data)
+        view = memoryview(data)
+        while view:
+            take = min(len(view), MULTIPART_BYTES - self._in_part)
+            self._part.update(view[:take])
+            self._in_part += take
+            view = view[take:]
+            if self._in_part == MULTIPART_BYTES:
+                self.parts.append(self._part.digest())
+                self._part, self._in_part = hashlib.md5(usedforsecurity=False), 0
+
+    def etags(self) -> set[str]:
+        parts = self.parts + ([self._part.digest()] if self._in_part else [])
+        multipart = hashlib.md5(b"".join(parts), usedforsecurity=False).hexdigest() + f"-{len(parts)}"
+        return {self.whole.hexdigest(), multipart}
+
+
+class _Digesting:
+    """A file read once, front to back, by the uploader, digested on the way."""
+
+    def __init__(self, fh: BinaryIO, digests: _PartDigests) -> None:
+        self._fh, self._digests = fh, digests
+
+    def read(self, n: int = -1) -> bytes:
+        data = self._fh.read(n)
+        self._digests.update(data)
+        return data

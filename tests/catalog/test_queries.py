@@ -59,7 +59,7 @@ def test_save_again_replaces_entities_and_timelines(session: Session):
     assert [e.path for e in queries.run_entities(session, "run-1")] == ["/robot/speed"]
     assert [(t.name, t.max) for t in queries.run_timelines(session, "run-1")] == [("frame", 60)]
     robot = queries.list_robots(session)[0]
-    assert queries._aware(robot.last_seen_at) == later  # timestamps come back as the same instant
+    assert queries.aware(robot.last_seen_at) == later  # timestamps come back as the same instant
 
 
 def test_unknown_run_is_none(session: Session):

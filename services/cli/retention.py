@@ -1,0 +1,105 @@
+"""`fleet retention plan|run` and `fleet catalog rebuild` (over REST, like every command but serve and db)."""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Iterator
+from typing import TYPE_CHECKING, Any
+
+import click
+from rich.console import Console
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeElapsedColumn
+from rich.table import Table
+
+from services.cli.output import stdout_console
+from services.cli.runs import _api
+
+if TYPE_CHECKING:
+    from sdk_client.rest import FleetClient
+
+ACTIONS = ("promote", "archive", "delete", "restore")
+
+
+def _client(api_url: str) -> FleetClient:
+    from sdk_client.rest import FleetClient
+
+    return FleetClient(api_url)
+
+
+@click.group()
+def retention() -> None:
+    """Tiers and expiry: what would move or go, and doing it now."""
+
+
+@retention.command("plan")
+@_api
+@click.option("--action", multiple=True, type=click.Choice(ACTIONS), help="only these actions (repeatable)")
+@click.option("--json", "as_json", is_flag=True, help="print the service's JSON answer")
+def plan(api_url: str, action: tuple[str, ...], as_json: bool) -> None:
+    """Print what would be promoted, archived, restored or deleted now, and why."""
+    with _client(api_url) as client:
+        answer = client.retention_plan(list(action))
+    if as_json:
+        click.echo(json.dumps(answer, indent=2))
+        return
+    actions = answer["actions"]
+    if not actions:
+        click.echo("nothing is due")
+        return
+    table = Table("action", "run", "robot", "tier", "MB", "why", box=None, padding=(0, 2))
+    for a in actions:
+        table.add_row(a["action"], a["run"], a["robot_id"], a["tier"], f"{a['bytes'] / 1e6:,.1f}", a["reason"])
+    stdout_console().print(table)
+
+
+@retention.command("run")
+@_api
+@click.option("--action", multiple=True, type=click.Choice(ACTIONS), help="only these actions (repeatable)")
+def run(api_url: str, action: tuple[str, ...]) -> None:
+    """Do what is due now, with a progress bar; exit status 1 if any run failed."""
+    with _client(api_url) as client:
+        end = _follow(client.retention_run(list(action)), "retention")
+    click.echo(f"{end.get('done', 0)} done, {end.get('failed', 0)} failed")
+    if end.get("failed") or end.get("event") in ("error", "busy"):
+        raise SystemExit(1)
+
+
+def _follow(events: Iterator[dict[str, Any]], title: str) -> dict[str, Any]:
+    """Show a progress bar over the service's NDJSON events; returns the last one."""
+    err = Console(stderr=True)
+    last: dict[str, Any] = {}
+    with Progress("{task.description}", BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+                  console=err, transient=True) as progress:
+        task = progress.add_task(title, total=None)
+        for event in events:
+            last = event
+            kind = event.get("event")
+            if kind == "plan":
+                progress.update(task, total=event["total"])
+            elif kind in ("done", "run"):
+                progress.update(task, advance=1, description=f"{title}: {event.get('run')}")
+                ok = event.get("ok", event.get("outcome") != "skipped")
+                verb = event.get("action", event.get("outcome", ""))
+                progress.console.print(f"{'ok ' if ok else 'FAILED '}{verb} {event.get('run')}: "
+                                       f"{event.get('detail', '')}", markup=False)
+            elif kind in ("busy", "error"):
+                progress.console.print(f"{kind}: {event.get('detail')}", markup=False)
+    return last
+
+
+@click.group()
+def catalog() -> None:
+    """The catalog as a whole."""
+
+
+@catalog.command("rebuild")
+@_api
+def rebuild(api_url: str) -> None:
+    """Add to the catalog every sealed run found in the stores (run.json + chunks.parquet) that it
+    lacks: after losing the catalog, start the service on an empty one and run this."""
+    with _client(api_url) as client:
+        end = _follow(client.rebuild_catalog(), "rebuild")
+    if end.get("event") == "error":
+        raise click.ClickException(str(end.get("detail")))
+    click.echo(f"{end.get('added', 0)} runs added, {end.get('present', 0)} already present, "
+               f"{end.get('skipped', 0)} skipped")

@@ -1,0 +1,107 @@
+"""Disaster recovery: an empty catalog rebuilt from the stores' `run.json` and objects.
+
+Every sealed run left its catalog record beside its recording; the tier is read from where the
+recording is now (warm, an archive storage class, or the cold store), not from the record.
+Runs already in the catalog are left alone, so a rebuild can be repeated or resumed.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import datetime as dt
+import logging
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+
+from sqlalchemy.orm import Session, sessionmaker
+
+from catalog import queries
+from catalog.db import session_scope
+from catalog.models import RunLifecycle
+from services.retention.seal import INDEX, RECORDING, RUN_JSON
+from services.retention.tiers import RunFile, Tiers, parse_run_json
+from services.storage.objectstore import ObjectInfo, ObjectNotFoundError
+
+log = logging.getLogger(__name__)
+
+ARCHIVE_CLASSES = frozenset({"GLACIER", "DEEP_ARCHIVE", "GLACIER_IR", "STANDARD_IA", "ONEZONE_IA"})
+
+
+@dataclass(frozen=True)
+class RebuildStep:
+    run_id: str
+    outcome: str  # added | present | skipped
+    detail: str
+
+    def to_dict(self) -> dict[str, str]:
+        return {"run": self.run_id, "outcome": self.outcome, "detail": self.detail}
+
+
+def run_files(tiers: Tiers) -> Iterator[str]:
+    """Keys of every run.json in the warm store (ROBOT/DATE/RUN/run.json)."""
+    for info in tiers.warm.list():
+        parts = info.key.split("/")
+        if len(parts) == 4 and parts[3] == RUN_JSON:
+            yield info.key
+
+
+def rebuild(catalog: sessionmaker[Session], tiers: Tiers, now: dt.datetime,
+            progress: Callable[[RebuildStep], None] | None = None) -> list[RebuildStep]:
+    steps = []
+    for key in run_files(tiers):
+        step = _rebuild_one(catalog, tiers, key, now)
+        steps.append(step)
+        if progress is not None:
+            progress(step)
+    return steps
+
+
+def _rebuild_one(catalog: sessionmaker[Session], tiers: Tiers, key: str, now: dt.datetime) -> RebuildStep:
+    run_id = key.split("/")[2]
+    try:
+        found = parse_run_json(tiers.warm.get_range(key))
+    except (ValueError, KeyError, TypeError) as exc:
+        return RebuildStep(run_id, "skipped", f"{key} is not a run record ({exc})")
+    with session_scope(catalog) as session:
+        if queries.get_run(session, found.record.id) is not None:
+            return RebuildStep(run_id, "present", "already in the catalog")
+    where = _recording(tiers, found.prefix)
+    if where is None:
+        return RebuildStep(run_id, "skipped", f"{found.prefix}/{RECORDING} is in neither store")
+    try:
+        tiers.warm.head(f"{found.prefix}/{INDEX}")
+    except ObjectNotFoundError:
+        return RebuildStep(run_id, "skipped", f"{found.prefix}/{INDEX} is missing")
+    tier, mode, info = where
+    _insert(catalog, found, tier, mode, info, now)
+    return RebuildStep(run_id, "added", f"{tier}, {found.record.chunks} chunks, {found.record.bytes} bytes")
+
+
+def _recording(tiers: Tiers, prefix: str) -> tuple[str, str | None, ObjectInfo] | None:
+    key = f"{prefix}/{RECORDING}"
+    try:
+        info = tiers.warm.head(key)
+        if info.storage_class in ARCHIVE_CLASSES:
+            return "cold", info.storage_class, info
+        return "warm", None, info
+    except ObjectNotFoundError:
+        pass
+    try:
+        return "cold", "store", tiers.cold.head(key)
+    except ObjectNotFoundError:
+        return None
+
+
+def _insert(catalog: sessionmaker[Session], found: RunFile, tier: str, mode: str | None, info: ObjectInfo,
+            now: dt.datetime) -> None:
+    record = dataclasses.replace(found.record, tier=tier)
+    objects = [dataclasses.replace(o, tier=tier) if o.name == RECORDING else o for o in found.objects]
+    with session_scope(catalog) as session:
+        queries.save_run(session, record, now)
+        run = queries.get_run(session, record.id)
+        assert run is not None
+        run.pinned = found.pinned
+        session.add(RunLifecycle(run_id=record.id, prefix=found.prefix, promoted_at=found.sealed_at,
+                                 archived_at=info.last_modified if tier == "cold" else None, archive_mode=mode))
+        queries.replace_objects(session, record.id, objects)
+        queries.add_event(session, record.id, "rebuild", now, "catalog rebuild", None, f"from {found.prefix}/")

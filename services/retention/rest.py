@@ -1,0 +1,156 @@
+"""REST: retention policies and plan, running it now, pins, restores, deletes, catalog rebuild.
+
+Long work (`POST /v1/retention/run`, `POST /v1/catalog/rebuild`) answers NDJSON: one line per
+run as it is done, so clients can show progress; the last line sums up.
+"""
+
+from __future__ import annotations
+
+import json
+import queue
+import threading
+from collections.abc import Callable, Iterator
+from typing import Annotated, Any
+
+from fastapi import APIRouter, Query, Request
+from fastapi.responses import StreamingResponse
+
+from catalog import queries
+from catalog.db import session_scope
+from services.retention import rebuild as rebuild_mod
+from services.retention import schedule, service
+from services.retention.service import ACTIONS, ARCHIVE, DELETE, PROMOTE, RESTORE, Retention
+from services.runs.service import BadParameterError
+
+router = APIRouter()
+NDJSON = "application/x-ndjson"
+
+
+def _ctx(request: Request) -> Retention:
+    ctx: Retention = request.app.state.retention
+    return ctx
+
+
+def actor(request: Request) -> str:
+    """Who asked: the X-Fleet-User header (the CLI sends user@host), else the client address."""
+    user = request.headers.get("x-fleet-user")
+    if user:
+        return user[:256]
+    return f"api@{request.client.host if request.client else 'unknown'}"
+
+
+def _kinds(action: list[str] | None) -> list[str]:
+    kinds = action or list(ACTIONS)
+    for kind in kinds:
+        if kind not in ACTIONS:
+            raise BadParameterError("action", f"{kind!r} is not one of {', '.join(ACTIONS)}")
+    return kinds
+
+
+@router.get("/v1/retention", summary="Retention policies, settings and recent job runs")
+def retention(request: Request) -> dict[str, Any]:
+    ctx, settings = _ctx(request), request.app.state.settings
+    with session_scope(ctx.catalog) as session:
+        jobs = [{"job": j.job, "node": j.node, "started_at": queries.aware(j.started_at).isoformat(),
+                 "finished_at": queries.aware(j.finished_at).isoformat() if j.finished_at else None,
+                 "outcome": j.outcome, "detail": j.detail} for j in queries.recent_jobs(session)]
+    return {
+        "policies": ctx.policies.to_dict(),
+        "promote_after_s": ctx.promote_after.total_seconds(),
+        "promote_below_free_bytes": ctx.promote_below_free_bytes,
+        "restore_days": ctx.restore_days,
+        "archive": ctx.tiers.archive_mode(),
+        "warm_url": ctx.tiers.warm.url, "cold_url": ctx.tiers.cold.url,
+        "schedule": {"enabled": settings.scheduler, "promote_interval_s": settings.promote_interval_s,
+                     "retention_interval_s": settings.retention_interval_s},
+        "recent_jobs": jobs,
+    }
+
+
+@router.get("/v1/retention/plan", summary="What would move or be deleted now, and why")
+def retention_plan(
+    request: Request,
+    action: Annotated[list[str] | None, Query(description=" | ".join(ACTIONS) + " (repeatable; default all)")]
+    = None,
+) -> dict[str, Any]:
+    return {"actions": [a.to_dict() for a in service.plan(_ctx(request), _kinds(action))]}
+
+
+@router.post("/v1/retention/run", summary="Do what is due now; NDJSON progress, one line per run")
+def retention_run(
+    request: Request,
+    action: Annotated[list[str] | None, Query(description=" | ".join(ACTIONS) + " (repeatable; default all)")]
+    = None,
+) -> StreamingResponse:
+    ctx, kinds = _ctx(request), _kinds(action)
+
+    def work(emit: Callable[[dict[str, Any]], None]) -> None:
+        actions = service.plan(ctx, kinds)
+        emit({"event": "plan", "total": len(actions), "actions": [a.to_dict() for a in actions]})
+        promotions = [a for a in actions if a.action == PROMOTE]
+        others = [a for a in actions if a.action != PROMOTE]
+        done = []
+
+        def progress(outcome: service.Outcome) -> None:
+            done.append(outcome)
+            emit({"event": "done", **outcome.to_dict()})
+
+        if promotions:
+            schedule.promote_job(ctx, progress, wait=True)
+        catalog_kinds = tuple(k for k in kinds if k in (ARCHIVE, DELETE, RESTORE))
+        if others and schedule.retention_job(ctx, progress, catalog_kinds) is None:
+            emit({"event": "busy", "detail": "the retention job is running in another process; try again"})
+        emit({"event": "end", "done": sum(o.ok for o in done), "failed": sum(not o.ok for o in done)})
+
+    return StreamingResponse(_ndjson(work), media_type=NDJSON)
+
+
+def _ndjson(work: Callable[[Callable[[dict[str, Any]], None]], None]) -> Iterator[bytes]:
+    """Run `work` on a thread, streaming what it emits as NDJSON lines while it runs."""
+    lines: queue.Queue[dict[str, Any] | None] = queue.Queue()
+
+    def target() -> None:
+        try:
+            work(lines.put)
+        except Exception as exc:  # reported on the stream: the status line has been sent already
+            lines.put({"event": "error", "detail": f"{type(exc).__name__}: {exc}"})
+        finally:
+            lines.put(None)
+
+    threading.Thread(target=target, name="fleet-ndjson", daemon=True).start()
+    while (line := lines.get()) is not None:
+        yield (json.dumps(line) + "\n").encode()
+
+
+@router.post("/v1/runs/{run_id}/pin", summary="Pin a run: exempt from expiry")
+def pin(request: Request, run_id: str) -> dict[str, Any]:
+    return service.set_pinned(_ctx(request), run_id, True, actor(request))
+
+
+@router.delete("/v1/runs/{run_id}/pin", summary="Unpin a run: its policy applies again")
+def unpin(request: Request, run_id: str) -> dict[str, Any]:
+    return service.set_pinned(_ctx(request), run_id, False, actor(request))
+
+
+@router.post("/v1/runs/{run_id}/restore", status_code=202,
+             summary="Make a cold run readable again for restore_days (takes time; see restore_state)")
+def restore(request: Request, run_id: str) -> dict[str, Any]:
+    return service.request_restore(_ctx(request), run_id, actor(request))
+
+
+@router.delete("/v1/runs/{run_id}", summary="Delete a sealed run now (objects first; a tombstone stays)")
+def delete(request: Request, run_id: str) -> dict[str, Any]:
+    return {"run": run_id, "detail": service.delete_run(_ctx(request), run_id, actor(request))}
+
+
+@router.post("/v1/catalog/rebuild", summary="Add every sealed run found in the stores that the catalog lacks")
+def rebuild(request: Request) -> StreamingResponse:
+    ctx = _ctx(request)
+
+    def work(emit: Callable[[dict[str, Any]], None]) -> None:
+        steps = rebuild_mod.rebuild(ctx.catalog, ctx.tiers, ctx.clock(),
+                                    lambda step: emit({"event": "run", **step.to_dict()}))
+        counts = {k: sum(s.outcome == k for s in steps) for k in ("added", "present", "skipped")}
+        emit({"event": "end", **counts})
+
+    return StreamingResponse(_ndjson(work), media_type=NDJSON)

@@ -1,0 +1,114 @@
+"""The one place retention jobs are registered and scheduled (APScheduler, inside `fleet serve`).
+
+- `promote`: this node's closed hot runs into the warm tier (every node promotes its own runs;
+  one promotion at a time per process).
+- `retention`: archive, restores and deletion over the whole catalog: one process at a time
+  across every service process on the catalog (a Postgres advisory lock), others skip that turn.
+Each job run is recorded in the catalog (`job_runs`): where, when, and how it went.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import socket
+import threading
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import sqlalchemy as sa
+from apscheduler.schedulers.background import BackgroundScheduler
+
+from catalog import queries
+from catalog.db import session_scope
+from services.errors import ErrorCode, FleetError
+from services.retention.locks import job_lock
+from services.retention.service import ARCHIVE, DELETE, PROMOTE, RESTORE, Outcome, Retention, plan, run_plan
+
+log = logging.getLogger(__name__)
+
+_PROMOTING = threading.Lock()  # one promotion pass at a time in this process
+Progress = Callable[[Outcome], None] | None
+
+
+class JobBusyError(FleetError):
+    code = ErrorCode.CONFLICT
+
+
+def node_name() -> str:
+    return f"{socket.gethostname()}:{os.getpid()}"
+
+
+def _engine(ctx: Retention) -> sa.Engine:
+    bind = ctx.catalog.kw["bind"]
+    assert isinstance(bind, sa.Engine)
+    return bind
+
+
+def promote_job(ctx: Retention, progress: Progress = None, *, wait: bool = False) -> list[Outcome] | None:
+    """Promote this node's due hot runs; None if a promotion pass is already running here."""
+    if not _PROMOTING.acquire(blocking=wait):
+        return None
+    try:
+        actions = plan(ctx, [PROMOTE])
+        return _recorded(ctx, "promote", lambda: run_plan(ctx, actions, progress)) if actions else []
+    finally:
+        _PROMOTING.release()
+
+
+def retention_job(ctx: Retention, progress: Progress = None,
+                  kinds: tuple[str, ...] = (ARCHIVE, DELETE, RESTORE)) -> list[Outcome] | None:
+    """Archive, advance restores and delete what is due; None if another process runs it now."""
+    with job_lock(_engine(ctx), "retention") as got:
+        if not got:
+            log.info("retention job is running in another process: skipped")
+            return None
+        return _recorded(ctx, "retention", lambda: run_plan(ctx, plan(ctx, kinds), progress))
+
+
+def _recorded(ctx: Retention, job: str, body: Callable[[], list[Outcome]]) -> list[Outcome]:
+    with session_scope(ctx.catalog) as session:
+        job_id = queries.start_job(session, job, node_name(), ctx.clock())
+    outcomes: list[Outcome] = []
+    try:
+        outcomes = body()
+    except Exception as exc:
+        with session_scope(ctx.catalog) as session:
+            queries.finish_job(session, job_id, ctx.clock(), "failed", f"{type(exc).__name__}: {exc}")
+        raise
+    failed = [o for o in outcomes if not o.ok]
+    summary = f"{len(outcomes) - len(failed)} done, {len(failed)} failed" + "".join(
+        f"; {o.action.action} {o.action.run_id}: {o.detail}" for o in failed[:5])
+    with session_scope(ctx.catalog) as session:
+        queries.finish_job(session, job_id, ctx.clock(), "failed" if failed else "ok", summary)
+    return outcomes
+
+
+@dataclass(frozen=True)
+class Job:
+    name: str
+    run: Callable[[Retention], object]
+    interval_s: float
+
+
+def jobs(promote_interval_s: float, retention_interval_s: float) -> list[Job]:
+    return [Job("promote", promote_job, promote_interval_s), Job("retention", retention_job, retention_interval_s)]
+
+
+def start_scheduler(ctx: Retention, promote_interval_s: float, retention_interval_s: float) -> BackgroundScheduler:
+    scheduler = BackgroundScheduler(timezone="UTC")
+    for job in jobs(promote_interval_s, retention_interval_s):
+        scheduler.add_job(_guarded(job, ctx), "interval", seconds=job.interval_s, id=job.name, name=job.name,
+                          max_instances=1, coalesce=True)
+    scheduler.start()
+    return scheduler
+
+
+def _guarded(job: Job, ctx: Retention) -> Callable[[], None]:
+    def run() -> None:
+        try:
+            job.run(ctx)
+        except Exception:  # logged; the next interval retries
+            log.exception("%s job failed", job.name)
+
+    return run

@@ -1,0 +1,123 @@
+"""Sealing: a run's recording(s) rewritten as one compacted `.rrd` with a footer, plus its index.
+
+The sealed recording is one stream: the run's SDK version in the header, each store's
+SetStoreInfo once, every chunk once (by chunk id), blueprint activations once, in the order
+they were received, then End with a footer manifest. Written locally first, hashed as it is
+written, so the upload can be verified and the catalog can record what was stored.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import hashlib
+import os
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import BinaryIO, cast
+
+from services.ingest.service import RunFacts
+from services.retention.index import BLUEPRINT_ACTIVATION, CHUNK, STORE_INFO, IndexRow, TimelineRange, to_parquet
+from services.rrd.chunk import chunk_meta
+from services.rrd.encoder import RrdEncoder
+from services.rrd.frames import DEFAULT_VERSION
+from services.rrd.messages import (
+    ArrowMessage,
+    BlueprintActivationMessage,
+    Event,
+    StoreId,
+    StoreInfoMessage,
+    StoreKind,
+    StreamStart,
+)
+
+RECORDING = "recording.rrd"
+INDEX = "chunks.parquet"
+RUN_JSON = "run.json"
+
+
+class HashingFile:
+    """A file being written whose SHA-256 is computed on the way."""
+
+    def __init__(self, fh: BinaryIO) -> None:
+        self._fh = fh
+        self.sha256 = hashlib.sha256()
+        self.size = 0
+
+    def write(self, data: bytes) -> int:
+        self.sha256.update(data)
+        self.size += len(data)
+        return self._fh.write(data)
+
+
+@dataclass
+class SealedRun:
+    recording: Path
+    recording_sha256: str
+    recording_size: int
+    index_rows: list[IndexRow]
+    facts: RunFacts
+    index: bytes = b""  # chunks.parquet
+    index_sha256: str = ""
+    chunk_ids: set[bytes] = field(default_factory=set)
+
+    def __post_init__(self) -> None:
+        self.index = to_parquet(self.index_rows)
+        self.index_sha256 = hashlib.sha256(self.index).hexdigest()
+
+
+def _store_kind(store: StoreId) -> str:
+    return "blueprint" if store.kind == StoreKind.BLUEPRINT else "recording"
+
+
+def seal(recordings: Iterable[Iterator[Event | None]], out: Path, run_id: str, now: dt.datetime) -> SealedRun:
+    """Write `out` (recording.rrd) from the events of one or more recordings of the same run (a
+    sealed recording and what came after it); returns where every message went and the run's facts."""
+    facts = RunFacts(run_id, now)
+    rows: list[IndexRow] = []
+    seen_chunks: set[bytes] = set()
+    seen_stores: set[StoreId] = set()
+    seen_activations: set[bytes] = set()
+    tmp = out.with_name(out.name + ".tmp")
+    with open(tmp, "wb") as raw:
+        sink = HashingFile(raw)
+        encoder: RrdEncoder | None = None
+        for events in recordings:
+            for event in events:
+                if isinstance(event, StreamStart):
+                    encoder = encoder or RrdEncoder(cast(BinaryIO, sink), event.version)
+                    continue
+                if not isinstance(event, StoreInfoMessage | ArrowMessage | BlueprintActivationMessage):
+                    continue  # End and footers of a sealed recording being extended
+                encoder = encoder or RrdEncoder(cast(BinaryIO, sink), DEFAULT_VERSION)
+                start = encoder.position
+                if isinstance(event, StoreInfoMessage):
+                    if event.store_id in seen_stores:
+                        continue
+                    seen_stores.add(event.store_id)
+                    encoder.write(event)
+                    rows.append(IndexRow(STORE_INFO, _store_kind(event.store_id), start, encoder.position - start))
+                elif isinstance(event, BlueprintActivationMessage):
+                    if bytes(event.raw) in seen_activations:
+                        continue
+                    seen_activations.add(bytes(event.raw))
+                    encoder.write(event)
+                    rows.append(IndexRow(BLUEPRINT_ACTIVATION, "blueprint", start, encoder.position - start))
+                else:
+                    meta = chunk_meta(event)
+                    if meta.chunk_id in seen_chunks:
+                        continue
+                    seen_chunks.add(meta.chunk_id)
+                    encoder.write_arrow(event, meta)
+                    rows.append(IndexRow(
+                        CHUNK, _store_kind(event.store_id), start, encoder.position - start, meta.chunk_id,
+                        meta.entity_path, meta.is_static, meta.num_rows,
+                        tuple(TimelineRange(t.name, t.type, t.range.min, t.range.max) for t in meta.timelines),
+                        tuple(sorted(meta.component_names))))
+                facts.replay(event, now, meta if isinstance(event, ArrowMessage) else None)
+        (encoder or RrdEncoder(cast(BinaryIO, sink), DEFAULT_VERSION)).finish()
+        raw.flush()
+        os.fsync(raw.fileno())
+    os.replace(tmp, out)
+    facts.size = sink.size
+    return SealedRun(out, sink.sha256.hexdigest(), sink.size, rows, facts, chunk_ids=seen_chunks)

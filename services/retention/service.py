@@ -1,0 +1,226 @@
+"""Retention: what should move or go, and doing it; pins and restores asked for by users.
+
+`plan()` lists actions with their reasons (what `fleet retention plan` prints); `execute()` does
+one. The scheduled jobs (`services.retention.schedule`) are these two over a subset of actions.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import json
+import logging
+import shutil
+import threading
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass, field
+from typing import Any
+
+from sqlalchemy.orm import Session, sessionmaker
+
+from catalog import queries
+from catalog.db import session_scope
+from services.errors import ErrorCode, FleetError
+from services.ingest.service import IngestService, utcnow
+from services.retention import archive, promote
+from services.retention.policy import Policies
+from services.retention.seal import RUN_JSON
+from services.retention.tiers import Tiers
+from services.runs.service import get_run
+
+log = logging.getLogger(__name__)
+
+PROMOTE, ARCHIVE, DELETE, RESTORE = "promote", "archive", "delete", "restore"
+ACTIONS = (PROMOTE, ARCHIVE, DELETE, RESTORE)
+
+
+class NotSealedError(FleetError):
+    code = ErrorCode.CONFLICT
+
+
+@dataclass
+class Retention:
+    """Everything the retention jobs work with, built once by the server (or a test)."""
+
+    catalog: sessionmaker[Session]
+    tiers: Tiers
+    policies: Policies
+    ingest: IngestService | None = None  # promotion needs this node's hot runs
+    promote_after: dt.timedelta = dt.timedelta(minutes=10)
+    promote_below_free_bytes: int = 0
+    restore_days: float = 7.0
+    clock: Callable[[], dt.datetime] = utcnow
+    free_bytes: Callable[[], int] | None = None  # of the hot disk (default: asked of the file system)
+
+    def hot_free_bytes(self) -> int:
+        if self.free_bytes is not None:
+            return self.free_bytes()
+        assert self.ingest is not None
+        return shutil.disk_usage(self.ingest.hot.root).free
+
+
+@dataclass(frozen=True)
+class Action:
+    run_id: str
+    action: str  # promote | archive | delete | restore
+    reason: str
+    robot_id: str = ""
+    tier: str = ""
+    bytes: int = 0
+    policy: str | None = None
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"run": self.run_id, "action": self.action, "reason": self.reason, "robot_id": self.robot_id,
+                "tier": self.tier, "bytes": self.bytes, "policy": self.policy}
+
+
+@dataclass
+class Outcome:
+    action: Action
+    ok: bool
+    detail: str
+    seconds: float = 0.0
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {**self.action.to_dict(), "ok": self.ok, "detail": self.detail, "seconds": round(self.seconds, 3)}
+
+
+def _days(delta: dt.timedelta) -> str:
+    return f"{delta.total_seconds() / 86400:.1f} days"
+
+
+def plan(ctx: Retention, kinds: Iterable[str] = ACTIONS) -> list[Action]:
+    """What is due now, and why (oldest first within each kind)."""
+    kinds = set(kinds)
+    now = ctx.clock()
+    actions: list[Action] = []
+    if PROMOTE in kinds and ctx.ingest is not None:
+        pressure = ctx.promote_below_free_bytes > 0 and ctx.hot_free_bytes() < ctx.promote_below_free_bytes
+        for cand in promote.due_for_promotion(ctx.ingest, now, ctx.promote_after, pressure):
+            record = cand.run.record(ctx.ingest.default_robot)
+            actions.append(Action(cand.run.run_id, PROMOTE, cand.reason, record.robot_id, "hot", record.bytes))
+    if kinds & {ARCHIVE, DELETE, RESTORE}:
+        with session_scope(ctx.catalog) as session:
+            for run, life in queries.sealed_runs(session, ("warm", "cold")):
+                action = _due(ctx, run, life, now, kinds)
+                if action is not None:
+                    actions.append(action)
+    return actions
+
+
+def _due(ctx: Retention, run: Any, life: Any, now: dt.datetime, kinds: set[str]) -> Action | None:
+    policy = ctx.policies.for_run(run.robot_id, run.application_id)
+    age = now - queries.aware(run.ended_at or run.last_data_at)
+    common = {"robot_id": run.robot_id, "tier": run.tier, "bytes": run.bytes, "policy": policy.name}
+    if age >= policy.delete_after and DELETE in kinds and not run.pinned:
+        return Action(run.id, DELETE, f"ended {_days(age)} ago; policy {policy.name!r} keeps runs "
+                                      f"{policy.warm_days:g} days warm + {policy.cold_days:g} days cold", **common)
+    if life.restore_state is not None and RESTORE in kinds:
+        until = queries.aware(life.restore_until) if life.restore_until else None
+        if life.restore_state == "restoring" or (until is not None and until <= now):
+            why = "restore asked for" if life.restore_state == "restoring" else "restore period is over"
+            return Action(run.id, RESTORE, why, **common)
+    if run.tier == "warm" and age >= policy.archive_after and policy.cold_days > 0 and ARCHIVE in kinds:
+        return Action(run.id, ARCHIVE, f"ended {_days(age)} ago; policy {policy.name!r} keeps runs "
+                                       f"{policy.warm_days:g} days warm", **common)
+    return None
+
+
+def execute(ctx: Retention, action: Action) -> Outcome:
+    """Do one planned action; failures are reported, not raised (the next run retries)."""
+    start = dt.datetime.now(dt.UTC)
+    now = ctx.clock()
+    try:
+        detail = _execute(ctx, action, now)
+        ok = True
+    except Exception as exc:  # reported per run; one failing run does not stop the others
+        log.warning("retention %s of run %s failed: %s", action.action, action.run_id, exc)
+        detail, ok = f"{type(exc).__name__}: {exc}", False
+    return Outcome(action, ok, detail, (dt.datetime.now(dt.UTC) - start).total_seconds())
+
+
+def _execute(ctx: Retention, action: Action, now: dt.datetime) -> str:
+    if action.action == PROMOTE:
+        assert ctx.ingest is not None
+        run = ctx.ingest.runs.get(action.run_id)
+        if run is None:
+            return "no longer hot here"
+        record = promote.promote(run, ctx.ingest, ctx.tiers, ctx.catalog, now)
+        return f"sealed {record.chunks} chunks, {record.bytes} bytes"
+    if action.action == ARCHIVE:
+        return archive.archive(action.run_id, ctx.tiers, ctx.catalog, now, action.policy or "default")
+    if action.action == DELETE:
+        return archive.delete(action.run_id, ctx.tiers, ctx.catalog, now, "retention", action.policy)
+    if action.action == RESTORE:
+        return archive.advance_restore(action.run_id, ctx.tiers, ctx.catalog, now)
+    raise ValueError(f"unknown action {action.action!r}")
+
+
+def run_plan(ctx: Retention, actions: list[Action], progress: Callable[[Outcome], None] | None = None) -> list[Outcome]:
+    outcomes = []
+    for action in actions:
+        outcome = execute(ctx, action)
+        outcomes.append(outcome)
+        if progress is not None:
+            progress(outcome)
+    return outcomes
+
+
+# --- user actions ------------------------------------------------------------------------------
+
+
+def set_pinned(ctx: Retention, run_id: str, pinned: bool, actor: str) -> dict[str, Any]:
+    """Pin (exempt from expiry) or unpin a run; a sealed run's run.json says so too (for rebuilds)."""
+    now = ctx.clock()
+    with session_scope(ctx.catalog) as session:
+        run = get_run(session, run_id)
+        if run.tier == "deleted":
+            raise NotSealedError(f"run {run_id!r} is deleted: there is nothing left to pin")
+        run.pinned, run.updated_at = pinned, now
+        life = queries.lifecycle(session, run_id)
+        if life is not None:
+            life.pinned_by = actor if pinned else None
+        queries.add_event(session, run_id, "pin" if pinned else "unpin", now, actor, None)
+        prefix = life.prefix if life is not None else None
+    if prefix is not None:
+        _rewrite_run_json(ctx, prefix, pinned)
+    return {"run": run_id, "pinned": pinned, "by": actor}
+
+
+def _rewrite_run_json(ctx: Retention, prefix: str, pinned: bool) -> None:
+    key = f"{prefix}/{RUN_JSON}"
+    body = json.loads(ctx.tiers.warm.get_range(key))
+    body["pinned"] = pinned
+    ctx.tiers.warm.put(key, json.dumps(body, indent=1, sort_keys=True).encode())
+
+
+def request_restore(ctx: Retention, run_id: str, actor: str) -> dict[str, Any]:
+    now = ctx.clock()
+    with session_scope(ctx.catalog) as session:
+        get_run(session, run_id)  # 404 naming the run
+    life = archive.request_restore(run_id, ctx.tiers, ctx.catalog, now, actor, ctx.restore_days)
+    if life.restore_state == "restoring" and life.archive_mode == "store":
+        # A copy back from the cold store: started now in the background rather than at the next
+        # retention run; if this process stops, the retention job finishes it.
+        action = Action(run_id, RESTORE, "restore asked for")
+        threading.Thread(target=execute, args=(ctx, action), name=f"restore-{run_id}", daemon=True).start()
+    return restore_status(life)
+
+
+def restore_status(life: Any) -> dict[str, Any]:
+    def iso(value: dt.datetime | None) -> str | None:
+        return queries.aware(value).isoformat().replace("+00:00", "Z") if value else None
+
+    return {"run": life.run_id, "restore_state": life.restore_state,
+            "restore_requested_at": iso(life.restore_requested_at), "restore_until": iso(life.restore_until)}
+
+
+def delete_run(ctx: Retention, run_id: str, actor: str) -> str:
+    with session_scope(ctx.catalog) as session:
+        run = get_run(session, run_id)
+        if run.tier == "hot":
+            raise NotSealedError(f"run {run_id!r} is still hot: delete it once it is sealed (promoted)")
+        if run.pinned:
+            raise NotSealedError(f"run {run_id!r} is pinned: unpin it first (fleet runs pin --unpin)")
+    return archive.delete(run_id, ctx.tiers, ctx.catalog, ctx.clock(), actor, None)
+

@@ -1,0 +1,116 @@
+"""The warm and cold stores, where a sealed run's objects live, and its `run.json`."""
+
+from __future__ import annotations
+
+import datetime as dt
+import json
+from dataclasses import asdict, dataclass
+from typing import Any
+
+from sqlalchemy.orm import Session, sessionmaker
+
+from catalog import queries
+from catalog.db import session_scope
+from catalog.queries import EntityRecord, RunRecord, TimelineRecord
+from services.errors import ErrorCode, FleetError
+from services.ingest.service import SealedInfo
+from services.retention.index import CHUNK, from_parquet
+from services.retention.seal import INDEX
+from services.settings import Settings
+from services.storage.objectstore import ObjectStore, open_store, supports_archive
+
+RUN_JSON_FORMAT = 1
+
+
+class RetentionConfigError(FleetError):
+    code = ErrorCode.INVALID_ARGUMENT
+
+
+@dataclass
+class Tiers:
+    warm: ObjectStore
+    cold: ObjectStore
+    cold_storage_class: str = ""  # archive in place to this S3 class; "" = copy to the cold store
+
+    def archive_mode(self) -> str:
+        return self.cold_storage_class or "store"
+
+
+def open_tiers(settings: Settings) -> Tiers:
+    warm = open_store(settings.warm_url, endpoint_url=settings.s3_endpoint_url, region=settings.s3_region)
+    cold = open_store(settings.cold_url, endpoint_url=settings.s3_endpoint_url, region=settings.s3_region)
+    if settings.cold_storage_class and not supports_archive(warm):
+        raise RetentionConfigError(
+            f"FLEET_COLD_STORAGE_CLASS={settings.cold_storage_class} needs an s3:// warm store "
+            f"({settings.warm_url} has no storage classes): unset it to archive by copying to FLEET_COLD_URL")
+    return Tiers(warm, cold, settings.cold_storage_class)
+
+
+def run_prefix(robot_id: str, date: dt.date, run_id: str) -> str:
+    return f"{robot_id}/{date.isoformat()}/{run_id}"
+
+
+def run_json(record: RunRecord, prefix: str, objects: list[queries.ObjectRecord], sealed_at: dt.datetime,
+             pinned: bool = False) -> bytes:
+    """The catalog record of a sealed run, kept beside it so the catalog can be rebuilt from the bucket."""
+    body = {"format": RUN_JSON_FORMAT, "prefix": prefix, "sealed_at": sealed_at.isoformat(), "pinned": pinned,
+            "run": asdict(record), "objects": [asdict(o) for o in objects]}
+    return json.dumps(body, indent=1, sort_keys=True, default=_json_default).encode()
+
+
+def _json_default(value: Any) -> str:
+    if isinstance(value, dt.datetime | dt.date):
+        return value.isoformat()
+    raise TypeError(f"{type(value).__name__} is not JSON")
+
+
+@dataclass(frozen=True)
+class RunFile:
+    """A sealed run's `run.json`, read back."""
+
+    record: RunRecord
+    prefix: str
+    objects: list[queries.ObjectRecord]
+    pinned: bool
+    sealed_at: dt.datetime
+
+
+def parse_run_json(data: bytes) -> RunFile:
+    body = json.loads(data)
+    if body.get("format") != RUN_JSON_FORMAT:
+        raise ValueError(f"run.json format {body.get('format')!r} is not {RUN_JSON_FORMAT}")
+    run = body["run"]
+    sealed_at = dt.datetime.fromisoformat(body["sealed_at"])
+
+    def when(value: str | None) -> dt.datetime | None:
+        return dt.datetime.fromisoformat(value) if value else None
+
+    record = RunRecord(
+        id=run["id"], robot_id=run["robot_id"], application_id=run["application_id"],
+        date=dt.date.fromisoformat(run["date"]), status=run["status"], tier=run["tier"],
+        started_at=when(run["started_at"]), ended_at=when(run["ended_at"]),
+        last_data_at=when(run["last_data_at"]) or sealed_at,
+        sdk_version=run["sdk_version"], chunks=run["chunks"], rows=run["rows"], bytes=run["bytes"],
+        properties=run["properties"], entities=[EntityRecord(**e) for e in run["entities"]],
+        timelines=[TimelineRecord(**t) for t in run["timelines"]])
+    objects = [queries.ObjectRecord(**o) for o in body["objects"]]
+    return RunFile(record, body["prefix"], objects, bool(body.get("pinned")), sealed_at)
+
+
+def sealed_lookup(catalog: sessionmaker[Session], tiers: Tiers) -> Any:
+    """For ingest: whether a run id not hot on this node was sealed, and which chunks it holds."""
+
+    def lookup(run_id: str) -> SealedInfo | None:
+        with session_scope(catalog) as session:
+            run = queries.get_run(session, run_id)
+            life = queries.lifecycle(session, run_id)
+            if run is None or life is None or run.tier == "hot":
+                return None
+            tier, prefix, robot_id, date = run.tier, life.prefix, run.robot_id, run.date
+        chunk_ids: frozenset[bytes] = frozenset()
+        if tier == "warm":
+            rows = from_parquet(tiers.warm.get_range(f"{prefix}/{INDEX}"))
+            chunk_ids = frozenset(r.chunk_id for r in rows if r.kind == CHUNK and r.chunk_id is not None)
+        return SealedInfo(tier, prefix, robot_id, date, chunk_ids)
+
+    return lookup
