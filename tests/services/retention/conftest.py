@@ -1,0 +1,154 @@
+"""Fixtures for retention tests: a node (ingest + retention) over local or S3 (moto) stores, a
+settable clock, and runs logged with the real SDK."""
+
+from __future__ import annotations
+
+import datetime as dt
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import pytest
+from sqlalchemy.orm import Session, sessionmaker
+
+from catalog.db import create_engine, upgrade
+from services.ingest.hot import Durability, HotStore
+from services.ingest.service import IngestReport, IngestService
+from services.retention.policy import Policies, Policy, PolicyOverride
+from services.retention.service import Retention
+from services.retention.tiers import Tiers, sealed_lookup
+from services.rrd import iter_events
+from services.storage.objectstore import ObjectStore, open_store
+
+WARM_BUCKET, COLD_BUCKET = "fleet-warm", "fleet-cold"
+
+
+class Clock:
+    """A clock tests move by hand (retention ages are days)."""
+
+    def __init__(self) -> None:
+        self.now = dt.datetime.now(dt.UTC)
+
+    def __call__(self) -> dt.datetime:
+        return self.now
+
+    def advance(self, **delta: float) -> dt.datetime:
+        self.now += dt.timedelta(**delta)
+        return self.now
+
+
+@dataclass
+class Node:
+    """One service node's ingest and retention sides on one data dir and catalog."""
+
+    root: Path
+    tiers: Tiers
+    catalog: sessionmaker[Session]
+    clock: Clock
+    ingest: IngestService
+    retention: Retention
+    restarts: list[IngestService] = field(default_factory=list)
+
+    def upload(self, path: Path | bytes) -> IngestReport:
+        source = self.ingest.open_source(live=False)
+        try:
+            for event in iter_events(path):  # type: ignore[arg-type]
+                self.ingest.accept(source, event)
+        finally:
+            report = self.ingest.close_source(source)
+        return report
+
+
+NodeFactory = Callable[..., Node]
+
+
+def _s3_env(monkeypatch: pytest.MonkeyPatch) -> None:
+    for name, value in (("AWS_ACCESS_KEY_ID", "test"), ("AWS_SECRET_ACCESS_KEY", "test"),
+                        ("AWS_DEFAULT_REGION", "us-east-1")):
+        monkeypatch.setenv(name, value)
+
+
+@pytest.fixture(params=["file", "s3-moto"])
+def tiers(request: pytest.FixtureRequest, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Iterator[Tiers]:
+    """Warm and cold stores: two local folders, or two S3 buckets (moto) with cold as a copy target."""
+    if request.param == "file":
+        yield Tiers(open_store((tmp_path / "warm").as_uri()), open_store((tmp_path / "cold").as_uri()))
+        return
+    _s3_env(monkeypatch)
+    from moto import mock_aws
+
+    with mock_aws():
+        import boto3
+
+        client = boto3.client("s3", region_name="us-east-1")
+        client.create_bucket(Bucket=WARM_BUCKET)
+        client.create_bucket(Bucket=COLD_BUCKET)
+        yield Tiers(open_store(f"s3://{WARM_BUCKET}/depot", region="us-east-1"),
+                    open_store(f"s3://{COLD_BUCKET}/depot", region="us-east-1"))
+
+
+@pytest.fixture
+def make_node(tmp_path: Path) -> Iterator[NodeFactory]:
+    """Build a node over given stores with a DuckDB catalog; a second call on the same root is a restart."""
+    engine = create_engine(f"duckdb:///{tmp_path / 'catalog.duckdb'}")
+    upgrade(engine)
+    catalog = sessionmaker(engine)
+    made: list[IngestService] = []
+
+    def make(tiers: Tiers, *, clock: Clock | None = None, promote_after_s: float = 600.0,
+             warm_days: float = 30.0, cold_days: float = 365.0, overrides: tuple[PolicyOverride, ...] = (),
+             restore_days: float = 7.0, promote_below_free_bytes: int = 0,
+             free_bytes: Callable[[], int] | None = None, recover: bool = True) -> Node:
+        clock = clock or Clock()
+        hot = HotStore(tmp_path / "hot", durability=Durability.OFF, interval_ms=50, min_free_bytes=0)
+        ingest = IngestService(hot, catalog, default_robot="robot-0", max_streams=10,
+                               close_after=dt.timedelta(seconds=60), clock=clock,
+                               sealed_lookup=sealed_lookup(catalog, tiers))
+        made.append(ingest)
+        if recover:
+            ingest.recover()
+        retention = Retention(catalog, tiers, Policies(Policy("default", warm_days, cold_days), overrides), ingest,
+                              promote_after=dt.timedelta(seconds=promote_after_s),
+                              promote_below_free_bytes=promote_below_free_bytes, restore_days=restore_days,
+                              clock=clock, free_bytes=free_bytes)
+        return Node(tmp_path, tiers, catalog, clock, ingest, retention)
+
+    yield make
+    for ingest in made:
+        ingest.hot.close()
+    engine.dispose()
+
+
+def log_run(path: Path, recording_id: str, *, entities: int = 10, frames: int = 30, points: int = 2000,
+            robot: str | None = None, application: str = "fleet-test", text: bool = True,
+            chunk_rows: int | None = None) -> Path:
+    """A run logged with the real SDK: `entities` point clouds (one chunk each, or one per
+    `chunk_rows` frames), a static
+    entity, optional text logs, and the robot's identity property. Runs in a subprocess so each
+    recording gets its own SDK state."""
+    import os
+    import subprocess
+    import sys
+
+    script = f"""
+import numpy as np, rerun as rr
+rr.init({application!r}, recording_id={recording_id!r}, spawn=False)
+rr.save({str(path)!r})
+{f"rr.send_property('fleet', rr.AnyValues(robot_id={robot!r}))" if robot else ""}
+rr.log('/world/static', rr.TextDocument('map'), static=True)
+rng = np.random.default_rng(7)
+for i in range({frames}):
+    rr.set_time('frame', sequence=i)
+    rr.set_time('sim', duration=i * 0.1)
+    for e in range({entities}):
+        rr.log(f'/world/e{{e}}', rr.Points3D(rng.random(({points}, 3), dtype=np.float32)))
+    {"rr.log('/logs', rr.TextLog(f'step {i}', level='INFO'))" if text else "pass"}
+"""
+    env = {**os.environ, **({"RERUN_CHUNK_MAX_ROWS": str(chunk_rows)} if chunk_rows else {})}
+    subprocess.run([sys.executable, "-c", script], check=True, timeout=120, env=env)
+    return path
+
+
+def listing(store: ObjectStore) -> list[str]:
+    return [info.key for info in store.list()]
+
