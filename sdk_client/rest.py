@@ -7,11 +7,14 @@ import json
 import socket
 from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import httpx
 
 from services.errors import ErrorCode, FleetError
+
+if TYPE_CHECKING:
+    import pyarrow as pa
 
 UPLOAD_PIECE = 1024 * 1024
 
@@ -95,6 +98,29 @@ class FleetClient:
             raise UnreachableError(f"cannot reach the fleet service at {self.api_url} ({exc}); "
                                    "is it running? set FLEET_API_URL") from exc
         return written
+
+    def sql(self, query: str) -> pa.Table:
+        """Run a read-only SQL query (`POST /v1/sql`); the answer as a pyarrow Table."""
+        import pyarrow as pa
+
+        content = self.sql_bytes(query, "arrow")
+        with pa.ipc.open_stream(content) as reader:
+            return reader.read_all()
+
+    def sql_bytes(self, query: str, fmt: str = "json") -> bytes:
+        """The answer to a SQL query encoded as `fmt`: json, csv, arrow (IPC stream) or parquet."""
+        try:
+            response = self._http.post("/v1/sql", json={"query": query}, params={"format": fmt}, timeout=None)
+        except httpx.TransportError as exc:
+            raise UnreachableError(f"cannot reach the fleet service at {self.api_url} ({exc}); "
+                                   "is it running? set FLEET_API_URL") from exc
+        if response.status_code >= 400:
+            try:
+                body = response.json()
+            except ValueError:
+                body = {"message": response.text[:500]}
+            raise ServiceError(str(body.get("message", response.reason_phrase)), response.status_code, body)
+        return response.content
 
     def retention(self) -> dict[str, Any]:
         """Policies, settings and recent job runs (`GET /v1/retention`)."""

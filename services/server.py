@@ -12,6 +12,8 @@ import uvicorn
 from sqlalchemy.orm import sessionmaker
 
 from catalog.db import create_engine
+from services.analytics.service import Analytics
+from services.analytics.sql import Limits
 from services.api.app import create_app
 from services.ingest import grpc_handler
 from services.ingest.hot import HotStore
@@ -33,8 +35,8 @@ def split_addr(addr: str) -> tuple[str, int]:
     return host.strip("[]"), int(port)
 
 
-def build(settings: Settings) -> tuple[IngestService, Retention]:
-    """The ingest side and the retention side of one node, sharing the catalog and the stores."""
+def build(settings: Settings) -> tuple[IngestService, Retention, Analytics]:
+    """The ingest, retention and analytics sides of one node, sharing the catalog and the stores."""
     hot = HotStore(settings.hot_dir, durability=settings.durability, interval_ms=settings.group_commit_ms,
                    min_free_bytes=settings.min_free_bytes)
     catalog = sessionmaker(create_engine(settings.catalog_url))
@@ -47,7 +49,9 @@ def build(settings: Settings) -> tuple[IngestService, Retention]:
                           promote_after=dt.timedelta(seconds=settings.promote_after_s),
                           promote_below_free_bytes=settings.promote_below_free_bytes,
                           restore_days=settings.restore_days)
-    return ingest, retention
+    analytics = Analytics(catalog, tiers.warm, Limits(settings.sql_max_rows, settings.sql_timeout_s,
+                                                      settings.sql_memory_limit, settings.sql_threads))
+    return ingest, retention, analytics
 
 
 async def _housekeeping(ingest: IngestService, every: float) -> None:
@@ -64,7 +68,7 @@ async def _housekeeping(ingest: IngestService, every: float) -> None:
 
 async def serve(settings: Settings) -> None:
     tune_allocator()
-    ingest, retention = build(settings)
+    ingest, retention, analytics = build(settings)
     recovered = ingest.recover()
     if recovered:
         log.info("recovered %d hot runs", len(recovered))
@@ -74,7 +78,7 @@ async def serve(settings: Settings) -> None:
     grpc_host, grpc_port = split_addr(settings.grpc_addr)
     grpc_server.add_insecure_port(f"{grpc_host}:{grpc_port}")
     http_host, http_port = split_addr(settings.http_addr)
-    app = create_app(settings, ingest, retention)
+    app = create_app(settings, ingest, retention, analytics)
     http = uvicorn.Server(uvicorn.Config(app, host=http_host, port=http_port, log_level="info",
                                          lifespan="off"))
     await grpc_server.start()

@@ -57,6 +57,10 @@ class Settings(BaseSettings):
     promote_interval_s: float = Field(30.0, gt=0, description="how often the promotion job runs")
     retention_interval_s: float = Field(600.0, gt=0, description="how often archive, restore and expiry jobs run")
     scheduler: bool = Field(True, description="run the retention jobs inside fleet serve")
+    sql_max_rows: int = Field(100_000, gt=0, description="most rows a SQL answer may have")
+    sql_timeout_s: float = Field(30.0, gt=0, description="a SQL query running longer is stopped")
+    sql_memory_limit: str = Field("2GB", description="memory a SQL query may use (DuckDB memory_limit)")
+    sql_threads: int = Field(4, gt=0, description="threads a SQL query may use")
     default_robot: str = Field("unknown-robot", pattern=r"^[A-Za-z0-9._-]{1,128}$",
                                description="robot id of runs that name none")
 

@@ -8,6 +8,8 @@ from fastapi.middleware.cors import CORSMiddleware
 from fastapi.responses import JSONResponse, PlainTextResponse
 
 from services import __version__
+from services.analytics import rest as analytics_rest
+from services.analytics.service import Analytics
 from services.errors import ErrorCode, FleetError, http_status
 from services.ingest import rest as ingest_rest
 from services.ingest.service import IngestService
@@ -18,7 +20,7 @@ from services.settings import Settings
 
 
 def create_app(settings: Settings, ingest: IngestService | None = None,
-               retention: Retention | None = None) -> FastAPI:
+               retention: Retention | None = None, analytics: Analytics | None = None) -> FastAPI:
     app = FastAPI(title="Fleet telemetry depot", version=__version__)
     # Browser viewers (app.rerun.io, a local web viewer) fetch recordings cross-origin.
     app.add_middleware(CORSMiddleware, allow_origins=["*"], allow_methods=["GET", "HEAD"],
@@ -26,6 +28,9 @@ def create_app(settings: Settings, ingest: IngestService | None = None,
     app.state.settings = settings
     app.state.ingest = ingest
     app.state.retention = retention
+    app.state.analytics = analytics
+    if analytics is not None:
+        app.include_router(analytics_rest.router)
     if retention is not None:
         app.state.tiers = retention.tiers
         app.include_router(retention_rest.router)

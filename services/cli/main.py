@@ -12,6 +12,7 @@ from services.cli.retention import catalog, retention
 from services.cli.rrd import rrd
 from services.cli.runs import download, runs, view
 from services.cli.serve import serve
+from services.cli.sql import sql
 from services.cli.upload import upload
 
 
@@ -30,6 +31,7 @@ cli.add_command(download)
 cli.add_command(view)
 cli.add_command(retention)
 cli.add_command(catalog)
+cli.add_command(sql)
 
 
 def main() -> None:

@@ -18,7 +18,7 @@ from catalog.db import session_scope
 from catalog.models import Run, RunLifecycle
 from services.errors import ErrorCode, FleetError
 from services.retention.seal import RECORDING
-from services.retention.tiers import Tiers
+from services.retention.tiers import Tiers, readable_when_cold
 from services.storage.objectstore import ArchiveStore, ObjectNotFoundError, copy_object
 
 log = logging.getLogger(__name__)
@@ -82,6 +82,9 @@ def request_restore(run_id: str, tiers: Tiers, catalog: sessionmaker[Session], n
             return life  # already asked for: restoring twice changes nothing
         key = f"{life.prefix}/{RECORDING}"
         mode = life.archive_mode
+    if readable_when_cold(mode):
+        raise RestoreNotNeededError(f"run {run_id!r} is kept in storage class {mode}, which reads without a "
+                                    "restore: download it as it is")
     if mode and mode != "store":
         _archive_store(tiers).restore(key, max(1, round(days)))
     with session_scope(catalog) as session:
@@ -137,6 +140,7 @@ def delete(run_id: str, tiers: Tiers, catalog: sessionmaker[Session], now: dt.da
         if run.tier == "deleted":
             return "already deleted"
         prefix = life.prefix
+        analytics = [o.key for o in queries.run_objects(session, run_id).values() if o.name.startswith("analytics/")]
     removed = 0
     for store in (tiers.warm, tiers.cold) if tiers.cold is not tiers.warm else (tiers.warm,):
         for info in list(store.list(prefix + "/")):
@@ -145,6 +149,9 @@ def delete(run_id: str, tiers: Tiers, catalog: sessionmaker[Session], now: dt.da
             except ObjectNotFoundError:
                 continue
             removed += 1
+    for key in analytics:  # the run's rows in the analytics tables (warm store, partitioned elsewhere)
+        tiers.warm.delete(key)
+        removed += 1
     with session_scope(catalog) as session:
         run, life = _load(session, run_id)
         run.tier, run.updated_at = "deleted", now

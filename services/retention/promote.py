@@ -22,6 +22,8 @@ from sqlalchemy.orm import Session, sessionmaker
 from catalog import queries
 from catalog.db import session_scope
 from catalog.queries import ObjectRecord, RunRecord
+from services.analytics.extract import Extractor
+from services.analytics.store import write_analytics
 from services.errors import ErrorCode, FleetError
 from services.ingest.service import IngestService, RunState
 from services.retention.seal import INDEX, RECORDING, RUN_JSON, SealedRun, seal
@@ -99,7 +101,8 @@ def _promote(run: RunState, ingest: IngestService, tiers: Tiers, catalog: sessio
         _download(tiers, f"{prefix}/{RECORDING}", base)
         sources.append(iter(iter_events(base)))
     sources.append(read_events(run.hot.path, size, None))
-    sealed = seal(sources, workdir / RECORDING, run.run_id, now)  # (1)
+    analytics = Extractor(run.run_id)
+    sealed = seal(sources, workdir / RECORDING, run.run_id, now, analytics.add)  # (1)
     record = _sealed_record(run, sealed, ingest.default_robot)
     prefix = prefix or run_prefix(record.robot_id, record.date, run.run_id)
     objects = [ObjectRecord(RECORDING, f"{prefix}/{RECORDING}", "warm", sealed.recording_size,
@@ -108,6 +111,7 @@ def _promote(run: RunState, ingest: IngestService, tiers: Tiers, catalog: sessio
     with open(sealed.recording, "rb") as fh:  # (2) checked by the store against what was sent
         tiers.warm.put(objects[0].key, fh)
     tiers.warm.put(objects[1].key, sealed.index)
+    objects += write_analytics(tiers.warm, analytics, record.robot_id, record.date.isoformat())
     tiers.warm.put(f"{prefix}/{RUN_JSON}", run_json(record, prefix, objects, now))
     for obj in objects:  # (3)
         held = tiers.warm.head(obj.key).size

@@ -11,14 +11,14 @@ from __future__ import annotations
 import datetime as dt
 import hashlib
 import os
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import BinaryIO, cast
 
 from services.ingest.service import RunFacts
 from services.retention.index import BLUEPRINT_ACTIVATION, CHUNK, STORE_INFO, IndexRow, TimelineRange, to_parquet
-from services.rrd.chunk import chunk_meta
+from services.rrd.chunk import ChunkMeta, chunk_meta
 from services.rrd.encoder import RrdEncoder
 from services.rrd.frames import DEFAULT_VERSION
 from services.rrd.messages import (
@@ -70,9 +70,11 @@ def _store_kind(store: StoreId) -> str:
     return "blueprint" if store.kind == StoreKind.BLUEPRINT else "recording"
 
 
-def seal(recordings: Iterable[Iterator[Event | None]], out: Path, run_id: str, now: dt.datetime) -> SealedRun:
+def seal(recordings: Iterable[Iterator[Event | None]], out: Path, run_id: str, now: dt.datetime,
+         on_chunk: Callable[[ArrowMessage, ChunkMeta], None] | None = None) -> SealedRun:
     """Write `out` (recording.rrd) from the events of one or more recordings of the same run (a
-    sealed recording and what came after it); returns where every message went and the run's facts."""
+    sealed recording and what came after it); returns where every message went and the run's facts.
+    `on_chunk` sees every recording chunk kept (analytics extraction rides on this one pass)."""
     facts = RunFacts(run_id, now)
     rows: list[IndexRow] = []
     seen_chunks: set[bytes] = set()
@@ -109,6 +111,8 @@ def seal(recordings: Iterable[Iterator[Event | None]], out: Path, run_id: str, n
                         continue
                     seen_chunks.add(meta.chunk_id)
                     encoder.write_arrow(event, meta)
+                    if on_chunk is not None and event.store_id.kind == StoreKind.RECORDING:
+                        on_chunk(event, meta)
                     rows.append(IndexRow(
                         CHUNK, _store_kind(event.store_id), start, encoder.position - start, meta.chunk_id,
                         meta.entity_path, meta.is_static, meta.num_rows,

@@ -20,6 +20,14 @@ from services.settings import Settings
 from services.storage.objectstore import ObjectStore, open_store, supports_archive
 
 RUN_JSON_FORMAT = 1
+# Storage classes whose objects cannot be read until restored; the others (STANDARD_IA,
+# ONEZONE_IA, GLACIER_IR, ...) are cheaper to keep but read like any object.
+NEEDS_RESTORE = frozenset({"GLACIER", "DEEP_ARCHIVE"})
+
+
+def readable_when_cold(archive_mode: str | None) -> bool:
+    """Whether a cold run's recording can be read where it lies without a restore."""
+    return archive_mode not in (None, "store") and archive_mode not in NEEDS_RESTORE
 
 
 class RetentionConfigError(FleetError):

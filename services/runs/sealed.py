@@ -19,6 +19,7 @@ from catalog.db import session_scope
 from services.errors import ErrorCode, FleetError
 from services.retention.index import BLUEPRINT_ACTIVATION, CHUNK, STORE_INFO, IndexRow, from_parquet
 from services.retention.seal import INDEX, RECORDING
+from services.retention.tiers import readable_when_cold
 from services.rrd.decoder import decode_message
 from services.rrd.frames import (
     MESSAGE_HEADER_SIZE,
@@ -81,8 +82,9 @@ def locate_sealed(catalog: sessionmaker[Session], warm: ObjectStore, run_id: str
         if run.tier == "deleted":
             raise RunDeletedError(f"run {run_id!r} was deleted on {_when(life.deleted_at)} by {life.deleted_by}"
                                   + (f" (retention policy {life.deleted_policy!r})" if life.deleted_policy else ""))
-        restored = life.restore_state == "restored" and (life.restore_until is None or
-                                                        queries.aware(life.restore_until) > now)
+        restored = readable_when_cold(life.archive_mode) or (
+            life.restore_state == "restored" and (life.restore_until is None or
+                                                  queries.aware(life.restore_until) > now))
         if run.tier == "cold" and not restored:
             doing = (f"a restore was asked for at {_when(life.restore_requested_at)} and is under way: try again "
                      "later" if life.restore_state == "restoring" else

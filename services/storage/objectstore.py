@@ -12,7 +12,7 @@ from urllib.parse import urlparse
 
 from services.errors import ErrorCode, FleetError
 
-_SAFE_KEY = re.compile(r"^[A-Za-z0-9._\-/]+$")
+_SAFE_KEY = re.compile(r"^[A-Za-z0-9._\-/=]+$")  # "=": Hive partitions (robot_id=R/)
 
 
 class ObjectNotFoundError(FleetError):
@@ -105,7 +105,7 @@ def copy_object(source: ObjectStore, target: ObjectStore, key: str) -> ObjectInf
 
 def check_key(key: str) -> str:
     if not key or key.startswith("/") or not _SAFE_KEY.match(key) or ".." in key.split("/"):
-        raise ValueError(f"object key {key!r} must be a relative path of A-Z a-z 0-9 . _ - /")
+        raise ValueError(f"object key {key!r} must be a relative path of A-Z a-z 0-9 . _ - / =")
     return key
 
 

@@ -32,10 +32,23 @@ class S3Store:
         self.bucket = parsed.netloc
         self.prefix = parsed.path.strip("/")
         # Short connect timeout: during an outage callers learn quickly and retry on their own schedule.
-        self._client: Any = boto3.client("s3", endpoint_url=endpoint_url, region_name=region,
-                                         config=Config(retries={"max_attempts": 3, "mode": "standard"},
-                                                       connect_timeout=5, read_timeout=60))
+        self._session = boto3.session.Session(region_name=region)
+        self.endpoint_url = endpoint_url
+        self._client: Any = self._session.client("s3", endpoint_url=endpoint_url,
+                                                 config=Config(retries={"max_attempts": 3, "mode": "standard"},
+                                                               connect_timeout=5, read_timeout=60))
         self._transfer = TransferConfig(multipart_threshold=MULTIPART_BYTES, multipart_chunksize=MULTIPART_BYTES)
+
+    def access(self) -> dict[str, Any]:
+        """Credentials, region and endpoint, for other readers of this store (analytics SQL)."""
+        credentials = self._session.get_credentials()
+        frozen = credentials.get_frozen_credentials() if credentials is not None else None
+        endpoint = urlparse(self.endpoint_url) if self.endpoint_url else None
+        return {"key_id": frozen.access_key if frozen else None, "secret": frozen.secret_key if frozen else None,
+                "session_token": frozen.token if frozen else None,
+                "region": self._client.meta.region_name or "us-east-1",
+                "endpoint": endpoint.netloc if endpoint else None,
+                "use_ssl": endpoint.scheme != "http" if endpoint else True}
 
     def _key(self, key: str) -> str:
         check_key(key)

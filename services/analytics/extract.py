@@ -1,0 +1,182 @@
+"""Analytics tables extracted from a run's chunks: scalars, text logs and transforms, as Parquet.
+
+One pass over the chunks (the same pass that seals the run); only chunks holding one of these
+archetypes are decoded. Every table has `run_id`, `entity`, `log_time` and one column per other
+timeline of the run (named after it; `timeline_NAME` if the name is taken). Robot and date are
+not stored in the files: they are the Hive partition (`robot_id=R/date=D/`) the file lies in.
+"""
+
+from __future__ import annotations
+
+import io
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.compute as pc
+import pyarrow.parquet as pq
+
+from services.rrd.chunk import ChunkMeta, read_chunk
+from services.rrd.messages import ArrowMessage
+
+TABLES = ("scalars", "text_logs", "transforms")
+LOG_TIME = "log_time"
+SCALARS = "Scalars:scalars"
+TEXT, LEVEL = "TextLog:text", "TextLog:level"
+TRANSLATION, QUATERNION, AXIS_ANGLE = (
+    "Transform3D:translation", "Transform3D:quaternion", "Transform3D:rotation_axis_angle")
+
+FIXED_COLUMNS = {
+    "scalars": ("run_id", "entity", "component", "instance", "value"),
+    "text_logs": ("run_id", "entity", "level", "text"),
+    "transforms": ("run_id", "entity", "tx", "ty", "tz", "qx", "qy", "qz", "qw"),
+}
+
+
+def _interesting(meta: ChunkMeta) -> bool:
+    names = meta.component_names
+    return SCALARS in names or TEXT in names or TRANSLATION in names or QUATERNION in names or AXIS_ANGLE in names
+
+
+@dataclass
+class Extractor:
+    """Collects the analytics rows of one run, chunk by chunk."""
+
+    run_id: str
+    batches: dict[str, list[pa.Table]] = field(default_factory=lambda: {t: [] for t in TABLES})
+
+    def add(self, msg: ArrowMessage, meta: ChunkMeta) -> None:
+        if meta.is_static or not _interesting(meta) or meta.entity_path.startswith("/__properties"):
+            return
+        batch = read_chunk(msg)
+        columns = {_component(f): batch.column(i) for i, f in enumerate(batch.schema)}
+        times = _timelines(batch)
+        if SCALARS in columns:
+            self._scalars(meta.entity_path, columns[SCALARS], times)
+        if TEXT in columns:
+            self._text_logs(meta.entity_path, columns[TEXT], columns.get(LEVEL), times)
+        if TRANSLATION in columns or QUATERNION in columns or AXIS_ANGLE in columns:
+            self._transforms(meta.entity_path, columns, times)
+
+    def _scalars(self, entity: str, column: pa.Array, times: dict[str, pa.Array]) -> None:
+        values = pc.list_flatten(column)
+        if len(values) == 0:
+            return
+        rows = pc.list_parent_indices(column).to_numpy()
+        offsets = np.asarray(column.offsets)
+        instance = np.arange(len(values), dtype=np.int64) + offsets[0] - offsets[rows]
+        n = len(values)
+        self._emit("scalars", {
+            "run_id": pa.array([self.run_id] * n, pa.string()), "entity": pa.array([entity] * n, pa.string()),
+            "component": pa.array([SCALARS] * n, pa.string()), "instance": pa.array(instance.astype(np.int32)),
+            "value": pc.cast(values, pa.float64())}, times, rows)
+
+    def _text_logs(self, entity: str, text: pa.Array, level: pa.Array | None, times: dict[str, pa.Array]) -> None:
+        texts, has = _first(text)
+        rows = np.flatnonzero(has)
+        if len(rows) == 0:
+            return
+        levels = _first(level)[0] if level is not None else pa.nulls(len(text), pa.string())
+        n = len(rows)
+        self._emit("text_logs", {
+            "run_id": pa.array([self.run_id] * n, pa.string()), "entity": pa.array([entity] * n, pa.string()),
+            "level": levels.take(pa.array(rows)), "text": texts.take(pa.array(rows))}, times, rows)
+
+    def _transforms(self, entity: str, columns: dict[str, pa.Array], times: dict[str, pa.Array]) -> None:
+        length = len(next(iter(times.values()))) if times else len(next(iter(columns.values())))
+        translation, has_t = _vectors(columns.get(TRANSLATION), 3, length)
+        rotation, has_r = _vectors(columns.get(QUATERNION), 4, length)
+        if AXIS_ANGLE in columns:
+            axis_angle, has_aa = _axis_angle_quaternions(columns[AXIS_ANGLE], length)
+            rotation = np.where(has_aa[:, None] & ~has_r[:, None], axis_angle, rotation)
+            has_r = has_r | has_aa
+        rows = np.flatnonzero(has_t | has_r)
+        if len(rows) == 0:
+            return
+        n = len(rows)
+        out: dict[str, pa.Array] = {"run_id": pa.array([self.run_id] * n, pa.string()),
+                                    "entity": pa.array([entity] * n, pa.string())}
+        for i, name in enumerate(("tx", "ty", "tz")):
+            out[name] = pa.array(translation[rows, i], pa.float64(), mask=~has_t[rows])
+        for i, name in enumerate(("qx", "qy", "qz", "qw")):
+            out[name] = pa.array(rotation[rows, i], pa.float64(), mask=~has_r[rows])
+        self._emit("transforms", out, times, rows)
+
+    def _emit(self, table: str, columns: dict[str, pa.Array], times: dict[str, pa.Array], rows: np.ndarray) -> None:
+        taken = pa.array(rows.astype(np.int64))
+        for name, values in times.items():
+            column = name if name == LOG_TIME or name not in FIXED_COLUMNS[table] else f"timeline_{name}"
+            columns[column] = values.take(taken)
+        self.batches[table].append(pa.table(columns))
+
+    def tables(self) -> dict[str, pa.Table]:
+        """Each non-empty table, its per-chunk pieces unified (runs may add timelines as they go)."""
+        return {name: pa.concat_tables(parts, promote_options="permissive")
+                for name, parts in self.batches.items() if parts}
+
+
+def to_parquet(table: pa.Table) -> bytes:
+    out = io.BytesIO()
+    pq.write_table(table, out, compression="zstd", row_group_size=1 << 20)
+    return out.getvalue()
+
+
+def partition_key(table: str, robot_id: str, date: str, run_id: str) -> str:
+    return f"analytics/{table}/robot_id={robot_id}/date={date}/{run_id}.parquet"
+
+
+def extract(run_id: str, chunks: Iterable[tuple[ArrowMessage, ChunkMeta]]) -> dict[str, pa.Table]:
+    extractor = Extractor(run_id)
+    for msg, meta in chunks:
+        extractor.add(msg, meta)
+    return extractor.tables()
+
+
+# --- Arrow helpers -------------------------------------------------------------------------------
+
+
+def _component(fld: pa.Field) -> str:
+    return str((fld.metadata or {}).get(b"rerun:component", fld.name.encode()).decode())
+
+
+def _timelines(batch: pa.RecordBatch) -> dict[str, pa.Array]:
+    out = {}
+    for i, fld in enumerate(batch.schema):
+        md = fld.metadata or {}
+        if md.get(b"rerun:kind") == b"index":
+            out[md.get(b"rerun:index_name", fld.name.encode()).decode()] = batch.column(i)
+    return out
+
+
+def _first(column: pa.Array) -> tuple[pa.Array, np.ndarray]:
+    """The first instance of each row of a list column (null where the row has none), and which rows have one."""
+    offsets = np.asarray(column.offsets)
+    valid = np.asarray(column.is_valid())
+    has = valid & (offsets[1:] > offsets[:-1])
+    values = column.values
+    first = values.take(pa.array(np.where(has, offsets[:-1], 0).astype(np.int64))) if len(values) else \
+        pa.nulls(len(column), values.type)
+    return pc.if_else(pa.array(has), first, pa.nulls(len(column), values.type)), has
+
+
+def _vectors(column: pa.Array | None, width: int, length: int) -> tuple[np.ndarray, np.ndarray]:
+    """First instance of a list<fixed_size_list<float, width>> column as an (n, width) array."""
+    if column is None:
+        return np.zeros((length, width)), np.zeros(length, dtype=bool)
+    first, has = _first(column)
+    flat = np.asarray(first.values.to_numpy(zero_copy_only=False), dtype=np.float64)
+    start = first.offset * width
+    return flat[start:start + len(first) * width].reshape(len(first), width), has
+
+
+def _axis_angle_quaternions(column: pa.Array, length: int) -> tuple[np.ndarray, np.ndarray]:
+    first, has = _first(column)
+    axis = np.asarray(first.field("axis").values.to_numpy(zero_copy_only=False), dtype=np.float64)
+    axis = axis.reshape(len(first), 3)
+    angle = np.asarray(first.field("angle").to_numpy(zero_copy_only=False), dtype=np.float64)
+    norm = np.linalg.norm(axis, axis=1, keepdims=True)
+    unit = np.divide(axis, norm, out=np.zeros_like(axis), where=norm > 0)
+    half = np.nan_to_num(angle) / 2
+    quaternion = np.column_stack([unit * np.sin(half)[:, None], np.cos(half)])
+    return quaternion, has & (norm[:, 0] > 0)

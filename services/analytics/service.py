@@ -1,0 +1,157 @@
+"""Analytics: SQL over the catalog and the telemetry tables, answers in JSON, CSV, Arrow or Parquet."""
+
+from __future__ import annotations
+
+import datetime as dt
+import io
+import json
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import pyarrow as pa
+import pyarrow.csv as pacsv
+import pyarrow.parquet as pq
+import sqlalchemy as sa
+from sqlalchemy.orm import Session, sessionmaker
+
+from catalog.db import session_scope
+from catalog.models import Robot, Run, RunEntity, RunTimeline
+from services.analytics import sql
+from services.analytics.extract import TABLES, Extractor
+from services.analytics.store import write_analytics
+from services.errors import ErrorCode, FleetError
+from services.ingest.service import IngestService
+from services.rrd.chunk import chunk_meta
+from services.rrd.messages import ArrowMessage, StoreKind
+from services.runs.download import read_events
+from services.runs.service import run_not_found
+from services.storage.objectstore import ObjectStore
+
+FORMATS = {"json": "application/json", "csv": "text/csv", "arrow": "application/vnd.apache.arrow.stream",
+           "parquet": "application/vnd.apache.parquet"}
+CATALOG_TABLES = {"robots": Robot, "runs": Run, "run_entities": RunEntity, "run_timelines": RunTimeline}
+
+
+class UnsupportedFormatError(FleetError):
+    code = ErrorCode.INVALID_ARGUMENT
+
+
+@dataclass
+class Analytics:
+    catalog: sessionmaker[Session]
+    warm: ObjectStore
+    limits: sql.Limits
+    clock: Callable[[], dt.datetime] = lambda: dt.datetime.now(dt.UTC)
+
+    def s3_access(self) -> sql.S3Access | None:
+        access = getattr(self.warm, "access", None)
+        if access is None:
+            return None
+        found = access()
+        if not found["key_id"]:
+            return None
+        return sql.S3Access(found["key_id"], found["secret"], found["region"], found["endpoint"], found["use_ssl"],
+                            found["session_token"])
+
+
+def catalog_tables(session: Session) -> dict[str, pa.Table]:
+    """The catalog as Arrow tables (the same on Postgres and DuckDB): what the SQL views show."""
+    out = {}
+    for name, model in CATALOG_TABLES.items():
+        columns = list(model.__table__.columns)
+        rows = session.execute(sa.select(*columns)).all()
+        out[name] = pa.table({c.name: pa.array([_plain(row[i]) for row in rows], _arrow_type(c.type))
+                              for i, c in enumerate(columns)})
+    return out
+
+
+def _arrow_type(column_type: Any) -> pa.DataType:
+    if isinstance(column_type, sa.DateTime):
+        return pa.timestamp("us", tz="UTC")
+    if isinstance(column_type, sa.Date):
+        return pa.date32()
+    if isinstance(column_type, sa.Boolean):
+        return pa.bool_()
+    if isinstance(column_type, sa.Integer):  # BigInteger included
+        return pa.int64()
+    return pa.string()
+
+
+def _plain(value: Any) -> Any:
+    if isinstance(value, dt.datetime) and value.tzinfo is None:
+        return value.replace(tzinfo=dt.UTC)  # DuckDB hands back UTC without a zone
+    return value
+
+
+def present_tables(warm: ObjectStore) -> set[str]:
+    """The analytics tables that have at least one file (one listing call each)."""
+    return {t for t in TABLES if next(iter(warm.list(f"analytics/{t}/")), None) is not None}
+
+
+def query(ctx: Analytics, text: str) -> pa.Table:
+    with session_scope(ctx.catalog) as session:
+        catalog = catalog_tables(session)
+    root = sql.analytics_root(ctx.warm.url)
+    with sql.sandbox(root, catalog, present_tables(ctx.warm), ctx.limits, ctx.s3_access()) as con:
+        return sql.run(con, text, ctx.limits)
+
+
+def pick_format(name: str | None, accept: str | None) -> str:
+    """`?format=` wins, else the Accept header, else JSON."""
+    if name:
+        if name not in FORMATS:
+            raise UnsupportedFormatError(f"format {name!r} is not one of {', '.join(FORMATS)}")
+        return name
+    for part in (accept or "").split(","):
+        media = part.split(";")[0].strip()
+        for fmt, known in FORMATS.items():
+            if media == known:
+                return fmt
+    return "json"
+
+
+def encode(table: pa.Table, fmt: str) -> bytes:
+    if fmt == "arrow":
+        sink = io.BytesIO()
+        with pa.ipc.new_stream(sink, table.schema) as writer:
+            writer.write_table(table)
+        return sink.getvalue()
+    if fmt == "parquet":
+        sink = io.BytesIO()
+        pq.write_table(table, sink)
+        return sink.getvalue()
+    if fmt == "csv":
+        sink = io.BytesIO()
+        pacsv.write_csv(textual(table), sink)
+        return sink.getvalue()
+    plain = textual(table)
+    body = {"columns": [{"name": f.name, "type": str(t.type)} for f, t in zip(plain.schema, table.schema, strict=True)],
+            "rows": [list(r.values()) for r in plain.to_pylist()], "row_count": table.num_rows}
+    return json.dumps(body, default=str).encode()
+
+
+def textual(table: pa.Table) -> pa.Table:
+    """Timestamps and durations as text or integers, so JSON and CSV keep nanoseconds."""
+    columns = []
+    for column in table.columns:
+        if pa.types.is_timestamp(column.type) or pa.types.is_date(column.type):
+            column = column.cast(pa.string())
+        elif pa.types.is_duration(column.type):
+            column = column.cast(pa.int64())
+        columns.append(column)
+    return pa.table(columns, names=table.column_names)
+
+
+def extract_hot_run(ctx: Analytics, ingest: IngestService, run_id: str) -> list[dict[str, Any]]:
+    """Write a hot run's analytics tables now (promotion rewrites them when the run is sealed)."""
+    run = ingest.runs.get(run_id)
+    if run is None:
+        raise run_not_found(run_id)
+    extractor = Extractor(run_id)
+    for event in read_events(run.hot.path, run.hot.size, None):
+        if isinstance(event, ArrowMessage) and event.store_id.kind == StoreKind.RECORDING:
+            extractor.add(event, chunk_meta(event))
+    record = run.record(ingest.default_robot)
+    objects = write_analytics(ctx.warm, extractor, record.robot_id, record.date.isoformat())
+    return [{"table": o.name.removeprefix("analytics/"), "key": o.key, "bytes": o.size} for o in objects]
