@@ -84,10 +84,7 @@ class FleetClient:
         written = 0
         try:
             with self._http.stream("GET", url) as response:
-                if response.status_code >= 400:
-                    response.read()
-                    body = response.json()
-                    raise ServiceError(str(body.get("message", response.reason_phrase)), response.status_code, body)
+                _check(response)
                 with open(out, "wb") as fh:
                     for piece in response.iter_bytes():
                         fh.write(piece)
@@ -95,8 +92,7 @@ class FleetClient:
                         if on_progress is not None:
                             on_progress(len(piece))
         except httpx.TransportError as exc:
-            raise UnreachableError(f"cannot reach the fleet service at {self.api_url} ({exc}); "
-                                   "is it running? set FLEET_API_URL") from exc
+            raise self._unreachable(exc) from exc
         return written
 
     def sql(self, query: str) -> pa.Table:
@@ -112,14 +108,8 @@ class FleetClient:
         try:
             response = self._http.post("/v1/sql", json={"query": query}, params={"format": fmt}, timeout=None)
         except httpx.TransportError as exc:
-            raise UnreachableError(f"cannot reach the fleet service at {self.api_url} ({exc}); "
-                                   "is it running? set FLEET_API_URL") from exc
-        if response.status_code >= 400:
-            try:
-                body = response.json()
-            except ValueError:
-                body = {"message": response.text[:500]}
-            raise ServiceError(str(body.get("message", response.reason_phrase)), response.status_code, body)
+            raise self._unreachable(exc) from exc
+        _check(response)
         return response.content
 
     def retention(self) -> dict[str, Any]:
@@ -149,32 +139,40 @@ class FleetClient:
     def _events(self, method: str, url: str, **kwargs: Any) -> Iterator[dict[str, Any]]:
         try:
             with self._http.stream(method, url, timeout=None, **kwargs) as response:
-                if response.status_code >= 400:
-                    response.read()
-                    body = response.json()
-                    raise ServiceError(str(body.get("message", response.reason_phrase)), response.status_code, body)
+                _check(response)
                 for line in response.iter_lines():
                     if line.strip():
                         yield json.loads(line)
         except httpx.TransportError as exc:
-            raise UnreachableError(f"cannot reach the fleet service at {self.api_url} ({exc}); "
-                                   "is it running? set FLEET_API_URL") from exc
+            raise self._unreachable(exc) from exc
 
     def _request(self, method: str, url: str, **kwargs: Any) -> dict[str, Any]:
         try:
             response = self._http.request(method, url, **kwargs)
         except httpx.TransportError as exc:
-            raise UnreachableError(f"cannot reach the fleet service at {self.api_url} ({exc}); "
-                                   "is it running? set FLEET_API_URL") from exc
-        body: dict[str, Any]
+            raise self._unreachable(exc) from exc
+        _check(response)
         try:
-            body = response.json()
+            body: dict[str, Any] = response.json()
         except ValueError:
             body = {"message": response.text[:500]}
-        if response.status_code >= 400:
-            raise ServiceError(str(body.get("message", response.reason_phrase)), response.status_code, body)
         return body
 
+    def _unreachable(self, exc: Exception) -> UnreachableError:
+        return UnreachableError(f"cannot reach the fleet service at {self.api_url} ({exc}); "
+                                "is it running? set FLEET_API_URL")
+
+
+def _check(response: httpx.Response) -> None:
+    """Raise the service's error (its code and message) for a 4xx/5xx answer."""
+    if response.status_code < 400:
+        return
+    response.read()
+    try:
+        body = response.json()
+    except ValueError:
+        body = {"message": response.text[:500]}
+    raise ServiceError(str(body.get("message", response.reason_phrase)), response.status_code, body)
 
 def _default_user() -> str:
     try:
