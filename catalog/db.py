@@ -38,7 +38,9 @@ def create_engine(url: str) -> sa.Engine:
     """An engine for `duckdb:///PATH` (embedded) or `postgresql+psycopg://...`."""
     if url.startswith("duckdb:///"):
         Path(url.removeprefix("duckdb:///")).parent.mkdir(parents=True, exist_ok=True)
-        return sa.create_engine(url, poolclass=sa.pool.SingletonThreadPool)
+        # A pooled connection per checkout (not per thread): SingletonThreadPool closes other threads'
+        # connections, even ones in use, once more than pool_size threads have touched the catalog.
+        return sa.create_engine(url, pool_size=5, max_overflow=20)
     if url.startswith("postgresql"):
         return sa.create_engine(url, pool_pre_ping=True)
     raise CatalogError(f"unsupported catalog URL {url!r}: use duckdb:///PATH or postgresql+psycopg://USER@HOST/DB")

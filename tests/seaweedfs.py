@@ -50,8 +50,8 @@ def seaweedfs(data_dir: Path, timeout: float = 60) -> Iterator[str]:
     log = open(data_dir / "weed.log", "wb")  # noqa: SIM115 - closed below
     proc = subprocess.Popen(
         [weed_binary(), "server", f"-dir={data_dir}", "-ip=127.0.0.1", "-ip.bind=127.0.0.1", "-s3",
-         f"-s3.port={s3}", "-s3.port.iceberg=0", f"-master.port={master}", f"-volume.port={volume}",
-         f"-filer.port={filer}"],
+         f"-s3.port={s3}", "-s3.port.iceberg=0", "-s3.port.lance=0", f"-master.port={master}",
+         f"-volume.port={volume}", f"-filer.port={filer}"],
         stdout=log, stderr=subprocess.STDOUT)
     endpoint = f"http://127.0.0.1:{s3}"
     try:

@@ -44,7 +44,10 @@ def archive(run_id: str, tiers: Tiers, catalog: sessionmaker[Session], now: dt.d
             return f"already {run.tier}"
         key = f"{life.prefix}/{RECORDING}"
     if tiers.cold_storage_class:
-        info = _archive_store(tiers).set_storage_class(key, tiers.cold_storage_class)
+        store = _archive_store(tiers)
+        info = store.head(key)
+        if (info.storage_class or "STANDARD") != tiers.cold_storage_class:  # else an attempt that died did it
+            info = store.set_storage_class(key, tiers.cold_storage_class)
         if (info.storage_class or "STANDARD") != tiers.cold_storage_class:
             raise FleetError(f"{key} is in storage class {info.storage_class}, not {tiers.cold_storage_class}")
         where = f"storage class {tiers.cold_storage_class}"
@@ -79,6 +82,7 @@ def request_restore(run_id: str, tiers: Tiers, catalog: sessionmaker[Session], n
             raise RestoreNotNeededError(f"run {run_id!r} is {run.tier}, not cold: it serves without a restore")
         if life.restore_state in ("restoring", "restored") and (
                 life.restore_until is None or queries.aware(life.restore_until) > now):
+            session.expunge(life)  # read after the session closes: keep its loaded state
             return life  # already asked for: restoring twice changes nothing
         key = f"{life.prefix}/{RECORDING}"
         mode = life.archive_mode

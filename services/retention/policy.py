@@ -11,11 +11,13 @@ from __future__ import annotations
 import datetime as dt
 from dataclasses import dataclass
 
-from pydantic import BaseModel, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 
 class PolicyOverride(BaseModel):
     """`[[retention_policies]]` in the TOML settings, or a JSON list in FLEET_RETENTION_POLICIES."""
+
+    model_config = ConfigDict(extra="forbid")  # a misspelt field must not fall back to the default's days
 
     name: str = Field(description="shown in the tombstone of every run it deletes")
     robot: str | None = Field(None, description="applies to this robot's runs")

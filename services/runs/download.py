@@ -278,7 +278,10 @@ def encode_run(events: Iterable[Event | None], entities: EntityFilter, *, bluepr
             if window is not None and window.exact and store.kind == StoreKind.RECORDING and not meta.is_static:
                 lo, hi = window.bounds
                 if meta.chunk_id in latest:
-                    lo, hi = latest[meta.chunk_id], latest[meta.chunk_id]  # just its newest row before start
+                    # Each component's newest row before start, from the chunk itself (a sealed run's
+                    # index knows only the chunk's range, and a sparse component ends earlier).
+                    lasts = [c.ranges[window.timeline].max for c in meta.components if window.timeline in c.ranges]
+                    lo, hi = (min(lasts), max(lasts)) if lasts else (latest[meta.chunk_id], latest[meta.chunk_id])
                 cut = trim(event, meta, window.timeline, lo, hi)
                 if cut is None:
                     continue

@@ -144,7 +144,7 @@ for i in range({frames}):
         rr.log(f'/world/e{{e}}', rr.Points3D(rng.random(({points}, 3), dtype=np.float32)))
     {"rr.log('/logs', rr.TextLog(f'step {i}', level='INFO'))" if text else "pass"}
 """
-    env = {**os.environ, **({"RERUN_CHUNK_MAX_ROWS": str(chunk_rows)} if chunk_rows else {})}
+    env = {**os.environ, **({"RERUN_FLUSH_NUM_ROWS": str(chunk_rows)} if chunk_rows else {})}
     subprocess.run([sys.executable, "-c", script], check=True, timeout=120, env=env)
     return path
 

@@ -1,0 +1,337 @@
+"""Serving sealed runs: ranged reads planned from `chunks.parquet`, and one URL whatever the tier.
+
+Runs are logged with the real SDK, uploaded into a node over local or S3 (moto) stores, served
+hot, promoted, and served again; what comes out is checked with `rerun rrd verify` and compared
+chunk by chunk with what the hot download gave for the same request.
+"""
+
+from __future__ import annotations
+
+import io
+import subprocess
+import sys
+from collections import Counter
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, BinaryIO
+
+import pytest
+from fastapi.testclient import TestClient
+
+from catalog import queries
+from catalog.db import session_scope
+from services.api.app import create_app
+from services.retention import archive
+from services.retention.seal import RECORDING
+from services.retention.service import PROMOTE, plan, run_plan
+from services.retention.tiers import Tiers
+from services.rrd import ArrowMessage, StoreKind, iter_events
+from services.rrd.chunk import chunk_meta, read_chunk
+from services.runs.download import EntityFilter, stream_run
+from services.runs.sealed import open_sealed, stream_sealed
+from services.settings import load_settings
+from services.storage.objectstore import ObjectInfo, ObjectStore
+from tests.conftest import find_rerun
+from tests.services.retention import conftest as retention
+from tests.services.retention.conftest import Clock, Node, NodeFactory, log_run
+
+pytestmark = pytest.mark.sdk
+tiers, make_node = retention.tiers, retention.make_node  # the retention tests' fixtures: stores and nodes
+
+PROMOTE_AFTER_S = 600.0
+WIDE = "0123456789abcdef0123456789abcdef"  # ten entities
+CHUNKY = "fedcba9876543210fedcba9876543210"  # ten entities, five rows a chunk
+SPARSE = "5a5a5a5a5a5a5a5a5a5a5a5a5a5a5a5a"  # one entity, one component only in some rows, compacted
+
+
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
+    """Logged once for the module: a ten-entity run (one chunk an entity) and one with several chunks an entity."""
+    root = tmp_path_factory.mktemp("sealed-runs")
+    wide = log_run(root / "wide.rrd", WIDE, entities=10)
+    with pytest.MonkeyPatch.context() as env:
+        # the SDK's batcher cuts chunks by RERUN_FLUSH_NUM_ROWS (RERUN_CHUNK_MAX_ROWS, which log_run's
+        # chunk_rows sets, is the viewer store's compaction limit and leaves logged chunks whole)
+        env.setenv("RERUN_FLUSH_NUM_ROWS", "5")
+        chunky = log_run(root / "chunky.rrd", CHUNKY, entities=10, chunk_rows=5)
+        sparse = _log_sparse(root / "sparse-logged.rrd")
+    compacted = root / "sparse.rrd"
+    subprocess.run([find_rerun() or "rerun", "rrd", "optimize", "--max-rows", "10", str(sparse), "-o",
+                    str(compacted)], check=True, capture_output=True, timeout=120)
+    return {"wide": wide, "chunky": chunky, "sparse": compacted}
+
+
+def _log_sparse(path: Path) -> Path:
+    """/world/sparse: positions every frame, colors at frames 0-2 and 7 only (a partial update)."""
+    script = f"""
+import numpy as np, rerun as rr
+rr.init("fleet-test", recording_id={SPARSE!r}, spawn=False)
+rr.save({str(path)!r})
+for i in range(30):
+    rr.set_time("frame", sequence=i)
+    positions = np.full((3, 3), i, dtype=np.float32)
+    if i < 3 or i == 7:
+        rr.log("/world/sparse", rr.Points3D(positions, colors=[255, 0, 0] if i < 3 else [0, 255, 0]))
+    else:
+        rr.log("/world/sparse", rr.Points3D(positions))
+"""
+    subprocess.run([sys.executable, "-c", script], check=True, timeout=120)
+    return path
+
+
+@dataclass
+class CountingStore:
+    """A warm store that counts the bytes its ranged reads return."""
+
+    inner: ObjectStore
+    read: int = 0
+    reads: list[tuple[str, int, int | None, int]] = field(default_factory=list)
+    url: str = ""
+
+    def __post_init__(self) -> None:
+        self.url = self.inner.url
+
+    def put(self, key: str, data: bytes | BinaryIO) -> ObjectInfo:
+        return self.inner.put(key, data)
+
+    def get_range(self, key: str, start: int = 0, length: int | None = None) -> bytes:
+        data = self.inner.get_range(key, start, length)
+        self.read += len(data)
+        self.reads.append((key, start, length, len(data)))
+        return data
+
+    def head(self, key: str) -> ObjectInfo:
+        return self.inner.head(key)
+
+    def list(self, prefix: str = "") -> Iterator[ObjectInfo]:
+        return self.inner.list(prefix)
+
+    def delete(self, key: str) -> None:
+        self.inner.delete(key)
+
+
+def _node(make_node: NodeFactory, tiers: Tiers, run: Path) -> tuple[Node, str]:
+    node = make_node(tiers, clock=Clock(), promote_after_s=PROMOTE_AFTER_S)
+    report = node.upload(run)
+    run_ids = list(node.ingest.runs)
+    assert len(run_ids) == 1, report
+    return node, run_ids[0]
+
+
+def _promote(node: Node, run_id: str) -> str:
+    """Promote the node's hot run the way the scheduler does; returns its warm prefix."""
+    node.clock.advance(seconds=PROMOTE_AFTER_S + 1)
+    actions = plan(node.retention, [PROMOTE])
+    assert [a.run_id for a in actions] == [run_id]
+    outcomes = run_plan(node.retention, actions)
+    assert all(o.ok for o in outcomes), [o.detail for o in outcomes]
+    assert run_id not in node.ingest.runs
+    with session_scope(node.catalog) as session:
+        run, life = queries.get_run(session, run_id), queries.lifecycle(session, run_id)
+        assert run is not None and run.tier == "warm" and life is not None
+        return life.prefix
+
+
+def _hot(node: Node, run_id: str, entities: EntityFilter) -> bytes:
+    hot = node.ingest.runs[run_id].hot
+    return b"".join(stream_run(hot.path, hot.size, entities))
+
+
+def _chunks(data: bytes) -> list[tuple[str, bytes, int]]:
+    """(entity, chunk id, rows) of every recording chunk of an .rrd stream."""
+    out = []
+    for event in iter_events(io.BytesIO(data)):
+        if isinstance(event, ArrowMessage) and event.store_id.kind == StoreKind.RECORDING:
+            meta = chunk_meta(event)
+            out.append((meta.entity_path, meta.chunk_id, meta.num_rows))
+    return out
+
+
+def _ids(data: bytes) -> set[bytes]:
+    """Every chunk id of a stream (recording and blueprint)."""
+    return {chunk_meta(e).chunk_id for e in iter_events(io.BytesIO(data)) if isinstance(e, ArrowMessage)}
+
+
+def _rows(data: bytes) -> Counter[str]:
+    rows: Counter[str] = Counter()
+    for entity, _, n in _chunks(data):
+        rows[entity] += n
+    return rows
+
+
+def _cells(data: bytes, timeline: str = "frame") -> set[tuple[str, str, int]]:
+    """(entity, component, time) of every non-null value on `timeline` in the recording's chunks."""
+    out = set()
+    for event in iter_events(io.BytesIO(data)):
+        if not isinstance(event, ArrowMessage) or event.store_id.kind != StoreKind.RECORDING:
+            continue
+        meta, batch = chunk_meta(event), read_chunk(event)
+        index = next((ix for ix in meta.layout.indexes if ix.name == timeline), None)
+        if index is None:
+            continue
+        times = batch.column(index.position).cast("int64").to_pylist()
+        for col in meta.layout.data:
+            for t, valid in zip(times, batch.column(col.position).is_valid().to_pylist(), strict=True):
+                if valid:
+                    out.add((meta.entity_path, col.component, t))
+    return out
+
+
+def _verify(rerun_bin: str, data: bytes, path: Path) -> None:
+    path.write_bytes(data)
+    verify = subprocess.run([rerun_bin, "rrd", "verify", str(path)], capture_output=True, text=True, timeout=120)
+    assert verify.returncode == 0, verify.stdout + verify.stderr
+
+
+# --- ranged reads ------------------------------------------------------------------------------
+
+
+def test_one_entity_of_ten_reads_a_small_part_of_the_object(tiers: Tiers, make_node: NodeFactory,
+                                                            runs: dict[str, Path], rerun_bin: str, tmp_path: Path):
+    node, run_id = _node(make_node, tiers, runs["wide"])
+    one = EntityFilter(include=["/world/e3"])
+    hot = _hot(node, run_id, one)
+    prefix = _promote(node, run_id)
+    counting = CountingStore(tiers.warm)
+    size = tiers.warm.head(f"{prefix}/{RECORDING}").size
+    warm = b"".join(stream_sealed(open_sealed(counting, prefix), one))
+    _verify(rerun_bin, warm, tmp_path / "warm.rrd")
+    assert {e for e, _, _ in _chunks(warm)} >= {"/world/e3"}
+    assert not {e for e, _, _ in _chunks(warm)} & {f"/world/e{i}" for i in range(10) if i != 3}
+    assert _ids(warm) == _ids(hot) and _rows(warm) == _rows(hot)
+    assert counting.read < 0.15 * size, (counting.read, size, counting.reads)
+    assert any(key.endswith("chunks.parquet") for key, *_ in counting.reads)  # the plan's read is counted
+    # the entity's own chunk is in there: the reads cover at least what they serve
+    e3 = sum(len(e.payload) for e in iter_events(io.BytesIO(warm))
+             if isinstance(e, ArrowMessage) and chunk_meta(e).entity_path == "/world/e3")
+    assert 0.05 * size < e3 <= counting.read
+
+
+def test_unfiltered_warm_download_is_the_sealed_object(tiers: Tiers, make_node: NodeFactory, runs: dict[str, Path]):
+    node, run_id = _node(make_node, tiers, runs["wide"])
+    prefix = _promote(node, run_id)
+    stored = tiers.warm.get_range(f"{prefix}/{RECORDING}")
+    served = b"".join(stream_sealed(open_sealed(tiers.warm, prefix), EntityFilter()))
+    assert served == stored and len(stored) > 1_000_000
+    client = TestClient(_app(node))
+    response = client.get(f"/v1/runs/{run_id}/recording.rrd")
+    assert response.status_code == 200 and response.content == stored
+
+
+# --- one URL, any tier -------------------------------------------------------------------------
+
+QUERIES: list[dict[str, Any]] = [
+    {},
+    {"include": "/world/e3"},
+    {"include": ["/world/e1", "/world/e7"]},
+    {"exclude": "/world/e3"},
+    {"include": "/world/**", "exclude": ["/world/e0", "/world/e9"]},
+    {"blueprint": "false"},
+    {"timeline": "frame", "start": "12", "end": "17"},
+    {"timeline": "frame", "start": "12", "end": "17", "latest_at": "false"},
+    {"timeline": "frame", "start": "20"},
+    {"timeline": "frame", "end": "3"},
+    {"timeline": "sim", "start": "1.2s", "end": "1700ms"},
+    {"timeline": "frame", "start": "12", "end": "17", "include": "/world/e3"},
+    {"timeline": "frame", "start": "12", "end": "17", "exact": "true"},
+    {"timeline": "frame", "start": "12", "end": "17", "latest_at": "false", "exact": "true"},
+    {"timeline": "sim", "start": "0.9s", "end": "2.05s", "exact": "true", "exclude": "/logs"},
+]
+
+
+def _app(node: Node) -> Any:
+    return create_app(load_settings(data_dir=node.root / "data"), node.ingest, node.retention)
+
+
+def _get(client: TestClient, run_id: str, params: dict[str, Any]) -> bytes:
+    response = client.get(f"/v1/runs/{run_id}/recording.rrd", params=params)
+    assert response.status_code == 200, (params, response.text)
+    return bytes(response.content)
+
+
+def test_same_url_serves_the_same_chunks_hot_and_warm(tiers: Tiers, make_node: NodeFactory, runs: dict[str, Path],
+                                                      rerun_bin: str, tmp_path: Path):
+    node, run_id = _node(make_node, tiers, runs["chunky"])
+    client = TestClient(_app(node))
+    per_entity = Counter(e for e, _, _ in _chunks(_get(client, run_id, {})))
+    assert per_entity["/world/e3"] >= 3, per_entity  # several chunks an entity, so windows choose among them
+    hot = {i: _get(client, run_id, q) for i, q in enumerate(QUERIES)}
+    _promote(node, run_id)
+    for i, params in enumerate(QUERIES):
+        warm = _get(client, run_id, params)
+        _verify(rerun_bin, warm, tmp_path / f"warm-{i}.rrd")
+        if params.get("exact") == "true":  # trimmed chunks are re-encoded: new ids, the same rows
+            assert Counter((e, n) for e, _, n in _chunks(warm)) == Counter((e, n) for e, _, n in _chunks(hot[i]))
+        else:
+            assert _ids(warm) == _ids(hot[i]), (params, len(_ids(warm)), len(_ids(hot[i])))
+        assert _rows(warm) == _rows(hot[i]), params
+        assert _cells(warm, params.get("timeline", "frame")) == _cells(hot[i], params.get("timeline", "frame"))
+    # the windows pick some chunks and leave others: the comparisons above are not all or nothing
+    with_latest = _ids(hot[QUERIES.index({"timeline": "frame", "start": "12", "end": "17"})])
+    window = _ids(hot[QUERIES.index({"timeline": "frame", "start": "12", "end": "17", "latest_at": "false"})])
+    assert 0 < len(window) < len(with_latest) < len(_ids(hot[0]))  # latest_at adds the chunks before start
+    exact = _rows(hot[QUERIES.index({"timeline": "frame", "start": "12", "end": "17", "exact": "true"})])
+    assert exact["/world/e3"] == 6 + 1, exact  # frames 12-17, and one row before them
+
+
+def test_cold_deleted_and_unknown_runs(tiers: Tiers, make_node: NodeFactory, runs: dict[str, Path]):
+    node, run_id = _node(make_node, tiers, runs["wide"])
+    prefix = _promote(node, run_id)
+    stored = tiers.warm.get_range(f"{prefix}/{RECORDING}")
+    client = TestClient(_app(node))
+    assert archive.archive(run_id, tiers, node.catalog, node.clock(), "default").startswith("archived")
+    for params in ({}, {"include": "/world/e3"}):
+        cold = client.get(f"/v1/runs/{run_id}/recording.rrd", params=params)
+        assert cold.status_code == 409, cold.text
+        message = cold.json()["message"]
+        assert f"POST /v1/runs/{run_id}/restore" in message and f"fleet runs restore {run_id}" in message
+    archive.request_restore(run_id, tiers, node.catalog, node.clock(), "test", 7)
+    restoring = client.get(f"/v1/runs/{run_id}/recording.rrd")
+    assert restoring.status_code == 409 and "under way" in restoring.json()["message"]
+    assert archive.advance_restore(run_id, tiers, node.catalog, node.clock()) == "restored"
+    restored = client.get(f"/v1/runs/{run_id}/recording.rrd")
+    assert restored.status_code == 200 and restored.content == stored
+    assert archive.delete(run_id, tiers, node.catalog, node.clock(), "alice", None).startswith("deleted")
+    gone = client.get(f"/v1/runs/{run_id}/recording.rrd")
+    assert gone.status_code == 410 and "alice" in gone.json()["message"], gone.text
+    unknown = client.get("/v1/runs/no-such-run/recording.rrd")
+    assert unknown.status_code == 404 and "no-such-run" in unknown.json()["message"]
+
+
+def test_warm_download_headers(tiers: Tiers, make_node: NodeFactory, runs: dict[str, Path]):
+    node, run_id = _node(make_node, tiers, runs["wide"])
+    _promote(node, run_id)
+    client = TestClient(_app(node))
+    url = f"/v1/runs/{run_id}/recording.rrd"
+    whole, again = client.get(url), client.get(url)
+    one = client.get(url, params={"include": "/world/e3"})
+    for response in (whole, again, one):
+        assert response.status_code == 200
+        assert response.headers["content-disposition"] == f'attachment; filename="{run_id}.rrd"'
+        assert response.headers["content-type"] == "application/octet-stream"
+        assert run_id in response.headers["etag"]
+    assert whole.headers["etag"] == again.headers["etag"] != one.headers["etag"]
+
+
+@pytest.mark.parametrize("start", [12, 22])
+def test_exact_latest_at_keeps_each_components_newest_value(tiers: Tiers, make_node: NodeFactory,
+                                                            runs: dict[str, Path], rerun_bin: str, tmp_path: Path,
+                                                            start: int):
+    """A compacted run (`rerun rrd optimize`): chunk [0-9] holds colors only at frames 0-2 and 7 (nulls
+    elsewhere), the later chunks none. At `start` the scene's color is frame 7's, and an exact download
+    keeps that row, hot and warm alike. start=12: chunk [0-9] is the latest-at chunk of both components;
+    start=22: only of colors (positions come from [10-19]), and the warm index has only the chunk's range."""
+    node, run_id = _node(make_node, tiers, runs["sparse"])
+    client = TestClient(_app(node))
+    colors = {t for _, c, t in _cells(_get(client, run_id, {})) if c == "Points3D:colors"}
+    assert colors == {0, 1, 2, 7}, colors
+    params = {"timeline": "frame", "start": str(start), "end": str(start + 2), "exact": "true"}
+    hot = _get(client, run_id, params)
+    _promote(node, run_id)
+    warm = _get(client, run_id, params)
+    _verify(rerun_bin, warm, tmp_path / "warm.rrd")
+    newest = ("/world/sparse", "Points3D:colors", 7)
+    assert newest in _cells(hot), f"hot: {sorted(_cells(hot))}"
+    assert newest in _cells(warm), f"warm: {sorted(_cells(warm))}"
+    assert _cells(warm) == _cells(hot)
