@@ -40,7 +40,11 @@ def create_engine(url: str) -> sa.Engine:
         Path(url.removeprefix("duckdb:///")).parent.mkdir(parents=True, exist_ok=True)
         # A pooled connection per checkout (not per thread): SingletonThreadPool closes other threads'
         # connections, even ones in use, once more than pool_size threads have touched the catalog.
-        return sa.create_engine(url, pool_size=5, max_overflow=20)
+        # A checkpoint at every commit: after a crash DuckDB 1.5 can replay its write-ahead log into
+        # secondary indexes that then refuse to update the row ("Failed to delete all rows from
+        # index", a FATAL error that invalidates the database); with no log left there is none to replay.
+        return sa.create_engine(url, pool_size=5, max_overflow=20,
+                                connect_args={"config": {"checkpoint_threshold": "0b"}})
     if url.startswith("postgresql"):
         return sa.create_engine(url, pool_pre_ping=True)
     raise CatalogError(f"unsupported catalog URL {url!r}: use duckdb:///PATH or postgresql+psycopg://USER@HOST/DB")

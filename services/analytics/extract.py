@@ -21,6 +21,7 @@ from services.rrd.chunk import ChunkMeta, read_chunk
 from services.rrd.messages import ArrowMessage
 
 TABLES = ("scalars", "text_logs", "transforms")
+PARTITION_COLUMNS = ("robot_id", "date")  # the Hive partition: no file column may take these names
 LOG_TIME = "log_time"
 SCALARS = "Scalars:scalars"
 TEXT, LEVEL = "TextLog:text", "TextLog:level"
@@ -106,7 +107,8 @@ class Extractor:
     def _emit(self, table: str, columns: dict[str, pa.Array], times: dict[str, pa.Array], rows: np.ndarray) -> None:
         taken = pa.array(rows.astype(np.int64))
         for name, values in times.items():
-            column = name if name == LOG_TIME or name not in FIXED_COLUMNS[table] else f"timeline_{name}"
+            clash = name in FIXED_COLUMNS[table] or name in PARTITION_COLUMNS
+            column = f"timeline_{name}" if clash and name != LOG_TIME else name
             columns[column] = values.take(taken)
         self.batches[table].append(pa.table(columns))
 

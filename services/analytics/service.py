@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import datetime as dt
+import decimal
 import io
 import json
 from collections.abc import Callable
@@ -123,12 +124,25 @@ def encode(table: pa.Table, fmt: str) -> bytes:
         return sink.getvalue()
     if fmt == "csv":
         sink = io.BytesIO()
-        pacsv.write_csv(textual(table), sink)
+        pacsv.write_csv(_flat(textual(table)), sink)
         return sink.getvalue()
     plain = textual(table)
     body = {"columns": [{"name": f.name, "type": str(t.type)} for f, t in zip(plain.schema, table.schema, strict=True)],
             "rows": [list(r.values()) for r in plain.to_pylist()], "row_count": table.num_rows}
-    return json.dumps(body, default=str).encode()
+    return json.dumps(body, default=_json_value).encode()
+
+
+def _json_value(value: Any) -> Any:
+    if isinstance(value, decimal.Decimal):  # DuckDB's HUGEINT (sum of integers) and DECIMAL: numbers
+        return int(value) if value == value.to_integral_value() else float(value)
+    return str(value)
+
+
+def _flat(table: pa.Table) -> pa.Table:
+    """Lists, structs and maps as JSON text: CSV has no nested values."""
+    columns = [pa.array([None if v is None else json.dumps(v, default=_json_value) for v in c.to_pylist()],
+                        pa.string()) if pa.types.is_nested(c.type) else c for c in table.columns]
+    return pa.table(columns, names=table.column_names)
 
 
 def textual(table: pa.Table) -> pa.Table:

@@ -92,10 +92,27 @@ def check_statement(con: duckdb.DuckDBPyConnection, query: str) -> None:
     if len(statements) != 1:
         raise SqlNotAllowedError(f"one statement per query, got {len(statements)}: send them one at a time")
     kind = statements[0].type
+    if kind == duckdb.StatementType.EXPLAIN:  # EXPLAIN ANALYZE runs the statement it explains: check it too
+        check_statement(con, _explained(statements[0].query))
+        return
     if kind not in _ALLOWED:
         name = str(kind).rsplit(".", 1)[-1].replace("_STATEMENT", "")
+        name = "INSTALL or LOAD" if name == "LOAD" else name  # DuckDB files INSTALL under LOAD
         raise SqlNotAllowedError(f"{name} is not allowed: queries are read-only, only SELECT (or EXPLAIN) "
                                  "statements over the catalog and analytics tables run here")
+
+
+def _explained(query: str) -> str:
+    """The statement an `EXPLAIN [ANALYZE] [(options)]` wraps."""
+    starts = [pos for pos, _ in duckdb.tokenize(query)]
+    i = 1  # past EXPLAIN
+    if i < len(starts) and query[starts[i]:starts[i] + 7].upper() in ("ANALYZE", "ANALYSE"):
+        i += 1
+    depth = 0
+    while i < len(starts) and (depth or query[starts[i]] == "("):
+        depth += {"(": 1, ")": -1}.get(query[starts[i]], 0)
+        i += 1
+    return query[starts[i]:] if i < len(starts) else ""
 
 
 @contextmanager
@@ -153,7 +170,7 @@ def run(con: duckdb.DuckDBPyConnection, query: str, limits: Limits) -> pa.Table:
     timer.start()
     try:
         con.execute(query)
-        reader = con.fetch_record_batch(min(limits.rows + 1, 65_536))
+        reader = con.to_arrow_reader(min(limits.rows + 1, 65_536))
         batches, rows = [], 0
         for batch in reader:
             rows += batch.num_rows

@@ -102,6 +102,7 @@ def _insert(catalog: sessionmaker[Session], found: RunFile, tier: str, mode: str
         assert run is not None
         run.pinned = found.pinned
         session.add(RunLifecycle(run_id=record.id, prefix=found.prefix, promoted_at=found.sealed_at,
+                                 pinned_by=found.pinned_by if found.pinned else None,
                                  archived_at=info.last_modified if tier == "cold" else None, archive_mode=mode))
         queries.replace_objects(session, record.id, objects)
         queries.add_event(session, record.id, "rebuild", now, "catalog rebuild", None, f"from {found.prefix}/")

@@ -183,14 +183,14 @@ def set_pinned(ctx: Retention, run_id: str, pinned: bool, actor: str) -> dict[st
         queries.add_event(session, run_id, "pin" if pinned else "unpin", now, actor, None)
         prefix = life.prefix if life is not None else None
     if prefix is not None:
-        _rewrite_run_json(ctx, prefix, pinned)
+        _rewrite_run_json(ctx, prefix, pinned, actor if pinned else None)
     return {"run": run_id, "pinned": pinned, "by": actor}
 
 
-def _rewrite_run_json(ctx: Retention, prefix: str, pinned: bool) -> None:
+def _rewrite_run_json(ctx: Retention, prefix: str, pinned: bool, by: str | None) -> None:
     key = f"{prefix}/{RUN_JSON}"
     body = json.loads(ctx.tiers.warm.get_range(key))
-    body["pinned"] = pinned
+    body["pinned"], body["pinned_by"] = pinned, by
     ctx.tiers.warm.put(key, json.dumps(body, indent=1, sort_keys=True).encode())
 
 

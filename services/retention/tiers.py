@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import datetime as dt
+import hashlib
 import json
 from dataclasses import asdict, dataclass
 from typing import Any
@@ -81,6 +82,7 @@ class RunFile:
     objects: list[queries.ObjectRecord]
     pinned: bool
     sealed_at: dt.datetime
+    pinned_by: str | None = None
 
 
 def parse_run_json(data: bytes) -> RunFile:
@@ -102,7 +104,7 @@ def parse_run_json(data: bytes) -> RunFile:
         properties=run["properties"], entities=[EntityRecord(**e) for e in run["entities"]],
         timelines=[TimelineRecord(**t) for t in run["timelines"]])
     objects = [queries.ObjectRecord(**o) for o in body["objects"]]
-    return RunFile(record, body["prefix"], objects, bool(body.get("pinned")), sealed_at)
+    return RunFile(record, body["prefix"], objects, bool(body.get("pinned")), sealed_at, body.get("pinned_by"))
 
 
 def sealed_lookup(catalog: sessionmaker[Session], tiers: Tiers) -> Any:
@@ -115,10 +117,17 @@ def sealed_lookup(catalog: sessionmaker[Session], tiers: Tiers) -> Any:
             if run is None or life is None or run.tier == "hot":
                 return None
             tier, prefix, robot_id, date = run.tier, life.prefix, run.robot_id, run.date
+            index = queries.run_objects(session, run_id).get(INDEX)
+            committed = index.sha256 if index is not None else None
         chunk_ids: frozenset[bytes] = frozenset()
         if tier == "warm":
-            rows = from_parquet(tiers.warm.get_range(f"{prefix}/{INDEX}"))
-            chunk_ids = frozenset(r.chunk_id for r in rows if r.kind == CHUNK and r.chunk_id is not None)
+            data = tiers.warm.get_range(f"{prefix}/{INDEX}")
+            # Sealing late data that stopped before its catalog switch leaves a newer index in the
+            # store: the catalog has not recorded those chunks as sealed, so a hot copy of them is
+            # kept (recover) and sealed again. Only the index the catalog recorded counts.
+            if hashlib.sha256(data).hexdigest() == committed:
+                rows = from_parquet(data)
+                chunk_ids = frozenset(r.chunk_id for r in rows if r.kind == CHUNK and r.chunk_id is not None)
         return SealedInfo(tier, prefix, robot_id, date, chunk_ids)
 
     return lookup

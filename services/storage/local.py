@@ -2,10 +2,13 @@
 
 from __future__ import annotations
 
+import contextlib
 import datetime as dt
+import glob
 import os
 import shutil
 import tempfile
+import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import BinaryIO
@@ -27,7 +30,8 @@ class LocalStore:
         path = self._path(key)
         path.parent.mkdir(parents=True, exist_ok=True)
         # Written beside, synced, then renamed: a reader never sees half an object.
-        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=".tmp-")
+        started = time.time()
+        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".tmp-{path.name}-")
         try:
             with os.fdopen(fd, "wb") as out:
                 if isinstance(data, bytes | bytearray | memoryview):
@@ -40,6 +44,7 @@ class LocalStore:
         except BaseException:
             Path(tmp).unlink(missing_ok=True)
             raise
+        _sweep(path, started)
         return self.head(key)
 
     def get_range(self, key: str, start: int = 0, length: int | None = None) -> bytes:
@@ -72,6 +77,7 @@ class LocalStore:
     def delete(self, key: str) -> None:
         path = self._path(key)
         path.unlink(missing_ok=True)
+        _sweep(path)
         for parent in path.parents:  # no empty folders left behind
             if parent == self.root or not parent.is_relative_to(self.root):
                 break
@@ -79,3 +85,13 @@ class LocalStore:
                 parent.rmdir()
             except OSError:
                 break
+
+
+def _sweep(path: Path, before: float | None = None) -> None:
+    """Remove the temporary files of puts of `path` that never finished (the process was killed
+    mid-write): list() does not show them, so nothing else would. With `before`, only those last
+    written before then (a put still writing is left alone)."""
+    for stale in path.parent.glob(f".tmp-{glob.escape(path.name)}-*"):
+        with contextlib.suppress(FileNotFoundError):
+            if before is None or stale.stat().st_mtime < before:
+                stale.unlink()

@@ -4,6 +4,7 @@ settable clock, and runs logged with the real SDK."""
 from __future__ import annotations
 
 import datetime as dt
+import io
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -52,7 +53,7 @@ class Node:
     def upload(self, path: Path | bytes) -> IngestReport:
         source = self.ingest.open_source(live=False)
         try:
-            for event in iter_events(path):  # type: ignore[arg-type]
+            for event in iter_events(io.BytesIO(path) if isinstance(path, bytes) else path):
                 self.ingest.accept(source, event)
         finally:
             report = self.ingest.close_source(source)

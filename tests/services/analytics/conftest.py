@@ -1,0 +1,110 @@
+"""Fixtures for the analytics tests: nodes (ingest + retention) over local or S3 stores with the
+SQL API on top, recordings logged with the real SDK, and analytics files written directly."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any
+
+import pyarrow as pa
+from fastapi.testclient import TestClient
+
+from services.analytics.extract import SCALARS, Extractor
+from services.analytics.service import Analytics
+from services.analytics.sql import Limits
+from services.analytics.store import write_analytics
+from services.api.app import create_app
+from services.retention.service import PROMOTE, plan, run_plan
+from services.settings import load_settings
+from services.storage.objectstore import ObjectStore
+from tests.services.retention.conftest import Node, make_node, tiers  # noqa: F401 - fixtures used here
+
+DAY_NS = 86_400 * 10**9
+START_2026_03_01_NS = 1_772_323_200 * 10**9  # 2026-03-01T00:00:00Z
+HOUR_NS = 3_600 * 10**9
+
+# Every SDK script starts with this: one RecordingStream per run, all in one process (one SDK import).
+SDK_PRELUDE = '''
+import json, math, time
+import numpy as np
+import rerun as rr
+
+
+def recording(path, run_id, robot, start_ns):
+    rec = rr.RecordingStream("fleet-analytics", recording_id=run_id)
+    rec.save(str(path))
+    rec.send_property("fleet", rr.AnyValues(robot_id=robot))
+    rec.send_recording_start_time_nanos(start_ns)
+    return rec
+
+
+def finish(rec):
+    rec.flush()
+    rec.disconnect()
+'''
+
+
+def log_with_sdk(script: str, *, flush_rows: int | None = None) -> Any:
+    """Run `script` (after SDK_PRELUDE) with the real SDK in a subprocess, so each test module gets its
+    own SDK state; returns the JSON the script prints on its last line (its ground truth), if any."""
+    env = {**os.environ, **({"RERUN_FLUSH_NUM_ROWS": str(flush_rows)} if flush_rows else {})}
+    done = subprocess.run([sys.executable, "-c", SDK_PRELUDE + script], env=env, capture_output=True, text=True,
+                          timeout=120, check=False)
+    assert done.returncode == 0, done.stderr[-3000:]
+    lines = done.stdout.strip().splitlines()
+    return json.loads(lines[-1]) if lines else None
+
+
+def analytics_for(node: Node, limits: Limits | None = None) -> Analytics:
+    return Analytics(node.catalog, node.tiers.warm, limits or Limits())
+
+
+def api(node: Node, limits: Limits | None = None, *, raise_server_exceptions: bool = True) -> TestClient:
+    """The service's REST API over `node` (ingest, retention and analytics), in process."""
+    settings = load_settings(data_dir=node.root / "data", scheduler=False)
+    app = create_app(settings, node.ingest, node.retention, analytics_for(node, limits))
+    return TestClient(app, raise_server_exceptions=raise_server_exceptions)
+
+
+def upload_all(node: Node, paths: list[Path]) -> None:
+    for path in paths:
+        report = node.upload(path)
+        assert report.chunks_new > 0, path
+
+
+def promote_all(node: Node) -> list[str]:
+    """Promote every closed hot run now (the clock moved past promote_after); returns the run ids."""
+    node.clock.advance(hours=1)
+    outcomes = run_plan(node.retention, plan(node.retention, [PROMOTE]))
+    assert outcomes and all(o.ok for o in outcomes), [o.to_dict() for o in outcomes]
+    return [o.action.run_id for o in outcomes]
+
+
+def sql_rows(client: TestClient, query: str) -> list[dict[str, Any]]:
+    """The JSON answer of POST /v1/sql as a list of {column: value} (checking it succeeded)."""
+    response = client.post("/v1/sql", json={"query": query})
+    assert response.status_code == 200, response.text
+    body = response.json()
+    names = [c["name"] for c in body["columns"]]
+    assert body["row_count"] == len(body["rows"])
+    return [dict(zip(names, row, strict=True)) for row in body["rows"]]
+
+
+def write_scalars(store: ObjectStore, robot: str, date: str, run_id: str, values: list[float],
+                  entity: str = "/battery") -> str:
+    """Write one run's `scalars` file the way promotion does (write_analytics); returns its key."""
+    extractor = Extractor(run_id)
+    n = len(values)
+    extractor.batches["scalars"].append(pa.table({
+        "run_id": pa.array([run_id] * n), "entity": pa.array([entity] * n),
+        "component": pa.array([SCALARS] * n), "instance": pa.array([0] * n, pa.int32()),
+        "value": pa.array(values, pa.float64()),
+        "frame": pa.array(range(n), pa.int64()),
+        "log_time": pa.array([START_2026_03_01_NS + i for i in range(n)], pa.timestamp("ns")),
+    }))
+    (written,) = write_analytics(store, extractor, robot, date)
+    return written.key

@@ -1,0 +1,126 @@
+"""`fleet retention plan|run`, `fleet runs pin|restore`, `fleet catalog rebuild` against a real service."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import httpx
+import pytest
+
+from tests.services.ingest.live_server import FLEET, LiveServer
+from tests.services.rrd.recordings import Recording
+
+pytestmark = pytest.mark.sdk
+
+
+@pytest.fixture(scope="module")
+def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[LiveServer]:
+    """Embedded defaults; no scheduler, so nothing moves unless a command asks for it."""
+    live = LiveServer(Path(tmp_path_factory.mktemp("cli-retention")) / "data", scheduler="false",
+                      promote_after_s="0").start()
+    yield live
+    live.stop()
+
+
+def fleet(server: LiveServer, *args: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([FLEET, *args, "--api-url", server.url], capture_output=True, text=True, timeout=120)
+
+
+def run_json(server: LiveServer, run_id: str) -> dict[str, Any]:
+    answer = httpx.get(f"{server.url}/v1/runs/{run_id}", timeout=10)
+    assert answer.status_code == 200, answer.text
+    body: dict[str, Any] = answer.json()
+    return body
+
+
+def test_plan_then_run_promotes_with_progress(server: LiveServer, recordings: dict[str, Recording],
+                                              tmp_path: Path, rerun_bin: str):
+    rec = recordings["points"]
+    run_id = rec.recordings[0]["recording_id"]
+    uploaded = subprocess.run([FLEET, "upload", str(rec.path), "--api-url", server.url], capture_output=True,
+                              text=True, timeout=120)
+    assert uploaded.returncode == 0 and f"runs {run_id}" in uploaded.stdout, uploaded.stderr
+
+    plan = fleet(server, "retention", "plan")
+    assert plan.returncode == 0, plan.stderr
+    row = next(line for line in plan.stdout.splitlines() if run_id in line)
+    assert row.split()[0] == "promote" and "hot" in row.split()
+    assert "closed and idle for" in row and "(promote after 0m00s)" in row  # the reason, as the service gives it
+
+    as_json = json.loads(fleet(server, "retention", "plan", "--json").stdout)
+    (action,) = [a for a in as_json["actions"] if a["run"] == run_id]
+    assert action["action"] == "promote" and action["tier"] == "hot" and action["bytes"] > 0
+    assert action["reason"].startswith("closed and idle for")
+    assert fleet(server, "retention", "plan", "--action", "archive").stdout.strip() == "nothing is due"
+
+    done = fleet(server, "retention", "run")
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.strip() == "1 done, 0 failed"
+    assert f"ok promote {run_id}: sealed" in done.stderr  # one progress line per run
+
+    warm = fleet(server, "runs", "ls", "--tier", "warm")
+    assert warm.returncode == 0 and run_id in warm.stdout
+    assert run_id not in fleet(server, "runs", "ls", "--tier", "hot").stdout
+    assert fleet(server, "retention", "plan").stdout.strip() == "nothing is due"
+    again = fleet(server, "retention", "run")
+    assert again.returncode == 0 and again.stdout.strip() == "0 done, 0 failed"
+
+    # what the warm tier serves is the recording that was uploaded
+    out = tmp_path / "warm.rrd"
+    assert fleet(server, "download", run_id, "-o", str(out)).returncode == 0
+    compare = subprocess.run([rerun_bin, "rrd", "compare", "--unordered", str(rec.path), str(out)],
+                             capture_output=True, text=True, timeout=120)
+    assert compare.returncode == 0, compare.stderr
+
+
+def _sealed(server: LiveServer, rec: Recording) -> str:
+    """Upload and promote one recording; its run id."""
+    run_id: str = rec.recordings[0]["recording_id"]
+    assert httpx.post(f"{server.url}/v1/uploads", content=rec.data, timeout=60).status_code == 200
+    assert fleet(server, "retention", "run", "--action", "promote").returncode == 0
+    assert run_json(server, run_id)["tier"] == "warm"
+    return run_id
+
+
+def test_pin_and_unpin(server: LiveServer, recordings: dict[str, Recording]):
+    run_id = _sealed(server, recordings["scalars"])
+    pinned = fleet(server, "runs", "pin", run_id)
+    assert pinned.returncode == 0, pinned.stderr
+    assert pinned.stdout.startswith(f"{run_id}: pinned by ") and "@" in pinned.stdout
+    shown = run_json(server, run_id)
+    assert shown["pinned"] is True and shown["lifecycle"]["pinned_by"] == pinned.stdout.split(" by ")[1].strip()
+    assert [e["action"] for e in shown["events"]][-1] == "pin"
+    # the sealed run's own record says so too (what a catalog rebuild reads)
+    prefix = shown["lifecycle"]["prefix"]
+    assert json.loads((server.data_dir / "warm" / prefix / "run.json").read_text())["pinned"] is True
+
+    unpinned = fleet(server, "runs", "pin", run_id, "--unpin")
+    assert unpinned.returncode == 0 and unpinned.stdout.startswith(f"{run_id}: unpinned by ")
+    shown = run_json(server, run_id)
+    assert shown["pinned"] is False and shown["lifecycle"]["pinned_by"] is None
+    assert json.loads((server.data_dir / "warm" / prefix / "run.json").read_text())["pinned"] is False
+
+
+def test_restore_of_a_warm_run_is_one_clear_line(server: LiveServer, recordings: dict[str, Recording]):
+    run_id = _sealed(server, recordings["textlogs"])
+    result = fleet(server, "runs", "restore", run_id)
+    assert result.returncode == 1
+    assert len(result.stderr.strip().splitlines()) == 1, result.stderr
+    assert result.stderr.startswith("Error: ") and "is warm, not cold" in result.stderr
+    assert "Traceback" not in result.stderr
+    missing = fleet(server, "runs", "pin", "no-such-run")
+    assert missing.returncode == 1 and len(missing.stderr.strip().splitlines()) == 1
+    assert "no-such-run" in missing.stderr
+
+
+def test_rebuild_on_a_populated_catalog_adds_nothing(server: LiveServer, recordings: dict[str, Recording]):
+    _sealed(server, recordings["transforms"])
+    sealed = [r for r in httpx.get(f"{server.url}/v1/runs", timeout=10).json()["runs"] if r["tier"] != "hot"]
+    result = fleet(server, "catalog", "rebuild")
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.strip() == f"0 runs added, {len(sealed)} already present, 0 skipped"
+    assert all(f"ok present {r['id']}: already in the catalog" in result.stderr for r in sealed)

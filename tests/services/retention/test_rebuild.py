@@ -1,0 +1,185 @@
+"""Disaster recovery: the catalog dropped, an empty one rebuilt from the stores' run.json +
+chunks.parquet by `fleet catalog rebuild`, and the service answers as it did before."""
+
+from __future__ import annotations
+
+import datetime as dt
+import json
+import subprocess
+from collections.abc import Iterator
+from contextlib import ExitStack
+from pathlib import Path
+from typing import Any
+
+import httpx
+import pytest
+import sqlalchemy as sa
+
+from tests.postgres import admin_engine, temporary_database
+from tests.services.ingest.live_server import FLEET, LiveServer
+from tests.services.rrd.recordings import Recording
+
+pytestmark = pytest.mark.sdk
+
+# runs of these applications are archived to cold as soon as they are warm; the others stay warm
+POLICIES = json.dumps([{"name": "camera-short", "application": "fleet_camera", "warm_days": 0},
+                       {"name": "logs-short", "application": "fleet_logs", "warm_days": 0}])
+SCENES = ("points", "image", "scalars", "textlogs", "properties")
+COLD = {"rec-image", "rec-textlogs"}
+PINNED = {"rec-points", "rec-image"}  # one warm, one cold
+# What a rebuild cannot bring back: the history (replaced by one "rebuild" event) and when a run was
+# archived (read from its cold object's time).
+LOST = {"events", "lifecycle.archived_at"}
+
+
+def fleet(server: LiveServer, *args: str) -> subprocess.CompletedProcess[str]:
+    result = subprocess.run([FLEET, *args, "--api-url", server.url], capture_output=True, text=True, timeout=120)
+    assert result.returncode == 0, f"fleet {' '.join(args)}: {result.stdout}{result.stderr}"
+    return result
+
+
+def get(server: LiveServer, path: str) -> Any:
+    answer = httpx.get(f"{server.url}{path}", timeout=30)
+    assert answer.status_code == 200, f"{path}: {answer.status_code} {answer.text}"
+    return answer.json()
+
+
+def answers(server: LiveServer, run_ids: list[str]) -> dict[str, Any]:
+    """What clients see: the run lists (all tiers) and each run in full."""
+    seen: dict[str, Any] = {f"/v1/runs{q}": get(server, f"/v1/runs{q}")
+                            for q in ("", "?tier=hot", "?tier=warm", "?tier=cold", "?sort=id&limit=2")}
+    for run_id in run_ids:
+        seen[f"/v1/runs/{run_id}"] = get(server, f"/v1/runs/{run_id}")
+    return seen
+
+
+def run_retention(server: LiveServer, *actions: str) -> dict[str, Any]:
+    """`POST /v1/retention/run` (what `fleet retention run` sends); its last NDJSON line."""
+    answer = httpx.post(f"{server.url}/v1/retention/run", params={"action": list(actions)}, timeout=120)
+    assert answer.status_code == 200, answer.text
+    end: dict[str, Any] = json.loads(answer.text.strip().splitlines()[-1])
+    return end
+
+
+def recordings_served(server: LiveServer, run_ids: list[str]) -> dict[str, tuple[int, bytes]]:
+    out = {}
+    for run_id in run_ids:
+        answer = httpx.get(f"{server.url}/v1/runs/{run_id}/recording.rrd", timeout=60)
+        out[run_id] = (answer.status_code, answer.content if answer.status_code == 200 else b"")
+    return out
+
+
+def differences(before: Any, after: Any, path: str = "") -> set[str]:
+    """Dotted paths where two JSON answers differ."""
+    if isinstance(before, dict) and isinstance(after, dict):
+        return {d for key in before.keys() | after.keys()
+                for d in differences(before.get(key), after.get(key), f"{path}.{key}" if path else key)}
+    if isinstance(before, list) and isinstance(after, list) and len(before) == len(after) and path != "events":
+        return {d for i, (b, a) in enumerate(zip(before, after, strict=True)) for d in differences(b, a, path)}
+    return set() if before == after else {path}
+
+
+class Catalog:
+    """The service's catalog, which the test drops: the embedded DuckDB file, or a Postgres database."""
+
+    def __init__(self, kind: str, data_dir: Path, stack: ExitStack) -> None:
+        self.kind, self.data_dir = kind, data_dir
+        self.url = stack.enter_context(temporary_database("fleet_rebuild")) if kind == "postgres" else ""
+        self.create()
+
+    def settings(self) -> dict[str, str]:
+        return {"catalog_url": self.url} if self.url else {}
+
+    def create(self) -> None:
+        if self.url:  # a server catalog is made by `fleet db upgrade`; the embedded one by `fleet serve`
+            done = subprocess.run([FLEET, "db", "upgrade", "--catalog-url", self.url], capture_output=True,
+                                  text=True, timeout=60)
+            assert done.returncode == 0, done.stderr
+
+    def drop(self) -> None:
+        if not self.url:
+            files = list(self.data_dir.glob("catalog.duckdb*"))
+            assert self.data_dir / "catalog.duckdb" in files
+            for file in files:
+                file.unlink()
+            return
+        name = self.url.rsplit("/", 1)[1]
+        admin = admin_engine()
+        with admin.connect() as conn:
+            conn.execute(sa.text(f'DROP DATABASE "{name}" WITH (FORCE)'))
+            conn.execute(sa.text(f'CREATE DATABASE "{name}"'))
+        admin.dispose()
+        self.create()
+
+
+@pytest.fixture(params=["duckdb", pytest.param("postgres", marks=pytest.mark.postgres)])
+def catalog(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[Catalog]:
+    with ExitStack() as stack:
+        yield Catalog(request.param, tmp_path / "data", stack)
+
+
+def test_rebuilt_catalog_answers_as_before(catalog: Catalog, tmp_path: Path, recordings: dict[str, Recording],
+                                           rerun_bin: str):
+    server = LiveServer(tmp_path / "data", scheduler="false", promote_after_s="0", retention_policies=POLICIES,
+                        **catalog.settings())
+    run_ids = sorted(recordings[s].recordings[0]["recording_id"] for s in SCENES)
+    try:
+        server.start()
+        for scene in SCENES:
+            assert httpx.post(f"{server.url}/v1/uploads", content=recordings[scene].data,
+                              timeout=60).status_code == 200
+        assert run_retention(server) == {"event": "end", "done": len(SCENES), "failed": 0}  # promoted
+        assert run_retention(server) == {"event": "end", "done": len(COLD), "failed": 0}  # archived
+        for run_id in PINNED:
+            assert httpx.post(f"{server.url}/v1/runs/{run_id}/pin", timeout=10).status_code == 200
+        before = answers(server, run_ids)
+        served_before = recordings_served(server, run_ids)
+        server.stop()
+
+        catalog.drop()
+        server.start()
+        assert get(server, "/v1/runs")["runs"] == []  # an empty catalog
+        rebuilt = fleet(server, "catalog", "rebuild")
+        assert rebuilt.stdout.strip() == f"{len(run_ids)} runs added, 0 already present, 0 skipped"
+        after = answers(server, run_ids)
+        served_after = recordings_served(server, run_ids)
+
+        again = fleet(server, "catalog", "rebuild")  # repeatable: the catalog is left as it is
+        assert again.stdout.strip() == f"0 runs added, {len(run_ids)} already present, 0 skipped"
+        assert answers(server, run_ids) == after
+
+        # the rebuilt catalog is one retention can work with: nothing due again, restores work
+        assert get(server, "/v1/retention/plan") == {"actions": []}
+        assert httpx.post(f"{server.url}/v1/runs/rec-image/restore", timeout=10).status_code == 202
+        # the copy back from the cold store starts at once, in the background
+        server.wait_for(lambda: get(server, "/v1/runs/rec-image")["lifecycle"]["restore_state"] == "restored",
+                        timeout=30, what="the restore of a rebuilt cold run")
+        restored = tmp_path / "restored.rrd"
+        restored.write_bytes(recordings_served(server, ["rec-image"])["rec-image"][1])
+    finally:
+        server.stop()
+
+    # the tiers are where the data is, as before
+    assert {r["id"] for r in before["/v1/runs?tier=cold"]["runs"]} == COLD
+    assert {r["id"] for r in before["/v1/runs?tier=warm"]["runs"]} == set(run_ids) - COLD
+    assert {r["id"] for r in before["/v1/runs"]["runs"] if r["pinned"]} == PINNED
+    # every list answers exactly as before
+    for query in (q for q in before if q.count("/") == 2):
+        assert after[query] == before[query], f"GET {query}: {sorted(differences(before[query], after[query]))}"
+    # each run answers as before, but for what the stores cannot tell
+    for run_id in run_ids:
+        query = f"/v1/runs/{run_id}"
+        lost = differences(before[query], after[query])
+        assert lost <= LOST, f"GET {query}: {sorted(lost - LOST)} differ after the rebuild"
+        if run_id in COLD:  # the cold object's time stands in for the archive's
+            archived = [dt.datetime.fromisoformat(a[query]["lifecycle"]["archived_at"]) for a in (before, after)]
+            assert abs(archived[1] - archived[0]) < dt.timedelta(seconds=30), archived
+        assert [e["action"] for e in after[query]["events"]] == ["rebuild"]
+        assert after[query]["lifecycle"]["promoted_at"] == before[query]["lifecycle"]["promoted_at"]
+    # recordings: warm ones byte for byte, cold ones refused (409) until restored
+    assert served_after == served_before
+    assert {r for r, (status, _) in served_before.items() if status == 409} == COLD
+    source = next(recordings[s] for s in SCENES if recordings[s].recordings[0]["recording_id"] == "rec-image")
+    compare = subprocess.run([rerun_bin, "rrd", "compare", "--unordered", str(source.path), str(restored)],
+                             capture_output=True, text=True, timeout=120)
+    assert compare.returncode == 0, compare.stderr
