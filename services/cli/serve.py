@@ -70,7 +70,7 @@ def serve(**flags: object) -> None:
     if done:
         click.echo(f"fleet: {done}")
     logging.basicConfig(level=logging.INFO, format="%(levelname)s:     %(name)s: %(message)s")
-    logging.getLogger("apscheduler").setLevel(logging.WARNING)  # not a line per job run
+    logging.getLogger("apscheduler").setLevel(logging.ERROR)  # not a line per job run or skipped turn
     click.echo(f"fleet: data in {settings.data_dir.resolve()}, REST on http://{settings.http_addr}, "
                f"Rerun gRPC on rerun+http://{settings.grpc_addr}/proxy, durability {settings.durability}")
     asyncio.run(run_server(settings))
