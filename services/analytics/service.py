@@ -6,10 +6,11 @@ import datetime as dt
 import decimal
 import io
 import json
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from typing import Any
 
+import duckdb
 import pyarrow as pa
 import pyarrow.csv as pacsv
 import pyarrow.parquet as pq
@@ -56,10 +57,11 @@ class Analytics:
                             found["session_token"])
 
 
-def catalog_tables(session: Session) -> dict[str, pa.Table]:
+def catalog_tables(session: Session, names: Iterable[str] = CATALOG_TABLES) -> dict[str, pa.Table]:
     """The catalog as Arrow tables (the same on Postgres and DuckDB): what the SQL views show."""
     out = {}
-    for name, model in CATALOG_TABLES.items():
+    for name in names:
+        model = CATALOG_TABLES[name]
         columns = list(model.__table__.columns)
         rows = session.execute(sa.select(*columns)).all()
         out[name] = pa.table({c.name: pa.array([_plain(row[i]) for row in rows], _arrow_type(c.type))
@@ -85,16 +87,32 @@ def _plain(value: Any) -> Any:
     return value
 
 
-def present_tables(warm: ObjectStore) -> set[str]:
+def present_tables(warm: ObjectStore, tables: Iterable[str] = TABLES) -> set[str]:
     """The analytics tables that have at least one file (one listing call each)."""
-    return {t for t in TABLES if next(iter(warm.list(f"analytics/{t}/")), None) is not None}
+    return {t for t in tables if next(iter(warm.list(f"analytics/{t}/")), None) is not None}
+
+
+_PARSER = duckdb.connect(":memory:")  # parses only; a cursor per call, so threads do not share one
+
+
+def referenced_tables(text: str) -> set[str] | None:
+    """The tables a query names, in lower case (None if it does not parse: the sandbox says why)."""
+    try:
+        with _PARSER.cursor() as cursor:
+            return {name.lower() for name in cursor.get_table_names(text, qualified=False)}
+    except duckdb.Error:
+        return None
 
 
 def query(ctx: Analytics, text: str) -> pa.Table:
+    """Only the tables the query names are snapshotted, listed and bound: binding an analytics view
+    reads the footer of every one of its files (union_by_name), a snapshot copies a whole table."""
+    named = referenced_tables(text)
     with session_scope(ctx.catalog) as session:
-        catalog = catalog_tables(session)
+        catalog = catalog_tables(session, [t for t in CATALOG_TABLES if named is None or t in named])
+    tables = [t for t in TABLES if named is None or t in named]
     root = sql.analytics_root(ctx.warm.url)
-    with sql.sandbox(root, catalog, present_tables(ctx.warm), ctx.limits, ctx.s3_access()) as con:
+    with sql.sandbox(root, catalog, present_tables(ctx.warm, tables), ctx.limits, ctx.s3_access(), tables) as con:
         return sql.run(con, text, ctx.limits)
 
 

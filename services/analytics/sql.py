@@ -10,7 +10,7 @@ EXPLAIN) statement is accepted. A row limit and a time limit bound every answer.
 from __future__ import annotations
 
 import threading
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
@@ -117,9 +117,10 @@ def _explained(query: str) -> str:
 
 @contextmanager
 def sandbox(root: str, catalog: dict[str, pa.Table], present: set[str], limits: Limits,
-            s3: S3Access | None) -> Iterator[duckdb.DuckDBPyConnection]:
+            s3: S3Access | None, tables: Iterable[str] = TABLES) -> Iterator[duckdb.DuckDBPyConnection]:
     """A DuckDB with the catalog and analytics views, locked down. `present`: the analytics tables
-    that have at least one file (the others are empty views with the same columns)."""
+    that have at least one file (the others are empty views with the same columns); `tables`: the
+    analytics tables to make views of."""
     con = duckdb.connect(":memory:", config={"autoinstall_known_extensions": False,
                                              "autoload_known_extensions": False, "threads": limits.threads,
                                              "memory_limit": limits.memory})
@@ -129,7 +130,7 @@ def sandbox(root: str, catalog: dict[str, pa.Table], present: set[str], limits: 
         for name, table in catalog.items():
             con.register(f"_catalog_{name}", table)
             con.execute(f"CREATE VIEW {name} AS SELECT * FROM _catalog_{name}")
-        for table in TABLES:
+        for table in tables:
             con.execute(f"CREATE VIEW {table} AS {_table_source(root, table, table in present)}")
         allowed = root.rstrip("/") + "/"
         con.execute("SET allowed_directories = [?]", [allowed])
