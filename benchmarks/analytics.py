@@ -83,7 +83,7 @@ if str(ROOT) not in sys.path:  # run as `python benchmarks/analytics.py` without
 
 from benchmarks.codec import MB, format_table, log  # noqa: E402 - after the sys.path fix above
 from benchmarks.ingest import FleetServer, proc_cpu_s  # noqa: E402
-from services.analytics.extract import LOG_TIME, SCALARS, partition_key, to_parquet  # noqa: E402
+from services.analytics.extract import LOG_TIME, SCALARS, TABLES, partition_key, to_parquet  # noqa: E402
 from services.analytics.sql import httpfs_extension  # noqa: E402
 
 QUERY = ("SELECT robot_id, date, count(*) AS n, avg(value) AS mean, min(value) AS lo, max(value) AS hi "
@@ -483,21 +483,22 @@ def breakdown(workdir: Path, endpoint: str, args: argparse.Namespace) -> dict[st
 
     def snapshot() -> dict[str, pa.Table]:
         with session_scope(ctx.catalog) as session:
-            return service.catalog_tables(session)
+            return service.catalog_tables(session, [t for t in service.CATALOG_TABLES if t in named])
 
     try:
         for i in range(args.repeat + 1):
-            catalog = timed("catalog snapshot (4 tables to Arrow)", snapshot)
-            present = timed("store listing (present_tables)", lambda: service.present_tables(warm))
+            named = timed("tables the query names (parser)", lambda: service.referenced_tables(QUERY) or set())
+            catalog = timed("catalog snapshot (the catalog tables it names)", snapshot)
             start = time.perf_counter()
-            with sql.sandbox(root, catalog, present, limits, ctx.s3_access()) as con:
+            tables = [t for t in TABLES if t in named]
+            with sql.sandbox(root, catalog, limits, ctx.s3_access(), tables) as con:
                 steps.setdefault("sandbox set-up (all)", []).append(time.perf_counter() - start)
                 table = timed("query (sql.run)", lambda con=con: sql.run(con, QUERY, limits))
             timed("encode (Arrow IPC)", lambda table=table: service.encode(table, "arrow"))
             bare = timed("  of the set-up: connect + LOAD httpfs + secret",
                          lambda: direct_setup(endpoint, args.threads, args.memory_limit))
             timed("  of the set-up: CREATE VIEW scalars (binds: reads every footer)",
-                  lambda bare=bare: bare.execute(f"CREATE VIEW scalars AS {sql._table_source(root, 'scalars', True)}"))
+                  lambda bare=bare: sql.analytics_view(bare, root, "scalars"))
             bare.close()
             if i == 0:
                 steps.clear()

@@ -87,11 +87,6 @@ def _plain(value: Any) -> Any:
     return value
 
 
-def present_tables(warm: ObjectStore, tables: Iterable[str] = TABLES) -> set[str]:
-    """The analytics tables that have at least one file (one listing call each)."""
-    return {t for t in tables if next(iter(warm.list(f"analytics/{t}/")), None) is not None}
-
-
 _PARSER = duckdb.connect(":memory:")  # parses only; a cursor per call, so threads do not share one
 
 
@@ -112,7 +107,7 @@ def query(ctx: Analytics, text: str) -> pa.Table:
         catalog = catalog_tables(session, [t for t in CATALOG_TABLES if named is None or t in named])
     tables = [t for t in TABLES if named is None or t in named]
     root = sql.analytics_root(ctx.warm.url)
-    with sql.sandbox(root, catalog, present_tables(ctx.warm, tables), ctx.limits, ctx.s3_access(), tables) as con:
+    with sql.sandbox(root, catalog, ctx.limits, ctx.s3_access(), tables) as con:
         return sql.run(con, text, ctx.limits)
 
 

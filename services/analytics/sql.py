@@ -21,6 +21,7 @@ import pyarrow as pa
 
 from services.analytics.extract import FIXED_COLUMNS, LOG_TIME, TABLES
 from services.errors import ErrorCode, FleetError
+from services.storage.objectstore import StorageError
 
 
 class SqlNotAllowedError(FleetError):
@@ -116,11 +117,9 @@ def _explained(query: str) -> str:
 
 
 @contextmanager
-def sandbox(root: str, catalog: dict[str, pa.Table], present: set[str], limits: Limits,
-            s3: S3Access | None, tables: Iterable[str] = TABLES) -> Iterator[duckdb.DuckDBPyConnection]:
-    """A DuckDB with the catalog and analytics views, locked down. `present`: the analytics tables
-    that have at least one file (the others are empty views with the same columns); `tables`: the
-    analytics tables to make views of."""
+def sandbox(root: str, catalog: dict[str, pa.Table], limits: Limits, s3: S3Access | None,
+            tables: Iterable[str] = TABLES) -> Iterator[duckdb.DuckDBPyConnection]:
+    """A DuckDB with the given catalog tables and analytics views, locked down."""
     con = duckdb.connect(":memory:", config={"autoinstall_known_extensions": False,
                                              "autoload_known_extensions": False, "threads": limits.threads,
                                              "memory_limit": limits.memory})
@@ -131,7 +130,7 @@ def sandbox(root: str, catalog: dict[str, pa.Table], present: set[str], limits: 
             con.register(f"_catalog_{name}", table)
             con.execute(f"CREATE VIEW {name} AS SELECT * FROM _catalog_{name}")
         for table in tables:
-            con.execute(f"CREATE VIEW {table} AS {_table_source(root, table, table in present)}")
+            analytics_view(con, root, table)
         allowed = root.rstrip("/") + "/"
         con.execute("SET allowed_directories = [?]", [allowed])
         con.execute("SET enable_external_access = false")
@@ -141,14 +140,20 @@ def sandbox(root: str, catalog: dict[str, pa.Table], present: set[str], limits: 
         con.close()
 
 
-def _table_source(root: str, table: str, present: bool) -> str:
-    if present:
-        pattern = f"{root}/{table}/*/*/*.parquet".replace("'", "''")
-        return (f"SELECT * FROM read_parquet('{pattern}', hive_partitioning = true, union_by_name = true, "
-                "hive_types = {'robot_id': VARCHAR, 'date': DATE})")
+def analytics_view(con: duckdb.DuckDBPyConnection, root: str, table: str) -> None:
+    """`table` over its Parquet files (binding it reads each file's footer, for its columns); a table
+    with no file yet is an empty view with the documented columns."""
+    pattern = f"{root}/{table}/*/*/*.parquet".replace("'", "''")
+    try:
+        con.execute(f"CREATE VIEW {table} AS SELECT * FROM read_parquet('{pattern}', hive_partitioning = true, "
+                    "union_by_name = true, hive_types = {'robot_id': VARCHAR, 'date': DATE})")
+        return
+    except duckdb.IOException as exc:
+        if "No files found" not in str(exc):
+            raise StorageError(f"cannot read the {table} table under {root}: {_first_line(exc)}") from None
     columns = ", ".join(f"NULL::{_COLUMN_TYPES.get(c, 'DOUBLE')} AS {c}" for c in FIXED_COLUMNS[table])
-    return (f"SELECT {columns}, NULL::TIMESTAMP_NS AS {LOG_TIME}, NULL::VARCHAR AS robot_id, "
-            "NULL::DATE AS date WHERE false")
+    con.execute(f"CREATE VIEW {table} AS SELECT {columns}, NULL::TIMESTAMP_NS AS {LOG_TIME}, "
+                "NULL::VARCHAR AS robot_id, NULL::DATE AS date WHERE false")
 
 
 def _s3(con: duckdb.DuckDBPyConnection, s3: S3Access | None) -> None:
