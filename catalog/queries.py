@@ -167,6 +167,12 @@ def finish_job(session: Session, job_id: str, now: dt.datetime, outcome: str, de
         row.finished_at, row.outcome, row.detail = now, outcome, detail[:2000]
 
 
+def prune_jobs(session: Session, before: dt.datetime) -> int:
+    """Forget job runs that started before `before`; returns how many."""
+    result = session.execute(sa.delete(JobRun).where(JobRun.started_at < before))
+    return int(getattr(result, "rowcount", 0) or 0)
+
+
 def recent_jobs(session: Session, limit: int = 20) -> list[JobRun]:
     return list(session.scalars(sa.select(JobRun).order_by(JobRun.started_at.desc()).limit(limit)))
 

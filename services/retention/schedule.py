@@ -9,6 +9,7 @@ Each job run is recorded in the catalog (`job_runs`): where, when, and how it we
 
 from __future__ import annotations
 
+import datetime as dt
 import logging
 import os
 import socket
@@ -66,8 +67,12 @@ def retention_job(ctx: Retention, progress: Progress = None,
         return _recorded(ctx, "retention", lambda: run_plan(ctx, plan(ctx, kinds), progress))
 
 
+JOB_HISTORY = dt.timedelta(days=30)  # job runs kept in the catalog (GET /v1/retention shows the newest)
+
+
 def _recorded(ctx: Retention, job: str, body: Callable[[], list[Outcome]]) -> list[Outcome]:
     with session_scope(ctx.catalog) as session:
+        queries.prune_jobs(session, ctx.clock() - JOB_HISTORY)
         job_id = queries.start_job(session, job, node_name(), ctx.clock())
     outcomes: list[Outcome] = []
     try:

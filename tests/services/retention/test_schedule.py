@@ -23,7 +23,8 @@ import pytest
 import sqlalchemy as sa
 from sqlalchemy.orm import Session
 
-from catalog.db import create_engine
+from catalog import queries
+from catalog.db import create_engine, session_scope
 from catalog.models import JobRun
 from services.ingest.service import IngestService
 from services.retention.locks import job_lock
@@ -39,7 +40,8 @@ from tests.services.rrd.recordings import Recording
 
 HOLDER = """
 import sys, time
-from catalog.db import create_engine
+from catalog import queries
+from catalog.db import create_engine, session_scope
 from services.retention.locks import job_lock
 with job_lock(create_engine(sys.argv[1]), sys.argv[2]) as got:
     print("HELD" if got else "BUSY", flush=True)
@@ -297,3 +299,16 @@ def test_past_the_high_water_mark_closed_runs_are_promoted_oldest_first(make_nod
     free["bytes"] = 10 << 30
     (due,) = plan(node.retention, [PROMOTE])
     assert due.run_id == live_run and due.reason.startswith("closed and idle for")
+
+
+def test_job_runs_older_than_the_history_are_forgotten(tiers: Tiers, make_node: NodeFactory):
+    from services.retention.schedule import JOB_HISTORY
+
+    node = make_node(tiers, promote_after_s=0)
+    with session_scope(node.catalog) as session:
+        queries.start_job(session, "retention", "old-node", node.clock() - JOB_HISTORY - dt.timedelta(hours=1))
+        queries.start_job(session, "retention", "recent-node", node.clock() - JOB_HISTORY + dt.timedelta(hours=1))
+    assert retention_job(node.retention) == []
+    with session_scope(node.catalog) as session:
+        nodes = sorted(j.node for j in queries.recent_jobs(session))
+    assert "old-node" not in nodes and "recent-node" in nodes and len(nodes) == 2
