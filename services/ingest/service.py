@@ -114,7 +114,7 @@ class RunFacts:
 
     def __init__(self, run_id: str, now: dt.datetime) -> None:
         self.run_id = run_id
-        self.size = 0  # bytes of the recording
+        self.size = 0  # bytes of the recording, when it is not a hot file
         self.application_id = ""
         self.stores_written: set[StoreId] = set()
         self.activations: set[bytes] = set()
@@ -173,6 +173,9 @@ class RunFacts:
                 self.observe_property(prop.name, prop.values)
             self.observe_chunk(event, meta, at)
 
+    def recording_bytes(self) -> int:
+        return self.size
+
     def record(self, default_robot: str) -> RunRecord:
         summary = self.summary
         started = self.start_time_ns or self.first_log_time_ns
@@ -189,7 +192,7 @@ class RunFacts:
             sdk_version=self.sdk_version,
             chunks=summary.chunks if summary else 0,
             rows=summary.rows if summary else 0,
-            bytes=self.size,
+            bytes=self.recording_bytes(),
             properties=self.properties,
             entities=[EntityRecord(e.path, e.chunks, e.static_chunks, e.rows, e.bytes, sorted(e.archetypes),
                                    sorted(e.components)) for e in summary.entities.values()] if summary else [],
@@ -210,13 +213,8 @@ class RunState(RunFacts):
         self.promote_failures = 0
         self.next_promote_at: dt.datetime | None = None  # backoff after a failed promotion
 
-    @property  # type: ignore[override]
-    def size(self) -> int:
-        return self.hot.size
-
-    @size.setter
-    def size(self, value: int) -> None:
-        pass  # the hot file knows its size
+    def recording_bytes(self) -> int:
+        return self.hot.size  # the hot file knows its size
 
 
 class IngestService:

@@ -25,7 +25,7 @@ from services.retention import archive, promote
 from services.retention.policy import Policies
 from services.retention.seal import RUN_JSON
 from services.retention.tiers import Tiers
-from services.runs.service import get_run
+from services.runs.service import format_time, get_run
 
 log = logging.getLogger(__name__)
 
@@ -208,11 +208,9 @@ def request_restore(ctx: Retention, run_id: str, actor: str) -> dict[str, Any]:
 
 
 def restore_status(life: Any) -> dict[str, Any]:
-    def iso(value: dt.datetime | None) -> str | None:
-        return queries.aware(value).isoformat().replace("+00:00", "Z") if value else None
-
     return {"run": life.run_id, "restore_state": life.restore_state,
-            "restore_requested_at": iso(life.restore_requested_at), "restore_until": iso(life.restore_until)}
+            "restore_requested_at": format_time(life.restore_requested_at),
+            "restore_until": format_time(life.restore_until)}
 
 
 def delete_run(ctx: Retention, run_id: str, actor: str) -> str:

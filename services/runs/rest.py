@@ -16,23 +16,17 @@ from catalog import queries
 from catalog.db import session_scope
 from catalog.models import Run
 from services.runs import download, sealed, service
-from services.runs.service import RunFilter, parse_properties, parse_time
+from services.runs.service import RunFilter, format_time, parse_properties, parse_time
 
 router = APIRouter()
-
-
-def _time(value: dt.datetime | None) -> str | None:
-    if value is None:
-        return None
-    return (value if value.tzinfo else value.replace(tzinfo=dt.UTC)).isoformat().replace("+00:00", "Z")
 
 
 def run_summary(run: Run) -> dict[str, Any]:
     return {
         "id": run.id, "robot_id": run.robot_id, "application_id": run.application_id,
         "date": run.date.isoformat(), "status": run.status, "tier": run.tier,
-        "started_at": _time(run.started_at), "ended_at": _time(run.ended_at),
-        "last_data_at": _time(run.last_data_at), "sdk_version": run.sdk_version,
+        "started_at": format_time(run.started_at), "ended_at": format_time(run.ended_at),
+        "last_data_at": format_time(run.last_data_at), "sdk_version": run.sdk_version,
         "chunks": run.chunks, "rows": run.rows, "bytes": run.bytes, "pinned": run.pinned,
         "properties": json.loads(run.properties),
     }
@@ -41,8 +35,8 @@ def run_summary(run: Run) -> dict[str, Any]:
 @router.get("/v1/robots", summary="Robots and how many runs each has")
 def robots(request: Request) -> dict[str, Any]:
     with session_scope(request.app.state.catalog) as session:
-        return {"robots": [{"id": robot.id, "runs": count, "created_at": _time(robot.created_at),
-                            "last_seen_at": _time(robot.last_seen_at)}
+        return {"robots": [{"id": robot.id, "runs": count, "created_at": format_time(robot.created_at),
+                            "last_seen_at": format_time(robot.last_seen_at)}
                            for robot, count in service.list_robots(session)]}
 
 
@@ -95,14 +89,14 @@ def _lifecycle(request: Request, session: Session, run: Run) -> dict[str, Any]:
         return {"policy": policy, "lifecycle": None, "objects": [], "events": []}
     return {
         "policy": policy,
-        "lifecycle": {"prefix": life.prefix, "promoted_at": _time(life.promoted_at),
-                      "archived_at": _time(life.archived_at), "archive_mode": life.archive_mode,
-                      "restore_state": life.restore_state, "restore_until": _time(life.restore_until),
-                      "pinned_by": life.pinned_by, "deleted_at": _time(life.deleted_at),
+        "lifecycle": {"prefix": life.prefix, "promoted_at": format_time(life.promoted_at),
+                      "archived_at": format_time(life.archived_at), "archive_mode": life.archive_mode,
+                      "restore_state": life.restore_state, "restore_until": format_time(life.restore_until),
+                      "pinned_by": life.pinned_by, "deleted_at": format_time(life.deleted_at),
                       "deleted_by": life.deleted_by, "deleted_policy": life.deleted_policy},
         "objects": [{"name": o.name, "key": o.key, "tier": o.tier, "size": o.size, "sha256": o.sha256}
                     for o in queries.run_objects(session, run.id).values()],
-        "events": [{"action": e.action, "at": _time(e.occurred_at), "actor": e.actor, "policy": e.policy,
+        "events": [{"action": e.action, "at": format_time(e.occurred_at), "actor": e.actor, "policy": e.policy,
                     "detail": e.detail} for e in queries.run_events(session, run.id)],
     }
 

@@ -160,6 +160,11 @@ def list_runs(session: Session, flt: RunFilter) -> tuple[list[Run], str | None]:
     return runs, next_cursor
 
 
+def format_time(value: dt.datetime | None) -> str | None:
+    """A catalog time as ISO-8601 in UTC with a Z (DuckDB hands back UTC times without a zone)."""
+    return queries.aware(value).isoformat().replace("+00:00", "Z") if value is not None else None
+
+
 def run_not_found(run_id: str) -> RunNotFoundError:
     return RunNotFoundError(f"no run {run_id!r}: list runs with GET /v1/runs or `fleet runs ls`")
 
