@@ -25,7 +25,8 @@ class Settings(BaseSettings):
 
     data_dir: Path = Field(Path("./fleet-data"), description="hot tier and embedded defaults live here")
     http_addr: str = Field("0.0.0.0:8080", description="REST API address")
-    grpc_addr: str = Field("0.0.0.0:9876", description="Rerun message proxy address")
+    grpc_addr: str = Field("0.0.0.0:51234", description="Rerun message proxy address (Rerun's server port; "
+                           "9876 is the viewer's)")
     catalog_url: str = Field("", description="duckdb:///PATH or postgresql+psycopg://... "
                              "(default: DuckDB file in the data dir)")
     warm_url: str = Field("", description="file:///PATH or s3://bucket/prefix (default: data dir/warm)")

@@ -11,7 +11,7 @@ import click
 @click.option("--data-dir", type=click.Path(path_type=Path), help="FLEET_DATA_DIR: hot tier and embedded "
               "defaults live here [default: ./fleet-data]")
 @click.option("--http-addr", help="FLEET_HTTP_ADDR: REST API address [default: 0.0.0.0:8080]")
-@click.option("--grpc-addr", help="FLEET_GRPC_ADDR: Rerun message proxy address [default: 0.0.0.0:9876]")
+@click.option("--grpc-addr", help="FLEET_GRPC_ADDR: Rerun message proxy address [default: 0.0.0.0:51234]")
 @click.option("--catalog-url", help="FLEET_CATALOG_URL: duckdb:///PATH or postgresql+psycopg://...")
 @click.option("--warm-url", help="FLEET_WARM_URL: file:///PATH or s3://bucket/prefix")
 @click.option("--cold-url", help="FLEET_COLD_URL: file:///PATH or s3://bucket/prefix")

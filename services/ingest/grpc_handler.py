@@ -62,7 +62,7 @@ class MessageProxy:
 
 
     async def read_messages(self, request: bytes, context: grpc.aio.ServicerContext) -> AsyncIterator[bytes]:
-        """What `rerun --connect rerun+http://HOST:9876/proxy` calls: recent history, then live."""
+        """What `rerun --connect rerun+http://HOST:51234/proxy` calls: recent history, then live."""
         hub = self.service.replay
         if hub is None:
             await context.abort(grpc.StatusCode.UNAVAILABLE, "this node keeps no replay (FLEET_REPLAY_BYTES=0)")

@@ -13,7 +13,7 @@ def test_embedded_defaults_live_in_the_data_dir(tmp_path, monkeypatch):
     assert settings.warm_url == (tmp_path.resolve() / "warm").as_uri()
     assert settings.cold_url == (tmp_path.resolve() / "cold").as_uri()
     assert settings.http_addr == "0.0.0.0:8080"
-    assert settings.grpc_addr == "0.0.0.0:9876"
+    assert settings.grpc_addr == "0.0.0.0:51234"
 
 
 def test_environment_then_toml_then_defaults(tmp_path, monkeypatch):
