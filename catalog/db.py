@@ -7,8 +7,9 @@ to start with one line naming the command.
 
 from __future__ import annotations
 
+import threading
 from collections.abc import Iterator
-from contextlib import contextmanager
+from contextlib import contextmanager, nullcontext
 from pathlib import Path
 
 import sqlalchemy as sa
@@ -54,18 +55,40 @@ def is_embedded(engine: sa.Engine) -> bool:
     return engine.dialect.name == "duckdb"
 
 
+_WRITERS: dict[str, threading.RLock] = {}
+_WRITERS_GUARD = threading.Lock()
+
+
+def _writer_lock(factory: sessionmaker[Session]) -> threading.RLock | None:
+    """The embedded catalog's one-writer-at-a-time lock (None for Postgres, which locks rows itself).
+
+    DuckDB checks write-write conflicts optimistically: two transactions that update the same row
+    (a run, its robot) fail the second with "Conflict on update!" even when they touch it one after
+    the other, if the second began before the first committed. Writers therefore take this lock for
+    their whole transaction, so each begins after the previous one committed."""
+    bind = factory.kw.get("bind")
+    if not isinstance(bind, sa.Engine) or not is_embedded(bind):
+        return None
+    key = str(bind.url)
+    with _WRITERS_GUARD:
+        return _WRITERS.setdefault(key, threading.RLock())
+
+
 @contextmanager
-def session_scope(factory: sessionmaker[Session]) -> Iterator[Session]:
-    """The one way to use the catalog: a session committed on success, rolled back on error."""
-    session = factory()
-    try:
-        yield session
-        session.commit()
-    except BaseException:
-        session.rollback()
-        raise
-    finally:
-        session.close()
+def session_scope(factory: sessionmaker[Session], *, write: bool = False) -> Iterator[Session]:
+    """The one way to use the catalog: a session committed on success, rolled back on error.
+    `write=True` for a session that changes anything (serialized on the embedded catalog)."""
+    lock = _writer_lock(factory) if write else None
+    with lock if lock is not None else nullcontext():
+        session = factory()
+        try:
+            yield session
+            session.commit()
+        except BaseException:
+            session.rollback()
+            raise
+        finally:
+            session.close()
 
 
 def alembic_config(engine: sa.Engine | None = None) -> Config:

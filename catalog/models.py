@@ -15,6 +15,10 @@ from sqlalchemy import BigInteger, Boolean, Date, DateTime, MetaData, String, Te
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column
 
 ID_LENGTH = 128  # ids used in object keys: [A-Za-z0-9._-]{1,128}
+# Longest application id and timeline name, and longest entity path, in UTF-8 bytes: what ingest
+# accepts, so that Postgres's btree indexes (at most ~2700 bytes a row) can hold every value.
+NAME_BYTES = 1024
+PATH_BYTES = 2048
 
 NAMING = {
     "ix": "ix_%(column_0_label)s",
@@ -43,7 +47,7 @@ class Run(Base):
 
     id: Mapped[str] = mapped_column(String(ID_LENGTH), primary_key=True)
     robot_id: Mapped[str] = mapped_column(String(ID_LENGTH), index=True)
-    application_id: Mapped[str] = mapped_column(String(256), index=True)
+    application_id: Mapped[str] = mapped_column(Text, index=True)
     date: Mapped[dt.date] = mapped_column(Date, index=True)  # UTC date of the run's start
     status: Mapped[str] = mapped_column(String(16), index=True)  # live | closed
     tier: Mapped[str] = mapped_column(String(16), index=True)  # hot | warm | cold | deleted
@@ -55,7 +59,8 @@ class Run(Base):
     rows: Mapped[int] = mapped_column(BigInteger, default=0)
     bytes: Mapped[int] = mapped_column(BigInteger, default=0)
     properties: Mapped[str] = mapped_column(Text, default="{}")  # JSON object, secrets removed
-    pinned: Mapped[bool] = mapped_column(Boolean, default=False)
+    pinned: Mapped[bool] = mapped_column(Boolean, default=False)  # exempt from expiry: the one home of a pin
+    pinned_by: Mapped[str | None] = mapped_column(String(256))
     created_at: Mapped[dt.datetime] = mapped_column(DateTime(timezone=True))
     updated_at: Mapped[dt.datetime] = mapped_column(DateTime(timezone=True))
 
@@ -77,7 +82,7 @@ class RunTimeline(Base):
     __tablename__ = "run_timelines"
 
     run_id: Mapped[str] = mapped_column(String(ID_LENGTH), primary_key=True)
-    name: Mapped[str] = mapped_column(String(256), primary_key=True)
+    name: Mapped[str] = mapped_column(Text, primary_key=True)
     type: Mapped[str] = mapped_column(String(16))  # sequence | timestamp | duration
     min: Mapped[int] = mapped_column(BigInteger)
     max: Mapped[int] = mapped_column(BigInteger)
@@ -99,7 +104,6 @@ class RunLifecycle(Base):
     restore_state: Mapped[str | None] = mapped_column(String(16))  # restoring | restored
     restore_requested_at: Mapped[dt.datetime | None] = mapped_column(DateTime(timezone=True))
     restore_until: Mapped[dt.datetime | None] = mapped_column(DateTime(timezone=True))
-    pinned_by: Mapped[str | None] = mapped_column(String(256))
     deleted_at: Mapped[dt.datetime | None] = mapped_column(DateTime(timezone=True))
     deleted_by: Mapped[str | None] = mapped_column(String(256))  # who: a user or "retention"
     deleted_policy: Mapped[str | None] = mapped_column(String(256))  # which policy expired it

@@ -135,6 +135,29 @@ def add_event(session: Session, run_id: str, action: str, now: dt.datetime, acto
                                policy=policy, detail=detail))
 
 
+def analytics_keys(session: Session, run_id: str) -> set[str]:
+    """Keys of the analytics files the catalog holds for a run."""
+    return {o.key for o in session.scalars(sa.select(RunObject).where(RunObject.run_id == run_id,
+                                                                       RunObject.name.like("analytics/%")))}
+
+
+def replace_analytics(session: Session, run_id: str, objects: list[ObjectRecord]) -> set[str]:
+    """Record a run's analytics files (written before it is sealed); returns the keys they replace."""
+    old = analytics_keys(session, run_id)
+    session.execute(sa.delete(RunObject).where(RunObject.run_id == run_id, RunObject.name.like("analytics/%")))
+    if objects:
+        session.execute(sa.insert(RunObject), [
+            {"run_id": run_id, "name": o.name, "key": o.key, "tier": o.tier, "size": o.size, "sha256": o.sha256}
+            for o in objects])
+    return old - {o.key for o in objects}
+
+
+def pin_state(session: Session, run_id: str) -> tuple[bool, str | None]:
+    """Whether a run is pinned, and by whom: (False, None) for a run the catalog does not have yet."""
+    run = session.get(Run, run_id)
+    return (bool(run.pinned), run.pinned_by) if run is not None else (False, None)
+
+
 def run_events(session: Session, run_id: str) -> list[RetentionEvent]:
     return list(session.scalars(sa.select(RetentionEvent).where(RetentionEvent.run_id == run_id)
                                 .order_by(RetentionEvent.occurred_at, RetentionEvent.id)))

@@ -18,6 +18,7 @@ from services.api.app import create_app
 from services.ingest import grpc_handler
 from services.ingest.hot import HotStore
 from services.ingest.replay import ReplayHub
+from services.ingest.reserve import DiskReserve
 from services.ingest.service import IngestService
 from services.retention.schedule import start_scheduler
 from services.retention.service import Retention
@@ -48,22 +49,32 @@ def build(settings: Settings) -> tuple[IngestService, Retention, Analytics]:
     retention = Retention(catalog, tiers, settings.policies, ingest,
                           promote_after=dt.timedelta(seconds=settings.promote_after_s),
                           promote_below_free_bytes=settings.promote_below_free_bytes,
-                          restore_days=settings.restore_days)
+                          restore_days=settings.restore_days, reserve_bytes=settings.reserve_bytes)
     analytics = Analytics(catalog, tiers.warm, Limits(settings.sql_max_rows, settings.sql_timeout_s,
                                                       settings.sql_memory_limit, settings.sql_threads))
     return ingest, retention, analytics
 
 
-async def _housekeeping(ingest: IngestService, every: float) -> None:
-    """Close idle runs and write what changed to the catalog, every `every` seconds. The catalog
-    write runs on a worker thread so that ingest never waits for the database."""
+def release_reserve_if_full(settings: Settings) -> bool:
+    """Before the catalog is opened: on a full disk, give the catalog the space held in reserve."""
+    return DiskReserve(settings.data_dir, settings.reserve_bytes).release_if_full()
+
+
+async def _housekeeping(ingest: IngestService, reserve: DiskReserve, every: float) -> None:
+    """Close idle runs and write what changed to the catalog, every `every` seconds; hold the disk
+    reserve again once there is room. Catalog and disk work runs on worker threads so that ingest
+    never waits for the database."""
     while True:
         await asyncio.sleep(every)
+        ingest.close_idle()
+        records = ingest.take_dirty_records()
         try:
-            ingest.close_idle()
-            await asyncio.to_thread(ingest.save_records, ingest.take_dirty_records())
-        except Exception:
-            log.exception("catalog update failed; retrying")
+            await asyncio.to_thread(ingest.save_records, records)
+        except Exception as exc:
+            log.warning("catalog update failed (%s: %s); the runs are safe on disk, retrying",
+                        type(exc).__name__, str(exc).splitlines()[0][:200] if str(exc) else "")
+        if not reserve.held:
+            await asyncio.to_thread(reserve.ensure)
 
 
 async def serve(settings: Settings) -> None:
@@ -82,7 +93,9 @@ async def serve(settings: Settings) -> None:
     http = uvicorn.Server(uvicorn.Config(app, host=http_host, port=http_port, log_level="info",
                                          lifespan="off"))
     await grpc_server.start()
-    housekeeping = asyncio.create_task(_housekeeping(ingest, settings.catalog_flush_s))
+    reserve = DiskReserve(settings.data_dir, settings.reserve_bytes)
+    await asyncio.to_thread(reserve.ensure)
+    housekeeping = asyncio.create_task(_housekeeping(ingest, reserve, settings.catalog_flush_s))
     scheduler = (start_scheduler(retention, settings.promote_interval_s, settings.retention_interval_s)
                  if settings.scheduler else None)
     try:

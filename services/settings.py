@@ -41,6 +41,8 @@ class Settings(BaseSettings):
     durability: Durability = Field(Durability.INTERVAL, description="hot-tier fsync: always | interval | off")
     group_commit_ms: int = Field(200, gt=0, description="with durability=interval, fsync every this many ms")
     min_free_bytes: int = Field(1 << 30, ge=0, description="refuse new data when the hot disk has less free")
+    reserve_bytes: int = Field(64 << 20, ge=0, description="held in reserve on the data disk for the catalog "
+                               "(released when the disk is full); promotion never takes the disk below it")
     max_streams: int = Field(1000, gt=0, description="most concurrent gRPC streams on this node")
     close_after_s: float = Field(60.0, gt=0, description="a live run with no data for this long is closed")
     replay_bytes: int = Field(64 * 1024 * 1024, ge=0,

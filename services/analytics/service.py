@@ -17,6 +17,7 @@ import pyarrow.parquet as pq
 import sqlalchemy as sa
 from sqlalchemy.orm import Session, sessionmaker
 
+from catalog import queries
 from catalog.db import session_scope
 from catalog.models import Robot, Run, RunEntity, RunTimeline
 from services.analytics import sql
@@ -181,4 +182,8 @@ def extract_hot_run(ctx: Analytics, ingest: IngestService, run_id: str) -> list[
             extractor.add(event, chunk_meta(event))
     record = run.record(ingest.default_robot)
     objects = write_analytics(ctx.warm, extractor, record.robot_id, record.date.isoformat())
+    with session_scope(ctx.catalog, write=True) as session:  # the catalog lists each run's one copy
+        stale = queries.replace_analytics(session, run_id, objects)
+    for key in stale:  # written before under another robot or date
+        ctx.warm.delete(key)
     return [{"table": o.name.removeprefix("analytics/"), "key": o.key, "bytes": o.size} for o in objects]

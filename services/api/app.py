@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import sqlalchemy as sa
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.middleware.cors import CORSMiddleware
@@ -48,6 +49,15 @@ def create_app(settings: Settings, ingest: IngestService | None = None,
     @app.exception_handler(FleetError)
     async def _fleet_error(_: Request, exc: FleetError) -> JSONResponse:
         return JSONResponse(exc.to_dict(), status_code=exc.http_status())
+
+    @app.exception_handler(sa.exc.OperationalError)
+    @app.exception_handler(sa.exc.InterfaceError)
+    @app.exception_handler(sa.exc.TimeoutError)
+    async def _catalog_down(_: Request, exc: Exception) -> JSONResponse:
+        # The database did not answer (down, restarting, overloaded): not the caller's mistake.
+        return JSONResponse({"code": ErrorCode.UNAVAILABLE.value,
+                             "message": "the catalog database is unavailable right now: retry in a moment"},
+                            status_code=http_status(ErrorCode.UNAVAILABLE))
 
     @app.get("/healthz")
     async def healthz() -> dict[str, str]:

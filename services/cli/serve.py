@@ -22,6 +22,8 @@ import click
               "default), off")
 @click.option("--group-commit-ms", type=int, help="FLEET_GROUP_COMMIT_MS: fsync period with durability=interval")
 @click.option("--min-free-bytes", type=int, help="FLEET_MIN_FREE_BYTES: refuse new data below this free disk")
+@click.option("--reserve-bytes", type=int, help="FLEET_RESERVE_BYTES: held in reserve on the data disk for the "
+              "catalog, released when the disk is full; promotion never takes the disk below it")
 @click.option("--max-streams", type=int, help="FLEET_MAX_STREAMS: most concurrent gRPC streams")
 @click.option("--close-after-s", type=float, help="FLEET_CLOSE_AFTER_S: close a live run idle this long")
 @click.option("--default-robot", help="FLEET_DEFAULT_ROBOT: robot id of runs that name none")
@@ -53,8 +55,8 @@ def serve(**flags: object) -> None:
     import logging
 
     from catalog.db import create_engine, prepare_for_service
+    from services.server import release_reserve_if_full, split_addr
     from services.server import serve as run_server
-    from services.server import split_addr
     from services.settings import load_settings
 
     settings = load_settings(**flags)
@@ -64,6 +66,7 @@ def serve(**flags: object) -> None:
         except ValueError as exc:
             raise click.BadParameter(str(exc)) from exc
     settings.data_dir.mkdir(parents=True, exist_ok=True)
+    release_reserve_if_full(settings)  # a full disk must not keep the catalog from opening
     engine = create_engine(settings.catalog_url)
     done = prepare_for_service(engine)  # a catalog that is behind: one line naming `fleet db upgrade`
     engine.dispose()

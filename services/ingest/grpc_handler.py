@@ -51,7 +51,9 @@ class MessageProxy:
         try:
             async for request in requests:
                 kind, raw = unwrap(request, received)
-                self.service.accept(source, decode_message(kind, raw, received))  # a view: no copy
+                event = decode_message(kind, raw, received)  # a view: no copy
+                await self.service.prepare(source, event)
+                self.service.accept(source, event)
                 received += len(request)
         except FleetError as exc:
             log.warning("stream from %s refused: %s", context.peer(), exc)

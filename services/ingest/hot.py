@@ -16,6 +16,7 @@ import os
 import shutil
 import threading
 import time
+import uuid
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -147,8 +148,21 @@ class HotStore:
 
     def existing(self) -> Iterator[Path]:
         for directory in sorted(self.root.iterdir()):
-            if (directory / RUN_FILE).is_file():
+            if not directory.name.startswith(".") and (directory / RUN_FILE).is_file():
                 yield directory
+
+    def set_aside(self, run: HotRun) -> Path:
+        """Move a forgotten run's folder out of the way (a new hot run of the same id may start at
+        once); returns where it went, for the caller to remove."""
+        aside = self.root / f".{run.run_id}.{uuid.uuid4().hex[:8]}.done"
+        os.rename(run.directory, aside)
+        return aside
+
+    def sweep(self) -> None:
+        """Remove folders set aside by a process that stopped before removing them."""
+        for directory in self.root.iterdir():
+            if directory.name.startswith(".") and directory.name.endswith(".done"):
+                shutil.rmtree(directory, ignore_errors=True)
 
     def create(self, run_id: str, version: RerunVersion) -> HotRun:
         run = HotRun.create(self.root / run_id, version)

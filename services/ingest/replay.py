@@ -1,9 +1,10 @@
 """What `ReadMessages` readers get: a bounded replay of the live streams' recent history, then new
 messages as they are filed.
 
-History is kept by bytes (`FLEET_REPLAY_BYTES`): store infos and blueprint messages are never
-dropped; past the budget the oldest temporal chunks go first, then the oldest static ones (the
-same rule as Rerun's own proxy). Readers that fall too far behind are disconnected rather than
+History is kept for live runs only, by bytes (`FLEET_REPLAY_BYTES`): a run's store infos and
+blueprint messages stay while it is live; past the budget the oldest temporal chunks go first,
+then the oldest static ones (the same rule as Rerun's own proxy); when a run closes, all of its
+history goes. Readers that fall too far behind are disconnected rather than
 allowed to slow ingest down; they can connect again.
 """
 
@@ -12,6 +13,7 @@ from __future__ import annotations
 import asyncio
 import collections
 import logging
+from dataclasses import dataclass
 
 log = logging.getLogger(__name__)
 
@@ -38,32 +40,47 @@ def read_response(kind: int, raw: bytes | bytearray | memoryview) -> bytes:
     return bytes([(1 << 3) | 2]) + _varint(len(inner)) + inner
 
 
+@dataclass(slots=True)
+class _Entry:
+    run_id: str
+    message: Message
+
+
 class ReplayHub:
+    """History per live run: when a run closes its messages leave the history (and its bytes the
+    budget), so a reader that connects later gets what is live now, not what was."""
+
     def __init__(self, budget_bytes: int) -> None:
         self.budget = budget_bytes
-        self._persistent: list[Message] = []
-        self._static: collections.deque[Message] = collections.deque()
-        self._temporal: collections.deque[Message] = collections.deque()
+        self._persistent: dict[str, list[Message]] = {}  # per live run, in order
+        self._static: collections.deque[_Entry] = collections.deque()
+        self._temporal: collections.deque[_Entry] = collections.deque()
+        self._run_bytes: dict[str, int] = {}  # bytes held per live run
         self._size = 0
+        self._stale = 0  # entries in the deques whose run has ended (dropped lazily)
         self._readers: set[asyncio.Queue[Message | None]] = set()
 
     @property
     def held_bytes(self) -> int:
         return self._size
 
-    def publish(self, kind: int, raw: bytes | bytearray | memoryview, *, persistent: bool, static: bool) -> None:
+    @property
+    def live_runs(self) -> int:
+        return len(self._run_bytes)
+
+    def publish(self, run_id: str, kind: int, raw: bytes | bytearray | memoryview, *, persistent: bool,
+                static: bool) -> None:
         # Kept as the message's own bytes (a view of the request, no copy); wrapped when sent.
         response: Message = (kind, raw)
         if persistent:
-            self._persistent.append(response)
+            self._persistent.setdefault(run_id, []).append(response)
         elif static:
-            self._static.append(response)
+            self._static.append(_Entry(run_id, response))
         else:
-            self._temporal.append(response)
+            self._temporal.append(_Entry(run_id, response))
+        self._run_bytes[run_id] = self._run_bytes.get(run_id, 0) + len(raw)
         self._size += len(raw)
-        while self._size > self.budget and (self._temporal or self._static):
-            dropped = self._temporal.popleft() if self._temporal else self._static.popleft()
-            self._size -= len(dropped[1])
+        self._shrink()
         for queue in list(self._readers):
             try:
                 queue.put_nowait(response)
@@ -72,12 +89,43 @@ class ReplayHub:
                 queue.get_nowait()
                 queue.put_nowait(None)
 
+    def end_run(self, run_id: str) -> None:
+        """The run closed: its history goes (readers already connected keep what they were sent)."""
+        held = self._run_bytes.pop(run_id, None)
+        if held is None:
+            return
+        self._size -= held
+        self._persistent.pop(run_id, None)
+        self._stale += sum(1 for entry in self._static if entry.run_id == run_id)
+        self._stale += sum(1 for entry in self._temporal if entry.run_id == run_id)
+        if self._stale > len(self._static) + len(self._temporal) - self._stale:
+            self._compact()
+
+    def _shrink(self) -> None:
+        """Past the budget the oldest temporal chunks go first, then the oldest static ones."""
+        while self._size > self.budget and (self._temporal or self._static):
+            entry = self._temporal.popleft() if self._temporal else self._static.popleft()
+            if entry.run_id not in self._run_bytes:
+                self._stale -= 1
+                continue
+            self._size -= len(entry.message[1])
+            self._run_bytes[entry.run_id] -= len(entry.message[1])
+
+    def _compact(self) -> None:
+        self._static = collections.deque(e for e in self._static if e.run_id in self._run_bytes)
+        self._temporal = collections.deque(e for e in self._temporal if e.run_id in self._run_bytes)
+        self._stale = 0
+
     def subscribe(self) -> tuple[list[Message], asyncio.Queue[Message | None]]:
         """The history to send first (persistent, static, temporal), and a queue of what follows;
         wrap each with `read_response` to send it."""
         queue: asyncio.Queue[Message | None] = asyncio.Queue(READER_QUEUE)
         self._readers.add(queue)
-        return [*self._persistent, *self._static, *self._temporal], queue
+        live = self._run_bytes
+        history = [m for messages in self._persistent.values() for m in messages]
+        history += [e.message for e in self._static if e.run_id in live]
+        history += [e.message for e in self._temporal if e.run_id in live]
+        return history, queue
 
     def unsubscribe(self, queue: asyncio.Queue[Message | None]) -> None:
         self._readers.discard(queue)

@@ -19,7 +19,8 @@ router = APIRouter()
                         507: {"description": "the hot tier is full"}})
 async def upload(request: Request) -> Any:
     """Streams the body (any size, constant memory) into the runs it names. Answers the runs
-    touched, chunks new and duplicate, and bytes. If the body turns bad part-way, the chunks
+    touched, chunks new and duplicate, and bytes; `catalog` is "pending" if the catalog could not
+    be written in time (the data is kept, and the catalog catches up). If the body turns bad part-way, the chunks
     before the fault are kept and the answer (4xx) names the byte offset."""
     service: IngestService = request.app.state.ingest
     decoder = RrdDecoder(max_message_size=request.app.state.settings.max_message_size)
@@ -27,11 +28,13 @@ async def upload(request: Request) -> Any:
     try:
         async for piece in request.stream():
             for event in decoder.feed(piece):
+                await service.prepare(source, event)
                 service.accept(source, event)
         for event in decoder.finish():
+            await service.prepare(source, event)
             service.accept(source, event)
     except FleetError as exc:
-        report = service.close_source(source)
+        report = await service.finish_upload(source)
         body = {**exc.to_dict(), "offset": getattr(exc, "offset", None), "accepted": report.to_dict()}
         return JSONResponse(body, status_code=exc.http_status())
-    return service.close_source(source).to_dict()
+    return (await service.finish_upload(source)).to_dict()

@@ -4,56 +4,80 @@ A *source* is one gRPC `WriteMessages` stream or one upload. Its SetStoreInfo me
 recordings it carries; each recording is a run (run id = recording id). Blueprint stores are
 kept with the recording they arrive beside. A chunk whose id the run already holds (sent live,
 then uploaded from the FileSink copy) is counted as a duplicate and not written again.
+
+A run becomes hot on this node with its first new data chunk, not with its SetStoreInfo, properties
+or blueprint (held until then): a stream that is refused before any data, or a replay of chunks
+already held (a robot's file copy of a sealed run, `rerun URL` pointed at the depot), leaves no run
+behind and changes no run's facts.
+Nothing here waits for the catalog or an object store: what ingest needs to know of runs sealed
+earlier is asked by `prepare` on a worker thread, with a time limit, and a catalog that does not
+answer only delays that knowledge until promotion, never the data.
 """
 
 from __future__ import annotations
 
+import asyncio
 import datetime as dt
 import logging
 import threading
+from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
+import sqlalchemy as sa
 from sqlalchemy.orm import Session, sessionmaker
 
 from catalog import queries
 from catalog.db import session_scope
-from catalog.queries import EntityRecord, RunRecord, TimelineRecord
+from catalog.queries import RunRecord
 from services.errors import ErrorCode, FleetError
-from services.ingest.hot import HotRun, HotStore
+from services.ingest.facts import (
+    LOG_TIME,
+    InvalidStreamError,
+    RunFacts,
+    RunState,
+    SealedInfo,
+    check_chunk_names,
+    check_name,
+    store_key,
+    utcnow,
+)
+from services.ingest.hot import HotStore
 from services.ingest.identity import (
     IDENTITY_PROPERTY,
     ROBOT_FIELD,
-    START_TIME_COMPONENT,
+    UnsafeIdError,
     check_id,
     is_property_entity,
     read_property_chunk,
-    run_date,
 )
 from services.ingest.replay import ReplayHub
-from services.rrd.chunk import ChunkMeta, chunk_meta
+from services.rrd.chunk import chunk_meta
 from services.rrd.frames import DEFAULT_VERSION, MessageKind, RerunVersion
 from services.rrd.messages import (
     ArrowMessage,
     BlueprintActivationMessage,
     Buffer,
     Event,
-    StoreId,
     StoreInfoMessage,
     StoreKind,
     StreamStart,
 )
-from services.rrd.summary import StoreSummary
+
+__all__ = ["LOG_TIME", "IngestReport", "IngestService", "InvalidStreamError", "RunFacts", "RunState", "SealedInfo",
+           "SealedLookup", "SealedRunError", "Source", "TooManyStreamsError", "utcnow"]
 
 log = logging.getLogger(__name__)
 
-LOG_TIME = "log_time"
-_PENDING_LIMIT = 64 * 1024 * 1024
+_HELD_LIMIT = 64 * 1024 * 1024
+_RECENTLY_SEALED = 1024
+_CATALOG_BACKOFF_MAX = dt.timedelta(minutes=5)
+# Errors of the catalog itself (unreachable, overloaded), as opposed to a record it refuses.
+_CATALOG_DOWN = (sa.exc.OperationalError, sa.exc.InterfaceError, sa.exc.TimeoutError)
 
-
-class InvalidStreamError(FleetError):
-    code = ErrorCode.INVALID_ARGUMENT
+StoreKey = tuple[StoreKind, str]
+SealedLookup = Callable[[str], SealedInfo | None]
 
 
 class TooManyStreamsError(FleetError):
@@ -62,24 +86,6 @@ class TooManyStreamsError(FleetError):
 
 class SealedRunError(FleetError):
     code = ErrorCode.CONFLICT
-
-
-@dataclass(frozen=True)
-class SealedInfo:
-    """What the catalog knows of a run that left the hot tier (given by the retention side)."""
-
-    tier: str  # warm | cold | deleted
-    prefix: str  # ROBOT/YYYY-MM-DD/RUN
-    robot_id: str
-    date: dt.date
-    chunk_ids: frozenset[bytes]
-
-
-SealedLookup = Callable[[str], SealedInfo | None]
-
-
-def utcnow() -> dt.datetime:
-    return dt.datetime.now(dt.UTC)
 
 
 @dataclass
@@ -91,138 +97,37 @@ class IngestReport:
     chunks_duplicate: int = 0
     bytes_new: int = 0
     messages: int = 0
+    catalog: str = "updated"  # "pending" when the catalog could not be written yet (the data is kept)
 
     def to_dict(self) -> dict[str, Any]:
         return {"runs": self.runs, "chunks_new": self.chunks_new, "chunks_duplicate": self.chunks_duplicate,
-                "bytes_new": self.bytes_new, "messages": self.messages}
+                "bytes_new": self.bytes_new, "messages": self.messages, "catalog": self.catalog}
 
 
 @dataclass
 class Source:
     live: bool  # a gRPC stream (its runs are live while it lasts) rather than an upload
     version: RerunVersion | None = None
-    run_of_store: dict[StoreId, str] = field(default_factory=dict)
+    run_of_store: dict[StoreKey, str] = field(default_factory=dict)
     recording_run: str | None = None  # where this source's blueprints go
-    pending: list[Event] = field(default_factory=list)  # blueprint messages before any recording
-    pending_bytes: int = 0
-    store_infos: dict[StoreId, StoreInfoMessage] = field(default_factory=dict)  # to reopen a sealed run
+    # Messages kept until they can be filed: blueprints before any recording (run None), and
+    # messages of a run that is not hot yet (written when its first new chunk arrives).
+    held: list[tuple[str | None, Event]] = field(default_factory=list)
+    held_bytes: int = 0
+    store_infos: dict[StoreKey, StoreInfoMessage] = field(default_factory=dict)
+    sealed: dict[str, SealedInfo | None] = field(default_factory=dict)  # what `prepare` learnt per run
+    attached: set[str] = field(default_factory=set)  # hot runs this source counts in their live sources
     report: IngestReport = field(default_factory=IngestReport)
-
-
-class RunFacts:
-    """What the catalog will say about a run, learnt from its messages (live, recovered or sealed)."""
-
-    def __init__(self, run_id: str, now: dt.datetime) -> None:
-        self.run_id = run_id
-        self.size = 0  # bytes of the recording, when it is not a hot file
-        self.application_id = ""
-        self.stores_written: set[StoreId] = set()
-        self.activations: set[bytes] = set()
-        self.chunk_ids: set[bytes] = set()
-        self.summary: StoreSummary | None = None
-        self.sdk_version: str | None = None
-        self.robot_id: str | None = None
-        self.properties: dict[str, dict[str, Any]] = {}
-        self.start_time_ns: int | None = None
-        self.first_log_time_ns: int | None = None
-        self.created_at = now
-        self.last_data_at = now
-        self.live_sources = 0
-        self.status = "live"
-        self.ended_at: dt.datetime | None = None
-        self.dirty = True
-
-    def observe_store_info(self, msg: StoreInfoMessage) -> None:
-        self.stores_written.add(msg.store_id)
-        if msg.store_id.kind == StoreKind.RECORDING:
-            self.application_id = msg.store_id.application_id
-            self.sdk_version = str(msg.sdk_version) if msg.sdk_version else self.sdk_version
-            if self.summary is None:
-                self.summary = StoreSummary(msg.store_id)
-        self.dirty = True
-
-    def observe_chunk(self, msg: ArrowMessage, meta: ChunkMeta, now: dt.datetime) -> None:
-        self.chunk_ids.add(meta.chunk_id)
-        self.last_data_at = now
-        self.dirty = True
-        if msg.store_id.kind != StoreKind.RECORDING or self.summary is None:
-            return
-        self.summary.add_chunk(meta)
-        for tl in meta.timelines:
-            if tl.name == LOG_TIME and (self.first_log_time_ns is None or tl.range.min < self.first_log_time_ns):
-                self.first_log_time_ns = tl.range.min
-
-    def observe_property(self, name: str, values: dict[str, Any]) -> None:
-        self.properties.setdefault(name or "recording", {}).update(values)
-        if name == IDENTITY_PROPERTY and ROBOT_FIELD in values:
-            self.robot_id = check_id("robot id", str(values[ROBOT_FIELD]))
-        start = values.get(START_TIME_COMPONENT)
-        if not name and isinstance(start, int):
-            self.start_time_ns = start
-
-    def replay(self, event: Event, at: dt.datetime, meta: ChunkMeta | None = None) -> None:
-        """Learn a message already written (recovery after a restart, sealing)."""
-        if isinstance(event, StoreInfoMessage):
-            self.observe_store_info(event)
-        elif isinstance(event, BlueprintActivationMessage):
-            self.activations.add(bytes(event.raw))
-        elif isinstance(event, ArrowMessage):
-            meta = meta or chunk_meta(event)
-            if event.store_id.kind == StoreKind.RECORDING and is_property_entity(meta.entity_path):
-                prop = read_property_chunk(event, meta)
-                self.observe_property(prop.name, prop.values)
-            self.observe_chunk(event, meta, at)
-
-    def recording_bytes(self) -> int:
-        return self.size
-
-    def record(self, default_robot: str) -> RunRecord:
-        summary = self.summary
-        started = self.start_time_ns or self.first_log_time_ns
-        return RunRecord(
-            id=self.run_id,
-            robot_id=self.robot_id or default_robot,
-            application_id=self.application_id,
-            date=run_date(self.start_time_ns, self.first_log_time_ns, self.created_at),
-            status=self.status,
-            tier="hot",
-            started_at=dt.datetime.fromtimestamp(started / 1e9, dt.UTC) if started else None,
-            ended_at=self.ended_at,
-            last_data_at=self.last_data_at,
-            sdk_version=self.sdk_version,
-            chunks=summary.chunks if summary else 0,
-            rows=summary.rows if summary else 0,
-            bytes=self.recording_bytes(),
-            properties=self.properties,
-            entities=[EntityRecord(e.path, e.chunks, e.static_chunks, e.rows, e.bytes, sorted(e.archetypes),
-                                   sorted(e.components)) for e in summary.entities.values()] if summary else [],
-            timelines=[TimelineRecord(t.name, t.type, t.min, t.max)
-                       for t in summary.timelines.values()] if summary else [],
-        )
-
-
-class RunState(RunFacts):
-    """A hot run: its file, the chunk ids it holds, and what the catalog will say about it."""
-
-    def __init__(self, hot: HotRun, now: dt.datetime) -> None:
-        super().__init__(hot.run_id, now)
-        self.hot = hot
-        self.sealing = threading.Lock()  # held by ingest per write, and by promotion as it hands the run over
-        self.sealed = False  # handed to the warm tier: new data for this run starts a new hot run
-        self.sealed_as: SealedInfo | None = None  # this hot run adds chunks to a run already sealed
-        self.promote_failures = 0
-        self.next_promote_at: dt.datetime | None = None  # backoff after a failed promotion
-
-    def recording_bytes(self) -> int:
-        return self.hot.size  # the hot file knows its size
 
 
 class IngestService:
     def __init__(self, hot: HotStore, catalog: sessionmaker[Session] | None, *, default_robot: str,
                  max_streams: int, close_after: dt.timedelta, clock: Callable[[], dt.datetime] = utcnow,
-                 replay: ReplayHub | None = None, sealed_lookup: SealedLookup | None = None) -> None:
+                 replay: ReplayHub | None = None, sealed_lookup: SealedLookup | None = None,
+                 lookup_timeout_s: float = 2.0) -> None:
         self.hot = hot
-        self.sealed_lookup = sealed_lookup  # asked when a run id is not hot here: was it sealed?
+        self.sealed_lookup = sealed_lookup  # asked (off the event loop) when a run id is not hot here
+        self.lookup_timeout_s = lookup_timeout_s
         self.replay = replay  # what live streams bring, for ReadMessages readers
         self.catalog = catalog
         self.default_robot = default_robot
@@ -230,8 +135,10 @@ class IngestService:
         self.close_after = close_after
         self.clock = clock
         self.runs: dict[str, RunState] = {}
+        self.recently_sealed: OrderedDict[str, SealedInfo] = OrderedDict()  # for data that follows a promotion
         self.live_streams = 0
         self.totals = {"chunks_new": 0, "chunks_duplicate": 0, "bytes_new": 0, "messages": 0}
+        self._catalog_writes = threading.Lock()  # one catalog writer at a time for ingest's own records
 
     # --- sources ---------------------------------------------------------------------------
 
@@ -250,19 +157,54 @@ class IngestService:
             self.live_streams -= 1
         for key in self.totals:
             self.totals[key] += getattr(source.report, key)
-        if source.pending:
-            log.warning("dropped %d blueprint messages that came with no recording", len(source.pending))
-        runs = [self.runs[r] for r in source.report.runs if r in self.runs]
+        if source.held:
+            log.info("dropped %d held messages of runs that received no new chunk", len(source.held))
+        runs = [self.runs[r] for r in source.attached if r in self.runs]
         self.hot.sync_if_always([r.hot for r in runs])
         now = self.clock()
         for run in runs:
             if source.live:
                 run.live_sources -= 1
             if run.live_sources == 0 and run.status == "live":
-                run.status, run.ended_at, run.dirty = "closed", now, True
-        if not source.live:
-            self.flush_catalog()  # an upload is answered with the catalog already up to date
+                self._close_run(run, now)
         return source.report
+
+    async def finish_upload(self, source: Source, timeout_s: float = 10.0) -> IngestReport:
+        """Close an upload and bring the catalog up to date before it is answered; a catalog that is
+        down or slow leaves the answer saying so (the data is kept; the catalog catches up later)."""
+        report = self.close_source(source)
+        records = self.take_dirty_records()
+        try:
+            await asyncio.wait_for(asyncio.to_thread(self.save_records, records), timeout_s)
+        except Exception as exc:  # any catalog failure: retried by the housekeeping
+            log.warning("catalog not updated after an upload (%s); it catches up when it answers", exc)
+            self._mark_dirty(records)
+            report.catalog = "pending"
+        return report
+
+    async def prepare(self, source: Source, event: Event) -> None:
+        """Before `accept`: for a recording not hot here, ask (on a worker thread, within
+        `lookup_timeout_s`) whether it was sealed before, so late data is filed beside it and chunks
+        it already holds are skipped. No answer in time: filed as new, sorted out at promotion."""
+        if self.sealed_lookup is None or not isinstance(event, StoreInfoMessage):
+            return
+        store = event.store_id
+        run_id = store.recording_id
+        if store.kind != StoreKind.RECORDING or run_id in source.sealed or run_id in self.runs:
+            return
+        try:
+            check_id("recording id", run_id)
+            source.sealed[run_id] = await asyncio.wait_for(asyncio.to_thread(self.sealed_lookup, run_id),
+                                                           self.lookup_timeout_s)
+        except UnsafeIdError:
+            return  # `accept` refuses the id with the reason
+        except Exception as exc:  # catalog or store down or slow: the data still goes in
+            self._lookup_failed(source, run_id, exc)
+
+    def _lookup_failed(self, source: Source, run_id: str, exc: BaseException) -> None:
+        log.warning("could not ask the catalog whether run %s was sealed (%s): filing its data as new; "
+                    "promotion merges it with a sealed copy if there is one", run_id, type(exc).__name__)
+        source.sealed[run_id] = None
 
     def accept(self, source: Source, event: Event) -> None:
         """File one message of `source`."""
@@ -280,65 +222,129 @@ class IngestService:
 
     def _store_info(self, source: Source, msg: StoreInfoMessage) -> None:
         store = msg.store_id
+        key = store_key(store)
         if store.kind == StoreKind.BLUEPRINT:
             if source.recording_run is None:
-                self._hold(source, msg)
+                self._hold(source, None, msg)
                 return
-            run = self._state(source, source.recording_run)
+            run_id = source.recording_run
         else:
             run_id = check_id("recording id", store.recording_id)
-            run = self._run_for(source, run_id, msg.sdk_version)
+            check_name("application id", store.application_id)
             source.recording_run = source.recording_run or run_id
-        source.run_of_store[store] = run.run_id
-        source.store_infos[store] = msg
-        if store not in run.stores_written:
+            if run_id not in source.report.runs:
+                source.report.runs.append(run_id)
+        source.run_of_store[key] = run_id
+        source.store_infos[key] = msg
+        run = self._hot_run(source, run_id)
+        if run is not None and key not in run.stores_written:
             run = self._append(source, run, MessageKind.SET_STORE_INFO, msg.raw)
             run.observe_store_info(msg)
-            self._publish(source, MessageKind.SET_STORE_INFO, msg.raw, persistent=True)
-        if source.pending and source.recording_run == run.run_id:
-            pending, source.pending, source.pending_bytes = source.pending, [], 0
-            for event in pending:
-                self.accept(source, event)
-                source.report.messages -= 1  # counted when it arrived
+            self._publish(source, run.run_id, MessageKind.SET_STORE_INFO, msg.raw, persistent=True)
+        if store.kind == StoreKind.RECORDING and run_id == source.recording_run:
+            self._release(source, None)  # blueprints that came before their recording
 
-    def _run_for(self, source: Source, run_id: str, version: RerunVersion | None) -> RunState:
+    def _arrow(self, source: Source, msg: ArrowMessage) -> None:
+        run_id = self._run_id_of(source, msg.store_id.kind, msg.store_id.recording_id, msg)
+        if run_id is None:
+            return
+        run = self._hot_run(source, run_id)
+        if msg.chunk_id is not None and self._holds(source, run, run_id, msg.chunk_id):
+            source.report.chunks_duplicate += 1
+            return
+        meta = chunk_meta(msg)
+        if self._holds(source, run, run_id, meta.chunk_id):
+            source.report.chunks_duplicate += 1
+            return
+        check_chunk_names(meta)
+        prop = None
+        if msg.store_id.kind == StoreKind.RECORDING and is_property_entity(meta.entity_path):
+            prop = read_property_chunk(msg, meta)
+            if prop.name == IDENTITY_PROPERTY and ROBOT_FIELD in prop.values:
+                check_id("robot id", str(prop.values[ROBOT_FIELD]))  # refused before anything is written
+            msg = prop.message  # without its secret fields, if it had any
+        if run is None and (prop is not None or msg.store_id.kind == StoreKind.BLUEPRINT):
+            self._hold(source, run_id, msg)  # a run starts with its data, not with properties or a layout
+            return
+        self.hot.check_space(len(msg.raw))
+        run = run or self._materialize(source, run_id)
+        run = self._append(source, run, MessageKind.ARROW_MSG, msg.raw)
+        if prop is not None:
+            run.observe_property(prop.name, prop.values)
+        run.observe_chunk(msg, meta, self.clock())
+        if source.live and run.status != "live":  # closed as idle, and its stream speaks again
+            run.status, run.ended_at = "live", None
+            self._republish_store_infos(source, run.run_id)
+        self._publish(source, run.run_id, MessageKind.ARROW_MSG, msg.raw, persistent=msg.store_id.is_blueprint,
+                      static=meta.is_static)
+        source.report.chunks_new += 1
+        source.report.bytes_new += len(msg.raw)
+
+    def _activation(self, source: Source, msg: BlueprintActivationMessage) -> None:
+        run_id = self._run_id_of(source, msg.blueprint_id.kind, msg.blueprint_id.recording_id, msg)
+        if run_id is None:
+            return
+        run = self._hot_run(source, run_id)
+        if run is None:
+            self._hold(source, run_id, msg)
+        elif bytes(msg.raw) not in run.activations:
+            run = self._append(source, run, MessageKind.BLUEPRINT_ACTIVATION, msg.raw)
+            run.activations.add(bytes(msg.raw))
+            self._publish(source, run.run_id, MessageKind.BLUEPRINT_ACTIVATION, msg.raw, persistent=True)
+
+    def _run_id_of(self, source: Source, kind: StoreKind, recording_id: str, msg: Event) -> str | None:
+        run_id = source.run_of_store.get((kind, recording_id))
+        if run_id is not None:
+            return run_id
+        if kind == StoreKind.BLUEPRINT:
+            self._hold(source, None, msg)
+            return None
+        raise InvalidStreamError(
+            f"a message for recording {recording_id!r} came before its SetStoreInfo "
+            f"(at byte {getattr(msg, 'offset', 0)}): send the recording from its start")
+
+    def _holds(self, source: Source, run: RunState | None, run_id: str, chunk_id: bytes) -> bool:
+        if run is not None:
+            return run.holds(chunk_id)
+        sealed = self._sealed_info(source, run_id)
+        return sealed is not None and chunk_id in sealed.chunk_ids
+
+    def _sealed_info(self, source: Source, run_id: str) -> SealedInfo | None:
+        return self.recently_sealed.get(run_id) or source.sealed.get(run_id)
+
+    def _hot_run(self, source: Source, run_id: str) -> RunState | None:
+        """The run if it is hot here (and not being handed over), counted as fed by `source`."""
         run = self.runs.get(run_id)
         if run is None or run.sealed:
-            run = self._new_run(run_id, version or source.version or DEFAULT_VERSION)
-        if run_id not in source.report.runs:
-            source.report.runs.append(run_id)
-            if source.live:
-                run.live_sources += 1
-        if source.live and run.status != "live":
-            run.status, run.ended_at, run.dirty = "live", None, True
+            return None
+        self._attach(source, run)
         return run
 
-    def _new_run(self, run_id: str, version: RerunVersion) -> RunState:
-        sealed = self.sealed_lookup(run_id) if self.sealed_lookup is not None else None
+    def _attach(self, source: Source, run: RunState) -> None:
+        if run.run_id not in source.attached:
+            source.attached.add(run.run_id)
+            if source.live:
+                run.live_sources += 1
+
+    def _materialize(self, source: Source, run_id: str) -> RunState:
+        """The first new chunk of a run not hot here: a hot run with the source's store infos and
+        whatever it held for it. A run sealed before takes the late data beside its sealed copy."""
+        sealed = self._sealed_info(source, run_id)
         if sealed is not None and sealed.tier != "warm":
             fix = ("restore it first (fleet runs restore)" if sealed.tier == "cold"
                    else "send it under a new recording id")
             raise SealedRunError(f"run {run_id!r} is {sealed.tier}: it takes no new data; {fix}")
-        self.hot.check_space(0)
+        info = source.store_infos.get((StoreKind.RECORDING, run_id))
+        version = (info.sdk_version if info is not None else None) or source.version or DEFAULT_VERSION
         run = self.runs[run_id] = RunState(self.hot.create(run_id, version), self.clock())
-        if sealed is not None:  # chunks sent after it was sealed: kept, and sealed in with the rest later
-            run.sealed_as = sealed
-            run.chunk_ids |= sealed.chunk_ids
-        return run
-
-    def _state(self, source: Source, run_id: str) -> RunState:
-        run = self.runs.get(run_id)
-        return self._reopen(source, run_id) if run is None or run.sealed else run
-
-    def _reopen(self, source: Source, run_id: str) -> RunState:
-        """The run was sealed into the warm tier while this source was still sending: what follows
-        starts a new hot run (with the source's store infos), sealed in with the rest later."""
-        run = self._new_run(run_id, source.version or DEFAULT_VERSION)
-        run.live_sources = 1 if source.live else 0
-        for store, info in source.store_infos.items():
-            if source.run_of_store.get(store) == run_id:
-                run.hot.append(MessageKind.SET_STORE_INFO, info.raw)
-                run.observe_store_info(info)
+        run.sealed_as = sealed  # chunks sent after it was sealed: sealed in with the rest later
+        self._attach(source, run)
+        for key, store_info in source.store_infos.items():
+            if source.run_of_store.get(key) == run_id and key not in run.stores_written:
+                run.hot.append(MessageKind.SET_STORE_INFO, store_info.raw)
+                run.observe_store_info(store_info)
+                self._publish(source, run_id, MessageKind.SET_STORE_INFO, store_info.raw, persistent=True)
+        self._release(source, run_id)
         return run
 
     def _append(self, source: Source, run: RunState, kind: MessageKind, raw: Buffer) -> RunState:
@@ -348,75 +354,61 @@ class IngestService:
                 if not run.sealed:
                     run.hot.append(kind, raw)
                     return run
-            run = self._reopen(source, run.run_id)
+            run = self._materialize(source, run.run_id)
+
+    def _hold(self, source: Source, run_id: str | None, msg: Event) -> None:
+        size = len(getattr(msg, "raw", b""))
+        if source.held_bytes + size > _HELD_LIMIT:
+            raise InvalidStreamError(f"more than {_HELD_LIMIT} bytes of blueprint came with no recording data")
+        source.held.append((run_id, msg))
+        source.held_bytes += size
+
+    def _release(self, source: Source, run_id: str | None) -> None:
+        """File the messages held for `run_id` (None: those that waited for a recording)."""
+        if not any(held_for == run_id for held_for, _ in source.held):
+            return
+        ready = [event for held_for, event in source.held if held_for == run_id]
+        source.held = [(held_for, event) for held_for, event in source.held if held_for != run_id]
+        source.held_bytes = sum(len(getattr(event, "raw", b"")) for _, event in source.held)
+        for event in ready:
+            self.accept(source, event)
+            source.report.messages -= 1  # counted when it arrived
+
+    def _publish(self, source: Source, run_id: str, kind: MessageKind, raw: Buffer, *, persistent: bool,
+                 static: bool = False) -> None:
+        if source.live and self.replay is not None:
+            self.replay.publish(run_id, kind, raw, persistent=persistent, static=static)
+
+    def _republish_store_infos(self, source: Source, run_id: str) -> None:
+        for key, info in source.store_infos.items():
+            if source.run_of_store.get(key) == run_id:
+                self._publish(source, run_id, MessageKind.SET_STORE_INFO, info.raw, persistent=True)
+
+    def _close_run(self, run: RunState, now: dt.datetime) -> None:
+        run.status, run.ended_at, run.dirty = "closed", now, True
+        if self.replay is not None:
+            self.replay.end_run(run.run_id)  # readers that connect later get live runs only
 
     def forget(self, run: RunState) -> None:
         """Promotion sealed this run: it leaves the hot tier (called with `run.sealing` held)."""
         if self.runs.get(run.run_id) is run:
             del self.runs[run.run_id]
+        if run.sealed_into is not None:
+            self.recently_sealed[run.run_id] = run.sealed_into
+            self.recently_sealed.move_to_end(run.run_id)
+            while len(self.recently_sealed) > _RECENTLY_SEALED:
+                self.recently_sealed.popitem(last=False)
+        if self.replay is not None:
+            self.replay.end_run(run.run_id)
         self.hot.forget(run.hot)
-
-    def _arrow(self, source: Source, msg: ArrowMessage) -> None:
-        run = self._run_of(source, msg.store_id, msg)
-        if run is None:
-            return
-        if msg.chunk_id is not None and msg.chunk_id in run.chunk_ids:
-            source.report.chunks_duplicate += 1
-            return
-        meta = chunk_meta(msg)
-        if meta.chunk_id in run.chunk_ids:
-            source.report.chunks_duplicate += 1
-            return
-        if msg.store_id.kind == StoreKind.RECORDING and is_property_entity(meta.entity_path):
-            prop = read_property_chunk(msg, meta)
-            run.observe_property(prop.name, prop.values)
-            msg = prop.message  # without its secret fields, if it had any
-        self.hot.check_space(len(msg.raw))
-        run = self._append(source, run, MessageKind.ARROW_MSG, msg.raw)
-        run.observe_chunk(msg, meta, self.clock())
-        self._publish(source, MessageKind.ARROW_MSG, msg.raw, persistent=msg.store_id.is_blueprint,
-                      static=meta.is_static)
-        if source.live and run.status != "live":  # closed as idle, and its stream speaks again
-            run.status, run.ended_at = "live", None
-        source.report.chunks_new += 1
-        source.report.bytes_new += len(msg.raw)
-
-    def _activation(self, source: Source, msg: BlueprintActivationMessage) -> None:
-        run = self._run_of(source, msg.blueprint_id, msg)
-        if run is not None and bytes(msg.raw) not in run.activations:
-            run = self._append(source, run, MessageKind.BLUEPRINT_ACTIVATION, msg.raw)
-            run.activations.add(bytes(msg.raw))
-            self._publish(source, MessageKind.BLUEPRINT_ACTIVATION, msg.raw, persistent=True)
-
-    def _publish(self, source: Source, kind: MessageKind, raw: Buffer, *, persistent: bool,
-                 static: bool = False) -> None:
-        if source.live and self.replay is not None:
-            self.replay.publish(kind, raw, persistent=persistent, static=static)
-
-    def _run_of(self, source: Source, store: StoreId, msg: Event) -> RunState | None:
-        run_id = source.run_of_store.get(store)
-        if run_id is not None:
-            return self._state(source, run_id)
-        if store.kind == StoreKind.BLUEPRINT:
-            self._hold(source, msg)
-            return None
-        raise InvalidStreamError(
-            f"a message for recording {store.recording_id!r} came before its SetStoreInfo "
-            f"(at byte {getattr(msg, 'offset', 0)}): send the recording from its start")
-
-    def _hold(self, source: Source, msg: Event) -> None:
-        """Blueprints are sent before their recording: keep them until it is known (bounded)."""
-        size = len(getattr(msg, "raw", b""))
-        if source.pending_bytes + size > _PENDING_LIMIT:
-            raise InvalidStreamError(f"more than {_PENDING_LIMIT} bytes of blueprint with no recording")
-        source.pending.append(msg)
-        source.pending_bytes += size
 
     # --- recovery, catalog, closing ----------------------------------------------------------
 
     def recover(self) -> list[str]:
-        """Rebuild every hot run from disk after a restart (torn tails trimmed); returns their ids."""
+        """Rebuild every hot run from disk after a restart (torn tails trimmed); returns their ids.
+        Whether one was sealed before is settled at its promotion, when the catalog is asked."""
         recovered = []
+        self.hot.sweep()
         for directory in self.hot.existing():
             hot, events = self.hot.recover(directory)
             mtime = dt.datetime.fromtimestamp(hot.path.stat().st_mtime, dt.UTC)
@@ -425,18 +417,11 @@ class IngestService:
                 run.replay(event, mtime)
             # No stream survives a restart (the SDK never reconnects): what follows comes by upload.
             run.last_data_at, run.status, run.ended_at = mtime, "closed", mtime
-            sealed = self.sealed_lookup(hot.run_id) if self.sealed_lookup is not None else None
-            if sealed is not None and run.chunk_ids <= sealed.chunk_ids:
-                # Promotion sealed it and stopped before removing the hot copy: finish that now.
-                log.info("hot run %s is already sealed in the %s tier: removing the hot copy", hot.run_id, sealed.tier)
-                del self.runs[hot.run_id]
-                self.hot.discard(hot)
-                continue
-            if sealed is not None:
-                run.sealed_as = sealed
-                run.chunk_ids |= sealed.chunk_ids
             recovered.append(hot.run_id)
-        self.flush_catalog()
+        try:
+            self.flush_catalog()
+        except Exception as exc:  # the housekeeping retries; the runs are safe on disk
+            log.warning("catalog not updated with the recovered runs yet (%s)", exc)
         return recovered
 
     def close_idle(self) -> list[str]:
@@ -445,39 +430,79 @@ class IngestService:
         closed = []
         for run in list(self.runs.values()):  # promotion may take runs away meanwhile
             if run.status == "live" and now - run.last_data_at >= self.close_after:
-                run.status, run.ended_at, run.dirty = "closed", now, True
+                self._close_run(run, now)
                 closed.append(run.run_id)
         return closed
 
     def flush_catalog(self) -> None:
-        """Write every run that changed to the catalog, in one transaction."""
+        """Write every run that changed to the catalog."""
         self.save_records(self.take_dirty_records())
 
     def take_dirty_records(self) -> list[RunRecord]:
         """Snapshots of the runs that changed since the last flush (cheap: taken on the ingest
-        thread, then saved with `save_records`, which may run on another thread)."""
+        thread, then saved with `save_records`, which may run on another thread). A run whose
+        record the catalog refused waits for its retry time alone."""
         records = []
+        now = self.clock()
         for run in list(self.runs.values()):
-            if run.dirty:
+            if run.dirty and (run.catalog_retry_at is None or run.catalog_retry_at <= now):
                 run.dirty = False
                 records.append(run.record(self.default_robot))
         return records
 
     def save_records(self, records: list[RunRecord]) -> None:
+        """One transaction for all; if the catalog refuses it for one record's sake, each record on
+        its own, so one bad run never holds back the others (it is retried with backoff)."""
         if not records or self.catalog is None:
             return
-        now = self.clock()
-        try:
-            with session_scope(self.catalog) as session:
+        with self._catalog_writes:
+            try:
+                self._save(records)
+            except _CATALOG_DOWN:
+                self._mark_dirty(records)
+                raise
+            except Exception:  # a record the catalog refuses: find which
                 for record in records:
-                    queries.save_run(session, record, now)
-        except Exception:
+                    self._save_one(record)
+                return
+        for record in records:
+            run = self.runs.get(record.id)
+            if run is not None:
+                run.catalog_failures, run.catalog_retry_at = 0, None
+
+    def _save(self, records: list[RunRecord]) -> None:
+        assert self.catalog is not None
+        now = self.clock()
+        with session_scope(self.catalog, write=True) as session:
             for record in records:
-                run = self.runs.get(record.id)
-                if run is not None:
-                    run.dirty = True  # retried at the next flush
-            raise
+                queries.save_run(session, record, now)
+
+    def _save_one(self, record: RunRecord) -> None:
+        run = self.runs.get(record.id)
+        try:
+            self._save([record])
+        except Exception as exc:  # logged and retried; never stops the other runs
+            if run is None:
+                return
+            run.dirty = True
+            run.catalog_failures += 1
+            wait = min(dt.timedelta(seconds=2 ** min(run.catalog_failures, 16)), _CATALOG_BACKOFF_MAX)
+            run.catalog_retry_at = self.clock() + wait
+            log.error("the catalog refused the record of run %s (%s: %s); retrying in %s", record.id,
+                      type(exc).__name__, str(exc).splitlines()[0][:300] if str(exc) else "", wait)
+            return
+        if run is not None:
+            run.catalog_failures, run.catalog_retry_at = 0, None
+
+    def _mark_dirty(self, records: list[RunRecord]) -> None:
+        for record in records:
+            run = self.runs.get(record.id)
+            if run is not None:
+                run.dirty = True  # retried at the next flush
 
     def close(self) -> None:
-        self.flush_catalog()
+        try:
+            self.flush_catalog()
+        except Exception as exc:  # the hot runs are on disk: the next start files them
+            log.warning("catalog not updated at shutdown (%s)", exc)
         self.hot.close()

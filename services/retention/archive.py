@@ -19,7 +19,8 @@ from catalog.models import Run, RunLifecycle
 from services.errors import ErrorCode, FleetError
 from services.retention.seal import RECORDING
 from services.retention.tiers import Tiers, readable_when_cold
-from services.storage.objectstore import ArchiveStore, ObjectNotFoundError, copy_object
+from services.runs.service import run_not_found
+from services.storage.objectstore import ArchiveStore, ObjectNotFoundError, StorageError, copy_object
 
 log = logging.getLogger(__name__)
 
@@ -28,11 +29,18 @@ class RestoreNotNeededError(FleetError):
     code = ErrorCode.CONFLICT
 
 
+class NotSealedError(FleetError):
+    code = ErrorCode.CONFLICT
+
+
 def _load(session: Session, run_id: str) -> tuple[Run, RunLifecycle]:
     run = queries.get_run(session, run_id)
+    if run is None:
+        raise run_not_found(run_id)
     life = queries.lifecycle(session, run_id)
-    if run is None or life is None:
-        raise FleetError(f"run {run_id!r} is not sealed")
+    if life is None:
+        raise NotSealedError(f"run {run_id!r} is {run.tier}, not sealed yet: it serves as it is, and "
+                             f"`fleet runs promote {run_id}` seals it now")
     return run, life
 
 
@@ -49,12 +57,13 @@ def archive(run_id: str, tiers: Tiers, catalog: sessionmaker[Session], now: dt.d
         if (info.storage_class or "STANDARD") != tiers.cold_storage_class:  # else an attempt that died did it
             info = store.set_storage_class(key, tiers.cold_storage_class)
         if (info.storage_class or "STANDARD") != tiers.cold_storage_class:
-            raise FleetError(f"{key} is in storage class {info.storage_class}, not {tiers.cold_storage_class}")
+            raise StorageError(f"{key} is in storage class {info.storage_class} after the move, not "
+                               f"{tiers.cold_storage_class}: the store refused the class; retried at the next run")
         where = f"storage class {tiers.cold_storage_class}"
     else:
         copy_object(tiers.warm, tiers.cold, key)
         where = tiers.cold.url
-    with session_scope(catalog) as session:
+    with session_scope(catalog, write=True) as session:
         run, life = _load(session, run_id)
         run.tier, run.updated_at = "cold", now
         life.archived_at, life.archive_mode = now, tiers.archive_mode()
@@ -91,7 +100,7 @@ def request_restore(run_id: str, tiers: Tiers, catalog: sessionmaker[Session], n
                                     "restore: download it as it is")
     if mode and mode != "store":
         _archive_store(tiers).restore(key, max(1, round(days)))
-    with session_scope(catalog) as session:
+    with session_scope(catalog, write=True) as session:
         _, life = _load(session, run_id)
         life.restore_state, life.restore_requested_at = "restoring", now
         life.restore_until = now + dt.timedelta(days=days)
@@ -127,7 +136,7 @@ def advance_restore(run_id: str, tiers: Tiers, catalog: sessionmaker[Session], n
 
 def _set_restore(catalog: sessionmaker[Session], run_id: str, state: str | None, now: dt.datetime,
                  detail: str) -> None:
-    with session_scope(catalog) as session:
+    with session_scope(catalog, write=True) as session:
         _, life = _load(session, run_id)
         life.restore_state = state
         if state is None:
@@ -156,7 +165,7 @@ def delete(run_id: str, tiers: Tiers, catalog: sessionmaker[Session], now: dt.da
     for key in analytics:  # the run's rows in the analytics tables (warm store, partitioned elsewhere)
         tiers.warm.delete(key)
         removed += 1
-    with session_scope(catalog) as session:
+    with session_scope(catalog, write=True) as session:
         run, life = _load(session, run_id)
         run.tier, run.updated_at = "deleted", now
         life.deleted_at, life.deleted_by, life.deleted_policy = now, actor, policy

@@ -5,7 +5,10 @@ run's hot folder; (2) upload them, then `run.json`, under `ROBOT/YYYY-MM-DD/RUN/
 time, so a retry overwrites rather than orphans); (3) check what the store holds against what was
 sealed; (4) switch the catalog to warm in one transaction; (5) remove the hot files. A crash
 before (4) leaves the run hot, and the next promotion redoes (1)-(3) over the same keys; a crash
-after (4) leaves a hot copy whose chunks are all sealed, removed at the next start or promotion.
+after (4) leaves a hot copy whose chunks are all sealed, which its next promotion finds so and
+removes without sealing again (so does a late upload that brought nothing new).
+Whether a run was sealed before is asked of the catalog here, not at ingest: ingest files data even
+while the catalog does not answer.
 """
 
 from __future__ import annotations
@@ -13,9 +16,12 @@ from __future__ import annotations
 import dataclasses
 import datetime as dt
 import logging
+import os
 import shutil
+import threading
 from collections.abc import Iterator
 from dataclasses import dataclass
+from pathlib import Path
 
 from sqlalchemy.orm import Session, sessionmaker
 
@@ -25,22 +31,30 @@ from catalog.queries import ObjectRecord, RunRecord
 from services.analytics.extract import Extractor
 from services.analytics.store import write_analytics
 from services.errors import ErrorCode, FleetError
-from services.ingest.service import IngestService, RunState
+from services.ingest.hot import InsufficientStorageError
+from services.ingest.service import IngestService, RunState, SealedInfo
 from services.retention.seal import INDEX, RECORDING, RUN_JSON, SealedRun, seal
 from services.retention.tiers import Tiers, run_json, run_prefix
 from services.rrd.decoder import iter_events
 from services.rrd.messages import Event
 from services.runs.download import read_events
-from services.storage.objectstore import RangeReader
+from services.storage.objectstore import RangeReader, StorageError
 
 log = logging.getLogger(__name__)
 
 SEAL_DIR = "seal"
 MAX_BACKOFF = dt.timedelta(minutes=5)
+PROMOTING = threading.Lock()  # one promotion at a time in this process (scheduled pass or asked for)
 
 
 class PromotionDeferredError(FleetError):
     """New data reached the run while it was being sealed: it is promoted later, whole."""
+
+    code = ErrorCode.CONFLICT
+
+
+class LateDataError(FleetError):
+    """Data reached a run that is cold or deleted (filed while the catalog did not answer)."""
 
     code = ErrorCode.CONFLICT
 
@@ -69,17 +83,38 @@ def due_for_promotion(ingest: IngestService, now: dt.datetime, promote_after: dt
     return out
 
 
+Upcoming = tuple[RunState, dt.datetime | None, str]
+
+
+def upcoming(ingest: IngestService, now: dt.datetime, promote_after: dt.timedelta) -> list[Upcoming]:
+    """Hot runs not due yet: when each will be promoted (None: once it closes), and why."""
+    out: list[Upcoming] = []
+    for run in sorted(list(ingest.runs.values()), key=lambda r: r.last_data_at):
+        if run.sealed:
+            continue
+        if run.status == "live" or run.live_sources:
+            out.append((run, None, f"live: promoted {_human(promote_after)} after its stream closes "
+                                   "(or FLEET_CLOSE_AFTER_S after its last data)"))
+        elif run.next_promote_at is not None and now < run.next_promote_at:
+            out.append((run, run.next_promote_at, f"retrying after {run.promote_failures} failed attempts"))
+        elif now - run.last_data_at < promote_after:
+            out.append((run, run.last_data_at + promote_after,
+                        f"closed, idle {_human(now - run.last_data_at)} of {_human(promote_after)}"))
+    return out
+
+
 def _human(delta: dt.timedelta) -> str:
     seconds = int(delta.total_seconds())
     return f"{seconds // 3600}h{seconds // 60 % 60:02d}m" if seconds >= 3600 else f"{seconds // 60}m{seconds % 60:02d}s"
 
 
 def promote(run: RunState, ingest: IngestService, tiers: Tiers, catalog: sessionmaker[Session],
-            now: dt.datetime) -> RunRecord:
-    """Seal `run` into the warm tier; returns its new catalog record. On failure the run stays hot
-    and backs off (1 s, 2 s, 4 s ... up to 5 minutes) before the next attempt."""
+            now: dt.datetime, reserve_bytes: int = 0) -> RunRecord | None:
+    """Seal `run` into the warm tier; returns its new catalog record (None when the run held nothing
+    that was not sealed already: its hot copy is simply removed). On failure the run stays hot and
+    backs off (1 s, 2 s, 4 s ... up to 5 minutes) before the next attempt."""
     try:
-        record = _promote(run, ingest, tiers, catalog, now)
+        record = _promote(run, ingest, tiers, catalog, now, reserve_bytes)
     except Exception:
         run.promote_failures += 1
         wait = min(dt.timedelta(seconds=2 ** (run.promote_failures - 1)), MAX_BACKOFF)
@@ -89,12 +124,64 @@ def promote(run: RunState, ingest: IngestService, tiers: Tiers, catalog: session
 
 
 def _promote(run: RunState, ingest: IngestService, tiers: Tiers, catalog: sessionmaker[Session],
-             now: dt.datetime) -> RunRecord:
+             now: dt.datetime, reserve_bytes: int) -> RunRecord | None:
     size = run.hot.size
+    sealed_as = _sealed_before(run, ingest)
+    if sealed_as is not None and run.chunk_ids <= sealed_as.chunk_ids:
+        _drop_hot_copy(run, ingest, size, f"all {len(run.chunk_ids)} of its chunks are sealed already")
+        return None
     workdir = run.hot.directory / SEAL_DIR
-    workdir.mkdir(exist_ok=True)
-    sealed_as = run.sealed_as
+    try:
+        return _seal_and_switch(run, ingest, tiers, catalog, now, reserve_bytes, size, sealed_as, workdir)
+    finally:
+        shutil.rmtree(workdir, ignore_errors=True)  # a failed attempt leaves nothing on the hot disk
+
+
+def _sealed_before(run: RunState, ingest: IngestService) -> SealedInfo | None:
+    """Whether the run was sealed before (its hot data came later): asked of the catalog now, as ingest
+    may have filed the data while the catalog did not answer, or another node may have sealed it."""
+    sealed = ingest.sealed_lookup(run.run_id) if ingest.sealed_lookup is not None else run.sealed_as
+    if sealed is not None and sealed.tier != "warm":
+        what = "restore it (fleet runs restore), then it is sealed in" if sealed.tier == "cold" else \
+            "it was deleted: its late data stays hot until removed by hand"
+        raise LateDataError(f"run {run.run_id} received {len(run.chunk_ids)} chunks while {sealed.tier}: {what}")
+    run.sealed_as = sealed
+    return sealed
+
+
+def _drop_hot_copy(run: RunState, ingest: IngestService, size: int, why: str) -> None:
+    with run.sealing:
+        if run.hot.size != size or run.status == "live":
+            raise PromotionDeferredError(f"run {run.run_id} received data while being checked: promoted later")
+        run.sealed_into, run.sealed = run.sealed_as, True
+        ingest.forget(run)
+        aside = ingest.hot.set_aside(run.hot)
+    shutil.rmtree(aside, ignore_errors=True)
+    log.info("hot copy of run %s removed: %s", run.run_id, why)
+
+
+def _check_room(run: RunState, tiers: Tiers, base_size: int, reserve_bytes: int) -> None:
+    """Sealing writes the recording once more on the hot disk (twice when the warm store is a folder
+    on that disk): refuse before starting rather than fill the disk the catalog lives on."""
+    need = run.hot.size + base_size
+    warm_root = getattr(tiers.warm, "root", None)
+    if isinstance(warm_root, Path) and warm_root.exists() and \
+            os.stat(warm_root).st_dev == os.stat(run.hot.directory).st_dev:
+        need *= 2
+    free = shutil.disk_usage(run.hot.directory).free
+    if free - need < reserve_bytes:
+        raise InsufficientStorageError(
+            f"sealing run {run.run_id} needs about {need} bytes on the hot disk, which has {free} free and keeps "
+            f"{reserve_bytes} in reserve (FLEET_RESERVE_BYTES): free space, or use an s3:// warm store")
+
+
+def _seal_and_switch(run: RunState, ingest: IngestService, tiers: Tiers, catalog: sessionmaker[Session],
+                     now: dt.datetime, reserve_bytes: int, size: int, sealed_as: SealedInfo | None,
+                     workdir: Path) -> RunRecord:
     prefix = sealed_as.prefix if sealed_as else None
+    base_size = tiers.warm.head(f"{prefix}/{RECORDING}").size if prefix is not None else 0
+    _check_room(run, tiers, base_size, reserve_bytes)
+    workdir.mkdir(exist_ok=True)
     sources: list[Iterator[Event | None]] = []
     if prefix is not None:  # chunks that came after the run was sealed: sealed in with the rest
         base = workdir / "base.rrd"
@@ -112,22 +199,36 @@ def _promote(run: RunState, ingest: IngestService, tiers: Tiers, catalog: sessio
         tiers.warm.put(objects[0].key, fh)
     tiers.warm.put(objects[1].key, sealed.index)
     objects += write_analytics(tiers.warm, analytics, record.robot_id, record.date.isoformat())
-    tiers.warm.put(f"{prefix}/{RUN_JSON}", run_json(record, prefix, objects, now))
+    pin = _pin(catalog, run.run_id)
+    tiers.warm.put(f"{prefix}/{RUN_JSON}", run_json(record, prefix, objects, now, *pin))
     for obj in objects:  # (3)
         held = tiers.warm.head(obj.key).size
         if held != obj.size:
-            raise FleetError(f"{tiers.warm.url}/{obj.key} holds {held} bytes after upload, {obj.size} were sealed")
+            raise StorageError(f"{tiers.warm.url}/{obj.key} holds {held} bytes after upload, {obj.size} were sealed")
     with run.sealing:  # ingest waits here only if it has data for this very run
         if run.hot.size != size or run.status == "live":
             raise PromotionDeferredError(f"run {run.run_id} received data while being sealed: promoted later")
         detail = f"{sealed.recording_size} bytes, {len(sealed.chunk_ids)} chunks to {tiers.warm.url}/{prefix}/"
-        with session_scope(catalog) as session:  # (4)
+        with session_scope(catalog, write=True) as session:  # (4)
+            stale = queries.analytics_keys(session, run.run_id) - {o.key for o in objects}
             queries.record_promotion(session, record, prefix, objects, now, detail)
+            pin_now = queries.pin_state(session, run.run_id)
+        run.sealed_into = SealedInfo("warm", prefix, record.robot_id, record.date, frozenset(sealed.chunk_ids))
         run.sealed = True
         ingest.forget(run)
-    shutil.rmtree(run.hot.directory, ignore_errors=True)  # (5)
+        aside = ingest.hot.set_aside(run.hot)
+    if pin_now != pin:  # pinned or unpinned while it was being sealed: run.json follows the catalog
+        tiers.warm.put(f"{prefix}/{RUN_JSON}", run_json(record, prefix, objects, now, *pin_now))
+    for key in stale:  # analytics written earlier under another robot or date: one copy per run
+        tiers.warm.delete(key)
+    shutil.rmtree(aside, ignore_errors=True)  # (5)
     log.info("promoted run %s: %s", run.run_id, detail)
     return record
+
+
+def _pin(catalog: sessionmaker[Session], run_id: str) -> tuple[bool, str | None]:
+    with session_scope(catalog) as session:
+        return queries.pin_state(session, run_id)
 
 
 def _sealed_record(run: RunState, sealed: SealedRun, default_robot: str) -> RunRecord:

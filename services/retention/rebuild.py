@@ -96,13 +96,12 @@ def _insert(catalog: sessionmaker[Session], found: RunFile, tier: str, mode: str
             now: dt.datetime) -> None:
     record = dataclasses.replace(found.record, tier=tier)
     objects = [dataclasses.replace(o, tier=tier) if o.name == RECORDING else o for o in found.objects]
-    with session_scope(catalog) as session:
+    with session_scope(catalog, write=True) as session:
         queries.save_run(session, record, now)
         run = queries.get_run(session, record.id)
         assert run is not None
-        run.pinned = found.pinned
+        run.pinned, run.pinned_by = found.pinned, found.pinned_by if found.pinned else None
         session.add(RunLifecycle(run_id=record.id, prefix=found.prefix, promoted_at=found.sealed_at,
-                                 pinned_by=found.pinned_by if found.pinned else None,
                                  archived_at=info.last_modified if tier == "cold" else None, archive_mode=mode))
         queries.replace_objects(session, record.id, objects)
         queries.add_event(session, record.id, "rebuild", now, "catalog rebuild", None, f"from {found.prefix}/")

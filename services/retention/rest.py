@@ -73,7 +73,9 @@ def retention_plan(
     action: Annotated[list[str] | None, Query(description=" | ".join(ACTIONS) + " (repeatable; default all)")]
     = None,
 ) -> dict[str, Any]:
-    return {"actions": [a.to_dict() for a in service.plan(_ctx(request), _kinds(action))]}
+    kinds = _kinds(action)
+    upcoming = service.upcoming(_ctx(request)) if PROMOTE in kinds else []
+    return {"actions": [a.to_dict() for a in service.plan(_ctx(request), kinds)], "upcoming": upcoming}
 
 
 @router.post("/v1/retention/run", summary="Do what is due now; NDJSON progress, one line per run")
@@ -130,6 +132,11 @@ def pin(request: Request, run_id: str) -> dict[str, Any]:
 @router.delete("/v1/runs/{run_id}/pin", summary="Unpin a run: its policy applies again")
 def unpin(request: Request, run_id: str) -> dict[str, Any]:
     return service.set_pinned(_ctx(request), run_id, False, actor(request))
+
+
+@router.post("/v1/runs/{run_id}/promote", summary="Seal a closed hot run into the warm tier now")
+def promote(request: Request, run_id: str) -> dict[str, Any]:
+    return service.promote_now(_ctx(request), run_id)
 
 
 @router.post("/v1/runs/{run_id}/restore", status_code=202,

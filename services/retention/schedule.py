@@ -13,7 +13,6 @@ import datetime as dt
 import logging
 import os
 import socket
-import threading
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -24,11 +23,11 @@ from catalog import queries
 from catalog.db import session_scope
 from services.errors import ErrorCode, FleetError
 from services.retention.locks import job_lock
+from services.retention.promote import PROMOTING
 from services.retention.service import ARCHIVE, DELETE, PROMOTE, RESTORE, Outcome, Retention, plan, run_plan
 
 log = logging.getLogger(__name__)
 
-_PROMOTING = threading.Lock()  # one promotion pass at a time in this process
 Progress = Callable[[Outcome], None] | None
 
 
@@ -48,13 +47,13 @@ def _engine(ctx: Retention) -> sa.Engine:
 
 def promote_job(ctx: Retention, progress: Progress = None, *, wait: bool = False) -> list[Outcome] | None:
     """Promote this node's due hot runs; None if a promotion pass is already running here."""
-    if not _PROMOTING.acquire(blocking=wait):
+    if not PROMOTING.acquire(blocking=wait):
         return None
     try:
         actions = plan(ctx, [PROMOTE])
         return _recorded(ctx, "promote", lambda: run_plan(ctx, actions, progress)) if actions else []
     finally:
-        _PROMOTING.release()
+        PROMOTING.release()
 
 
 def retention_job(ctx: Retention, progress: Progress = None,
@@ -71,20 +70,20 @@ JOB_HISTORY = dt.timedelta(days=30)  # job runs kept in the catalog (GET /v1/ret
 
 
 def _recorded(ctx: Retention, job: str, body: Callable[[], list[Outcome]]) -> list[Outcome]:
-    with session_scope(ctx.catalog) as session:
+    with session_scope(ctx.catalog, write=True) as session:
         queries.prune_jobs(session, ctx.clock() - JOB_HISTORY)
         job_id = queries.start_job(session, job, node_name(), ctx.clock())
     outcomes: list[Outcome] = []
     try:
         outcomes = body()
     except Exception as exc:
-        with session_scope(ctx.catalog) as session:
+        with session_scope(ctx.catalog, write=True) as session:
             queries.finish_job(session, job_id, ctx.clock(), "failed", f"{type(exc).__name__}: {exc}")
         raise
     failed = [o for o in outcomes if not o.ok]
     summary = f"{len(outcomes) - len(failed)} done, {len(failed)} failed" + "".join(
         f"; {o.action.action} {o.action.run_id}: {o.detail}" for o in failed[:5])
-    with session_scope(ctx.catalog) as session:
+    with session_scope(ctx.catalog, write=True) as session:
         queries.finish_job(session, job_id, ctx.clock(), "failed" if failed else "ok", summary)
     return outcomes
 

@@ -37,6 +37,14 @@ class NotSealedError(FleetError):
     code = ErrorCode.CONFLICT
 
 
+class StillLiveError(FleetError):
+    code = ErrorCode.CONFLICT
+
+
+class NotHotError(FleetError):
+    code = ErrorCode.CONFLICT
+
+
 @dataclass
 class Retention:
     """Everything the retention jobs work with, built once by the server (or a test)."""
@@ -50,6 +58,7 @@ class Retention:
     restore_days: float = 7.0
     clock: Callable[[], dt.datetime] = utcnow
     free_bytes: Callable[[], int] | None = None  # of the hot disk (default: asked of the file system)
+    reserve_bytes: int = 0  # promotion never takes the hot disk below this much free
 
     def hot_free_bytes(self) -> int:
         if self.free_bytes is not None:
@@ -145,7 +154,9 @@ def _execute(ctx: Retention, action: Action, now: dt.datetime) -> str:
         run = ctx.ingest.runs.get(action.run_id)
         if run is None:
             return "no longer hot here"
-        record = promote.promote(run, ctx.ingest, ctx.tiers, ctx.catalog, now)
+        record = promote.promote(run, ctx.ingest, ctx.tiers, ctx.catalog, now, ctx.reserve_bytes)
+        if record is None:
+            return "nothing new: its chunks were all sealed already, hot copy removed"
         return f"sealed {record.chunks} chunks, {record.bytes} bytes"
     if action.action == ARCHIVE:
         return archive.archive(action.run_id, ctx.tiers, ctx.catalog, now, action.policy or "default")
@@ -170,16 +181,15 @@ def run_plan(ctx: Retention, actions: list[Action], progress: Callable[[Outcome]
 
 
 def set_pinned(ctx: Retention, run_id: str, pinned: bool, actor: str) -> dict[str, Any]:
-    """Pin (exempt from expiry) or unpin a run; a sealed run's run.json says so too (for rebuilds)."""
+    """Pin (exempt from expiry) or unpin a run, hot or sealed. The pin lives on the run's catalog
+    row; a sealed run's run.json gets a copy (for rebuilds), as promotion does for a hot one."""
     now = ctx.clock()
-    with session_scope(ctx.catalog) as session:
+    with session_scope(ctx.catalog, write=True) as session:
         run = get_run(session, run_id)
         if run.tier == "deleted":
             raise NotSealedError(f"run {run_id!r} is deleted: there is nothing left to pin")
-        run.pinned, run.updated_at = pinned, now
+        run.pinned, run.pinned_by, run.updated_at = pinned, actor if pinned else None, now
         life = queries.lifecycle(session, run_id)
-        if life is not None:
-            life.pinned_by = actor if pinned else None
         queries.add_event(session, run_id, "pin" if pinned else "unpin", now, actor, None)
         prefix = life.prefix if life is not None else None
     if prefix is not None:
@@ -211,6 +221,36 @@ def restore_status(life: Any) -> dict[str, Any]:
     return {"run": life.run_id, "restore_state": life.restore_state,
             "restore_requested_at": format_time(life.restore_requested_at),
             "restore_until": format_time(life.restore_until)}
+
+
+def upcoming(ctx: Retention) -> list[dict[str, Any]]:
+    """Hot runs of this node that are not due yet, with when each will be promoted."""
+    if ctx.ingest is None:
+        return []
+    now = ctx.clock()
+    return [{"run": run.run_id, "action": PROMOTE, "at": format_time(at), "reason": why,
+             "robot_id": run.robot_id or ctx.ingest.default_robot, "tier": "hot", "bytes": run.hot.size}
+            for run, at, why in promote.upcoming(ctx.ingest, now, ctx.promote_after)]
+
+
+def promote_now(ctx: Retention, run_id: str) -> dict[str, Any]:
+    """Seal a closed hot run now, whatever its idle time (`fleet runs promote`)."""
+    run = ctx.ingest.runs.get(run_id) if ctx.ingest is not None else None
+    if run is None or run.sealed:
+        with session_scope(ctx.catalog) as session:
+            found = get_run(session, run_id)  # 404 naming the run
+            tier = found.tier
+        where = "hot on another node: ask that node" if tier == "hot" else f"{tier} already"
+        raise NotHotError(f"run {run_id!r} is {where}: there is nothing to promote here")
+    if run.status == "live" or run.live_sources:
+        raise StillLiveError(f"run {run_id!r} is live (a stream is still sending it): it can be promoted once "
+                             "its stream ends, or FLEET_CLOSE_AFTER_S after its last data")
+    assert ctx.ingest is not None
+    with promote.PROMOTING:
+        record = promote.promote(run, ctx.ingest, ctx.tiers, ctx.catalog, ctx.clock(), ctx.reserve_bytes)
+    if record is None:
+        return {"run": run_id, "tier": "warm", "detail": "nothing new: its chunks were all sealed already"}
+    return {"run": run_id, "tier": record.tier, "detail": f"sealed {record.chunks} chunks, {record.bytes} bytes"}
 
 
 def delete_run(ctx: Retention, run_id: str, actor: str) -> str:

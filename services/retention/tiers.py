@@ -60,10 +60,12 @@ def run_prefix(robot_id: str, date: dt.date, run_id: str) -> str:
 
 
 def run_json(record: RunRecord, prefix: str, objects: list[queries.ObjectRecord], sealed_at: dt.datetime,
-             pinned: bool = False) -> bytes:
-    """The catalog record of a sealed run, kept beside it so the catalog can be rebuilt from the bucket."""
+             pinned: bool = False, pinned_by: str | None = None) -> bytes:
+    """The catalog record of a sealed run, kept beside it so the catalog can be rebuilt from the bucket.
+    The pin is the catalog's (`queries.pin_state`), copied here when it is recorded."""
     body = {"format": RUN_JSON_FORMAT, "prefix": prefix, "sealed_at": sealed_at.isoformat(), "pinned": pinned,
-            "run": asdict(record), "objects": [asdict(o) for o in objects]}
+            "pinned_by": pinned_by if pinned else None, "run": asdict(record),
+            "objects": [asdict(o) for o in objects]}
     return json.dumps(body, indent=1, sort_keys=True, default=_json_default).encode()
 
 

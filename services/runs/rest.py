@@ -28,6 +28,7 @@ def run_summary(run: Run) -> dict[str, Any]:
         "started_at": format_time(run.started_at), "ended_at": format_time(run.ended_at),
         "last_data_at": format_time(run.last_data_at), "sdk_version": run.sdk_version,
         "chunks": run.chunks, "rows": run.rows, "bytes": run.bytes, "pinned": run.pinned,
+        "pinned_by": run.pinned_by,
         "properties": json.loads(run.properties),
     }
 
@@ -92,7 +93,7 @@ def _lifecycle(request: Request, session: Session, run: Run) -> dict[str, Any]:
         "lifecycle": {"prefix": life.prefix, "promoted_at": format_time(life.promoted_at),
                       "archived_at": format_time(life.archived_at), "archive_mode": life.archive_mode,
                       "restore_state": life.restore_state, "restore_until": format_time(life.restore_until),
-                      "pinned_by": life.pinned_by, "deleted_at": format_time(life.deleted_at),
+                      "pinned_by": run.pinned_by, "deleted_at": format_time(life.deleted_at),
                       "deleted_by": life.deleted_by, "deleted_policy": life.deleted_policy},
         "objects": [{"name": o.name, "key": o.key, "tier": o.tier, "size": o.size, "sha256": o.sha256}
                     for o in queries.run_objects(session, run.id).values()],

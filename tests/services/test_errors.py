@@ -1,3 +1,6 @@
+import ast
+from pathlib import Path
+
 import pytest
 
 from services.errors import ErrorCode, FleetError, grpc_status, http_status
@@ -26,3 +29,15 @@ def test_rrd_errors_are_fleet_errors_with_offsets(exc: rrd_errors.RrdError, stat
     assert exc.http_status() == status
     assert f"at byte {exc.offset}" in str(exc)
     assert exc.to_dict()["code"] == exc.code.value
+
+
+def test_no_bare_internal_error_is_raised_for_what_a_user_can_cause():
+    """Every error raised in the service names its code: a bare FleetError maps to a 500."""
+    root = Path(__file__).resolve().parents[2]
+    bare = []
+    for path in [*(root / "services").rglob("*.py"), *(root / "catalog").rglob("*.py")]:
+        for node in ast.walk(ast.parse(path.read_text(), str(path))):
+            if isinstance(node, ast.Raise) and isinstance(node.exc, ast.Call) and \
+                    getattr(node.exc.func, "id", None) == "FleetError":
+                bare.append(f"{path.relative_to(root)}:{node.lineno}")
+    assert bare == []

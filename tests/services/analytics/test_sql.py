@@ -112,7 +112,7 @@ def test_catalog_views(catalog: sessionmaker[Session], tmp_path: Path):
     runs = client.post("/v1/sql", json={"query": "SELECT * FROM runs ORDER BY id"}).json()
     assert [c["name"] for c in runs["columns"]] == [
         "id", "robot_id", "application_id", "date", "status", "tier", "started_at", "ended_at", "last_data_at",
-        "sdk_version", "chunks", "rows", "bytes", "properties", "pinned", "created_at", "updated_at"]
+        "sdk_version", "chunks", "rows", "bytes", "properties", "pinned", "pinned_by", "created_at", "updated_at"]
     assert runs["row_count"] == 2
     run = dict(zip([c["name"] for c in runs["columns"]], runs["rows"][1], strict=True))
     assert run["id"] == "run-1" and run["date"] == "2026-03-01" and run["bytes"] == 5_000_000_001

@@ -1,5 +1,6 @@
-"""ReadMessages: recent history within a byte budget (store infos and blueprints never dropped,
-oldest temporal first), then live messages; and the real Rerun CLI as a reader."""
+"""ReadMessages: recent history of live runs within a byte budget (a live run's store infos and
+blueprints never dropped, oldest temporal first, closed runs gone), then live messages; and the
+real Rerun CLI as a reader."""
 
 from __future__ import annotations
 
@@ -26,29 +27,52 @@ def test_responses_wrap_the_message_bytes():
 
 def test_budget_drops_oldest_temporal_then_static_never_persistent():
     hub = ReplayHub(budget_bytes=300)
-    hub.publish(1, b"s" * 50, persistent=True, static=False)
-    hub.publish(2, b"a" * 100, persistent=False, static=True)
+    hub.publish("run", 1, b"s" * 50, persistent=True, static=False)
+    hub.publish("run", 2, b"a" * 100, persistent=False, static=True)
     for i in range(5):
-        hub.publish(2, bytes([i]) * 100, persistent=False, static=False)
+        hub.publish("run", 2, bytes([i]) * 100, persistent=False, static=False)
     history, _ = hub.subscribe()
     bodies = [bytes(raw) for _, raw in history]
     assert bodies[0] == b"s" * 50  # the store info stays
     assert any(b == b"a" * 100 for b in bodies)  # static kept while temporal can go
     assert bytes([4]) * 100 in bodies[-1] and bytes([0]) * 100 not in b"".join(bodies)  # newest temporal kept
     assert hub.held_bytes <= 300
-    hub.publish(2, b"b" * 300, persistent=False, static=True)  # over budget even alone
+    hub.publish("run", 2, b"b" * 300, persistent=False, static=True)  # over budget even alone
     history, _ = hub.subscribe()
     assert bytes(history[0][1]) == b"s" * 50
+
+
+def test_history_holds_live_runs_only_and_the_budget_is_a_bound():
+    """Closed runs leave the history with their store infos and blueprints, so after hundreds of runs
+    the budget still holds the recent history of the runs that are live now."""
+    hub = ReplayHub(budget_bytes=10_000)
+    for n in range(500):  # runs that came and went, each with a store info, a blueprint and data
+        run = f"old-{n}"
+        hub.publish(run, 1, b"i" * 40, persistent=True, static=False)
+        hub.publish(run, 2, b"p" * 60, persistent=True, static=False)
+        hub.publish(run, 2, b"d" * 100, persistent=False, static=False)
+        hub.end_run(run)
+    assert hub.held_bytes == 0 and hub.live_runs == 0
+    hub.publish("now", 1, b"I" * 40, persistent=True, static=False)
+    for i in range(50):
+        hub.publish("now", 2, bytes([i]) * 100, persistent=False, static=False)
+    history, _ = hub.subscribe()
+    bodies = [bytes(raw) for _, raw in history]
+    assert bodies[0] == b"I" * 40
+    assert not any(b[:1] in (b"i", b"p", b"d") for b in bodies)  # nothing of a closed run is replayed
+    assert len(bodies) == 51 and hub.held_bytes == 40 + 50 * 100  # all the live run's recent data fits
+    hub.end_run("now")
+    assert hub.subscribe()[0] == [] and hub.held_bytes == 0
 
 
 def test_readers_get_live_messages_and_slow_ones_are_let_go():
     async def scenario() -> None:
         hub = ReplayHub(budget_bytes=10_000)
         _, queue = hub.subscribe()
-        hub.publish(2, b"x", persistent=False, static=False)
+        hub.publish("run", 2, b"x", persistent=False, static=False)
         assert await queue.get() == (2, b"x")
         for _ in range(5000):  # never read: the reader falls behind and is dropped
-            hub.publish(2, b"y", persistent=False, static=False)
+            hub.publish("run", 2, b"y", persistent=False, static=False)
         items = []
         while not queue.empty():
             items.append(queue.get_nowait())

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import asyncio
 import datetime as dt
 import io
 import json
@@ -19,6 +20,7 @@ from services.ingest.service import IngestReport, IngestService, InvalidStreamEr
 from services.rrd import ArrowMessage, StoreKind, errors, iter_events
 from services.rrd.chunk import read_chunk
 from services.rrd.messages import BlueprintActivationMessage, StoreInfoMessage
+from tests.services.ingest import feeding
 from tests.services.ingest.conftest import Factory
 from tests.services.rrd.recordings import Recording
 
@@ -26,13 +28,7 @@ pytestmark = pytest.mark.sdk
 
 
 def upload(service: IngestService, data_or_path: object) -> IngestReport:
-    source = service.open_source(live=False)
-    try:
-        for event in iter_events(data_or_path):  # type: ignore[arg-type]
-            service.accept(source, event)
-    finally:
-        report = service.close_source(source)
-    return report
+    return feeding.upload(service, iter_events(data_or_path))  # type: ignore[arg-type]
 
 
 def chunk_ids(path: object) -> list[bytes]:
@@ -100,9 +96,8 @@ def test_cut_upload_keeps_what_precedes_the_fault(make_service: Factory, recordi
     cut = recordings["cut"]
     source = service.open_source(live=False)
     with pytest.raises(errors.TruncatedError):
-        for event in iter_events(cut.path):
-            service.accept(source, event)
-    report = service.close_source(source)
+        feeding.feed(service, source, iter_events(cut.path))
+    report = asyncio.run(service.finish_upload(source))
     before = chunk_ids_before_error(cut.path)
     assert report.chunks_new == len(before) > 0
     assert sorted(chunk_ids(service.runs[report.runs[0]].hot.path)) == sorted(before)

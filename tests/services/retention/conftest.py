@@ -20,6 +20,7 @@ from services.retention.service import Retention
 from services.retention.tiers import Tiers, sealed_lookup
 from services.rrd import iter_events
 from services.storage.objectstore import ObjectStore, open_store
+from tests.services.ingest import feeding
 
 WARM_BUCKET, COLD_BUCKET = "fleet-warm", "fleet-cold"
 
@@ -51,13 +52,7 @@ class Node:
     restarts: list[IngestService] = field(default_factory=list)
 
     def upload(self, path: Path | bytes) -> IngestReport:
-        source = self.ingest.open_source(live=False)
-        try:
-            for event in iter_events(io.BytesIO(path) if isinstance(path, bytes) else path):
-                self.ingest.accept(source, event)
-        finally:
-            report = self.ingest.close_source(source)
-        return report
+        return feeding.upload(self.ingest, iter_events(io.BytesIO(path) if isinstance(path, bytes) else path))
 
 
 NodeFactory = Callable[..., Node]

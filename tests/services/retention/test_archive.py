@@ -15,15 +15,21 @@ from typing import Any
 import pytest
 from fastapi.testclient import TestClient
 
+from catalog import queries
+from catalog.db import session_scope
+from services.analytics.service import Analytics, extract_hot_run
+from services.analytics.sql import Limits
 from services.api.app import create_app
 from services.retention.schedule import retention_job
 from services.retention.seal import INDEX, RECORDING, RUN_JSON
 from services.retention.service import plan, run_plan
 from services.retention.tiers import Tiers
+from services.rrd import iter_events
 from services.settings import load_settings
 from services.storage.objectstore import ObjectArchivedError, ObjectInfo, ObjectStore, StorageError, open_store
 from services.storage.s3 import S3Store
 from tests.seaweedfs import seaweedfs
+from tests.services.ingest import feeding
 from tests.services.retention.conftest import Clock, Node, NodeFactory, listing, log_run
 
 pytestmark = pytest.mark.sdk
@@ -443,3 +449,52 @@ def test_delete_that_fails_leaves_no_tombstone(tiers: Tiers, make_node: NodeFact
     _retention(node)
     assert listing(tiers.warm) == [] and listing(tiers.cold) == []
     assert _detail(client, RUN_A)["lifecycle"]["deleted_by"] == "retention"
+
+
+def test_analytics_written_early_are_kept_once_and_deleted_with_the_run(tiers: Tiers, make_node: NodeFactory,
+                                                                       tmp_path: Path):
+    """A hot run's analytics written early (under the default robot: its identity came later) are
+    replaced at promotion, not added to, and go with the run when it is deleted."""
+    node = make_node(tiers, clock=Clock())
+    early = log_run(tmp_path / "early.rrd", "early-run", entities=1, frames=5, points=10)
+    later = log_run(tmp_path / "later.rrd", "early-run", entities=1, frames=5, points=10, robot="robot-7")
+    node.upload(early)
+    analytics = Analytics(node.catalog, node.tiers.warm, Limits())
+    written = extract_hot_run(analytics, node.ingest, "early-run")
+    assert written and all("robot_id=robot-0/" in w["key"] for w in written)
+    node.upload(later)  # the robot's identity arrives: the run is filed under robot-7
+    node.clock.advance(seconds=node.retention.promote_after.total_seconds() + 1)
+    assert all(o.ok for o in run_plan(node.retention, plan(node.retention, ["promote"])))
+    files = [k for k in listing(node.tiers.warm) if k.startswith("analytics/")]
+    assert files and all("robot_id=robot-7/" in k for k in files)  # one copy per table, the sealed one
+    assert sorted({k.split("/")[1] for k in files}) == sorted(k.split("/")[1] for k in files)
+    with session_scope(node.catalog) as session:
+        assert queries.analytics_keys(session, "early-run") == set(files)
+    assert _client(node).delete("/v1/runs/early-run").status_code == 200
+    assert [k for k in listing(node.tiers.warm) if k.startswith("analytics/")] == []
+
+
+def test_user_mistakes_on_run_actions_are_never_500(tiers: Tiers, make_node: NodeFactory, logged: dict[str, Path]):
+    node = make_node(tiers, clock=Clock())
+    client = _client(node)
+    node.upload(logged[RUN_A])  # hot
+    restore = client.post(f"/v1/runs/{RUN_A}/restore")
+    assert restore.status_code == 409 and "not sealed yet" in restore.json()["message"]
+    assert client.post("/v1/runs/no-such-run/restore").status_code == 404
+    assert client.post("/v1/runs/no-such-run/promote").status_code == 404
+    live = node.ingest.open_source(live=True)  # a stream still sending the run
+    feeding.feed(node.ingest, live, iter_events(logged[RUN_B]))
+    still_live = client.post(f"/v1/runs/{RUN_B}/promote")
+    assert still_live.status_code == 409 and "live" in still_live.json()["message"]
+    node.ingest.close_source(live)
+
+    planned = client.get("/v1/retention/plan").json()  # not due yet: the plan says when
+    upcoming = {u["run"]: u for u in planned["upcoming"]}
+    assert planned["actions"] == [] and set(upcoming) == {RUN_A, RUN_B}
+    assert upcoming[RUN_A]["at"] is not None and "idle" in upcoming[RUN_A]["reason"]
+    done = client.post(f"/v1/runs/{RUN_A}/promote")  # now, whatever its idle time
+    assert done.status_code == 200 and done.json()["tier"] == "warm", done.text
+    assert _detail(client, RUN_A)["tier"] == "warm"
+    twice = client.post(f"/v1/runs/{RUN_A}/promote")
+    assert twice.status_code == 409 and "warm already" in twice.json()["message"]
+

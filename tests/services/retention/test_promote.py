@@ -19,15 +19,17 @@ from pathlib import Path
 from typing import BinaryIO
 
 import pytest
+import sqlalchemy as sa
 
 from catalog import queries
 from catalog.db import session_scope
 from services.ingest.service import RunState
 from services.retention import promote
 from services.retention.index import CHUNK, IndexRow, from_parquet
+from services.retention.rebuild import rebuild
 from services.retention.schedule import promote_job
 from services.retention.seal import INDEX, RECORDING, RUN_JSON
-from services.retention.service import PROMOTE, Outcome, plan, run_plan
+from services.retention.service import PROMOTE, Outcome, plan, run_plan, set_pinned
 from services.retention.tiers import Tiers, parse_run_json
 from services.rrd import ArrowMessage, iter_events
 from services.rrd.chunk import ChunkMeta, chunk_meta
@@ -37,6 +39,7 @@ from services.rrd.messages import EndMessage, StreamFooter
 from services.runs import download, sealed
 from services.storage import s3
 from services.storage.objectstore import ObjectInfo, ObjectStore, StorageError, open_store
+from tests.services.ingest import feeding
 from tests.services.retention.conftest import Clock, Node, NodeFactory, listing, log_run
 
 pytestmark = pytest.mark.sdk
@@ -373,16 +376,49 @@ def test_a_crash_before_the_hot_files_go_is_finished_at_restart(tiers: Tiers, ma
         crash.setattr(shutil, "rmtree", lambda *args, **kwargs: None)  # the module promote removes them with
         assert [o.ok for o in promote_now(node)] == [True]
     assert catalog_tier(node) == "warm"
-    assert (hot_dir(node) / "run.rrd").is_file() and (hot_dir(node) / "seal" / RECORDING).is_file()
+    assert not hot_dir(node).exists()  # set aside at once: a new hot run of the same id may start
+    (aside,) = [d for d in (node.root / "hot").iterdir() if d.name.startswith(".")]
+    assert (aside / "run.rrd").is_file()
     assert set(chunk_ids(served(node, RUN))) == want  # served from the warm tier meanwhile
 
-    node = make_node(tiers, clock=clock, promote_after_s=PROMOTE_AFTER_S)  # restart: recover() sees it is sealed
-    assert not hot_dir(node).exists() and RUN not in node.ingest.runs
+    node = make_node(tiers, clock=clock, promote_after_s=PROMOTE_AFTER_S)  # restart: the set-aside copy goes
+    assert not aside.exists() and RUN not in node.ingest.runs
     assert plan(node.retention, [PROMOTE]) == []
     _, recording, _ = assert_warm(node, want)
     out = tmp_path / "recording.rrd"
     out.write_bytes(recording)
     rerun(rerun_bin, "compare", "--unordered", str(sdk_runs.first), str(out))
+
+
+def test_a_crash_right_after_the_switch_leaves_a_hot_copy_removed_without_sealing_again(
+        tiers: Tiers, make_node: NodeFactory, sdk_runs: SdkRuns):
+    clock = Clock()
+    node = make_node(tiers, clock=clock, promote_after_s=PROMOTE_AFTER_S)
+    node.upload(sdk_runs.first)
+    want = set(chunk_ids(sdk_runs.first))
+    clock.advance(seconds=PROMOTE_AFTER_S)
+
+    def crash(*_: object) -> None:
+        raise SystemExit("killed")
+
+    with pytest.MonkeyPatch.context() as patch, pytest.raises(SystemExit):
+        patch.setattr(node.ingest.hot, "set_aside", crash)
+        promote.promote(node.ingest.runs[RUN], node.ingest, node.tiers, node.catalog, clock.now)
+    assert catalog_tier(node) == "warm" and (hot_dir(node) / "run.rrd").is_file()
+    with session_scope(node.catalog) as session:
+        life = queries.lifecycle(session, RUN)
+        assert life is not None
+        sealed_before = node.tiers.warm.head(f"{life.prefix}/{RECORDING}")
+    node = make_node(tiers, clock=clock, promote_after_s=PROMOTE_AFTER_S)  # restart: recovered as hot
+    clock.advance(seconds=PROMOTE_AFTER_S)
+    (outcome,) = promote_now(node)
+    assert outcome.ok and outcome.detail.startswith("nothing new"), outcome.detail
+    assert not hot_dir(node).exists() and RUN not in node.ingest.runs
+    prefix, _, _ = assert_warm(node, want)
+    after = node.tiers.warm.head(f"{prefix}/{RECORDING}")
+    assert (after.etag, after.last_modified) == (sealed_before.etag, sealed_before.last_modified)  # not sealed again
+    with session_scope(node.catalog) as session:
+        assert [e.action for e in queries.run_events(session, RUN)] == ["promote"]
 
 
 # --- backoff -------------------------------------------------------------------------------------
@@ -457,6 +493,73 @@ def test_late_data_is_sealed_in_with_the_rest(tiers: Tiers, make_node: NodeFacto
     assert served(node, RUN) == recording
 
     assert node.upload(sdk_runs.later).chunks_duplicate == len(later)  # late data is now sealed too
+
+
+@FILE_ONLY
+def test_chunks_already_held_change_nothing_and_seal_nothing(tiers: Tiers, make_node: NodeFactory,
+                                                             sdk_runs: SdkRuns):
+    """A robot's file copy uploaded again, or `rerun URL` pointed at the depot replaying a run, bring
+    no new chunk: no hot run, no re-seal, and the run's facts (end, last data) stay as they were."""
+    clock = Clock()
+    node = make_node(tiers, clock=clock, promote_after_s=PROMOTE_AFTER_S)
+    node.upload(sdk_runs.first)
+    clock.advance(seconds=PROMOTE_AFTER_S)
+    assert [o.ok for o in promote_now(node)] == [True]
+    facts = _facts(node)
+    clock.advance(hours=2)
+    first = chunk_ids(sdk_runs.first)
+    again = node.upload(sdk_runs.first)
+    assert (again.chunks_new, again.chunks_duplicate) == (0, len(first))
+    live = node.ingest.open_source(live=True)  # a replay over gRPC, as `rerun URL` streams it back
+    feeding.feed(node.ingest, live, iter_events(sdk_runs.first))
+    node.ingest.close_source(live)
+    node.ingest.flush_catalog()
+    assert RUN not in node.ingest.runs and not hot_dir(node).exists()
+    assert plan(node.retention, [PROMOTE]) == []  # nothing to seal again
+    assert _facts(node) == facts
+    with session_scope(node.catalog) as session:
+        assert [e.action for e in queries.run_events(session, RUN)] == ["promote"]
+
+
+def test_a_replay_into_a_hot_run_changes_none_of_its_facts(tiers: Tiers, make_node: NodeFactory, sdk_runs: SdkRuns):
+    clock = Clock()
+    node = make_node(tiers, clock=clock, promote_after_s=PROMOTE_AFTER_S)
+    node.upload(sdk_runs.first)
+    facts = _facts(node)
+    clock.advance(minutes=5)
+    live = node.ingest.open_source(live=True)
+    feeding.feed(node.ingest, live, iter_events(sdk_runs.first))
+    assert node.ingest.runs[RUN].status == "closed"  # a stream of chunks already held is not a live run
+    node.ingest.close_source(live)
+    node.ingest.flush_catalog()
+    assert _facts(node) == facts
+
+
+def _facts(node: Node) -> tuple[object, ...]:
+    with session_scope(node.catalog) as session:
+        run = queries.get_run(session, RUN)
+        assert run is not None
+        return run.status, run.ended_at, run.last_data_at, run.chunks, run.tier
+
+
+def test_a_pin_set_while_hot_survives_promotion_and_a_rebuild(tiers: Tiers, make_node: NodeFactory,
+                                                              sdk_runs: SdkRuns):
+    clock = Clock()
+    node = make_node(tiers, clock=clock, promote_after_s=PROMOTE_AFTER_S)
+    node.upload(sdk_runs.first)
+    assert set_pinned(node.retention, RUN, True, "bob@lab")["pinned"] is True  # while hot
+    clock.advance(seconds=PROMOTE_AFTER_S)
+    assert [o.ok for o in promote_now(node)] == [True]
+    prefix, _, _ = assert_warm(node, set(chunk_ids(sdk_runs.first)))
+    run_file = parse_run_json(node.tiers.warm.get_range(f"{prefix}/{RUN_JSON}"))
+    assert (run_file.pinned, run_file.pinned_by) == (True, "bob@lab")
+
+    with session_scope(node.catalog, write=True) as session:  # the catalog is lost
+        for table in ("runs", "run_lifecycle", "run_objects", "run_entities", "run_timelines", "retention_events"):
+            session.execute(sa.text(f"DELETE FROM {table}"))
+    rebuild(node.catalog, node.tiers, clock.now)
+    with session_scope(node.catalog) as session:
+        assert queries.pin_state(session, RUN) == (True, "bob@lab")
 
 
 @FILE_ONLY

@@ -34,6 +34,7 @@ from services.retention.tiers import Tiers
 from services.rrd import iter_events
 from services.storage.objectstore import open_store
 from tests.postgres import temporary_database
+from tests.services.ingest import feeding
 from tests.services.ingest.live_server import FLEET, LiveServer
 from tests.services.retention.conftest import NodeFactory
 from tests.services.rrd.recordings import Recording
@@ -254,10 +255,7 @@ def _count(engine: sa.Engine, since: dt.datetime) -> int:
 
 
 def _upload(ingest: IngestService, path: Path) -> str:
-    source = ingest.open_source(live=False)
-    for event in iter_events(path):
-        ingest.accept(source, event)
-    report = ingest.close_source(source)
+    report = feeding.upload(ingest, iter_events(path))
     assert report.chunks_new > 0  # past the high-water mark data is still taken; only the hard limit refuses
     return report.runs[0]
 
