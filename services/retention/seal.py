@@ -17,7 +17,15 @@ from pathlib import Path
 from typing import BinaryIO, cast
 
 from services.ingest.service import RunFacts
-from services.retention.index import BLUEPRINT_ACTIVATION, CHUNK, STORE_INFO, IndexRow, TimelineRange, to_parquet
+from services.retention.index import (
+    BLUEPRINT_ACTIVATION,
+    CHUNK,
+    STORE_INFO,
+    IndexRow,
+    TimelineRange,
+    component_ranges,
+    to_parquet,
+)
 from services.rrd.chunk import ChunkMeta, chunk_meta
 from services.rrd.encoder import RrdEncoder
 from services.rrd.frames import DEFAULT_VERSION
@@ -117,7 +125,7 @@ def seal(recordings: Iterable[Iterator[Event | None]], out: Path, run_id: str, n
                         CHUNK, _store_kind(event.store_id), start, encoder.position - start, meta.chunk_id,
                         meta.entity_path, meta.is_static, meta.num_rows,
                         tuple(TimelineRange(t.name, t.type, t.range.min, t.range.max) for t in meta.timelines),
-                        tuple(sorted(meta.component_names))))
+                        tuple(sorted(meta.component_names)), component_ranges(meta)))
                 facts.replay(event, now, meta if isinstance(event, ArrowMessage) else None)
         (encoder or RrdEncoder(cast(BinaryIO, sink), DEFAULT_VERSION)).finish()
         raw.flush()

@@ -29,6 +29,7 @@ from services.rrd.messages import (
     StoreKind,
     StreamStart,
 )
+from services.runs.latest_at import ChunkEntry, pick_rows, select_chunks
 from services.runs.service import BadParameterError
 from services.runs.trim import trim
 
@@ -37,25 +38,51 @@ FOLLOW_POLL_S = 0.1
 Follow = Callable[[], tuple[int, bool]]
 
 
+MAX_PATTERNS = 256  # include and exclude patterns each: matching stays cheap, whatever a client sends
+MAX_PATTERN_LENGTH = 1024
+PROPERTIES = "/__properties"  # the recording's properties (`/__properties` and its subtree)
+
+
 @dataclass(frozen=True)
 class EntityFilter:
     """Rerun's entity path patterns: `/world/**` is the subtree (with `/world`), anything else the
-    exact path; no include means everything; exclude wins."""
+    exact path; no include means everything; exclude wins. The recording's properties are kept
+    unless an exclude names them (`/__properties`, `/__properties/**` or a path below)."""
 
     include: list[str] = field(default_factory=list)
     exclude: list[str] = field(default_factory=list)
+    # verdict per entity path: a run has few entities and many chunks, so each path is matched once
+    _verdicts: dict[str, bool] = field(default_factory=dict, init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         for name, patterns in (("include", self.include), ("exclude", self.exclude)):
+            if len(patterns) > MAX_PATTERNS:
+                raise BadParameterError(name, f"{len(patterns)} patterns: at most {MAX_PATTERNS}; use a subtree "
+                                              "pattern like /a/** to cover many entities")
             for pattern in patterns:
+                if len(pattern) > MAX_PATTERN_LENGTH:
+                    raise BadParameterError(name, f"a pattern of {len(pattern)} characters: at most "
+                                                  f"{MAX_PATTERN_LENGTH}")
                 if not pattern.startswith("/") or "**" in pattern[:-2]:
                     raise BadParameterError(name, f"{pattern!r} is not an entity path pattern: use /a/b (that "
                                                   "entity) or /a/** (the subtree)")
 
     def __call__(self, path: str) -> bool:
+        verdict = self._verdicts.get(path)
+        if verdict is None:
+            verdict = self._verdicts[path] = self._decide(path)
+        return verdict
+
+    def _decide(self, path: str) -> bool:
+        if _is_properties(path):  # only an exclude that names the properties drops them
+            return not any(_is_properties(p.removesuffix("/**")) and _matches(p, path) for p in self.exclude)
         if any(_matches(p, path) for p in self.exclude):
             return False
         return not self.include or any(_matches(p, path) for p in self.include)
+
+
+def _is_properties(path: str) -> bool:
+    return path == PROPERTIES or path.startswith(PROPERTIES + "/")
 
 
 def _matches(pattern: str, path: str) -> bool:
@@ -90,13 +117,14 @@ class _Chunks(io.RawIOBase):
 @dataclass(frozen=True)
 class TimeWindow:
     """Chunks overlapping [start, end] on `timeline` (inclusive; None = open); with `latest_at`, also
-    per entity and component the newest chunk before `start`, so the scene at `start` is complete."""
+    per entity and component the chunk(s) holding its newest row before `start`, so the scene at `start`
+    is complete (see services.runs.latest_at)."""
 
     timeline: str
     start: int | None = None
     end: int | None = None
     latest_at: bool = True
-    exact: bool = False  # cut straddling chunks to the rows in the window (re-encoded, new ids)
+    exact: bool = False  # cut chunks to the rows in the window and the latest-at rows (re-encoded, new ids)
 
     @property
     def bounds(self) -> tuple[int, int]:
@@ -109,9 +137,20 @@ _DURATION = re.compile(r"^(-?\d+(?:\.\d+)?)(ns|us|ms|s|m|h)$")
 _ISO = re.compile(r"^(\d{4}-\d{2}-\d{2}(?:[T ]\d{2}:\d{2}(?::\d{2})?)?)(?:\.(\d{1,9}))?(Z|[+-]\d{2}:?\d{2})?$")
 
 
+TIME_MIN, TIME_MAX = -(2**63), 2**63 - 1  # Rerun's time values are signed 64-bit
+
+
 def parse_time_value(name: str, timeline_type: str, text: str) -> int:
     """A `start`/`end` value by the timeline's type: sequence integers; durations like `12.5s`,
     `250ms` or ns; timestamps as ISO-8601 (to the nanosecond) or ns since the epoch."""
+    value = _time_value(name, timeline_type, text)
+    if not TIME_MIN <= value <= TIME_MAX:
+        raise BadParameterError(name, f"{text!r} is outside the range of {timeline_type} values (signed 64-bit: "
+                                      f"{TIME_MIN} to {TIME_MAX} ns, about 1677-09-21 to 2262-04-11 as timestamps)")
+    return value
+
+
+def _time_value(name: str, timeline_type: str, text: str) -> int:
     if re.fullmatch(r"-?\d+", text):
         return int(text)
     if timeline_type == "duration" and (m := _DURATION.match(text)):
@@ -156,52 +195,6 @@ def window_from_query(types: dict[str, str], timeline: str | None, start: str | 
     return TimeWindow(timeline, lo, hi, latest_at, exact)
 
 
-@dataclass(frozen=True)
-class ChunkEntry:
-    """What choosing chunks for a time window needs to know of one chunk (from its metadata, or
-    from a sealed run's chunk index without reading the chunk)."""
-
-    chunk_id: bytes
-    entity_path: str
-    is_static: bool
-    is_recording: bool
-    span: tuple[int, int] | None  # on the window's timeline; None: not on it
-    component_spans: dict[str, tuple[int, int]]  # component -> where it has data on that timeline
-
-    @classmethod
-    def of_meta(cls, meta: ChunkMeta, is_recording: bool, timeline: str) -> ChunkEntry:
-        span = next(((t.range.min, t.range.max) for t in meta.timelines if t.name == timeline), None)
-        comps = {c.component: (c.ranges[timeline].min, c.ranges[timeline].max) for c in meta.components
-                 if timeline in c.ranges}
-        return cls(meta.chunk_id, meta.entity_path, meta.is_static, is_recording, span, comps)
-
-
-def select_chunks(entries: list[ChunkEntry], window: TimeWindow) -> tuple[set[bytes], dict[bytes, int]]:
-    """Chunk ids to keep: static ones, those overlapping the window, and the latest-at ones (also
-    returned apart, with the time of the row each is kept for)."""
-    keep: set[bytes] = set()
-    before: dict[tuple[str, str], tuple[int, bytes]] = {}
-    lo, hi = window.bounds
-    for entry in entries:
-        if not entry.is_recording or entry.is_static:
-            keep.add(entry.chunk_id)
-            continue
-        if entry.span is None:
-            continue  # not on the chosen timeline
-        if entry.span[1] >= lo and entry.span[0] <= hi:
-            keep.add(entry.chunk_id)  # overlaps the window (by its index column)
-        elif entry.span[1] < lo and window.latest_at:
-            for component, span in entry.component_spans.items():
-                key = (entry.entity_path, component)
-                if key not in before or span[1] > before[key][0]:
-                    before[key] = (span[1], entry.chunk_id)
-    latest: dict[bytes, int] = {}
-    for at, chunk_id in before.values():
-        latest[chunk_id] = max(at, latest.get(chunk_id, at))
-    keep.update(latest)
-    return keep, latest
-
-
 def read_events(path: Path, size: int, follow: Follow | None) -> Iterator[Event | None]:
     """Events of the first `size` bytes, then, with `follow`, of what is appended while the run is
     live; None marks a pause (the caller sends what it holds before waiting)."""
@@ -235,23 +228,35 @@ def stream_run(path: Path, size: int, entities: EntityFilter, *, blueprint: bool
     stream ends, with its footer, when the run closes."""
     metas: dict[bytes, ChunkMeta] = {}
     keep: set[bytes] | None = None
-    latest: dict[bytes, int] = {}  # latest-at chunk id -> the time of the row it is kept for
+    picks: dict[bytes, set[int]] = {}  # exact: chunk id -> its rows kept as latest-at rows
     if window is not None:  # a first pass picks the chunks; payloads are only read in the second
         found = []
         for first in read_events(path, size, None):
             if isinstance(first, ArrowMessage):
                 meta = metas[event_key(first)] = chunk_meta(first)
-                found.append(ChunkEntry.of_meta(meta, first.store_id.kind == StoreKind.RECORDING, window.timeline))
-        keep, latest = select_chunks(found, window)
+                recording = first.store_id.kind == StoreKind.RECORDING
+                if not recording or entities(meta.entity_path):
+                    found.append(ChunkEntry.of_meta(meta, recording, window.timeline))
+        keep, candidates = select_chunks(found, window.bounds, window.latest_at, resolve=lambda known: known)
+        if window.exact and candidates:
+            picks = pick_rows(_chunks_of(path, size, metas, candidates), window.timeline, window.bounds[0])
     yield from encode_run(read_events(path, size, follow), entities, blueprint=blueprint, window=window,
-                          keep=keep, latest=latest, metas=metas)
+                          keep=keep, picks=picks, metas=metas)
+
+
+def _chunks_of(path: Path, size: int, metas: dict[bytes, ChunkMeta],
+               chunk_ids: set[bytes]) -> Iterator[tuple[ArrowMessage, ChunkMeta]]:
+    for event in read_events(path, size, None):
+        if isinstance(event, ArrowMessage) and (meta := metas[event_key(event)]).chunk_id in chunk_ids:
+            yield event, meta
 
 
 def encode_run(events: Iterable[Event | None], entities: EntityFilter, *, blueprint: bool,
-               window: TimeWindow | None, keep: set[bytes] | None, latest: dict[bytes, int],
+               window: TimeWindow | None, keep: set[bytes] | None, picks: dict[bytes, set[int]],
                metas: dict[bytes, ChunkMeta]) -> Iterator[bytes]:
     """The chosen messages of a run as one RRD stream with a footer, in pieces of about 1 MiB; None
-    among `events` is a pause (what is held is sent)."""
+    among `events` is a pause (what is held is sent). With an exact window, recording chunks are cut
+    to the rows in it plus their `picks` (latest-at rows)."""
     sink = _Chunks()
     out = cast(BinaryIO, sink)
     encoder: RrdEncoder | None = None
@@ -277,12 +282,7 @@ def encode_run(events: Iterable[Event | None], entities: EntityFilter, *, bluepr
                 continue
             if window is not None and window.exact and store.kind == StoreKind.RECORDING and not meta.is_static:
                 lo, hi = window.bounds
-                if meta.chunk_id in latest:
-                    # Each component's newest row before start, from the chunk itself (a sealed run's
-                    # index knows only the chunk's range, and a sparse component ends earlier).
-                    lasts = [c.ranges[window.timeline].max for c in meta.components if window.timeline in c.ranges]
-                    lo, hi = (min(lasts), max(lasts)) if lasts else (latest[meta.chunk_id], latest[meta.chunk_id])
-                cut = trim(event, meta, window.timeline, lo, hi)
+                cut = trim(event, meta, window.timeline, lo, hi, picks.get(meta.chunk_id, ()))
                 if cut is None:
                     continue
                 event, meta = cut

@@ -20,6 +20,7 @@ from services.errors import ErrorCode, FleetError
 from services.retention.index import BLUEPRINT_ACTIVATION, CHUNK, STORE_INFO, IndexRow, from_parquet
 from services.retention.seal import INDEX, RECORDING
 from services.retention.tiers import readable_when_cold
+from services.rrd.chunk import ChunkMeta, chunk_meta
 from services.rrd.decoder import decode_message
 from services.rrd.frames import (
     MESSAGE_HEADER_SIZE,
@@ -27,15 +28,9 @@ from services.rrd.frames import (
     decode_message_header,
     decode_stream_header,
 )
-from services.rrd.messages import Event, StreamStart
-from services.runs.download import (
-    FLUSH_BYTES,
-    ChunkEntry,
-    EntityFilter,
-    TimeWindow,
-    encode_run,
-    select_chunks,
-)
+from services.rrd.messages import ArrowMessage, Event, StreamStart
+from services.runs.download import FLUSH_BYTES, EntityFilter, TimeWindow, encode_run
+from services.runs.latest_at import ChunkEntry, pick_rows, select_chunks
 from services.runs.service import run_not_found
 from services.storage.objectstore import ObjectStore
 
@@ -102,18 +97,38 @@ def open_sealed(store: ObjectStore, prefix: str) -> SealedRecording:
 
 def _entry(row: IndexRow, timeline: str) -> ChunkEntry:
     span = next(((t.min, t.max) for t in row.timelines if t.name == timeline), None)
-    # The index keeps ranges per chunk, not per component: each component is taken to span the chunk.
+    spans = None if row.component_ranges is None else {  # None: an index from before per-component ranges
+        c.component: (c.min, c.max) for c in row.component_ranges if c.timeline == timeline}
     return ChunkEntry(row.chunk_id or b"", row.entity_path or "", row.is_static, row.store_kind == "recording",
-                      span, {c: span for c in row.components} if span is not None else {})
+                      span, spans if span is not None else {}, row.components)
+
+
+def plan_window(sealed: SealedRecording, entities: EntityFilter,
+                window: TimeWindow) -> tuple[set[bytes], dict[bytes, set[int]]]:
+    """The chunk ids a windowed download keeps, and for an exact one the latest-at rows of each chunk:
+    only the candidate chunks are read (ranged reads), and with an index from before per-component
+    ranges also the chunks whose ranges matter."""
+    chunks = [r for r in sealed.rows if r.kind == CHUNK and (r.store_kind != "recording"
+                                                             or entities(r.entity_path or ""))]
+
+    def read(ids: set[bytes]) -> Iterator[tuple[ArrowMessage, ChunkMeta]]:
+        for event in _events(sealed, [r for r in chunks if r.chunk_id in ids]):
+            if isinstance(event, ArrowMessage):
+                yield event, chunk_meta(event)
+
+    def resolve(entries: list[ChunkEntry]) -> list[ChunkEntry]:
+        metas = {meta.chunk_id: meta for _, meta in read({e.chunk_id for e in entries})}
+        return [ChunkEntry.of_meta(metas[e.chunk_id], True, window.timeline) for e in entries if e.chunk_id in metas]
+
+    keep, candidates = select_chunks([_entry(r, window.timeline) for r in chunks], window.bounds,
+                                     window.latest_at, resolve)
+    picks = pick_rows(read(candidates), window.timeline, window.bounds[0]) if window.exact and candidates else {}
+    return keep, picks
 
 
 def choose_rows(rows: list[IndexRow], entities: EntityFilter, blueprint: bool,
-                window: TimeWindow | None) -> tuple[list[IndexRow], dict[bytes, int]]:
-    """The messages a download keeps, in file order, and the latest-at chunks (for exact trimming)."""
-    keep: set[bytes] | None = None
-    latest: dict[bytes, int] = {}
-    if window is not None:
-        keep, latest = select_chunks([_entry(r, window.timeline) for r in rows if r.kind == CHUNK], window)
+                keep: set[bytes] | None) -> list[IndexRow]:
+    """The messages a download keeps, in file order (`keep`: the chunk ids of a time window)."""
     chosen = []
     for row in rows:
         if row.store_kind == "blueprint" and not blueprint:
@@ -126,7 +141,7 @@ def choose_rows(rows: list[IndexRow], entities: EntityFilter, blueprint: bool,
         elif row.kind not in (STORE_INFO, BLUEPRINT_ACTIVATION):
             continue
         chosen.append(row)
-    return chosen, latest
+    return chosen
 
 
 def _reads(rows: list[IndexRow]) -> Iterator[tuple[int, int, list[IndexRow]]]:
@@ -163,7 +178,7 @@ def stream_sealed(sealed: SealedRecording, entities: EntityFilter, *, blueprint:
         for start in range(0, sealed.size, FLUSH_BYTES):  # the sealed object is already the answer
             yield sealed.store.get_range(sealed.key, start, min(FLUSH_BYTES, sealed.size - start))
         return
-    rows, latest = choose_rows(sealed.rows, entities, blueprint, window)
-    keep = {r.chunk_id for r in rows if r.chunk_id is not None} if window is not None else None
+    keep, picks = plan_window(sealed, entities, window) if window is not None else (None, {})
+    rows = choose_rows(sealed.rows, entities, blueprint, keep)
     yield from encode_run(_events(sealed, rows), entities, blueprint=blueprint, window=window, keep=keep,
-                          latest=latest, metas={})
+                          picks=picks, metas={})

@@ -17,6 +17,9 @@ from catalog.models import Robot, Run, RunEntity
 from services.errors import ErrorCode, FleetError
 
 MAX_LIMIT = 1000
+MAX_ENTITY_FILTERS = 32  # each is a subquery: a bounded number keeps the query plannable
+MAX_PROPERTY_FILTERS = 32
+MAX_CURSOR_LENGTH = 2048  # a cursor this service gives out is a few dozen characters
 SORTS = ("-started_at", "started_at", "-bytes", "bytes", "id", "-id")
 STATUSES = ("live", "closed")
 TIERS = ("hot", "warm", "cold", "deleted")
@@ -57,9 +60,18 @@ class RunFilter:
             raise BadParameterError("status", f"{self.status!r} is not one of {', '.join(STATUSES)}")
         if self.tier is not None and self.tier not in TIERS:
             raise BadParameterError("tier", f"{self.tier!r} is not one of {', '.join(TIERS)}")
+        for name, count, most in (("entity", len(self.entity), MAX_ENTITY_FILTERS),
+                                  ("property", len(self.properties), MAX_PROPERTY_FILTERS)):
+            if count > most:
+                raise BadParameterError(name, f"{count} filters: at most {most}")
         for key in self.properties:
             if key.count(".") != 1 or not all(key.split(".")):
                 raise BadParameterError("property", f"{key!r} is not NAME.FIELD=VALUE (e.g. fleet.robot_id=robot-7)")
+        texts = (("robot", self.robot), ("application", self.application), ("entity", self.entity),
+                 ("property", [*self.properties, *self.properties.values()]))
+        for name, values in texts:
+            if any("\x00" in value for value in values):
+                raise BadParameterError(name, "contains a NUL character, which no run id, path or property holds")
 
 
 def parse_time(name: str, text: str | None) -> dt.datetime | None:
@@ -94,7 +106,9 @@ def _entity_condition(pattern: str) -> sa.ColumnElement[bool]:
 def _property_value(session: Session, name: str, field_name: str) -> sa.ColumnElement[Any]:
     if session.get_bind().dialect.name == "postgresql":
         return sa.func.jsonb_extract_path_text(sa.cast(Run.properties, JSONB), name, field_name)
-    return sa.func.json_extract_string(Run.properties, f'$."{name}"."{field_name}"')
+    # a JSON pointer (RFC 6901: `~` and `/` escaped) takes any key as is, quotes included
+    pointer = "".join("/" + part.replace("~", "~0").replace("/", "~1") for part in (name, field_name))
+    return sa.func.json_extract_string(Run.properties, pointer)
 
 
 def _sort_key(sort: str) -> sa.ColumnElement[Any]:
@@ -111,13 +125,36 @@ def _encode_cursor(value: Any, run_id: str) -> str:
 
 
 def _decode_cursor(cursor: str, sort: str) -> tuple[Any, str]:
+    """The sort value and run id a cursor carries, checked against the sort's type (a cursor is
+    client input: a tampered one is a 422, never a query error)."""
+    bad = BadParameterError("cursor", "not a cursor this service gave out for this sort: pass `next_cursor` as is, "
+                                      "with the same sort")
+    if len(cursor) > MAX_CURSOR_LENGTH:
+        raise bad
     try:
-        value, run_id = json.loads(base64.urlsafe_b64decode(cursor + "=" * (-len(cursor) % 4)))
-        if sort.lstrip("-") == "started_at":
-            value = dt.datetime.fromisoformat(value)
-    except (ValueError, TypeError):
-        raise BadParameterError("cursor", "not a cursor this service gave out: pass `next_cursor` as is") from None
-    return value, str(run_id)
+        decoded = json.loads(base64.urlsafe_b64decode(cursor + "=" * (-len(cursor) % 4)))
+    except (ValueError, TypeError, RecursionError):
+        raise bad from None
+    if not (isinstance(decoded, list) and len(decoded) == 2 and isinstance(decoded[1], str)):
+        raise bad
+    value, run_id = decoded
+    column = sort.lstrip("-")
+    if column == "started_at":
+        try:
+            value = dt.datetime.fromisoformat(value) if isinstance(value, str) else None
+        except ValueError:
+            value = None
+        if value is None:
+            raise bad
+        value = value if value.tzinfo is not None else value.replace(tzinfo=dt.UTC)
+    elif column == "bytes":
+        if type(value) is not int or not -(2**63) <= value < 2**63:
+            raise bad
+    elif not isinstance(value, str):
+        raise bad
+    if "\x00" in run_id or (isinstance(value, str) and "\x00" in value):
+        raise bad
+    return value, run_id
 
 
 def list_runs(session: Session, flt: RunFilter) -> tuple[list[Run], str | None]:

@@ -9,7 +9,9 @@ from __future__ import annotations
 import os
 import struct
 import time
+from collections.abc import Collection
 
+import numpy as np
 import pyarrow as pa
 import pyarrow.compute as pc
 
@@ -22,9 +24,11 @@ def new_chunk_id() -> bytes:
     return struct.pack(">QQ", time.time_ns(), int.from_bytes(os.urandom(8), "big"))
 
 
-def trim(msg: ArrowMessage, meta: ChunkMeta, timeline: str, lo: int, hi: int) -> tuple[ArrowMessage, ChunkMeta] | None:
-    """`msg` cut to the rows whose `timeline` value lies in [lo, hi]: the same message when all do,
-    None when none do, else a new chunk."""
+def trim(msg: ArrowMessage, meta: ChunkMeta, timeline: str, lo: int, hi: int,
+         also: Collection[int] = ()) -> tuple[ArrowMessage, ChunkMeta] | None:
+    """`msg` cut to the rows whose `timeline` value lies in [lo, hi], and the rows at positions `also`
+    (latest-at rows before the window), in their order: the same message when all rows stay, None when
+    none do, else a new chunk."""
     batch = read_chunk(msg)
     index = next((i for i, f in enumerate(batch.schema)
                   if (f.metadata or {}).get(b"rerun:index_name", f.name.encode()).decode() == timeline
@@ -34,6 +38,10 @@ def trim(msg: ArrowMessage, meta: ChunkMeta, timeline: str, lo: int, hi: int) ->
     values = batch.column(index)
     values = values.view(pa.int64()) if values.type != pa.int64() else values
     mask = pc.and_(pc.greater_equal(values, lo), pc.less_equal(values, hi)).fill_null(False)
+    if also:
+        picked = np.zeros(batch.num_rows, dtype=bool)
+        picked[sorted(also)] = True
+        mask = pc.or_(mask, pa.array(picked))
     kept = int(pc.sum(mask).as_py() or 0)
     if kept == batch.num_rows:
         return msg, meta

@@ -75,7 +75,10 @@ def test_include_subtree_and_exclude_wins(server: LiveServer, recordings: dict[s
     assert _download(server, run_id, out, include="/world/**").status_code == 200
     got = {chunk_meta(e).entity_path for e in iter_events(out)
            if isinstance(e, ArrowMessage) and e.store_id.kind == StoreKind.RECORDING}
-    assert got == {p for p in all_paths if p == "/world" or p.startswith("/world/")} and got
+    properties = {p for p in all_paths if p == "/__properties" or p.startswith("/__properties/")}
+    assert properties  # the SDK logs the recording's start time there
+    # the recording's properties stay with an entity filter (an include need not name them)
+    assert got == {p for p in all_paths if p == "/world" or p.startswith("/world/")} | properties and got
     excluded = sorted(got)[0]
     _download(server, run_id, out, include="/world/**", exclude=excluded)
     assert excluded not in {chunk_meta(e).entity_path for e in iter_events(out) if isinstance(e, ArrowMessage)}
@@ -201,5 +204,80 @@ def test_exact_keeps_only_the_latest_row_before_the_window(server: LiveServer, r
                     if isinstance(e, ArrowMessage) and e.store_id.kind == StoreKind.RECORDING
                     and chunk_meta(e).entity_path == "/world/points"
                     for v in read_chunk(e).column("frame").to_pylist())
-    # The window's rows, plus the last row of the chunk wholly before it (its latest-at chunk).
-    assert frames == [102, 104, 105]
+    # The window's rows, plus the newest row before it: frame 103, in the chunk (103-105) that straddles
+    # the start, not the last row of the chunk wholly before it (102: its colors are older than 103's,
+    # which the viewer shows at 104, a row without colors).
+    assert frames == [103, 104, 105]
+
+
+def _entities(path: Path) -> set[str]:
+    return {chunk_meta(e).entity_path for e in iter_events(path)
+            if isinstance(e, ArrowMessage) and e.store_id.kind == StoreKind.RECORDING}
+
+
+def test_entity_filters_keep_the_recordings_properties_unless_excluded(server: LiveServer,
+                                                                        recordings: dict[str, Recording],
+                                                                        tmp_path: Path):
+    run_id = recordings["points"].recordings[0]["recording_id"]
+    out = tmp_path / "props.rrd"
+    kept: list[dict[str, object]] = [{"include": "/world/**"}, {"include": "/world/points"}, {"exclude": "/world/**"},
+                                     {"exclude": "/**"}, {"include": "/world/**", "exclude": "/world/points"}]
+    for params in kept:
+        assert _download(server, run_id, out, **params).status_code == 200
+        assert "/__properties" in _entities(out), params
+    dropped: list[dict[str, object]] = [{"exclude": "/__properties"}, {"exclude": "/__properties/**"},
+                                        {"include": ["/world/**", "/__properties/**"], "exclude": "/__properties/**"}]
+    for params in dropped:
+        assert _download(server, run_id, out, **params).status_code == 200
+        assert "/__properties" not in _entities(out) and _entities(out), params
+
+
+def test_entity_patterns_are_bounded(server: LiveServer, recordings: dict[str, Recording]):
+    from services.runs.download import MAX_PATTERN_LENGTH, MAX_PATTERNS
+
+    run_id = recordings["points"].recordings[0]["recording_id"]
+    url = f"{server.url}/v1/runs/{run_id}/recording.rrd"
+    for params, name in (({"exclude": [f"/x{i}" for i in range(MAX_PATTERNS + 1)]}, "exclude"),
+                         ({"include": [f"/x{i}" for i in range(MAX_PATTERNS + 1)]}, "include"),
+                         ({"exclude": "/" + "a" * MAX_PATTERN_LENGTH}, "exclude")):
+        bad = httpx.get(url, params=params, timeout=30)
+        assert bad.status_code == 422 and f"'{name}'" in bad.json()["message"], bad.text
+    assert httpx.get(url, params={"exclude": [f"/x{i}" for i in range(MAX_PATTERNS)]}, timeout=60).status_code == 200
+
+
+def test_pattern_matching_cost_is_per_entity_not_per_chunk(recordings: dict[str, Recording],
+                                                           monkeypatch: pytest.MonkeyPatch):
+    """Each entity path is matched against the patterns once, however many chunks it has."""
+    from services.runs import download
+
+    path = recordings["points"].path
+    chunks = [chunk_meta(e).entity_path for e in iter_events(path) if isinstance(e, ArrowMessage)]
+    assert len(chunks) > 2 * len(set(chunks))  # many chunks per entity
+    calls = 0
+    matches = download._matches
+
+    def counting(pattern: str, entity: str) -> bool:
+        nonlocal calls
+        calls += 1
+        return matches(pattern, entity)
+
+    monkeypatch.setattr(download, "_matches", counting)
+    patterns = [f"/nowhere/{i}/**" for i in range(200)]
+    data = b"".join(download.stream_run(path, path.stat().st_size, download.EntityFilter(exclude=patterns)))
+    assert len(data) > 0.9 * path.stat().st_size  # nothing was excluded
+    assert calls <= len(set(chunks)) * len(patterns), (calls, len(chunks))
+
+
+@pytest.mark.parametrize(("timeline", "start", "end"), [
+    ("frame", "-99999999999999999999", "5"), ("frame", "0", "9223372036854775808"),
+    ("log_time", "2263-01-01T00:00:00Z", None), ("log_time", "1600-01-01", "2026-01-01"),
+    ("sim", "9999999999h", None),
+])
+def test_windows_outside_int64_are_refused_up_front(server: LiveServer, recordings: dict[str, Recording],
+                                                    timeline: str, start: str, end: str | None):
+    run_id = recordings["points"].recordings[0]["recording_id"]
+    params = {"timeline": timeline, "start": start, "exact": "true", **({"end": end} if end else {})}
+    bad = httpx.get(f"{server.url}/v1/runs/{run_id}/recording.rrd", params=params, timeout=30)
+    name = "end" if end and end.startswith("9223") else "start"
+    assert bad.status_code == 422 and f"'{name}'" in bad.json()["message"], bad.text
+    assert "outside the range" in bad.json()["message"]

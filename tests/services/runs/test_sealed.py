@@ -16,6 +16,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, BinaryIO
 
+import pyarrow.parquet as pq
 import pytest
 from fastapi.testclient import TestClient
 
@@ -23,12 +24,12 @@ from catalog import queries
 from catalog.db import session_scope
 from services.api.app import create_app
 from services.retention import archive
-from services.retention.seal import RECORDING
+from services.retention.seal import INDEX, RECORDING
 from services.retention.service import PROMOTE, plan, run_plan
 from services.retention.tiers import Tiers
 from services.rrd import ArrowMessage, StoreKind, iter_events
 from services.rrd.chunk import chunk_meta, read_chunk
-from services.runs.download import EntityFilter, stream_run
+from services.runs.download import EntityFilter, TimeWindow, stream_run
 from services.runs.sealed import open_sealed, stream_sealed
 from services.settings import load_settings
 from services.storage.objectstore import ObjectInfo, ObjectStore
@@ -208,6 +209,38 @@ def test_one_entity_of_ten_reads_a_small_part_of_the_object(tiers: Tiers, make_n
     assert 0.05 * size < e3 <= counting.read
 
 
+@pytest.mark.parametrize("old_index", [False, True])
+def test_exact_window_reads_only_the_candidate_chunks(tiers: Tiers, make_node: NodeFactory, runs: dict[str, Path],
+                                                      rerun_bin: str, tmp_path: Path, old_index: bool):
+    """Finding the newest rows before the window reads the few chunks that may hold them (ranged
+    reads), not the run: with per-component ranges in the index, and without (an older index, read
+    newest chunk first until nothing older can matter)."""
+    node, run_id = _node(make_node, tiers, runs["chunky"])
+    one = EntityFilter(include=["/world/e3"])
+    window = TimeWindow("frame", 15, 16, latest_at=True, exact=True)
+    hot = node.ingest.runs[run_id].hot
+    expected = b"".join(stream_run(hot.path, hot.size, one, window=window))
+    prefix = _promote(node, run_id)
+    if old_index:
+        index = pq.read_table(io.BytesIO(tiers.warm.get_range(f"{prefix}/{INDEX}")))
+        out = io.BytesIO()
+        pq.write_table(index.drop_columns(["component_ranges"]), out)
+        tiers.warm.put(f"{prefix}/{INDEX}", out.getvalue())
+    counting = CountingStore(tiers.warm)
+    sealed = open_sealed(counting, prefix)
+    assert (sealed.rows[-1].component_ranges is None) == old_index
+    warm = b"".join(stream_sealed(sealed, one, window=window))
+    _verify(rerun_bin, warm, tmp_path / "warm.rrd")
+    assert _cells(warm) == _cells(expected) and ("/world/e3", "Points3D:positions", 14) in _cells(warm)
+    size = tiers.warm.head(f"{prefix}/{RECORDING}").size
+    e3_chunk = max(r.length for r in sealed.rows if r.entity_path == "/world/e3")
+    recording_reads = sum(n for key, _, _, n in counting.reads if key.endswith(RECORDING))
+    # the chunk before the window (read to pick its row, then served) and the one the window starts
+    # (served), with the older index also the chunk before it (read to learn its ranges)
+    assert recording_reads <= (5 if old_index else 4) * e3_chunk + 64 * 1024, (recording_reads, e3_chunk)
+    assert recording_reads < 0.1 * size, (recording_reads, size)
+
+
 def test_unfiltered_warm_download_is_the_sealed_object(tiers: Tiers, make_node: NodeFactory, runs: dict[str, Path]):
     node, run_id = _node(make_node, tiers, runs["wide"])
     prefix = _promote(node, run_id)
@@ -230,6 +263,8 @@ QUERIES: list[dict[str, Any]] = [
     {"blueprint": "false"},
     {"timeline": "frame", "start": "12", "end": "17"},
     {"timeline": "frame", "start": "12", "end": "17", "latest_at": "false"},
+    {"timeline": "frame", "start": "15", "end": "17"},
+    {"timeline": "frame", "start": "15", "end": "17", "latest_at": "false"},
     {"timeline": "frame", "start": "20"},
     {"timeline": "frame", "end": "3"},
     {"timeline": "sim", "start": "1.2s", "end": "1700ms"},
@@ -268,9 +303,16 @@ def test_same_url_serves_the_same_chunks_hot_and_warm(tiers: Tiers, make_node: N
         assert _rows(warm) == _rows(hot[i]), params
         assert _cells(warm, params.get("timeline", "frame")) == _cells(hot[i], params.get("timeline", "frame"))
     # the windows pick some chunks and leave others: the comparisons above are not all or nothing
-    with_latest = _ids(hot[QUERIES.index({"timeline": "frame", "start": "12", "end": "17"})])
-    window = _ids(hot[QUERIES.index({"timeline": "frame", "start": "12", "end": "17", "latest_at": "false"})])
-    assert 0 < len(window) < len(with_latest) < len(_ids(hot[0]))  # latest_at adds the chunks before start
+    def ids_of(params: dict[str, Any]) -> set[bytes]:
+        return _ids(hot[QUERIES.index(params)])
+
+    # a window starting on a chunk boundary (15) needs the chunks before it for its latest-at rows; one
+    # starting inside chunks (12) does not: the chunks straddling the start hold the newest earlier rows
+    with_latest = ids_of({"timeline": "frame", "start": "15", "end": "17"})
+    window = ids_of({"timeline": "frame", "start": "15", "end": "17", "latest_at": "false"})
+    assert 0 < len(window) < len(with_latest) < len(_ids(hot[0]))
+    assert ids_of({"timeline": "frame", "start": "12", "end": "17"}) == ids_of(
+        {"timeline": "frame", "start": "12", "end": "17", "latest_at": "false"})
     exact = _rows(hot[QUERIES.index({"timeline": "frame", "start": "12", "end": "17", "exact": "true"})])
     assert exact["/world/e3"] == 6 + 1, exact  # frames 12-17, and one row before them
 
@@ -335,3 +377,20 @@ def test_exact_latest_at_keeps_each_components_newest_value(tiers: Tiers, make_n
     assert newest in _cells(hot), f"hot: {sorted(_cells(hot))}"
     assert newest in _cells(warm), f"warm: {sorted(_cells(warm))}"
     assert _cells(warm) == _cells(hot)
+
+
+def test_entity_filters_keep_the_recordings_properties_hot_and_warm(tiers: Tiers, make_node: NodeFactory,
+                                                                   runs: dict[str, Path]):
+    node, run_id = _node(make_node, tiers, runs["wide"])
+    client = TestClient(_app(node))
+    cases = [({"include": "/world/e3"}, True), ({"exclude": "/world/**"}, True),
+             ({"include": "/world/e3", "timeline": "frame", "start": "5", "end": "6"}, True),
+             ({"include": "/world/e3", "exclude": "/__properties/**"}, False), ({"exclude": "/__properties"}, False)]
+    hot = [_get(client, run_id, params) for params, _ in cases]
+    _promote(node, run_id)
+    for (params, kept), hot_answer in zip(cases, hot, strict=True):
+        warm = _get(client, run_id, params)
+        for answer in (hot_answer, warm):
+            entities = {e for e, _, _ in _chunks(answer)}
+            assert ("/__properties" in entities) == kept and entities - {"/__properties"}, (params, entities)
+        assert _ids(warm) == _ids(hot_answer), params

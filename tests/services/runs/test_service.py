@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import base64
 import datetime as dt
+import json
 
 import pytest
 from sqlalchemy.orm import Session
@@ -99,3 +101,51 @@ def test_get_run_and_robots(fleet: Session):
         service.get_run(fleet, "nope")
     assert info.value.http_status() == 404
     assert [(robot.id, count) for robot, count in service.list_robots(fleet)] == [("robot-a", 2), ("robot-b", 2)]
+
+
+def _cursor(payload: object) -> str:
+    return base64.urlsafe_b64encode(json.dumps(payload).encode()).decode().rstrip("=")
+
+
+@pytest.mark.parametrize(("sort", "payload"), [
+    ("-started_at", [{}, 1]), ("id", [{}, 1]), ("-bytes", [{}, 1]), ("-started_at", ["r-a1"]),
+    ("-started_at", {"a": 1}), ("-started_at", 7),
+    ("-started_at", [12, "r-a1"]), ("-started_at", ["not a date", "r-a1"]), ("started_at", [None, "r-a1"]),
+    ("-bytes", ["300", "r-a1"]), ("bytes", [2**70, "r-a1"]), ("-bytes", [True, "r-a1"]), ("bytes", [1.5, "r-a1"]),
+    ("id", [["r-a1"], "r-a1"]), ("id", ["r-a1", 5]), ("id", ["r-\u0000", "r-a1"]),
+    ("-started_at", ["2026-11-01T08:00:00+00:00", "r-\u0000"]),
+])
+def test_tampered_cursor_is_a_bad_parameter(fleet: Session, sort: str, payload: object):
+    """Valid base64 JSON of the wrong shape or types is refused before any query runs."""
+    with pytest.raises(BadParameterError) as info:
+        service.list_runs(fleet, RunFilter(sort=sort, cursor=_cursor(payload)))
+    assert info.value.parameter == "cursor" and info.value.http_status() == 422
+
+
+def test_oversized_and_deep_cursors_are_bad_parameters(fleet: Session):
+    for cursor in ("A" * 5000, _cursor([[[[[]]]]] * 10), base64.urlsafe_b64encode(b"[" * 1500).decode()):
+        with pytest.raises(BadParameterError) as info:
+            service.list_runs(fleet, RunFilter(cursor=cursor))
+        assert info.value.parameter == "cursor"
+
+
+def test_property_filters_take_any_key(fleet: Session):
+    """Quotes, slashes and tildes in a property name or field are matched as written, not parsed."""
+    assert ids(fleet, properties={'fle"et.robot_id': "robot-a"}) == []
+    assert ids(fleet, properties={'fleet.robot"_id': "robot-a"}) == []
+    assert ids(fleet, properties={"fl/e~et.si/te~1": "lab"}) == []
+    assert ids(fleet, properties={"fleet.site": "lab"}) == ["r-a2"]
+
+
+def test_filter_counts_are_bounded(fleet: Session):
+    many_entities = [f"/world/e{i}" for i in range(service.MAX_ENTITY_FILTERS + 1)]
+    many_props = {f"fleet.f{i}": "x" for i in range(service.MAX_PROPERTY_FILTERS + 1)}
+    for kwargs, name in (({"entity": many_entities}, "entity"), ({"entity": many_entities * 40}, "entity"),
+                         ({"properties": many_props}, "property"), ({"robot": ["a\u0000"]}, "robot"),
+                         ({"properties": {"fleet.site": "l\u0000"}}, "property")):
+        with pytest.raises(BadParameterError) as info:
+            service.list_runs(fleet, RunFilter(**kwargs))  # type: ignore[arg-type]
+        assert info.value.parameter == name and info.value.http_status() == 422
+    # at the bound the query still runs and means what it says
+    assert ids(fleet, entity=["/world/**"] * service.MAX_ENTITY_FILTERS) == ["r-b1", "r-a1"]
+    assert ids(fleet, properties={f"fleet.f{i}": "x" for i in range(service.MAX_PROPERTY_FILTERS)}) == []

@@ -30,3 +30,22 @@ def test_bad_values_say_what_is_accepted(kind: str, text: str):
     with pytest.raises(BadParameterError) as info:
         parse_time_value("start", kind, text)
     assert info.value.parameter == "start" and "use " in str(info.value)
+
+
+@pytest.mark.parametrize(("kind", "text"), [
+    ("sequence", "-99999999999999999999"), ("sequence", "9223372036854775808"), ("sequence", "-9223372036854775809"),
+    ("timestamp", "2263-01-01T00:00:00Z"), ("timestamp", "2262-04-12"), ("timestamp", "1677-09-20"),
+    ("timestamp", "99999999999999999999"), ("duration", "9999999999h"), ("duration", "-2562048h"),
+])
+def test_values_outside_int64_are_refused(kind: str, text: str):
+    with pytest.raises(BadParameterError) as info:
+        parse_time_value("start", kind, text)
+    assert info.value.parameter == "start" and "outside the range" in str(info.value)
+
+
+@pytest.mark.parametrize(("kind", "text", "value"), [
+    ("sequence", "9223372036854775807", 2**63 - 1), ("sequence", "-9223372036854775808", -(2**63)),
+    ("timestamp", "2262-04-11T23:47:16Z", 9_223_372_036_000_000_000),
+])
+def test_int64_bounds_are_accepted(kind: str, text: str, value: int):
+    assert parse_time_value("start", kind, text) == value
