@@ -9,7 +9,7 @@ import click
 
 @click.command()
 @click.option("--data-dir", type=click.Path(path_type=Path), help="FLEET_DATA_DIR: hot tier and embedded "
-              "defaults live here [default: ./fleet-data]")
+              "defaults live here; one fleet serve per data dir [default: ./fleet-data]")
 @click.option("--http-addr", help="FLEET_HTTP_ADDR: REST API address [default: 0.0.0.0:8080]")
 @click.option("--grpc-addr", help="FLEET_GRPC_ADDR: Rerun message proxy address [default: 0.0.0.0:51234]")
 @click.option("--catalog-url", help="FLEET_CATALOG_URL: duckdb:///PATH or postgresql+psycopg://...")
