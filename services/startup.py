@@ -79,7 +79,6 @@ def listen_http(host: str, port: int) -> socket.socket:
     except OSError as exc:
         sock.close()
         raise _refusal(exc, host, port, "REST API", "http_addr") from None
-    sock.set_inheritable(True)
     return sock
 
 
