@@ -34,7 +34,8 @@ def _wait_healthy(url: str, proc: subprocess.Popen[bytes], timeout: float = 30.0
 def test_serve_answers_health_on_the_configured_address(tmp_path):
     port = _free_port()
     env = {**os.environ, "FLEET_DATA_DIR": str(tmp_path / "data")}
-    proc = subprocess.Popen([FLEET, "serve", "--http-addr", f"127.0.0.1:{port}"], env=env,
+    proc = subprocess.Popen([FLEET, "serve", "--http-addr", f"127.0.0.1:{port}",
+                             "--grpc-addr", f"127.0.0.1:{_free_port()}"], env=env,  # never the machine's 51234
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE)
     try:
         response = _wait_healthy(f"http://127.0.0.1:{port}/healthz", proc)
