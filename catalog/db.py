@@ -7,6 +7,7 @@ to start with one line naming the command.
 
 from __future__ import annotations
 
+import re
 import threading
 from collections.abc import Iterator
 from contextlib import contextmanager, nullcontext
@@ -28,6 +29,10 @@ class CatalogError(FleetError):
     code = ErrorCode.UNAVAILABLE
 
 
+class CatalogLockedError(CatalogError):
+    code = ErrorCode.CONFLICT
+
+
 class DuckDBImpl(DefaultImpl):
     """Lets Alembic drive DuckDB (the embedded catalog) like any transactional SQL database."""
 
@@ -44,11 +49,27 @@ def create_engine(url: str) -> sa.Engine:
         # A checkpoint at every commit: after a crash DuckDB 1.5 can replay its write-ahead log into
         # secondary indexes that then refuse to update the row ("Failed to delete all rows from
         # index", a FATAL error that invalidates the database); with no log left there is none to replay.
-        return sa.create_engine(url, pool_size=5, max_overflow=20,
-                                connect_args={"config": {"checkpoint_threshold": "0b"}})
+        engine = sa.create_engine(url, pool_size=5, max_overflow=20,
+                                  connect_args={"config": {"checkpoint_threshold": "0b"}})
+        sa.event.listen(engine, "handle_error", _embedded_catalog_locked)
+        return engine
     if url.startswith("postgresql"):
         return sa.create_engine(url, pool_pre_ping=True)
     raise CatalogError(f"unsupported catalog URL {url!r}: use duckdb:///PATH or postgresql+psycopg://USER@HOST/DB")
+
+
+_LOCK_HOLDER = re.compile(r"Could not set lock on file .*\(PID (\d+)\)", re.DOTALL)
+
+
+def _embedded_catalog_locked(context: sa.engine.ExceptionContext) -> None:
+    """DuckDB lets one process at a time open its file; the process that cannot gets a long
+    driver error (a traceback through the CLI). Say instead who holds it and what to do."""
+    holder = _LOCK_HOLDER.search(str(context.original_exception))
+    if holder is not None:
+        raise CatalogLockedError(
+            f"the embedded catalog is in use by another process (PID {holder.group(1)}, probably a running "
+            "`fleet serve`): stop it first; DuckDB lets one process at a time open the file (several "
+            "processes can share a Postgres catalog)") from None
 
 
 def is_embedded(engine: sa.Engine) -> bool:

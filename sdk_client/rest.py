@@ -77,6 +77,16 @@ class FleetClient:
         query = httpx.QueryParams({k: v for k, v in params.items() if v not in (None, [], ())})
         return f"{self.api_url}/v1/runs/{run_id}/recording.rrd" + (f"?{query}" if query else "")
 
+    def check_recording(self, run_id: str, **params: Any) -> None:
+        """Ask the service whether `recording_url(run_id, **params)` would answer, without taking the
+        data: it checks every parameter before the first byte, so its error (a 404, or a 422 naming a
+        bad time or timeline) comes with the response headers, and the body is left unread."""
+        try:
+            with self._http.stream("GET", self.recording_url(run_id, **params)) as response:
+                _check(response)
+        except httpx.TransportError as exc:
+            raise self._unreachable(exc) from exc
+
     def download(self, run_id: str, out: Path, on_progress: Callable[[int], None] | None = None,
                  **params: Any) -> int:
         """Stream a run's recording to `out`; returns the bytes written."""

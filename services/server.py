@@ -6,6 +6,7 @@ import asyncio
 import contextlib
 import datetime as dt
 import logging
+import socket
 
 import grpc
 import uvicorn
@@ -25,6 +26,7 @@ from services.retention.service import Retention
 from services.retention.tiers import open_tiers, sealed_lookup
 from services.runtime import tune_allocator
 from services.settings import Settings
+from services.startup import check_grpc_port, grpc_bind_failed, listen_http
 
 log = logging.getLogger("fleet")
 
@@ -77,21 +79,34 @@ async def _housekeeping(ingest: IngestService, reserve: DiskReserve, every: floa
             await asyncio.to_thread(reserve.ensure)
 
 
+def _claim_ports(settings: Settings) -> tuple[grpc.aio.Server, socket.socket]:
+    """Both ports, before any recovery work: a refused start is one line, quick, and changes nothing."""
+    grpc_host, grpc_port = split_addr(settings.grpc_addr)
+    check_grpc_port(grpc_host, grpc_port)
+    http_socket = listen_http(*split_addr(settings.http_addr))
+    # gRPC sets SO_REUSEPORT by default: a second depot on this port would silently take half the streams.
+    grpc_server = grpc.aio.server(options=[*grpc_handler.server_options(settings.max_message_size),
+                                           ("grpc.so_reuseport", 0)])
+    try:
+        grpc_server.add_insecure_port(f"{grpc_host}:{grpc_port}")
+    except RuntimeError:
+        http_socket.close()
+        raise grpc_bind_failed(grpc_host, grpc_port) from None
+    return grpc_server, http_socket
+
+
 async def serve(settings: Settings) -> None:
+    """Run the node until stopped; the caller holds the data dir (`startup.hold_data_dir`)."""
     tune_allocator()
+    grpc_server, http_socket = _claim_ports(settings)
     ingest, retention, analytics = build(settings)
     recovered = ingest.recover()
     if recovered:
         log.info("recovered %d hot runs", len(recovered))
     ingest.hot.start()
-    grpc_server = grpc.aio.server(options=grpc_handler.server_options(settings.max_message_size))
     grpc_handler.add_to_server(grpc_server, grpc_handler.MessageProxy(ingest))
-    grpc_host, grpc_port = split_addr(settings.grpc_addr)
-    grpc_server.add_insecure_port(f"{grpc_host}:{grpc_port}")
-    http_host, http_port = split_addr(settings.http_addr)
     app = create_app(settings, ingest, retention, analytics)
-    http = uvicorn.Server(uvicorn.Config(app, host=http_host, port=http_port, log_level="info",
-                                         lifespan="off"))
+    http = uvicorn.Server(uvicorn.Config(app, log_level="info", lifespan="off"))
     await grpc_server.start()
     reserve = DiskReserve(settings.data_dir, settings.reserve_bytes)
     await asyncio.to_thread(reserve.ensure)
@@ -99,7 +114,7 @@ async def serve(settings: Settings) -> None:
     scheduler = (start_scheduler(retention, settings.promote_interval_s, settings.retention_interval_s)
                  if settings.scheduler else None)
     try:
-        await http.serve()
+        await http.serve(sockets=[http_socket])
     finally:
         if scheduler is not None:
             scheduler.shutdown(wait=True)

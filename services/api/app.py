@@ -6,11 +6,13 @@ import sqlalchemy as sa
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.middleware.cors import CORSMiddleware
-from fastapi.responses import JSONResponse, PlainTextResponse
+from fastapi.responses import JSONResponse, Response
+from fastapi_offline import FastAPIOffline
 
 from services import __version__
 from services.analytics import rest as analytics_rest
 from services.analytics.service import Analytics
+from services.api import metrics as prometheus
 from services.errors import ErrorCode, FleetError, http_status
 from services.ingest import rest as ingest_rest
 from services.ingest.service import IngestService
@@ -22,7 +24,11 @@ from services.settings import Settings
 
 def create_app(settings: Settings, ingest: IngestService | None = None,
                retention: Retention | None = None, analytics: Analytics | None = None) -> FastAPI:
-    app = FastAPI(title="Fleet telemetry depot", version=__version__)
+    # Swagger UI (/docs) and ReDoc (/redoc) with their scripts and styles served from this process
+    # (/static-offline-docs/...), never from a CDN: the docs work on a depot with no internet. No
+    # validator badge either: Swagger UI would send the spec's URL to validator.swagger.io.
+    app: FastAPI = FastAPIOffline(title="Fleet telemetry depot", version=__version__,
+                                  swagger_ui_parameters={"validatorUrl": None})
     # Browser viewers (app.rerun.io, a local web viewer) fetch recordings cross-origin.
     app.add_middleware(CORSMiddleware, allow_origins=["*"], allow_methods=["GET", "HEAD"],
                        expose_headers=["Content-Disposition", "ETag"])
@@ -64,20 +70,12 @@ def create_app(settings: Settings, ingest: IngestService | None = None,
         """The process is up."""
         return {"status": "ok", "version": __version__}
 
-    @app.get("/metrics", response_class=PlainTextResponse)
-    async def metrics() -> str:
-        """Prometheus text exposition."""
-        lines = [f"fleet_build_info{{version=\"{__version__}\"}} 1"]
-        if ingest is not None:
-            lines += [
-                "# TYPE fleet_live_streams gauge", f"fleet_live_streams {ingest.live_streams}",
-                "# TYPE fleet_hot_runs gauge", f"fleet_hot_runs {len(ingest.runs)}",
-                "# TYPE fleet_live_runs gauge",
-                f"fleet_live_runs {sum(r.status == 'live' for r in ingest.runs.values())}",
-            ]
-            for key, value in ingest.totals.items():  # counted when a stream or upload ends
-                lines += [f"# TYPE fleet_ingest_{key}_total counter", f"fleet_ingest_{key}_total {value}"]
-        return "\n".join(lines) + "\n"
+    registry = prometheus.metrics_registry(ingest)
+
+    @app.get("/metrics", response_class=Response, responses={200: {"content": {prometheus.CONTENT_TYPE: {}}}})
+    async def metrics() -> Response:
+        """Prometheus text exposition (HELP and TYPE for every metric)."""
+        return Response(prometheus.exposition(registry), media_type=prometheus.CONTENT_TYPE)
 
     @app.get("/readyz")
     async def readyz() -> dict[str, str]:

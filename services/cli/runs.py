@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
+import datetime as dt
 import functools
 import json
+import os
 import shlex
 import shutil
 import subprocess
+import sys
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -99,7 +102,9 @@ def runs_show(api_url: str, run_id: str, as_json: bool) -> None:
     console = stdout_console()
     console.print(f"[bold]{run['id']}[/bold]  robot {run['robot_id']}  application {run['application_id']}  "
                   f"{run['status']}, {run['tier']}  SDK {run['sdk_version']}  {run['chunks']:,} chunks, "
-                  f"{run['bytes']:,} bytes  started {run['started_at']}")
+                  f"{run['bytes']:,} bytes")
+    console.print(f"started {_when(run['started_at'])}  ended {_when(run.get('ended_at'))}  "
+                  f"last data {_when(run.get('last_data_at'))}", markup=False)
     if run["properties"]:
         console.print(f"properties: {json.dumps(run['properties'])}", markup=False)
     entities = Table("entity", "chunks", "rows", "bytes", "archetypes", box=None, padding=(0, 2))
@@ -109,8 +114,27 @@ def runs_show(api_url: str, run_id: str, as_json: bool) -> None:
     console.print(entities)
     timelines = Table("timeline", "type", "min", "max", box=None, padding=(0, 2))
     for t in run["timelines"]:
-        timelines.add_row(t["name"], t["type"], str(t["min"]), str(t["max"]))
+        timelines.add_row(t["name"], t["type"], _timeline_value(t["type"], t["min"]),
+                          _timeline_value(t["type"], t["max"]))
     console.print(timelines)
+
+
+def _when(iso: str | None) -> str:
+    """A catalog time (ISO-8601 UTC from the service) to the second, as people read it."""
+    if not iso:
+        return "-"
+    try:
+        return dt.datetime.fromisoformat(iso).astimezone(dt.UTC).strftime("%Y-%m-%d %H:%M:%S UTC")
+    except ValueError:
+        return iso
+
+
+def _timeline_value(timeline_type: str, value: int | None) -> str:
+    """Timestamps as dates, durations in seconds, sequences as numbers: each in the form that
+    `fleet view --start/--end` accepts for that timeline."""
+    from services.rrd.summary import format_time
+
+    return "-" if value is None else format_time(timeline_type, value)
 
 
 @runs.command("pin")
@@ -193,13 +217,32 @@ def _advance(progress: Progress, task: TaskID, count: int) -> None:
 @click.option("--open", "open_viewer", is_flag=True, help="run the command instead of printing it")
 def view(api_url: str, run_id: str, open_viewer: bool, **filters: Any) -> None:
     """Print the `rerun` command that opens a run (or a part of it) in the viewer."""
+    params = _recording_params(**filters)
     with _client(api_url) as client:
-        client.run(run_id)  # a clear error now rather than an empty viewer
-        url = client.recording_url(run_id, **_recording_params(**filters))
-    command = ["rerun", url]
+        client.check_recording(run_id, **params)  # an unknown run or a bad time: one line now, not an empty viewer
+        url = client.recording_url(run_id, **params)
+    rerun = find_rerun()
     if not open_viewer:
-        click.echo(shlex.join(command))
+        click.echo(shlex.join([_as_typed(rerun), url]))
         return
-    if shutil.which("rerun") is None:
+    if rerun is None:
         raise click.ClickException("the Rerun viewer is not installed: pip install rerun-sdk")
-    raise SystemExit(subprocess.call(command))
+    raise SystemExit(subprocess.call([rerun, url]))
+
+
+def find_rerun() -> str | None:
+    """The `rerun` installed beside this Python (the same virtualenv as `fleet`, whether or not it
+    is activated), else the first one on PATH."""
+    beside = Path(sys.executable).parent / "rerun"
+    if beside.is_file() and os.access(beside, os.X_OK):
+        return str(beside)
+    return shutil.which("rerun")
+
+
+def _as_typed(rerun: str | None) -> str:
+    """How to type the viewer's name in a shell: `rerun` when PATH finds that one (or none is
+    installed here), else its full path (a virtualenv that is not activated)."""
+    on_path = shutil.which("rerun")
+    if rerun is None or (on_path is not None and Path(on_path).resolve() == Path(rerun).resolve()):
+        return "rerun"
+    return rerun

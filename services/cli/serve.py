@@ -9,7 +9,7 @@ import click
 
 @click.command()
 @click.option("--data-dir", type=click.Path(path_type=Path), help="FLEET_DATA_DIR: hot tier and embedded "
-              "defaults live here [default: ./fleet-data]")
+              "defaults live here; one fleet serve per data dir [default: ./fleet-data]")
 @click.option("--http-addr", help="FLEET_HTTP_ADDR: REST API address [default: 0.0.0.0:8080]")
 @click.option("--grpc-addr", help="FLEET_GRPC_ADDR: Rerun message proxy address [default: 0.0.0.0:51234]")
 @click.option("--catalog-url", help="FLEET_CATALOG_URL: duckdb:///PATH or postgresql+psycopg://...")
@@ -54,10 +54,11 @@ def serve(**flags: object) -> None:
     import asyncio
     import logging
 
-    from catalog.db import create_engine, prepare_for_service
+    from catalog.db import create_engine, is_embedded, prepare_for_service
     from services.server import release_reserve_if_full, split_addr
     from services.server import serve as run_server
     from services.settings import load_settings
+    from services.startup import hold_data_dir
 
     settings = load_settings(**flags)
     for addr in (settings.http_addr, settings.grpc_addr):
@@ -65,15 +66,22 @@ def serve(**flags: object) -> None:
             split_addr(addr)
         except ValueError as exc:
             raise click.BadParameter(str(exc)) from exc
-    settings.data_dir.mkdir(parents=True, exist_ok=True)
-    release_reserve_if_full(settings)  # a full disk must not keep the catalog from opening
-    engine = create_engine(settings.catalog_url)
-    done = prepare_for_service(engine)  # a catalog that is behind: one line naming `fleet db upgrade`
-    engine.dispose()
-    if done:
-        click.echo(f"fleet: {done}")
-    logging.basicConfig(level=logging.INFO, format="%(levelname)s:     %(name)s: %(message)s")
-    logging.getLogger("apscheduler").setLevel(logging.ERROR)  # not a line per job run or skipped turn
-    click.echo(f"fleet: data in {settings.data_dir.resolve()}, REST on http://{settings.http_addr}, "
-               f"Rerun gRPC on rerun+http://{settings.grpc_addr}/proxy, durability {settings.durability}")
-    asyncio.run(run_server(settings))
+    with hold_data_dir(settings.data_dir):  # one `fleet serve` per data dir, for the process's life
+        release_reserve_if_full(settings)  # a full disk must not keep the catalog from opening
+        # This engine (and its pooled connection) lives as long as the service: an embedded catalog's
+        # file lock is then held from the start, not from the first write an idle service may not make
+        # for a while, so `fleet db upgrade` or another `fleet serve` on that file is refused at once.
+        engine = create_engine(settings.catalog_url)
+        try:
+            done = prepare_for_service(engine)  # a catalog that is behind: one line naming `fleet db upgrade`
+            if not is_embedded(engine):
+                engine.dispose()  # a shared server catalog needs no such hold
+            if done:
+                click.echo(f"fleet: {done}")
+            logging.basicConfig(level=logging.INFO, format="%(levelname)s:     %(name)s: %(message)s")
+            logging.getLogger("apscheduler").setLevel(logging.ERROR)  # not a line per job run or skipped turn
+            click.echo(f"fleet: data in {settings.data_dir.resolve()}, REST on http://{settings.http_addr}, "
+                       f"Rerun gRPC on rerun+http://{settings.grpc_addr}/proxy, durability {settings.durability}")
+            asyncio.run(run_server(settings))
+        finally:
+            engine.dispose()

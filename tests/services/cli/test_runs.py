@@ -3,12 +3,17 @@
 from __future__ import annotations
 
 import json
+import os
+import re
+import shlex
 import subprocess
+import sys
 from collections.abc import Iterator
 from pathlib import Path
 
 import httpx
 import pytest
+from click.testing import CliRunner
 
 from services.rrd import ArrowMessage, StoreKind, iter_events
 from services.rrd.chunk import chunk_meta
@@ -60,5 +65,81 @@ def test_view_prints_the_rerun_command(server: LiveServer, recordings: dict[str,
     run_id = recordings["points"].recordings[0]["recording_id"]
     result = fleet(server, "view", run_id, "--include", "/world/**")
     assert result.returncode == 0
-    command = result.stdout.strip()
-    assert command.startswith("rerun ") and f"/v1/runs/{run_id}/recording.rrd?include=%2Fworld%2F%2A%2A" in command
+    exe, url = shlex.split(result.stdout)
+    assert Path(exe).name == "rerun" and url.endswith(f"/v1/runs/{run_id}/recording.rrd?include=%2Fworld%2F%2A%2A")
+
+
+def test_runs_show_prints_times_as_people_read_them(server: LiveServer, recordings: dict[str, Recording]):
+    run_id = recordings["points"].recordings[0]["recording_id"]
+    run = json.loads(fleet(server, "runs", "show", run_id, "--json").stdout)
+    types = {t["name"]: t["type"] for t in run["timelines"]}
+    assert types["frame"] == "sequence" and types["sim"] == "duration" and types["log_time"] == "timestamp"
+    out = fleet(server, "runs", "show", run_id).stdout
+    rows = {line.split()[0]: line.split()[1:] for line in out.splitlines() if line.split()[:1] in (["frame"],
+                                                                                                   ["sim"],
+                                                                                                   ["log_time"])}
+    assert rows["frame"] == ["sequence", "100", "105"]
+    assert rows["sim"] == ["duration", "0s", "1.25s"]  # 250 ms steps, not nanoseconds
+    day = run["started_at"][:10]
+    assert re.fullmatch(rf"{day}T\d\d:\d\d:\d\d\.\d{{9}}Z", rows["log_time"][1]), rows["log_time"]
+    started = re.search(r"started (\S+ \S+ UTC)", out)
+    assert started is not None and started.group(1).startswith(day), out
+
+
+@pytest.mark.parametrize(("args", "message"), [
+    (["--timeline", "nonsense", "--start", "1"], "'nonsense' is not a timeline of this run"),
+    (["--timeline", "frame", "--start", "yesterday"], "'yesterday' is not a sequence value"),
+    (["--timeline", "log_time", "--start", "2026-13-45"], "is not a timestamp value"),
+    (["--timeline", "frame", "--start", "5", "--end", "1"], "is before start"),
+])
+def test_view_refuses_what_the_service_would_refuse(server: LiveServer, recordings: dict[str, Recording],
+                                                    args: list[str], message: str):
+    run_id = recordings["points"].recordings[0]["recording_id"]
+    result = fleet(server, "view", run_id, *args)
+    assert result.returncode == 1 and result.stdout == ""  # no URL printed
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and message in lines[0], result.stderr
+
+
+def test_view_of_an_unknown_run_is_one_line(server: LiveServer):
+    result = fleet(server, "view", "no-such-run")
+    assert result.returncode == 1 and result.stdout == ""
+    assert "no run 'no-such-run'" in result.stderr and len(result.stderr.strip().splitlines()) == 1
+
+
+VENV_RERUN = Path(sys.executable).parent / "rerun"
+
+
+def test_view_prints_a_rerun_command_that_works_without_activating_the_venv(server: LiveServer,
+                                                                           recordings: dict[str, Recording]):
+    run_id = recordings["points"].recordings[0]["recording_id"]
+    assert VENV_RERUN.is_file()
+    bare = {**os.environ, "PATH": "/usr/bin:/bin"}  # the venv not activated: no `rerun` on PATH
+    printed = subprocess.run([FLEET, "view", run_id, "--api-url", server.url], env=bare, capture_output=True,
+                             text=True, timeout=120)
+    assert printed.returncode == 0, printed.stderr
+    assert shlex.split(printed.stdout)[0] == str(VENV_RERUN)
+    activated = {**os.environ, "PATH": f"{VENV_RERUN.parent}:/usr/bin:/bin"}
+    printed = subprocess.run([FLEET, "view", run_id, "--api-url", server.url], env=activated, capture_output=True,
+                             text=True, timeout=120)
+    assert shlex.split(printed.stdout)[0] == "rerun"
+
+
+def test_view_open_runs_the_rerun_of_its_own_venv(server: LiveServer, recordings: dict[str, Recording],
+                                                  monkeypatch: pytest.MonkeyPatch):
+    """`--open` finds the viewer installed beside `fleet` even when PATH has none (the viewer
+    itself is not started here: the call that would start it records what it was asked to run)."""
+    from services.cli import runs as runs_cli
+
+    run_id = recordings["points"].recordings[0]["recording_id"]
+    monkeypatch.setenv("PATH", "/usr/bin:/bin")
+    started: list[list[str]] = []
+
+    def call(argv: list[str]) -> int:
+        started.append(argv)
+        return 0
+
+    monkeypatch.setattr(subprocess, "call", call)
+    result = CliRunner().invoke(runs_cli.view, [run_id, "--open", "--api-url", server.url])
+    assert result.exit_code == 0, result.output
+    assert started == [[str(VENV_RERUN), f"{server.url}/v1/runs/{run_id}/recording.rrd"]]

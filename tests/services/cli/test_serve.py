@@ -3,9 +3,13 @@ import socket
 import subprocess
 import sys
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import httpx
+import pytest
+
+from tests.services.ingest.live_server import LiveServer, free_port
 
 FLEET = str(Path(sys.executable).with_name("fleet"))
 
@@ -30,7 +34,8 @@ def _wait_healthy(url: str, proc: subprocess.Popen[bytes], timeout: float = 30.0
 def test_serve_answers_health_on_the_configured_address(tmp_path):
     port = _free_port()
     env = {**os.environ, "FLEET_DATA_DIR": str(tmp_path / "data")}
-    proc = subprocess.Popen([FLEET, "serve", "--http-addr", f"127.0.0.1:{port}"], env=env,
+    proc = subprocess.Popen([FLEET, "serve", "--http-addr", f"127.0.0.1:{port}",
+                             "--grpc-addr", f"127.0.0.1:{_free_port()}"], env=env,  # never the machine's 51234
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE)
     try:
         response = _wait_healthy(f"http://127.0.0.1:{port}/healthz", proc)
@@ -69,3 +74,91 @@ def test_bad_address_is_one_clear_error(tmp_path):
     assert result.returncode != 0
     assert "HOST:PORT" in result.stderr
     assert "Traceback" not in result.stderr
+
+
+# --- a second `fleet serve` is refused in one line (issue 10 points 23, 24) -------------------------
+
+
+def _second_serve(data_dir: Path, http_port: int, grpc_port: int, *args: str,
+                  timeout: float = 60) -> subprocess.CompletedProcess[str]:
+    """`fleet serve` expected to refuse to start: it must exit by itself (a start that succeeds
+    would serve until the timeout, which fails the test)."""
+    env = {**os.environ, "FLEET_DATA_DIR": str(data_dir)}
+    return subprocess.run([FLEET, "serve", "--http-addr", f"127.0.0.1:{http_port}",
+                           "--grpc-addr", f"127.0.0.1:{grpc_port}", *args],
+                          env=env, capture_output=True, text=True, timeout=timeout)
+
+
+def _one_line(result: subprocess.CompletedProcess[str]) -> str:
+    assert result.returncode == 1, (result.returncode, result.stderr[-2000:])
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1, result.stderr[-3000:]
+    assert "Traceback" not in result.stderr
+    return lines[0]
+
+
+@pytest.fixture
+def running(tmp_path: Path) -> Iterator[LiveServer]:
+    live = LiveServer(tmp_path / "first").start()
+    yield live
+    live.stop()
+
+
+def test_a_second_serve_on_the_grpc_port_is_refused(running: LiveServer, tmp_path: Path):
+    result = _second_serve(tmp_path / "second", free_port(), running.grpc_port)
+    line = _one_line(result)
+    assert f"127.0.0.1:{running.grpc_port}" in line and "already in use" in line
+    assert "--grpc-addr" in line and "FLEET_GRPC_ADDR" in line
+    assert httpx.get(f"{running.url}/healthz").status_code == 200
+
+
+def test_a_second_serve_on_the_grpc_wildcard_is_refused(running: LiveServer, tmp_path: Path):
+    result = _second_serve(tmp_path / "second", free_port(), running.grpc_port, "--grpc-addr",
+                           f"0.0.0.0:{running.grpc_port}")
+    assert f"0.0.0.0:{running.grpc_port}" in _one_line(result)
+
+
+def test_a_second_serve_on_the_http_port_is_refused(running: LiveServer, tmp_path: Path):
+    result = _second_serve(tmp_path / "second", running.http_port, free_port())
+    line = _one_line(result)
+    assert f"127.0.0.1:{running.http_port}" in line and "already in use" in line
+    assert "--http-addr" in line and "FLEET_HTTP_ADDR" in line
+
+
+def test_a_second_serve_on_the_same_data_dir_names_the_first(running: LiveServer):
+    assert running.proc is not None
+    line = _one_line(_second_serve(running.data_dir, free_port(), free_port()))
+    assert f"PID {running.proc.pid}" in line and "data dir" in line and "--data-dir" in line
+
+
+def test_db_commands_while_serving_name_the_holder(running: LiveServer):
+    """The embedded catalog is one process's at a time: `fleet db` says which one holds it."""
+    assert running.proc is not None
+    url = f"duckdb:///{running.data_dir / 'catalog.duckdb'}"
+    for command in ("current", "upgrade"):
+        result = subprocess.run([FLEET, "db", command, "--catalog-url", url], capture_output=True, text=True,
+                                timeout=60)
+        line = _one_line(result)
+        assert f"PID {running.proc.pid}" in line and "fleet serve" in line and "stop it" in line
+
+
+def test_a_serve_on_another_data_dir_but_the_same_embedded_catalog_is_refused(running: LiveServer,
+                                                                             tmp_path: Path):
+    assert running.proc is not None
+    url = f"duckdb:///{running.data_dir / 'catalog.duckdb'}"
+    line = _one_line(_second_serve(tmp_path / "second", free_port(), free_port(), "--catalog-url", url))
+    assert f"PID {running.proc.pid}" in line and "embedded catalog" in line
+
+
+@pytest.mark.postgres
+def test_two_serves_never_share_a_data_dir_even_with_postgres(empty_postgres_url: str, tmp_path: Path):
+    subprocess.run([FLEET, "db", "upgrade", "--catalog-url", empty_postgres_url], check=True, capture_output=True,
+                   timeout=60)
+    first = LiveServer(tmp_path / "data", catalog_url=empty_postgres_url).start()
+    try:
+        assert first.proc is not None
+        line = _one_line(_second_serve(first.data_dir, free_port(), free_port(), "--catalog-url",
+                                       empty_postgres_url))
+        assert f"PID {first.proc.pid}" in line and "--data-dir" in line
+    finally:
+        first.stop()

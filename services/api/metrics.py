@@ -1,0 +1,61 @@
+"""`/metrics`: the Prometheus exposition, every metric with HELP and TYPE.
+
+The figures live in the ingest service (plain counters it updates as streams and uploads end);
+a custom collector reads them at scrape time, so nothing is counted twice and ingest has no
+dependency on the Prometheus client.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+
+from prometheus_client import CollectorRegistry, generate_latest
+from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, InfoMetricFamily, Metric
+from prometheus_client.exposition import CONTENT_TYPE_PLAIN_0_0_4
+from prometheus_client.registry import Collector
+
+from services import __version__
+from services.ingest.service import IngestService
+
+CONTENT_TYPE = CONTENT_TYPE_PLAIN_0_0_4  # the text format every Prometheus server reads
+
+# ingest.totals key -> HELP text; a key added there later still gets a counter with a generic HELP.
+INGEST_TOTALS_HELP = {
+    "chunks_new": "Chunks stored for the first time (counted when their stream or upload ends)",
+    "chunks_duplicate": "Chunks received that the depot already held, skipped (counted when their stream or "
+                        "upload ends)",
+    "bytes_new": "Bytes of chunks stored for the first time (counted when their stream or upload ends)",
+    "messages": "RRD messages received over gRPC and uploads (counted when their stream or upload ends)",
+}
+
+
+class IngestCollector(Collector):
+    """This node's ingest figures, read from the service at each scrape."""
+
+    def __init__(self, ingest: IngestService | None) -> None:
+        self.ingest = ingest
+
+    def collect(self) -> Iterator[Metric]:
+        yield InfoMetricFamily("fleet_build", "The running release", value={"version": __version__})
+        ingest = self.ingest
+        if ingest is None:
+            return
+        yield GaugeMetricFamily("fleet_live_streams", "gRPC WriteMessages streams open now",
+                                value=ingest.live_streams)
+        yield GaugeMetricFamily("fleet_hot_runs", "Runs held in this node's hot tier", value=len(ingest.runs))
+        yield GaugeMetricFamily("fleet_live_runs", "Hot runs still being written to",
+                                value=sum(r.status == "live" for r in ingest.runs.values()))
+        for key, value in ingest.totals.items():
+            help_text = INGEST_TOTALS_HELP.get(key, f"Ingest total {key.replace('_', ' ')}")
+            yield CounterMetricFamily(f"fleet_ingest_{key}", help_text, value=value)
+
+
+def metrics_registry(ingest: IngestService | None) -> CollectorRegistry:
+    registry = CollectorRegistry(auto_describe=False)
+    registry.register(IngestCollector(ingest))
+    return registry
+
+
+def exposition(registry: CollectorRegistry) -> bytes:
+    """HELP and TYPE lines, then the samples, for every metric of the registry."""
+    return generate_latest(registry)

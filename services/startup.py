@@ -1,0 +1,99 @@
+"""What `fleet serve` claims before it does anything else: its data dir and its two ports.
+
+Two processes must never share either. Two `fleet serve` on one data dir would write the same hot
+runs; two on one gRPC port would split robots' streams between two depots without a word (gRPC
+sets SO_REUSEPORT by default on Linux, so the second bind succeeds). Each refusal is one line
+naming who holds what and the setting to change.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import errno
+import fcntl
+import os
+import socket
+from collections.abc import Iterator
+from pathlib import Path
+
+from services.errors import ErrorCode, FleetError
+
+LOCK_FILE = "fleet.lock"
+
+
+class DataDirInUseError(FleetError):
+    code = ErrorCode.CONFLICT
+
+
+class AddressError(FleetError):
+    code = ErrorCode.CONFLICT
+
+
+@contextlib.contextmanager
+def hold_data_dir(data_dir: Path) -> Iterator[None]:
+    """An exclusive lock on the data dir for as long as the block runs (the process's life when it
+    wraps `serve`). The lock file holds the owner's PID so that a refused start can name it; the
+    kernel drops the lock when the process dies, however it dies, so a stale file never blocks."""
+    data_dir.mkdir(parents=True, exist_ok=True)
+    fd = os.open(data_dir / LOCK_FILE, os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = os.pread(fd, 32, 0).decode(errors="replace").strip() or "unknown"
+            raise DataDirInUseError(
+                f"the data dir is in use by another `fleet serve` (PID {holder}): stop that one, or give this one "
+                "its own data dir (--data-dir or FLEET_DATA_DIR)") from None
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+        yield
+    finally:
+        os.close(fd)  # releases the lock
+
+
+def _family(host: str) -> socket.AddressFamily:
+    return socket.AF_INET6 if ":" in host else socket.AF_INET
+
+
+def _refusal(exc: OSError, host: str, port: int, what: str, setting: str) -> AddressError:
+    addr = f"[{host}]:{port}" if ":" in host else f"{host}:{port}"
+    if exc.errno == errno.EADDRINUSE:
+        problem = "is already in use (another `fleet serve`, or another program)"
+    elif exc.errno == errno.EACCES:
+        problem = "needs privileges this process lacks (ports below 1024)"
+    else:
+        problem = f"cannot be used here ({exc.strerror or exc})"
+    return AddressError(f"the {what} address {addr} {problem}: set another with --{setting.replace('_', '-')} "
+                        f"or FLEET_{setting.upper()}")
+
+
+def listen_http(host: str, port: int) -> socket.socket:
+    """The REST API's listening socket, bound here (not by uvicorn) so that a refusal is ours."""
+    sock = socket.socket(_family(host), socket.SOCK_STREAM)
+    try:
+        # SO_REUSEADDR (as uvicorn sets it) lets a restart bind despite TIME_WAIT connections, but
+        # never while another socket listens there. No SO_REUSEPORT: a second server must fail.
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        sock.bind((host, port))
+        sock.listen(2048)
+    except OSError as exc:
+        sock.close()
+        raise _refusal(exc, host, port, "REST API", "http_addr") from None
+    return sock
+
+
+def check_grpc_port(host: str, port: int) -> None:
+    """gRPC binds its own sockets and logs a failure as a multi-line C++ error, so the address is
+    tried here first for a one-line refusal. (gRPC's own bind, with SO_REUSEPORT off, stays the
+    guard against a race between this check and it.)"""
+    with socket.socket(_family(host), socket.SOCK_STREAM) as probe:
+        probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            probe.bind((host, port))
+        except OSError as exc:
+            raise _refusal(exc, host, port, "Rerun gRPC", "grpc_addr") from None
+
+
+def grpc_bind_failed(host: str, port: int) -> AddressError:
+    """gRPC refused the address after the check passed (another process took it in between)."""
+    return _refusal(OSError(errno.EADDRINUSE, "Address already in use"), host, port, "Rerun gRPC", "grpc_addr")

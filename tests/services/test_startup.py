@@ -1,0 +1,51 @@
+"""What `fleet serve` claims before it starts: the data dir and its two ports, each refused in one line."""
+
+from __future__ import annotations
+
+import os
+import socket
+from pathlib import Path
+
+import pytest
+
+from services.startup import AddressError, DataDirInUseError, check_grpc_port, hold_data_dir, listen_http
+
+
+def test_the_data_dir_is_held_once_and_released_after(tmp_path: Path):
+    refused = pytest.raises(DataDirInUseError, match=rf"\(PID {os.getpid()}\).*--data-dir or FLEET_DATA_DIR")
+    with hold_data_dir(tmp_path / "data"), refused, hold_data_dir(tmp_path / "data"):
+        pass
+    with hold_data_dir(tmp_path / "data"):  # free again: the lock went with the first holder
+        pass
+
+
+def test_a_port_someone_listens_on_is_refused_for_http_and_grpc():
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        with pytest.raises(AddressError, match=rf"REST API address 127\.0\.0\.1:{port} is already in use .*: "
+                                               r"set another with --http-addr or FLEET_HTTP_ADDR"):
+            listen_http("127.0.0.1", port)
+        with pytest.raises(AddressError, match=rf"Rerun gRPC address 0\.0\.0\.0:{port} is already in use.*"
+                                               r"--grpc-addr or FLEET_GRPC_ADDR"):
+            check_grpc_port("0.0.0.0", port)
+
+
+def test_a_listener_that_allows_port_sharing_is_still_refused():
+    """gRPC's own listeners set SO_REUSEPORT; the check must not share with them either."""
+    with socket.socket() as taken:
+        taken.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEPORT, 1)
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        with pytest.raises(AddressError, match="already in use"):
+            check_grpc_port("127.0.0.1", taken.getsockname()[1])
+
+
+def test_a_free_port_is_listened_on():
+    sock = listen_http("127.0.0.1", 0)
+    try:
+        with socket.create_connection(sock.getsockname(), timeout=5):
+            pass
+    finally:
+        sock.close()
