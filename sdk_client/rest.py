@@ -140,6 +140,10 @@ class FleetClient:
     def pin(self, run_id: str, pinned: bool = True) -> dict[str, Any]:
         return self._request("POST" if pinned else "DELETE", f"/v1/runs/{run_id}/pin")
 
+    def promote(self, run_id: str) -> dict[str, Any]:
+        """Seal a closed hot run into the warm tier now (`POST /v1/runs/RUN/promote`)."""
+        return self._request("POST", f"/v1/runs/{run_id}/promote", timeout=None)
+
     def restore(self, run_id: str) -> dict[str, Any]:
         return self._request("POST", f"/v1/runs/{run_id}/restore")
 

@@ -42,14 +42,22 @@ def plan(api_url: str, action: tuple[str, ...], as_json: bool) -> None:
     if as_json:
         click.echo(json.dumps(answer, indent=2))
         return
-    actions = answer["actions"]
+    actions, upcoming = answer["actions"], answer.get("upcoming", [])
+    console = stdout_console()
     if not actions:
         click.echo("nothing is due")
-        return
-    table = Table("action", "run", "robot", "tier", "MB", "why", box=None, padding=(0, 2))
-    for a in actions:
-        table.add_row(a["action"], a["run"], a["robot_id"], a["tier"], f"{a['bytes'] / 1e6:,.1f}", a["reason"])
-    stdout_console().print(table)
+    else:
+        table = Table("action", "run", "robot", "tier", "MB", "why", box=None, padding=(0, 2))
+        for a in actions:
+            table.add_row(a["action"], a["run"], a["robot_id"], a["tier"], f"{a['bytes'] / 1e6:,.1f}", a["reason"])
+        console.print(table)
+    if upcoming:
+        click.echo("later:")
+        table = Table("action", "run", "robot", "MB", "when", "why", box=None, padding=(0, 2))
+        for u in upcoming:
+            when = u["at"].replace("T", " ").replace("Z", " UTC") if u["at"] else "once it closes"
+            table.add_row(u["action"], u["run"], u["robot_id"], f"{u['bytes'] / 1e6:,.1f}", when, u["reason"])
+        console.print(table)
 
 
 @retention.command("run")

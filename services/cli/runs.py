@@ -176,6 +176,16 @@ def _nothing() -> Any:
     return contextlib.nullcontext()
 
 
+@runs.command("promote")
+@_api
+@click.argument("run_id")
+def runs_promote(api_url: str, run_id: str) -> None:
+    """Seal a closed hot run into the warm tier now, whatever its idle time."""
+    with _client(api_url) as client, Console(stderr=True).status(f"sealing {run_id}"):
+        answer = client.promote(run_id)
+    click.echo(f"{run_id}: {answer['tier']}: {answer['detail']}")
+
+
 @runs.command("rm")
 @_api
 @click.argument("run_id")

@@ -124,3 +124,23 @@ def test_rebuild_on_a_populated_catalog_adds_nothing(server: LiveServer, recordi
     assert result.returncode == 0, result.stderr
     assert result.stdout.strip() == f"0 runs added, {len(sealed)} already present, 0 skipped"
     assert all(f"ok present {r['id']}: already in the catalog" in result.stderr for r in sealed)
+
+
+def test_plan_says_when_hot_runs_will_be_promoted_and_promote_seals_one_now(
+        tmp_path: Path, recordings: dict[str, Recording]):
+    live = LiveServer(tmp_path / "data", scheduler="false", promote_after_s="600").start()
+    try:
+        uploaded = httpx.post(f"{live.url}/v1/uploads", content=recordings["points"].path.read_bytes(), timeout=60)
+        run_id = uploaded.json()["runs"][0]
+        plan = fleet(live, "retention", "plan")
+        assert plan.returncode == 0, plan.stderr
+        assert "nothing is due" in plan.stdout and "later:" in plan.stdout
+        assert run_id in plan.stdout and " UTC" in plan.stdout and "idle" in plan.stdout
+        done = fleet(live, "runs", "promote", run_id)
+        assert done.returncode == 0, done.stderr
+        assert done.stdout.startswith(f"{run_id}: warm: sealed ")
+        assert run_json(live, run_id)["tier"] == "warm"
+        again = fleet(live, "runs", "promote", run_id)  # one line, exit 1
+        assert again.returncode == 1 and again.stderr.count("\n") == 1 and "warm already" in again.stderr
+    finally:
+        live.stop()
