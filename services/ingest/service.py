@@ -44,6 +44,7 @@ from services.rrd.messages import (
     StoreKind,
     StreamStart,
 )
+from services.rrd.store_ids import StoreIdResolver
 from services.rrd.summary import StoreSummary
 
 log = logging.getLogger(__name__)
@@ -107,6 +108,7 @@ class Source:
     pending_bytes: int = 0
     store_infos: dict[StoreId, StoreInfoMessage] = field(default_factory=dict)  # to reopen a sealed run
     report: IngestReport = field(default_factory=IngestReport)
+    store_ids: StoreIdResolver = field(default_factory=StoreIdResolver)  # pre-0.25 SDKs: ids without app id
 
 
 class RunFacts:
@@ -267,6 +269,7 @@ class IngestService:
     def accept(self, source: Source, event: Event) -> None:
         """File one message of `source`."""
         source.report.messages += 1
+        event = source.store_ids.complete(event)
         if isinstance(event, StreamStart):
             source.version = event.version
         elif isinstance(event, StoreInfoMessage):
