@@ -17,6 +17,9 @@ Sorbet versions: 0.0.1 = SDK 0.23 and older ("rerun." keys), 0.1.1 = SDK 0.24-0.
   0.1.2  Pose* component types -> Translation3D, RotationQuat, ...; Transform3D:axis_length ->
          TransformAxes3D:axis_length; CoordinateFrame:frame_id -> CoordinateFrame:frame
   0.1.3  component type SeriesVisible -> Visible
+  0.1.4  blueprint TableColumn:cell_kind (TableCellKind) -> TableColumn:column_type (ColumnType)
+Sorbet versions to 0.1.3 follow re_sorbet's source; 0.1.4 (Rerun 0.37-0.41) follows what the
+pinned Rerun's own migration reports.
 """
 
 from __future__ import annotations
@@ -24,7 +27,7 @@ from __future__ import annotations
 SorbetVersion = tuple[int, int, int]
 
 VERSION_KEY = b"sorbet:version"
-CURRENT_VERSION: SorbetVersion = (0, 1, 3)
+CURRENT_VERSION: SorbetVersion = (0, 1, 4)  # what the pinned rerun-sdk 0.41 writes
 _LEGACY_PREFIX = b"rerun."
 _PROPERTIES_RECORDING = b"/__properties/recording"
 
@@ -50,12 +53,14 @@ _COMPONENT_TYPE_RENAMES: list[tuple[SorbetVersion, dict[bytes, bytes]]] = [
                  b"rerun.components.PoseScale3D": b"rerun.components.Scale3D",
                  b"rerun.components.PoseTransformMat3x3": b"rerun.components.TransformMat3x3"}),
     ((0, 1, 3), {b"rerun.components.SeriesVisible": b"rerun.components.Visible"}),
+    ((0, 1, 4), {b"rerun.blueprint.components.TableCellKind": b"rerun.blueprint.components.ColumnType"}),
 ]
-# 0.1.2: components, with the archetype they move to (None: the archetype stays)
-_COMPONENT_RENAMES: dict[bytes, tuple[bytes, bytes | None]] = {
-    b"Transform3D:axis_length": (b"TransformAxes3D:axis_length", b"rerun.archetypes.TransformAxes3D"),
-    b"CoordinateFrame:frame_id": (b"CoordinateFrame:frame", None),
-}
+# components, with the archetype they move to (None: the archetype stays), by target version
+_COMPONENT_RENAMES: list[tuple[SorbetVersion, dict[bytes, tuple[bytes, bytes | None]]]] = [
+    ((0, 1, 2), {b"Transform3D:axis_length": (b"TransformAxes3D:axis_length", b"rerun.archetypes.TransformAxes3D"),
+                 b"CoordinateFrame:frame_id": (b"CoordinateFrame:frame", None)}),
+    ((0, 1, 4), {b"TableColumn:cell_kind": (b"TableColumn:column_type", None)}),
+]
 
 
 def sorbet_version(schema_metadata: dict[bytes, bytes]) -> SorbetVersion:
@@ -99,11 +104,12 @@ def migrate_field_metadata(name: str, md: dict[bytes, bytes], version: SorbetVer
         component_type = md.get(COMPONENT_TYPE)
         if version < target and component_type in renames:
             md[COMPONENT_TYPE] = renames[component_type]
-    if version < (0, 1, 2) and md.get(COMPONENT) in _COMPONENT_RENAMES:
-        component, archetype = _COMPONENT_RENAMES[md[COMPONENT]]
-        md[COMPONENT] = component
-        if archetype is not None:
-            md[ARCHETYPE] = archetype
+    for target, component_renames in _COMPONENT_RENAMES:
+        rename = component_renames.get(md.get(COMPONENT, b""))
+        if version < target and rename is not None:
+            md[COMPONENT] = rename[0]
+            if rename[1] is not None:
+                md[ARCHETYPE] = rename[1]
     return md
 
 

@@ -66,6 +66,10 @@ def test_sdk_0_23_descriptors():
       b"rerun:component_type": b"rerun.components.Translation3D"}),
     ({b"rerun:component": b"SeriesLines:visible_series", b"rerun:component_type": b"rerun.components.SeriesVisible"},
      {b"rerun:component": b"SeriesLines:visible_series", b"rerun:component_type": b"rerun.components.Visible"}),
+    ({b"rerun:archetype": b"rerun.blueprint.archetypes.TableColumn", b"rerun:component": b"TableColumn:cell_kind",
+      b"rerun:component_type": b"rerun.blueprint.components.TableCellKind"},
+     {b"rerun:archetype": b"rerun.blueprint.archetypes.TableColumn", b"rerun:component": b"TableColumn:column_type",
+      b"rerun:component_type": b"rerun.blueprint.components.ColumnType"}),
 ])
 def test_sdk_0_25_descriptors(before: dict[bytes, bytes], after: dict[bytes, bytes]):
     assert migrate_field_metadata("x", before, V0_25) == after
@@ -104,5 +108,5 @@ def test_manifest_names_columns_after_migrated_descriptors():
     column = schema.field("/world/robot:TransformAxes3D:axis_length")
     assert column.metadata[b"rerun:archetype"] == b"rerun.archetypes.TransformAxes3D"
     # A chunk of a current SDK with that (today unused) descriptor is named as written.
-    current = manifest_batch([ManifestEntry(chunk_meta(_chunk(b"0.1.3")), 0)]).schema.names
+    current = manifest_batch([ManifestEntry(chunk_meta(_chunk(b"0.1.4")), 0)]).schema.names
     assert "Transform3D:axis_length:has_static_data" in current
