@@ -17,6 +17,7 @@ from services.ingest.service import IngestService
 from services.rrd import errors as rrd_errors
 from services.rrd import protowire
 from services.rrd.decoder import decode_message
+from services.rrd.frames import UPGRADE_HINT
 from services.rrd.pb import sdk_comms_pb2
 
 log = logging.getLogger(__name__)
@@ -101,6 +102,31 @@ def server_options(max_message_size: int) -> list[tuple[str, int]]:
     ]
 
 
+# rerun-sdk 0.22 spoke an earlier version of the protocol (LogMsg of rerun.log_msg.v0), under this
+# service. Unanswered, its SDK only reports an HTTP/2 error; answered, the robot is told what to do.
+LEGACY_SERVICE_NAME = "rerun.sdk_comms.v0.MessageProxy"
+LEGACY_REFUSAL = f"this depot does not speak the gRPC protocol of rerun-sdk 0.22 (rerun.sdk_comms.v0); {UPGRADE_HINT}"
+
+
+async def refuse_legacy_write(requests: AsyncIterator[bytes], context: grpc.aio.ServicerContext) -> bytes:
+    log.warning("stream from %s refused: rerun-sdk 0.22 protocol", context.peer())
+    await context.abort(grpc.StatusCode.FAILED_PRECONDITION, LEGACY_REFUSAL)
+    return b""  # not reached: abort raises
+
+
+async def refuse_legacy_read(request: bytes, context: grpc.aio.ServicerContext) -> AsyncIterator[bytes]:
+    await context.abort(grpc.StatusCode.FAILED_PRECONDITION, LEGACY_REFUSAL)
+    yield b""  # not reached: abort raises
+
+
+def add_legacy_refusal(server: grpc.aio.Server) -> None:
+    """Answer rerun-sdk 0.22's calls with a clear refusal naming the oldest supported SDK."""
+    server.add_generic_rpc_handlers((grpc.method_handlers_generic_handler(LEGACY_SERVICE_NAME, {
+        "WriteMessages": grpc.stream_unary_rpc_method_handler(refuse_legacy_write),
+        "ReadMessages": grpc.unary_stream_rpc_method_handler(refuse_legacy_read),
+    }),))
+
+
 def add_to_server(server: grpc.aio.Server, proxy: MessageProxy) -> None:
     handler = grpc.method_handlers_generic_handler(SERVICE_NAME, {
         "WriteMessages": grpc.stream_unary_rpc_method_handler(
@@ -115,3 +141,4 @@ def add_to_server(server: grpc.aio.Server, proxy: MessageProxy) -> None:
         ),
     })
     server.add_generic_rpc_handlers((handler,))
+    add_legacy_refusal(server)

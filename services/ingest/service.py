@@ -64,6 +64,7 @@ from services.rrd.messages import (
     StoreKind,
     StreamStart,
 )
+from services.rrd.store_ids import StoreIdResolver
 
 __all__ = ["LOG_TIME", "IngestReport", "IngestService", "InvalidStreamError", "RunFacts", "RunState", "SealedInfo",
            "SealedLookup", "SealedRunError", "Source", "TooManyStreamsError", "utcnow"]
@@ -118,6 +119,7 @@ class Source:
     sealed: dict[str, SealedInfo | None] = field(default_factory=dict)  # what `prepare` learnt per run
     attached: set[str] = field(default_factory=set)  # hot runs this source counts in their live sources
     report: IngestReport = field(default_factory=IngestReport)
+    store_ids: StoreIdResolver = field(default_factory=StoreIdResolver)  # pre-0.25 SDKs: ids without app id
 
 
 class IngestService:
@@ -209,6 +211,7 @@ class IngestService:
     def accept(self, source: Source, event: Event) -> None:
         """File one message of `source`."""
         source.report.messages += 1
+        event = source.store_ids.complete(event)
         if isinstance(event, StreamStart):
             source.version = event.version
         elif isinstance(event, StoreInfoMessage):

@@ -27,6 +27,8 @@ from services.rrd.messages import ArrowMessage, Compression, chunk_id_str, tuid_
 from services.rrd.pb import log_msg_pb2
 
 CHUNK_ID_KEY = b"rerun:id"
+LEGACY_CHUNK_ID_KEY = b"rerun.id"  # SDK 0.23 and older
+LEGACY_ENTITY_PATH_KEY = b"rerun.entity_path"
 _LZ4_MAX_RATIO = 255
 
 
@@ -110,7 +112,8 @@ def decompress_payload(msg: ArrowMessage) -> bytes:
 def read_chunk(msg: ArrowMessage) -> pa.RecordBatch:
     """The chunk as an Arrow record batch (zero-copy over the decompressed payload)."""
     batch = _read_batch(msg, decompress_payload(msg))
-    if ENTITY_PATH_KEY not in (batch.schema.metadata or {}):
+    md = batch.schema.metadata or {}
+    if ENTITY_PATH_KEY not in md and LEGACY_ENTITY_PATH_KEY not in md:
         raise errors.NotAChunkError("Arrow schema has no rerun:entity_path metadata", msg.offset)
     return batch
 
@@ -168,7 +171,8 @@ def _chunk_meta(msg: ArrowMessage, data: bytes) -> ChunkMeta:
         chunk_id = msg.chunk_id
     else:
         try:
-            chunk_id = parse_chunk_id((layout.schema.metadata or {})[CHUNK_ID_KEY].decode())
+            md = layout.schema.metadata or {}
+            chunk_id = parse_chunk_id((md.get(CHUNK_ID_KEY) or md[LEGACY_CHUNK_ID_KEY]).decode())
         except (KeyError, ValueError, UnicodeDecodeError) as exc:
             raise errors.NotAChunkError(f"chunk has no valid rerun:id ({exc})", msg.offset) from exc
     return ChunkMeta(chunk_id, layout.entity_path, not layout.indexes, num_rows, timelines, components,

@@ -4,7 +4,8 @@ Feed it bytes as they arrive (an HTTP body, a socket, a file read in pieces): it
 bytes of the message in progress and returns the typed messages completed so far, with their
 byte offsets. It handles several stores in one stream, repeated SetStoreInfo, files with or
 without footer, concatenated streams (with or without End between them), and reports a torn
-last message from `finish()` after everything before it was returned.
+last message from `finish()` after everything before it was returned. Store ids written before
+Rerun 0.25 (no application id) are completed from the stream's SetStoreInfo (see store_ids.py).
 """
 
 from __future__ import annotations
@@ -48,6 +49,7 @@ from services.rrd.messages import (
     tuid_bytes,
 )
 from services.rrd.pb import common_pb2, log_msg_pb2
+from services.rrd.store_ids import StoreIdResolver
 
 DEFAULT_MAX_MESSAGE_SIZE = 256 * 1024 * 1024
 READ_SIZE = 1024 * 1024
@@ -82,6 +84,7 @@ class RrdDecoder:
         self._error: errors.RrdError | None = None
         self._large: bytearray | None = None  # the message being read when it is large
         self._filled = 0
+        self._store_ids = StoreIdResolver()  # pre-0.25 streams: application ids from SetStoreInfo
 
     @property
     def offset(self) -> int:
@@ -331,7 +334,7 @@ class RrdDecoder:
 
     def _decode_message(self, raw: Buffer) -> Event | None:
         offset, kind = self._msg_offset, self._kind
-        message = decode_message(kind, raw, offset, self._stream_offset, self._streams - 1)
+        message = self._store_ids.complete(decode_message(kind, raw, offset, self._stream_offset, self._streams - 1))
         if isinstance(message, EndMessage):
             self._end = (offset + MESSAGE_HEADER_SIZE - self._stream_offset, len(message.raw), bytes(message.raw))
             self._state = _State.AFTER_END

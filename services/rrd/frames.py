@@ -35,6 +35,10 @@ _SERIALIZER_MSGPACK = 1
 
 # Rerun refuses streams written before 0.23 (the protobuf era).
 OLDEST_SUPPORTED = (0, 23)
+# Rerun itself cannot convert recordings this old (`rerun rrd migrate` refuses them): the robot
+# has to record with a newer SDK.
+UPGRADE_HINT = ("the oldest supported rerun-sdk is 0.23: upgrade rerun-sdk on the robot "
+                "(pip install -U rerun-sdk) and record again")
 
 _MESSAGE_HEADER = struct.Struct("<QQ")
 _FOOTER_ENTRY = struct.Struct("<QQI")
@@ -117,17 +121,12 @@ def decode_stream_header(raw: bytes, offset: int) -> StreamHeader:
     fourcc = raw[:4]
     if fourcc in OLD_FOURCCS:
         raise errors.UnsupportedVersionError(
-            f"{fourcc.decode()} stream written by Rerun older than 0.23; "
-            "re-save it with a current Rerun (`rerun rrd migrate`) or an older viewer",
-            offset,
-        )
+            f"{fourcc.decode()} stream written by a Rerun older than 0.23; {UPGRADE_HINT}", offset)
     if fourcc != FOURCC:
         raise errors.NotAnRrdError(f"expected magic b'RRF2', found {fourcc!r}", offset)
     version = RerunVersion.from_bytes(raw[4:8])
     if version != RerunVersion(0, 0, 0, 0) and (version.major, version.minor) < OLDEST_SUPPORTED:
-        raise errors.UnsupportedVersionError(
-            f"written by Rerun {version}, the oldest supported is 0.23", offset + 4
-        )
+        raise errors.UnsupportedVersionError(f"written by rerun-sdk {version}; {UPGRADE_HINT}", offset + 4)
     compression, serializer = raw[8], raw[9]
     if compression not in (HEADER_COMPRESSION_OFF, HEADER_COMPRESSION_LZ4):
         raise errors.UnknownCompressionError(

@@ -19,6 +19,7 @@ from dataclasses import dataclass, field
 import pyarrow as pa
 
 from services.rrd import errors
+from services.rrd.migrations import migrate_field_metadata, migrate_schema_metadata, sorbet_version
 
 ENTITY_PATH_KEY = b"rerun:entity_path"
 KIND_KEY = b"rerun:kind"
@@ -57,7 +58,7 @@ class IndexColumn:
 @dataclass(frozen=True, slots=True)
 class DataColumn:
     position: int
-    column: str
+    column: str  # the chunk's column name (the migrated component's when Rerun renames it)
     component: str
     archetype: str | None
     component_type: str | None
@@ -118,8 +119,12 @@ def _counts(t: pa.DataType) -> tuple[int, int] | None:
 
 
 def build_layout(schema: pa.Schema, offset: int) -> ChunkLayout:
-    """The layout of a chunk schema; raises NotAChunkError if it is not a Rerun chunk schema."""
-    metadata = schema.metadata or {}
+    """The layout of a chunk schema; raises NotAChunkError if it is not a Rerun chunk schema.
+
+    Roles, entity path and descriptors are read as the newest Rerun reads them, after its
+    migrations (chunks of older SDKs); columns Rerun drops (indicators) are left out of `data`."""
+    version = sorbet_version(schema.metadata or {})
+    metadata = migrate_schema_metadata(schema.metadata or {}, version)
     if ENTITY_PATH_KEY not in metadata:
         raise errors.NotAChunkError("Arrow schema has no rerun:entity_path metadata", offset)
     row_id_field = None
@@ -131,10 +136,12 @@ def build_layout(schema: pa.Schema, offset: int) -> ChunkLayout:
     for position, fld in enumerate(schema):
         counts = _counts(fld.type)
         direct = direct and counts is not None
-        fmeta = fld.metadata or {}
-        kind = fmeta.get(KIND_KEY)
-        if kind in _CONTROL_KINDS:
-            row_id_field = fld
+        fmeta = migrate_field_metadata(fld.name, fld.metadata or {}, version)
+        kind = fmeta.get(KIND_KEY) if fmeta is not None else None
+        if fmeta is None:
+            pass  # a column the reading Rerun drops: counted for the batch layout, not a component
+        elif kind in _CONTROL_KINDS:
+            row_id_field = fld.with_metadata(fmeta)  # under the keys the reading Rerun uses
         elif kind in _INDEX_KINDS:
             type_name = timeline_type(fld.type)
             if type_name is None:
@@ -145,8 +152,11 @@ def build_layout(schema: pa.Schema, offset: int) -> ChunkLayout:
         else:
             archetype = fmeta.get(ARCHETYPE_KEY)
             component_type = fmeta.get(COMPONENT_TYPE_KEY)
+            component = fmeta.get(COMPONENT_KEY, fld.name.encode()).decode()
+            # Named after the migrated descriptor when Rerun renames it, as the reading Rerun names it.
+            migrated = component != (fld.metadata or {}).get(COMPONENT_KEY, b"").decode()
             data.append(DataColumn(
-                position, fld.name, fmeta.get(COMPONENT_KEY, fld.name.encode()).decode(),
+                position, component if migrated else fld.name, component,
                 archetype.decode() if archetype else None,
                 component_type.decode() if component_type else None, fld, nodes))
         top_nodes.append(nodes)

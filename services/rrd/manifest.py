@@ -6,6 +6,8 @@ SDK), so `rerun rrd verify`, footer readers and the catalog server can seek to a
   ArrowMsg payload, stream-relative), chunk_byte_size, chunk_byte_size_uncompressed;
   `<component>:has_static_data`; `<timeline>:start|end`; `<timeline>:<component>:start|end|num_rows`.
 Plus the recording's Sorbet schema (every column of every entity) and its SHA-256.
+Columns are named after descriptors as the reading Rerun migrates them (migrations.py), so a
+footer over chunks of an older SDK names what `rerun rrd verify` and `rerun server` expect.
 """
 
 from __future__ import annotations
@@ -78,8 +80,12 @@ def sorbet_schema(chunks: Iterable[ChunkMeta]) -> pa.Schema:
             if meta.is_static:
                 static_columns.add(name)
             if name not in fields:
-                md = {k: v for k, v in (comp.field.metadata or {}).items()
-                      if k in (b"rerun:archetype", b"rerun:component", b"rerun:component_type")}
+                # The descriptor as the reading Rerun migrates it (see migrations.py), not as written.
+                md = {b"rerun:component": comp.component.encode()}
+                if comp.archetype:
+                    md[b"rerun:archetype"] = comp.archetype.encode()
+                if comp.component_type:
+                    md[b"rerun:component_type"] = comp.component_type.encode()
                 md[b"rerun:entity_path"] = meta.entity_path.encode()
                 md[b"rerun:kind"] = b"data"
                 fields[name] = pa.field(name, comp.field.type, metadata=md)
