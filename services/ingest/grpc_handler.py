@@ -18,6 +18,7 @@ from services.rrd import errors as rrd_errors
 from services.rrd import protowire
 from services.rrd.decoder import decode_message
 from services.rrd.frames import UPGRADE_HINT
+from services.rrd.messages import StoreInfoMessage
 from services.rrd.pb import sdk_comms_pb2
 
 log = logging.getLogger(__name__)
@@ -53,7 +54,8 @@ class MessageProxy:
             async for request in requests:
                 kind, raw = unwrap(request, received)
                 event = decode_message(kind, raw, received)  # a view: no copy
-                await self.service.prepare(source, event)
+                if isinstance(event, StoreInfoMessage):  # the only message `prepare` looks at
+                    await self.service.prepare(source, event)
                 self.service.accept(source, event)
                 received += len(request)
         except FleetError as exc:

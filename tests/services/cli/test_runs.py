@@ -57,7 +57,9 @@ def test_download_with_filters(server: LiveServer, recordings: dict[str, Recordi
     assert result.returncode == 0, result.stderr
     paths = {chunk_meta(e).entity_path for e in iter_events(out)
              if isinstance(e, ArrowMessage) and e.store_id.kind == StoreKind.RECORDING}
-    assert paths and all(p == "/world" or p.startswith("/world/") for p in paths)
+    assert "/__properties" in paths  # the recording's properties stay unless excluded
+    assert all(p == "/world" or p.startswith(("/world/", "/__properties")) for p in paths - {"/__properties"})
+    assert any(p.startswith("/world/") for p in paths)
     assert subprocess.run([rerun_bin, "rrd", "verify", str(out)], capture_output=True).returncode == 0
 
 
