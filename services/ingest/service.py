@@ -26,6 +26,7 @@ from services.ingest.identity import (
     IDENTITY_PROPERTY,
     ROBOT_FIELD,
     START_TIME_COMPONENT,
+    SecretFields,
     check_id,
     is_property_entity,
     read_property_chunk,
@@ -45,6 +46,7 @@ from services.rrd.messages import (
     StreamStart,
 )
 from services.rrd.summary import StoreSummary
+from services.rrd.validate import check_chunk
 
 log = logging.getLogger(__name__)
 
@@ -220,8 +222,10 @@ class RunState(RunFacts):
 class IngestService:
     def __init__(self, hot: HotStore, catalog: sessionmaker[Session] | None, *, default_robot: str,
                  max_streams: int, close_after: dt.timedelta, clock: Callable[[], dt.datetime] = utcnow,
-                 replay: ReplayHub | None = None, sealed_lookup: SealedLookup | None = None) -> None:
+                 replay: ReplayHub | None = None, sealed_lookup: SealedLookup | None = None,
+                 secret_fields: SecretFields | None = None) -> None:
         self.hot = hot
+        self.secret_fields = secret_fields or SecretFields()  # property fields stripped (FLEET_SECRET_FIELDS)
         self.sealed_lookup = sealed_lookup  # asked when a run id is not hot here: was it sealed?
         self.replay = replay  # what live streams bring, for ReadMessages readers
         self.catalog = catalog
@@ -367,10 +371,11 @@ class IngestService:
         if meta.chunk_id in run.chunk_ids:
             source.report.chunks_duplicate += 1
             return
+        check_chunk(msg, meta)  # what Rerun refuses, and full validation of chunks whose values are read
         if msg.store_id.kind == StoreKind.RECORDING and is_property_entity(meta.entity_path):
-            prop = read_property_chunk(msg, meta)
+            prop = read_property_chunk(msg, meta, self.secret_fields)
             run.observe_property(prop.name, prop.values)
-            msg = prop.message  # without its secret fields, if it had any
+            msg, meta = prop.message, prop.meta  # without its secret fields, if it had any
         self.hot.check_space(len(msg.raw))
         run = self._append(source, run, MessageKind.ARROW_MSG, msg.raw)
         run.observe_chunk(msg, meta, self.clock())
