@@ -16,6 +16,7 @@ CHUNK_ID_KEY = b"rerun:id"
 ROW_ID_TYPE = pa.binary(16)
 
 _F32 = pa.float32()
+LIST_F64 = pa.list_(pa.float64())
 
 
 def _list_of(item: pa.DataType) -> pa.DataType:
@@ -29,7 +30,7 @@ def _vector(width: int) -> pa.DataType:
 # Component -> the Arrow type Rerun expects of its column (a list per row). Item nullability and
 # names are not compared: Rerun accepts either.
 READ_COMPONENTS: dict[str, pa.DataType] = {
-    "Scalars:scalars": _list_of(pa.float64()),
+    "Scalars:scalars": LIST_F64,
     "TextLog:text": _list_of(pa.string()),
     "TextLog:level": _list_of(pa.string()),
     "Transform3D:translation": _list_of(_vector(3)),

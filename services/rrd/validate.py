@@ -34,10 +34,11 @@ def invalid(msg: ArrowMessage, entity_path: str | None, problem: str) -> errors.
 
 def check_chunk(msg: ArrowMessage, meta: ChunkMeta) -> None:
     """At ingest: refuse a chunk Rerun would refuse (from its schema and header: cheap), and fully
-    validate a chunk whose values the server will read (analytics components)."""
+    validate a chunk whose values the server will read (analytics components): with pyarrow, unless
+    `chunk_meta` could check them from the batch header (Scalars, the common case)."""
     if meta.problem is not None:
         raise invalid(msg, meta.entity_path, meta.problem)
-    if meta.reads_values:
+    if meta.reads_values and not meta.values_checked:
         validated_batch(msg, meta)
 
 

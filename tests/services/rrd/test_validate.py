@@ -15,11 +15,21 @@ import pytest
 
 from services.ingest.identity import read_property_chunk
 from services.rrd import conformance, errors
-from services.rrd.chunk import chunk_meta
+from services.rrd.chunk import chunk_meta, read_chunk
 from services.rrd.decoder import decode_message
 from services.rrd.messages import ArrowMessage, chunk_id_str
 from services.rrd.validate import check_chunk, validated_batch
-from tests.services.rrd.malformed import MALFORMED, Seed, malformed_chunk, record_seed, rerun_verify
+from tests.services.rrd.malformed import (
+    MALFORMED,
+    Seed,
+    i32,
+    ipc_of,
+    malformed_chunk,
+    node_length_patched,
+    record_seed,
+    rerun_verify,
+    wrap,
+)
 
 pytestmark = pytest.mark.sdk
 
@@ -100,3 +110,36 @@ def test_types_compare_without_nested_names_or_nullability() -> None:
                                                      ("angle", pa.float32())])), axis_angle)
     assert not conformance.same_type(pa.list_(pa.struct([("angle", pa.float32()),
                                                          ("axis", pa.list_(pa.float32(), 3))])), axis_angle)
+
+
+def test_scalars_checked_without_pyarrow_only_when_pyarrow_agrees(seed: Seed) -> None:
+    """Ingest checks Scalars offsets from the batch header (no pyarrow read); whenever it says a
+    chunk is valid, pyarrow's full validation must agree. Every offset and the values node length
+    are set to boundary values in turn."""
+    msg = seed.chunk("/robot/speed")
+    assert chunk_meta(msg).values_checked  # the common case takes the fast path
+    batch = read_chunk(msg)
+    intact = ipc_of(batch)
+    offsets_at = intact.index(i32(0, 2, 4, 6, 8))
+    variants = []
+    for slot in range(5):
+        for value in (-1, 0, 1, 3, 5, 7, 8, 9, 1 << 20, -(1 << 31)):
+            ipc = bytearray(intact)
+            ipc[offsets_at + 4 * slot:offsets_at + 4 * slot + 4] = i32(value)
+            variants.append(bytes(ipc))
+    variants += [node_length_patched(batch, 4, n) for n in (0, 1, 7, 9, 1 << 20)]  # the values' node
+    checked = 0
+    for ipc in variants:
+        damaged = decode_message(2, wrap(msg, ipc), msg.offset)
+        assert isinstance(damaged, ArrowMessage)
+        try:
+            meta = chunk_meta(damaged)
+        except errors.RrdError:
+            continue
+        if meta.values_checked:
+            checked += 1
+            read_chunk(damaged).validate(full=True)  # raises if the fast check let a bad chunk through
+        else:
+            with pytest.raises(errors.RrdError):
+                check_chunk(damaged, meta)
+    assert checked >= 5  # the harmless variants (e.g. an offset moved within its neighbours)
