@@ -121,16 +121,16 @@ def test_scalars_checked_without_pyarrow_only_when_pyarrow_agrees(seed: Seed) ->
     batch = read_chunk(msg)
     intact = ipc_of(batch)
     offsets_at = intact.index(i32(0, 2, 4, 6, 8))
-    variants = []
+    variants: list[bytes] = []
     for slot in range(5):
         for value in (-1, 0, 1, 3, 5, 7, 8, 9, 1 << 20, -(1 << 31)):
-            ipc = bytearray(intact)
-            ipc[offsets_at + 4 * slot:offsets_at + 4 * slot + 4] = i32(value)
-            variants.append(bytes(ipc))
+            edited = bytearray(intact)
+            edited[offsets_at + 4 * slot:offsets_at + 4 * slot + 4] = i32(value)
+            variants.append(bytes(edited))
     variants += [node_length_patched(batch, 4, n) for n in (0, 1, 7, 9, 1 << 20)]  # the values' node
     checked = 0
-    for ipc in variants:
-        damaged = decode_message(2, wrap(msg, ipc), msg.offset)
+    for variant in variants:
+        damaged = decode_message(2, wrap(msg, variant), msg.offset)
         assert isinstance(damaged, ArrowMessage)
         try:
             meta = chunk_meta(damaged)
