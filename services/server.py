@@ -18,6 +18,7 @@ from services.analytics.sql import Limits
 from services.api.app import create_app
 from services.ingest import grpc_handler
 from services.ingest.hot import HotStore
+from services.ingest.identity import SecretFields
 from services.ingest.replay import ReplayHub
 from services.ingest.reserve import DiskReserve
 from services.ingest.service import IngestService
@@ -47,7 +48,8 @@ def build(settings: Settings) -> tuple[IngestService, Retention, Analytics]:
     replay = ReplayHub(settings.replay_bytes) if settings.replay_bytes else None
     ingest = IngestService(hot, catalog, default_robot=settings.default_robot,
                            max_streams=settings.max_streams, close_after=dt.timedelta(seconds=settings.close_after_s),
-                           replay=replay, sealed_lookup=sealed_lookup(catalog, tiers))
+                           replay=replay, sealed_lookup=sealed_lookup(catalog, tiers),
+                           secret_fields=SecretFields(settings.secret_fields))
     retention = Retention(catalog, tiers, settings.policies, ingest,
                           promote_after=dt.timedelta(seconds=settings.promote_after_s),
                           promote_below_free_bytes=settings.promote_below_free_bytes,

@@ -3,21 +3,25 @@ file named by `FLEET_CONFIG`, then defaults) and passed down to everything that 
 
 from __future__ import annotations
 
+import json
 import os
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any
 
-from pydantic import Field, model_validator
+from pydantic import Field, field_validator, model_validator
 from pydantic_settings import (
     BaseSettings,
+    NoDecode,
     PydanticBaseSettingsSource,
     SettingsConfigDict,
     TomlConfigSettingsSource,
 )
 
 from services.ingest.hot import Durability
+from services.ingest.identity import DEFAULT_SECRET_FIELDS
 from services.retention.policy import Policies, Policy, PolicyOverride
 from services.rrd.decoder import DEFAULT_MAX_MESSAGE_SIZE
+from services.rrd.limits import DEFAULT_DECOMPRESS_BUDGET_BYTES, DEFAULT_MAX_CHUNK_BYTES
 
 
 class Settings(BaseSettings):
@@ -38,6 +42,16 @@ class Settings(BaseSettings):
     api_url: str = Field("http://127.0.0.1:8080", description="where CLI commands reach the service")
     max_message_size: int = Field(DEFAULT_MAX_MESSAGE_SIZE, gt=0,
                                   description="largest RRD/gRPC message accepted, in bytes")
+    max_chunk_bytes: int = Field(DEFAULT_MAX_CHUNK_BYTES, gt=0,
+                                 description="largest chunk accepted once decompressed, in bytes (checked "
+                                 "before decompressing: LZ4 may declare 255x its size)")
+    decompress_budget_bytes: int = Field(DEFAULT_DECOMPRESS_BUDGET_BYTES, gt=0,
+                                         description="decompressed chunk bytes held at once by all readers "
+                                         "of stored runs (downloads, sealing) together")
+    secret_fields: Annotated[list[str], NoDecode] = Field(
+        default_factory=lambda: list(DEFAULT_SECRET_FIELDS),
+        description="recording property fields never stored nor served: a field is secret if one of these "
+        "names, as words, appears in its name (a JSON list or comma-separated)")
     durability: Durability = Field(Durability.INTERVAL, description="hot-tier fsync: always | interval | off")
     group_commit_ms: int = Field(200, gt=0, description="with durability=interval, fsync every this many ms")
     min_free_bytes: int = Field(1 << 30, ge=0, description="refuse new data when the hot disk has less free")
@@ -74,6 +88,22 @@ class Settings(BaseSettings):
     @property
     def policies(self) -> Policies:
         return Policies(Policy("default", self.warm_days, self.cold_days), tuple(self.retention_policies))
+
+    @field_validator("secret_fields", mode="before")
+    @classmethod
+    def _name_list(cls, value: Any) -> Any:
+        """`["token", "password"]` (JSON, TOML) or `token,password`."""
+        if isinstance(value, str):
+            text = value.strip()
+            return json.loads(text) if text.startswith("[") else [n.strip() for n in text.split(",") if n.strip()]
+        return value
+
+    @model_validator(mode="after")
+    def _budget_holds_a_chunk(self) -> Settings:
+        if self.decompress_budget_bytes < self.max_chunk_bytes:
+            raise ValueError(f"decompress_budget_bytes ({self.decompress_budget_bytes}) must be at least "
+                             f"max_chunk_bytes ({self.max_chunk_bytes}): the largest chunk must fit in it")
+        return self
 
     @model_validator(mode="after")
     def _embedded_defaults(self) -> Settings:

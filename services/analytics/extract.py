@@ -9,6 +9,7 @@ not stored in the files: they are the Hive partition (`robot_id=R/date=D/`) the 
 from __future__ import annotations
 
 import io
+import logging
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 
@@ -17,8 +18,12 @@ import pyarrow as pa
 import pyarrow.compute as pc
 import pyarrow.parquet as pq
 
-from services.rrd.chunk import ChunkMeta, read_chunk
+from services.rrd.chunk import ChunkMeta
+from services.rrd.errors import InvalidChunkError
 from services.rrd.messages import ArrowMessage
+from services.rrd.validate import validated_batch
+
+log = logging.getLogger(__name__)
 
 TABLES = ("scalars", "text_logs", "transforms")
 PARTITION_COLUMNS = ("robot_id", "date")  # the Hive partition: no file column may take these names
@@ -50,7 +55,12 @@ class Extractor:
     def add(self, msg: ArrowMessage, meta: ChunkMeta) -> None:
         if meta.is_static or not _interesting(meta) or meta.entity_path.startswith("/__properties"):
             return
-        batch = read_chunk(msg)
+        try:
+            batch = validated_batch(msg, meta)  # values are read below: never out of bounds
+        except InvalidChunkError as exc:
+            # Ingest refuses such chunks; one stored before it did must not stop the run's sealing.
+            log.warning("run %s: analytics skip %s", self.run_id, exc)
+            return
         columns = {_component(f): batch.column(i) for i, f in enumerate(batch.schema)}
         times = _timelines(batch)
         if SCALARS in columns:

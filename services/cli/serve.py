@@ -17,6 +17,12 @@ import click
 @click.option("--cold-url", help="FLEET_COLD_URL: file:///PATH or s3://bucket/prefix")
 @click.option("--s3-endpoint-url", help="FLEET_S3_ENDPOINT_URL: S3-compatible endpoint")
 @click.option("--max-message-size", type=int, help="FLEET_MAX_MESSAGE_SIZE: largest message in bytes")
+@click.option("--max-chunk-bytes", type=int, help="FLEET_MAX_CHUNK_BYTES: largest chunk once decompressed, in "
+              "bytes [default: 268435456]")
+@click.option("--decompress-budget-bytes", type=int, help="FLEET_DECOMPRESS_BUDGET_BYTES: decompressed chunk "
+              "bytes held at once by downloads and sealing together [default: 536870912]")
+@click.option("--secret-fields", help="FLEET_SECRET_FIELDS: property fields never stored nor served, "
+              "comma-separated (matched as words: token matches ingest_token, apiKey matches api_key)")
 @click.option("--durability", type=click.Choice(["always", "interval", "off"]),
               help="FLEET_DURABILITY: hot-tier fsync: always (before answering), interval (group commit, "
               "default), off")
@@ -55,12 +61,14 @@ def serve(**flags: object) -> None:
     import logging
 
     from catalog.db import create_engine, is_embedded, prepare_for_service
+    from services.rrd import limits
     from services.server import release_reserve_if_full, split_addr
     from services.server import serve as run_server
     from services.settings import load_settings
     from services.startup import hold_data_dir
 
     settings = load_settings(**flags)
+    limits.configure(settings.max_chunk_bytes, settings.decompress_budget_bytes)  # process-wide, like the memory
     for addr in (settings.http_addr, settings.grpc_addr):
         try:
             split_addr(addr)

@@ -15,12 +15,18 @@ from typing import Any
 import pyarrow as pa
 
 from services.errors import ErrorCode, FleetError
-from services.rrd.chunk import ChunkMeta, read_chunk, with_batch
+from services.rrd.chunk import ChunkMeta, chunk_meta, with_batch
 from services.rrd.manifest import PROPERTIES_ENTITY
 from services.rrd.messages import ArrowMessage
+from services.rrd.validate import validated_batch
 
 SAFE_ID = re.compile(r"[A-Za-z0-9._-]{1,128}")
-SECRET_FIELDS = frozenset({"token"})  # never written to disk nor served
+# Property fields never written to disk nor served (FLEET_SECRET_FIELDS): a field is secret when
+# one of these, as words, appears in its name (see SecretFields).
+DEFAULT_SECRET_FIELDS = (
+    "token", "password", "passwd", "secret", "api_key", "apikey", "access_key", "secret_key", "private_key",
+    "credential", "credentials", "authorization", "auth_token",
+)
 IDENTITY_PROPERTY = "fleet"
 ROBOT_FIELD = "robot_id"
 START_TIME_COMPONENT = "RecordingInfo:start_time"
@@ -40,6 +46,32 @@ def check_id(kind: str, value: str) -> str:
     return value
 
 
+_WORD = re.compile(r"[A-Z]+(?=[A-Z][a-z])|[A-Z]?[a-z]+|[A-Z]+|[0-9]+")
+
+
+def words(name: str) -> tuple[str, ...]:
+    """`DB_PASSWORD` -> (db, password); `apiKey` -> (api, key); `AnyValues:ingest-token` ->
+    (any, values, ingest, token): snake_case, kebab-case, dots, colons and camelCase split."""
+    return tuple(w.lower() for w in _WORD.findall(name))
+
+
+class SecretFields:
+    """Secret-like field names: a field is secret if the words of a configured name appear, in a
+    row, among the words of its name (`ingest_token`, `DB_PASSWORD`, `apiKey` are; `tokens_used`
+    is not). Case-insensitive; the component name after the last ':' is covered (':' splits words)."""
+
+    def __init__(self, names: tuple[str, ...] | list[str] = DEFAULT_SECRET_FIELDS) -> None:
+        self.names = tuple(names)
+        self._patterns = [w for w in (words(n) for n in names) if w]
+
+    def __contains__(self, name: str) -> bool:
+        got = words(name)
+        return any(got[i:i + len(p)] == p for p in self._patterns for i in range(len(got) - len(p) + 1))
+
+
+DEFAULT_SECRETS = SecretFields()
+
+
 def is_property_entity(entity_path: str) -> bool:
     return entity_path == PROPERTIES_ENTITY or entity_path.startswith(PROPERTIES_ENTITY + "/")
 
@@ -54,20 +86,22 @@ class PropertyChunk:
     """A property chunk as filed: its message (secrets removed) and the values it carries."""
 
     message: ArrowMessage
+    meta: ChunkMeta  # of `message` (a secret field is no component of it: not in the catalog either)
     name: str
     values: dict[str, Any]  # field (component) -> last value logged, secrets removed
     had_secret: bool
 
 
-def read_property_chunk(msg: ArrowMessage, meta: ChunkMeta) -> PropertyChunk:
-    """Decode a property chunk; if it holds a secret field, return a re-encoded message without it
-    (same chunk id, so the chunk is still stored exactly once)."""
-    batch = read_chunk(msg)
-    secret = [i for i, f in enumerate(batch.schema) if _component(f) in SECRET_FIELDS]
+def read_property_chunk(msg: ArrowMessage, meta: ChunkMeta,
+                        secret_fields: SecretFields = DEFAULT_SECRETS) -> PropertyChunk:
+    """Decode a property chunk (fully validated first: its values are read); if it holds a secret
+    field, return a re-encoded message without it (same chunk id, so the chunk is still stored
+    exactly once)."""
+    batch = validated_batch(msg, meta)
+    secret = [i for i, f in enumerate(batch.schema) if _is_data(f) and _is_secret(f, secret_fields)]
     values: dict[str, Any] = {}
     for i, fld in enumerate(batch.schema):
-        kind = (fld.metadata or {}).get(b"rerun:kind")
-        if i in secret or kind != b"data":
+        if i in secret or not _is_data(fld):
             continue
         column = batch.column(i)
         for row in range(len(column) - 1, -1, -1):  # the newest non-null value wins
@@ -76,9 +110,17 @@ def read_property_chunk(msg: ArrowMessage, meta: ChunkMeta) -> PropertyChunk:
                 break
     name = property_name(meta.entity_path)
     if not secret:
-        return PropertyChunk(msg, name, values, had_secret=False)
-    kept = batch.select([i for i in range(batch.num_columns) if i not in secret])
-    return PropertyChunk(with_batch(msg, kept), name, values, had_secret=True)
+        return PropertyChunk(msg, meta, name, values, had_secret=False)
+    stripped = with_batch(msg, batch.select([i for i in range(batch.num_columns) if i not in secret]))
+    return PropertyChunk(stripped, chunk_meta(stripped), name, values, had_secret=True)
+
+
+def _is_data(fld: pa.Field) -> bool:
+    return (fld.metadata or {}).get(b"rerun:kind") in (b"data", b"component")
+
+
+def _is_secret(fld: pa.Field, secret_fields: SecretFields) -> bool:
+    return _component(fld) in secret_fields or fld.name in secret_fields
 
 
 def _component(fld: pa.Field) -> str:

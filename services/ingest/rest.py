@@ -23,7 +23,8 @@ async def upload(request: Request) -> Any:
     be written in time (the data is kept, and the catalog catches up). If the body turns bad part-way, the chunks
     before the fault are kept and the answer (4xx) names the byte offset."""
     service: IngestService = request.app.state.ingest
-    decoder = RrdDecoder(max_message_size=request.app.state.settings.max_message_size)
+    settings = request.app.state.settings
+    decoder = RrdDecoder(max_message_size=settings.max_message_size, max_chunk_bytes=settings.max_chunk_bytes)
     source = service.open_source(live=False)
     try:
         async for piece in request.stream():

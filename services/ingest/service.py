@@ -47,6 +47,7 @@ from services.ingest.hot import HotStore
 from services.ingest.identity import (
     IDENTITY_PROPERTY,
     ROBOT_FIELD,
+    SecretFields,
     UnsafeIdError,
     check_id,
     is_property_entity,
@@ -65,6 +66,7 @@ from services.rrd.messages import (
     StreamStart,
 )
 from services.rrd.store_ids import StoreIdResolver
+from services.rrd.validate import check_chunk
 
 __all__ = ["LOG_TIME", "IngestReport", "IngestService", "InvalidStreamError", "RunFacts", "RunState", "SealedInfo",
            "SealedLookup", "SealedRunError", "Source", "TooManyStreamsError", "utcnow"]
@@ -126,8 +128,9 @@ class IngestService:
     def __init__(self, hot: HotStore, catalog: sessionmaker[Session] | None, *, default_robot: str,
                  max_streams: int, close_after: dt.timedelta, clock: Callable[[], dt.datetime] = utcnow,
                  replay: ReplayHub | None = None, sealed_lookup: SealedLookup | None = None,
-                 lookup_timeout_s: float = 2.0) -> None:
+                 lookup_timeout_s: float = 2.0, secret_fields: SecretFields | None = None) -> None:
         self.hot = hot
+        self.secret_fields = secret_fields or SecretFields()  # property fields stripped (FLEET_SECRET_FIELDS)
         self.sealed_lookup = sealed_lookup  # asked (off the event loop) when a run id is not hot here
         self.lookup_timeout_s = lookup_timeout_s
         self.replay = replay  # what live streams bring, for ReadMessages readers
@@ -260,12 +263,13 @@ class IngestService:
             source.report.chunks_duplicate += 1
             return
         check_chunk_names(meta)
+        check_chunk(msg, meta)  # what Rerun refuses, and full validation of chunks whose values are read
         prop = None
         if msg.store_id.kind == StoreKind.RECORDING and is_property_entity(meta.entity_path):
-            prop = read_property_chunk(msg, meta)
+            prop = read_property_chunk(msg, meta, self.secret_fields)
             if prop.name == IDENTITY_PROPERTY and ROBOT_FIELD in prop.values:
                 check_id("robot id", str(prop.values[ROBOT_FIELD]))  # refused before anything is written
-            msg = prop.message  # without its secret fields, if it had any
+            msg, meta = prop.message, prop.meta  # without its secret fields, if it had any
         if run is None and (prop is not None or msg.store_id.kind == StoreKind.BLUEPRINT):
             self._hold(source, run_id, msg)  # a run starts with its data, not with properties or a layout
             return

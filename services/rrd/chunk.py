@@ -13,7 +13,7 @@ import lz4.block
 import numpy as np
 import pyarrow as pa
 
-from services.rrd import errors
+from services.rrd import errors, limits
 from services.rrd.layout import (
     ENTITY_PATH_KEY,
     BatchHeader,
@@ -74,6 +74,13 @@ class ChunkMeta:
     uncompressed_size: int  # the Arrow IPC payload once decompressed
     row_id_field: pa.Field | None
     layout: ChunkLayout
+    problem: str | None = None  # why Rerun would refuse this chunk, from its schema and row counts
+    values_checked: bool = False  # the values the server reads were checked without pyarrow (Scalars)
+
+    @property
+    def reads_values(self) -> bool:
+        """Whether the server reads this chunk's values (so it must be fully validated first)."""
+        return self.layout.reads_values
 
     @property
     def archetypes(self) -> frozenset[str]:
@@ -89,6 +96,10 @@ def decompress_payload(msg: ArrowMessage) -> bytes:
     exactly `uncompressed_size` bytes."""
     if msg.compression != Compression.LZ4:
         return bytes(msg.payload)
+    if msg.uncompressed_size > limits.max_chunk_bytes():
+        raise errors.MessageTooLargeError(
+            f"chunk declares {msg.uncompressed_size} bytes uncompressed, over the limit of "
+            f"{limits.max_chunk_bytes()} (raise FLEET_MAX_CHUNK_BYTES if chunks this large are expected)", msg.offset)
     if msg.uncompressed_size > _LZ4_MAX_RATIO * len(msg.payload) + 64:
         # Refuse before allocating: no LZ4 block expands more than ~255x.
         raise errors.DecompressionError(
@@ -139,13 +150,25 @@ def parse_chunk_id(text: str) -> bytes:
 _LAYOUTS = LayoutCache()
 
 
+def decompressed_size(msg: ArrowMessage) -> int:
+    return msg.uncompressed_size if msg.compression == Compression.LZ4 else len(msg.payload)
+
+
 def chunk_meta(msg: ArrowMessage) -> ChunkMeta:
-    """Metadata of the chunk in `msg`; raises a codec error if it is not a valid chunk."""
-    data = decompress_payload(msg)
+    """Metadata of the chunk in `msg`; raises a codec error if it is not a valid chunk. In worker
+    threads, a large chunk's decompressed bytes are counted against the process's budget."""
+    size = decompressed_size(msg)
+    budget = limits.budget_for(size)
+    taken = budget.acquire(size) if budget is not None else 0
     try:
-        return _chunk_meta(msg, data)
-    except (UnicodeDecodeError, pa.ArrowInvalid, ValueError) as exc:
-        raise errors.NotAChunkError(f"chunk metadata is unreadable ({exc})", msg.offset) from exc
+        data = decompress_payload(msg)
+        try:
+            return _chunk_meta(msg, data)
+        except (UnicodeDecodeError, pa.ArrowInvalid, ValueError) as exc:
+            raise errors.NotAChunkError(f"chunk metadata is unreadable ({exc})", msg.offset) from exc
+    finally:
+        if budget is not None:
+            budget.release(taken)
 
 
 def _chunk_meta(msg: ArrowMessage, data: bytes) -> ChunkMeta:
@@ -158,13 +181,21 @@ def _chunk_meta(msg: ArrowMessage, data: bytes) -> ChunkMeta:
     layout = _LAYOUTS.get(schema_message, id_text, msg.offset)
     header = read_batch_header(data, batch_pos, layout) if layout.direct else None
     values = _direct_values(data, layout, header) if header is not None else None
+    problem = layout.problem
     if values is not None:
+        assert header is not None
         num_rows, ranges = values
         components = tuple([ComponentMeta(c.column, c.component, c.archetype, c.component_type, num_rows,
                                           ranges, c.field) for c in layout.data])
+        if problem is None and any(layout.pick_required_null_counts(header.nodes)):
+            problem = _null_problem(layout, [header.nodes[2 * layout.top_nodes[i] + 1] for i in layout.required])
+        checked = layout.direct_lists is not None and _lists_valid(data, layout.direct_lists, header)
     else:
+        checked = False
         batch = _read_batch(msg, data)
         num_rows, ranges, components = _arrow_values(batch, layout, msg.offset)
+        if problem is None:
+            problem = _null_problem(layout, [batch.column(i).null_count for i in layout.required])
     timelines = tuple([TimelineMeta(ix.name, ix.type, ranges[ix.name], ix.is_sorted, ix.field)
                        for ix in layout.indexes if ix.name in ranges])
     if msg.chunk_id:
@@ -176,7 +207,38 @@ def _chunk_meta(msg: ArrowMessage, data: bytes) -> ChunkMeta:
         except (KeyError, ValueError, UnicodeDecodeError) as exc:
             raise errors.NotAChunkError(f"chunk has no valid rerun:id ({exc})", msg.offset) from exc
     return ChunkMeta(chunk_id, layout.entity_path, not layout.indexes, num_rows, timelines, components,
-                     len(msg.raw), msg.uncompressed_size or len(msg.payload), layout.row_id_field, layout)
+                     len(msg.raw), msg.uncompressed_size or len(msg.payload), layout.row_id_field, layout, problem,
+                     checked)
+
+
+def _lists_valid(data: bytes, columns: tuple[DataColumn, ...], header: BatchHeader) -> bool:
+    """Whether each list<float64> column is valid Arrow, read from the record batch header and its
+    offsets: what pyarrow's full validation checks of such a column (buffer sizes, offsets from a
+    non-negative start, never decreasing, within the values), at a fraction of the cost. False
+    (not known) sends the chunk to pyarrow's full validation."""
+    nodes, buffers, body = header.nodes, header.buffers, header.body
+    for c in columns:
+        rows, nulls, values, value_nulls = nodes[2 * c.node:2 * c.node + 4]
+        # Buffers: list validity, list offsets, values validity, values (each (offset, length)).
+        _, validity, at, offsets_size, _, value_validity, _, values_size = buffers[2 * c.buffer:2 * c.buffer + 8]
+        if not (0 <= nulls <= rows and 0 <= value_nulls <= values):
+            return False
+        if (nulls and validity < (rows + 7) // 8) or (value_nulls and value_validity < (values + 7) // 8):
+            return False
+        if values_size < 8 * values or (rows and offsets_size < 4 * (rows + 1)):
+            return False
+        if rows:
+            offsets = np.frombuffer(data, dtype="<i4", count=rows + 1, offset=body + at)
+            if offsets[0] < 0 or offsets[-1] > values or (rows > 1 and bool((offsets[1:] < offsets[:-1]).any())):
+                return False
+    return True
+
+
+def _null_problem(layout: ChunkLayout, null_counts: list[int]) -> str | None:
+    for position, nulls in zip(layout.required, null_counts, strict=True):
+        if nulls:
+            return f"column {layout.schema.field(position).name!r} is declared non-nullable but holds {nulls} nulls"
+    return None
 
 
 _INT64 = struct.Struct("<q")

@@ -18,7 +18,7 @@ from typing import BinaryIO
 
 from google.protobuf.message import DecodeError
 
-from services.rrd import errors, protowire
+from services.rrd import errors, limits, protowire
 from services.rrd.frames import (
     FOOTER_ENTRY_SIZE,
     FOOTER_FIXED_SIZE,
@@ -69,8 +69,11 @@ class _State(enum.Enum):
 class RrdDecoder:
     """Push decoder: `feed(data)` returns the events completed by `data`; `finish()` at EOF."""
 
-    def __init__(self, *, max_message_size: int = DEFAULT_MAX_MESSAGE_SIZE, start_offset: int = 0) -> None:
+    def __init__(self, *, max_message_size: int = DEFAULT_MAX_MESSAGE_SIZE, max_chunk_bytes: int | None = None,
+                 start_offset: int = 0) -> None:
         self.max_message_size = max_message_size
+        # Largest chunk an Arrow message may declare (default: the process's FLEET_MAX_CHUNK_BYTES).
+        self.max_chunk_bytes = max_chunk_bytes if max_chunk_bytes is not None else limits.max_chunk_bytes()
         self._buf = bytearray()
         self._buf_offset = start_offset  # absolute offset of _buf[0]
         self._state = _State.STREAM_HEADER
@@ -334,7 +337,8 @@ class RrdDecoder:
 
     def _decode_message(self, raw: Buffer) -> Event | None:
         offset, kind = self._msg_offset, self._kind
-        message = self._store_ids.complete(decode_message(kind, raw, offset, self._stream_offset, self._streams - 1))
+        message = self._store_ids.complete(decode_message(kind, raw, offset, self._stream_offset, self._streams - 1,
+                                                          max_chunk_bytes=self.max_chunk_bytes))
         if isinstance(message, EndMessage):
             self._end = (offset + MESSAGE_HEADER_SIZE - self._stream_offset, len(message.raw), bytes(message.raw))
             self._state = _State.AFTER_END
@@ -342,12 +346,16 @@ class RrdDecoder:
 
 
 def decode_message(kind: int, raw: Buffer, offset: int = 0, stream_offset: int = 0,
-                   stream_index: int = 0) -> Message:
-    """A typed message from its kind and protobuf bytes (from an RRD frame or a gRPC LogMsg)."""
+                   stream_index: int = 0, *, max_chunk_bytes: int | None = None) -> Message:
+    """A typed message from its kind and protobuf bytes (from an RRD frame or a gRPC LogMsg).
+    An Arrow message declaring a chunk over `max_chunk_bytes` (default: the process's
+    FLEET_MAX_CHUNK_BYTES) is refused here, before its payload is decompressed."""
     where = (offset, stream_offset, stream_index)
     try:
         if kind == MessageKind.ARROW_MSG:
-            return _arrow_message(raw, *where)
+            message = _arrow_message(raw, *where)
+            check_chunk_size(message, limits.max_chunk_bytes() if max_chunk_bytes is None else max_chunk_bytes)
+            return message
         raw = bytes(raw)  # no copy unless a rare large non-chunk message came in a bytearray
         if kind == MessageKind.SET_STORE_INFO:
             return _store_info_message(raw, *where)
@@ -418,6 +426,15 @@ def _arrow_message(raw: Buffer, offset: int, stream_offset: int,
     )
 
 
+def check_chunk_size(msg: ArrowMessage, limit: int) -> None:
+    """MessageTooLargeError if the chunk in `msg` would take more than `limit` bytes once decompressed."""
+    size = msg.uncompressed_size if msg.compression == Compression.LZ4 else len(msg.payload)
+    if size > limit:
+        raise errors.MessageTooLargeError(
+            f"chunk declares {size} bytes uncompressed ({len(msg.payload)} compressed), over the limit of "
+            f"{limit} (raise FLEET_MAX_CHUNK_BYTES if chunks this large are expected)", msg.offset)
+
+
 _COMPRESSIONS = {int(c): c for c in Compression}
 _STORE_IDS: dict[tuple[int, str, str], StoreId] = {}
 
@@ -437,16 +454,17 @@ _ARROW_PAYLOAD_FIELD = 5
 
 
 def iter_events(source: BinaryIO | str | os.PathLike[str], *, max_message_size: int = DEFAULT_MAX_MESSAGE_SIZE,
-                read_size: int = READ_SIZE) -> Iterator[Event]:
+                read_size: int = READ_SIZE, max_chunk_bytes: int | None = None) -> Iterator[Event]:
     """Every event of a file or binary stream, read in pieces of `read_size` bytes.
 
     Raises the codec error at the end (after yielding everything before it) if the input is bad.
     """
     if isinstance(source, (str, os.PathLike)):
         with open(source, "rb") as fh:
-            yield from iter_events(fh, max_message_size=max_message_size, read_size=read_size)
+            yield from iter_events(fh, max_message_size=max_message_size, read_size=read_size,
+                                   max_chunk_bytes=max_chunk_bytes)
         return
-    decoder = RrdDecoder(max_message_size=max_message_size)
+    decoder = RrdDecoder(max_message_size=max_message_size, max_chunk_bytes=max_chunk_bytes)
     can_readinto = hasattr(source, "readinto")
     while True:
         target = decoder.payload_target() if can_readinto else None

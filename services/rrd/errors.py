@@ -67,5 +67,11 @@ class NotAChunkError(RrdError):
     problem = "Arrow payload is not a Rerun chunk"
 
 
+class InvalidChunkError(RrdError):
+    """A chunk that Rerun itself would refuse (`rerun rrd verify`), or whose values cannot be read safely."""
+
+    problem = "invalid chunk"
+
+
 class FooterError(RrdError):
     problem = "invalid RRD footer"

@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 
 import pyarrow as pa
 
-from services.rrd import errors
+from services.rrd import conformance, errors
 from services.rrd.migrations import migrate_field_metadata, migrate_schema_metadata, sorbet_version
 
 ENTITY_PATH_KEY = b"rerun:entity_path"
@@ -64,6 +64,7 @@ class DataColumn:
     component_type: str | None
     field: pa.Field
     node: int
+    buffer: int = -1  # its first buffer in a record batch
 
     @property
     def descriptor(self) -> tuple[str, str, str]:
@@ -88,6 +89,13 @@ class ChunkLayout:
     pick_top_lengths: Callable[[tuple[int, ...]], tuple[int, ...]]
     pick_null_counts: Callable[[tuple[int, ...]], tuple[int, ...]]
     pick_index_buffers: Callable[[tuple[int, ...]], tuple[int, ...]]
+    # Null counts of the columns declared non-nullable (Rerun refuses a chunk with nulls there).
+    pick_required_null_counts: Callable[[tuple[int, ...]], tuple[int, ...]]
+    required: tuple[int, ...]  # positions of the columns declared non-nullable
+    problem: str | None  # why Rerun would refuse every chunk of this schema (None: nothing found)
+    reads_values: bool  # the server reads the values of some component of these chunks
+    # The columns read are all list<float64> (Scalars): their offsets can be checked without pyarrow.
+    direct_lists: tuple[DataColumn, ...] | None
     batch_templates: list[BatchTemplate] = field(default_factory=list)  # filled by the first batch read
 
 
@@ -158,18 +166,32 @@ def build_layout(schema: pa.Schema, offset: int) -> ChunkLayout:
             data.append(DataColumn(
                 position, component if migrated else fld.name, component,
                 archetype.decode() if archetype else None,
-                component_type.decode() if component_type else None, fld, nodes))
+                component_type.decode() if component_type else None, fld, nodes, buffers))
         top_nodes.append(nodes)
         if counts is not None:
             nodes, buffers = nodes + counts[0], buffers + counts[1]
+    required = tuple(i for i, fld in enumerate(schema) if not fld.nullable)
+    component_names = frozenset(c.component for c in data)
     return ChunkLayout(
         metadata[ENTITY_PATH_KEY].decode(), schema, row_id_field, tuple(indexes), tuple(data),
         tuple(top_nodes), nodes, buffers, direct,
-        frozenset(c.archetype for c in data if c.archetype), frozenset(c.component for c in data),
+        frozenset(c.archetype for c in data if c.archetype), component_names,
         _picker([2 * n for n in top_nodes]),
         _picker([2 * ix.node + 1 for ix in indexes] + [2 * c.node + 1 for c in data]),
         _picker([i for ix in indexes for i in (2 * ix.data_buffer, 2 * ix.data_buffer + 1)]),
+        _picker([2 * top_nodes[i] + 1 for i in required]) if direct else _picker([]),
+        required,
+        conformance.schema_problem(schema, row_id_field, [(c.column, c.component, c.field.type) for c in data]),
+        conformance.reads_values(component_names),
+        _direct_lists(direct, data),
     )
+
+
+def _direct_lists(direct: bool, data: list[DataColumn]) -> tuple[DataColumn, ...] | None:
+    read = [c for c in data if c.component in conformance.READ_COMPONENTS]
+    if not direct or not read or not all(conformance.same_type(c.field.type, conformance.LIST_F64) for c in read):
+        return None
+    return tuple(read)
 
 
 def _picker(positions: list[int]) -> Callable[[tuple[int, ...]], tuple[int, ...]]:

@@ -15,8 +15,9 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.compute as pc
 
-from services.rrd.chunk import ChunkMeta, chunk_meta, read_chunk, with_batch
+from services.rrd.chunk import ChunkMeta, chunk_meta, with_batch
 from services.rrd.messages import ArrowMessage
+from services.rrd.validate import validated_batch
 
 
 def new_chunk_id() -> bytes:
@@ -29,7 +30,7 @@ def trim(msg: ArrowMessage, meta: ChunkMeta, timeline: str, lo: int, hi: int,
     """`msg` cut to the rows whose `timeline` value lies in [lo, hi], and the rows at positions `also`
     (latest-at rows before the window), in their order: the same message when all rows stay, None when
     none do, else a new chunk."""
-    batch = read_chunk(msg)
+    batch = validated_batch(msg, meta)  # its rows are filtered and re-encoded: every value is read
     index = next((i for i, f in enumerate(batch.schema)
                   if (f.metadata or {}).get(b"rerun:index_name", f.name.encode()).decode() == timeline
                   and (f.metadata or {}).get(b"rerun:kind") in (b"index", b"time")), None)

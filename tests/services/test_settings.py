@@ -39,3 +39,25 @@ def test_max_message_size_must_be_positive(monkeypatch):
     monkeypatch.setenv("FLEET_MAX_MESSAGE_SIZE", "0")
     with pytest.raises(ValidationError, match="max_message_size"):
         load_settings(data_dir=Path("x"))
+
+
+def test_secret_fields_from_json_or_comma_separated(monkeypatch):
+    monkeypatch.delenv("FLEET_CONFIG", raising=False)
+    assert "password" in load_settings().secret_fields and "token" in load_settings().secret_fields
+    monkeypatch.setenv("FLEET_SECRET_FIELDS", "token, vin")
+    assert load_settings().secret_fields == ["token", "vin"]
+    monkeypatch.setenv("FLEET_SECRET_FIELDS", '["pin", "serial_key"]')
+    assert load_settings().secret_fields == ["pin", "serial_key"]
+    assert load_settings(secret_fields="a,b").secret_fields == ["a", "b"]  # the --secret-fields flag
+
+
+def test_chunk_limits(monkeypatch):
+    monkeypatch.delenv("FLEET_CONFIG", raising=False)
+    settings = load_settings()
+    assert settings.max_chunk_bytes == settings.max_message_size == 256 * 1024 * 1024
+    assert settings.decompress_budget_bytes == 2 * settings.max_chunk_bytes
+    monkeypatch.setenv("FLEET_MAX_CHUNK_BYTES", str(1 << 30))
+    with pytest.raises(ValidationError, match="decompress_budget_bytes"):
+        load_settings()  # the largest chunk must fit in the budget
+    monkeypatch.setenv("FLEET_DECOMPRESS_BUDGET_BYTES", str(1 << 30))
+    assert load_settings().max_chunk_bytes == 1 << 30

@@ -301,3 +301,35 @@ def test_deleting_a_run_deletes_its_rows(tmp_path: Path, make_node: NodeFactory,
     assert sql_rows(client, "SELECT DISTINCT run_id FROM scalars") == [{"run_id": OTHER}]
     assert sql_rows(client, "SELECT count(*) AS n FROM text_logs") == [{"n": 0}]  # no file left: an empty table
     assert sql_rows(client, f"SELECT tier FROM runs WHERE id = '{RUN}'") == [{"tier": "deleted"}]
+
+
+@pytest.fixture(scope="module")
+def malformed_seed(tmp_path_factory: pytest.TempPathFactory) -> Any:
+    from tests.services.rrd.malformed import Seed, record_seed
+
+    return Seed.read(record_seed(tmp_path_factory.mktemp("seed") / "seed.rrd"))
+
+
+@pytest.mark.sdk
+@pytest.mark.parametrize("variant", ["scalars_offsets_decreasing", "scalars_int32", "text_not_utf8",
+                                     "translation_width_2"])
+def test_an_invalid_chunk_is_skipped_not_read(variant: str, malformed_seed: Any) -> None:
+    """A chunk stored before ingest refused such chunks: extraction validates it first and skips it
+    (reading its values would go out of bounds or misread them); the other chunks are extracted."""
+    from services.analytics.extract import extract
+    from services.rrd.chunk import chunk_meta
+    from services.rrd.decoder import decode_message
+    from services.rrd.messages import ArrowMessage
+    from tests.services.rrd.malformed import malformed_chunk
+
+    seed = malformed_seed
+    original, raw = malformed_chunk(seed, variant)
+    chunks = [e for e in seed.events if isinstance(e, ArrowMessage)]
+    bad = decode_message(2, raw, original.offset)
+    assert isinstance(bad, ArrowMessage)
+    damaged = [bad if e.offset == original.offset else e for e in chunks]
+    intact_tables = extract("r", [(e, chunk_meta(e)) for e in chunks])
+    tables = extract("r", [(e, chunk_meta(e)) for e in damaged])
+    table = {"scalars": "scalars", "text": "text_logs", "translation": "transforms"}[variant.split("_")[0]]
+    assert table not in tables
+    assert set(tables) == set(intact_tables) - {table}

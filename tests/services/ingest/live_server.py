@@ -10,9 +10,11 @@ import sys
 import time
 from pathlib import Path
 
+import grpc
 import httpx
 
 FLEET = str(Path(sys.executable).with_name("fleet"))
+WRITE_MESSAGES = "/rerun.sdk_comms.v1alpha1.MessageProxyService/WriteMessages"
 
 
 def free_port() -> int:
@@ -82,3 +84,22 @@ class LiveServer:
                 return
             time.sleep(0.1)  # polling for the condition, bounded by the deadline
         raise AssertionError(f"timed out waiting for {what}")
+
+    def healthy(self) -> bool:
+        """The process is alive and answers /healthz."""
+        if self.proc is None or self.proc.poll() is not None:
+            return False
+        try:
+            return httpx.get(f"{self.url}/healthz", timeout=10).status_code == 200
+        except httpx.TransportError:
+            return False
+
+    def write_messages(self, requests: list[bytes], timeout: float = 60) -> tuple[grpc.StatusCode, str]:
+        """One WriteMessages call of serialized WriteMessagesRequests: (status code, details)."""
+        with grpc.insecure_channel(f"127.0.0.1:{self.grpc_port}") as channel:
+            call = channel.stream_unary(WRITE_MESSAGES, request_serializer=None, response_deserializer=None)
+            try:
+                call(iter(requests), timeout=timeout)
+            except grpc.RpcError as exc:
+                return exc.code(), exc.details() or ""  # type: ignore[attr-defined]
+        return grpc.StatusCode.OK, ""

@@ -27,7 +27,8 @@ import xxhash
 
 from services.rrd import errors
 from services.rrd.chunk import chunk_meta, decompress_payload, read_chunk
-from services.rrd.decoder import DEFAULT_MAX_MESSAGE_SIZE, RrdDecoder, iter_events
+from services.rrd.decoder import DEFAULT_MAX_MESSAGE_SIZE, RrdDecoder, decode_message, iter_events
+from services.rrd.limits import DEFAULT_MAX_CHUNK_BYTES
 from services.rrd.messages import (
     ArrowMessage,
     Compression,
@@ -495,7 +496,7 @@ def test_arrow_message_with_unknown_encoding() -> None:
     decode_expect(PREFIX, frame(ARROW, pb.SerializeToString()), errors.ProtobufError, LAST_OFFSET)
 
 
-@pytest.mark.parametrize("delta", [-1, 1, 1000, 2**31, 2**40])
+@pytest.mark.parametrize("delta", [-1, 1, 1000, 2**20])
 def test_lz4_does_not_decompress_to_uncompressed_size(delta: int) -> None:
     ipc = chunk_ipc()
     msg = one_arrow(arrow_body(ipc, uncompressed_size=len(ipc) + delta))
@@ -504,6 +505,33 @@ def test_lz4_does_not_decompress_to_uncompressed_size(delta: int) -> None:
         with pytest.raises(errors.RrdError) as info:
             reader(msg)
         check_error(info.value, errors.DecompressionError, LAST_OFFSET)
+
+
+@pytest.mark.parametrize("declared", [DEFAULT_MAX_CHUNK_BYTES + 1, 2**31, 2**40, 2**64 - 1])
+def test_declared_size_over_the_chunk_limit(declared: int) -> None:
+    """A chunk declaring more than FLEET_MAX_CHUNK_BYTES uncompressed is refused as the message is
+    decoded, before any decompression (an LZ4 bomb: 255x its size), naming the setting."""
+    body = arrow_body(chunk_ipc(), uncompressed_size=declared)
+    outcome = decode_expect(PREFIX, frame(ARROW, body), errors.MessageTooLargeError, LAST_OFFSET)
+    assert "FLEET_MAX_CHUNK_BYTES" in str(outcome.exc)
+    assert summary(outcome.before) == PREFIX_EVENTS
+    # A reader given such a message some other way refuses it too, before allocating.
+    msg = decode_ok(PREFIX + frame(ARROW, body), max_chunk_bytes=2**64)[-1]
+    assert isinstance(msg, ArrowMessage)
+    for reader in (chunk_meta, read_chunk, decompress_payload):
+        with pytest.raises(errors.RrdError) as info:
+            reader(msg)
+        check_error(info.value, errors.MessageTooLargeError, LAST_OFFSET)
+
+
+def test_chunk_limit_is_a_decoder_setting() -> None:
+    ipc = chunk_ipc(frames=tuple(range(100)), scalars=tuple([1.0] for _ in range(100)))  # larger than PREFIX's
+    body = arrow_body(ipc)
+    decode_expect(PREFIX, frame(ARROW, body), errors.MessageTooLargeError, LAST_OFFSET, max_chunk_bytes=len(ipc) - 1)
+    assert isinstance(decode_ok(PREFIX + frame(ARROW, body), max_chunk_bytes=len(ipc))[-1], ArrowMessage)
+    raw = one_arrow(body).raw
+    with pytest.raises(errors.MessageTooLargeError):
+        decode_message(ARROW, raw, max_chunk_bytes=len(ipc) - 1)
 
 
 @pytest.mark.parametrize("payload", [b"", b"\xff", b"\xf0" + bytes(20), b"not lz4 at all"])
@@ -722,7 +750,7 @@ ALL_ERRORS = [
     errors.NotAnRrdError, errors.UnsupportedVersionError, errors.UnknownCompressionError,
     errors.UnknownSerializerError, errors.ReservedBytesError, errors.UnknownMessageKindError,
     errors.MessageTooLargeError, errors.TruncatedError, errors.ProtobufError,
-    errors.DecompressionError, errors.NotAChunkError, errors.FooterError,
+    errors.DecompressionError, errors.NotAChunkError, errors.InvalidChunkError, errors.FooterError,
 ]
 
 

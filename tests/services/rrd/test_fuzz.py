@@ -3,7 +3,8 @@
 One small recording is written by the real rerun-sdk (in a subprocess), then hypothesis flips
 bytes, truncates, inserts, deletes and duplicates byte runs and overwrites message headers. Each
 mutated input is decoded with `RrdDecoder`, fed in random-size pieces, and `chunk_meta` is run on
-every Arrow message.
+every Arrow message, then the full validation ingest applies (`check_chunk`, `validated_batch`);
+a chunk that passes it has every value read (`to_pylist`), which must never crash.
 
 The decoding runs in a long-lived worker subprocess, so that a crash in native code (pyarrow,
 lz4, protobuf) fails the one example instead of killing pytest, and a hang is cut after
@@ -59,21 +60,26 @@ import rerun as rr
 
 rec = rr.RecordingStream("fuzz", recording_id="fuzz-1")
 rec.save(sys.argv[1])
+rec.send_property("fleet", rr.AnyValues(robot_id="robot-1", tags=["a", "bb", "ccc"], api_token="s3cret"))
 for frame in range(3):
     rec.set_time("frame", sequence=frame)
     rec.log("world/points", rr.Points3D([[frame, 0, 0], [0, frame, 1], [1, 1, frame]]))
-    rec.log("robot/speed", rr.Scalars(frame * 0.5))
+    rec.log("robot/speed", rr.Scalars([frame * 0.5, frame]))
     rec.log("log", rr.TextLog(f"step {frame}", level="INFO"))
+    rec.log("tf", rr.Transform3D(translation=[frame, 0, 0], quaternion=[0, 0, 0, 1]))
 rec.flush()
 """
 
 WORKER_SCRIPT = r"""
 import json, struct, sys, time, traceback
 
+import pyarrow as pa
+
 from services.rrd.chunk import chunk_meta, decompress_payload
 from services.rrd.decoder import RrdDecoder
 from services.rrd.errors import RrdError
 from services.rrd.messages import ArrowMessage, StreamFooter, StreamStart
+from services.rrd.validate import check_chunk, validated_batch
 
 
 def end_of(event):
@@ -100,6 +106,14 @@ def peak_rss_kib():
         return next(int(line.split()[1]) for line in fh if line.startswith("VmHWM:"))
 
 
+def read_every_value(batch):
+    # Validated: every value can be read (timelines as int64: datetime cannot hold nanoseconds).
+    for column in batch.columns:
+        if pa.types.is_temporal(column.type):
+            column = column.view(pa.int64())
+        column.to_pylist()
+
+
 def run(data, pieces):
     started = time.monotonic()
     events, error, chunks = [], None, []
@@ -116,7 +130,9 @@ def run(data, pieces):
     for event in events:
         if isinstance(event, ArrowMessage):
             try:
-                chunk_meta(event)
+                meta = chunk_meta(event)
+                check_chunk(event, meta)
+                read_every_value(validated_batch(event, meta))
                 chunks.append(None)
             except Exception as exc:
                 chunks.append(describe(exc))
@@ -307,7 +323,8 @@ def check(worker: Worker, recording: Recording, data: bytes, pieces: list[int]) 
         if info is not None:
             assert info["rrd"], _unexpected("chunk_meta", info)
             assert 0 <= info["offset"] < len(data), info
-            assert info["type"] in ("DecompressionError", "NotAChunkError"), info
+            assert info["type"] in ("DecompressionError", "NotAChunkError", "InvalidChunkError",
+                                    "MessageTooLargeError"), info
     assert result["seconds"] < EXAMPLE_SECONDS and result["wall_seconds"] < EXAMPLE_SECONDS
     assert result["maxrss_kib"] < MAX_WORKER_RSS_MIB * 1024, f"worker RSS {result['maxrss_kib']} KiB"
     # What came before the first changed byte decodes as in the intact file.
@@ -345,7 +362,7 @@ def test_recording_decodes(recording: Recording, worker: Worker) -> None:
     assert recording.events[-1][2] == len(recording.data)
     decoder = RrdDecoder()
     entities = {chunk_meta(e).entity_path for e in decoder.feed(recording.data) if isinstance(e, ArrowMessage)}
-    assert {"/world/points", "/robot/speed", "/log"} <= entities
+    assert {"/world/points", "/robot/speed", "/log", "/tf", "/__properties/fleet"} <= entities
     result = check(worker, recording, recording.data, [1, 2, 3, 100])
     assert result["error"] is None and result["chunks"] == [None] * kinds.count("ArrowMessage")
     assert [tuple(e) for e in result["events"]] == recording.events
