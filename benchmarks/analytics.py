@@ -16,8 +16,8 @@
    columns the extractor writes (run_id, entity, component, instance int32, value double, log_time
    timestamp[ns], frame int64), uploaded to the service's key
    ``analytics/scalars/robot_id=R/date=D/RUN.parquet``. The runs are in the catalog too (a DuckDB file,
-   created at the head revision; tier warm, with their entities and timelines), as promotion leaves
-   them. ``--other-tables``: each run also has a small text_logs file (a line a second) and transforms
+   created at the head revision; tier warm, with their entities, timelines and analytics files as
+   objects of the run), as promotion leaves them. ``--other-tables``: each run also has a small text_logs file (a line a second) and transforms
    file (the base pose at 10 Hz), as runs that log those do. With ``--data-dir`` a fleet generated
    earlier with the same options is reused.
 3. ``fleet serve`` with ``FLEET_WARM_URL=s3://fleet/warm``, ``FLEET_S3_ENDPOINT_URL``, ``AWS_*``,
@@ -31,7 +31,8 @@
    The two take turns going first.
 
    * ours: ``POST /v1/sql`` asking for Arrow IPC; from sending the request until the answer is decoded
-     into a ``pyarrow.Table`` (catalog snapshot, store listing, sandbox set-up, query, encoding, HTTP);
+     into a ``pyarrow.Table`` (the catalog's file list, a SQL worker process (started ahead) checking
+     the query, sandbox set-up, query, Arrow IPC back to the server, encoding, HTTP);
    * DuckDB directly, in this process, with the same threads and memory limit: a new in-memory
      database, ``LOAD`` httpfs from the duckdb-extension-httpfs wheel, ``CREATE SECRET`` for the
      SeaweedFS endpoint (the set-up, timed apart), then the query over
@@ -43,9 +44,11 @@
 
    Both answers are checked to be equal (same groups, counts, min and max; means within 1e-9).
    Overhead = ours / DuckDB's set-up + query - 1 (best of each); target: under 10 %. CPU s: of the
-   process that ran DuckDB (the server / this one), steadier than wall time on a shared machine.
+   processes that ran DuckDB (the server and the SQL workers it reaped, which includes each worker's
+   start-up; this one), steadier than wall time on a shared machine.
 5. ``--breakdown``: then, the server stopped, the steps of ``services.analytics.service.query`` timed
-   one by one in this process (catalog snapshot, store listing, sandbox set-up, query, encoding).
+   one by one in this process (the catalog's file list, sandbox set-up, query, encoding), and the
+   whole query through a worker pool as the server runs it.
 
 MB = 10**6 bytes.
 """

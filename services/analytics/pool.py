@@ -115,17 +115,16 @@ class SqlPool:
             return pa.ipc.open_stream(answer).read_all()
         finally:
             _stop(proc)
+            self.start()  # the next one starts now, not during the query: its imports would slow it
 
     def _take(self) -> subprocess.Popen[bytes]:
-        """An idle worker (else a new one), and a new idle one in its place."""
+        """An idle worker, else a new one."""
         with self._lock:
-            ready = None
-            while self._idle and ready is None:
+            while self._idle:
                 candidate = self._idle.pop(0)
-                ready = candidate if candidate.poll() is None else None
-            while len(self._idle) < self.limits.workers and not self._closed:
-                self._idle.append(self._spawn())
-        return ready or self._spawn()
+                if candidate.poll() is None:
+                    return candidate
+        return self._spawn()
 
     def _spawn(self) -> subprocess.Popen[bytes]:
         root = str(Path(services.__file__).resolve().parent.parent)  # where `services` is importable from
@@ -136,7 +135,7 @@ class SqlPool:
                                 env=env, cwd=self._workdir, start_new_session=True)
 
     def start(self) -> None:
-        """Start the idle workers now (else the first query does)."""
+        """Start idle workers up to one per running slot (the first query's end does it, else)."""
         with self._lock:
             while len(self._idle) < self.limits.workers and not self._closed:
                 self._idle.append(self._spawn())

@@ -113,7 +113,8 @@ def test_a_flood_of_queries_neither_starves_the_api_nor_queues_without_end(busy_
             time.sleep(0.01)  # polling: the first refusal says the admitted queries hold their slots
         during = [runs_took() for _ in range(5)]
         measured_at = time.monotonic()
-    assert max(during) < max(1.0, 20 * baseline), (during, baseline)
+    # typical requests as fast as idle (generous for a shared machine), and none waited for a query (10 s)
+    assert statistics.median(during) < max(0.5, 10 * baseline) and max(during) < 5.0, (during, baseline)
     first_timeout = min(at for at, r in answers if r.status_code == 408)
     assert measured_at < first_timeout  # GET /v1/runs was timed while the queries ran
     codes = collections.Counter(r.status_code for _, r in answers)
