@@ -17,8 +17,9 @@
    timestamp[ns], frame int64), uploaded to the service's key
    ``analytics/scalars/robot_id=R/date=D/RUN.parquet``. The runs are in the catalog too (a DuckDB file,
    created at the head revision; tier warm, with their entities, timelines and analytics files as
-   objects of the run), as promotion leaves them. ``--other-tables``: each run also has a small text_logs file (a line a second) and transforms
-   file (the base pose at 10 Hz), as runs that log those do. With ``--data-dir`` a fleet generated
+   objects of the run), as promotion leaves them. ``--other-tables``: each run also has a small
+   text_logs file (a line a second) and transforms file (the base pose at 10 Hz), as runs that log
+   those do. With ``--data-dir`` a fleet generated
    earlier with the same options is reused.
 3. ``fleet serve`` with ``FLEET_WARM_URL=s3://fleet/warm``, ``FLEET_S3_ENDPOINT_URL``, ``AWS_*``,
    ``FLEET_SCHEDULER=false``, ``FLEET_SQL_THREADS`` / ``FLEET_SQL_MEMORY_LIMIT`` as given (the

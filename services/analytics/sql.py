@@ -228,6 +228,10 @@ def sandbox(con: duckdb.DuckDBPyConnection, root: str, catalog: dict[str, pa.Tab
     """`con` with the given catalog tables and analytics views (`files`: table -> its files), locked
     down: only those files are readable afterwards."""
     try:
+        # the view is bound when created and again by the query: parse each footer (and HEAD each
+        # file) once; the database lives for one query, so nothing cached can go stale
+        con.execute("SET parquet_metadata_cache = true")
+        con.execute("SET enable_http_metadata_cache = true")
         if root.startswith("s3://") and any(files.values()):
             _s3(con, s3, root)
         for name, table in catalog.items():
