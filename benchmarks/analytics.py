@@ -16,9 +16,10 @@
    columns the extractor writes (run_id, entity, component, instance int32, value double, log_time
    timestamp[ns], frame int64), uploaded to the service's key
    ``analytics/scalars/robot_id=R/date=D/RUN.parquet``. The runs are in the catalog too (a DuckDB file,
-   created at the head revision; tier warm, with their entities and timelines), as promotion leaves
-   them. ``--other-tables``: each run also has a small text_logs file (a line a second) and transforms
-   file (the base pose at 10 Hz), as runs that log those do. With ``--data-dir`` a fleet generated
+   created at the head revision; tier warm, with their entities, timelines and analytics files as
+   objects of the run), as promotion leaves them. ``--other-tables``: each run also has a small
+   text_logs file (a line a second) and transforms file (the base pose at 10 Hz), as runs that log
+   those do. With ``--data-dir`` a fleet generated
    earlier with the same options is reused.
 3. ``fleet serve`` with ``FLEET_WARM_URL=s3://fleet/warm``, ``FLEET_S3_ENDPOINT_URL``, ``AWS_*``,
    ``FLEET_SCHEDULER=false``, ``FLEET_SQL_THREADS`` / ``FLEET_SQL_MEMORY_LIMIT`` as given (the
@@ -31,7 +32,8 @@
    The two take turns going first.
 
    * ours: ``POST /v1/sql`` asking for Arrow IPC; from sending the request until the answer is decoded
-     into a ``pyarrow.Table`` (catalog snapshot, store listing, sandbox set-up, query, encoding, HTTP);
+     into a ``pyarrow.Table`` (the catalog's file list, a SQL worker process (started ahead) checking
+     the query, sandbox set-up, query, Arrow IPC back to the server, encoding, HTTP);
    * DuckDB directly, in this process, with the same threads and memory limit: a new in-memory
      database, ``LOAD`` httpfs from the duckdb-extension-httpfs wheel, ``CREATE SECRET`` for the
      SeaweedFS endpoint (the set-up, timed apart), then the query over
@@ -43,9 +45,11 @@
 
    Both answers are checked to be equal (same groups, counts, min and max; means within 1e-9).
    Overhead = ours / DuckDB's set-up + query - 1 (best of each); target: under 10 %. CPU s: of the
-   process that ran DuckDB (the server / this one), steadier than wall time on a shared machine.
+   processes that ran DuckDB (the server and the SQL workers it reaped, which includes each worker's
+   start-up; this one), steadier than wall time on a shared machine.
 5. ``--breakdown``: then, the server stopped, the steps of ``services.analytics.service.query`` timed
-   one by one in this process (catalog snapshot, store listing, sandbox set-up, query, encoding).
+   one by one in this process (the catalog's file list, sandbox set-up, query, encoding), and the
+   whole query through a worker pool as the server runs it.
 
 MB = 10**6 bytes.
 """
@@ -82,7 +86,7 @@ if str(ROOT) not in sys.path:  # run as `python benchmarks/analytics.py` without
     sys.path.insert(0, str(ROOT))
 
 from benchmarks.codec import MB, format_table, log  # noqa: E402 - after the sys.path fix above
-from benchmarks.ingest import FleetServer, proc_cpu_s  # noqa: E402
+from benchmarks.ingest import FleetServer  # noqa: E402
 from services.analytics.extract import LOG_TIME, SCALARS, TABLES, partition_key, to_parquet  # noqa: E402
 from services.analytics.sql import httpfs_extension  # noqa: E402
 
@@ -91,7 +95,7 @@ QUERY = ("SELECT robot_id, date, count(*) AS n, avg(value) AS mean, min(value) A
 TARGET = 0.10
 BUCKET, PREFIX = "fleet", "warm"
 AWS = {"AWS_ACCESS_KEY_ID": "bench", "AWS_SECRET_ACCESS_KEY": "bench", "AWS_DEFAULT_REGION": "us-east-1"}
-GENERATOR_VERSION = 1
+GENERATOR_VERSION = 2  # 2: the catalog lists each run's analytics files
 ENTITIES = (("/battery", 1, 60.0, 20.0), ("/joints/torque", 7, 0.0, 15.0), ("/joints/velocity", 7, 0.0, 2.0),
             ("/imu/accel", 3, 0.0, 3.0), ("/imu/gyro", 3, 0.0, 0.5), ("/motors/current", 4, 5.0, 2.0),
             ("/cpu/temperature", 1, 55.0, 5.0))  # entity, instances per tick, mean, spread
@@ -296,12 +300,13 @@ def generate(endpoint: str, fleet: list[FleetRun], with_others: bool, seed: int 
     return totals
 
 
-def fill_catalog(catalog_url: str, fleet: list[FleetRun]) -> None:
-    """The runs as promotion leaves them in the catalog (tier warm, entities, timelines)."""
+def fill_catalog(catalog_url: str, fleet: list[FleetRun], with_others: bool) -> None:
+    """The runs as promotion leaves them in the catalog (tier warm, entities, timelines, and their
+    analytics files as objects of the run: SQL reads the files the catalog lists)."""
     from sqlalchemy.orm import sessionmaker
 
     from catalog.db import create_engine, session_scope, upgrade
-    from catalog.queries import EntityRecord, RunRecord, TimelineRecord, save_run
+    from catalog.queries import EntityRecord, ObjectRecord, RunRecord, TimelineRecord, replace_objects, save_run
 
     engine = create_engine(catalog_url)
     try:
@@ -324,6 +329,10 @@ def fill_catalog(catalog_url: str, fleet: list[FleetRun]) -> None:
                     chunks=sum(e.chunks for e in entities), rows=ticks * len(ENTITIES),
                     bytes=sum(e.bytes for e in entities), properties={}, entities=entities,
                     timelines=timelines), now)
+                tables = TABLES if with_others else ("scalars",)
+                replace_objects(session, run.id, [
+                    ObjectRecord(f"analytics/{t}", partition_key(t, run.robot_id, run.date.isoformat(), run.id),
+                                 "warm", 0, "0" * 64) for t in tables])
     finally:
         engine.dispose()
 
@@ -354,6 +363,14 @@ class AnalyticsServer(FleetServer):
     def argv_env(self) -> tuple[list[str], dict[str, str]]:
         argv, env = super().argv_env()
         return argv, {**env, **self.extra}
+
+
+def tree_cpu_s(pid: int) -> float:
+    """CPU seconds of a process and of the children it has waited for (the SQL workers: each is
+    reaped when its query ends)."""
+    with open(f"/proc/{pid}/stat") as fh:
+        fields = fh.read().rsplit(")", 1)[1].split()
+    return sum(int(f) for f in fields[11:15]) / os.sysconf("SC_CLK_TCK")  # utime, stime, cutime, cstime
 
 
 def time_endpoint(port: int) -> tuple[float, pa.Table]:
@@ -409,9 +426,9 @@ def measure(endpoint: str, server: AnalyticsServer, args: argparse.Namespace) ->
     previous: duckdb.DuckDBPyConnection | None = None
 
     def ours() -> str:
-        cpu = proc_cpu_s(server.pid)
+        cpu = tree_cpu_s(server.pid)
         seconds, answers["ours"] = time_endpoint(server.http_port)
-        cpu = proc_cpu_s(server.pid) - cpu
+        cpu = tree_cpu_s(server.pid) - cpu
         results["ours"].append(seconds)
         results["ours_cpu"].append(cpu)
         return f"ours {seconds:.3f} s ({cpu:.2f} CPU s)"
@@ -459,10 +476,11 @@ def measure(endpoint: str, server: AnalyticsServer, args: argparse.Namespace) ->
 def breakdown(workdir: Path, endpoint: str, args: argparse.Namespace) -> dict[str, float]:
     """Where the endpoint's time goes: the steps of `services.analytics.service.query`, run here with
     the server's settings (after it stopped: the embedded catalog has one user at a time), best of
-    --repeat each. LOAD httpfs and the analytics view are timed apart on their own database."""
+    --repeat each. The sandbox steps are timed in this process; then the whole query through a
+    worker pool as the server runs it (a ready worker: started ahead, imports done)."""
     from sqlalchemy.orm import sessionmaker
 
-    from catalog.db import create_engine, session_scope
+    from catalog.db import create_engine
     from services.analytics import service, sql
     from services.storage.s3 import S3Store
 
@@ -472,7 +490,6 @@ def breakdown(workdir: Path, endpoint: str, args: argparse.Namespace) -> dict[st
     warm = S3Store(f"s3://{BUCKET}/{PREFIX}", endpoint_url=endpoint)
     limits = sql.Limits(100_000, 3600.0, args.memory_limit, args.threads)
     ctx = service.Analytics(sessionmaker(engine), warm, limits)
-    root = sql.analytics_root(warm.url)
     steps: dict[str, list[float]] = {}
 
     def timed(name: str, fn: Any) -> Any:
@@ -481,30 +498,39 @@ def breakdown(workdir: Path, endpoint: str, args: argparse.Namespace) -> dict[st
         steps.setdefault(name, []).append(time.perf_counter() - start)
         return out
 
-    def snapshot() -> dict[str, pa.Table]:
-        with session_scope(ctx.catalog) as session:
-            return service.catalog_tables(session, [t for t in service.CATALOG_TABLES if t in named])
+    def pooled() -> pa.Table:
+        ctx.pool.start()
+        while not all(_ready(p) for p in ctx.pool._idle):  # time a ready worker, as a server's
+            time.sleep(0.05)
+        return timed("the query through the worker pool (all of service.query)",
+                     lambda: ctx.pool.submit(service.request(ctx, QUERY), lambda named: service.prepare(ctx, named))
+                     .result())
 
     try:
         for i in range(args.repeat + 1):
-            named = timed("tables the query names (parser)", lambda: service.referenced_tables(QUERY) or set())
-            catalog = timed("catalog snapshot (the catalog tables it names)", snapshot)
+            prepared = timed("catalog: file lists (and catalog tables) of the views named",
+                             lambda: service.prepare(ctx, {"scalars"}))
+            con = duckdb.connect(":memory:", config={"threads": args.threads, "memory_limit": args.memory_limit})
             start = time.perf_counter()
-            tables = [t for t in TABLES if t in named]
-            with sql.sandbox(root, catalog, limits, ctx.s3_access(), tables) as con:
-                steps.setdefault("sandbox set-up (all)", []).append(time.perf_counter() - start)
-                table = timed("query (sql.run)", lambda con=con: sql.run(con, QUERY, limits))
+            with sql.sandbox(con, ctx.root, prepared.catalog, ctx.s3_access(), prepared.files) as box:
+                steps.setdefault("in this process: sandbox set-up (LOAD, secret, CREATE VIEW: reads every "
+                                 "footer)", []).append(time.perf_counter() - start)
+                timed("in this process: the query (sql.run)", lambda box=box: sql.run(box, QUERY, limits, 1 << 40))
+            table = pooled()
             timed("encode (Arrow IPC)", lambda table=table: service.encode(table, "arrow"))
-            bare = timed("  of the set-up: connect + LOAD httpfs + secret",
-                         lambda: direct_setup(endpoint, args.threads, args.memory_limit))
-            timed("  of the set-up: CREATE VIEW scalars (binds: reads every footer)",
-                  lambda bare=bare: sql.analytics_view(bare, root, "scalars"))
-            bare.close()
             if i == 0:
                 steps.clear()
     finally:
+        ctx.close()
         engine.dispose()
     return {name: min(values) for name, values in steps.items()}
+
+
+def _ready(proc: subprocess.Popen[bytes]) -> bool:
+    """An idle worker has written its ready frame (its imports are done)."""
+    import select
+
+    return bool(proc.stdout is not None and select.select([proc.stdout], [], [], 0)[0])
 
 
 # --- main ------------------------------------------------------------------------------------------
@@ -556,7 +582,7 @@ def main(argv: list[str] | None = None) -> None:
                 totals["generate_s"] = round(time.perf_counter() - start, 1)
                 server_dir = workdir / "fleet-data"
                 shutil.rmtree(server_dir, ignore_errors=True)
-                fill_catalog(f"duckdb:///{server_dir / 'catalog.duckdb'}", fleet)
+                fill_catalog(f"duckdb:///{server_dir / 'catalog.duckdb'}", fleet, args.other_tables)
                 sidecar.write_text(json.dumps({"params": params, "totals": totals}, indent=2))
                 log(f"generated in {totals['generate_s']} s")
             report["data"] = totals

@@ -55,7 +55,8 @@ def build(settings: Settings) -> tuple[IngestService, Retention, Analytics]:
                           promote_below_free_bytes=settings.promote_below_free_bytes,
                           restore_days=settings.restore_days, reserve_bytes=settings.reserve_bytes)
     analytics = Analytics(catalog, tiers.warm, Limits(settings.sql_max_rows, settings.sql_timeout_s,
-                                                      settings.sql_memory_limit, settings.sql_threads))
+                                                      settings.sql_memory_limit, settings.sql_threads,
+                                                      settings.sql_workers, settings.sql_queue))
     return ingest, retention, analytics
 
 

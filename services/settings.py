@@ -76,8 +76,11 @@ class Settings(BaseSettings):
     scheduler: bool = Field(True, description="run the retention jobs inside fleet serve")
     sql_max_rows: int = Field(100_000, gt=0, description="most rows a SQL answer may have")
     sql_timeout_s: float = Field(30.0, gt=0, description="a SQL query running longer is stopped")
-    sql_memory_limit: str = Field("2GB", description="memory a SQL query may use (DuckDB memory_limit)")
+    sql_memory_limit: str = Field("2GB", pattern=r"(?i)^\s*\d+(\.\d+)?\s*([kmgt]i?b|b)?\s*$",
+                                  description="memory a SQL query's worker process may use (e.g. 2GB, 512MiB)")
     sql_threads: int = Field(4, gt=0, description="threads a SQL query may use")
+    sql_workers: int = Field(2, gt=0, description="SQL queries running at once, each in a worker process")
+    sql_queue: int = Field(8, ge=0, description="SQL queries waiting for a worker; more are refused (429)")
     default_robot: str = Field("unknown-robot", pattern=r"^[A-Za-z0-9._-]{1,128}$",
                                description="robot id of runs that name none")
 

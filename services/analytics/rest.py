@@ -3,16 +3,19 @@
 
 from __future__ import annotations
 
+import asyncio
 from typing import Annotated, Any
 
 from fastapi import APIRouter, Body, Query, Request
-from fastapi.responses import Response
+from fastapi.responses import JSONResponse, Response
 from pydantic import BaseModel, Field
 
 from services.analytics import service
 from services.analytics.service import FORMATS
+from services.analytics.sql import SqlBusyError
 
 router = APIRouter()
+RETRY_AFTER_S = 2  # the SQL pool was full: most queries take seconds
 
 
 class SqlRequest(BaseModel):
@@ -22,15 +25,21 @@ class SqlRequest(BaseModel):
 
 @router.post("/v1/sql", summary="Read-only SQL over the catalog and the analytics tables",
              responses={200: {"content": {media: {} for media in FORMATS.values()}}})
-def run_sql(
+async def run_sql(
     request: Request,
     body: Annotated[SqlRequest, Body()],
     fmt: Annotated[str | None, Query(alias="format", description=" | ".join(FORMATS) + " (default: by Accept)")]
     = None,
 ) -> Response:
     chosen = service.pick_format(fmt, request.headers.get("accept"))
-    table = service.query(request.app.state.analytics, body.query)
-    return Response(service.encode(table, chosen), media_type=FORMATS[chosen],
+    # async: the query runs in a worker process, the catalog snapshot on the SQL pool's own threads,
+    # so waiting holds none of the threads the sync handlers (runs, uploads) share
+    try:
+        table = await service.query(request.app.state.analytics, body.query)
+    except SqlBusyError as exc:  # a hint when to come back, as well as the reason
+        return JSONResponse(exc.to_dict(), exc.http_status(), headers={"Retry-After": str(RETRY_AFTER_S)})
+    encoded = await asyncio.to_thread(service.encode, table, chosen)  # JSON of 100,000 rows takes a while
+    return Response(encoded, media_type=FORMATS[chosen],
                     headers={"X-Row-Count": str(table.num_rows)})
 
 

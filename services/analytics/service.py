@@ -2,15 +2,18 @@
 
 from __future__ import annotations
 
+import dataclasses
 import datetime as dt
 import decimal
+import functools
 import io
 import json
+import threading
 from collections.abc import Callable, Iterable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
-import duckdb
 import pyarrow as pa
 import pyarrow.csv as pacsv
 import pyarrow.parquet as pq
@@ -19,9 +22,10 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from catalog import queries
 from catalog.db import session_scope
-from catalog.models import Robot, Run, RunEntity, RunTimeline
+from catalog.models import Robot, Run, RunEntity, RunObject, RunTimeline
 from services.analytics import sql
 from services.analytics.extract import TABLES, Extractor
+from services.analytics.pool import Prepared, SqlPool
 from services.analytics.store import write_analytics
 from services.errors import ErrorCode, FleetError
 from services.ingest.service import IngestService
@@ -46,6 +50,8 @@ class Analytics:
     warm: ObjectStore
     limits: sql.Limits
     clock: Callable[[], dt.datetime] = lambda: dt.datetime.now(dt.UTC)
+    _pool: SqlPool | None = field(default=None, init=False, repr=False)
+    _pool_lock: threading.Lock = field(default_factory=threading.Lock, init=False, repr=False)
 
     def s3_access(self) -> sql.S3Access | None:
         access = getattr(self.warm, "access", None)
@@ -56,6 +62,28 @@ class Analytics:
             return None
         return sql.S3Access(found["key_id"], found["secret"], found["region"], found["endpoint"], found["use_ssl"],
                             found["session_token"])
+
+    @property
+    def root(self) -> str:
+        return sql.analytics_root(self.warm.url)
+
+    @property
+    def pool(self) -> SqlPool:
+        """The SQL workers, started with the first query (or by `start`)."""
+        with self._pool_lock:
+            if self._pool is None:
+                self._pool = SqlPool(self.limits, httpfs=self.root.startswith("s3://"))
+            return self._pool
+
+    def start(self) -> None:
+        """Start the idle SQL workers now, so the first query does not wait for them."""
+        self.pool.start()
+
+    def close(self) -> None:
+        with self._pool_lock:
+            pool, self._pool = self._pool, None
+        if pool is not None:
+            pool.close()
 
 
 def catalog_tables(session: Session, names: Iterable[str] = CATALOG_TABLES) -> dict[str, pa.Table]:
@@ -88,28 +116,44 @@ def _plain(value: Any) -> Any:
     return value
 
 
-_PARSER = duckdb.connect(":memory:")  # parses only; a cursor per call, so threads do not share one
+def analytics_files(session: Session, root: str, tables: Iterable[str]) -> dict[str, list[str]]:
+    """Each analytics table's files, as the catalog lists them: one set per run that is not deleted
+    (files the store holds but the catalog does not, such as a crash's leftovers, are not read)."""
+    wanted = {f"analytics/{t}": t for t in tables}
+    files: dict[str, list[str]] = {t: [] for t in wanted.values()}
+    if not wanted:
+        return files
+    rows = session.execute(sa.select(RunObject.name, RunObject.key).join(Run, Run.id == RunObject.run_id)
+                           .where(RunObject.name.in_(list(wanted)), Run.tier != "deleted")
+                           .order_by(RunObject.key)).all()
+    for name, key in rows:
+        table = wanted[name]
+        if key.startswith(f"{name}/") and ".." not in key.split("/"):  # the catalog's keys, kept in the table
+            files[table].append(f"{root}/{key.removeprefix('analytics/')}")
+    return files
 
 
-def referenced_tables(text: str) -> set[str] | None:
-    """The tables a query names, in lower case (None if it does not parse: the sandbox says why)."""
-    try:
-        with _PARSER.cursor() as cursor:
-            return {name.lower() for name in cursor.get_table_names(text, qualified=False)}
-    except duckdb.Error:
-        return None
-
-
-def query(ctx: Analytics, text: str) -> pa.Table:
-    """Only the tables the query names are snapshotted, listed and bound: binding an analytics view
-    reads the footer of every one of its files (union_by_name), a snapshot copies a whole table."""
-    named = referenced_tables(text)
+def prepare(ctx: Analytics, named: set[str]) -> Prepared:
+    """The catalog rows and analytics file lists of the views a query names (only those: a snapshot
+    copies a whole table, and binding an analytics view reads the footer of each of its files)."""
     with session_scope(ctx.catalog) as session:
-        catalog = catalog_tables(session, [t for t in CATALOG_TABLES if named is None or t in named])
-    tables = [t for t in TABLES if named is None or t in named]
-    root = sql.analytics_root(ctx.warm.url)
-    with sql.sandbox(root, catalog, ctx.limits, ctx.s3_access(), tables) as con:
-        return sql.run(con, text, ctx.limits)
+        return Prepared(analytics_files(session, ctx.root, [t for t in TABLES if t in named]),
+                        catalog_tables(session, [t for t in CATALOG_TABLES if t in named]))
+
+
+def request(ctx: Analytics, text: str) -> dict[str, Any]:
+    """What a worker is told: the query, where the files are, the S3 access, and the server's own
+    strings it must keep out of answers and errors."""
+    s3 = ctx.s3_access()
+    hidden = [ctx.root, ctx.root.removesuffix("/analytics"), ctx.warm.url, ctx.pool.workdir, str(Path.home())]
+    if s3 is not None:
+        hidden += [s3.key_id, s3.secret, s3.session_token or "", s3.endpoint or ""]
+    return {"query": text, "root": ctx.root, "s3": dataclasses.asdict(s3) if s3 else None, "hidden": hidden}
+
+
+async def query(ctx: Analytics, text: str) -> pa.Table:
+    """The answer, computed in a worker process; this coroutine holds no thread while it waits."""
+    return await ctx.pool.run(request(ctx, text), functools.partial(prepare, ctx))
 
 
 def pick_format(name: str | None, accept: str | None) -> str:
@@ -187,3 +231,4 @@ def extract_hot_run(ctx: Analytics, ingest: IngestService, run_id: str) -> list[
     for key in stale:  # written before under another robot or date
         ctx.warm.delete(key)
     return [{"table": o.name.removeprefix("analytics/"), "key": o.key, "bytes": o.size} for o in objects]
+

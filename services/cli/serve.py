@@ -52,8 +52,12 @@ import click
               "[default: on]. Overrides by robot or application: FLEET_RETENTION_POLICIES or TOML.")
 @click.option("--sql-max-rows", type=int, help="FLEET_SQL_MAX_ROWS: most rows a SQL answer may have")
 @click.option("--sql-timeout-s", type=float, help="FLEET_SQL_TIMEOUT_S: a SQL query running longer is stopped")
-@click.option("--sql-memory-limit", help="FLEET_SQL_MEMORY_LIMIT: memory a SQL query may use (e.g. 2GB)")
+@click.option("--sql-memory-limit", help="FLEET_SQL_MEMORY_LIMIT: memory a SQL query's worker process may use "
+              "(e.g. 2GB)")
 @click.option("--sql-threads", type=int, help="FLEET_SQL_THREADS: threads a SQL query may use")
+@click.option("--sql-workers", type=int, help="FLEET_SQL_WORKERS: SQL queries running at once [default: 2]")
+@click.option("--sql-queue", type=int, help="FLEET_SQL_QUEUE: SQL queries waiting for a worker; more get 429 "
+              "[default: 8]")
 def serve(**flags: object) -> None:
     """Run the service. Every flag can also be set as the FLEET_* variable named in its help,
     or in a TOML file named by FLEET_CONFIG."""

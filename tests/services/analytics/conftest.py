@@ -3,16 +3,23 @@ SQL API on top, recordings logged with the real SDK, and analytics files written
 
 from __future__ import annotations
 
+import datetime as dt
 import json
 import os
 import subprocess
 import sys
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import pyarrow as pa
+import pytest
 from fastapi.testclient import TestClient
+from sqlalchemy.orm import Session, sessionmaker
 
+from catalog.db import session_scope
+from catalog.models import RunObject
+from catalog.queries import RunRecord, save_run
 from services.analytics.extract import SCALARS, Extractor
 from services.analytics.service import Analytics
 from services.analytics.sql import Limits
@@ -59,8 +66,24 @@ def log_with_sdk(script: str, *, flush_rows: int | None = None) -> Any:
     return json.loads(lines[-1]) if lines else None
 
 
+OPENED: list[Analytics] = []
+
+
+def opened(analytics: Analytics) -> Analytics:
+    """`analytics`, its SQL workers stopped when the test ends (idle ones hold ~100 MB each)."""
+    OPENED.append(analytics)
+    return analytics
+
+
+@pytest.fixture(autouse=True)
+def _stop_sql_workers() -> Iterator[None]:
+    yield
+    while OPENED:
+        OPENED.pop().close()
+
+
 def analytics_for(node: Node, limits: Limits | None = None) -> Analytics:
-    return Analytics(node.catalog, node.tiers.warm, limits or Limits())
+    return opened(Analytics(node.catalog, node.tiers.warm, limits or Limits()))
 
 
 def api(node: Node, limits: Limits | None = None, *, raise_server_exceptions: bool = True) -> TestClient:
@@ -108,3 +131,17 @@ def write_scalars(store: ObjectStore, robot: str, date: str, run_id: str, values
     }))
     (written,) = write_analytics(store, extractor, robot, date)
     return written.key
+
+
+def catalog_run(catalog: sessionmaker[Session], run_id: str, robot: str, date: str, keys: dict[str, str],
+                tier: str = "warm") -> None:
+    """The catalog's side of a run whose analytics files are `keys` (name -> key, e.g.
+    {"analytics/scalars": key}): what promotion records, so SQL reads those files."""
+    day = dt.date.fromisoformat(date)
+    at = dt.datetime.combine(day, dt.time(), dt.UTC)
+    with session_scope(catalog) as session:
+        save_run(session, RunRecord(id=run_id, robot_id=robot, application_id="test", date=day, status="closed",
+                                    tier=tier, started_at=at, ended_at=at, last_data_at=at, sdk_version="0.41.0",
+                                    chunks=1, rows=1, bytes=1, properties={}), at)
+        for name, key in keys.items():
+            session.merge(RunObject(run_id=run_id, name=name, key=key, tier="warm", size=1, sha256="0" * 64))

@@ -5,6 +5,7 @@ Python client against a real `fleet serve`."""
 
 from __future__ import annotations
 
+import contextlib
 import datetime as dt
 import io
 import json
@@ -21,11 +22,13 @@ import pyarrow as pa
 import pyarrow.csv as pacsv
 import pyarrow.parquet as pq
 import pytest
+import sqlalchemy as sa
 from fastapi.testclient import TestClient
 from sqlalchemy.orm import Session, sessionmaker
 
 from catalog import queries
 from catalog.db import create_engine, session_scope, upgrade
+from catalog.models import Run
 from sdk_client.rest import FleetClient, ServiceError
 from services.analytics.service import Analytics
 from services.analytics.sql import Limits
@@ -33,7 +36,14 @@ from services.api.app import create_app
 from services.settings import load_settings
 from services.storage.objectstore import ObjectStore, open_store
 from tests.seaweedfs import seaweedfs
-from tests.services.analytics.conftest import START_2026_03_01_NS, log_with_sdk, sql_rows, write_scalars
+from tests.services.analytics.conftest import (
+    START_2026_03_01_NS,
+    catalog_run,
+    log_with_sdk,
+    opened,
+    sql_rows,
+    write_scalars,
+)
 from tests.services.ingest.live_server import FLEET, LiveServer
 
 ROBOTS, DATES = ("robot-1", "robot-2", "robot-3"), ("2026-03-01", "2026-03-02")
@@ -44,7 +54,7 @@ READ_ONLY = "queries are read-only, only SELECT (or EXPLAIN)"  # the rule for st
 
 def sql_app(store: ObjectStore, catalog: sessionmaker[Session], limits: Limits | None = None,
             **client: Any) -> TestClient:
-    analytics = Analytics(catalog, store, limits or Limits())
+    analytics = opened(Analytics(catalog, store, limits or Limits()))
     return TestClient(create_app(load_settings(scheduler=False), analytics=analytics), **client)
 
 
@@ -61,12 +71,14 @@ def files_read(client: TestClient, query: str) -> int:
     return int(found[0])
 
 
-def fill(store: ObjectStore) -> None:
+def fill(store: ObjectStore, catalog: sessionmaker[Session]) -> None:
     """Two runs per robot and day, run `R-D-k` holding values k+1 .. k+3 at frames 0..2."""
     for robot in ROBOTS:
         for date in DATES:
             for k in range(2):
-                write_scalars(store, robot, date, f"{robot}-{date}-{k}", [k + 1.0, k + 2.0, k + 3.0])
+                run = f"{robot}-{date}-{k}"
+                key = write_scalars(store, robot, date, run, [k + 1.0, k + 2.0, k + 3.0])
+                catalog_run(catalog, run, robot, date, {"analytics/scalars": key})
 
 
 @pytest.fixture
@@ -79,9 +91,9 @@ def blank(tmp_path: Path) -> Iterator[sessionmaker[Session]]:
 
 
 @pytest.fixture
-def local(tmp_path: Path) -> ObjectStore:
+def local(tmp_path: Path, blank: sessionmaker[Session]) -> ObjectStore:
     store = open_store((tmp_path / "warm").as_uri())
-    fill(store)
+    fill(store, blank)
     return store
 
 
@@ -276,6 +288,66 @@ def test_explain_analyze_cannot_write(local: ObjectStore, blank: sessionmaker[Se
     assert sql_rows(client, "SELECT max(value) AS top FROM scalars") == [{"top": 4.0}]
 
 
+# --- the files the catalog lists, and nothing of the server's in any answer ---------------------
+
+
+def test_only_the_files_the_catalog_lists_count(local: ObjectStore, blank: sessionmaker[Session]):
+    """One copy per run, gone with the run: an orphan file (a crash before the catalog recorded it),
+    an early extraction filed under another robot and date, and a deleted run's file are not read."""
+    client = sql_app(local, blank)
+    assert sql_rows(client, "SELECT count(*) AS n, max(value) AS top FROM scalars") == [{"n": 36, "top": 4.0}]
+    write_scalars(local, "robot-1", "2026-03-01", "orphan-run", [100.0])
+    write_scalars(local, "unknown-robot", "2026-02-28", "robot-1-2026-03-01-0", [1.0, 2.0, 3.0])
+    with session_scope(blank) as session:
+        session.execute(sa.update(Run).where(Run.id == "robot-2-2026-03-02-1").values(tier="deleted"))
+    assert sql_rows(client, "SELECT count(*) AS n, count(DISTINCT run_id) AS runs, max(value) AS top, "
+                            "count(*) FILTER (WHERE robot_id = 'unknown-robot') AS early FROM scalars") == [
+        {"n": 33, "runs": 11, "top": 4.0, "early": 0}]
+    assert sql_rows(client, "SELECT count(*) AS n FROM scalars WHERE run_id = 'robot-2-2026-03-02-1'") == [{"n": 0}]
+
+
+SHOWS_THE_SERVER = [
+    "SELECT * FROM duckdb_settings()", "SELECT * FROM duckdb_settings", "SELECT * FROM duckdb_secrets()",
+    "SELECT * FROM duckdb_extensions()", "SELECT * FROM duckdb_views()", "SELECT sql FROM duckdb_views",
+    "SELECT * FROM duckdb_databases()", "SELECT * FROM duckdb_temporary_files()", "SELECT * FROM pragma_version()",
+    "SELECT * FROM information_schema.tables", "SELECT * FROM sqlite_master",
+    "SELECT current_setting('home_directory') AS v", "SELECT current_setting('temp_directory') AS v",
+    "SELECT current_setting('extension_directory') AS v", "SELECT current_setting('allowed_paths') AS v",
+    "SELECT current_setting('s3_secret_access_key') AS v", "SELECT getenv('HOME') AS v",
+    "SELECT getvariable('x') AS v", "SELECT * FROM which_secret('s3://x/y', 's3')",
+    "SELECT * FROM query('SELECT current_setting(''home_directory'')')",
+    "WITH s AS (SELECT current_setting('home_directory') AS v) SELECT * FROM s",
+    "SELECT * FROM scalars WHERE run_id IN (SELECT sql FROM duckdb_views())",
+    "EXPLAIN SELECT current_setting('home_directory')", "SELECT * FROM glob('*')",
+    "SELECT * FROM 'warm/analytics/scalars/robot_id=robot-1/date=2026-03-01/robot-1-2026-03-01-0.parquet'",
+]
+
+
+@pytest.mark.parametrize("query", SHOWS_THE_SERVER)
+def test_nothing_shows_settings_environment_or_paths(local: ObjectStore, blank: sessionmaker[Session],
+                                                     tmp_path: Path, query: str):
+    answer = post(sql_app(local, blank), query)
+    assert answer.status_code == 400 and answer.json()["code"] in ("SQL_NOT_ALLOWED", "INVALID_SQL"), answer.text
+    assert answer.json()["code"] == "SQL_NOT_ALLOWED" or "getvariable" not in query
+    for server_string in (str(tmp_path), str(Path.home()), "pytest-of"):
+        assert server_string not in answer.text
+
+
+def test_plans_and_errors_name_no_server_path(local: ObjectStore, blank: sessionmaker[Session], tmp_path: Path):
+    client = sql_app(local, blank)
+    for explain in ("EXPLAIN ANALYZE", "EXPLAIN", "EXPLAIN (FORMAT json)", "EXPLAIN (ANALYZE, FORMAT json)"):
+        plan = post(client, f"{explain} SELECT * FROM scalars WHERE robot_id = 'robot-1'")
+        assert plan.status_code == 200, plan.text
+        for server_string in (str(tmp_path), "/tmp", "pytest", "warm/"):
+            assert server_string not in plan.text, (explain, server_string)
+    assert files_read(client, "SELECT count(*) FROM scalars") == 12
+    (tmp_path / "warm" / "analytics" / "scalars" / "robot_id=robot-3" / "date=2026-03-02" /
+     "robot-3-2026-03-02-1.parquet").unlink()  # listed by the catalog, gone from the store
+    broken = post(client, "SELECT count(*) FROM scalars")
+    assert broken.status_code == 503 and broken.json()["code"] == "UNAVAILABLE", broken.text
+    assert "scalars" in broken.json()["message"] and str(tmp_path) not in broken.text and "pytest" not in broken.text
+
+
 # --- partition pruning -------------------------------------------------------------------------
 
 
@@ -300,31 +372,75 @@ def seaweed_endpoint(tmp_path_factory: pytest.TempPathFactory) -> Iterator[str]:
         yield endpoint
 
 
-@pytest.mark.s3server
-def test_over_s3(seaweed_endpoint: str, blank: sessionmaker[Session], tmp_path: Path, monkeypatch: pytest.MonkeyPatch):
-    secret = "fleet-test-secret-6c1f"
-    for name, value in (("AWS_ACCESS_KEY_ID", "fleet-test-key"), ("AWS_SECRET_ACCESS_KEY", secret),
+@pytest.fixture
+def on_s3(seaweed_endpoint: str, blank: sessionmaker[Session], tmp_path: Path,
+          monkeypatch: pytest.MonkeyPatch) -> Iterator[tuple[TestClient, ObjectStore]]:
+    """A warm store on S3 with the credentials in AWS_* (where DuckDB's httpfs also looks), and
+    objects outside its analytics folder: elsewhere in its prefix, another prefix, another bucket."""
+    for name, value in (("AWS_ACCESS_KEY_ID", KEY_ID), ("AWS_SECRET_ACCESS_KEY", SECRET),
                         ("AWS_DEFAULT_REGION", "us-east-1")):
         monkeypatch.setenv(name, value)
     store = open_store(f"s3://{BUCKET}/{tmp_path.name}", endpoint_url=seaweed_endpoint, region="us-east-1")
-    fill(store)
+    fill(store, blank)
     store.put("outside/notes.csv", b"secret\n1\n")
     neighbour = open_store(f"s3://{BUCKET}/{tmp_path.name}-other", endpoint_url=seaweed_endpoint, region="us-east-1")
     write_scalars(neighbour, "robot-9", "2026-03-01", "neighbour-run", [1.0])
-    client = sql_app(store, blank)
+    s3 = boto3.client("s3", endpoint_url=seaweed_endpoint, region_name="us-east-1", aws_access_key_id=KEY_ID,
+                      aws_secret_access_key=SECRET)
+    with contextlib.suppress(s3.exceptions.BucketAlreadyOwnedByYou, s3.exceptions.BucketAlreadyExists):
+        s3.create_bucket(Bucket=OTHER_BUCKET)
+    s3.put_object(Bucket=OTHER_BUCKET, Key="private/notes.csv", Body=b"secret\n1\n")
+    yield sql_app(store, blank), store
+
+
+KEY_ID, SECRET, OTHER_BUCKET = "fleet-test-key", "fleet-test-secret-6c1f", "fleet-other"
+
+
+@pytest.mark.s3server
+def test_over_s3(on_s3: tuple[TestClient, ObjectStore]):
+    client, _ = on_s3
     assert sql_rows(client, "SELECT robot_id, count(*) AS n, sum(value) AS total FROM scalars GROUP BY 1 ORDER BY 1") \
         == [{"robot_id": r, "n": 12, "total": 30.0} for r in ROBOTS]
     assert files_read(client, "SELECT count(*) FROM scalars") == 12
     assert files_read(client, "SELECT count(*) FROM scalars WHERE robot_id = 'robot-3' AND date = '2026-03-01'") == 2
     arrow = post(client, "SELECT * FROM scalars WHERE robot_id = 'robot-1'", params={"format": "arrow"})
     assert pa.ipc.open_stream(arrow.content).read_all().num_rows == 12
-    for query in (f"SELECT * FROM read_csv('s3://{BUCKET}/{tmp_path.name}/outside/notes.csv')",
-                  f"SELECT * FROM read_parquet('s3://{BUCKET}/{tmp_path.name}-other/analytics/scalars/*/*/*.parquet')",
-                  f"SELECT * FROM glob('s3://{BUCKET}/*')"):
+
+
+@pytest.mark.s3server
+@pytest.mark.parametrize("query", [
+    "SELECT current_setting('s3_secret_access_key') AS v", "SELECT current_setting('s3_access_key_id') AS v",
+    "SELECT current_setting('s3_endpoint') AS v", "SELECT * FROM duckdb_secrets()", "SELECT * FROM duckdb_settings()",
+    "SELECT getenv('AWS_SECRET_ACCESS_KEY') AS v", "SELECT * FROM which_secret('s3://{bucket}/x', 's3')",
+    "EXPLAIN ANALYZE SELECT * FROM scalars", "SELECT * FROM duckdb_views()",
+])
+def test_no_answer_over_s3_reveals_credentials_or_where_the_store_is(on_s3: tuple[TestClient, ObjectStore],
+                                                                     tmp_path: Path, query: str):
+    client, _ = on_s3
+    answer = post(client, query.format(bucket=BUCKET))
+    assert answer.status_code in (200, 400), answer.text
+    for server_string in (SECRET, KEY_ID, f"{BUCKET}/{tmp_path.name}", "127.0.0.1"):
+        assert server_string not in answer.text, server_string
+
+
+@pytest.mark.s3server
+@pytest.mark.parametrize("path", [
+    "{prefix}/outside/notes.csv",  # the warm store, outside analytics
+    "{prefix}/analytics/../outside/notes.csv",
+    "{prefix}/analytics/../../{prefix}-other/analytics/scalars/robot_id=robot-9/date=2026-03-01/neighbour-run.parquet",
+    "{prefix}/analytics/../../../{other}/private/notes.csv",  # another bucket
+    "{prefix}/analytics/scalars/../../../../{other}/private/notes.csv",
+])
+def test_no_query_reads_outside_the_analytics_folder(on_s3: tuple[TestClient, ObjectStore], tmp_path: Path,
+                                                     path: str):
+    client, _ = on_s3
+    url = f"s3://{BUCKET}/" + path.format(prefix=tmp_path.name, other=OTHER_BUCKET)
+    reader = "read_parquet" if url.endswith(".parquet") else "read_csv"
+    for query in (f"SELECT * FROM {reader}('{url}')", f"SELECT * FROM '{url}'",
+                  f"SELECT * FROM scalars WHERE run_id IN (SELECT * FROM {reader}('{url}'))"):
         refused = post(client, query)
         assert refused.status_code == 400 and refused.json()["code"] == "SQL_NOT_ALLOWED", (query, refused.text)
-    secrets = post(client, "SELECT * FROM duckdb_secrets()")
-    assert secret not in secrets.text  # the store's credentials never reach an answer
+        assert "rows" not in refused.json()
 
 
 # --- `fleet sql` and the Python client against `fleet serve` ----------------------------------
