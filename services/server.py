@@ -126,3 +126,4 @@ async def serve(settings: Settings) -> None:
             await housekeeping
         await grpc_server.stop(grace=5)
         ingest.close()
+        analytics.close()  # its idle query workers and their scratch folders

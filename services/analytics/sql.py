@@ -28,6 +28,12 @@ from services.errors import ErrorCode, FleetError
 from services.storage.objectstore import StorageError
 
 
+class AnalyticsUnavailableError(FleetError):
+    """The node cannot read the analytics tables as deployed (an operator's fix, not the query's)."""
+
+    code = ErrorCode.UNAVAILABLE
+
+
 class SqlNotAllowedError(FleetError):
     code = ErrorCode.SQL_NOT_ALLOWED
 
@@ -122,8 +128,9 @@ def httpfs_extension() -> str:
     root = Path(duckdb_extension_httpfs.__file__).parent / "extensions"
     found = sorted(root.glob(f"v{duckdb.__version__}/httpfs.duckdb_extension"))
     if not found:
-        raise FleetError(f"no httpfs extension for DuckDB {duckdb.__version__} in the duckdb-extension-httpfs "
-                         f"package: install duckdb-extension-httpfs=={duckdb.__version__}")
+        raise AnalyticsUnavailableError(f"no httpfs extension for DuckDB {duckdb.__version__} in the "
+                                        f"duckdb-extension-httpfs package: install "
+                                        f"duckdb-extension-httpfs=={duckdb.__version__}")
     return str(found[0])
 
 
@@ -271,7 +278,8 @@ def _s3(con: duckdb.DuckDBPyConnection, s3: S3Access | None, root: str) -> None:
     """The credentials as a secret scoped to the analytics folder: never as s3_* settings, which
     current_setting() would show (duckdb_secrets() shows a secret's scope, never its values)."""
     if s3 is None:
-        raise FleetError("the analytics tables are on S3 but no S3 credentials were found: set AWS_* variables")
+        raise AnalyticsUnavailableError("the analytics tables are on S3 but no S3 credentials were found: "
+                                        "set AWS_* variables")
     con.execute(f"LOAD '{httpfs_extension()}'")
     options = {"KEY_ID": s3.key_id, "SECRET": s3.secret, "REGION": s3.region, "SCOPE": root.rstrip("/") + "/"}
     if s3.session_token:

@@ -17,6 +17,7 @@ from catalog import queries
 from catalog.db import session_scope
 from catalog.models import Run, RunLifecycle
 from services.errors import ErrorCode, FleetError
+from services.analytics.extract import TABLES, partition_key
 from services.retention.seal import RECORDING
 from services.retention.tiers import Tiers, readable_when_cold
 from services.runs.service import run_not_found
@@ -146,14 +147,17 @@ def _set_restore(catalog: sessionmaker[Session], run_id: str, state: str | None,
 
 def delete(run_id: str, tiers: Tiers, catalog: sessionmaker[Session], now: dt.datetime, actor: str,
            policy: str | None) -> str:
-    """Delete a sealed run: every object under its prefix in both stores first, then the run is
-    marked deleted; the tombstone keeps who, when and which policy."""
-    with session_scope(catalog) as session:
+    """Delete a sealed run: its analytics rows leave the catalog first (SQL reads the files the catalog
+    lists, so none of them may be missing), then every object under its prefix in both stores, then
+    the run is marked deleted; the tombstone keeps who, when and which policy. Safe to repeat."""
+    with session_scope(catalog, write=True) as session:
         run, life = _load(session, run_id)
         if run.tier == "deleted":
             return "already deleted"
         prefix = life.prefix
-        analytics = [o.key for o in queries.run_objects(session, run_id).values() if o.name.startswith("analytics/")]
+        analytics = queries.replace_analytics(session, run_id, [])
+        # where they are, if an earlier attempt already took them out of the catalog
+        analytics |= {partition_key(t, run.robot_id, run.date.isoformat(), run_id) for t in TABLES}
     removed = 0
     for store in (tiers.warm, tiers.cold) if tiers.cold is not tiers.warm else (tiers.warm,):
         for info in list(store.list(prefix + "/")):
@@ -162,7 +166,11 @@ def delete(run_id: str, tiers: Tiers, catalog: sessionmaker[Session], now: dt.da
             except ObjectNotFoundError:
                 continue
             removed += 1
-    for key in analytics:  # the run's rows in the analytics tables (warm store, partitioned elsewhere)
+    for key in sorted(analytics):  # the run's rows in the analytics tables (warm store, partitioned elsewhere)
+        try:
+            tiers.warm.head(key)
+        except ObjectNotFoundError:
+            continue
         tiers.warm.delete(key)
         removed += 1
     with session_scope(catalog, write=True) as session:
