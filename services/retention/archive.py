@@ -16,8 +16,8 @@ from sqlalchemy.orm import Session, sessionmaker
 from catalog import queries
 from catalog.db import session_scope
 from catalog.models import Run, RunLifecycle
-from services.errors import ErrorCode, FleetError
 from services.analytics.extract import TABLES, partition_key
+from services.errors import ErrorCode, FleetError
 from services.retention.seal import RECORDING
 from services.retention.tiers import Tiers, readable_when_cold
 from services.runs.service import run_not_found
