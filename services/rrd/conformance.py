@@ -13,6 +13,7 @@ from __future__ import annotations
 import pyarrow as pa
 
 CHUNK_ID_KEY = b"rerun:id"
+LEGACY_CHUNK_ID_KEY = b"rerun.id"  # SDK 0.23 and older (newer Rerun migrates it)
 ROW_ID_TYPE = pa.binary(16)
 
 _F32 = pa.float32()
@@ -64,7 +65,8 @@ def schema_problem(schema: pa.Schema, row_id_field: pa.Field | None,
                    data: list[tuple[str, str, pa.DataType]]) -> str | None:
     """Why Rerun would refuse chunks of this schema (None: it would not, as far as checked here).
     `data`: (column, component, type) of each data column."""
-    if CHUNK_ID_KEY not in (schema.metadata or {}):
+    metadata = schema.metadata or {}
+    if CHUNK_ID_KEY not in metadata and LEGACY_CHUNK_ID_KEY not in metadata:
         return "the Arrow schema has no rerun:id (chunk id) metadata"
     if row_id_field is None:
         return "no rerun.controls.RowId column"
