@@ -19,9 +19,11 @@ from catalog.queries import EntityRecord, RunRecord, TimelineRecord
 from services.errors import ErrorCode, FleetError
 from services.ingest.hot import HotRun
 from services.ingest.identity import (
+    DEFAULT_SECRETS,
     IDENTITY_PROPERTY,
     ROBOT_FIELD,
     START_TIME_COMPONENT,
+    SecretFields,
     check_id,
     is_property_entity,
     read_property_chunk,
@@ -95,8 +97,9 @@ class SealedInfo:
 class RunFacts:
     """What the catalog will say about a run, learnt from its messages (live, recovered or sealed)."""
 
-    def __init__(self, run_id: str, now: dt.datetime) -> None:
+    def __init__(self, run_id: str, now: dt.datetime, secret_fields: SecretFields = DEFAULT_SECRETS) -> None:
         self.run_id = run_id
+        self.secret_fields = secret_fields  # what reading its stored property chunks leaves out
         self.size = 0  # bytes of the recording, when it is not a hot file
         self.application_id = ""
         self.stores_written: set[tuple[StoreKind, str]] = set()
@@ -153,7 +156,7 @@ class RunFacts:
         elif isinstance(event, ArrowMessage):
             meta = meta or chunk_meta(event)
             if event.store_id.kind == StoreKind.RECORDING and is_property_entity(meta.entity_path):
-                prop = read_property_chunk(event, meta)
+                prop = read_property_chunk(event, meta, self.secret_fields)
                 self.observe_property(prop.name, prop.values)
             self.observe_chunk(event, meta, at)
 
@@ -201,8 +204,8 @@ def store_key(store: StoreId) -> tuple[StoreKind, str]:
 class RunState(RunFacts):
     """A hot run: its file, the chunk ids it holds, and what the catalog will say about it."""
 
-    def __init__(self, hot: HotRun, now: dt.datetime) -> None:
-        super().__init__(hot.run_id, now)
+    def __init__(self, hot: HotRun, now: dt.datetime, secret_fields: SecretFields = DEFAULT_SECRETS) -> None:
+        super().__init__(hot.run_id, now, secret_fields)
         self.hot = hot
         self.sealing = threading.Lock()  # held by ingest per write, and by promotion as it hands the run over
         self.sealed = False  # handed to the warm tier: new data for this run starts a new hot run

@@ -343,7 +343,7 @@ class IngestService:
             raise SealedRunError(f"run {run_id!r} is {sealed.tier}: it takes no new data; {fix}")
         info = source.store_infos.get((StoreKind.RECORDING, run_id))
         version = (info.sdk_version if info is not None else None) or source.version or DEFAULT_VERSION
-        run = self.runs[run_id] = RunState(self.hot.create(run_id, version), self.clock())
+        run = self.runs[run_id] = RunState(self.hot.create(run_id, version), self.clock(), self.secret_fields)
         run.sealed_as = sealed  # chunks sent after it was sealed: sealed in with the rest later
         self._attach(source, run)
         for key, store_info in source.store_infos.items():
@@ -419,7 +419,7 @@ class IngestService:
         for directory in self.hot.existing():
             hot, events = self.hot.recover(directory)
             mtime = dt.datetime.fromtimestamp(hot.path.stat().st_mtime, dt.UTC)
-            run = self.runs[hot.run_id] = RunState(hot, mtime)
+            run = self.runs[hot.run_id] = RunState(hot, mtime, self.secret_fields)
             for event in events:
                 run.replay(event, mtime)
             # No stream survives a restart (the SDK never reconnects): what follows comes by upload.

@@ -189,7 +189,7 @@ def _seal_and_switch(run: RunState, ingest: IngestService, tiers: Tiers, catalog
         sources.append(iter(iter_events(base)))
     sources.append(read_events(run.hot.path, size, None))
     analytics = Extractor(run.run_id)
-    sealed = seal(sources, workdir / RECORDING, run.run_id, now, analytics.add)  # (1)
+    sealed = seal(sources, workdir / RECORDING, run.run_id, now, analytics.add, ingest.secret_fields)  # (1)
     record = _sealed_record(run, sealed, ingest.default_robot)
     prefix = prefix or run_prefix(record.robot_id, record.date, run.run_id)
     objects = [ObjectRecord(RECORDING, f"{prefix}/{RECORDING}", "warm", sealed.recording_size,

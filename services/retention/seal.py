@@ -16,6 +16,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import BinaryIO, cast
 
+from services.ingest.identity import DEFAULT_SECRETS, SecretFields
 from services.ingest.service import RunFacts
 from services.retention.index import (
     BLUEPRINT_ACTIVATION,
@@ -79,11 +80,13 @@ def _store_kind(store: StoreId) -> str:
 
 
 def seal(recordings: Iterable[Iterator[Event | None]], out: Path, run_id: str, now: dt.datetime,
-         on_chunk: Callable[[ArrowMessage, ChunkMeta], None] | None = None) -> SealedRun:
+         on_chunk: Callable[[ArrowMessage, ChunkMeta], None] | None = None,
+         secret_fields: SecretFields = DEFAULT_SECRETS) -> SealedRun:
     """Write `out` (recording.rrd) from the events of one or more recordings of the same run (a
     sealed recording and what came after it); returns where every message went and the run's facts.
-    `on_chunk` sees every recording chunk kept (analytics extraction rides on this one pass)."""
-    facts = RunFacts(run_id, now)
+    `on_chunk` sees every recording chunk kept (analytics extraction rides on this one pass);
+    `secret_fields`, the node's setting, is what reading property values leaves out."""
+    facts = RunFacts(run_id, now, secret_fields)
     rows: list[IndexRow] = []
     seen_chunks: set[bytes] = set()
     seen_stores: set[StoreId] = set()

@@ -10,8 +10,10 @@ import datetime as dt
 import hashlib
 import io
 import itertools
+import json
 import shutil
 import subprocess
+import sys
 from collections.abc import Iterator
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
@@ -23,6 +25,7 @@ import sqlalchemy as sa
 
 from catalog import queries
 from catalog.db import session_scope
+from services.ingest.identity import SecretFields
 from services.ingest.service import RunState
 from services.retention import promote
 from services.retention.index import CHUNK, IndexRow, from_parquet
@@ -540,6 +543,37 @@ def _facts(node: Node) -> tuple[object, ...]:
         run = queries.get_run(session, RUN)
         assert run is not None
         return run.status, run.ended_at, run.last_data_at, run.chunks, run.tier
+
+
+def test_sealing_reads_properties_with_the_nodes_secret_fields(tiers: Tiers, make_node: NodeFactory,
+                                                               tmp_path: Path):
+    """A node that strips only passwords keeps a `token` field through promotion too (sealing reads
+    the stored property chunks with the node's setting, not the default list)."""
+    node = make_node(tiers, clock=Clock())
+    node.ingest.secret_fields = SecretFields(["password"])
+    path = tmp_path / "props.rrd"
+    subprocess.run([sys.executable, "-c", f"""
+import rerun as rr
+rec = rr.RecordingStream("nav", recording_id="props-run")
+rec.save({str(path)!r})
+rec.send_property("fleet", rr.AnyValues(robot_id="robot-7", token="kept", password="hidden"))
+rec.set_time("frame", sequence=0)
+rec.log("/x", rr.Scalars(1.0))
+rec.flush()
+"""], check=True, timeout=120, capture_output=True)
+    node.upload(path)
+    node.ingest.flush_catalog()
+
+    def fleet_property() -> dict[str, object]:
+        with session_scope(node.catalog) as session:
+            run = queries.get_run(session, "props-run")
+            assert run is not None
+            return dict(json.loads(run.properties)["fleet"])
+
+    assert fleet_property() == {"robot_id": "robot-7", "token": "kept"}
+    node.clock.advance(seconds=PROMOTE_AFTER_S)
+    assert [o.ok for o in promote_now(node)] == [True]
+    assert fleet_property() == {"robot_id": "robot-7", "token": "kept"}
 
 
 def test_a_pin_set_while_hot_survives_promotion_and_a_rebuild(tiers: Tiers, make_node: NodeFactory,
