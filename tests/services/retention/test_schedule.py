@@ -217,6 +217,10 @@ def test_two_processes_run_the_retention_job_one_at_a_time(pg_catalog: str, tmp_
             held_to = dt.datetime.now(dt.UTC)
         # polling for the condition, bounded by the deadline: the services take turns again
         _poll(lambda: _count(engine, held_to) >= 2, 20, "retention jobs after the lock was released")
+        # both take turns: each has run the job (which one wins a turn is up to timing, so wait for it)
+        assert a.proc is not None and b.proc is not None
+        pids = {str(a.proc.pid), str(b.proc.pid)}
+        _poll(lambda: _nodes(engine) == pids, 60, "both services to have run the retention job")
         events = {run: [e["action"] for e in httpx.get(f"{a.url}/v1/runs/{run}", timeout=10).json()["events"]]
                   for run in runs}
     finally:
@@ -227,8 +231,6 @@ def test_two_processes_run_the_retention_job_one_at_a_time(pg_catalog: str, tmp_
         promotions = list(session.scalars(sa.select(JobRun).where(JobRun.job == "promote")))
     engine.dispose()
 
-    assert a.proc is not None and b.proc is not None
-    pids = {str(a.proc.pid), str(b.proc.pid)}
     nodes = {r.node.rsplit(":", 1)[1] for r in rows}  # hostname:pid
     assert nodes == pids, f"retention ran on {nodes}, the services are {pids}"
     assert _overlapping(rows) == [], "two retention jobs ran at the same time"
@@ -243,6 +245,13 @@ def test_two_processes_run_the_retention_job_one_at_a_time(pg_catalog: str, tmp_
     promoted = {pid: sum(int(r.detail.split(" done")[0]) for r in promotions if r.node.endswith(f":{pid}"))
                 for pid in pids}
     assert promoted == {str(a.proc.pid): len(SCENES_A), str(b.proc.pid): len(SCENES_B)}
+
+
+def _nodes(engine: sa.Engine) -> set[str]:
+    """The processes (pids) that have run the retention job."""
+    with Session(engine) as session:
+        return {node.rsplit(":", 1)[1] for node in session.scalars(sa.select(JobRun.node)
+                                                                    .where(JobRun.job == "retention"))}
 
 
 def _count(engine: sa.Engine, since: dt.datetime) -> int:
