@@ -25,11 +25,11 @@ from services.ingest.identity import (
     START_TIME_COMPONENT,
     SecretFields,
     check_id,
-    is_property_entity,
     read_property_chunk,
     run_date,
 )
 from services.rrd.chunk import ChunkMeta, chunk_meta
+from services.rrd.manifest import is_property_entity
 from services.rrd.messages import ArrowMessage, BlueprintActivationMessage, Event, StoreId, StoreInfoMessage, StoreKind
 from services.rrd.summary import StoreSummary
 

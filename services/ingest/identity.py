@@ -72,10 +72,6 @@ class SecretFields:
 DEFAULT_SECRETS = SecretFields()
 
 
-def is_property_entity(entity_path: str) -> bool:
-    return entity_path == PROPERTIES_ENTITY or entity_path.startswith(PROPERTIES_ENTITY + "/")
-
-
 def property_name(entity_path: str) -> str:
     """`/__properties/fleet` -> `fleet`; `/__properties` (RecordingInfo) -> ``."""
     return entity_path[len(PROPERTIES_ENTITY):].strip("/")

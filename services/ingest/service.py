@@ -50,12 +50,12 @@ from services.ingest.identity import (
     SecretFields,
     UnsafeIdError,
     check_id,
-    is_property_entity,
     read_property_chunk,
 )
 from services.ingest.replay import ReplayHub
 from services.rrd.chunk import chunk_meta
 from services.rrd.frames import DEFAULT_VERSION, MessageKind, RerunVersion
+from services.rrd.manifest import is_property_entity
 from services.rrd.messages import (
     ArrowMessage,
     BlueprintActivationMessage,

@@ -24,6 +24,11 @@ from services.rrd.messages import Compression, StoreId
 from services.rrd.pb import common_pb2, log_msg_pb2
 
 PROPERTIES_ENTITY = "/__properties"
+
+
+def is_property_entity(entity_path: str) -> bool:
+    """The recording's properties: `/__properties` (RecordingInfo) and `/__properties/NAME`."""
+    return entity_path == PROPERTIES_ENTITY or entity_path.startswith(PROPERTIES_ENTITY + "/")
 _UNSAFE_CHARS = str.maketrans({c: "_" for c in ", -.\\"})
 
 
@@ -57,7 +62,7 @@ def _descriptor_metadata(comp: ComponentMeta, index: str) -> dict[bytes, bytes]:
 def sorbet_column_name(entity_path: str, column: str) -> str:
     """The recording-wide column name: `/world/points:Points3D:positions`, and for recording
     properties `property:fleet:robot_id` / `property:RecordingInfo:start_time`."""
-    if entity_path == PROPERTIES_ENTITY or entity_path.startswith(PROPERTIES_ENTITY + "/"):
+    if is_property_entity(entity_path):
         rest = entity_path[len(PROPERTIES_ENTITY):].strip("/")
         return ":".join(p for p in ("property", rest, column) if p)
     return f"{entity_path}:{column}"

@@ -21,6 +21,7 @@ from services.rrd.chunk import ChunkMeta, chunk_meta
 from services.rrd.decoder import RrdDecoder
 from services.rrd.encoder import RrdEncoder
 from services.rrd.frames import DEFAULT_VERSION
+from services.rrd.manifest import is_property_entity
 from services.rrd.messages import (
     ArrowMessage,
     BlueprintActivationMessage,
@@ -40,7 +41,6 @@ Follow = Callable[[], tuple[int, bool]]
 
 MAX_PATTERNS = 256  # include and exclude patterns each: matching stays cheap, whatever a client sends
 MAX_PATTERN_LENGTH = 1024
-PROPERTIES = "/__properties"  # the recording's properties (`/__properties` and its subtree)
 
 
 @dataclass(frozen=True)
@@ -74,15 +74,11 @@ class EntityFilter:
         return verdict
 
     def _decide(self, path: str) -> bool:
-        if _is_properties(path):  # only an exclude that names the properties drops them
-            return not any(_is_properties(p.removesuffix("/**")) and _matches(p, path) for p in self.exclude)
+        if is_property_entity(path):  # only an exclude that names the properties drops them
+            return not any(is_property_entity(p.removesuffix("/**")) and _matches(p, path) for p in self.exclude)
         if any(_matches(p, path) for p in self.exclude):
             return False
         return not self.include or any(_matches(p, path) for p in self.include)
-
-
-def _is_properties(path: str) -> bool:
-    return path == PROPERTIES or path.startswith(PROPERTIES + "/")
 
 
 def _matches(pattern: str, path: str) -> bool:
