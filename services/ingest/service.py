@@ -65,7 +65,6 @@ from services.rrd.messages import (
     StoreKind,
     StreamStart,
 )
-from services.rrd.store_ids import StoreIdResolver
 from services.rrd.validate import check_chunk
 
 __all__ = ["LOG_TIME", "IngestReport", "IngestService", "InvalidStreamError", "RunFacts", "RunState", "SealedInfo",
@@ -121,7 +120,6 @@ class Source:
     sealed: dict[str, SealedInfo | None] = field(default_factory=dict)  # what `prepare` learnt per run
     attached: set[str] = field(default_factory=set)  # hot runs this source counts in their live sources
     report: IngestReport = field(default_factory=IngestReport)
-    store_ids: StoreIdResolver = field(default_factory=StoreIdResolver)  # pre-0.25 SDKs: ids without app id
 
 
 class IngestService:
@@ -214,7 +212,6 @@ class IngestService:
     def accept(self, source: Source, event: Event) -> None:
         """File one message of `source`."""
         source.report.messages += 1
-        event = source.store_ids.complete(event)
         if isinstance(event, StreamStart):
             source.version = event.version
         elif isinstance(event, StoreInfoMessage):
