@@ -18,16 +18,16 @@ from dataclasses import dataclass, field
 
 import pyarrow as pa
 
-from services.rrd import conformance, errors
+from services.rrd import conformance, errors, migrations
 from services.rrd.migrations import migrate_field_metadata, migrate_schema_metadata, sorbet_version
 
-ENTITY_PATH_KEY = b"rerun:entity_path"
+ENTITY_PATH_KEY = migrations.ENTITY_PATH  # the keys migrations write, read here
+ARCHETYPE_KEY = migrations.ARCHETYPE
+COMPONENT_KEY = migrations.COMPONENT
+COMPONENT_TYPE_KEY = migrations.COMPONENT_TYPE
 KIND_KEY = b"rerun:kind"
 INDEX_NAME_KEY = b"rerun:index_name"
 IS_SORTED_KEY = b"rerun:is_sorted"
-ARCHETYPE_KEY = b"rerun:archetype"
-COMPONENT_KEY = b"rerun:component"
-COMPONENT_TYPE_KEY = b"rerun:component_type"
 
 # Rerun accepts both the current and the legacy names of column kinds.
 _CONTROL_KINDS = (b"control", b"row_id")
