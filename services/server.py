@@ -7,15 +7,18 @@ import contextlib
 import datetime as dt
 import logging
 import socket
+from pathlib import Path
 
 import grpc
 import uvicorn
 from sqlalchemy.orm import sessionmaker
 
 from catalog.db import create_engine
+from services import __version__
 from services.analytics.service import Analytics
 from services.analytics.sql import Limits
 from services.api.app import create_app
+from services.api.grpc_front import start_front, stop_front
 from services.ingest import grpc_handler
 from services.ingest.hot import HotStore
 from services.ingest.identity import SecretFields
@@ -27,7 +30,7 @@ from services.retention.service import Retention
 from services.retention.tiers import open_tiers, sealed_lookup
 from services.runtime import tune_allocator
 from services.settings import Settings
-from services.startup import check_grpc_port, grpc_bind_failed, listen_http
+from services.startup import listen_grpc, listen_http, private_socket_path, release_private_socket
 
 log = logging.getLogger("fleet")
 
@@ -82,26 +85,30 @@ async def _housekeeping(ingest: IngestService, reserve: DiskReserve, every: floa
             await asyncio.to_thread(reserve.ensure)
 
 
-def _claim_ports(settings: Settings) -> tuple[grpc.aio.Server, socket.socket]:
+def _claim_ports(settings: Settings) -> tuple[socket.socket, socket.socket]:
     """Both ports, before any recovery work: a refused start is one line, quick, and changes nothing."""
-    grpc_host, grpc_port = split_addr(settings.grpc_addr)
-    check_grpc_port(grpc_host, grpc_port)
-    http_socket = listen_http(*split_addr(settings.http_addr))
-    # gRPC sets SO_REUSEPORT by default: a second depot on this port would silently take half the streams.
-    grpc_server = grpc.aio.server(options=[*grpc_handler.server_options(settings.max_message_size),
-                                           ("grpc.so_reuseport", 0)])
+    grpc_socket = listen_grpc(*split_addr(settings.grpc_addr))
     try:
-        grpc_server.add_insecure_port(f"{grpc_host}:{grpc_port}")
-    except RuntimeError:
-        http_socket.close()
-        raise grpc_bind_failed(grpc_host, grpc_port) from None
-    return grpc_server, http_socket
+        http_socket = listen_http(*split_addr(settings.http_addr))
+    except Exception:
+        grpc_socket.close()
+        raise
+    return grpc_socket, http_socket
+
+
+def _grpc_server(settings: Settings) -> tuple[grpc.aio.Server, str]:
+    """The gRPC server, on a private Unix socket behind the public port's front."""
+    path = str(private_socket_path(settings.data_dir))
+    server = grpc.aio.server(options=grpc_handler.server_options(settings.max_message_size))
+    server.add_insecure_port(f"unix:{path}")
+    return server, path
 
 
 async def serve(settings: Settings) -> None:
     """Run the node until stopped; the caller holds the data dir (`startup.hold_data_dir`)."""
     tune_allocator()
-    grpc_server, http_socket = _claim_ports(settings)
+    grpc_socket, http_socket = _claim_ports(settings)
+    grpc_server, grpc_path = _grpc_server(settings)
     ingest, retention, analytics = build(settings)
     recovered = ingest.recover()
     if recovered:
@@ -111,6 +118,7 @@ async def serve(settings: Settings) -> None:
     app = create_app(settings, ingest, retention, analytics)
     http = uvicorn.Server(uvicorn.Config(app, log_level="info", lifespan="off"))
     await grpc_server.start()
+    front = await start_front(grpc_socket, grpc_path, f"fleet-telemetry {__version__}")
     reserve = DiskReserve(settings.data_dir, settings.reserve_bytes)
     await asyncio.to_thread(reserve.ensure)
     housekeeping = asyncio.create_task(_housekeeping(ingest, reserve, settings.catalog_flush_s))
@@ -124,6 +132,8 @@ async def serve(settings: Settings) -> None:
         housekeeping.cancel()
         with contextlib.suppress(asyncio.CancelledError):
             await housekeeping
+        await stop_front(front)
         await grpc_server.stop(grace=5)
+        release_private_socket(Path(grpc_path), settings.data_dir)
         ingest.close()
         analytics.close()  # its idle query workers and their scratch folders

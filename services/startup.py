@@ -1,9 +1,9 @@
 """What `fleet serve` claims before it does anything else: its data dir and its two ports.
 
 Two processes must never share either. Two `fleet serve` on one data dir would write the same hot
-runs; two on one gRPC port would split robots' streams between two depots without a word (gRPC
-sets SO_REUSEPORT by default on Linux, so the second bind succeeds). Each refusal is one line
-naming who holds what and the setting to change.
+runs; two on one gRPC port would split robots' streams between two depots without a word (with
+SO_REUSEPORT, which gRPC sets by default, the second bind succeeds: so both ports are bound here,
+without it). Each refusal is one line naming who holds what and the setting to change.
 """
 
 from __future__ import annotations
@@ -13,12 +13,14 @@ import errno
 import fcntl
 import os
 import socket
+import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 
 from services.errors import ErrorCode, FleetError
 
 LOCK_FILE = "fleet.lock"
+GRPC_SOCKET = "grpc.sock"
 
 
 class DataDirInUseError(FleetError):
@@ -67,8 +69,9 @@ def _refusal(exc: OSError, host: str, port: int, what: str, setting: str) -> Add
                         f"or FLEET_{setting.upper()}")
 
 
-def listen_http(host: str, port: int) -> socket.socket:
-    """The REST API's listening socket, bound here (not by uvicorn) so that a refusal is ours."""
+def listen(host: str, port: int, what: str, setting: str) -> socket.socket:
+    """A listening socket for one of the two ports, bound here (not by uvicorn or gRPC) so that a
+    refusal is one line of ours, quick, and before anything else has changed."""
     sock = socket.socket(_family(host), socket.SOCK_STREAM)
     try:
         # SO_REUSEADDR (as uvicorn sets it) lets a restart bind despite TIME_WAIT connections, but
@@ -78,22 +81,38 @@ def listen_http(host: str, port: int) -> socket.socket:
         sock.listen(2048)
     except OSError as exc:
         sock.close()
-        raise _refusal(exc, host, port, "REST API", "http_addr") from None
+        raise _refusal(exc, host, port, what, setting) from None
+    sock.setblocking(False)
     return sock
 
 
-def check_grpc_port(host: str, port: int) -> None:
-    """gRPC binds its own sockets and logs a failure as a multi-line C++ error, so the address is
-    tried here first for a one-line refusal. (gRPC's own bind, with SO_REUSEPORT off, stays the
-    guard against a race between this check and it.)"""
-    with socket.socket(_family(host), socket.SOCK_STREAM) as probe:
-        probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-        try:
-            probe.bind((host, port))
-        except OSError as exc:
-            raise _refusal(exc, host, port, "Rerun gRPC", "grpc_addr") from None
+def listen_http(host: str, port: int) -> socket.socket:
+    """The REST API's listening socket."""
+    return listen(host, port, "REST API", "http_addr")
 
 
-def grpc_bind_failed(host: str, port: int) -> AddressError:
-    """gRPC refused the address after the check passed (another process took it in between)."""
-    return _refusal(OSError(errno.EADDRINUSE, "Address already in use"), host, port, "Rerun gRPC", "grpc_addr")
+def listen_grpc(host: str, port: int) -> socket.socket:
+    """The public gRPC port's listening socket (served by `services.api.grpc_front`)."""
+    return listen(host, port, "Rerun gRPC", "grpc_addr")
+
+
+def private_socket_path(data_dir: Path) -> Path:
+    """Where the gRPC server listens for the front of the public gRPC port: a Unix socket in a
+    folder only this user can enter (so nothing reaches gRPC around the front), in the data dir
+    unless that path is too long for a socket address (108 bytes on Linux)."""
+    folder = data_dir.resolve() / "private"
+    if len(str(folder / GRPC_SOCKET)) > 100:
+        folder = Path(tempfile.mkdtemp(prefix="fleet-"))
+    folder.mkdir(mode=0o700, exist_ok=True)
+    folder.chmod(0o700)
+    path = folder / GRPC_SOCKET
+    path.unlink(missing_ok=True)  # left by a process that died; we hold the data dir
+    return path
+
+
+def release_private_socket(path: Path, data_dir: Path) -> None:
+    """Remove the gRPC server's socket once it has stopped, and its folder if it was a temporary one."""
+    path.unlink(missing_ok=True)
+    if not path.parent.is_relative_to(data_dir.resolve()):
+        with contextlib.suppress(OSError):
+            path.parent.rmdir()

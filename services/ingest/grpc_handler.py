@@ -59,7 +59,7 @@ class MessageProxy:
                 self.service.accept(source, event)
                 received += len(request)
         except FleetError as exc:
-            log.warning("stream from %s refused: %s", context.peer(), exc)
+            log.warning("stream from %s refused: %s", client_of(context), exc)
             await context.abort(grpc.StatusCode[exc.grpc_status()], str(exc))
         finally:
             self.service.close_source(source)
@@ -104,6 +104,15 @@ def server_options(max_message_size: int) -> list[tuple[str, int]]:
     ]
 
 
+def client_of(context: grpc.aio.ServicerContext) -> str:
+    """Who is calling, for logs: the client's user-agent (its SDK and version). The peer address is
+    the gRPC port's front, so it would say nothing."""
+    for key, value in context.invocation_metadata() or ():
+        if key == "user-agent":
+            return repr(str(value)[:120])
+    return "a client without user-agent"
+
+
 # rerun-sdk 0.22 spoke an earlier version of the protocol (LogMsg of rerun.log_msg.v0), under this
 # service. Unanswered, its SDK only reports an HTTP/2 error; answered, the robot is told what to do.
 LEGACY_SERVICE_NAME = "rerun.sdk_comms.v0.MessageProxy"
@@ -111,7 +120,7 @@ LEGACY_REFUSAL = f"this depot does not speak the gRPC protocol of rerun-sdk 0.22
 
 
 async def refuse_legacy_write(requests: AsyncIterator[bytes], context: grpc.aio.ServicerContext) -> bytes:
-    log.warning("stream from %s refused: rerun-sdk 0.22 protocol", context.peer())
+    log.warning("stream from %s refused: rerun-sdk 0.22 protocol", client_of(context))
     await context.abort(grpc.StatusCode.FAILED_PRECONDITION, LEGACY_REFUSAL)
     return b""  # not reached: abort raises
 

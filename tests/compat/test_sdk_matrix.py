@@ -208,13 +208,15 @@ def test_sdk_0_22_upload_is_told_to_upgrade(server: LiveServer, tmp_path: Path):
     assert _run_json(server, "legacy-0.22") == {}
 
 
-def test_sdk_0_22_stream_is_told_to_upgrade(server: LiveServer):
+@pytest.mark.parametrize("scheme", ["rerun+http", "http"])
+def test_sdk_0_22_stream_is_told_to_upgrade(server: LiveServer, scheme: str):
     """0.22's SDK calls rerun.sdk_comms.v0.MessageProxy/WriteMessages; the depot answers with the
-    refusal, which the SDK prints. (With a `rerun+http://` URL 0.22 sends the HTTP/2 pseudo-header
-    `:scheme: rerun+http`, which gRPC's transport refuses before any handler runs: that robot
-    sees "Error parsing ':scheme' metadata" and nothing better can be answered.)"""
-    url = f"http://127.0.0.1:{server.grpc_port}/proxy"
+    refusal, which the SDK prints. With a `rerun+http://` URL 0.22 sends the HTTP/2 pseudo-header
+    `:scheme: rerun+http`, which gRPC's transport alone would refuse before any handler ran (the
+    robot then saw only "Error parsing ':scheme' metadata"): the gRPC port's front makes it `http`."""
+    url = f"{scheme}://127.0.0.1:{server.grpc_port}/proxy"
     streamed = _run([str(sdk_bin(LEGACY, "python")), "-c", LEGACY_STREAM, url])
     assert LEGACY_REFUSAL in streamed.stderr, streamed.stderr
     assert "FailedPrecondition" in streamed.stderr
+    assert "Error parsing" not in streamed.stderr
     assert _run_json(server, "legacy-0.22") == {}

@@ -8,7 +8,15 @@ from pathlib import Path
 
 import pytest
 
-from services.startup import AddressError, DataDirInUseError, check_grpc_port, hold_data_dir, listen_http
+from services.startup import (
+    AddressError,
+    DataDirInUseError,
+    hold_data_dir,
+    listen_grpc,
+    listen_http,
+    private_socket_path,
+    release_private_socket,
+)
 
 
 def test_the_data_dir_is_held_once_and_released_after(tmp_path: Path):
@@ -29,17 +37,17 @@ def test_a_port_someone_listens_on_is_refused_for_http_and_grpc():
             listen_http("127.0.0.1", port)
         with pytest.raises(AddressError, match=rf"Rerun gRPC address 0\.0\.0\.0:{port} is already in use.*"
                                                r"--grpc-addr or FLEET_GRPC_ADDR"):
-            check_grpc_port("0.0.0.0", port)
+            listen_grpc("0.0.0.0", port)
 
 
 def test_a_listener_that_allows_port_sharing_is_still_refused():
-    """gRPC's own listeners set SO_REUSEPORT; the check must not share with them either."""
+    """A listener with SO_REUSEPORT (as gRPC sets on its own) must not share the port with us."""
     with socket.socket() as taken:
         taken.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEPORT, 1)
         taken.bind(("127.0.0.1", 0))
         taken.listen()
         with pytest.raises(AddressError, match="already in use"):
-            check_grpc_port("127.0.0.1", taken.getsockname()[1])
+            listen_grpc("127.0.0.1", taken.getsockname()[1])
 
 
 def test_a_free_port_is_listened_on():
@@ -49,3 +57,25 @@ def test_a_free_port_is_listened_on():
             pass
     finally:
         sock.close()
+
+
+def test_the_grpc_servers_own_socket_is_private_and_fresh(tmp_path: Path):
+    stale = private_socket_path(tmp_path)
+    stale.write_bytes(b"left by a process that died")
+    path = private_socket_path(tmp_path)
+    assert path == stale and not path.exists()
+    assert path.parent.stat().st_mode & 0o777 == 0o700
+
+
+def test_a_data_dir_too_deep_for_a_socket_address_gets_a_private_temporary_folder(tmp_path: Path):
+    deep = tmp_path / ("d" * 120)
+    path = private_socket_path(deep)
+    assert len(str(path)) <= 107 and not str(path).startswith(str(deep))
+    assert path.parent.stat().st_mode & 0o777 == 0o700
+    path.touch()
+    release_private_socket(path, deep)
+    assert not path.parent.exists()
+    inside = private_socket_path(tmp_path)
+    inside.touch()
+    release_private_socket(inside, tmp_path)
+    assert not inside.exists() and inside.parent.is_dir()  # the data dir's own folder stays

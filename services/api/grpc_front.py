@@ -1,0 +1,407 @@
+"""The depot's public gRPC port: a thin front before the gRPC server, which listens on a private
+Unix socket in the data dir.
+
+It exists for what gRPC's own transport cannot do on that port:
+
+- answer plain HTTP/1.1 `GET /version`, which Rerun's 0.30-era clients ask before they speak gRPC;
+- take HTTP/2 requests whose `:scheme` pseudo-header is neither `http` nor `https`. rerun-sdk 0.22
+  sends its URL's scheme (`rerun+http`), which gRPC refuses before any handler runs, so the robot
+  would only log "Error parsing ':scheme' metadata" instead of the depot's answer telling it which
+  SDK to install. On such connections (and only those) the front re-encodes every request's
+  headers with the scheme made `http`.
+
+Every other connection is read up to the end of its first request's headers and then passed on
+byte for byte both ways, with back-pressure: the front adds one local hop, not a protocol stack.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import fcntl
+import logging
+import os
+import socket
+import struct
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+from hpack import Decoder, Encoder, HeaderTuple
+from hpack.exceptions import HPACKError
+
+log = logging.getLogger("fleet.grpc")
+
+PREFACE = b"PRI * HTTP/2.0\r\n\r\nSM\r\n\r\n"
+_FRAME_HEAD = 9
+_HEADERS, _CONTINUATION = 0x1, 0x9
+_END_STREAM, _END_HEADERS, _PADDED, _PRIORITY = 0x1, 0x4, 0x8, 0x20
+# Every HTTP/2 peer accepts frames of this size (the default SETTINGS_MAX_FRAME_SIZE).
+_MAX_FRAME = 16384
+_GOOD_SCHEMES = (b"http", b"https")
+# What a connection may send before the front knows what it is, and how long it may take.
+SNIFF_LIMIT = 1 << 20
+HTTP1_LIMIT = 16384
+SNIFF_TIMEOUT_S = 10.0
+READ_BYTES = 65536
+PIPE_BYTES = 1 << 20
+_SPLICE_FLAGS = os.SPLICE_F_MOVE | os.SPLICE_F_NONBLOCK
+
+
+class ProtocolError(Exception):
+    """The client's bytes are not HTTP/2 the front can follow; the connection is closed."""
+
+
+def _frame(kind: int, flags: int, stream: int, payload: bytes) -> bytes:
+    return struct.pack(">I", len(payload))[1:] + bytes((kind, flags)) + struct.pack(">I", stream) + payload
+
+
+def _plain_scheme(value: bytes) -> bytes:
+    return b"https" if value.endswith(b"https") else b"http"
+
+
+@dataclass
+class _HeaderBlock:
+    """One request's header block, which HTTP/2 may split over a HEADERS frame and CONTINUATIONs."""
+
+    stream: int
+    flags: int
+    priority: bytes
+    start: int  # where its HEADERS frame began in the inspected bytes
+    fragment: bytearray = field(default_factory=bytearray)
+
+
+class ClientStream:
+    """The client-to-server half of one HTTP/2 connection, after the preface.
+
+    Inspecting, it reads frames without changing anything until the first header block is complete.
+    If that request's scheme is plain it says so (`feed` returns None and `passthrough` is set): the
+    caller then forwards what it was given, and everything after, unchanged. Otherwise it rewrites
+    from then on: every header block decoded (the client's compression table lives in `decoder`)
+    and encoded again with the scheme fixed; all other frames unchanged."""
+
+    def __init__(self) -> None:
+        self.decoder = Decoder()
+        self.decoder.max_allowed_table_size = 65536
+        self.encoder: Encoder | None = None  # set once rewriting
+        self.passthrough = False
+        self._buf = bytearray()
+        self._pos = 0
+        self._block: _HeaderBlock | None = None
+
+    @property
+    def held(self) -> bytes:
+        """What was fed while inspecting (all of it, unchanged), for the caller to send on."""
+        return bytes(self._buf)
+
+    def feed(self, data: bytes) -> bytes | None:
+        """The bytes to send upstream for `data` (b"" while still inspecting), or None once the
+        connection needs no rewriting: then the caller sends every byte it was given, as given."""
+        self._buf += data
+        out = bytearray()
+        while len(self._buf) - self._pos >= _FRAME_HEAD:
+            head = self._buf[self._pos : self._pos + _FRAME_HEAD]
+            length = int.from_bytes(head[:3], "big")
+            end = self._pos + _FRAME_HEAD + length
+            if end > len(self._buf):
+                break
+            kind, flags = head[3], head[4]
+            stream = int.from_bytes(head[5:9], "big") & 0x7FFFFFFF
+            payload = bytes(self._buf[self._pos + _FRAME_HEAD : end])
+            start, self._pos = self._pos, end
+            if kind in (_HEADERS, _CONTINUATION):
+                done = self._header_frame(kind, flags, stream, payload, start)
+                if done is None:
+                    continue
+                if self.encoder is None:  # the first request: decide
+                    if not self._needs_rewrite(done[1]):
+                        self.passthrough = True
+                        return None
+                    self.encoder = Encoder()
+                    out += self._buf[: done[0].start]
+                out += self._encode(done[0], done[1])
+            elif self._block is not None:
+                raise ProtocolError("a header block was interrupted by another frame")
+            elif self.encoder is not None:
+                out += self._buf[start:end]
+        if self.encoder is not None:  # rewriting: what was handled is no longer needed
+            del self._buf[: self._pos]
+            self._pos = 0
+        elif len(self._buf) > SNIFF_LIMIT:
+            raise ProtocolError("no request headers within the first MiB")
+        return bytes(out)
+
+    def _header_frame(self, kind: int, flags: int, stream: int, payload: bytes,
+                      start: int) -> tuple[_HeaderBlock, list[HeaderTuple]] | None:
+        if kind == _HEADERS:
+            if self._block is not None:
+                raise ProtocolError("a header block was interrupted by another frame")
+            pos, pad = 0, 0
+            if flags & _PADDED:
+                pad, pos = payload[0], 1
+            priority = payload[pos : pos + 5] if flags & _PRIORITY else b""
+            pos += len(priority)
+            if pos + pad > len(payload):
+                raise ProtocolError("HEADERS padding is longer than the frame")
+            self._block = _HeaderBlock(stream, flags, priority, start)
+            self._block.fragment += payload[pos : len(payload) - pad]
+        else:
+            if self._block is None or self._block.stream != stream:
+                raise ProtocolError("CONTINUATION without its HEADERS")
+            self._block.fragment += payload
+        if not flags & _END_HEADERS:
+            return None
+        block, self._block = self._block, None
+        try:
+            headers = self.decoder.decode(bytes(block.fragment), raw=True)
+        except HPACKError as exc:
+            raise ProtocolError(f"undecodable request headers ({exc})") from None
+        return block, list(headers)
+
+    @staticmethod
+    def _needs_rewrite(headers: list[HeaderTuple]) -> bool:
+        return any(name == b":scheme" and value not in _GOOD_SCHEMES for name, value in headers)
+
+    def _encode(self, block: _HeaderBlock, headers: list[HeaderTuple]) -> bytes:
+        assert self.encoder is not None
+        fixed = [type(h)(h[0], _plain_scheme(h[1])) if h[0] == b":scheme" else h for h in headers]
+        encoded = self.encoder.encode(fixed, huffman=True)
+        first_room = _MAX_FRAME - len(block.priority)
+        pieces = [encoded[:first_room]] + [encoded[i : i + _MAX_FRAME] for i in range(first_room, len(encoded),
+                                                                                       _MAX_FRAME)]
+        flags = (block.flags & _END_STREAM) | (_PRIORITY if block.priority else 0)
+        last = len(pieces) - 1
+        frames = [_frame(_HEADERS, flags | (_END_HEADERS if last == 0 else 0), block.stream,
+                         block.priority + pieces[0])]
+        frames += [_frame(_CONTINUATION, _END_HEADERS if i == last else 0, block.stream, piece)
+                   for i, piece in enumerate(pieces[1:], 1)]
+        return b"".join(frames)
+
+
+def http1_answer(request: bytes, version: str) -> bytes:
+    """The answer to a plain HTTP/1.x request on the gRPC port."""
+    line = request.split(b"\r\n", 1)[0].decode("latin-1")
+    method, _, rest = line.partition(" ")
+    path = rest.partition(" ")[0].split("?", 1)[0]
+    if path == "/version" and method in ("GET", "HEAD"):
+        status, body = "200 OK", f"{version}\n"
+    else:
+        status = "404 Not Found"
+        body = ("this is the depot's Rerun gRPC port: it answers gRPC and GET /version; "
+                "the REST API is on the depot's HTTP port\n")
+    data = body.encode()
+    head = (f"HTTP/1.1 {status}\r\ncontent-type: text/plain; charset=utf-8\r\ncontent-length: {len(data)}\r\n"
+            "connection: close\r\n\r\n").encode()
+    return head if method == "HEAD" else head + data
+
+
+class _Splice:
+    """Moves a byte stream from one socket to another inside the kernel (splice(2) through a pipe):
+    no copy into Python, and one callback per read however much it moved. Stops reading while the
+    destination cannot take more (back-pressure), and half-closes the destination at end of stream."""
+
+    def __init__(self, loop: asyncio.AbstractEventLoop, src: socket.socket, dst: socket.socket,
+                 done: Callable[[bool], None]) -> None:
+        self._loop, self._src, self._dst, self._done = loop, src.fileno(), dst.fileno(), done
+        self._dst_sock = dst
+        self._read_end, self._write_end = os.pipe2(os.O_NONBLOCK | os.O_CLOEXEC)
+        with contextlib.suppress(OSError):  # a larger pipe moves big messages in fewer calls
+            fcntl.fcntl(self._write_end, fcntl.F_SETPIPE_SZ, PIPE_BYTES)
+        self._room = fcntl.fcntl(self._write_end, fcntl.F_GETPIPE_SZ)
+        self._held = 0  # bytes in the pipe
+        self._eof = False
+        self.closed = False
+        loop.add_reader(self._src, self._readable)
+
+    def _readable(self) -> None:
+        try:
+            moved = os.splice(self._src, self._write_end, self._room - self._held, flags=_SPLICE_FLAGS)
+        except BlockingIOError:
+            return
+        except OSError:
+            moved = 0  # reset by the peer: the same as its end
+        if moved == 0:
+            self._eof = True
+            self._loop.remove_reader(self._src)
+        self._held += moved
+        self._flush()
+
+    def _flush(self) -> None:
+        try:
+            while self._held:
+                self._held -= os.splice(self._read_end, self._dst, self._held, flags=_SPLICE_FLAGS)
+        except BlockingIOError:  # the destination is full: wait until it drains, reading nothing
+            if not self._eof:
+                self._loop.remove_reader(self._src)
+            self._loop.add_writer(self._dst, self._writable)
+            return
+        except OSError:
+            self.close(failed=True)
+            return
+        if self._eof:
+            with contextlib.suppress(OSError):
+                self._dst_sock.shutdown(socket.SHUT_WR)
+            self.close()
+
+    def _writable(self) -> None:
+        self._loop.remove_writer(self._dst)
+        self._flush()
+        if not self.closed and not self._held and not self._eof:
+            self._loop.add_reader(self._src, self._readable)
+
+    def close(self, failed: bool = False) -> None:
+        """Stop moving bytes (at the end of the stream, or when either side failed)."""
+        if self.closed:
+            return
+        self.closed = True
+        self._loop.remove_reader(self._src)
+        self._loop.remove_writer(self._dst)
+        os.close(self._read_end)
+        os.close(self._write_end)
+        self._done(failed)
+
+
+class _Connection:
+    """One client connection on the public gRPC port, from the first byte to its close.
+
+    `run` reads the start of the connection and decides; from then on the kernel moves the bytes
+    (`_Splice`), except from a client whose headers need rewriting, which `run` keeps reading. The
+    sockets are closed by whoever finishes last, and never while `run` may still wait on them."""
+
+    def __init__(self, loop: asyncio.AbstractEventLoop, client: socket.socket, upstream_path: str,
+                 version: str) -> None:
+        self._loop, self._client, self._upstream_path, self._version = loop, client, upstream_path, version
+        self._upstream: socket.socket | None = None
+        self._splices: list[_Splice] = []
+        self._task: asyncio.Task[None] | None = None
+        self._closed = False
+
+    def start(self) -> asyncio.Task[None]:
+        self._task = asyncio.create_task(self._run())
+        return self._task
+
+    async def _run(self) -> None:
+        handed_over = False
+        try:
+            handed_over = await self._serve()
+        except ProtocolError as exc:
+            log.info("gRPC port: connection closed: %s", exc)
+        except (TimeoutError, OSError) as exc:
+            log.debug("gRPC port: connection closed: %s", exc or type(exc).__name__)
+        except asyncio.CancelledError:
+            pass  # closed from the other side, or the front is stopping
+        finally:
+            if not handed_over or self._ended():
+                self._close()
+
+    async def _recv(self) -> bytes:
+        return await self._loop.sock_recv(self._client, READ_BYTES)
+
+    async def _serve(self) -> bool:
+        """True once the rest of the connection is in the splices' hands."""
+        sniffed = b""
+        async with asyncio.timeout(SNIFF_TIMEOUT_S):
+            while len(sniffed) < len(PREFACE) and PREFACE.startswith(sniffed[: len(PREFACE)]):
+                sniffed += await self._recv_some()
+            if not sniffed.startswith(PREFACE):
+                while b"\r\n\r\n" not in sniffed:
+                    if len(sniffed) > HTTP1_LIMIT:
+                        raise ProtocolError("neither HTTP/2 nor an HTTP/1 request")
+                    sniffed += await self._recv_some()
+                await self._loop.sock_sendall(self._client, http1_answer(sniffed, self._version))
+                return False
+            upstream = self._upstream = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+            upstream.setblocking(False)
+            await self._loop.sock_connect(upstream, self._upstream_path)
+            self._splices.append(_Splice(self._loop, upstream, self._client, self._one_way_done))
+            await self._loop.sock_sendall(upstream, PREFACE)
+            stream, data = ClientStream(), sniffed[len(PREFACE) :]
+            while (out := stream.feed(data)) == b"":
+                data = await self._recv_some()
+        if out is None:  # plain: what was held back, then the kernel moves the rest
+            await self._loop.sock_sendall(upstream, stream.held)
+            self._splices.append(_Splice(self._loop, self._client, upstream, self._one_way_done))
+            return True
+        await self._loop.sock_sendall(upstream, out)
+        while data := await self._recv():  # rewriting, for as long as the client sends
+            out = stream.feed(data)
+            if out:
+                await self._loop.sock_sendall(upstream, out)
+        upstream.shutdown(socket.SHUT_WR)
+        return True  # the server's answers still flow until it closes
+
+    async def _recv_some(self) -> bytes:
+        data = await self._recv()
+        if not data:
+            raise ProtocolError("the client closed the connection before its first request")
+        return data
+
+    def _ended(self) -> bool:
+        return all(splice.closed for splice in self._splices)
+
+    def _one_way_done(self, failed: bool) -> None:
+        """A spliced direction ended. Close when either side failed, when the server has closed a
+        connection that `run` rewrites, or once both directions have ended."""
+        if self._task is not None and not self._task.done():
+            if failed or self._splices[0].closed:
+                self._task.cancel()  # it closes the sockets once it no longer waits on them
+            return
+        if failed or self._ended():
+            self._close()
+
+    def _close(self) -> None:
+        if self._closed:
+            return
+        self._closed = True
+        for splice in self._splices:
+            splice.close()
+        for sock in (self._client, self._upstream):
+            if sock is not None:
+                sock.close()
+
+
+class Front:
+    """Accepts connections on the public gRPC port and serves each in its own task."""
+
+    def __init__(self, sock: socket.socket, upstream_path: str, version: str) -> None:
+        self._sock, self._upstream_path, self._version = sock, upstream_path, version
+        self._connections: set[asyncio.Task[None]] = set()
+        self._accepting: asyncio.Task[None] | None = None
+
+    def start(self) -> None:
+        self._sock.setblocking(False)
+        self._accepting = asyncio.create_task(self._accept())
+
+    async def _accept(self) -> None:
+        loop = asyncio.get_running_loop()
+        while True:
+            try:
+                client, _ = await loop.sock_accept(self._sock)
+            except OSError as exc:  # out of file descriptors, say: keep serving the others
+                log.warning("gRPC port: accept failed (%s)", exc)
+                await asyncio.sleep(0.1)
+                continue
+            client.setblocking(False)
+            client.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+            task = _Connection(loop, client, self._upstream_path, self._version).start()
+            self._connections.add(task)
+            task.add_done_callback(self._connections.discard)
+
+    async def stop(self) -> None:
+        """Stop accepting; connections end as the gRPC server behind them stops."""
+        if self._accepting is not None:
+            self._accepting.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await self._accepting
+        self._sock.close()
+
+
+async def start_front(sock: socket.socket, upstream_path: str, version: str) -> Front:
+    """Serve the public gRPC port on `sock` (a listening socket), passing HTTP/2 on to the gRPC
+    server at the Unix socket `upstream_path`."""
+    front = Front(sock, upstream_path, version)
+    front.start()
+    return front
+
+
+async def stop_front(front: Front) -> None:
+    await front.stop()
