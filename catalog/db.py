@@ -20,7 +20,7 @@ from alembic.runtime.migration import MigrationContext
 from alembic.script import ScriptDirectory
 from sqlalchemy.orm import Session, sessionmaker
 
-from services.errors import ErrorCode, FleetError
+from core.errors import ErrorCode, FleetError
 
 MIGRATIONS_DIR = Path(__file__).resolve().parent.parent / "migrations"
 

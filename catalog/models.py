@@ -14,11 +14,7 @@ import datetime as dt
 from sqlalchemy import BigInteger, Boolean, Date, DateTime, MetaData, String, Text
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column
 
-ID_LENGTH = 128  # ids used in object keys: [A-Za-z0-9._-]{1,128}
-# Longest application id and timeline name, and longest entity path, in UTF-8 bytes: what ingest
-# accepts, so that Postgres's btree indexes (at most ~2700 bytes a row) can hold every value.
-NAME_BYTES = 1024
-PATH_BYTES = 2048
+from core.ids import ID_LENGTH
 
 NAMING = {
     "ix": "ix_%(column_0_label)s",

@@ -12,6 +12,8 @@ import sqlalchemy as sa
 from sqlalchemy.orm import Session
 
 from catalog.models import JobRun, RetentionEvent, Robot, Run, RunEntity, RunLifecycle, RunObject, RunTimeline
+from core.clock import aware
+from core.errors import ErrorCode, FleetError
 
 
 @dataclass
@@ -204,6 +206,22 @@ def get_run(session: Session, run_id: str) -> Run | None:
     return session.get(Run, run_id)
 
 
+class RunNotFoundError(FleetError):
+    code = ErrorCode.NOT_FOUND
+
+
+def run_not_found(run_id: str) -> RunNotFoundError:
+    return RunNotFoundError(f"no run {run_id!r}: list runs with GET /v1/runs or `fleet runs ls`")
+
+
+def require_run(session: Session, run_id: str) -> Run:
+    """The run, or a 404 naming it and how to list runs."""
+    run = session.get(Run, run_id)
+    if run is None:
+        raise run_not_found(run_id)
+    return run
+
+
 def run_entities(session: Session, run_id: str) -> list[RunEntity]:
     return list(session.scalars(sa.select(RunEntity).where(RunEntity.run_id == run_id).order_by(RunEntity.path)))
 
@@ -215,8 +233,3 @@ def run_timelines(session: Session, run_id: str) -> list[RunTimeline]:
 
 def list_robots(session: Session) -> list[Robot]:
     return list(session.scalars(sa.select(Robot).order_by(Robot.id)))
-
-
-def aware(value: dt.datetime) -> dt.datetime:
-    """DuckDB hands timestamps back without a zone; they are stored in UTC."""
-    return value if value.tzinfo is not None else value.replace(tzinfo=dt.UTC)

@@ -11,7 +11,7 @@ from typing import TYPE_CHECKING, Any
 
 import httpx
 
-from services.errors import ErrorCode, FleetError
+from core.errors import ErrorCode, FleetError
 
 if TYPE_CHECKING:
     import pyarrow as pa

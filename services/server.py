@@ -19,16 +19,16 @@ from services.analytics.service import Analytics
 from services.analytics.sql import Limits
 from services.api.app import create_app
 from services.api.grpc_front import start_front, stop_front
+from services.hot.reserve import DiskReserve
+from services.hot.store import HotStore
 from services.ingest import grpc_handler
-from services.ingest.hot import HotStore
 from services.ingest.identity import SecretFields
 from services.ingest.replay import ReplayHub
-from services.ingest.reserve import DiskReserve
 from services.ingest.service import IngestService
 from services.retention.schedule import start_scheduler
 from services.retention.service import Retention
-from services.retention.tiers import open_tiers, sealed_lookup
 from services.runtime import tune_allocator
+from services.sealed.tiers import open_tiers, sealed_lookup
 from services.settings import Settings
 from services.startup import listen_grpc, listen_http, private_socket_path, release_private_socket
 

@@ -3,6 +3,7 @@ file named by `FLEET_CONFIG`, then defaults) and passed down to everything that 
 
 from __future__ import annotations
 
+import enum
 import json
 import os
 from pathlib import Path
@@ -17,11 +18,25 @@ from pydantic_settings import (
     TomlConfigSettingsSource,
 )
 
-from services.ingest.hot import Durability
-from services.ingest.identity import DEFAULT_SECRET_FIELDS
-from services.retention.policy import Policies, Policy, PolicyOverride
+from services.policies import Policies, Policy, PolicyOverride
 from services.rrd.decoder import DEFAULT_MAX_MESSAGE_SIZE
 from services.rrd.limits import DEFAULT_DECOMPRESS_BUDGET_BYTES, DEFAULT_MAX_CHUNK_BYTES
+
+
+class Durability(enum.StrEnum):
+    """When the hot tier fsyncs: after every write, every FLEET_GROUP_COMMIT_MS, or never."""
+
+    ALWAYS = "always"
+    INTERVAL = "interval"
+    OFF = "off"
+
+
+# Property fields never written to disk nor served (FLEET_SECRET_FIELDS): a field is secret when
+# one of these, as words, appears in its name (see SecretFields).
+DEFAULT_SECRET_FIELDS = (
+    "token", "password", "passwd", "secret", "api_key", "apikey", "access_key", "secret_key", "private_key",
+    "credential", "credentials", "authorization", "auth_token",
+)
 
 
 class Settings(BaseSettings):

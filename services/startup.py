@@ -17,7 +17,7 @@ import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 
-from services.errors import ErrorCode, FleetError
+from core.errors import ErrorCode, FleetError
 
 LOCK_FILE = "fleet.lock"
 GRPC_SOCKET = "grpc.sock"

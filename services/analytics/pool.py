@@ -33,6 +33,7 @@ from typing import Any
 import pyarrow as pa
 
 import services
+from core.errors import ErrorCode, FleetError
 from services.analytics import worker
 from services.analytics.sql import (
     InvalidSqlError,
@@ -44,7 +45,6 @@ from services.analytics.sql import (
     SqlNotAllowedError,
     out_of_memory,
 )
-from services.errors import ErrorCode, FleetError
 from services.storage.objectstore import StorageError
 
 log = logging.getLogger(__name__)

@@ -23,16 +23,15 @@ from sqlalchemy.orm import Session, sessionmaker
 from catalog import queries
 from catalog.db import session_scope
 from catalog.models import Robot, Run, RunEntity, RunObject, RunTimeline
+from core.errors import ErrorCode, FleetError
 from services.analytics import sql
 from services.analytics.extract import TABLES, Extractor
 from services.analytics.pool import Prepared, SqlPool
 from services.analytics.store import write_analytics
-from services.errors import ErrorCode, FleetError
+from services.hot.read import read_events
 from services.ingest.service import IngestService
 from services.rrd.chunk import chunk_meta
 from services.rrd.messages import ArrowMessage, StoreKind
-from services.runs.download import read_events
-from services.runs.service import run_not_found
 from services.storage.objectstore import ObjectStore
 
 FORMATS = {"json": "application/json", "csv": "text/csv", "arrow": "application/vnd.apache.arrow.stream",
@@ -219,7 +218,7 @@ def extract_hot_run(ctx: Analytics, ingest: IngestService, run_id: str) -> list[
     """Write a hot run's analytics tables now (promotion rewrites them when the run is sealed)."""
     run = ingest.runs.get(run_id)
     if run is None:
-        raise run_not_found(run_id)
+        raise queries.run_not_found(run_id)
     extractor = Extractor(run_id)
     for event in read_events(run.hot.path, run.hot.size, None):
         if isinstance(event, ArrowMessage) and event.store_id.kind == StoreKind.RECORDING:

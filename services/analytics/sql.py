@@ -24,7 +24,7 @@ from urllib.parse import urlparse
 import duckdb
 import pyarrow as pa
 
-from services.errors import ErrorCode, FleetError
+from core.errors import ErrorCode, FleetError
 from services.storage.objectstore import StorageError
 
 

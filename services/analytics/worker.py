@@ -58,8 +58,8 @@ def main(argv: list[str]) -> int:
     sys.stdout = sys.stderr  # nothing but frames goes down the answer pipe
     import duckdb
 
+    from core.errors import FleetError
     from services.analytics import sql
-    from services.errors import FleetError
 
     con = duckdb.connect(":memory:", config={"autoinstall_known_extensions": False,
                                              "autoload_known_extensions": False})

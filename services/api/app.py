@@ -9,11 +9,11 @@ from fastapi.middleware.cors import CORSMiddleware
 from fastapi.responses import JSONResponse, Response
 from fastapi_offline import FastAPIOffline
 
+from core.errors import ErrorCode, FleetError, http_status
 from services import __version__
 from services.analytics import rest as analytics_rest
 from services.analytics.service import Analytics
 from services.api import metrics as prometheus
-from services.errors import ErrorCode, FleetError, http_status
 from services.ingest import rest as ingest_rest
 from services.ingest.service import IngestService
 from services.retention import rest as retention_rest

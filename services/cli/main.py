@@ -38,7 +38,7 @@ def main() -> None:
     """Errors users can fix are one line on stderr and exit status 1, never a traceback."""
     from pydantic import ValidationError
 
-    from services.errors import FleetError
+    from core.errors import FleetError
 
     try:
         cli()

@@ -14,17 +14,16 @@ import threading
 from dataclasses import dataclass
 from typing import Any
 
-from catalog.models import NAME_BYTES, PATH_BYTES
 from catalog.queries import EntityRecord, RunRecord, TimelineRecord
-from services.errors import ErrorCode, FleetError
-from services.ingest.hot import HotRun
+from core.errors import ErrorCode, FleetError
+from core.ids import PATH_BYTES, check_id, check_name
+from services.hot.store import HotRun
 from services.ingest.identity import (
     DEFAULT_SECRETS,
     IDENTITY_PROPERTY,
     ROBOT_FIELD,
     START_TIME_COMPONENT,
     SecretFields,
-    check_id,
     read_property_chunk,
     run_date,
 )
@@ -38,22 +37,6 @@ LOG_TIME = "log_time"
 
 class InvalidStreamError(FleetError):
     code = ErrorCode.INVALID_ARGUMENT
-
-
-def utcnow() -> dt.datetime:
-    return dt.datetime.now(dt.UTC)
-
-
-def check_name(kind: str, value: str, limit: int = NAME_BYTES) -> str:
-    """`value` if the catalog can hold it (no NUL character, at most `limit` UTF-8 bytes)."""
-    if "\x00" in value:
-        raise InvalidStreamError(f"{kind} {value[:80]!r} contains a NUL character, which the catalog cannot "
-                                 "store: remove it in the robot's logging code")
-    size = len(value.encode("utf-8", "surrogatepass"))
-    if size > limit:
-        raise InvalidStreamError(f"{kind} {value[:80]!r}... is {size} bytes long, over the limit of {limit}: "
-                                 "use a shorter one in the robot's logging code")
-    return value
 
 
 def check_chunk_names(meta: ChunkMeta) -> None:

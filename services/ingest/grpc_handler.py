@@ -11,7 +11,7 @@ from collections.abc import AsyncIterator
 
 import grpc
 
-from services.errors import FleetError
+from core.errors import FleetError
 from services.ingest.replay import read_response
 from services.ingest.service import IngestService
 from services.rrd import errors as rrd_errors

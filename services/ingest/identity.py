@@ -14,36 +14,15 @@ from typing import Any
 
 import pyarrow as pa
 
-from services.errors import ErrorCode, FleetError
 from services.rrd.chunk import ChunkMeta, chunk_meta, with_batch
 from services.rrd.manifest import PROPERTIES_ENTITY
 from services.rrd.messages import ArrowMessage
 from services.rrd.validate import validated_batch
+from services.settings import DEFAULT_SECRET_FIELDS
 
-SAFE_ID = re.compile(r"[A-Za-z0-9._-]{1,128}")
-# Property fields never written to disk nor served (FLEET_SECRET_FIELDS): a field is secret when
-# one of these, as words, appears in its name (see SecretFields).
-DEFAULT_SECRET_FIELDS = (
-    "token", "password", "passwd", "secret", "api_key", "apikey", "access_key", "secret_key", "private_key",
-    "credential", "credentials", "authorization", "auth_token",
-)
 IDENTITY_PROPERTY = "fleet"
 ROBOT_FIELD = "robot_id"
 START_TIME_COMPONENT = "RecordingInfo:start_time"
-
-
-class UnsafeIdError(FleetError):
-    code = ErrorCode.INVALID_ARGUMENT
-
-
-def check_id(kind: str, value: str) -> str:
-    """`value` if it can be part of an object key, else UnsafeIdError naming it and the rule."""
-    if not SAFE_ID.fullmatch(value) or value in (".", ".."):
-        raise UnsafeIdError(
-            f"{kind} {value!r} cannot be used in object keys: use 1 to 128 characters from "
-            "A-Z a-z 0-9 . _ - (for a recording id: rr.init(..., recording_id=...))"
-        )
-    return value
 
 
 _WORD = re.compile(r"[A-Z]+(?=[A-Z][a-z])|[A-Z]?[a-z]+|[A-Z]+|[0-9]+")

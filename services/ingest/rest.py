@@ -7,7 +7,7 @@ from typing import Any
 from fastapi import APIRouter, Request
 from fastapi.responses import JSONResponse
 
-from services.errors import FleetError
+from core.errors import FleetError
 from services.ingest.service import IngestService
 from services.rrd.decoder import RrdDecoder
 

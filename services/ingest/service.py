@@ -31,7 +31,11 @@ from sqlalchemy.orm import Session, sessionmaker
 from catalog import queries
 from catalog.db import session_scope
 from catalog.queries import RunRecord
-from services.errors import ErrorCode, FleetError
+from core.clock import utcnow
+from core.errors import ErrorCode, FleetError
+from core.ids import UnsafeIdError, check_id, check_name
+from services.hot.read import HotRecording
+from services.hot.store import HotStore
 from services.ingest.facts import (
     LOG_TIME,
     InvalidStreamError,
@@ -39,17 +43,12 @@ from services.ingest.facts import (
     RunState,
     SealedInfo,
     check_chunk_names,
-    check_name,
     store_key,
-    utcnow,
 )
-from services.ingest.hot import HotStore
 from services.ingest.identity import (
     IDENTITY_PROPERTY,
     ROBOT_FIELD,
     SecretFields,
-    UnsafeIdError,
-    check_id,
     read_property_chunk,
 )
 from services.ingest.replay import ReplayHub
@@ -68,7 +67,7 @@ from services.rrd.messages import (
 from services.rrd.validate import check_chunk
 
 __all__ = ["LOG_TIME", "IngestReport", "IngestService", "InvalidStreamError", "RunFacts", "RunState", "SealedInfo",
-           "SealedLookup", "SealedRunError", "Source", "TooManyStreamsError", "utcnow"]
+           "SealedLookup", "SealedRunError", "Source", "TooManyStreamsError"]
 
 log = logging.getLogger(__name__)
 
@@ -144,6 +143,21 @@ class IngestService:
         self._catalog_writes = threading.Lock()  # one catalog writer at a time for ingest's own records
 
     # --- sources ---------------------------------------------------------------------------
+
+    def hot_recording(self, run_id: str) -> HotRecording | None:
+        """A run in the hot tier as readers see it (`HotRuns`). Taken from here rather than the
+        catalog, so a run is served from its first chunk (the catalog lags a little). None when the
+        run is not hot here, or is sealed and only its late additions are hot."""
+        run = self.runs.get(run_id)
+        if run is None or run.sealed_as is not None:
+            return None
+        hot = run.hot
+
+        def follow() -> tuple[int, bool]:
+            return hot.size, run.status == "live"
+
+        types = {t.name: t.type for t in run.summary.timelines.values()} if run.summary else {}
+        return HotRecording(hot.path, hot.size, types, follow)
 
     def open_source(self, *, live: bool) -> Source:
         if live:

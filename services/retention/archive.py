@@ -16,11 +16,11 @@ from sqlalchemy.orm import Session, sessionmaker
 from catalog import queries
 from catalog.db import session_scope
 from catalog.models import Run, RunLifecycle
+from core.clock import aware
+from core.errors import ErrorCode, FleetError
 from services.analytics.extract import TABLES, partition_key
-from services.errors import ErrorCode, FleetError
-from services.retention.seal import RECORDING
-from services.retention.tiers import Tiers, readable_when_cold
-from services.runs.service import run_not_found
+from services.sealed.tiers import Tiers, readable_when_cold
+from services.sealed.write import RECORDING
 from services.storage.objectstore import ArchiveStore, ObjectNotFoundError, StorageError, copy_object
 
 log = logging.getLogger(__name__)
@@ -37,7 +37,7 @@ class NotSealedError(FleetError):
 def _load(session: Session, run_id: str) -> tuple[Run, RunLifecycle]:
     run = queries.get_run(session, run_id)
     if run is None:
-        raise run_not_found(run_id)
+        raise queries.run_not_found(run_id)
     life = queries.lifecycle(session, run_id)
     if life is None:
         raise NotSealedError(f"run {run_id!r} is {run.tier}, not sealed yet: it serves as it is, and "
@@ -91,7 +91,7 @@ def request_restore(run_id: str, tiers: Tiers, catalog: sessionmaker[Session], n
         if run.tier != "cold":
             raise RestoreNotNeededError(f"run {run_id!r} is {run.tier}, not cold: it serves without a restore")
         if life.restore_state in ("restoring", "restored") and (
-                life.restore_until is None or queries.aware(life.restore_until) > now):
+                life.restore_until is None or aware(life.restore_until) > now):
             session.expunge(life)  # read after the session closes: keep its loaded state
             return life  # already asked for: restoring twice changes nothing
         key = f"{life.prefix}/{RECORDING}"
@@ -117,7 +117,7 @@ def advance_restore(run_id: str, tiers: Tiers, catalog: sessionmaker[Session], n
     with session_scope(catalog) as session:
         run, life = _load(session, run_id)
         tier, state, mode, key = run.tier, life.restore_state, life.archive_mode, f"{life.prefix}/{RECORDING}"
-        until = queries.aware(life.restore_until) if life.restore_until else None
+        until = aware(life.restore_until) if life.restore_until else None
     if tier != "cold" or state is None:
         return "nothing to do"
     if until is not None and until <= now:

@@ -28,16 +28,16 @@ from sqlalchemy.orm import Session, sessionmaker
 from catalog import queries
 from catalog.db import session_scope
 from catalog.queries import ObjectRecord, RunRecord
+from core.errors import ErrorCode, FleetError
 from services.analytics.extract import Extractor
 from services.analytics.store import write_analytics
-from services.errors import ErrorCode, FleetError
-from services.ingest.hot import InsufficientStorageError
+from services.hot.read import read_events
+from services.hot.store import InsufficientStorageError
 from services.ingest.service import IngestService, RunState, SealedInfo
-from services.retention.seal import INDEX, RECORDING, RUN_JSON, SealedRun, seal
-from services.retention.tiers import Tiers, run_json, run_prefix
 from services.rrd.decoder import iter_events
 from services.rrd.messages import Event
-from services.runs.download import read_events
+from services.sealed.tiers import Tiers, run_json, run_prefix
+from services.sealed.write import INDEX, RECORDING, RUN_JSON, SealedRun, seal
 from services.storage.objectstore import RangeReader, StorageError
 
 log = logging.getLogger(__name__)

@@ -18,8 +18,8 @@ from sqlalchemy.orm import Session, sessionmaker
 from catalog import queries
 from catalog.db import session_scope
 from catalog.models import RunLifecycle
-from services.retention.seal import INDEX, RECORDING, RUN_JSON
-from services.retention.tiers import RunFile, Tiers, parse_run_json
+from services.sealed.tiers import RunFile, Tiers, parse_run_json
+from services.sealed.write import INDEX, RECORDING, RUN_JSON
 from services.storage.objectstore import ObjectInfo, ObjectNotFoundError
 
 log = logging.getLogger(__name__)

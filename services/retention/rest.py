@@ -17,10 +17,11 @@ from fastapi.responses import StreamingResponse
 
 from catalog import queries
 from catalog.db import session_scope
+from core.clock import aware
+from core.errors import BadParameterError
 from services.retention import rebuild as rebuild_mod
 from services.retention import schedule, service
 from services.retention.service import ACTIONS, ARCHIVE, DELETE, PROMOTE, RESTORE, Retention
-from services.runs.service import BadParameterError
 
 router = APIRouter()
 NDJSON = "application/x-ndjson"
@@ -51,8 +52,8 @@ def _kinds(action: list[str] | None) -> list[str]:
 def retention(request: Request) -> dict[str, Any]:
     ctx, settings = _ctx(request), request.app.state.settings
     with session_scope(ctx.catalog) as session:
-        jobs = [{"job": j.job, "node": j.node, "started_at": queries.aware(j.started_at).isoformat(),
-                 "finished_at": queries.aware(j.finished_at).isoformat() if j.finished_at else None,
+        jobs = [{"job": j.job, "node": j.node, "started_at": aware(j.started_at).isoformat(),
+                 "finished_at": aware(j.finished_at).isoformat() if j.finished_at else None,
                  "outcome": j.outcome, "detail": j.detail} for j in queries.recent_jobs(session)]
     return {
         "policies": ctx.policies.to_dict(),

@@ -21,7 +21,7 @@ from apscheduler.schedulers.background import BackgroundScheduler
 
 from catalog import queries
 from catalog.db import session_scope
-from services.errors import ErrorCode, FleetError
+from core.errors import ErrorCode, FleetError
 from services.retention.locks import job_lock
 from services.retention.promote import PROMOTING
 from services.retention.service import ARCHIVE, DELETE, PROMOTE, RESTORE, Outcome, Retention, plan, run_plan

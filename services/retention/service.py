@@ -19,13 +19,13 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from catalog import queries
 from catalog.db import session_scope
-from services.errors import ErrorCode, FleetError
-from services.ingest.service import IngestService, utcnow
+from core.clock import aware, iso_utc, utcnow
+from core.errors import ErrorCode, FleetError
+from services.ingest.service import IngestService
+from services.policies import Policies
 from services.retention import archive, promote
-from services.retention.policy import Policies
-from services.retention.seal import RUN_JSON
-from services.retention.tiers import Tiers
-from services.runs.service import format_time, get_run
+from services.sealed.tiers import Tiers
+from services.sealed.write import RUN_JSON
 
 log = logging.getLogger(__name__)
 
@@ -119,13 +119,13 @@ def plan(ctx: Retention, kinds: Iterable[str] = ACTIONS) -> list[Action]:
 
 def _due(ctx: Retention, run: Any, life: Any, now: dt.datetime, kinds: set[str]) -> Action | None:
     policy = ctx.policies.for_run(run.robot_id, run.application_id)
-    age = now - queries.aware(run.ended_at or run.last_data_at)
+    age = now - aware(run.ended_at or run.last_data_at)
     common = {"robot_id": run.robot_id, "tier": run.tier, "bytes": run.bytes, "policy": policy.name}
     if age >= policy.delete_after and DELETE in kinds and not run.pinned:
         return Action(run.id, DELETE, f"ended {_days(age)} ago; policy {policy.name!r} keeps runs "
                                       f"{policy.warm_days:g} days warm + {policy.cold_days:g} days cold", **common)
     if life.restore_state is not None and RESTORE in kinds:
-        until = queries.aware(life.restore_until) if life.restore_until else None
+        until = aware(life.restore_until) if life.restore_until else None
         if life.restore_state == "restoring" or (until is not None and until <= now):
             why = "restore asked for" if life.restore_state == "restoring" else "restore period is over"
             return Action(run.id, RESTORE, why, **common)
@@ -185,7 +185,7 @@ def set_pinned(ctx: Retention, run_id: str, pinned: bool, actor: str) -> dict[st
     row; a sealed run's run.json gets a copy (for rebuilds), as promotion does for a hot one."""
     now = ctx.clock()
     with session_scope(ctx.catalog, write=True) as session:
-        run = get_run(session, run_id)
+        run = queries.require_run(session, run_id)
         if run.tier == "deleted":
             raise NotSealedError(f"run {run_id!r} is deleted: there is nothing left to pin")
         run.pinned, run.pinned_by, run.updated_at = pinned, actor if pinned else None, now
@@ -207,7 +207,7 @@ def _rewrite_run_json(ctx: Retention, prefix: str, pinned: bool, by: str | None)
 def request_restore(ctx: Retention, run_id: str, actor: str) -> dict[str, Any]:
     now = ctx.clock()
     with session_scope(ctx.catalog) as session:
-        get_run(session, run_id)  # 404 naming the run
+        queries.require_run(session, run_id)  # 404 naming the run
     life = archive.request_restore(run_id, ctx.tiers, ctx.catalog, now, actor, ctx.restore_days)
     if life.restore_state == "restoring" and life.archive_mode == "store":
         # A copy back from the cold store: started now in the background rather than at the next
@@ -219,8 +219,8 @@ def request_restore(ctx: Retention, run_id: str, actor: str) -> dict[str, Any]:
 
 def restore_status(life: Any) -> dict[str, Any]:
     return {"run": life.run_id, "restore_state": life.restore_state,
-            "restore_requested_at": format_time(life.restore_requested_at),
-            "restore_until": format_time(life.restore_until)}
+            "restore_requested_at": iso_utc(life.restore_requested_at),
+            "restore_until": iso_utc(life.restore_until)}
 
 
 def upcoming(ctx: Retention) -> list[dict[str, Any]]:
@@ -228,7 +228,7 @@ def upcoming(ctx: Retention) -> list[dict[str, Any]]:
     if ctx.ingest is None:
         return []
     now = ctx.clock()
-    return [{"run": run.run_id, "action": PROMOTE, "at": format_time(at), "reason": why,
+    return [{"run": run.run_id, "action": PROMOTE, "at": iso_utc(at), "reason": why,
              "robot_id": run.robot_id or ctx.ingest.default_robot, "tier": "hot", "bytes": run.hot.size}
             for run, at, why in promote.upcoming(ctx.ingest, now, ctx.promote_after)]
 
@@ -238,7 +238,7 @@ def promote_now(ctx: Retention, run_id: str) -> dict[str, Any]:
     run = ctx.ingest.runs.get(run_id) if ctx.ingest is not None else None
     if run is None or run.sealed:
         with session_scope(ctx.catalog) as session:
-            found = get_run(session, run_id)  # 404 naming the run
+            found = queries.require_run(session, run_id)  # 404 naming the run
             tier = found.tier
         where = "hot on another node: ask that node" if tier == "hot" else f"{tier} already"
         raise NotHotError(f"run {run_id!r} is {where}: there is nothing to promote here")
@@ -255,7 +255,7 @@ def promote_now(ctx: Retention, run_id: str) -> dict[str, Any]:
 
 def delete_run(ctx: Retention, run_id: str, actor: str) -> str:
     with session_scope(ctx.catalog) as session:
-        run = get_run(session, run_id)
+        run = queries.require_run(session, run_id)
         if run.tier == "hot":
             raise NotSealedError(f"run {run_id!r} is still hot: delete it once it is sealed (promoted)")
         if run.pinned:

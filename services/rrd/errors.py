@@ -6,7 +6,7 @@ input the reader was fed). The list is documented in docs/rrd-codec.md.
 
 from __future__ import annotations
 
-from services.errors import ErrorCode, FleetError
+from core.errors import ErrorCode, FleetError
 
 
 class RrdError(FleetError):

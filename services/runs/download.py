@@ -10,15 +10,14 @@ from __future__ import annotations
 import datetime as dt
 import io
 import re
-import time
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import BinaryIO, cast
 
-from services.ingest.service import IngestService
+from core.errors import BadParameterError
+from services.hot.read import Follow, read_events
 from services.rrd.chunk import ChunkMeta, chunk_meta
-from services.rrd.decoder import RrdDecoder
 from services.rrd.encoder import RrdEncoder
 from services.rrd.frames import DEFAULT_VERSION
 from services.rrd.manifest import is_property_entity
@@ -31,12 +30,9 @@ from services.rrd.messages import (
     StreamStart,
 )
 from services.runs.latest_at import ChunkEntry, pick_rows, select_chunks
-from services.runs.service import BadParameterError
 from services.runs.trim import trim
 
 FLUSH_BYTES = 1024 * 1024
-FOLLOW_POLL_S = 0.1
-Follow = Callable[[], tuple[int, bool]]
 
 
 MAX_PATTERNS = 256  # include and exclude patterns each: matching stays cheap, whatever a client sends
@@ -191,32 +187,6 @@ def window_from_query(types: dict[str, str], timeline: str | None, start: str | 
     return TimeWindow(timeline, lo, hi, latest_at, exact)
 
 
-def read_events(path: Path, size: int, follow: Follow | None) -> Iterator[Event | None]:
-    """Events of the first `size` bytes, then, with `follow`, of what is appended while the run is
-    live; None marks a pause (the caller sends what it holds before waiting)."""
-    decoder = RrdDecoder()
-    position = 0
-    with open(path, "rb") as fh:
-        while True:
-            while position < size:
-                piece = fh.read(min(FLUSH_BYTES, size - position))
-                if not piece:
-                    break
-                position += len(piece)
-                yield from decoder.feed(piece)
-            if follow is None:
-                break
-            grown, live = follow()
-            if grown > size:
-                size = grown
-                continue
-            if not live:
-                break
-            yield None
-            time.sleep(FOLLOW_POLL_S)  # waiting for the run to grow; ends when it closes
-    yield from decoder.finish()
-
-
 def stream_run(path: Path, size: int, entities: EntityFilter, *, blueprint: bool = True,
                window: TimeWindow | None = None, follow: Follow | None = None) -> Iterator[bytes]:
     """The run in `path` (its first `size` bytes) as an RRD stream, in pieces of about 1 MiB. With
@@ -293,26 +263,3 @@ def encode_run(events: Iterable[Event | None], entities: EntityFilter, *, bluepr
 
 def event_key(event: ArrowMessage) -> bytes:
     return event.chunk_id or event.offset.to_bytes(8, "little")
-
-
-@dataclass(frozen=True)
-class HotRecording:
-    path: Path
-    size: int  # bytes of whole messages when the request came
-    timeline_types: dict[str, str]
-    follow: Follow
-
-
-def find_hot(ingest: IngestService | None, run_id: str) -> HotRecording | None:
-    """A run in the hot tier: its file as it stands, its timelines, and how to follow it. Taken from
-    the ingest side directly, so a run is served from its first chunk (the catalog lags a little).
-    None when the run is not hot here, or is sealed and only its late additions are hot."""
-    run = ingest.runs.get(run_id) if ingest is not None else None
-    if run is None or run.sealed_as is not None:
-        return None
-
-    def follow() -> tuple[int, bool]:
-        return run.hot.size, run.status == "live"
-
-    types = {t.name: t.type for t in run.summary.timelines.values()} if run.summary else {}
-    return HotRecording(run.hot.path, run.hot.size, types, follow)

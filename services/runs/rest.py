@@ -15,8 +15,11 @@ from sqlalchemy.orm import Session
 from catalog import queries
 from catalog.db import session_scope
 from catalog.models import Run
+from core.clock import iso_utc
+from core.errors import BadParameterError
 from services.runs import download, sealed, service
-from services.runs.service import RunFilter, format_time, parse_properties, parse_time
+from services.runs.service import RunFilter, parse_properties, parse_time
+from services.sealed.read import locate_sealed
 
 router = APIRouter()
 
@@ -25,8 +28,8 @@ def run_summary(run: Run) -> dict[str, Any]:
     return {
         "id": run.id, "robot_id": run.robot_id, "application_id": run.application_id,
         "date": run.date.isoformat(), "status": run.status, "tier": run.tier,
-        "started_at": format_time(run.started_at), "ended_at": format_time(run.ended_at),
-        "last_data_at": format_time(run.last_data_at), "sdk_version": run.sdk_version,
+        "started_at": iso_utc(run.started_at), "ended_at": iso_utc(run.ended_at),
+        "last_data_at": iso_utc(run.last_data_at), "sdk_version": run.sdk_version,
         "chunks": run.chunks, "rows": run.rows, "bytes": run.bytes, "pinned": run.pinned,
         "pinned_by": run.pinned_by,
         "properties": json.loads(run.properties),
@@ -36,8 +39,8 @@ def run_summary(run: Run) -> dict[str, Any]:
 @router.get("/v1/robots", summary="Robots and how many runs each has")
 def robots(request: Request) -> dict[str, Any]:
     with session_scope(request.app.state.catalog) as session:
-        return {"robots": [{"id": robot.id, "runs": count, "created_at": format_time(robot.created_at),
-                            "last_seen_at": format_time(robot.last_seen_at)}
+        return {"robots": [{"id": robot.id, "runs": count, "created_at": iso_utc(robot.created_at),
+                            "last_seen_at": iso_utc(robot.last_seen_at)}
                            for robot, count in service.list_robots(session)]}
 
 
@@ -68,7 +71,7 @@ def runs(
 @router.get("/v1/runs/{run_id}", summary="One run: metadata, entities, timelines, sizes, tier")
 def run(request: Request, run_id: str) -> dict[str, Any]:
     with session_scope(request.app.state.catalog) as session:
-        found = service.get_run(session, run_id)
+        found = queries.require_run(session, run_id)
         return {
             **run_summary(found),
             "entities": [{"path": e.path, "chunks": e.chunks, "static_chunks": e.static_chunks, "rows": e.rows,
@@ -90,14 +93,14 @@ def _lifecycle(request: Request, session: Session, run: Run) -> dict[str, Any]:
         return {"policy": policy, "lifecycle": None, "objects": [], "events": []}
     return {
         "policy": policy,
-        "lifecycle": {"prefix": life.prefix, "promoted_at": format_time(life.promoted_at),
-                      "archived_at": format_time(life.archived_at), "archive_mode": life.archive_mode,
-                      "restore_state": life.restore_state, "restore_until": format_time(life.restore_until),
-                      "pinned_by": run.pinned_by, "deleted_at": format_time(life.deleted_at),
+        "lifecycle": {"prefix": life.prefix, "promoted_at": iso_utc(life.promoted_at),
+                      "archived_at": iso_utc(life.archived_at), "archive_mode": life.archive_mode,
+                      "restore_state": life.restore_state, "restore_until": iso_utc(life.restore_until),
+                      "pinned_by": run.pinned_by, "deleted_at": iso_utc(life.deleted_at),
                       "deleted_by": life.deleted_by, "deleted_policy": life.deleted_policy},
         "objects": [{"name": o.name, "key": o.key, "tier": o.tier, "size": o.size, "sha256": o.sha256}
                     for o in queries.run_objects(session, run.id).values()],
-        "events": [{"action": e.action, "at": format_time(e.occurred_at), "actor": e.actor, "policy": e.policy,
+        "events": [{"action": e.action, "at": iso_utc(e.occurred_at), "actor": e.actor, "policy": e.policy,
                     "detail": e.detail} for e in queries.run_events(session, run.id)],
     }
 
@@ -127,16 +130,17 @@ def recording(
     """`rerun "http://HOST:8080/v1/runs/RUN/recording.rrd?include=/world/**"` opens it in the viewer.
     Static data is always kept unless its entity is excluded; payloads are copied untouched."""
     entities = download.EntityFilter(include or [], exclude or [])
-    hot = download.find_hot(request.app.state.ingest, run_id)
+    ingest = request.app.state.ingest
+    hot = ingest.hot_recording(run_id) if ingest is not None else None
     if hot is not None:
         types, size = hot.timeline_types, hot.size
     else:  # 404 naming the run, 409 for a cold run not restored, 410 for a deleted one
-        found = sealed.locate_sealed(request.app.state.catalog, request.app.state.tiers.warm, run_id,
+        found = locate_sealed(request.app.state.catalog, request.app.state.tiers.warm, run_id,
                                      dt.datetime.now(dt.UTC))
         types, size = found.timeline_types(), found.size
     window = download.window_from_query(types, timeline, start, end, latest_at, exact)
     if follow and window is not None:
-        raise service.BadParameterError("follow", "follow=true streams what comes next: it takes no time window")
+        raise BadParameterError("follow", "follow=true streams what comes next: it takes no time window")
     filters = json.dumps([sorted(entities.include), sorted(entities.exclude), blueprint, repr(window)])
     etag = f'"{run_id}-{size}-{hashlib.sha256(filters.encode()).hexdigest()[:16]}"'
     if hot is not None:

@@ -8,18 +8,8 @@ download is the sealed object itself, copied through.
 
 from __future__ import annotations
 
-import datetime as dt
 from collections.abc import Iterator
-from dataclasses import dataclass
 
-from sqlalchemy.orm import Session, sessionmaker
-
-from catalog import queries
-from catalog.db import session_scope
-from services.errors import ErrorCode, FleetError
-from services.retention.index import BLUEPRINT_ACTIVATION, CHUNK, STORE_INFO, IndexRow, from_parquet
-from services.retention.seal import INDEX, RECORDING
-from services.retention.tiers import readable_when_cold
 from services.rrd.chunk import ChunkMeta, chunk_meta
 from services.rrd.decoder import decode_message
 from services.rrd.frames import (
@@ -31,68 +21,11 @@ from services.rrd.frames import (
 from services.rrd.messages import ArrowMessage, Event, StreamStart
 from services.runs.download import FLUSH_BYTES, EntityFilter, TimeWindow, encode_run
 from services.runs.latest_at import ChunkEntry, pick_rows, select_chunks
-from services.runs.service import run_not_found
-from services.storage.objectstore import ObjectStore
+from services.sealed.index import BLUEPRINT_ACTIVATION, CHUNK, STORE_INFO, IndexRow
+from services.sealed.read import SealedRecording
 
 GAP_BYTES = 64 * 1024  # neighbouring messages closer than this are fetched in one read
 MAX_READ_BYTES = 16 * 1024 * 1024  # one read holds at most this much (memory stays bounded)
-
-
-@dataclass(frozen=True)
-class SealedRecording:
-    store: ObjectStore
-    prefix: str
-    size: int  # of recording.rrd
-    rows: list[IndexRow]
-
-    @property
-    def key(self) -> str:
-        return f"{self.prefix}/{RECORDING}"
-
-    def timeline_types(self) -> dict[str, str]:
-        return {t.name: t.type for r in self.rows if r.kind == CHUNK for t in r.timelines}
-
-
-class RunArchivedError(FleetError):
-    code = ErrorCode.CONFLICT
-
-
-class RunDeletedError(FleetError):
-    code = ErrorCode.GONE
-
-
-def _when(value: dt.datetime | None) -> str:
-    return value.strftime("%Y-%m-%d %H:%M UTC") if value is not None else "an unknown time"
-
-
-def locate_sealed(catalog: sessionmaker[Session], warm: ObjectStore, run_id: str,
-                  now: dt.datetime) -> SealedRecording:
-    """Where a run that left the hot tier can be read: the warm store (cold runs once restored).
-    A cold run not restored is a CONFLICT saying how to restore it; a deleted one is GONE."""
-    with session_scope(catalog) as session:
-        run = queries.get_run(session, run_id)
-        life = queries.lifecycle(session, run_id)
-        if run is None or life is None:
-            raise run_not_found(run_id)
-        if run.tier == "deleted":
-            raise RunDeletedError(f"run {run_id!r} was deleted on {_when(life.deleted_at)} by {life.deleted_by}"
-                                  + (f" (retention policy {life.deleted_policy!r})" if life.deleted_policy else ""))
-        restored = readable_when_cold(life.archive_mode) or (
-            life.restore_state == "restored" and (life.restore_until is None or
-                                                  queries.aware(life.restore_until) > now))
-        if run.tier == "cold" and not restored:
-            doing = (f"a restore was asked for at {_when(life.restore_requested_at)} and is under way: try again "
-                     "later" if life.restore_state == "restoring" else
-                     f"restore it with POST /v1/runs/{run_id}/restore or `fleet runs restore {run_id}`")
-            raise RunArchivedError(f"run {run_id!r} is archived in the cold tier since {_when(life.archived_at)}; "
-                                   f"{doing}")
-        prefix = life.prefix
-    return open_sealed(warm, prefix)
-
-
-def open_sealed(store: ObjectStore, prefix: str) -> SealedRecording:
-    rows = from_parquet(store.get_range(f"{prefix}/{INDEX}"))
-    return SealedRecording(store, prefix, store.head(f"{prefix}/{RECORDING}").size, rows)
 
 
 def _entry(row: IndexRow, timeline: str) -> ChunkEntry:

@@ -14,7 +14,7 @@ from sqlalchemy.orm import Session
 
 from catalog import queries
 from catalog.models import Robot, Run, RunEntity
-from services.errors import ErrorCode, FleetError
+from core.errors import BadParameterError
 
 MAX_LIMIT = 1000
 MAX_ENTITY_FILTERS = 32  # each is a subquery: a bounded number keeps the query plannable
@@ -23,18 +23,6 @@ MAX_CURSOR_LENGTH = 2048  # a cursor this service gives out is a few dozen chara
 SORTS = ("-started_at", "started_at", "-bytes", "bytes", "id", "-id")
 STATUSES = ("live", "closed")
 TIERS = ("hot", "warm", "cold", "deleted")
-
-
-class RunNotFoundError(FleetError):
-    code = ErrorCode.NOT_FOUND
-
-
-class BadParameterError(FleetError):
-    code = ErrorCode.INVALID_ARGUMENT
-
-    def __init__(self, name: str, problem: str) -> None:
-        super().__init__(f"parameter {name!r}: {problem}")
-        self.parameter = name
 
 
 @dataclass
@@ -195,22 +183,6 @@ def list_runs(session: Session, flt: RunFilter) -> tuple[list[Run], str | None]:
         last = rows[flt.limit - 1]
         next_cursor = _encode_cursor(last[1], last[0].id)
     return runs, next_cursor
-
-
-def format_time(value: dt.datetime | None) -> str | None:
-    """A catalog time as ISO-8601 in UTC with a Z (DuckDB hands back UTC times without a zone)."""
-    return queries.aware(value).isoformat().replace("+00:00", "Z") if value is not None else None
-
-
-def run_not_found(run_id: str) -> RunNotFoundError:
-    return RunNotFoundError(f"no run {run_id!r}: list runs with GET /v1/runs or `fleet runs ls`")
-
-
-def get_run(session: Session, run_id: str) -> Run:
-    run = queries.get_run(session, run_id)
-    if run is None:
-        raise run_not_found(run_id)
-    return run
 
 
 def list_robots(session: Session) -> list[tuple[Robot, int]]:

@@ -10,7 +10,7 @@ from dataclasses import dataclass
 from typing import BinaryIO, Protocol
 from urllib.parse import urlparse
 
-from services.errors import ErrorCode, FleetError
+from core.errors import ErrorCode, FleetError
 
 _SAFE_KEY = re.compile(r"^[A-Za-z0-9._\-/=]+$")  # "=": Hive partitions (robot_id=R/)
 

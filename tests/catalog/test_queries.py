@@ -9,6 +9,7 @@ from sqlalchemy.orm import Session
 
 from catalog import queries
 from catalog.queries import EntityRecord, RunRecord, TimelineRecord
+from core.clock import aware
 
 NOW = dt.datetime(2026, 11, 21, 12, 0, tzinfo=dt.UTC)
 
@@ -59,7 +60,7 @@ def test_save_again_replaces_entities_and_timelines(session: Session):
     assert [e.path for e in queries.run_entities(session, "run-1")] == ["/robot/speed"]
     assert [(t.name, t.max) for t in queries.run_timelines(session, "run-1")] == [("frame", 60)]
     robot = queries.list_robots(session)[0]
-    assert queries.aware(robot.last_seen_at) == later  # timestamps come back as the same instant
+    assert aware(robot.last_seen_at) == later  # timestamps come back as the same instant
 
 
 def test_unknown_run_is_none(session: Session):

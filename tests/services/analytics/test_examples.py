@@ -17,7 +17,7 @@ from typing import Any
 
 import pytest
 
-from services.retention.tiers import Tiers
+from services.sealed.tiers import Tiers
 from services.storage.objectstore import open_store
 from tests.services.analytics.conftest import (
     DAY_NS,

@@ -23,9 +23,9 @@ import pytest
 from catalog import queries
 from catalog.db import session_scope
 from services.analytics.extract import TABLES
-from services.retention.seal import RUN_JSON
 from services.retention.service import delete_run
-from services.retention.tiers import Tiers, parse_run_json
+from services.sealed.tiers import Tiers, parse_run_json
+from services.sealed.write import RUN_JSON
 from services.storage.objectstore import open_store
 from tests.services.analytics.conftest import (
     DAY_NS,

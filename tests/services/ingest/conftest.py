@@ -8,8 +8,10 @@ import pytest
 from sqlalchemy.orm import sessionmaker
 
 from catalog.db import create_engine, upgrade
-from services.ingest.hot import Durability, HotStore
-from services.ingest.service import IngestService, utcnow
+from core.clock import utcnow
+from services.hot.store import HotStore
+from services.ingest.service import IngestService
+from services.settings import Durability
 
 Factory = Callable[..., IngestService]
 

@@ -16,10 +16,11 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from catalog import queries
 from catalog.db import create_engine, session_scope, upgrade
-from services.ingest.hot import Durability, HotStore
+from services.hot.store import HotStore
 from services.ingest.service import IngestService
-from services.retention.tiers import Tiers, sealed_lookup
 from services.rrd import ArrowMessage, iter_events
+from services.sealed.tiers import Tiers, sealed_lookup
+from services.settings import Durability
 from services.storage.objectstore import open_store
 from tests.postgres import temporary_database
 from tests.services.retention.conftest import log_run

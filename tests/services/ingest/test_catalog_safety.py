@@ -19,14 +19,15 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from catalog import queries
 from catalog.db import create_engine, session_scope, upgrade
-from catalog.models import NAME_BYTES, PATH_BYTES
-from services.ingest.hot import Durability, HotStore
-from services.ingest.service import IngestService, InvalidStreamError
+from core.ids import NAME_BYTES, PATH_BYTES, InvalidNameError
+from services.hot.store import HotStore
+from services.ingest.service import IngestService
 from services.rrd import StoreInfoMessage, iter_events
 from services.rrd.decoder import decode_message
 from services.rrd.messages import Event
 from services.rrd.pb import log_msg_pb2
 from services.runs.service import RunFilter, list_runs
+from services.settings import Durability
 from tests.postgres import temporary_database
 from tests.services.ingest import feeding
 
@@ -109,12 +110,12 @@ def test_names_the_sdk_makes_are_stored_and_unusable_ones_refused_before_writing
     for name, kwargs in (("huge-timeline", {"application": "ok", "timeline": "t" * 1100}),
                          ("nul-timeline", {"application": "ok", "timeline": "fr\x00me"})):
         path = log(tmp_path / f"{name}.rrd", recording_id=name, **kwargs)  # type: ignore[arg-type]
-        with pytest.raises(InvalidStreamError, match=r"NUL character|over the limit"):
+        with pytest.raises(InvalidNameError, match=r"NUL character|over the limit"):
             feeding.upload(ingest, iter_events(path))
         assert name not in ingest.runs and not (tmp_path / "hot" / name).exists()  # nothing left behind
     # the 0.41 SDK renames an application id with a NUL; another writer may not
     events = [with_application(e, "app\x00x", "nul-app") for e in iter_events(long_names)]
-    with pytest.raises(InvalidStreamError, match="NUL character"):
+    with pytest.raises(InvalidNameError, match="NUL character"):
         feeding.upload(ingest, events)
     assert "nul-app" not in ingest.runs
     # the catalog still takes every other run's writes

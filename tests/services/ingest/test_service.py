@@ -13,13 +13,14 @@ import pytest
 
 from catalog import queries
 from catalog.db import session_scope
-from services.errors import FleetError
-from services.ingest.hot import Durability, InsufficientStorageError
-from services.ingest.identity import UnsafeIdError
+from core.errors import FleetError
+from core.ids import UnsafeIdError
+from services.hot.store import InsufficientStorageError
 from services.ingest.service import IngestReport, IngestService, InvalidStreamError, TooManyStreamsError
 from services.rrd import ArrowMessage, StoreKind, errors, iter_events
 from services.rrd.chunk import read_chunk
 from services.rrd.messages import BlueprintActivationMessage, StoreInfoMessage
+from services.settings import Durability
 from tests.services.ingest import feeding
 from tests.services.ingest.conftest import Factory
 from tests.services.rrd.recordings import Recording

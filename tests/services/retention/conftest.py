@@ -13,12 +13,13 @@ import pytest
 from sqlalchemy.orm import Session, sessionmaker
 
 from catalog.db import create_engine, upgrade
-from services.ingest.hot import Durability, HotStore
+from services.hot.store import HotStore
 from services.ingest.service import IngestReport, IngestService
-from services.retention.policy import Policies, Policy, PolicyOverride
+from services.policies import Policies, Policy, PolicyOverride
 from services.retention.service import Retention
-from services.retention.tiers import Tiers, sealed_lookup
 from services.rrd import iter_events
+from services.sealed.tiers import Tiers, sealed_lookup
+from services.settings import Durability
 from services.storage.objectstore import ObjectStore, open_store
 from tests.services.ingest import feeding
 

@@ -21,10 +21,10 @@ from services.analytics.service import Analytics, extract_hot_run
 from services.analytics.sql import Limits
 from services.api.app import create_app
 from services.retention.schedule import retention_job
-from services.retention.seal import INDEX, RECORDING, RUN_JSON
 from services.retention.service import plan, run_plan
-from services.retention.tiers import Tiers
 from services.rrd import iter_events
+from services.sealed.tiers import Tiers
+from services.sealed.write import INDEX, RECORDING, RUN_JSON
 from services.settings import load_settings
 from services.storage.objectstore import ObjectArchivedError, ObjectInfo, ObjectStore, StorageError, open_store
 from services.storage.s3 import S3Store

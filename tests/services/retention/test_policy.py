@@ -16,10 +16,10 @@ from pydantic import ValidationError
 
 from catalog.db import create_engine, upgrade
 from services.api.app import create_app
-from services.retention.policy import Policies, Policy, PolicyOverride
+from services.policies import Policies, Policy, PolicyOverride
 from services.retention.schedule import retention_job
 from services.retention.service import plan, run_plan
-from services.retention.tiers import Tiers
+from services.sealed.tiers import Tiers
 from services.server import build
 from services.settings import load_settings
 from tests.services.retention.conftest import Clock, Node, NodeFactory, listing, log_run

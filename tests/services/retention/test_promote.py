@@ -28,18 +28,19 @@ from catalog.db import session_scope
 from services.ingest.identity import SecretFields
 from services.ingest.service import RunState
 from services.retention import promote
-from services.retention.index import CHUNK, IndexRow, from_parquet
 from services.retention.rebuild import rebuild
 from services.retention.schedule import promote_job
-from services.retention.seal import INDEX, RECORDING, RUN_JSON
 from services.retention.service import PROMOTE, Outcome, plan, run_plan, set_pinned
-from services.retention.tiers import Tiers, parse_run_json
 from services.rrd import ArrowMessage, iter_events
 from services.rrd.chunk import ChunkMeta, chunk_meta
 from services.rrd.decoder import decode_message
 from services.rrd.frames import MESSAGE_HEADER_SIZE, STREAM_HEADER_SIZE, decode_message_header
 from services.rrd.messages import EndMessage, StreamFooter
 from services.runs import download, sealed
+from services.sealed.index import CHUNK, IndexRow, from_parquet
+from services.sealed.read import locate_sealed
+from services.sealed.tiers import Tiers, parse_run_json
+from services.sealed.write import INDEX, RECORDING, RUN_JSON
 from services.storage import s3
 from services.storage.objectstore import ObjectInfo, ObjectStore, StorageError, open_store
 from tests.services.ingest import feeding
@@ -90,10 +91,10 @@ def chunk_ids(source: Path | bytes) -> list[bytes]:
 def served(node: Node, run_id: str) -> bytes:
     """The whole run as GET /v1/runs/RUN/recording.rrd answers it, from whichever tier holds it."""
     everything = download.EntityFilter()
-    hot = download.find_hot(node.ingest, run_id)
+    hot = node.ingest.hot_recording(run_id)
     if hot is not None:
         return b"".join(download.stream_run(hot.path, hot.size, everything))
-    found = sealed.locate_sealed(node.catalog, node.tiers.warm, run_id, node.clock())
+    found = locate_sealed(node.catalog, node.tiers.warm, run_id, node.clock())
     return b"".join(sealed.stream_sealed(found, everything))
 
 
@@ -618,7 +619,7 @@ def test_a_failed_late_data_promotion_is_completed(tiers: Tiers, make_node: Node
     (outcome,) = promote_now(node)
     assert not outcome.ok and "injected fault" in outcome.detail
     assert catalog_tier(node) == "warm"
-    found = sealed.locate_sealed(node.catalog, tiers.warm, RUN, clock.now)
+    found = locate_sealed(node.catalog, tiers.warm, RUN, clock.now)
     whole = chunk_ids(b"".join(sealed.stream_sealed(found, download.EntityFilter())))
     assert first <= set(whole) and len(whole) == len(set(whole))
     for entity in ("/world/e0", "/world/static"):  # ranged reads planned from the index

@@ -12,7 +12,7 @@ from pathlib import Path
 import httpx
 import pytest
 
-from services.retention.seal import RUN_JSON
+from services.sealed.write import RUN_JSON
 from tests.services.ingest.live_server import LiveServer
 from tests.services.retention.conftest import log_run
 from tests.services.retention.test_promote import ROBOT, chunk_ids, rerun

@@ -30,8 +30,8 @@ from services.ingest.service import IngestService
 from services.retention.locks import job_lock
 from services.retention.schedule import promote_job, retention_job
 from services.retention.service import PROMOTE, plan
-from services.retention.tiers import Tiers
 from services.rrd import iter_events
+from services.sealed.tiers import Tiers
 from services.storage.objectstore import open_store
 from tests.postgres import temporary_database
 from tests.services.ingest import feeding

@@ -20,10 +20,10 @@ from fastapi.testclient import TestClient
 from catalog import queries
 from catalog.db import session_scope
 from services.api.app import create_app
-from services.retention.seal import INDEX
 from services.retention.service import PROMOTE, plan, run_plan
-from services.retention.tiers import Tiers
 from services.runs.latest_at import ChunkEntry, select_chunks
+from services.sealed.tiers import Tiers
+from services.sealed.write import INDEX
 from services.settings import load_settings
 from services.storage.objectstore import open_store
 from tests.services.retention import conftest as retention

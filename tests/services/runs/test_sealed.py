@@ -24,13 +24,14 @@ from catalog import queries
 from catalog.db import session_scope
 from services.api.app import create_app
 from services.retention import archive
-from services.retention.seal import INDEX, RECORDING
 from services.retention.service import PROMOTE, plan, run_plan
-from services.retention.tiers import Tiers
 from services.rrd import ArrowMessage, StoreKind, iter_events
 from services.rrd.chunk import chunk_meta, read_chunk
 from services.runs.download import EntityFilter, TimeWindow, stream_run
-from services.runs.sealed import open_sealed, stream_sealed
+from services.runs.sealed import stream_sealed
+from services.sealed.read import open_sealed
+from services.sealed.tiers import Tiers
+from services.sealed.write import INDEX, RECORDING
 from services.settings import load_settings
 from services.storage.objectstore import ObjectInfo, ObjectStore
 from tests.conftest import find_rerun

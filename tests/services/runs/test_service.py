@@ -10,9 +10,10 @@ import pytest
 from sqlalchemy.orm import Session
 
 from catalog import queries
-from catalog.queries import EntityRecord, RunRecord
+from catalog.queries import EntityRecord, RunNotFoundError, RunRecord
+from core.errors import BadParameterError
 from services.runs import service
-from services.runs.service import BadParameterError, RunFilter, RunNotFoundError, parse_properties, parse_time
+from services.runs.service import RunFilter, parse_properties, parse_time
 
 T0 = dt.datetime(2026, 11, 1, 8, 0, tzinfo=dt.UTC)
 
@@ -96,9 +97,9 @@ def test_parsers():
 
 
 def test_get_run_and_robots(fleet: Session):
-    assert service.get_run(fleet, "r-a1").robot_id == "robot-a"
+    assert queries.require_run(fleet, "r-a1").robot_id == "robot-a"
     with pytest.raises(RunNotFoundError, match="no run 'nope'") as info:
-        service.get_run(fleet, "nope")
+        queries.require_run(fleet, "nope")
     assert info.value.http_status() == 404
     assert [(robot.id, count) for robot, count in service.list_robots(fleet)] == [("robot-a", 2), ("robot-b", 2)]
 

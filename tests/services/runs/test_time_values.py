@@ -1,7 +1,7 @@
 import pytest
 
+from core.errors import BadParameterError
 from services.runs.download import parse_time_value
-from services.runs.service import BadParameterError
 
 
 @pytest.mark.parametrize(("kind", "text", "value"), [

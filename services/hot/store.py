@@ -10,7 +10,6 @@ end), `interval` fsyncs dirty runs every `interval_ms` from a group-commit threa
 
 from __future__ import annotations
 
-import enum
 import logging
 import os
 import shutil
@@ -20,22 +19,17 @@ import uuid
 from collections.abc import Iterator
 from pathlib import Path
 
-from services.errors import ErrorCode, FleetError
+from core.errors import ErrorCode, FleetError
 from services.rrd import errors as rrd_errors
 from services.rrd.decoder import iter_events
 from services.rrd.frames import MESSAGE_HEADER_SIZE, RerunVersion, StreamHeader, encode_message_header
 from services.rrd.messages import Buffer, Event, StreamStart
+from services.settings import Durability
 
 log = logging.getLogger(__name__)
 
 RUN_FILE = "run.rrd"
 _RECHECK_BYTES = 8 * 1024 * 1024
-
-
-class Durability(enum.StrEnum):
-    ALWAYS = "always"
-    INTERVAL = "interval"
-    OFF = "off"
 
 
 class InsufficientStorageError(FleetError):

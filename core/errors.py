@@ -81,3 +81,13 @@ def http_status(code: ErrorCode) -> int:
 def grpc_status(code: ErrorCode) -> str:
     """The name of the `grpc.StatusCode` member for `code`."""
     return _STATUS[code][1]
+
+
+class BadParameterError(FleetError):
+    """A request parameter that is not acceptable, named, with what would be."""
+
+    code = ErrorCode.INVALID_ARGUMENT
+
+    def __init__(self, name: str, problem: str) -> None:
+        super().__init__(f"parameter {name!r}: {problem}")
+        self.parameter = name

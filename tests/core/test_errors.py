@@ -3,7 +3,7 @@ from pathlib import Path
 
 import pytest
 
-from services.errors import ErrorCode, FleetError, grpc_status, http_status
+from core.errors import ErrorCode, FleetError, grpc_status, http_status
 from services.rrd import errors as rrd_errors
 
 

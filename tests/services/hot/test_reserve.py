@@ -14,7 +14,7 @@ from pathlib import Path
 import httpx
 import pytest
 
-from services.ingest.reserve import RESERVE_FILE
+from services.hot.reserve import RESERVE_FILE
 from tests.services.ingest.live_server import LiveServer
 from tests.services.retention.conftest import log_run
 

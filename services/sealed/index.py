@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from services.errors import ErrorCode, FleetError
+from core.errors import ErrorCode, FleetError
 from services.rrd.chunk import ChunkMeta
 
 CHUNK = "chunk"

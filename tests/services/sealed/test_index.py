@@ -6,7 +6,7 @@ import io
 
 import pyarrow.parquet as pq
 
-from services.retention.index import CHUNK, ComponentRange, IndexRow, TimelineRange, from_parquet, to_parquet
+from services.sealed.index import CHUNK, ComponentRange, IndexRow, TimelineRange, from_parquet, to_parquet
 
 ROW = IndexRow(CHUNK, "recording", 12, 300, b"\x01" * 16, "/robot", False, 4,
                (TimelineRange("frame", "sequence", 0, 30),), ("Points3D:colors", "Points3D:positions"),

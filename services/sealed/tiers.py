@@ -13,10 +13,10 @@ from sqlalchemy.orm import Session, sessionmaker
 from catalog import queries
 from catalog.db import session_scope
 from catalog.queries import EntityRecord, RunRecord, TimelineRecord
-from services.errors import ErrorCode, FleetError
+from core.errors import ErrorCode, FleetError
 from services.ingest.service import SealedInfo
-from services.retention.index import CHUNK, from_parquet
-from services.retention.seal import INDEX
+from services.sealed.index import CHUNK, from_parquet
+from services.sealed.write import INDEX
 from services.settings import Settings
 from services.storage.objectstore import ObjectStore, open_store, supports_archive
 

@@ -18,15 +18,6 @@ from typing import BinaryIO, cast
 
 from services.ingest.identity import DEFAULT_SECRETS, SecretFields
 from services.ingest.service import RunFacts
-from services.retention.index import (
-    BLUEPRINT_ACTIVATION,
-    CHUNK,
-    STORE_INFO,
-    IndexRow,
-    TimelineRange,
-    component_ranges,
-    to_parquet,
-)
 from services.rrd.chunk import ChunkMeta, chunk_meta
 from services.rrd.encoder import RrdEncoder
 from services.rrd.frames import DEFAULT_VERSION
@@ -38,6 +29,15 @@ from services.rrd.messages import (
     StoreInfoMessage,
     StoreKind,
     StreamStart,
+)
+from services.sealed.index import (
+    BLUEPRINT_ACTIVATION,
+    CHUNK,
+    STORE_INFO,
+    IndexRow,
+    TimelineRange,
+    component_ranges,
+    to_parquet,
 )
 
 RECORDING = "recording.rrd"

@@ -1,0 +1,47 @@
+"""What names may be: ids that become part of object keys, and names the catalog must hold.
+
+Both are checked at ingest, before anything is written, so no run can make a key unsafe or make the
+catalog refuse the writes and queries of every other run."""
+
+from __future__ import annotations
+
+import re
+
+from core.errors import ErrorCode, FleetError
+
+ID_LENGTH = 128
+SAFE_ID = re.compile(rf"[A-Za-z0-9._-]{{1,{ID_LENGTH}}}")
+# Names the catalog indexes (application ids, timeline names) and entity paths: btree indexes hold
+# values up to about 2,700 bytes, so these limits keep every index writable.
+NAME_BYTES = 1024
+PATH_BYTES = 2048
+
+
+class UnsafeIdError(FleetError):
+    code = ErrorCode.INVALID_ARGUMENT
+
+
+class InvalidNameError(FleetError):
+    code = ErrorCode.INVALID_ARGUMENT
+
+
+def check_id(kind: str, value: str) -> str:
+    """`value` if it can be part of an object key, else UnsafeIdError naming it and the rule."""
+    if not SAFE_ID.fullmatch(value) or value in (".", ".."):
+        raise UnsafeIdError(
+            f"{kind} {value!r} cannot be used in object keys: use 1 to 128 characters from "
+            "A-Z a-z 0-9 . _ - (for a recording id: rr.init(..., recording_id=...))"
+        )
+    return value
+
+
+def check_name(kind: str, value: str, limit: int = NAME_BYTES) -> str:
+    """`value` if the catalog can hold it (no NUL character, at most `limit` UTF-8 bytes)."""
+    if "\x00" in value:
+        raise InvalidNameError(f"{kind} {value[:80]!r} contains a NUL character, which the catalog cannot "
+                               "store: remove it in the robot's logging code")
+    size = len(value.encode("utf-8", "surrogatepass"))
+    if size > limit:
+        raise InvalidNameError(f"{kind} {value[:80]!r}... is {size} bytes long, over the limit of {limit}: "
+                               "use a shorter one in the robot's logging code")
+    return value

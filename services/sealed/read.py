@@ -1,0 +1,76 @@
+"""Reading a sealed run: where it is (warm, or cold once restored), and its chunk index.
+
+A cold run not restored is a CONFLICT saying how to restore it; a deleted one is GONE."""
+
+from __future__ import annotations
+
+import datetime as dt
+from dataclasses import dataclass
+
+from sqlalchemy.orm import Session, sessionmaker
+
+from catalog import queries
+from catalog.db import session_scope
+from core.clock import aware
+from core.errors import ErrorCode, FleetError
+from services.sealed.index import CHUNK, IndexRow, from_parquet
+from services.sealed.tiers import readable_when_cold
+from services.sealed.write import INDEX, RECORDING
+from services.storage.objectstore import ObjectStore
+
+
+@dataclass(frozen=True)
+class SealedRecording:
+    store: ObjectStore
+    prefix: str
+    size: int  # of recording.rrd
+    rows: list[IndexRow]
+
+    @property
+    def key(self) -> str:
+        return f"{self.prefix}/{RECORDING}"
+
+    def timeline_types(self) -> dict[str, str]:
+        return {t.name: t.type for r in self.rows if r.kind == CHUNK for t in r.timelines}
+
+
+class RunArchivedError(FleetError):
+    code = ErrorCode.CONFLICT
+
+
+class RunDeletedError(FleetError):
+    code = ErrorCode.GONE
+
+
+def _when(value: dt.datetime | None) -> str:
+    return value.strftime("%Y-%m-%d %H:%M UTC") if value is not None else "an unknown time"
+
+
+def locate_sealed(catalog: sessionmaker[Session], warm: ObjectStore, run_id: str,
+                  now: dt.datetime) -> SealedRecording:
+    """Where a run that left the hot tier can be read: the warm store (cold runs once restored).
+    A cold run not restored is a CONFLICT saying how to restore it; a deleted one is GONE."""
+    with session_scope(catalog) as session:
+        run = queries.get_run(session, run_id)
+        life = queries.lifecycle(session, run_id)
+        if run is None or life is None:
+            raise queries.run_not_found(run_id)
+        if run.tier == "deleted":
+            raise RunDeletedError(f"run {run_id!r} was deleted on {_when(life.deleted_at)} by {life.deleted_by}"
+                                  + (f" (retention policy {life.deleted_policy!r})" if life.deleted_policy else ""))
+        restored = readable_when_cold(life.archive_mode) or (
+            life.restore_state == "restored" and (life.restore_until is None or
+                                                  aware(life.restore_until) > now))
+        if run.tier == "cold" and not restored:
+            doing = (f"a restore was asked for at {_when(life.restore_requested_at)} and is under way: try again "
+                     "later" if life.restore_state == "restoring" else
+                     f"restore it with POST /v1/runs/{run_id}/restore or `fleet runs restore {run_id}`")
+            raise RunArchivedError(f"run {run_id!r} is archived in the cold tier since {_when(life.archived_at)}; "
+                                   f"{doing}")
+        prefix = life.prefix
+    return open_sealed(warm, prefix)
+
+
+def open_sealed(store: ObjectStore, prefix: str) -> SealedRecording:
+    rows = from_parquet(store.get_range(f"{prefix}/{INDEX}"))
+    return SealedRecording(store, prefix, store.head(f"{prefix}/{RECORDING}").size, rows)
