@@ -220,7 +220,7 @@ def extract_hot_run(ctx: Analytics, ingest: IngestService, run_id: str) -> list[
     if run is None:
         raise queries.run_not_found(run_id)
     extractor = Extractor(run_id)
-    for event in read_events(run.hot.path, run.hot.size, None):
+    for event in read_events(run.hot.path, run.hot.size):
         if isinstance(event, ArrowMessage) and event.store_id.kind == StoreKind.RECORDING:
             extractor.add(event, chunk_meta(event))
     record = run.record(ingest.default_robot)

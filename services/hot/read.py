@@ -1,19 +1,30 @@
 """Reading a hot run's file: its messages as they stand, and, when following a live run, those
-appended after, until the run closes."""
+appended after, until the run closes.
+
+Following waits on the run's `Changes` (woken by appends and by the run's end) on the event loop:
+a follower holds no thread while the run is quiet, and only the reading itself may go to a worker
+thread (the caller's choice, see services.runs.download.follow_run)."""
 
 from __future__ import annotations
 
+import asyncio
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import AsyncGenerator, Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Protocol
 
+from services.hot.store import Changes
 from services.rrd.decoder import RrdDecoder
 from services.rrd.messages import Event
 
 READ_BYTES = 1024 * 1024
-FOLLOW_POLL_S = 0.1
+# A follower reads at most this often: a busy run's many small appends are read (and sent) together,
+# and a hundred followers of a run logging at a kHz wake 20 times a second each, not a thousand.
+FOLLOW_BATCH_S = 0.05
+# Besides its wake-ups, a follower looks at the run this often: a safety net that ends the stream
+# even if the run's end came without a notification.
+FOLLOW_RECHECK_S = 5.0
 # A live run's file: () -> (bytes of whole messages now, whether the run is still live).
 Follow = Callable[[], tuple[int, bool]]
 
@@ -27,6 +38,7 @@ class HotRecording:
     size: int  # bytes of whole messages when the reader asked
     timeline_types: dict[str, str]
     follow: Follow
+    changes: Changes  # notified when the file grows or the run ends
 
 
 class HotRuns(Protocol):
@@ -35,27 +47,62 @@ class HotRuns(Protocol):
     def hot_recording(self, run_id: str) -> HotRecording | None: ...
 
 
-def read_events(path: Path, size: int, follow: Follow | None) -> Iterator[Event | None]:
-    """Events of the first `size` bytes, then, with `follow`, of what is appended while the run is
-    live; None marks a pause (the caller sends what it holds before waiting)."""
-    decoder = RrdDecoder()
-    position = 0
-    with open(path, "rb") as fh:
-        while True:
-            while position < size:
-                piece = fh.read(min(READ_BYTES, size - position))
-                if not piece:
-                    break
-                position += len(piece)
-                yield from decoder.feed(piece)
-            if follow is None:
-                break
-            grown, live = follow()
-            if grown > size:
-                size = grown
-                continue
-            if not live:
-                break
-            yield None
-            time.sleep(FOLLOW_POLL_S)  # waiting for the run to grow; ends when it closes
-    yield from decoder.finish()
+class HotReader:
+    """A run's file decoded from its start, a piece at a time, up to a size the caller gives (the
+    bytes of whole messages it knows of). Not thread-safe: one step at a time, on any thread."""
+
+    def __init__(self, path: Path) -> None:
+        self._file = open(path, "rb")  # noqa: SIM115 - closed by close(), the reader outlives a `with`
+        self._decoder = RrdDecoder()
+        self.position = 0
+
+    def read(self, size: int, limit: int = READ_BYTES) -> list[Event]:
+        """The events of the next piece (at most `limit` bytes, not past `size`)."""
+        piece = self._file.read(min(limit, size - self.position)) if self.position < size else b""
+        if not piece:
+            return []
+        self.position += len(piece)
+        return list(self._decoder.feed(piece))
+
+    def finish(self) -> list[Event]:
+        return list(self._decoder.finish())
+
+    def close(self) -> None:
+        self._file.close()
+
+
+def read_events(path: Path, size: int) -> Iterator[Event]:
+    """Events of the first `size` bytes of a run's file (following a live run: `follow_sizes`)."""
+    reader = HotReader(path)
+    try:
+        while reader.position < size:
+            before = reader.position
+            yield from reader.read(size)
+            if reader.position == before:
+                break  # the file is shorter than `size`: what it holds was read
+        yield from reader.finish()
+    finally:
+        reader.close()
+
+
+async def follow_sizes(recording: HotRecording) -> AsyncGenerator[int, None]:
+    """The bytes of whole messages in the run's file: `recording.size` first, then each time it has
+    grown, until the run is no longer live. Waits on the run's changes, on the event loop."""
+    size = recording.size
+    yield size
+    read_at = time.monotonic()
+    while True:
+        seen = recording.changes.count  # before looking: a change made after this ends the wait at once
+        grown, live = recording.follow()
+        if grown > size:
+            pause = read_at + FOLLOW_BATCH_S - time.monotonic()
+            if pause > 0:
+                await asyncio.sleep(pause)  # let a busy run's appends gather into one read
+                grown, live = recording.follow()
+            size = grown
+            read_at = time.monotonic()
+            yield size
+            continue
+        if not live:
+            return
+        await recording.changes.wait(seen, FOLLOW_RECHECK_S)

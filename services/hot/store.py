@@ -6,10 +6,14 @@ with one `writev`; if that fails part-way the file is cut back, so there is neve
 chunk. After a crash, `recover()` trims a torn tail and rebuilds the run from what is on disk.
 Durability: `always` fsyncs when a caller asks (an upload before it is answered, a stream at its
 end), `interval` fsyncs dirty runs every `interval_ms` from a group-commit thread, `off` never.
+Readers following a run wait on its `changes` (a wake-up per append and when the run ends), not on
+a timer.
 """
 
 from __future__ import annotations
 
+import asyncio
+import contextlib
 import logging
 import os
 import shutil
@@ -36,6 +40,68 @@ class InsufficientStorageError(FleetError):
     code = ErrorCode.INSUFFICIENT_STORAGE
 
 
+class Changes:
+    """Wakes the readers following a run when its file grows or the run ends.
+
+    `notify` may be called from any thread (appends happen on the event loop, promotion and tests
+    may close runs from others); each waiter is woken on its own loop. A reader takes `count`
+    before it looks at the run and passes it to `wait`, so a change made in between is never
+    missed. Costs an append a lock and a counter when nobody follows."""
+
+    def __init__(self) -> None:
+        self.count = 0
+        self._lock = threading.Lock()
+        self._waiters: set[tuple[asyncio.AbstractEventLoop, asyncio.Future[None]]] = set()
+
+    @property
+    def waiting(self) -> int:
+        """Readers waiting now."""
+        return len(self._waiters)
+
+    def notify(self) -> None:
+        with self._lock:
+            self.count += 1
+            waiters, self._waiters = self._waiters, set()
+        if not waiters:
+            return
+        try:
+            here: asyncio.AbstractEventLoop | None = asyncio.get_running_loop()
+        except RuntimeError:
+            here = None
+        by_loop: dict[asyncio.AbstractEventLoop, list[asyncio.Future[None]]] = {}
+        for loop, future in waiters:
+            by_loop.setdefault(loop, []).append(future)
+        for loop, futures in by_loop.items():
+            if loop is here:
+                _wake(futures)
+            else:  # one wake-up of the other loop for all its waiters
+                with contextlib.suppress(RuntimeError):  # that loop is closed: nobody waits there any more
+                    loop.call_soon_threadsafe(_wake, futures)
+
+    async def wait(self, seen: int, timeout: float | None = None) -> None:
+        """Return once `count` differs from `seen` (at once if it already does), or after `timeout`."""
+        loop = asyncio.get_running_loop()
+        future: asyncio.Future[None] = loop.create_future()
+        waiter = (loop, future)
+        with self._lock:
+            if self.count != seen:
+                return
+            self._waiters.add(waiter)
+        try:
+            await asyncio.wait_for(future, timeout)
+        except TimeoutError:
+            pass
+        finally:
+            with self._lock:
+                self._waiters.discard(waiter)
+
+
+def _wake(futures: list[asyncio.Future[None]]) -> None:
+    for future in futures:
+        if not future.done():
+            future.set_result(None)
+
+
 class HotRun:
     """The append-only file of one run."""
 
@@ -46,6 +112,7 @@ class HotRun:
         self.size = size
         self.dirty = False
         self.closed = False
+        self.changes = Changes()  # followers wait on it: the file grew, or the run ended
 
     @property
     def path(self) -> Path:
@@ -96,6 +163,7 @@ class HotRun:
             raise InsufficientStorageError(f"cannot write run {self.run_id} to the hot tier: {exc}") from exc
         self.size = offset + written
         self.dirty = True
+        self.changes.notify()
         return offset
 
     def sync(self) -> None:
@@ -108,6 +176,7 @@ class HotRun:
             self.sync()
             self.closed = True
             os.close(self._fd)
+            self.changes.notify()
 
 
 def _end_of(event: Event) -> int:

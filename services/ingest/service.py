@@ -157,7 +157,7 @@ class IngestService:
             return hot.size, run.status == "live"
 
         types = {t.name: t.type for t in run.summary.timelines.values()} if run.summary else {}
-        return HotRecording(hot.path, hot.size, types, follow)
+        return HotRecording(hot.path, hot.size, types, follow, hot.changes)
 
     def open_source(self, *, live: bool) -> Source:
         if live:
@@ -404,6 +404,7 @@ class IngestService:
 
     def _close_run(self, run: RunState, now: dt.datetime) -> None:
         run.status, run.ended_at, run.dirty = "closed", now, True
+        run.hot.changes.notify()  # its followers finish their streams
         if self.replay is not None:
             self.replay.end_run(run.run_id)  # readers that connect later get live runs only
 

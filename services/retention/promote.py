@@ -187,7 +187,7 @@ def _seal_and_switch(run: RunState, ingest: IngestService, tiers: Tiers, catalog
         base = workdir / "base.rrd"
         _download(tiers, f"{prefix}/{RECORDING}", base)
         sources.append(iter(iter_events(base)))
-    sources.append(read_events(run.hot.path, size, None))
+    sources.append(read_events(run.hot.path, size))
     analytics = Extractor(run.run_id)
     sealed = seal(sources, workdir / RECORDING, run.run_id, now, analytics.add, ingest.secret_fields)  # (1)
     record = _sealed_record(run, sealed, ingest.default_robot)

@@ -2,7 +2,8 @@
 
 The output is one RRD stream with the run's own SDK version in its header, store infos first, the
 blueprint unless left out, and a footer with a manifest, written as it is produced (constant
-memory). A live run is served as it stands when the request starts (whole messages only).
+memory). A live run is served as it stands when the request starts (whole messages only), or
+followed (`follow_run`) until it closes.
 """
 
 from __future__ import annotations
@@ -10,13 +11,16 @@ from __future__ import annotations
 import datetime as dt
 import io
 import re
-from collections.abc import Iterable, Iterator
+from collections.abc import AsyncIterator, Iterable, Iterator
+from contextlib import aclosing
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import BinaryIO, cast
 
+import anyio.to_thread
+
 from core.errors import BadParameterError
-from services.hot.read import Follow, read_events
+from services.hot.read import HotReader, HotRecording, follow_sizes, read_events
 from services.rrd.chunk import ChunkMeta, chunk_meta
 from services.rrd.encoder import RrdEncoder
 from services.rrd.frames import DEFAULT_VERSION
@@ -33,6 +37,9 @@ from services.runs.latest_at import ChunkEntry, pick_rows, select_chunks
 from services.runs.trim import trim
 
 FLUSH_BYTES = 1024 * 1024
+# A follower decodes what was just appended on the event loop (a chunk or a few: well under a
+# millisecond); a bigger piece, such as the run so far, goes to a worker thread.
+ON_LOOP_BYTES = 16 * 1024
 
 
 MAX_PATTERNS = 256  # include and exclude patterns each: matching stays cheap, whatever a client sends
@@ -188,16 +195,14 @@ def window_from_query(types: dict[str, str], timeline: str | None, start: str | 
 
 
 def stream_run(path: Path, size: int, entities: EntityFilter, *, blueprint: bool = True,
-               window: TimeWindow | None = None, follow: Follow | None = None) -> Iterator[bytes]:
-    """The run in `path` (its first `size` bytes) as an RRD stream, in pieces of about 1 MiB. With
-    `follow` (run -> (whole bytes now, still live)), new chunks are sent as they are written and the
-    stream ends, with its footer, when the run closes."""
+               window: TimeWindow | None = None) -> Iterator[bytes]:
+    """The run in `path` (its first `size` bytes) as an RRD stream, in pieces of about 1 MiB."""
     metas: dict[bytes, ChunkMeta] = {}
     keep: set[bytes] | None = None
     picks: dict[bytes, set[int]] = {}  # exact: chunk id -> its rows kept as latest-at rows
     if window is not None:  # a first pass picks the chunks; payloads are only read in the second
         found = []
-        for first in read_events(path, size, None):
+        for first in read_events(path, size):
             if isinstance(first, ArrowMessage):
                 meta = metas[event_key(first)] = chunk_meta(first)
                 recording = first.store_id.kind == StoreKind.RECORDING
@@ -206,59 +211,122 @@ def stream_run(path: Path, size: int, entities: EntityFilter, *, blueprint: bool
         keep, candidates = select_chunks(found, window.bounds, window.latest_at, resolve=lambda known: known)
         if window.exact and candidates:
             picks = pick_rows(_chunks_of(path, size, metas, candidates), window.timeline, window.bounds[0])
-    yield from encode_run(read_events(path, size, follow), entities, blueprint=blueprint, window=window,
+    yield from encode_run(read_events(path, size), entities, blueprint=blueprint, window=window,
                           keep=keep, picks=picks, metas=metas)
+
+
+async def follow_run(hot: HotRecording, entities: EntityFilter, *, blueprint: bool = True) -> AsyncIterator[bytes]:
+    """A live run as an RRD stream: what it holds, then what is written to it as it comes, ending
+    with the footer when the run closes. The waiting is done on the event loop (a quiet follower
+    holds no thread); a big piece (the run so far) is read and encoded on a worker thread."""
+    reader = HotReader(hot.path)
+    run = RunEncoder(entities, blueprint=blueprint)
+
+    def step(size: int) -> bytes:
+        for event in reader.read(size):
+            run.add(event)
+        return run.take() if run.pending >= FLUSH_BYTES else b""
+
+    try:
+        async with aclosing(follow_sizes(hot)) as sizes:
+            async for size in sizes:
+                while reader.position < size:
+                    before = reader.position
+                    if size - before <= ON_LOOP_BYTES:
+                        piece = step(size)
+                    else:  # not cancellable part-way: the reader is never closed under a step
+                        piece = await anyio.to_thread.run_sync(step, size)
+                    if piece:
+                        yield piece
+                    if reader.position == before:
+                        break  # the file is shorter than said: what it holds was read
+                if run.pending:  # caught up: send what is held before waiting
+                    yield run.take()
+        for event in reader.finish():
+            run.add(event)
+        yield run.finish()
+    finally:
+        reader.close()
 
 
 def _chunks_of(path: Path, size: int, metas: dict[bytes, ChunkMeta],
                chunk_ids: set[bytes]) -> Iterator[tuple[ArrowMessage, ChunkMeta]]:
-    for event in read_events(path, size, None):
+    for event in read_events(path, size):
         if isinstance(event, ArrowMessage) and (meta := metas[event_key(event)]).chunk_id in chunk_ids:
             yield event, meta
+
+
+class RunEncoder:
+    """The chosen messages of a run encoded as one RRD stream with a footer, an event at a time; the
+    bytes are taken out as they accumulate. With an exact window, recording chunks are cut to the
+    rows in it plus their `picks` (latest-at rows)."""
+
+    def __init__(self, entities: EntityFilter, *, blueprint: bool, window: TimeWindow | None = None,
+                 keep: set[bytes] | None = None, picks: dict[bytes, set[int]] | None = None,
+                 metas: dict[bytes, ChunkMeta] | None = None) -> None:
+        self.entities, self.blueprint, self.window, self.keep = entities, blueprint, window, keep
+        self.picks = picks or {}
+        self.metas = metas or {}
+        self._sink = _Chunks()
+        self._out = cast(BinaryIO, self._sink)
+        self._encoder: RrdEncoder | None = None
+
+    @property
+    def pending(self) -> int:
+        """Bytes encoded and not taken yet."""
+        return self._sink.size
+
+    def take(self) -> bytes:
+        return self._sink.take()
+
+    def add(self, event: Event) -> None:
+        if isinstance(event, StreamStart):
+            self._encoder = self._encoder or RrdEncoder(self._out, event.version)  # the run's own SDK version
+            return
+        if not isinstance(event, StoreInfoMessage | ArrowMessage | BlueprintActivationMessage):
+            return
+        encoder = self._encoder = self._encoder or RrdEncoder(self._out, DEFAULT_VERSION)
+        store = event.blueprint_id if isinstance(event, BlueprintActivationMessage) else event.store_id
+        if store.kind == StoreKind.BLUEPRINT and not self.blueprint:
+            return
+        if not isinstance(event, ArrowMessage):
+            encoder.write(event)
+            return
+        meta = self.metas.get(event_key(event)) or chunk_meta(event)
+        if store.kind == StoreKind.RECORDING and not self.entities(meta.entity_path):
+            return
+        if self.keep is not None and meta.chunk_id not in self.keep:
+            return
+        window = self.window
+        if window is not None and window.exact and store.kind == StoreKind.RECORDING and not meta.is_static:
+            lo, hi = window.bounds
+            cut = trim(event, meta, window.timeline, lo, hi, self.picks.get(meta.chunk_id, ()))
+            if cut is None:
+                return
+            event, meta = cut
+        encoder.write_arrow(event, meta)
+
+    def finish(self) -> bytes:
+        """The rest of the stream: what is held, the End message and the footer."""
+        (self._encoder or RrdEncoder(self._out, DEFAULT_VERSION)).finish()
+        return self._sink.take()
 
 
 def encode_run(events: Iterable[Event | None], entities: EntityFilter, *, blueprint: bool,
                window: TimeWindow | None, keep: set[bytes] | None, picks: dict[bytes, set[int]],
                metas: dict[bytes, ChunkMeta]) -> Iterator[bytes]:
-    """The chosen messages of a run as one RRD stream with a footer, in pieces of about 1 MiB; None
-    among `events` is a pause (what is held is sent). With an exact window, recording chunks are cut
-    to the rows in it plus their `picks` (latest-at rows)."""
-    sink = _Chunks()
-    out = cast(BinaryIO, sink)
-    encoder: RrdEncoder | None = None
+    """The chosen messages of a run as one RRD stream with a footer (`RunEncoder`), in pieces of
+    about 1 MiB; None among `events` is a pause (what is held is sent)."""
+    run = RunEncoder(entities, blueprint=blueprint, window=window, keep=keep, picks=picks, metas=metas)
     for event in events:
         if event is None:
-            if sink.size:
-                yield sink.take()
+            if run.pending:
+                yield run.take()
             continue
-        if isinstance(event, StreamStart):
-            encoder = encoder or RrdEncoder(out, event.version)  # the run's own SDK version
-            continue
-        if not isinstance(event, StoreInfoMessage | ArrowMessage | BlueprintActivationMessage):
-            continue
-        encoder = encoder or RrdEncoder(out, DEFAULT_VERSION)
-        store = event.blueprint_id if isinstance(event, BlueprintActivationMessage) else event.store_id
-        if store.kind == StoreKind.BLUEPRINT and not blueprint:
-            continue
-        if isinstance(event, ArrowMessage):
-            meta = metas.get(event_key(event)) or chunk_meta(event)
-            if store.kind == StoreKind.RECORDING and not entities(meta.entity_path):
-                continue
-            if keep is not None and meta.chunk_id not in keep:
-                continue
-            if window is not None and window.exact and store.kind == StoreKind.RECORDING and not meta.is_static:
-                lo, hi = window.bounds
-                cut = trim(event, meta, window.timeline, lo, hi, picks.get(meta.chunk_id, ()))
-                if cut is None:
-                    continue
-                event, meta = cut
-            encoder.write_arrow(event, meta)
-        else:
-            encoder.write(event)
-        if sink.size >= FLUSH_BYTES:
-            yield sink.take()
-    (encoder or RrdEncoder(out, DEFAULT_VERSION)).finish()
-    yield sink.take()
+        run.add(event)
+        if run.pending >= FLUSH_BYTES:
+            yield run.take()
+    yield run.finish()
 
 
 def event_key(event: ArrowMessage) -> bytes:

@@ -6,6 +6,7 @@ from __future__ import annotations
 import datetime as dt
 import hashlib
 import json
+from collections.abc import AsyncIterator, Iterator
 from typing import Annotated, Any
 
 from fastapi import APIRouter, Query, Request
@@ -143,9 +144,11 @@ def recording(
         raise BadParameterError("follow", "follow=true streams what comes next: it takes no time window")
     filters = json.dumps([sorted(entities.include), sorted(entities.exclude), blueprint, repr(window)])
     etag = f'"{run_id}-{size}-{hashlib.sha256(filters.encode()).hexdigest()[:16]}"'
-    if hot is not None:
-        body = download.stream_run(hot.path, hot.size, entities, blueprint=blueprint, window=window,
-                                   follow=hot.follow if follow else None)
+    body: Iterator[bytes] | AsyncIterator[bytes]
+    if hot is not None and follow:  # waits for the run on the event loop, not in a thread of its own
+        body = download.follow_run(hot, entities, blueprint=blueprint)
+    elif hot is not None:
+        body = download.stream_run(hot.path, hot.size, entities, blueprint=blueprint, window=window)
     else:
         body = sealed.stream_sealed(found, entities, blueprint=blueprint, window=window)
     return StreamingResponse(body, media_type="application/octet-stream",
