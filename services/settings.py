@@ -42,7 +42,8 @@ DEFAULT_SECRET_FIELDS = (
 class Settings(BaseSettings):
     model_config = SettingsConfigDict(env_prefix="FLEET_", extra="forbid")
 
-    data_dir: Path = Field(Path("./fleet-data"), description="hot tier and embedded defaults live here")
+    data_dir: Path = Field(Path("./fleet-data"),
+                           description="hot tier and embedded defaults live here; one fleet serve per data dir")
     http_addr: str = Field("0.0.0.0:8080", description="REST API address")
     grpc_addr: str = Field("0.0.0.0:51234", description="Rerun message proxy address (Rerun's server port; "
                            "9876 is the viewer's)")
@@ -66,8 +67,11 @@ class Settings(BaseSettings):
     secret_fields: Annotated[list[str], NoDecode] = Field(
         default_factory=lambda: list(DEFAULT_SECRET_FIELDS),
         description="recording property fields never stored nor served: a field is secret if one of these "
-        "names, as words, appears in its name (a JSON list or comma-separated)")
-    durability: Durability = Field(Durability.INTERVAL, description="hot-tier fsync: always | interval | off")
+        "names, as words, appears in its name (token matches ingest_token, apiKey matches api_key; a JSON list "
+        "or comma-separated)")
+    durability: Durability = Field(Durability.INTERVAL,
+                                   description="hot-tier fsync: always (before answering) | interval (group "
+                                   "commit) | off")
     group_commit_ms: int = Field(200, gt=0, description="with durability=interval, fsync every this many ms")
     min_free_bytes: int = Field(1 << 30, ge=0, description="refuse new data when the hot disk has less free")
     reserve_bytes: int = Field(64 << 20, ge=0, description="held in reserve on the data disk for the catalog "

@@ -71,6 +71,7 @@ def create_app(settings: Settings, ingest: IngestService | None = None,
         return {"status": "ok", "version": __version__}
 
     registry = prometheus.metrics_registry(ingest)
+    app.add_middleware(prometheus.RequestMetrics, registry=registry)
 
     @app.get("/metrics", response_class=Response, responses={200: {"content": {prometheus.CONTENT_TYPE: {}}}})
     async def metrics() -> Response:

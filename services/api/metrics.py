@@ -1,18 +1,22 @@
 """`/metrics`: the Prometheus exposition, every metric with HELP and TYPE.
 
-The figures live in the ingest service (plain counters it updates as streams and uploads end);
-a custom collector reads them at scrape time, so nothing is counted twice and ingest has no
-dependency on the Prometheus client.
+The ingest figures live in the ingest service (plain counters it updates as streams and uploads
+end); a custom collector reads them at scrape time, so nothing is counted twice and ingest has no
+dependency on the Prometheus client. HTTP requests (among them SQL queries and retention runs
+asked for over REST) are counted by an ASGI middleware, by route template, as they are answered.
 """
 
 from __future__ import annotations
 
+import time
 from collections.abc import Iterator
+from typing import Any
 
-from prometheus_client import CollectorRegistry, generate_latest
+from prometheus_client import CollectorRegistry, Counter, Histogram, generate_latest
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, InfoMetricFamily, Metric
 from prometheus_client.exposition import CONTENT_TYPE_PLAIN_0_0_4
 from prometheus_client.registry import Collector
+from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from services import __version__
 from services.ingest.service import IngestService
@@ -59,3 +63,40 @@ def metrics_registry(ingest: IngestService | None) -> CollectorRegistry:
 def exposition(registry: CollectorRegistry) -> bytes:
     """HELP and TYPE lines, then the samples, for every metric of the registry."""
     return generate_latest(registry)
+
+
+class RequestMetrics:
+    """Pure ASGI middleware (a streamed download passes through untouched): each HTTP request
+    counted by method, route template and status, and its time to the response's first byte.
+    Paths that match no route share the route "unmatched", so a scan of URLs adds no series."""
+
+    def __init__(self, app: ASGIApp, registry: CollectorRegistry) -> None:
+        self.app = app
+        self.requests = Counter("fleet_http_requests", "HTTP requests answered, by method, route template and status",
+                                ["method", "route", "status"], registry=registry)
+        self.seconds = Histogram("fleet_http_request_seconds", "Time from an HTTP request to its response's "
+                                 "headers, by method and route template", ["method", "route"], registry=registry)
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        started = time.perf_counter()
+        status = 500  # what the server answers when the app raises before starting a response
+
+        async def answered(message: Message) -> None:
+            nonlocal status
+            if message["type"] == "http.response.start":
+                status = message["status"]
+                self.seconds.labels(scope["method"], _route(scope)).observe(time.perf_counter() - started)
+            await send(message)
+
+        try:
+            await self.app(scope, receive, answered)
+        finally:
+            self.requests.labels(scope["method"], _route(scope), str(status)).inc()
+
+
+def _route(scope: Scope) -> str:
+    route: Any = scope.get("route")  # set by the router on the scope it was given (this one)
+    return str(getattr(route, "path", "unmatched"))

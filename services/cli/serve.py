@@ -1,63 +1,102 @@
-"""`fleet serve`: run the service on the configured addresses."""
+"""`fleet serve`: run the service on the configured addresses.
+
+Its options are made from `Settings`: one per field, named after it (`--kebab-name`), with the
+field's description as help and its default shown, so that a setting is described and defaulted
+in one place. An option left out is None, so the environment, the TOML file and the default apply
+in that order (see `load_settings`)."""
 
 from __future__ import annotations
 
+import enum
+import types
 from pathlib import Path
+from typing import TYPE_CHECKING, Any, Union, get_args, get_origin
 
 import click
 
+if TYPE_CHECKING:
+    from pydantic.fields import FieldInfo
 
-@click.command()
-@click.option("--data-dir", type=click.Path(path_type=Path), help="FLEET_DATA_DIR: hot tier and embedded "
-              "defaults live here; one fleet serve per data dir [default: ./fleet-data]")
-@click.option("--http-addr", help="FLEET_HTTP_ADDR: REST API address [default: 0.0.0.0:8080]")
-@click.option("--grpc-addr", help="FLEET_GRPC_ADDR: Rerun message proxy address [default: 0.0.0.0:51234]")
-@click.option("--catalog-url", help="FLEET_CATALOG_URL: duckdb:///PATH or postgresql+psycopg://...")
-@click.option("--warm-url", help="FLEET_WARM_URL: file:///PATH or s3://bucket/prefix")
-@click.option("--cold-url", help="FLEET_COLD_URL: file:///PATH or s3://bucket/prefix")
-@click.option("--s3-endpoint-url", help="FLEET_S3_ENDPOINT_URL: S3-compatible endpoint")
-@click.option("--max-message-size", type=int, help="FLEET_MAX_MESSAGE_SIZE: largest message in bytes")
-@click.option("--max-chunk-bytes", type=int, help="FLEET_MAX_CHUNK_BYTES: largest chunk once decompressed, in "
-              "bytes [default: 268435456]")
-@click.option("--decompress-budget-bytes", type=int, help="FLEET_DECOMPRESS_BUDGET_BYTES: decompressed chunk "
-              "bytes held at once by downloads and sealing together [default: 536870912]")
-@click.option("--secret-fields", help="FLEET_SECRET_FIELDS: property fields never stored nor served, "
-              "comma-separated (matched as words: token matches ingest_token, apiKey matches api_key)")
-@click.option("--durability", type=click.Choice(["always", "interval", "off"]),
-              help="FLEET_DURABILITY: hot-tier fsync: always (before answering), interval (group commit, "
-              "default), off")
-@click.option("--group-commit-ms", type=int, help="FLEET_GROUP_COMMIT_MS: fsync period with durability=interval")
-@click.option("--min-free-bytes", type=int, help="FLEET_MIN_FREE_BYTES: refuse new data below this free disk")
-@click.option("--reserve-bytes", type=int, help="FLEET_RESERVE_BYTES: held in reserve on the data disk for the "
-              "catalog, released when the disk is full; promotion never takes the disk below it")
-@click.option("--max-streams", type=int, help="FLEET_MAX_STREAMS: most concurrent gRPC streams")
-@click.option("--close-after-s", type=float, help="FLEET_CLOSE_AFTER_S: close a live run idle this long")
-@click.option("--default-robot", help="FLEET_DEFAULT_ROBOT: robot id of runs that name none")
-@click.option("--replay-bytes", type=int, help="FLEET_REPLAY_BYTES: recent live data kept for ReadMessages readers")
-@click.option("--catalog-flush-s", type=float, help="FLEET_CATALOG_FLUSH_S: how often live runs reach the catalog")
-@click.option("--s3-region", help="FLEET_S3_REGION: S3 region")
-@click.option("--cold-storage-class", help="FLEET_COLD_STORAGE_CLASS: archive by moving warm objects to this S3 "
-              "storage class (GLACIER, DEEP_ARCHIVE, STANDARD_IA) instead of copying them to the cold URL")
-@click.option("--promote-after-s", type=float, help="FLEET_PROMOTE_AFTER_S: seal a closed run idle this long "
-              "into the warm tier [default: 600]")
-@click.option("--promote-below-free-bytes", type=int, help="FLEET_PROMOTE_BELOW_FREE_BYTES: hot high-water mark; "
-              "below this free disk, closed runs are promoted oldest first at once")
-@click.option("--warm-days", type=float, help="FLEET_WARM_DAYS: default policy, days warm before archiving")
-@click.option("--cold-days", type=float, help="FLEET_COLD_DAYS: default policy, days cold before deletion")
-@click.option("--restore-days", type=float, help="FLEET_RESTORE_DAYS: a restored run serves this many days")
-@click.option("--promote-interval-s", type=float, help="FLEET_PROMOTE_INTERVAL_S: how often promotion runs")
-@click.option("--retention-interval-s", type=float, help="FLEET_RETENTION_INTERVAL_S: how often archive, "
-              "restore and expiry run")
-@click.option("--scheduler/--no-scheduler", default=None, help="FLEET_SCHEDULER: run the retention jobs here "
-              "[default: on]. Overrides by robot or application: FLEET_RETENTION_POLICIES or TOML.")
-@click.option("--sql-max-rows", type=int, help="FLEET_SQL_MAX_ROWS: most rows a SQL answer may have")
-@click.option("--sql-timeout-s", type=float, help="FLEET_SQL_TIMEOUT_S: a SQL query running longer is stopped")
-@click.option("--sql-memory-limit", help="FLEET_SQL_MEMORY_LIMIT: memory a SQL query's worker process may use "
-              "(e.g. 2GB)")
-@click.option("--sql-threads", type=int, help="FLEET_SQL_THREADS: threads a SQL query may use")
-@click.option("--sql-workers", type=int, help="FLEET_SQL_WORKERS: SQL queries running at once [default: 2]")
-@click.option("--sql-queue", type=int, help="FLEET_SQL_QUEUE: SQL queries waiting for a worker; more get 429 "
-              "[default: 8]")
+# Settings that are no option of `fleet serve`, and why (shown after the options).
+NOT_OPTIONS = {
+    "api_url": "the client commands' --api-url, not the service's",
+    "retention_policies": "a list of tables: environment or TOML only",
+}
+
+
+def settings_options() -> list[click.Option]:
+    """One option per field of Settings but NOT_OPTIONS."""
+    from services.settings import Settings
+
+    prefix = str(Settings.model_config.get("env_prefix", ""))
+    return [_option(name, field, prefix) for name, field in Settings.model_fields.items() if name not in NOT_OPTIONS]
+
+
+def _option(name: str, field: FieldInfo, env_prefix: str) -> click.Option:
+    flag = "--" + name.replace("_", "-")
+    help_text = f"{env_prefix}{name.upper()}: {field.description}{_shown_default(field)}"
+    kind = _without_none(field.annotation)
+    if kind is bool:
+        return click.Option([f"{flag}/--no-{flag[2:]}"], default=None, help=help_text)
+    return click.Option([flag], type=_click_type(name, kind), default=None, help=help_text)
+
+
+def _without_none(annotation: Any) -> Any:
+    """`X` for `X | None`."""
+    if get_origin(annotation) in (Union, types.UnionType):
+        (annotation,) = [arg for arg in get_args(annotation) if arg is not type(None)]
+    return annotation
+
+
+def _click_type(name: str, kind: Any) -> click.ParamType[Any] | type:
+    if kind is Path:
+        return click.Path(path_type=Path)
+    if isinstance(kind, type) and issubclass(kind, enum.Enum):
+        return click.Choice([member.value for member in kind])
+    if kind in (str, int, float):
+        return kind  # type: ignore[no-any-return]
+    if get_origin(kind) is list and get_args(kind) == (str,):
+        return str  # the field's validator reads a comma-separated or JSON list
+    raise TypeError(f"Settings.{name} ({kind}) has no option type: add one, or name it in NOT_OPTIONS")
+
+
+def _shown_default(field: FieldInfo) -> str:
+    value = field.get_default(call_default_factory=True)
+    if value in ("", None):
+        return ""  # the description says what an unset value means
+    if isinstance(value, bool):
+        value = "on" if value else "off"
+    elif isinstance(value, list):
+        value = ", ".join(map(str, value))  # also a value the option takes
+    elif isinstance(value, enum.Enum):
+        value = value.value
+    return f" [default: {value}]"
+
+
+class SettingsCommand(click.Command):
+    """A command whose options are made from Settings when first needed (help, parsing): importing
+    Settings (pydantic-settings) would otherwise slow every other `fleet` command."""
+
+    _made = False
+
+    def get_params(self, ctx: click.Context) -> list[click.Parameter]:
+        if not self._made:
+            self.params[:0] = settings_options()
+            self._made = True
+        return super().get_params(ctx)
+
+    def format_epilog(self, ctx: click.Context, formatter: click.HelpFormatter) -> None:
+        from services.settings import Settings
+
+        prefix = str(Settings.model_config.get("env_prefix", ""))
+        fields = Settings.model_fields
+        with formatter.section("Settings without an option"):
+            formatter.write_dl([(f"{prefix}{name.upper()}", f"{fields[name].description} ({why})")
+                                for name, why in NOT_OPTIONS.items()])
+        super().format_epilog(ctx, formatter)
+
+
+@click.command(cls=SettingsCommand)
 def serve(**flags: object) -> None:
     """Run the service. Every flag can also be set as the FLEET_* variable named in its help,
     or in a TOML file named by FLEET_CONFIG."""

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import hashlib
 from collections.abc import Iterator
 from typing import Any, BinaryIO
 from urllib.parse import urlparse
@@ -21,6 +20,10 @@ from services.storage.objectstore import (
 )
 
 MULTIPART_BYTES = 64 * 1024 * 1024
+# Verified by the server on every put and part. SHA-256 needs no extra package (CRC32C and
+# CRC64NVME need awscrt); a multipart object gets a composite checksum ("...-N"), which is enough:
+# each part was verified on arrival and the completion names every part's checksum.
+CHECKSUM_ALGORITHM = "SHA256"
 
 
 class S3Store:
@@ -58,23 +61,28 @@ class S3Store:
         return full[len(self.prefix) + 1:] if self.prefix else full
 
     def put(self, key: str, data: bytes | BinaryIO) -> ObjectInfo:
-        """Upload, then check the server's ETag against the MD5 of what was sent (of each part,
-        for a multipart upload), so a corrupted upload is never taken as stored."""
-        digests = _PartDigests()
+        """Upload with a SHA-256 checksum of the body (of each part, for a multipart upload) that
+        botocore computes from the bytes it sends and the server verifies before storing: a body
+        that arrives different is refused (BadDigest) and nothing is stored. The ETag is not looked
+        at: it is the MD5 of the body only without SSE-KMS, and no MD5 at all with it."""
         try:
             if isinstance(data, bytes | bytearray | memoryview):
-                digests.update(bytes(data))
-                self._client.put_object(Bucket=self.bucket, Key=self._key(key), Body=bytes(data))
+                body = bytes(data)
+                self._client.put_object(Bucket=self.bucket, Key=self._key(key), Body=body,
+                                        ChecksumAlgorithm=CHECKSUM_ALGORITHM)
+                sent = len(body)
             else:  # multipart above MULTIPART_BYTES
-                self._client.upload_fileobj(_Digesting(data, digests), self.bucket, self._key(key),
-                                            Config=self._transfer)
+                reader = _Counting(data)
+                self._client.upload_fileobj(reader, self.bucket, self._key(key), Config=self._transfer,
+                                            ExtraArgs={"ChecksumAlgorithm": CHECKSUM_ALGORITHM})
+                sent = reader.size
         except (ClientError, BotoCoreError) as exc:
             raise StorageError(f"cannot write {key!r} to {self.url}: {exc}") from exc
         info = self.head(key)
-        if info.size != digests.size or (info.etag is not None and info.etag not in digests.etags()):
+        if info.size != sent:  # a server that ignored the checksum and kept part of the body
             self.delete(key)
             raise StorageError(f"upload of {key!r} to {self.url} does not match what was sent "
-                               f"({info.size} bytes, ETag {info.etag}; sent {digests.size} bytes): retry")
+                               f"({info.size} bytes stored, {sent} sent): retry")
         return info
 
     def get_range(self, key: str, start: int = 0, length: int | None = None) -> bytes:
@@ -151,43 +159,13 @@ class S3Store:
 FleetErrorLike = ObjectNotFoundError | StorageError | ObjectArchivedError
 
 
-class _PartDigests:
-    """MD5 of the whole body and of each MULTIPART_BYTES part: S3's ETag is the MD5 of a single
-    upload, or the MD5 of the parts' MD5s followed by "-N" for a multipart one."""
+class _Counting:
+    """A file read once, front to back, by the uploader, counting the bytes it gave."""
 
-    def __init__(self) -> None:
-        self.whole = hashlib.md5(usedforsecurity=False)
-        self.parts: list[bytes] = []
-        self._part = hashlib.md5(usedforsecurity=False)
-        self._in_part = 0
-        self.size = 0
-
-    def update(self, data: bytes) -> None:
-        self.whole.update(data)
-        self.size += len(data)
-        view = memoryview(data)
-        while view:
-            take = min(len(view), MULTIPART_BYTES - self._in_part)
-            self._part.update(view[:take])
-            self._in_part += take
-            view = view[take:]
-            if self._in_part == MULTIPART_BYTES:
-                self.parts.append(self._part.digest())
-                self._part, self._in_part = hashlib.md5(usedforsecurity=False), 0
-
-    def etags(self) -> set[str]:
-        parts = self.parts + ([self._part.digest()] if self._in_part else [])
-        multipart = hashlib.md5(b"".join(parts), usedforsecurity=False).hexdigest() + f"-{len(parts)}"
-        return {self.whole.hexdigest(), multipart}
-
-
-class _Digesting:
-    """A file read once, front to back, by the uploader, digested on the way."""
-
-    def __init__(self, fh: BinaryIO, digests: _PartDigests) -> None:
-        self._fh, self._digests = fh, digests
+    def __init__(self, fh: BinaryIO) -> None:
+        self._fh, self.size = fh, 0
 
     def read(self, n: int = -1) -> bytes:
         data = self._fh.read(n)
-        self._digests.update(data)
+        self.size += len(data)
         return data

@@ -1,3 +1,4 @@
+import enum
 import os
 import socket
 import subprocess
@@ -5,10 +6,15 @@ import sys
 import time
 from collections.abc import Iterator
 from pathlib import Path
+from types import UnionType
+from typing import get_args
 
+import click
 import httpx
 import pytest
+from click.testing import CliRunner
 
+from services.settings import Durability, load_settings
 from tests.services.ingest.live_server import LiveServer, free_port
 
 FLEET = str(Path(sys.executable).with_name("fleet"))
@@ -66,6 +72,58 @@ def test_serve_help_documents_every_setting():
     assert "FLEET_CONFIG" in out
     for name in names:
         assert f"FLEET_{name.upper()}" in out, name
+
+
+def _scalar(annotation: object) -> bool:
+    """str, int, float, bool, a path or an enum (or one of them or None)."""
+    kinds = [a for a in get_args(annotation) if a is not type(None)] if isinstance(annotation, UnionType) else [
+        annotation]
+    return len(kinds) == 1 and isinstance(kinds[0], type) and issubclass(kinds[0], str | int | float | bool | Path
+                                                                                    | enum.Enum)
+
+
+def _shown(default: object) -> str:
+    if isinstance(default, list):
+        return ", ".join(default)
+    if isinstance(default, bool):
+        return "on" if default else "off"
+    return str(default.value if isinstance(default, enum.Enum) else default)
+
+
+def test_every_scalar_setting_is_an_option_described_by_its_field():
+    """The options are made from Settings: one description and one default, in one place."""
+    from services.cli.serve import NOT_OPTIONS, serve
+    from services.settings import Settings
+
+    options = {p.name: p for p in serve.get_params(click.Context(serve)) if isinstance(p, click.Option)}
+    scalars = {name for name, field in Settings.model_fields.items() if _scalar(field.annotation)}
+    assert len(scalars) > 30 and set(NOT_OPTIONS) & scalars == {"api_url"}  # the client's setting, not serve's
+    help_text = " ".join(CliRunner().invoke(serve, ["--help"], terminal_width=10_000,
+                                            max_content_width=10_000).output.split())  # unwrapped
+    for name in [*sorted(scalars - set(NOT_OPTIONS)), "secret_fields"]:  # a list read from one string
+        field, option = Settings.model_fields[name], options.get(name)
+        assert option is not None, f"Settings.{name} has no fleet serve option"
+        assert option.opts == ["--" + name.replace("_", "-")], option.opts
+        assert option.help is not None and option.help.startswith(f"FLEET_{name.upper()}: {field.description}")
+        default = field.get_default(call_default_factory=True)
+        if default not in ("", None):
+            assert option.help.endswith(f" [default: {_shown(default)}]"), option.help
+        assert option.default is None, "a flag's default would override the environment and the TOML file"
+        assert f"{option.opts[0]} " in help_text and " ".join(option.help.split()) in help_text
+    for name in NOT_OPTIONS:  # named after the options, with their description
+        assert f"FLEET_{name.upper()} {' '.join(str(Settings.model_fields[name].description).split())}" in help_text
+
+
+def test_an_option_left_out_leaves_the_setting_to_the_environment():
+    from services.cli.serve import serve
+
+    given = serve.make_context("serve", ["--max-streams", "5", "--durability", "off", "--no-scheduler",
+                                         "--data-dir", "d", "--secret-fields", "vin, pin"]).params
+    assert {k: v for k, v in given.items() if v is not None} == {
+        "max_streams": 5, "durability": "off", "scheduler": False, "data_dir": Path("d"), "secret_fields": "vin, pin"}
+    settings = load_settings(**given)
+    assert (settings.max_streams, settings.durability, settings.scheduler) == (5, Durability.OFF, False)
+    assert settings.secret_fields == ["vin", "pin"]
 
 
 def test_bad_address_is_one_clear_error(tmp_path):

@@ -11,41 +11,16 @@ from pathlib import Path
 import pytest
 
 from services.storage.objectstore import ObjectNotFoundError, ObjectStore, StorageError, check_key, open_store
-from tests.seaweedfs import seaweedfs
-
-BUCKET = "fleet-warm"
+from tests.services.storage.s3_backends import REGION, S3_BACKENDS, s3_target_for
 
 
-@pytest.fixture(scope="module")
-def seaweed_endpoint(tmp_path_factory: pytest.TempPathFactory) -> Iterator[str]:
-    import boto3
-
-    with seaweedfs(tmp_path_factory.mktemp("seaweedfs")) as endpoint:
-        # One bucket, a prefix per test: each SeaweedFS bucket reserves volumes of its own.
-        boto3.client("s3", endpoint_url=endpoint, region_name="us-east-1", aws_access_key_id="test",
-                     aws_secret_access_key="test").create_bucket(Bucket=BUCKET)
-        yield endpoint
-
-
-@pytest.fixture(params=["file", "s3-moto", pytest.param("s3-seaweedfs", marks=pytest.mark.s3server)])
+@pytest.fixture(params=["file", *S3_BACKENDS])
 def store(request: pytest.FixtureRequest, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Iterator[ObjectStore]:
     if request.param == "file":
         yield open_store((tmp_path / "warm").as_uri())
         return
-    for name, value in (("AWS_ACCESS_KEY_ID", "test"), ("AWS_SECRET_ACCESS_KEY", "test"),
-                        ("AWS_DEFAULT_REGION", "us-east-1")):
-        monkeypatch.setenv(name, value)
-    if request.param == "s3-seaweedfs":
-        endpoint = request.getfixturevalue("seaweed_endpoint")
-        yield open_store(f"s3://{BUCKET}/{tmp_path.name}", endpoint_url=endpoint, region="us-east-1")
-        return
-    from moto import mock_aws
-
-    with mock_aws():
-        import boto3
-
-        boto3.client("s3", region_name="us-east-1").create_bucket(Bucket="fleet-warm")
-        yield open_store("s3://fleet-warm/depot", region="us-east-1")
+    for target in s3_target_for(request.param, request, tmp_path, monkeypatch):
+        yield open_store(target.url, endpoint_url=target.endpoint_url, region=REGION)
 
 
 def test_put_get_head_delete(store: ObjectStore):
