@@ -14,6 +14,7 @@ from sqlalchemy.orm import Session
 from catalog.models import JobRun, RetentionEvent, Robot, Run, RunEntity, RunLifecycle, RunObject, RunTimeline
 from core.clock import aware
 from core.errors import ErrorCode, FleetError
+from core.states import Tier
 
 
 @dataclass
@@ -43,8 +44,8 @@ class RunRecord:
     robot_id: str
     application_id: str
     date: dt.date
-    status: str
-    tier: str
+    status: str  # a RunStatus
+    tier: str  # a Tier
     started_at: dt.datetime | None
     ended_at: dt.datetime | None
     last_data_at: dt.datetime
@@ -68,7 +69,7 @@ def save_run(session: Session, record: RunRecord, now: dt.datetime) -> None:
     if run is None:
         run = Run(id=record.id, created_at=now, pinned=False)
         session.add(run)
-    elif run.tier != "hot" and record.tier == "hot":
+    elif run.tier != Tier.HOT and record.tier == Tier.HOT:
         # Data for a run already sealed (a late upload): the sealed figures stand until it is
         # sealed again with the new chunks; only its liveliness is news.
         run.status, run.ended_at, run.last_data_at, run.updated_at = (
@@ -105,7 +106,7 @@ def save_run(session: Session, record: RunRecord, now: dt.datetime) -> None:
 class ObjectRecord:
     name: str
     key: str
-    tier: str
+    tier: str  # Tier.WARM or Tier.COLD
     size: int
     sha256: str
 

@@ -24,6 +24,7 @@ from catalog import queries
 from catalog.db import session_scope
 from catalog.models import Robot, Run, RunEntity, RunObject, RunTimeline
 from core.errors import ErrorCode, FleetError
+from core.states import Tier
 from services.analytics import sql
 from services.analytics.extract import TABLES, Extractor
 from services.analytics.pool import Prepared, SqlPool
@@ -123,7 +124,7 @@ def analytics_files(session: Session, root: str, tables: Iterable[str]) -> dict[
     if not wanted:
         return files
     rows = session.execute(sa.select(RunObject.name, RunObject.key).join(Run, Run.id == RunObject.run_id)
-                           .where(RunObject.name.in_(list(wanted)), Run.tier != "deleted")
+                           .where(RunObject.name.in_(list(wanted)), Run.tier != Tier.DELETED)
                            .order_by(RunObject.key)).all()
     for name, key in rows:
         table = wanted[name]

@@ -17,6 +17,7 @@ from typing import Any
 from catalog.queries import EntityRecord, RunRecord, TimelineRecord
 from core.errors import ErrorCode, FleetError
 from core.ids import PATH_BYTES, check_id, check_name
+from core.states import RunStatus, Tier
 from services.hot.store import HotRun
 from services.ingest.identity import (
     DEFAULT_SECRETS,
@@ -70,7 +71,7 @@ def plain_json(value: Any) -> Any:
 class SealedInfo:
     """What the catalog knows of a run that left the hot tier (given by the retention side)."""
 
-    tier: str  # warm | cold | deleted
+    tier: Tier  # warm, cold or deleted
     prefix: str  # ROBOT/YYYY-MM-DD/RUN
     robot_id: str
     date: dt.date
@@ -97,7 +98,7 @@ class RunFacts:
         self.created_at = now
         self.last_data_at = now
         self.live_sources = 0
-        self.status = "live"
+        self.status = RunStatus.LIVE
         self.ended_at: dt.datetime | None = None
         self.dirty = True
 
@@ -155,7 +156,7 @@ class RunFacts:
             application_id=self.application_id,
             date=run_date(self.start_time_ns, self.first_log_time_ns, self.created_at),
             status=self.status,
-            tier="hot",
+            tier=Tier.HOT,
             started_at=_from_ns(started) if started else None,
             ended_at=self.ended_at,
             last_data_at=self.last_data_at,

@@ -34,6 +34,7 @@ from catalog.queries import RunRecord
 from core.clock import utcnow
 from core.errors import ErrorCode, FleetError
 from core.ids import UnsafeIdError, check_id, check_name
+from core.states import RunStatus, Tier
 from services.hot.read import HotRecording
 from services.hot.store import HotStore
 from services.ingest.facts import (
@@ -154,7 +155,7 @@ class IngestService:
         hot = run.hot
 
         def follow() -> tuple[int, bool]:
-            return hot.size, run.status == "live"
+            return hot.size, run.status == RunStatus.LIVE
 
         types = {t.name: t.type for t in run.summary.timelines.values()} if run.summary else {}
         return HotRecording(hot.path, hot.size, types, follow)
@@ -182,7 +183,7 @@ class IngestService:
         for run in runs:
             if source.live:
                 run.live_sources -= 1
-            if run.live_sources == 0 and run.status == "live":
+            if run.live_sources == 0 and run.status == RunStatus.LIVE:
                 self._close_run(run, now)
         return source.report
 
@@ -290,8 +291,8 @@ class IngestService:
         if prop is not None:
             run.observe_property(prop.name, prop.values)
         run.observe_chunk(msg, meta, self.clock())
-        if source.live and run.status != "live":  # closed as idle, and its stream speaks again
-            run.status, run.ended_at = "live", None
+        if source.live and run.status != RunStatus.LIVE:  # closed as idle, and its stream speaks again
+            run.status, run.ended_at = RunStatus.LIVE, None
             self._republish_store_infos(source, run.run_id)
         self._publish(source, run.run_id, MessageKind.ARROW_MSG, msg.raw, persistent=msg.store_id.is_blueprint,
                       static=meta.is_static)
@@ -348,8 +349,8 @@ class IngestService:
         """The first new chunk of a run not hot here: a hot run with the source's store infos and
         whatever it held for it. A run sealed before takes the late data beside its sealed copy."""
         sealed = self._sealed_info(source, run_id)
-        if sealed is not None and sealed.tier != "warm":
-            fix = ("restore it first (fleet runs restore)" if sealed.tier == "cold"
+        if sealed is not None and sealed.tier != Tier.WARM:
+            fix = ("restore it first (fleet runs restore)" if sealed.tier == Tier.COLD
                    else "send it under a new recording id")
             raise SealedRunError(f"run {run_id!r} is {sealed.tier}: it takes no new data; {fix}")
         info = source.store_infos.get((StoreKind.RECORDING, run_id))
@@ -403,7 +404,7 @@ class IngestService:
                 self._publish(source, run_id, MessageKind.SET_STORE_INFO, info.raw, persistent=True)
 
     def _close_run(self, run: RunState, now: dt.datetime) -> None:
-        run.status, run.ended_at, run.dirty = "closed", now, True
+        run.status, run.ended_at, run.dirty = RunStatus.CLOSED, now, True
         if self.replay is not None:
             self.replay.end_run(run.run_id)  # readers that connect later get live runs only
 
@@ -434,7 +435,7 @@ class IngestService:
             for event in events:
                 run.replay(event, mtime)
             # No stream survives a restart (the SDK never reconnects): what follows comes by upload.
-            run.last_data_at, run.status, run.ended_at = mtime, "closed", mtime
+            run.last_data_at, run.status, run.ended_at = mtime, RunStatus.CLOSED, mtime
             recovered.append(hot.run_id)
         try:
             self.flush_catalog()
@@ -447,7 +448,7 @@ class IngestService:
         now = self.clock()
         closed = []
         for run in list(self.runs.values()):  # promotion may take runs away meanwhile
-            if run.status == "live" and now - run.last_data_at >= self.close_after:
+            if run.status == RunStatus.LIVE and now - run.last_data_at >= self.close_after:
                 self._close_run(run, now)
                 closed.append(run.run_id)
         return closed

@@ -29,6 +29,7 @@ from catalog import queries
 from catalog.db import session_scope
 from catalog.queries import ObjectRecord, RunRecord
 from core.errors import ErrorCode, FleetError
+from core.states import RunStatus, Tier
 from services.analytics.extract import Extractor
 from services.analytics.store import write_analytics
 from services.hot.read import read_events
@@ -71,7 +72,7 @@ def due_for_promotion(ingest: IngestService, now: dt.datetime, promote_after: dt
     disk pressure (past the high-water mark). Runs backing off after a failure wait their turn."""
     out = []
     for run in sorted(list(ingest.runs.values()), key=lambda r: r.last_data_at):
-        if run.status != "closed" or run.live_sources or run.sealed:
+        if run.status != RunStatus.CLOSED or run.live_sources or run.sealed:
             continue
         if run.next_promote_at is not None and now < run.next_promote_at:
             continue
@@ -92,7 +93,7 @@ def upcoming(ingest: IngestService, now: dt.datetime, promote_after: dt.timedelt
     for run in sorted(list(ingest.runs.values()), key=lambda r: r.last_data_at):
         if run.sealed:
             continue
-        if run.status == "live" or run.live_sources:
+        if run.status == RunStatus.LIVE or run.live_sources:
             out.append((run, None, f"live: promoted {_human(promote_after)} after its stream closes "
                                    "(or FLEET_CLOSE_AFTER_S after its last data)"))
         elif run.next_promote_at is not None and now < run.next_promote_at:
@@ -141,8 +142,8 @@ def _sealed_before(run: RunState, ingest: IngestService) -> SealedInfo | None:
     """Whether the run was sealed before (its hot data came later): asked of the catalog now, as ingest
     may have filed the data while the catalog did not answer, or another node may have sealed it."""
     sealed = ingest.sealed_lookup(run.run_id) if ingest.sealed_lookup is not None else run.sealed_as
-    if sealed is not None and sealed.tier != "warm":
-        what = "restore it (fleet runs restore), then it is sealed in" if sealed.tier == "cold" else \
+    if sealed is not None and sealed.tier != Tier.WARM:
+        what = "restore it (fleet runs restore), then it is sealed in" if sealed.tier == Tier.COLD else \
             "it was deleted: its late data stays hot until removed by hand"
         raise LateDataError(f"run {run.run_id} received {len(run.chunk_ids)} chunks while {sealed.tier}: {what}")
     run.sealed_as = sealed
@@ -151,7 +152,7 @@ def _sealed_before(run: RunState, ingest: IngestService) -> SealedInfo | None:
 
 def _drop_hot_copy(run: RunState, ingest: IngestService, size: int, why: str) -> None:
     with run.sealing:
-        if run.hot.size != size or run.status == "live":
+        if run.hot.size != size or run.status == RunStatus.LIVE:
             raise PromotionDeferredError(f"run {run.run_id} received data while being checked: promoted later")
         run.sealed_into, run.sealed = run.sealed_as, True
         ingest.forget(run)
@@ -192,9 +193,9 @@ def _seal_and_switch(run: RunState, ingest: IngestService, tiers: Tiers, catalog
     sealed = seal(sources, workdir / RECORDING, run.run_id, now, analytics.add, ingest.secret_fields)  # (1)
     record = _sealed_record(run, sealed, ingest.default_robot)
     prefix = prefix or run_prefix(record.robot_id, record.date, run.run_id)
-    objects = [ObjectRecord(RECORDING, f"{prefix}/{RECORDING}", "warm", sealed.recording_size,
+    objects = [ObjectRecord(RECORDING, f"{prefix}/{RECORDING}", Tier.WARM, sealed.recording_size,
                             sealed.recording_sha256),
-               ObjectRecord(INDEX, f"{prefix}/{INDEX}", "warm", len(sealed.index), sealed.index_sha256)]
+               ObjectRecord(INDEX, f"{prefix}/{INDEX}", Tier.WARM, len(sealed.index), sealed.index_sha256)]
     with open(sealed.recording, "rb") as fh:  # (2) checked by the store against what was sent
         tiers.warm.put(objects[0].key, fh)
     tiers.warm.put(objects[1].key, sealed.index)
@@ -206,14 +207,14 @@ def _seal_and_switch(run: RunState, ingest: IngestService, tiers: Tiers, catalog
         if held != obj.size:
             raise StorageError(f"{tiers.warm.url}/{obj.key} holds {held} bytes after upload, {obj.size} were sealed")
     with run.sealing:  # ingest waits here only if it has data for this very run
-        if run.hot.size != size or run.status == "live":
+        if run.hot.size != size or run.status == RunStatus.LIVE:
             raise PromotionDeferredError(f"run {run.run_id} received data while being sealed: promoted later")
         detail = f"{sealed.recording_size} bytes, {len(sealed.chunk_ids)} chunks to {tiers.warm.url}/{prefix}/"
         with session_scope(catalog, write=True) as session:  # (4)
             stale = queries.analytics_keys(session, run.run_id) - {o.key for o in objects}
             queries.record_promotion(session, record, prefix, objects, now, detail)
             pin_now = queries.pin_state(session, run.run_id)
-        run.sealed_into = SealedInfo("warm", prefix, record.robot_id, record.date, frozenset(sealed.chunk_ids))
+        run.sealed_into = SealedInfo(Tier.WARM, prefix, record.robot_id, record.date, frozenset(sealed.chunk_ids))
         run.sealed = True
         ingest.forget(run)
         aside = ingest.hot.set_aside(run.hot)
@@ -238,7 +239,7 @@ def _sealed_record(run: RunState, sealed: SealedRun, default_robot: str) -> RunR
     if run.sealed_as is not None:
         filed.robot_id, filed.date = run.sealed_as.robot_id, run.sealed_as.date
     return dataclasses.replace(
-        filed, status="closed", tier="warm", sdk_version=figures.sdk_version or filed.sdk_version,
+        filed, status=RunStatus.CLOSED, tier=Tier.WARM, sdk_version=figures.sdk_version or filed.sdk_version,
         chunks=figures.chunks, rows=figures.rows, bytes=figures.bytes, properties=figures.properties,
         entities=figures.entities, timelines=figures.timelines, ended_at=filed.ended_at or run.last_data_at,
         started_at=figures.started_at or filed.started_at)

@@ -18,6 +18,7 @@ from sqlalchemy.orm import Session, sessionmaker
 from catalog import queries
 from catalog.db import session_scope
 from catalog.models import RunLifecycle
+from core.states import ARCHIVED_IN_STORE, Tier
 from services.sealed.tiers import RunFile, Tiers, parse_run_json
 from services.sealed.write import INDEX, RECORDING, RUN_JSON
 from services.storage.objectstore import ObjectInfo, ObjectNotFoundError
@@ -77,22 +78,22 @@ def _rebuild_one(catalog: sessionmaker[Session], tiers: Tiers, key: str, now: dt
     return RebuildStep(run_id, "added", f"{tier}, {found.record.chunks} chunks, {found.record.bytes} bytes")
 
 
-def _recording(tiers: Tiers, prefix: str) -> tuple[str, str | None, ObjectInfo] | None:
+def _recording(tiers: Tiers, prefix: str) -> tuple[Tier, str | None, ObjectInfo] | None:
     key = f"{prefix}/{RECORDING}"
     try:
         info = tiers.warm.head(key)
         if info.storage_class in ARCHIVE_CLASSES:
-            return "cold", info.storage_class, info
-        return "warm", None, info
+            return Tier.COLD, info.storage_class, info
+        return Tier.WARM, None, info
     except ObjectNotFoundError:
         pass
     try:
-        return "cold", "store", tiers.cold.head(key)
+        return Tier.COLD, ARCHIVED_IN_STORE, tiers.cold.head(key)
     except ObjectNotFoundError:
         return None
 
 
-def _insert(catalog: sessionmaker[Session], found: RunFile, tier: str, mode: str | None, info: ObjectInfo,
+def _insert(catalog: sessionmaker[Session], found: RunFile, tier: Tier, mode: str | None, info: ObjectInfo,
             now: dt.datetime) -> None:
     record = dataclasses.replace(found.record, tier=tier)
     objects = [dataclasses.replace(o, tier=tier) if o.name == RECORDING else o for o in found.objects]
@@ -102,6 +103,6 @@ def _insert(catalog: sessionmaker[Session], found: RunFile, tier: str, mode: str
         assert run is not None
         run.pinned, run.pinned_by = found.pinned, found.pinned_by if found.pinned else None
         session.add(RunLifecycle(run_id=record.id, prefix=found.prefix, promoted_at=found.sealed_at,
-                                 archived_at=info.last_modified if tier == "cold" else None, archive_mode=mode))
+                                 archived_at=info.last_modified if tier == Tier.COLD else None, archive_mode=mode))
         queries.replace_objects(session, record.id, objects)
         queries.add_event(session, record.id, "rebuild", now, "catalog rebuild", None, f"from {found.prefix}/")

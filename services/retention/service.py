@@ -21,6 +21,7 @@ from catalog import queries
 from catalog.db import session_scope
 from core.clock import aware, iso_utc, utcnow
 from core.errors import ErrorCode, FleetError
+from core.states import ARCHIVED_IN_STORE, RestoreState, RunStatus, Tier
 from services.ingest.service import IngestService
 from services.policies import Policies
 from services.retention import archive, promote
@@ -107,10 +108,10 @@ def plan(ctx: Retention, kinds: Iterable[str] = ACTIONS) -> list[Action]:
         pressure = ctx.promote_below_free_bytes > 0 and ctx.hot_free_bytes() < ctx.promote_below_free_bytes
         for cand in promote.due_for_promotion(ctx.ingest, now, ctx.promote_after, pressure):
             record = cand.run.record(ctx.ingest.default_robot)
-            actions.append(Action(cand.run.run_id, PROMOTE, cand.reason, record.robot_id, "hot", record.bytes))
+            actions.append(Action(cand.run.run_id, PROMOTE, cand.reason, record.robot_id, Tier.HOT, record.bytes))
     if kinds & {ARCHIVE, DELETE, RESTORE}:
         with session_scope(ctx.catalog) as session:
-            for run, life in queries.sealed_runs(session, ("warm", "cold")):
+            for run, life in queries.sealed_runs(session, (Tier.WARM, Tier.COLD)):
                 action = _due(ctx, run, life, now, kinds)
                 if action is not None:
                     actions.append(action)
@@ -126,10 +127,10 @@ def _due(ctx: Retention, run: Any, life: Any, now: dt.datetime, kinds: set[str])
                                       f"{policy.warm_days:g} days warm + {policy.cold_days:g} days cold", **common)
     if life.restore_state is not None and RESTORE in kinds:
         until = aware(life.restore_until) if life.restore_until else None
-        if life.restore_state == "restoring" or (until is not None and until <= now):
-            why = "restore asked for" if life.restore_state == "restoring" else "restore period is over"
+        if life.restore_state == RestoreState.RESTORING or (until is not None and until <= now):
+            why = "restore asked for" if life.restore_state == RestoreState.RESTORING else "restore period is over"
             return Action(run.id, RESTORE, why, **common)
-    if run.tier == "warm" and age >= policy.archive_after and policy.cold_days > 0 and ARCHIVE in kinds:
+    if run.tier == Tier.WARM and age >= policy.archive_after and policy.cold_days > 0 and ARCHIVE in kinds:
         return Action(run.id, ARCHIVE, f"ended {_days(age)} ago; policy {policy.name!r} keeps runs "
                                        f"{policy.warm_days:g} days warm", **common)
     return None
@@ -186,7 +187,7 @@ def set_pinned(ctx: Retention, run_id: str, pinned: bool, actor: str) -> dict[st
     now = ctx.clock()
     with session_scope(ctx.catalog, write=True) as session:
         run = queries.require_run(session, run_id)
-        if run.tier == "deleted":
+        if run.tier == Tier.DELETED:
             raise NotSealedError(f"run {run_id!r} is deleted: there is nothing left to pin")
         run.pinned, run.pinned_by, run.updated_at = pinned, actor if pinned else None, now
         life = queries.lifecycle(session, run_id)
@@ -209,7 +210,7 @@ def request_restore(ctx: Retention, run_id: str, actor: str) -> dict[str, Any]:
     with session_scope(ctx.catalog) as session:
         queries.require_run(session, run_id)  # 404 naming the run
     life = archive.request_restore(run_id, ctx.tiers, ctx.catalog, now, actor, ctx.restore_days)
-    if life.restore_state == "restoring" and life.archive_mode == "store":
+    if life.restore_state == RestoreState.RESTORING and life.archive_mode == ARCHIVED_IN_STORE:
         # A copy back from the cold store: started now in the background rather than at the next
         # retention run; if this process stops, the retention job finishes it.
         action = Action(run_id, RESTORE, "restore asked for")
@@ -229,7 +230,7 @@ def upcoming(ctx: Retention) -> list[dict[str, Any]]:
         return []
     now = ctx.clock()
     return [{"run": run.run_id, "action": PROMOTE, "at": iso_utc(at), "reason": why,
-             "robot_id": run.robot_id or ctx.ingest.default_robot, "tier": "hot", "bytes": run.hot.size}
+             "robot_id": run.robot_id or ctx.ingest.default_robot, "tier": Tier.HOT, "bytes": run.hot.size}
             for run, at, why in promote.upcoming(ctx.ingest, now, ctx.promote_after)]
 
 
@@ -240,23 +241,23 @@ def promote_now(ctx: Retention, run_id: str) -> dict[str, Any]:
         with session_scope(ctx.catalog) as session:
             found = queries.require_run(session, run_id)  # 404 naming the run
             tier = found.tier
-        where = "hot on another node: ask that node" if tier == "hot" else f"{tier} already"
+        where = "hot on another node: ask that node" if tier == Tier.HOT else f"{tier} already"
         raise NotHotError(f"run {run_id!r} is {where}: there is nothing to promote here")
-    if run.status == "live" or run.live_sources:
+    if run.status == RunStatus.LIVE or run.live_sources:
         raise StillLiveError(f"run {run_id!r} is live (a stream is still sending it): it can be promoted once "
                              "its stream ends, or FLEET_CLOSE_AFTER_S after its last data")
     assert ctx.ingest is not None
     with promote.PROMOTING:
         record = promote.promote(run, ctx.ingest, ctx.tiers, ctx.catalog, ctx.clock(), ctx.reserve_bytes)
     if record is None:
-        return {"run": run_id, "tier": "warm", "detail": "nothing new: its chunks were all sealed already"}
+        return {"run": run_id, "tier": Tier.WARM, "detail": "nothing new: its chunks were all sealed already"}
     return {"run": run_id, "tier": record.tier, "detail": f"sealed {record.chunks} chunks, {record.bytes} bytes"}
 
 
 def delete_run(ctx: Retention, run_id: str, actor: str) -> str:
     with session_scope(ctx.catalog) as session:
         run = queries.require_run(session, run_id)
-        if run.tier == "hot":
+        if run.tier == Tier.HOT:
             raise NotSealedError(f"run {run_id!r} is still hot: delete it once it is sealed (promoted)")
         if run.pinned:
             raise NotSealedError(f"run {run_id!r} is pinned: unpin it first (fleet runs pin --unpin)")

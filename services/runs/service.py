@@ -15,14 +15,15 @@ from sqlalchemy.orm import Session
 from catalog import queries
 from catalog.models import Robot, Run, RunEntity
 from core.errors import BadParameterError
+from core.states import RunStatus, Tier
 
 MAX_LIMIT = 1000
 MAX_ENTITY_FILTERS = 32  # each is a subquery: a bounded number keeps the query plannable
 MAX_PROPERTY_FILTERS = 32
 MAX_CURSOR_LENGTH = 2048  # a cursor this service gives out is a few dozen characters
 SORTS = ("-started_at", "started_at", "-bytes", "bytes", "id", "-id")
-STATUSES = ("live", "closed")
-TIERS = ("hot", "warm", "cold", "deleted")
+STATUSES = tuple(RunStatus)
+TIERS = tuple(Tier)
 
 
 @dataclass
@@ -148,7 +149,7 @@ def _decode_cursor(cursor: str, sort: str) -> tuple[Any, str]:
 def list_runs(session: Session, flt: RunFilter) -> tuple[list[Run], str | None]:
     """A page of runs and the cursor of the next page (None at the end)."""
     flt.check()
-    query = sa.select(Run).where(Run.tier != "deleted") if flt.tier is None else sa.select(Run)
+    query = sa.select(Run).where(Run.tier != Tier.DELETED) if flt.tier is None else sa.select(Run)
     if flt.robot:
         query = query.where(Run.robot_id.in_(flt.robot))
     if flt.application:
@@ -187,6 +188,6 @@ def list_runs(session: Session, flt: RunFilter) -> tuple[list[Run], str | None]:
 
 def list_robots(session: Session) -> list[tuple[Robot, int]]:
     """Robots with their number of runs."""
-    counts = dict(session.execute(sa.select(Run.robot_id, sa.func.count()).where(Run.tier != "deleted")
+    counts = dict(session.execute(sa.select(Run.robot_id, sa.func.count()).where(Run.tier != Tier.DELETED)
                                   .group_by(Run.robot_id)).all())
     return [(robot, int(counts.get(robot.id, 0))) for robot in queries.list_robots(session)]

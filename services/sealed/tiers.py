@@ -14,6 +14,7 @@ from catalog import queries
 from catalog.db import session_scope
 from catalog.queries import EntityRecord, RunRecord, TimelineRecord
 from core.errors import ErrorCode, FleetError
+from core.states import ARCHIVED_IN_STORE, Tier
 from services.ingest.service import SealedInfo
 from services.sealed.index import CHUNK, from_parquet
 from services.sealed.write import INDEX
@@ -28,7 +29,7 @@ NEEDS_RESTORE = frozenset({"GLACIER", "DEEP_ARCHIVE"})
 
 def readable_when_cold(archive_mode: str | None) -> bool:
     """Whether a cold run's recording can be read where it lies without a restore."""
-    return archive_mode not in (None, "store") and archive_mode not in NEEDS_RESTORE
+    return archive_mode not in (None, ARCHIVED_IN_STORE) and archive_mode not in NEEDS_RESTORE
 
 
 class RetentionConfigError(FleetError):
@@ -42,7 +43,7 @@ class Tiers:
     cold_storage_class: str = ""  # archive in place to this S3 class; "" = copy to the cold store
 
     def archive_mode(self) -> str:
-        return self.cold_storage_class or "store"
+        return self.cold_storage_class or ARCHIVED_IN_STORE
 
 
 def open_tiers(settings: Settings) -> Tiers:
@@ -116,13 +117,13 @@ def sealed_lookup(catalog: sessionmaker[Session], tiers: Tiers) -> Any:
         with session_scope(catalog) as session:
             run = queries.get_run(session, run_id)
             life = queries.lifecycle(session, run_id)
-            if run is None or life is None or run.tier == "hot":
+            if run is None or life is None or run.tier == Tier.HOT:
                 return None
-            tier, prefix, robot_id, date = run.tier, life.prefix, run.robot_id, run.date
+            tier, prefix, robot_id, date = Tier(run.tier), life.prefix, run.robot_id, run.date
             index = queries.run_objects(session, run_id).get(INDEX)
             committed = index.sha256 if index is not None else None
         chunk_ids: frozenset[bytes] = frozenset()
-        if tier == "warm":
+        if tier == Tier.WARM:
             data = tiers.warm.get_range(f"{prefix}/{INDEX}")
             # Sealing late data that stopped before its catalog switch leaves a newer index in the
             # store: the catalog has not recorded those chunks as sealed, so a hot copy of them is
