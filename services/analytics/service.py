@@ -217,7 +217,7 @@ def textual(table: pa.Table) -> pa.Table:
 
 def extract_hot_run(ctx: Analytics, ingest: IngestService, run_id: str) -> list[dict[str, Any]]:
     """Write a hot run's analytics tables now (promotion rewrites them when the run is sealed)."""
-    run = ingest.runs.get(run_id)
+    run = ingest.hot_run(run_id)
     if run is None:
         raise queries.run_not_found(run_id)
     extractor = Extractor(run_id)

@@ -197,8 +197,6 @@ class RunState(RunFacts):
         self.sealed_as: SealedInfo | None = None  # this hot run adds chunks to a run already sealed
         self.catalog_failures = 0  # consecutive failed catalog writes of this run (one bad run waits alone)
         self.catalog_retry_at: dt.datetime | None = None
-        self.promote_failures = 0
-        self.next_promote_at: dt.datetime | None = None  # backoff after a failed promotion
 
     def recording_bytes(self) -> int:
         return self.hot.size  # the hot file knows its size

@@ -138,12 +138,33 @@ class IngestService:
         self.close_after = close_after
         self.clock = clock
         self.runs: dict[str, RunState] = {}
-        self.recently_sealed: OrderedDict[str, SealedInfo] = OrderedDict()  # for data that follows a promotion
+        # Runs this node sealed lately, for data that follows a promotion while the catalog does not answer.
+        self.recently_sealed: OrderedDict[str, SealedInfo] = OrderedDict()
         self.live_streams = 0
         self.totals = {"chunks_new": 0, "chunks_duplicate": 0, "bytes_new": 0, "messages": 0}
         self._catalog_writes = threading.Lock()  # one catalog writer at a time for ingest's own records
 
-    # --- sources ---------------------------------------------------------------------------
+    # --- the hot runs as other services see them (read-only: only ingest changes `runs`) ------
+
+    def hot_run(self, run_id: str) -> RunState | None:
+        """The run if it is hot here and not handed to the warm tier (late additions to a sealed run
+        included)."""
+        run = self.runs.get(run_id)
+        return run if run is not None and not run.sealed else None
+
+    def hot_runs(self) -> list[RunState]:
+        """This node's hot runs not handed to the warm tier, oldest data first: a snapshot, as
+        promotion may take runs away meanwhile."""
+        return sorted((run for run in list(self.runs.values()) if not run.sealed), key=lambda run: run.last_data_at)
+
+    def closed_runs(self) -> list[RunState]:
+        """Hot runs that no stream feeds any more, oldest data first: those promotion may seal."""
+        return [run for run in self.hot_runs() if run.status == RunStatus.CLOSED and not run.live_sources]
+
+    def run_counts(self) -> tuple[int, int]:
+        """How many runs this node holds hot, and how many of them are live (for /metrics)."""
+        runs = list(self.runs.values())
+        return len(runs), sum(run.status == RunStatus.LIVE for run in runs)
 
     def hot_recording(self, run_id: str) -> HotRecording | None:
         """A run in the hot tier as readers see it (`HotRuns`). Taken from here rather than the
@@ -159,6 +180,8 @@ class IngestService:
 
         types = {t.name: t.type for t in run.summary.timelines.values()} if run.summary else {}
         return HotRecording(hot.path, hot.size, types, follow)
+
+    # --- sources ---------------------------------------------------------------------------
 
     def open_source(self, *, live: bool) -> Source:
         if live:

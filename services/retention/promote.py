@@ -20,7 +20,7 @@ import os
 import shutil
 import threading
 from collections.abc import Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from sqlalchemy.orm import Session, sessionmaker
@@ -60,6 +60,29 @@ class LateDataError(FleetError):
     code = ErrorCode.CONFLICT
 
 
+@dataclass
+class PromoteBackoff:
+    """Failed promotions of this node's hot runs, by run id: how many in a row, and when the next
+    attempt may start (1 s, 2 s, 4 s ... up to MAX_BACKOFF). Kept by retention, not on ingest's runs:
+    a run that is sealed at last is forgotten here, so data that comes later starts afresh."""
+
+    failures: dict[str, int] = field(default_factory=dict)
+    retry_at: dict[str, dt.datetime] = field(default_factory=dict)
+
+    def waiting(self, run_id: str, now: dt.datetime) -> dt.datetime | None:
+        """When the run may be tried again, if that is still to come."""
+        at = self.retry_at.get(run_id)
+        return at if at is not None and now < at else None
+
+    def failed(self, run_id: str, now: dt.datetime) -> None:
+        failures = self.failures[run_id] = self.failures.get(run_id, 0) + 1
+        self.retry_at[run_id] = now + min(dt.timedelta(seconds=2 ** (failures - 1)), MAX_BACKOFF)
+
+    def forget(self, run_id: str) -> None:
+        self.failures.pop(run_id, None)
+        self.retry_at.pop(run_id, None)
+
+
 @dataclass(frozen=True)
 class Candidate:
     run: RunState
@@ -67,14 +90,12 @@ class Candidate:
 
 
 def due_for_promotion(ingest: IngestService, now: dt.datetime, promote_after: dt.timedelta,
-                      disk_pressure: bool) -> list[Candidate]:
+                      disk_pressure: bool, backoff: PromoteBackoff) -> list[Candidate]:
     """Closed hot runs to promote, oldest first: idle for `promote_after`, or all of them under
     disk pressure (past the high-water mark). Runs backing off after a failure wait their turn."""
     out = []
-    for run in sorted(list(ingest.runs.values()), key=lambda r: r.last_data_at):
-        if run.status != RunStatus.CLOSED or run.live_sources or run.sealed:
-            continue
-        if run.next_promote_at is not None and now < run.next_promote_at:
+    for run in ingest.closed_runs():
+        if backoff.waiting(run.run_id, now) is not None:
             continue
         idle = now - run.last_data_at
         if idle >= promote_after:
@@ -87,17 +108,17 @@ def due_for_promotion(ingest: IngestService, now: dt.datetime, promote_after: dt
 Upcoming = tuple[RunState, dt.datetime | None, str]
 
 
-def upcoming(ingest: IngestService, now: dt.datetime, promote_after: dt.timedelta) -> list[Upcoming]:
+def upcoming(ingest: IngestService, now: dt.datetime, promote_after: dt.timedelta,
+             backoff: PromoteBackoff) -> list[Upcoming]:
     """Hot runs not due yet: when each will be promoted (None: once it closes), and why."""
     out: list[Upcoming] = []
-    for run in sorted(list(ingest.runs.values()), key=lambda r: r.last_data_at):
-        if run.sealed:
-            continue
+    for run in ingest.hot_runs():
+        retry_at = backoff.waiting(run.run_id, now)
         if run.status == RunStatus.LIVE or run.live_sources:
             out.append((run, None, f"live: promoted {_human(promote_after)} after its stream closes "
                                    "(or FLEET_CLOSE_AFTER_S after its last data)"))
-        elif run.next_promote_at is not None and now < run.next_promote_at:
-            out.append((run, run.next_promote_at, f"retrying after {run.promote_failures} failed attempts"))
+        elif retry_at is not None:
+            out.append((run, retry_at, f"retrying after {backoff.failures[run.run_id]} failed attempts"))
         elif now - run.last_data_at < promote_after:
             out.append((run, run.last_data_at + promote_after,
                         f"closed, idle {_human(now - run.last_data_at)} of {_human(promote_after)}"))
@@ -110,17 +131,21 @@ def _human(delta: dt.timedelta) -> str:
 
 
 def promote(run: RunState, ingest: IngestService, tiers: Tiers, catalog: sessionmaker[Session],
-            now: dt.datetime, reserve_bytes: int = 0) -> RunRecord | None:
+            now: dt.datetime, reserve_bytes: int = 0, backoff: PromoteBackoff | None = None) -> RunRecord | None:
     """Seal `run` into the warm tier; returns its new catalog record (None when the run held nothing
-    that was not sealed already: its hot copy is simply removed). On failure the run stays hot and
-    backs off (1 s, 2 s, 4 s ... up to 5 minutes) before the next attempt."""
+    that was not sealed already: its hot copy is simply removed). On failure the run stays hot and,
+    given a `backoff`, waits there (1 s, 2 s, 4 s ... up to 5 minutes) before the next attempt."""
     try:
         record = _promote(run, ingest, tiers, catalog, now, reserve_bytes)
     except Exception:
-        run.promote_failures += 1
-        wait = min(dt.timedelta(seconds=2 ** (run.promote_failures - 1)), MAX_BACKOFF)
-        run.next_promote_at = now + wait
+        if backoff is not None:
+            if run.sealed:  # it left the hot tier (what failed came after the catalog switch)
+                backoff.forget(run.run_id)
+            else:
+                backoff.failed(run.run_id, now)
         raise
+    if backoff is not None:
+        backoff.forget(run.run_id)
     return record
 
 

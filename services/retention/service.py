@@ -60,6 +60,7 @@ class Retention:
     clock: Callable[[], dt.datetime] = utcnow
     free_bytes: Callable[[], int] | None = None  # of the hot disk (default: asked of the file system)
     reserve_bytes: int = 0  # promotion never takes the hot disk below this much free
+    promote_backoff: promote.PromoteBackoff = field(default_factory=promote.PromoteBackoff)  # failed promotions
 
     def hot_free_bytes(self) -> int:
         if self.free_bytes is not None:
@@ -106,7 +107,7 @@ def plan(ctx: Retention, kinds: Iterable[str] = ACTIONS) -> list[Action]:
     actions: list[Action] = []
     if PROMOTE in kinds and ctx.ingest is not None:
         pressure = ctx.promote_below_free_bytes > 0 and ctx.hot_free_bytes() < ctx.promote_below_free_bytes
-        for cand in promote.due_for_promotion(ctx.ingest, now, ctx.promote_after, pressure):
+        for cand in promote.due_for_promotion(ctx.ingest, now, ctx.promote_after, pressure, ctx.promote_backoff):
             record = cand.run.record(ctx.ingest.default_robot)
             actions.append(Action(cand.run.run_id, PROMOTE, cand.reason, record.robot_id, Tier.HOT, record.bytes))
     if kinds & {ARCHIVE, DELETE, RESTORE}:
@@ -152,10 +153,11 @@ def execute(ctx: Retention, action: Action) -> Outcome:
 def _execute(ctx: Retention, action: Action, now: dt.datetime) -> str:
     if action.action == PROMOTE:
         assert ctx.ingest is not None
-        run = ctx.ingest.runs.get(action.run_id)
+        run = ctx.ingest.hot_run(action.run_id)
         if run is None:
             return "no longer hot here"
-        record = promote.promote(run, ctx.ingest, ctx.tiers, ctx.catalog, now, ctx.reserve_bytes)
+        record = promote.promote(run, ctx.ingest, ctx.tiers, ctx.catalog, now, ctx.reserve_bytes,
+                                 ctx.promote_backoff)
         if record is None:
             return "nothing new: its chunks were all sealed already, hot copy removed"
         return f"sealed {record.chunks} chunks, {record.bytes} bytes"
@@ -231,13 +233,13 @@ def upcoming(ctx: Retention) -> list[dict[str, Any]]:
     now = ctx.clock()
     return [{"run": run.run_id, "action": PROMOTE, "at": iso_utc(at), "reason": why,
              "robot_id": run.robot_id or ctx.ingest.default_robot, "tier": Tier.HOT, "bytes": run.hot.size}
-            for run, at, why in promote.upcoming(ctx.ingest, now, ctx.promote_after)]
+            for run, at, why in promote.upcoming(ctx.ingest, now, ctx.promote_after, ctx.promote_backoff)]
 
 
 def promote_now(ctx: Retention, run_id: str) -> dict[str, Any]:
     """Seal a closed hot run now, whatever its idle time (`fleet runs promote`)."""
-    run = ctx.ingest.runs.get(run_id) if ctx.ingest is not None else None
-    if run is None or run.sealed:
+    run = ctx.ingest.hot_run(run_id) if ctx.ingest is not None else None
+    if run is None:
         with session_scope(ctx.catalog) as session:
             found = queries.require_run(session, run_id)  # 404 naming the run
             tier = found.tier
@@ -248,7 +250,8 @@ def promote_now(ctx: Retention, run_id: str) -> dict[str, Any]:
                              "its stream ends, or FLEET_CLOSE_AFTER_S after its last data")
     assert ctx.ingest is not None
     with promote.PROMOTING:
-        record = promote.promote(run, ctx.ingest, ctx.tiers, ctx.catalog, ctx.clock(), ctx.reserve_bytes)
+        record = promote.promote(run, ctx.ingest, ctx.tiers, ctx.catalog, ctx.clock(), ctx.reserve_bytes,
+                                 ctx.promote_backoff)
     if record is None:
         return {"run": run_id, "tier": Tier.WARM, "detail": "nothing new: its chunks were all sealed already"}
     return {"run": run_id, "tier": record.tier, "detail": f"sealed {record.chunks} chunks, {record.bytes} bytes"}
