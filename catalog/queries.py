@@ -223,6 +223,25 @@ def require_run(session: Session, run_id: str) -> Run:
     return run
 
 
+def run_record(session: Session, run_id: str) -> RunRecord | None:
+    """A run as its catalog rows hold it (what `save_run` wrote), None if the catalog lacks it."""
+    run = session.get(Run, run_id)
+    if run is None:
+        return None
+    return RunRecord(
+        id=run.id, robot_id=run.robot_id, application_id=run.application_id, date=run.date, status=run.status,
+        tier=run.tier, started_at=_aware_or_none(run.started_at), ended_at=_aware_or_none(run.ended_at),
+        last_data_at=aware(run.last_data_at), sdk_version=run.sdk_version, chunks=run.chunks, rows=run.rows,
+        bytes=run.bytes, properties=json.loads(run.properties),
+        entities=[EntityRecord(e.path, e.chunks, e.static_chunks, e.rows, e.bytes, json.loads(e.archetypes),
+                               json.loads(e.components)) for e in run_entities(session, run_id)],
+        timelines=[TimelineRecord(t.name, t.type, t.min, t.max) for t in run_timelines(session, run_id)])
+
+
+def _aware_or_none(value: dt.datetime | None) -> dt.datetime | None:
+    return aware(value) if value is not None else None
+
+
 def run_entities(session: Session, run_id: str) -> list[RunEntity]:
     return list(session.scalars(sa.select(RunEntity).where(RunEntity.run_id == run_id).order_by(RunEntity.path)))
 

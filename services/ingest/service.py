@@ -352,7 +352,10 @@ class IngestService:
         return sealed is not None and chunk_id in sealed.chunk_ids
 
     def _sealed_info(self, source: Source, run_id: str) -> SealedInfo | None:
-        return self.recently_sealed.get(run_id) or source.sealed.get(run_id)
+        """What the catalog said when `prepare` asked (its tier is the one that counts: a run sealed
+        here may have been archived since), else what this node remembers sealing."""
+        asked = source.sealed.get(run_id)
+        return asked if asked is not None else self.recently_sealed.get(run_id)
 
     def _hot_run(self, source: Source, run_id: str) -> RunState | None:
         """The run if it is hot here (and not being handed over), counted as fed by `source`."""

@@ -20,7 +20,7 @@ from core.clock import aware
 from core.errors import ErrorCode, FleetError
 from core.states import ARCHIVED_IN_STORE, RestoreState, Tier
 from services.analytics.extract import TABLES, partition_key
-from services.sealed.tiers import Tiers, readable_when_cold
+from services.sealed.tiers import Tiers, readable_when_cold, write_run_json
 from services.sealed.write import RECORDING
 from services.storage.objectstore import ArchiveStore, ObjectNotFoundError, StorageError, copy_object
 
@@ -74,6 +74,7 @@ def archive(run_id: str, tiers: Tiers, catalog: sessionmaker[Session], now: dt.d
         if RECORDING in objects:
             objects[RECORDING].tier = Tier.COLD
         queries.add_event(session, run_id, "archive", now, "retention", policy, f"recording to {where}")
+        write_run_json(session, tiers.warm, run_id)  # says cold too (it stays warm, beside the index)
     if not tiers.cold_storage_class:
         tiers.warm.delete(key)  # only once the catalog points at the cold copy
     return f"archived to {where}"

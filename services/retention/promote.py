@@ -1,12 +1,13 @@
 """Promotion hot -> warm: a closed run sealed, uploaded, verified, switched in the catalog, removed.
 
 Steps, each safe to repeat: (1) seal the hot file into `recording.rrd` + `chunks.parquet` in the
-run's hot folder; (2) upload them, then `run.json`, under `ROBOT/YYYY-MM-DD/RUN/` (same keys every
-time, so a retry overwrites rather than orphans); (3) check what the store holds against what was
-sealed; (4) switch the catalog to warm in one transaction; (5) remove the hot files. A crash
-before (4) leaves the run hot, and the next promotion redoes (1)-(3) over the same keys; a crash
-after (4) leaves a hot copy whose chunks are all sealed, which its next promotion finds so and
-removes without sealing again (so does a late upload that brought nothing new).
+run's hot folder; (2) upload them under `ROBOT/YYYY-MM-DD/RUN/` (same keys every time, so a retry
+overwrites rather than orphans); (3) check what the store holds against what was sealed; (4) switch
+the catalog to warm in one transaction, which puts `run.json` (built from the rows it wrote) before
+it commits; (5) remove the hot files. A crash before (4) commits leaves the run hot, and the next
+promotion redoes (1)-(3) over the same keys; a crash after (4) leaves a hot copy whose chunks are
+all sealed, which its next promotion finds so and removes without sealing again (so does a late
+upload that brought nothing new).
 Whether a run was sealed before is asked of the catalog here, not at ingest: ingest files data even
 while the catalog does not answer.
 """
@@ -37,8 +38,8 @@ from services.hot.store import InsufficientStorageError
 from services.ingest.service import IngestService, RunState, SealedInfo
 from services.rrd.decoder import iter_events
 from services.rrd.messages import Event
-from services.sealed.tiers import Tiers, run_json, run_prefix
-from services.sealed.write import INDEX, RECORDING, RUN_JSON, SealedRun, seal
+from services.sealed.tiers import Tiers, run_prefix, write_run_json
+from services.sealed.write import INDEX, RECORDING, SealedRun, seal
 from services.storage.objectstore import RangeReader, StorageError
 
 log = logging.getLogger(__name__)
@@ -225,8 +226,6 @@ def _seal_and_switch(run: RunState, ingest: IngestService, tiers: Tiers, catalog
         tiers.warm.put(objects[0].key, fh)
     tiers.warm.put(objects[1].key, sealed.index)
     objects += write_analytics(tiers.warm, analytics, record.robot_id, record.date.isoformat())
-    pin = _pin(catalog, run.run_id)
-    tiers.warm.put(f"{prefix}/{RUN_JSON}", run_json(record, prefix, objects, now, *pin))
     for obj in objects:  # (3)
         held = tiers.warm.head(obj.key).size
         if held != obj.size:
@@ -238,23 +237,16 @@ def _seal_and_switch(run: RunState, ingest: IngestService, tiers: Tiers, catalog
         with session_scope(catalog, write=True) as session:  # (4)
             stale = queries.analytics_keys(session, run.run_id) - {o.key for o in objects}
             queries.record_promotion(session, record, prefix, objects, now, detail)
-            pin_now = queries.pin_state(session, run.run_id)
+            write_run_json(session, tiers.warm, run.run_id)  # with the pin as the catalog has it now
         run.sealed_into = SealedInfo(Tier.WARM, prefix, record.robot_id, record.date, frozenset(sealed.chunk_ids))
         run.sealed = True
         ingest.forget(run)
         aside = ingest.hot.set_aside(run.hot)
-    if pin_now != pin:  # pinned or unpinned while it was being sealed: run.json follows the catalog
-        tiers.warm.put(f"{prefix}/{RUN_JSON}", run_json(record, prefix, objects, now, *pin_now))
     for key in stale:  # analytics written earlier under another robot or date: one copy per run
         tiers.warm.delete(key)
     shutil.rmtree(aside, ignore_errors=True)  # (5)
     log.info("promoted run %s: %s", run.run_id, detail)
     return record
-
-
-def _pin(catalog: sessionmaker[Session], run_id: str) -> tuple[bool, str | None]:
-    with session_scope(catalog) as session:
-        return queries.pin_state(session, run_id)
 
 
 def _sealed_record(run: RunState, sealed: SealedRun, default_robot: str) -> RunRecord:

@@ -19,7 +19,7 @@ from catalog import queries
 from catalog.db import session_scope
 from catalog.models import RunLifecycle
 from core.states import ARCHIVED_IN_STORE, Tier
-from services.sealed.tiers import RunFile, Tiers, parse_run_json
+from services.sealed.tiers import RunJson, Tiers, parse_run_json
 from services.sealed.write import INDEX, RECORDING, RUN_JSON
 from services.storage.objectstore import ObjectInfo, ObjectNotFoundError
 
@@ -93,7 +93,7 @@ def _recording(tiers: Tiers, prefix: str) -> tuple[Tier, str | None, ObjectInfo]
         return None
 
 
-def _insert(catalog: sessionmaker[Session], found: RunFile, tier: Tier, mode: str | None, info: ObjectInfo,
+def _insert(catalog: sessionmaker[Session], found: RunJson, tier: Tier, mode: str | None, info: ObjectInfo,
             now: dt.datetime) -> None:
     record = dataclasses.replace(found.record, tier=tier)
     objects = [dataclasses.replace(o, tier=tier) if o.name == RECORDING else o for o in found.objects]

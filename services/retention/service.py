@@ -7,7 +7,6 @@ one. The scheduled jobs (`services.retention.schedule`) are these two over a sub
 from __future__ import annotations
 
 import datetime as dt
-import json
 import logging
 import shutil
 import threading
@@ -25,8 +24,7 @@ from core.states import ARCHIVED_IN_STORE, RestoreState, RunStatus, Tier
 from services.ingest.service import IngestService
 from services.policies import Policies
 from services.retention import archive, promote
-from services.sealed.tiers import Tiers
-from services.sealed.write import RUN_JSON
+from services.sealed.tiers import Tiers, write_run_json
 
 log = logging.getLogger(__name__)
 
@@ -185,26 +183,17 @@ def run_plan(ctx: Retention, actions: list[Action], progress: Callable[[Outcome]
 
 def set_pinned(ctx: Retention, run_id: str, pinned: bool, actor: str) -> dict[str, Any]:
     """Pin (exempt from expiry) or unpin a run, hot or sealed. The pin lives on the run's catalog
-    row; a sealed run's run.json gets a copy (for rebuilds), as promotion does for a hot one."""
+    row; a sealed run's run.json is rewritten from that row in the same transaction (for rebuilds),
+    as promotion writes it for a hot one."""
     now = ctx.clock()
     with session_scope(ctx.catalog, write=True) as session:
         run = queries.require_run(session, run_id)
         if run.tier == Tier.DELETED:
             raise NotSealedError(f"run {run_id!r} is deleted: there is nothing left to pin")
         run.pinned, run.pinned_by, run.updated_at = pinned, actor if pinned else None, now
-        life = queries.lifecycle(session, run_id)
         queries.add_event(session, run_id, "pin" if pinned else "unpin", now, actor, None)
-        prefix = life.prefix if life is not None else None
-    if prefix is not None:
-        _rewrite_run_json(ctx, prefix, pinned, actor if pinned else None)
+        write_run_json(session, ctx.tiers.warm, run_id)
     return {"run": run_id, "pinned": pinned, "by": actor}
-
-
-def _rewrite_run_json(ctx: Retention, prefix: str, pinned: bool, by: str | None) -> None:
-    key = f"{prefix}/{RUN_JSON}"
-    body = json.loads(ctx.tiers.warm.get_range(key))
-    body["pinned"], body["pinned_by"] = pinned, by
-    ctx.tiers.warm.put(key, json.dumps(body, indent=1, sort_keys=True).encode())
 
 
 def request_restore(ctx: Retention, run_id: str, actor: str) -> dict[str, Any]:
