@@ -1,5 +1,5 @@
 """What the catalog says about a run, learnt from its messages: `RunFacts` (any recording: live,
-recovered from disk, or being sealed) and `RunState` (a run in this node's hot tier).
+recovered from disk, or being sealed) and `IngestRun` (a run in this node's hot tier).
 
 Everything that reaches the catalog is checked or cleaned here first: names must fit its columns and
 indexes (no NUL, bounded bytes), and property values must be plain JSON (no NaN, no NUL), so one run
@@ -185,8 +185,10 @@ def store_key(store: StoreId) -> tuple[StoreKind, str]:
     return store.kind, store.recording_id
 
 
-class RunState(RunFacts):
-    """A hot run: its file, the chunk ids it holds, and what the catalog will say about it."""
+class IngestRun(RunFacts):
+    """A run in this node's hot tier as ingest holds it: its facts, its file (`HotRun`), whether
+    streams feed it, and its hand-over to the warm tier. Only ingest keeps these in `IngestService.runs`;
+    other services get them through its read-only view (`hot_run`, `hot_runs`, `closed_runs`)."""
 
     def __init__(self, hot: HotRun, now: dt.datetime, secret_fields: SecretFields = DEFAULT_SECRETS) -> None:
         super().__init__(hot.run_id, now, secret_fields)

@@ -39,9 +39,9 @@ from services.hot.read import HotRecording
 from services.hot.store import HotStore
 from services.ingest.facts import (
     LOG_TIME,
+    IngestRun,
     InvalidStreamError,
     RunFacts,
-    RunState,
     SealedInfo,
     check_chunk_names,
     store_key,
@@ -67,7 +67,7 @@ from services.rrd.messages import (
 )
 from services.rrd.validate import check_chunk
 
-__all__ = ["LOG_TIME", "IngestReport", "IngestService", "InvalidStreamError", "RunFacts", "RunState", "SealedInfo",
+__all__ = ["LOG_TIME", "IngestReport", "IngestRun", "IngestService", "InvalidStreamError", "RunFacts", "SealedInfo",
            "SealedLookup", "SealedRunError", "Source", "TooManyStreamsError"]
 
 log = logging.getLogger(__name__)
@@ -137,7 +137,7 @@ class IngestService:
         self.max_streams = max_streams
         self.close_after = close_after
         self.clock = clock
-        self.runs: dict[str, RunState] = {}
+        self.runs: dict[str, IngestRun] = {}
         # Runs this node sealed lately, for data that follows a promotion while the catalog does not answer.
         self.recently_sealed: OrderedDict[str, SealedInfo] = OrderedDict()
         self.live_streams = 0
@@ -146,18 +146,18 @@ class IngestService:
 
     # --- the hot runs as other services see them (read-only: only ingest changes `runs`) ------
 
-    def hot_run(self, run_id: str) -> RunState | None:
+    def hot_run(self, run_id: str) -> IngestRun | None:
         """The run if it is hot here and not handed to the warm tier (late additions to a sealed run
         included)."""
         run = self.runs.get(run_id)
         return run if run is not None and not run.sealed else None
 
-    def hot_runs(self) -> list[RunState]:
+    def hot_runs(self) -> list[IngestRun]:
         """This node's hot runs not handed to the warm tier, oldest data first: a snapshot, as
         promotion may take runs away meanwhile."""
         return sorted((run for run in list(self.runs.values()) if not run.sealed), key=lambda run: run.last_data_at)
 
-    def closed_runs(self) -> list[RunState]:
+    def closed_runs(self) -> list[IngestRun]:
         """Hot runs that no stream feeds any more, oldest data first: those promotion may seal."""
         return [run for run in self.hot_runs() if run.status == RunStatus.CLOSED and not run.live_sources]
 
@@ -345,7 +345,7 @@ class IngestService:
             f"a message for recording {recording_id!r} came before its SetStoreInfo "
             f"(at byte {getattr(msg, 'offset', 0)}): send the recording from its start")
 
-    def _holds(self, source: Source, run: RunState | None, run_id: str, chunk_id: bytes) -> bool:
+    def _holds(self, source: Source, run: IngestRun | None, run_id: str, chunk_id: bytes) -> bool:
         if run is not None:
             return run.holds(chunk_id)
         sealed = self._sealed_info(source, run_id)
@@ -357,7 +357,7 @@ class IngestService:
         asked = source.sealed.get(run_id)
         return asked if asked is not None else self.recently_sealed.get(run_id)
 
-    def _hot_run(self, source: Source, run_id: str) -> RunState | None:
+    def _hot_run(self, source: Source, run_id: str) -> IngestRun | None:
         """The run if it is hot here (and not being handed over), counted as fed by `source`."""
         run = self.runs.get(run_id)
         if run is None or run.sealed:
@@ -365,13 +365,13 @@ class IngestService:
         self._attach(source, run)
         return run
 
-    def _attach(self, source: Source, run: RunState) -> None:
+    def _attach(self, source: Source, run: IngestRun) -> None:
         if run.run_id not in source.attached:
             source.attached.add(run.run_id)
             if source.live:
                 run.live_sources += 1
 
-    def _materialize(self, source: Source, run_id: str) -> RunState:
+    def _materialize(self, source: Source, run_id: str) -> IngestRun:
         """The first new chunk of a run not hot here: a hot run with the source's store infos and
         whatever it held for it. A run sealed before takes the late data beside its sealed copy."""
         sealed = self._sealed_info(source, run_id)
@@ -381,7 +381,7 @@ class IngestService:
             raise SealedRunError(f"run {run_id!r} is {sealed.tier}: it takes no new data; {fix}")
         info = source.store_infos.get((StoreKind.RECORDING, run_id))
         version = (info.sdk_version if info is not None else None) or source.version or DEFAULT_VERSION
-        run = self.runs[run_id] = RunState(self.hot.create(run_id, version), self.clock(), self.secret_fields)
+        run = self.runs[run_id] = IngestRun(self.hot.create(run_id, version), self.clock(), self.secret_fields)
         run.sealed_as = sealed  # chunks sent after it was sealed: sealed in with the rest later
         self._attach(source, run)
         for key, store_info in source.store_infos.items():
@@ -392,7 +392,7 @@ class IngestService:
         self._release(source, run_id)
         return run
 
-    def _append(self, source: Source, run: RunState, kind: MessageKind, raw: Buffer) -> RunState:
+    def _append(self, source: Source, run: IngestRun, kind: MessageKind, raw: Buffer) -> IngestRun:
         """Write one message to the run's hot file, unless promotion has just taken the run."""
         while True:
             with run.sealing:
@@ -429,12 +429,12 @@ class IngestService:
             if source.run_of_store.get(key) == run_id:
                 self._publish(source, run_id, MessageKind.SET_STORE_INFO, info.raw, persistent=True)
 
-    def _close_run(self, run: RunState, now: dt.datetime) -> None:
+    def _close_run(self, run: IngestRun, now: dt.datetime) -> None:
         run.status, run.ended_at, run.dirty = RunStatus.CLOSED, now, True
         if self.replay is not None:
             self.replay.end_run(run.run_id)  # readers that connect later get live runs only
 
-    def forget(self, run: RunState) -> None:
+    def forget(self, run: IngestRun) -> None:
         """Promotion sealed this run: it leaves the hot tier (called with `run.sealing` held)."""
         if self.runs.get(run.run_id) is run:
             del self.runs[run.run_id]
@@ -457,7 +457,7 @@ class IngestService:
         for directory in self.hot.existing():
             hot, events = self.hot.recover(directory)
             mtime = dt.datetime.fromtimestamp(hot.path.stat().st_mtime, dt.UTC)
-            run = self.runs[hot.run_id] = RunState(hot, mtime, self.secret_fields)
+            run = self.runs[hot.run_id] = IngestRun(hot, mtime, self.secret_fields)
             for event in events:
                 run.replay(event, mtime)
             # No stream survives a restart (the SDK never reconnects): what follows comes by upload.

@@ -35,7 +35,7 @@ from services.analytics.extract import Extractor
 from services.analytics.store import write_analytics
 from services.hot.read import read_events
 from services.hot.store import InsufficientStorageError
-from services.ingest.service import IngestService, RunState, SealedInfo
+from services.ingest.service import IngestRun, IngestService, SealedInfo
 from services.rrd.decoder import iter_events
 from services.rrd.messages import Event
 from services.sealed.tiers import Tiers, run_prefix, write_run_json
@@ -86,7 +86,7 @@ class PromoteBackoff:
 
 @dataclass(frozen=True)
 class Candidate:
-    run: RunState
+    run: IngestRun
     reason: str
 
 
@@ -106,7 +106,7 @@ def due_for_promotion(ingest: IngestService, now: dt.datetime, promote_after: dt
     return out
 
 
-Upcoming = tuple[RunState, dt.datetime | None, str]
+Upcoming = tuple[IngestRun, dt.datetime | None, str]
 
 
 def upcoming(ingest: IngestService, now: dt.datetime, promote_after: dt.timedelta,
@@ -131,7 +131,7 @@ def _human(delta: dt.timedelta) -> str:
     return f"{seconds // 3600}h{seconds // 60 % 60:02d}m" if seconds >= 3600 else f"{seconds // 60}m{seconds % 60:02d}s"
 
 
-def promote(run: RunState, ingest: IngestService, tiers: Tiers, catalog: sessionmaker[Session],
+def promote(run: IngestRun, ingest: IngestService, tiers: Tiers, catalog: sessionmaker[Session],
             now: dt.datetime, reserve_bytes: int = 0, backoff: PromoteBackoff | None = None) -> RunRecord | None:
     """Seal `run` into the warm tier; returns its new catalog record (None when the run held nothing
     that was not sealed already: its hot copy is simply removed). On failure the run stays hot and,
@@ -150,7 +150,7 @@ def promote(run: RunState, ingest: IngestService, tiers: Tiers, catalog: session
     return record
 
 
-def _promote(run: RunState, ingest: IngestService, tiers: Tiers, catalog: sessionmaker[Session],
+def _promote(run: IngestRun, ingest: IngestService, tiers: Tiers, catalog: sessionmaker[Session],
              now: dt.datetime, reserve_bytes: int) -> RunRecord | None:
     size = run.hot.size
     sealed_as = _sealed_before(run, ingest)
@@ -164,7 +164,7 @@ def _promote(run: RunState, ingest: IngestService, tiers: Tiers, catalog: sessio
         shutil.rmtree(workdir, ignore_errors=True)  # a failed attempt leaves nothing on the hot disk
 
 
-def _sealed_before(run: RunState, ingest: IngestService) -> SealedInfo | None:
+def _sealed_before(run: IngestRun, ingest: IngestService) -> SealedInfo | None:
     """Whether the run was sealed before (its hot data came later): asked of the catalog now, as ingest
     may have filed the data while the catalog did not answer, or another node may have sealed it."""
     sealed = ingest.sealed_lookup(run.run_id) if ingest.sealed_lookup is not None else run.sealed_as
@@ -176,7 +176,7 @@ def _sealed_before(run: RunState, ingest: IngestService) -> SealedInfo | None:
     return sealed
 
 
-def _drop_hot_copy(run: RunState, ingest: IngestService, size: int, why: str) -> None:
+def _drop_hot_copy(run: IngestRun, ingest: IngestService, size: int, why: str) -> None:
     with run.sealing:
         if run.hot.size != size or run.status == RunStatus.LIVE:
             raise PromotionDeferredError(f"run {run.run_id} received data while being checked: promoted later")
@@ -187,7 +187,7 @@ def _drop_hot_copy(run: RunState, ingest: IngestService, size: int, why: str) ->
     log.info("hot copy of run %s removed: %s", run.run_id, why)
 
 
-def _check_room(run: RunState, tiers: Tiers, base_size: int, reserve_bytes: int) -> None:
+def _check_room(run: IngestRun, tiers: Tiers, base_size: int, reserve_bytes: int) -> None:
     """Sealing writes the recording once more on the hot disk (twice when the warm store is a folder
     on that disk): refuse before starting rather than fill the disk the catalog lives on."""
     need = run.hot.size + base_size
@@ -202,7 +202,7 @@ def _check_room(run: RunState, tiers: Tiers, base_size: int, reserve_bytes: int)
             f"{reserve_bytes} in reserve (FLEET_RESERVE_BYTES): free space, or use an s3:// warm store")
 
 
-def _seal_and_switch(run: RunState, ingest: IngestService, tiers: Tiers, catalog: sessionmaker[Session],
+def _seal_and_switch(run: IngestRun, ingest: IngestService, tiers: Tiers, catalog: sessionmaker[Session],
                      now: dt.datetime, reserve_bytes: int, size: int, sealed_as: SealedInfo | None,
                      workdir: Path) -> RunRecord:
     prefix = sealed_as.prefix if sealed_as else None
@@ -249,7 +249,7 @@ def _seal_and_switch(run: RunState, ingest: IngestService, tiers: Tiers, catalog
     return record
 
 
-def _sealed_record(run: RunState, sealed: SealedRun, default_robot: str) -> RunRecord:
+def _sealed_record(run: IngestRun, sealed: SealedRun, default_robot: str) -> RunRecord:
     """The run's catalog record after sealing: identity as it was filed, figures from the sealed file."""
     filed = run.record(default_robot)
     figures = sealed.facts.record(default_robot)

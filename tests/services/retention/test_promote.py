@@ -26,7 +26,7 @@ import sqlalchemy as sa
 from catalog import queries
 from catalog.db import session_scope
 from services.ingest.identity import SecretFields
-from services.ingest.service import RunState
+from services.ingest.service import IngestRun
 from services.retention import promote
 from services.retention.rebuild import rebuild
 from services.retention.schedule import promote_job
@@ -435,7 +435,7 @@ def test_a_failed_promotion_backs_off_before_the_next_attempt(tiers: Tiers, make
     faulty = FaultyStore(tiers.warm, "put", RECORDING, times=3)
     node = make_node(Tiers(faulty, tiers.cold), clock=clock, promote_after_s=PROMOTE_AFTER_S)
     node.upload(sdk_runs.first)
-    run: RunState = node.ingest.runs[RUN]
+    run: IngestRun = node.ingest.runs[RUN]
     backoff = node.retention.promote_backoff
     assert backoff.retry_at.get(RUN) is None
     clock.advance(seconds=PROMOTE_AFTER_S)
