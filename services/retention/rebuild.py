@@ -12,6 +12,7 @@ import datetime as dt
 import logging
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
+from typing import Any
 
 from sqlalchemy.orm import Session, sessionmaker
 
@@ -55,6 +56,14 @@ def rebuild(catalog: sessionmaker[Session], tiers: Tiers, now: dt.datetime,
         if progress is not None:
             progress(step)
     return steps
+
+
+def rebuild_streamed(catalog: sessionmaker[Session], tiers: Tiers, clock: Callable[[], dt.datetime],
+                     emit: Callable[[dict[str, Any]], None]) -> None:
+    """`POST /v1/catalog/rebuild`: rebuild, saying so as it goes (one line per run found, then the counts)."""
+    steps = rebuild(catalog, tiers, clock(), lambda step: emit({"event": "run", **step.to_dict()}))
+    counts = {k: sum(s.outcome == k for s in steps) for k in ("added", "present", "skipped")}
+    emit({"event": "end", **counts})
 
 
 def _rebuild_one(catalog: sessionmaker[Session], tiers: Tiers, key: str, now: dt.datetime) -> RebuildStep:

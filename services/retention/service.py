@@ -25,6 +25,7 @@ from services.ingest.service import IngestService
 from services.policies import Policies
 from services.retention import archive, promote
 from services.sealed.tiers import Tiers, write_run_json
+from services.settings import Settings
 
 log = logging.getLogger(__name__)
 
@@ -96,6 +97,32 @@ class Outcome:
 
 def _days(delta: dt.timedelta) -> str:
     return f"{delta.total_seconds() / 86400:.1f} days"
+
+
+def overview(ctx: Retention, settings: Settings) -> dict[str, Any]:
+    """`GET /v1/retention`: the policies and settings retention works with, and its recent job runs."""
+    with session_scope(ctx.catalog) as session:
+        jobs = [{"job": j.job, "node": j.node, "started_at": aware(j.started_at).isoformat(),
+                 "finished_at": aware(j.finished_at).isoformat() if j.finished_at else None,
+                 "outcome": j.outcome, "detail": j.detail} for j in queries.recent_jobs(session)]
+    return {
+        "policies": ctx.policies.to_dict(),
+        "promote_after_s": ctx.promote_after.total_seconds(),
+        "promote_below_free_bytes": ctx.promote_below_free_bytes,
+        "restore_days": ctx.restore_days,
+        "archive": ctx.tiers.archive_mode(),
+        "warm_url": ctx.tiers.warm.url, "cold_url": ctx.tiers.cold.url,
+        "schedule": {"enabled": settings.scheduler, "promote_interval_s": settings.promote_interval_s,
+                     "retention_interval_s": settings.retention_interval_s},
+        "recent_jobs": jobs,
+    }
+
+
+def plan_answer(ctx: Retention, kinds: list[str]) -> dict[str, Any]:
+    """`GET /v1/retention/plan`: what is due now and why, and (with promotions asked for) the hot
+    runs that are not due yet."""
+    coming = upcoming(ctx) if PROMOTE in kinds else []
+    return {"actions": [a.to_dict() for a in plan(ctx, kinds)], "upcoming": coming}
 
 
 def plan(ctx: Retention, kinds: Iterable[str] = ACTIONS) -> list[Action]:
@@ -244,6 +271,11 @@ def promote_now(ctx: Retention, run_id: str) -> dict[str, Any]:
     if record is None:
         return {"run": run_id, "tier": Tier.WARM, "detail": "nothing new: its chunks were all sealed already"}
     return {"run": run_id, "tier": record.tier, "detail": f"sealed {record.chunks} chunks, {record.bytes} bytes"}
+
+
+def delete_now(ctx: Retention, run_id: str, actor: str) -> dict[str, Any]:
+    """Delete a sealed run asked for by a user (`DELETE /v1/runs/{run}`)."""
+    return {"run": run_id, "detail": delete_run(ctx, run_id, actor)}
 
 
 def delete_run(ctx: Retention, run_id: str, actor: str) -> str:
