@@ -45,8 +45,8 @@ class Run(Base):
     robot_id: Mapped[str] = mapped_column(String(ID_LENGTH), index=True)
     application_id: Mapped[str] = mapped_column(Text, index=True)
     date: Mapped[dt.date] = mapped_column(Date, index=True)  # UTC date of the run's start
-    status: Mapped[str] = mapped_column(String(16), index=True)  # live | closed
-    tier: Mapped[str] = mapped_column(String(16), index=True)  # hot | warm | cold | deleted
+    status: Mapped[str] = mapped_column(String(16), index=True)  # a core.states.RunStatus
+    tier: Mapped[str] = mapped_column(String(16), index=True)  # a core.states.Tier
     started_at: Mapped[dt.datetime | None] = mapped_column(DateTime(timezone=True), index=True)
     ended_at: Mapped[dt.datetime | None] = mapped_column(DateTime(timezone=True))
     last_data_at: Mapped[dt.datetime] = mapped_column(DateTime(timezone=True))
@@ -96,8 +96,8 @@ class RunLifecycle(Base):
     prefix: Mapped[str] = mapped_column(Text)  # ROBOT/YYYY-MM-DD/RUN in the warm (and cold) store
     promoted_at: Mapped[dt.datetime] = mapped_column(DateTime(timezone=True))
     archived_at: Mapped[dt.datetime | None] = mapped_column(DateTime(timezone=True))
-    archive_mode: Mapped[str | None] = mapped_column(String(32))  # "store" or a storage class
-    restore_state: Mapped[str | None] = mapped_column(String(16))  # restoring | restored
+    archive_mode: Mapped[str | None] = mapped_column(String(32))  # core.states.ARCHIVED_IN_STORE or a storage class
+    restore_state: Mapped[str | None] = mapped_column(String(16))  # a core.states.RestoreState
     restore_requested_at: Mapped[dt.datetime | None] = mapped_column(DateTime(timezone=True))
     restore_until: Mapped[dt.datetime | None] = mapped_column(DateTime(timezone=True))
     deleted_at: Mapped[dt.datetime | None] = mapped_column(DateTime(timezone=True))
@@ -113,7 +113,7 @@ class RunObject(Base):
     run_id: Mapped[str] = mapped_column(String(ID_LENGTH), primary_key=True)
     name: Mapped[str] = mapped_column(String(64), primary_key=True)
     key: Mapped[str] = mapped_column(Text)
-    tier: Mapped[str] = mapped_column(String(16))  # warm | cold
+    tier: Mapped[str] = mapped_column(String(16))  # Tier.WARM or Tier.COLD
     size: Mapped[int] = mapped_column(BigInteger)
     sha256: Mapped[str] = mapped_column(String(64))
 

@@ -14,6 +14,7 @@ from sqlalchemy.orm import Session
 from catalog.models import JobRun, RetentionEvent, Robot, Run, RunEntity, RunLifecycle, RunObject, RunTimeline
 from core.clock import aware
 from core.errors import ErrorCode, FleetError
+from core.states import Tier
 
 
 @dataclass
@@ -43,8 +44,8 @@ class RunRecord:
     robot_id: str
     application_id: str
     date: dt.date
-    status: str
-    tier: str
+    status: str  # a RunStatus
+    tier: str  # a Tier
     started_at: dt.datetime | None
     ended_at: dt.datetime | None
     last_data_at: dt.datetime
@@ -68,7 +69,7 @@ def save_run(session: Session, record: RunRecord, now: dt.datetime) -> None:
     if run is None:
         run = Run(id=record.id, created_at=now, pinned=False)
         session.add(run)
-    elif run.tier != "hot" and record.tier == "hot":
+    elif run.tier != Tier.HOT and record.tier == Tier.HOT:
         # Data for a run already sealed (a late upload): the sealed figures stand until it is
         # sealed again with the new chunks; only its liveliness is news.
         run.status, run.ended_at, run.last_data_at, run.updated_at = (
@@ -105,7 +106,7 @@ def save_run(session: Session, record: RunRecord, now: dt.datetime) -> None:
 class ObjectRecord:
     name: str
     key: str
-    tier: str
+    tier: str  # Tier.WARM or Tier.COLD
     size: int
     sha256: str
 
@@ -220,6 +221,25 @@ def require_run(session: Session, run_id: str) -> Run:
     if run is None:
         raise run_not_found(run_id)
     return run
+
+
+def run_record(session: Session, run_id: str) -> RunRecord | None:
+    """A run as its catalog rows hold it (what `save_run` wrote), None if the catalog lacks it."""
+    run = session.get(Run, run_id)
+    if run is None:
+        return None
+    return RunRecord(
+        id=run.id, robot_id=run.robot_id, application_id=run.application_id, date=run.date, status=run.status,
+        tier=run.tier, started_at=_aware_or_none(run.started_at), ended_at=_aware_or_none(run.ended_at),
+        last_data_at=aware(run.last_data_at), sdk_version=run.sdk_version, chunks=run.chunks, rows=run.rows,
+        bytes=run.bytes, properties=json.loads(run.properties),
+        entities=[EntityRecord(e.path, e.chunks, e.static_chunks, e.rows, e.bytes, json.loads(e.archetypes),
+                               json.loads(e.components)) for e in run_entities(session, run_id)],
+        timelines=[TimelineRecord(t.name, t.type, t.min, t.max) for t in run_timelines(session, run_id)])
+
+
+def _aware_or_none(value: dt.datetime | None) -> dt.datetime | None:
+    return aware(value) if value is not None else None
 
 
 def run_entities(session: Session, run_id: str) -> list[RunEntity]:

@@ -24,6 +24,7 @@ from catalog import queries
 from catalog.db import session_scope
 from catalog.models import Robot, Run, RunEntity, RunObject, RunTimeline
 from core.errors import ErrorCode, FleetError
+from core.states import Tier
 from services.analytics import sql
 from services.analytics.extract import TABLES, Extractor
 from services.analytics.pool import Prepared, SqlPool
@@ -123,7 +124,7 @@ def analytics_files(session: Session, root: str, tables: Iterable[str]) -> dict[
     if not wanted:
         return files
     rows = session.execute(sa.select(RunObject.name, RunObject.key).join(Run, Run.id == RunObject.run_id)
-                           .where(RunObject.name.in_(list(wanted)), Run.tier != "deleted")
+                           .where(RunObject.name.in_(list(wanted)), Run.tier != Tier.DELETED)
                            .order_by(RunObject.key)).all()
     for name, key in rows:
         table = wanted[name]
@@ -216,7 +217,7 @@ def textual(table: pa.Table) -> pa.Table:
 
 def extract_hot_run(ctx: Analytics, ingest: IngestService, run_id: str) -> list[dict[str, Any]]:
     """Write a hot run's analytics tables now (promotion rewrites them when the run is sealed)."""
-    run = ingest.runs.get(run_id)
+    run = ingest.hot_run(run_id)
     if run is None:
         raise queries.run_not_found(run_id)
     extractor = Extractor(run_id)

@@ -6,6 +6,7 @@ from __future__ import annotations
 import hashlib
 
 from catalog.queries import ObjectRecord
+from core.states import Tier
 from services.analytics.extract import Extractor, partition_key, to_parquet
 from services.storage.objectstore import ObjectStore
 
@@ -17,5 +18,5 @@ def write_analytics(store: ObjectStore, extractor: Extractor, robot_id: str, dat
         data = to_parquet(rows)
         key = partition_key(table, robot_id, date, extractor.run_id)
         store.put(key, data)
-        objects.append(ObjectRecord(f"analytics/{table}", key, "warm", len(data), hashlib.sha256(data).hexdigest()))
+        objects.append(ObjectRecord(f"analytics/{table}", key, Tier.WARM, len(data), hashlib.sha256(data).hexdigest()))
     return objects

@@ -46,9 +46,9 @@ class IngestCollector(Collector):
             return
         yield GaugeMetricFamily("fleet_live_streams", "gRPC WriteMessages streams open now",
                                 value=ingest.live_streams)
-        yield GaugeMetricFamily("fleet_hot_runs", "Runs held in this node's hot tier", value=len(ingest.runs))
-        yield GaugeMetricFamily("fleet_live_runs", "Hot runs still being written to",
-                                value=sum(r.status == "live" for r in ingest.runs.values()))
+        hot_runs, live_runs = ingest.run_counts()
+        yield GaugeMetricFamily("fleet_hot_runs", "Runs held in this node's hot tier", value=hot_runs)
+        yield GaugeMetricFamily("fleet_live_runs", "Hot runs still being written to", value=live_runs)
         for key, value in ingest.totals.items():
             help_text = INGEST_TOTALS_HELP.get(key, f"Ingest total {key.replace('_', ' ')}")
             yield CounterMetricFamily(f"fleet_ingest_{key}", help_text, value=value)

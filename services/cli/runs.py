@@ -18,6 +18,7 @@ from rich.console import Console
 from rich.progress import BarColumn, DownloadColumn, Progress, TaskID, TransferSpeedColumn
 from rich.table import Table
 
+from core.states import RestoreState, RunStatus, Tier
 from services.cli.output import stdout_console
 
 if TYPE_CHECKING:
@@ -63,8 +64,8 @@ def runs() -> None:
 @click.option("--application", multiple=True, help="application id (repeatable)")
 @click.option("--since", help="started at or after (ISO-8601)")
 @click.option("--until", help="started before (ISO-8601)")
-@click.option("--status", type=click.Choice(["live", "closed"]))
-@click.option("--tier", type=click.Choice(["hot", "warm", "cold", "deleted"]))
+@click.option("--status", type=click.Choice([s.value for s in RunStatus]))
+@click.option("--tier", type=click.Choice([t.value for t in Tier]))
 @click.option("--entity", multiple=True, help="has an entity: /a/b or /a/** (repeatable)")
 @click.option("--property", "prop", multiple=True, help="NAME.FIELD=VALUE, e.g. fleet.robot_id=robot-7")
 @click.option("--sort", default="-started_at", show_default=True)
@@ -161,7 +162,7 @@ def runs_restore(api_url: str, run_id: str, wait: bool, timeout: float) -> None:
         answer = client.restore(run_id)
         deadline = time.monotonic() + timeout
         with Console(stderr=True).status(f"restoring {run_id}") if wait else _nothing():
-            while wait and answer.get("restore_state") != "restored":
+            while wait and answer.get("restore_state") != RestoreState.RESTORED:
                 if time.monotonic() > deadline:
                     raise click.ClickException(f"{run_id} is still restoring after {timeout:g}s; check again later")
                 time.sleep(2)  # polling the service: a restore takes minutes to hours

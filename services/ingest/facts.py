@@ -1,5 +1,5 @@
 """What the catalog says about a run, learnt from its messages: `RunFacts` (any recording: live,
-recovered from disk, or being sealed) and `RunState` (a run in this node's hot tier).
+recovered from disk, or being sealed) and `IngestRun` (a run in this node's hot tier).
 
 Everything that reaches the catalog is checked or cleaned here first: names must fit its columns and
 indexes (no NUL, bounded bytes), and property values must be plain JSON (no NaN, no NUL), so one run
@@ -17,6 +17,7 @@ from typing import Any
 from catalog.queries import EntityRecord, RunRecord, TimelineRecord
 from core.errors import ErrorCode, FleetError
 from core.ids import PATH_BYTES, check_id, check_name
+from core.states import RunStatus, Tier
 from services.hot.store import HotRun
 from services.ingest.identity import (
     DEFAULT_SECRETS,
@@ -70,7 +71,7 @@ def plain_json(value: Any) -> Any:
 class SealedInfo:
     """What the catalog knows of a run that left the hot tier (given by the retention side)."""
 
-    tier: str  # warm | cold | deleted
+    tier: Tier  # warm, cold or deleted
     prefix: str  # ROBOT/YYYY-MM-DD/RUN
     robot_id: str
     date: dt.date
@@ -97,7 +98,7 @@ class RunFacts:
         self.created_at = now
         self.last_data_at = now
         self.live_sources = 0
-        self.status = "live"
+        self.status = RunStatus.LIVE
         self.ended_at: dt.datetime | None = None
         self.dirty = True
 
@@ -155,7 +156,7 @@ class RunFacts:
             application_id=self.application_id,
             date=run_date(self.start_time_ns, self.first_log_time_ns, self.created_at),
             status=self.status,
-            tier="hot",
+            tier=Tier.HOT,
             started_at=_from_ns(started) if started else None,
             ended_at=self.ended_at,
             last_data_at=self.last_data_at,
@@ -184,8 +185,10 @@ def store_key(store: StoreId) -> tuple[StoreKind, str]:
     return store.kind, store.recording_id
 
 
-class RunState(RunFacts):
-    """A hot run: its file, the chunk ids it holds, and what the catalog will say about it."""
+class IngestRun(RunFacts):
+    """A run in this node's hot tier as ingest holds it: its facts, its file (`HotRun`), whether
+    streams feed it, and its hand-over to the warm tier. Only ingest keeps these in `IngestService.runs`;
+    other services get them through its read-only view (`hot_run`, `hot_runs`, `closed_runs`)."""
 
     def __init__(self, hot: HotRun, now: dt.datetime, secret_fields: SecretFields = DEFAULT_SECRETS) -> None:
         super().__init__(hot.run_id, now, secret_fields)
@@ -196,8 +199,6 @@ class RunState(RunFacts):
         self.sealed_as: SealedInfo | None = None  # this hot run adds chunks to a run already sealed
         self.catalog_failures = 0  # consecutive failed catalog writes of this run (one bad run waits alone)
         self.catalog_retry_at: dt.datetime | None = None
-        self.promote_failures = 0
-        self.next_promote_at: dt.datetime | None = None  # backoff after a failed promotion
 
     def recording_bytes(self) -> int:
         return self.hot.size  # the hot file knows its size

@@ -34,13 +34,14 @@ from catalog.queries import RunRecord
 from core.clock import utcnow
 from core.errors import ErrorCode, FleetError
 from core.ids import UnsafeIdError, check_id, check_name
+from core.states import RunStatus, Tier
 from services.hot.read import HotRecording
 from services.hot.store import HotStore
 from services.ingest.facts import (
     LOG_TIME,
+    IngestRun,
     InvalidStreamError,
     RunFacts,
-    RunState,
     SealedInfo,
     check_chunk_names,
     store_key,
@@ -66,7 +67,7 @@ from services.rrd.messages import (
 )
 from services.rrd.validate import check_chunk
 
-__all__ = ["LOG_TIME", "IngestReport", "IngestService", "InvalidStreamError", "RunFacts", "RunState", "SealedInfo",
+__all__ = ["LOG_TIME", "IngestReport", "IngestRun", "IngestService", "InvalidStreamError", "RunFacts", "SealedInfo",
            "SealedLookup", "SealedRunError", "Source", "TooManyStreamsError"]
 
 log = logging.getLogger(__name__)
@@ -136,13 +137,34 @@ class IngestService:
         self.max_streams = max_streams
         self.close_after = close_after
         self.clock = clock
-        self.runs: dict[str, RunState] = {}
-        self.recently_sealed: OrderedDict[str, SealedInfo] = OrderedDict()  # for data that follows a promotion
+        self.runs: dict[str, IngestRun] = {}
+        # Runs this node sealed lately, for data that follows a promotion while the catalog does not answer.
+        self.recently_sealed: OrderedDict[str, SealedInfo] = OrderedDict()
         self.live_streams = 0
         self.totals = {"chunks_new": 0, "chunks_duplicate": 0, "bytes_new": 0, "messages": 0}
         self._catalog_writes = threading.Lock()  # one catalog writer at a time for ingest's own records
 
-    # --- sources ---------------------------------------------------------------------------
+    # --- the hot runs as other services see them (read-only: only ingest changes `runs`) ------
+
+    def hot_run(self, run_id: str) -> IngestRun | None:
+        """The run if it is hot here and not handed to the warm tier (late additions to a sealed run
+        included)."""
+        run = self.runs.get(run_id)
+        return run if run is not None and not run.sealed else None
+
+    def hot_runs(self) -> list[IngestRun]:
+        """This node's hot runs not handed to the warm tier, oldest data first: a snapshot, as
+        promotion may take runs away meanwhile."""
+        return sorted((run for run in list(self.runs.values()) if not run.sealed), key=lambda run: run.last_data_at)
+
+    def closed_runs(self) -> list[IngestRun]:
+        """Hot runs that no stream feeds any more, oldest data first: those promotion may seal."""
+        return [run for run in self.hot_runs() if run.status == RunStatus.CLOSED and not run.live_sources]
+
+    def run_counts(self) -> tuple[int, int]:
+        """How many runs this node holds hot, and how many of them are live (for /metrics)."""
+        runs = list(self.runs.values())
+        return len(runs), sum(run.status == RunStatus.LIVE for run in runs)
 
     def hot_recording(self, run_id: str) -> HotRecording | None:
         """A run in the hot tier as readers see it (`HotRuns`). Taken from here rather than the
@@ -154,10 +176,12 @@ class IngestService:
         hot = run.hot
 
         def follow() -> tuple[int, bool]:
-            return hot.size, run.status == "live"
+            return hot.size, run.status == RunStatus.LIVE
 
         types = {t.name: t.type for t in run.summary.timelines.values()} if run.summary else {}
         return HotRecording(hot.path, hot.size, types, follow, hot.changes)
+
+    # --- sources ---------------------------------------------------------------------------
 
     def open_source(self, *, live: bool) -> Source:
         if live:
@@ -182,7 +206,7 @@ class IngestService:
         for run in runs:
             if source.live:
                 run.live_sources -= 1
-            if run.live_sources == 0 and run.status == "live":
+            if run.live_sources == 0 and run.status == RunStatus.LIVE:
                 self._close_run(run, now)
         return source.report
 
@@ -290,8 +314,8 @@ class IngestService:
         if prop is not None:
             run.observe_property(prop.name, prop.values)
         run.observe_chunk(msg, meta, self.clock())
-        if source.live and run.status != "live":  # closed as idle, and its stream speaks again
-            run.status, run.ended_at = "live", None
+        if source.live and run.status != RunStatus.LIVE:  # closed as idle, and its stream speaks again
+            run.status, run.ended_at = RunStatus.LIVE, None
             self._republish_store_infos(source, run.run_id)
         self._publish(source, run.run_id, MessageKind.ARROW_MSG, msg.raw, persistent=msg.store_id.is_blueprint,
                       static=meta.is_static)
@@ -321,16 +345,19 @@ class IngestService:
             f"a message for recording {recording_id!r} came before its SetStoreInfo "
             f"(at byte {getattr(msg, 'offset', 0)}): send the recording from its start")
 
-    def _holds(self, source: Source, run: RunState | None, run_id: str, chunk_id: bytes) -> bool:
+    def _holds(self, source: Source, run: IngestRun | None, run_id: str, chunk_id: bytes) -> bool:
         if run is not None:
             return run.holds(chunk_id)
         sealed = self._sealed_info(source, run_id)
         return sealed is not None and chunk_id in sealed.chunk_ids
 
     def _sealed_info(self, source: Source, run_id: str) -> SealedInfo | None:
-        return self.recently_sealed.get(run_id) or source.sealed.get(run_id)
+        """What the catalog said when `prepare` asked (its tier is the one that counts: a run sealed
+        here may have been archived since), else what this node remembers sealing."""
+        asked = source.sealed.get(run_id)
+        return asked if asked is not None else self.recently_sealed.get(run_id)
 
-    def _hot_run(self, source: Source, run_id: str) -> RunState | None:
+    def _hot_run(self, source: Source, run_id: str) -> IngestRun | None:
         """The run if it is hot here (and not being handed over), counted as fed by `source`."""
         run = self.runs.get(run_id)
         if run is None or run.sealed:
@@ -338,23 +365,23 @@ class IngestService:
         self._attach(source, run)
         return run
 
-    def _attach(self, source: Source, run: RunState) -> None:
+    def _attach(self, source: Source, run: IngestRun) -> None:
         if run.run_id not in source.attached:
             source.attached.add(run.run_id)
             if source.live:
                 run.live_sources += 1
 
-    def _materialize(self, source: Source, run_id: str) -> RunState:
+    def _materialize(self, source: Source, run_id: str) -> IngestRun:
         """The first new chunk of a run not hot here: a hot run with the source's store infos and
         whatever it held for it. A run sealed before takes the late data beside its sealed copy."""
         sealed = self._sealed_info(source, run_id)
-        if sealed is not None and sealed.tier != "warm":
-            fix = ("restore it first (fleet runs restore)" if sealed.tier == "cold"
+        if sealed is not None and sealed.tier != Tier.WARM:
+            fix = ("restore it first (fleet runs restore)" if sealed.tier == Tier.COLD
                    else "send it under a new recording id")
             raise SealedRunError(f"run {run_id!r} is {sealed.tier}: it takes no new data; {fix}")
         info = source.store_infos.get((StoreKind.RECORDING, run_id))
         version = (info.sdk_version if info is not None else None) or source.version or DEFAULT_VERSION
-        run = self.runs[run_id] = RunState(self.hot.create(run_id, version), self.clock(), self.secret_fields)
+        run = self.runs[run_id] = IngestRun(self.hot.create(run_id, version), self.clock(), self.secret_fields)
         run.sealed_as = sealed  # chunks sent after it was sealed: sealed in with the rest later
         self._attach(source, run)
         for key, store_info in source.store_infos.items():
@@ -365,7 +392,7 @@ class IngestService:
         self._release(source, run_id)
         return run
 
-    def _append(self, source: Source, run: RunState, kind: MessageKind, raw: Buffer) -> RunState:
+    def _append(self, source: Source, run: IngestRun, kind: MessageKind, raw: Buffer) -> IngestRun:
         """Write one message to the run's hot file, unless promotion has just taken the run."""
         while True:
             with run.sealing:
@@ -402,13 +429,13 @@ class IngestService:
             if source.run_of_store.get(key) == run_id:
                 self._publish(source, run_id, MessageKind.SET_STORE_INFO, info.raw, persistent=True)
 
-    def _close_run(self, run: RunState, now: dt.datetime) -> None:
-        run.status, run.ended_at, run.dirty = "closed", now, True
+    def _close_run(self, run: IngestRun, now: dt.datetime) -> None:
+        run.status, run.ended_at, run.dirty = RunStatus.CLOSED, now, True
         run.hot.changes.notify()  # its followers finish their streams
         if self.replay is not None:
             self.replay.end_run(run.run_id)  # readers that connect later get live runs only
 
-    def forget(self, run: RunState) -> None:
+    def forget(self, run: IngestRun) -> None:
         """Promotion sealed this run: it leaves the hot tier (called with `run.sealing` held)."""
         if self.runs.get(run.run_id) is run:
             del self.runs[run.run_id]
@@ -431,11 +458,11 @@ class IngestService:
         for directory in self.hot.existing():
             hot, events = self.hot.recover(directory)
             mtime = dt.datetime.fromtimestamp(hot.path.stat().st_mtime, dt.UTC)
-            run = self.runs[hot.run_id] = RunState(hot, mtime, self.secret_fields)
+            run = self.runs[hot.run_id] = IngestRun(hot, mtime, self.secret_fields)
             for event in events:
                 run.replay(event, mtime)
             # No stream survives a restart (the SDK never reconnects): what follows comes by upload.
-            run.last_data_at, run.status, run.ended_at = mtime, "closed", mtime
+            run.last_data_at, run.status, run.ended_at = mtime, RunStatus.CLOSED, mtime
             recovered.append(hot.run_id)
         try:
             self.flush_catalog()
@@ -448,7 +475,7 @@ class IngestService:
         now = self.clock()
         closed = []
         for run in list(self.runs.values()):  # promotion may take runs away meanwhile
-            if run.status == "live" and now - run.last_data_at >= self.close_after:
+            if run.status == RunStatus.LIVE and now - run.last_data_at >= self.close_after:
                 self._close_run(run, now)
                 closed.append(run.run_id)
         return closed

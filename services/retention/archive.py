@@ -18,8 +18,9 @@ from catalog.db import session_scope
 from catalog.models import Run, RunLifecycle
 from core.clock import aware
 from core.errors import ErrorCode, FleetError
+from core.states import ARCHIVED_IN_STORE, RestoreState, Tier
 from services.analytics.extract import TABLES, partition_key
-from services.sealed.tiers import Tiers, readable_when_cold
+from services.sealed.tiers import Tiers, readable_when_cold, write_run_json
 from services.sealed.write import RECORDING
 from services.storage.objectstore import ArchiveStore, ObjectNotFoundError, StorageError, copy_object
 
@@ -49,7 +50,7 @@ def archive(run_id: str, tiers: Tiers, catalog: sessionmaker[Session], now: dt.d
     """Move a warm run's recording to the cold tier; returns what was done."""
     with session_scope(catalog) as session:
         run, life = _load(session, run_id)
-        if run.tier != "warm":
+        if run.tier != Tier.WARM:
             return f"already {run.tier}"
         key = f"{life.prefix}/{RECORDING}"
     if tiers.cold_storage_class:
@@ -66,13 +67,14 @@ def archive(run_id: str, tiers: Tiers, catalog: sessionmaker[Session], now: dt.d
         where = tiers.cold.url
     with session_scope(catalog, write=True) as session:
         run, life = _load(session, run_id)
-        run.tier, run.updated_at = "cold", now
+        run.tier, run.updated_at = Tier.COLD, now
         life.archived_at, life.archive_mode = now, tiers.archive_mode()
         life.restore_state = life.restore_requested_at = life.restore_until = None
         objects = queries.run_objects(session, run_id)
         if RECORDING in objects:
-            objects[RECORDING].tier = "cold"
+            objects[RECORDING].tier = Tier.COLD
         queries.add_event(session, run_id, "archive", now, "retention", policy, f"recording to {where}")
+        write_run_json(session, tiers.warm, run_id)  # says cold too (it stays warm, beside the index)
     if not tiers.cold_storage_class:
         tiers.warm.delete(key)  # only once the catalog points at the cold copy
     return f"archived to {where}"
@@ -88,9 +90,9 @@ def request_restore(run_id: str, tiers: Tiers, catalog: sessionmaker[Session], n
     `advance_restore`, so a long copy runs in the background and survives a restart)."""
     with session_scope(catalog) as session:
         run, life = _load(session, run_id)
-        if run.tier != "cold":
+        if run.tier != Tier.COLD:
             raise RestoreNotNeededError(f"run {run_id!r} is {run.tier}, not cold: it serves without a restore")
-        if life.restore_state in ("restoring", "restored") and (
+        if life.restore_state in (RestoreState.RESTORING, RestoreState.RESTORED) and (
                 life.restore_until is None or aware(life.restore_until) > now):
             session.expunge(life)  # read after the session closes: keep its loaded state
             return life  # already asked for: restoring twice changes nothing
@@ -99,11 +101,11 @@ def request_restore(run_id: str, tiers: Tiers, catalog: sessionmaker[Session], n
     if readable_when_cold(mode):
         raise RestoreNotNeededError(f"run {run_id!r} is kept in storage class {mode}, which reads without a "
                                     "restore: download it as it is")
-    if mode and mode != "store":
+    if mode and mode != ARCHIVED_IN_STORE:
         _archive_store(tiers).restore(key, max(1, round(days)))
     with session_scope(catalog, write=True) as session:
         _, life = _load(session, run_id)
-        life.restore_state, life.restore_requested_at = "restoring", now
+        life.restore_state, life.restore_requested_at = RestoreState.RESTORING, now
         life.restore_until = now + dt.timedelta(days=days)
         queries.add_event(session, run_id, "restore", now, actor, None, f"for {days:g} days")
         session.flush()
@@ -118,24 +120,24 @@ def advance_restore(run_id: str, tiers: Tiers, catalog: sessionmaker[Session], n
         run, life = _load(session, run_id)
         tier, state, mode, key = run.tier, life.restore_state, life.archive_mode, f"{life.prefix}/{RECORDING}"
         until = aware(life.restore_until) if life.restore_until else None
-    if tier != "cold" or state is None:
+    if tier != Tier.COLD or state is None:
         return "nothing to do"
     if until is not None and until <= now:
-        if mode == "store":
+        if mode == ARCHIVED_IN_STORE:
             tiers.warm.delete(key)
         _set_restore(catalog, run_id, None, now, "restore ended")
         return "restore ended"
-    if state == "restored":
+    if state == RestoreState.RESTORED:
         return "restored"
-    if mode == "store":
+    if mode == ARCHIVED_IN_STORE:
         copy_object(tiers.cold, tiers.warm, key)
     elif tiers.warm.head(key).restore != "restored":
         return "restore under way"
-    _set_restore(catalog, run_id, "restored", now, "restored")
+    _set_restore(catalog, run_id, RestoreState.RESTORED, now, "restored")
     return "restored"
 
 
-def _set_restore(catalog: sessionmaker[Session], run_id: str, state: str | None, now: dt.datetime,
+def _set_restore(catalog: sessionmaker[Session], run_id: str, state: RestoreState | None, now: dt.datetime,
                  detail: str) -> None:
     with session_scope(catalog, write=True) as session:
         _, life = _load(session, run_id)
@@ -152,7 +154,7 @@ def delete(run_id: str, tiers: Tiers, catalog: sessionmaker[Session], now: dt.da
     the run is marked deleted; the tombstone keeps who, when and which policy. Safe to repeat."""
     with session_scope(catalog, write=True) as session:
         run, life = _load(session, run_id)
-        if run.tier == "deleted":
+        if run.tier == Tier.DELETED:
             return "already deleted"
         prefix = life.prefix
         analytics = queries.replace_analytics(session, run_id, [])
@@ -175,7 +177,7 @@ def delete(run_id: str, tiers: Tiers, catalog: sessionmaker[Session], now: dt.da
         removed += 1
     with session_scope(catalog, write=True) as session:
         run, life = _load(session, run_id)
-        run.tier, run.updated_at = "deleted", now
+        run.tier, run.updated_at = Tier.DELETED, now
         life.deleted_at, life.deleted_by, life.deleted_policy = now, actor, policy
         life.restore_state = life.restore_requested_at = life.restore_until = None
         queries.replace_objects(session, run_id, [])

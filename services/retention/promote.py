@@ -1,12 +1,13 @@
 """Promotion hot -> warm: a closed run sealed, uploaded, verified, switched in the catalog, removed.
 
 Steps, each safe to repeat: (1) seal the hot file into `recording.rrd` + `chunks.parquet` in the
-run's hot folder; (2) upload them, then `run.json`, under `ROBOT/YYYY-MM-DD/RUN/` (same keys every
-time, so a retry overwrites rather than orphans); (3) check what the store holds against what was
-sealed; (4) switch the catalog to warm in one transaction; (5) remove the hot files. A crash
-before (4) leaves the run hot, and the next promotion redoes (1)-(3) over the same keys; a crash
-after (4) leaves a hot copy whose chunks are all sealed, which its next promotion finds so and
-removes without sealing again (so does a late upload that brought nothing new).
+run's hot folder; (2) upload them under `ROBOT/YYYY-MM-DD/RUN/` (same keys every time, so a retry
+overwrites rather than orphans); (3) check what the store holds against what was sealed; (4) switch
+the catalog to warm in one transaction, which puts `run.json` (built from the rows it wrote) before
+it commits; (5) remove the hot files. A crash before (4) commits leaves the run hot, and the next
+promotion redoes (1)-(3) over the same keys; a crash after (4) leaves a hot copy whose chunks are
+all sealed, which its next promotion finds so and removes without sealing again (so does a late
+upload that brought nothing new).
 Whether a run was sealed before is asked of the catalog here, not at ingest: ingest files data even
 while the catalog does not answer.
 """
@@ -20,7 +21,7 @@ import os
 import shutil
 import threading
 from collections.abc import Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from sqlalchemy.orm import Session, sessionmaker
@@ -29,15 +30,16 @@ from catalog import queries
 from catalog.db import session_scope
 from catalog.queries import ObjectRecord, RunRecord
 from core.errors import ErrorCode, FleetError
+from core.states import RunStatus, Tier
 from services.analytics.extract import Extractor
 from services.analytics.store import write_analytics
 from services.hot.read import read_events
 from services.hot.store import InsufficientStorageError
-from services.ingest.service import IngestService, RunState, SealedInfo
+from services.ingest.service import IngestRun, IngestService, SealedInfo
 from services.rrd.decoder import iter_events
 from services.rrd.messages import Event
-from services.sealed.tiers import Tiers, run_json, run_prefix
-from services.sealed.write import INDEX, RECORDING, RUN_JSON, SealedRun, seal
+from services.sealed.tiers import Tiers, run_prefix, write_run_json
+from services.sealed.write import INDEX, RECORDING, SealedRun, seal
 from services.storage.objectstore import RangeReader, StorageError
 
 log = logging.getLogger(__name__)
@@ -59,21 +61,42 @@ class LateDataError(FleetError):
     code = ErrorCode.CONFLICT
 
 
+@dataclass
+class PromoteBackoff:
+    """Failed promotions of this node's hot runs, by run id: how many in a row, and when the next
+    attempt may start (1 s, 2 s, 4 s ... up to MAX_BACKOFF). Kept by retention, not on ingest's runs:
+    a run that is sealed at last is forgotten here, so data that comes later starts afresh."""
+
+    failures: dict[str, int] = field(default_factory=dict)
+    retry_at: dict[str, dt.datetime] = field(default_factory=dict)
+
+    def waiting(self, run_id: str, now: dt.datetime) -> dt.datetime | None:
+        """When the run may be tried again, if that is still to come."""
+        at = self.retry_at.get(run_id)
+        return at if at is not None and now < at else None
+
+    def failed(self, run_id: str, now: dt.datetime) -> None:
+        failures = self.failures[run_id] = self.failures.get(run_id, 0) + 1
+        self.retry_at[run_id] = now + min(dt.timedelta(seconds=2 ** (failures - 1)), MAX_BACKOFF)
+
+    def forget(self, run_id: str) -> None:
+        self.failures.pop(run_id, None)
+        self.retry_at.pop(run_id, None)
+
+
 @dataclass(frozen=True)
 class Candidate:
-    run: RunState
+    run: IngestRun
     reason: str
 
 
 def due_for_promotion(ingest: IngestService, now: dt.datetime, promote_after: dt.timedelta,
-                      disk_pressure: bool) -> list[Candidate]:
+                      disk_pressure: bool, backoff: PromoteBackoff) -> list[Candidate]:
     """Closed hot runs to promote, oldest first: idle for `promote_after`, or all of them under
     disk pressure (past the high-water mark). Runs backing off after a failure wait their turn."""
     out = []
-    for run in sorted(list(ingest.runs.values()), key=lambda r: r.last_data_at):
-        if run.status != "closed" or run.live_sources or run.sealed:
-            continue
-        if run.next_promote_at is not None and now < run.next_promote_at:
+    for run in ingest.closed_runs():
+        if backoff.waiting(run.run_id, now) is not None:
             continue
         idle = now - run.last_data_at
         if idle >= promote_after:
@@ -83,20 +106,20 @@ def due_for_promotion(ingest: IngestService, now: dt.datetime, promote_after: dt
     return out
 
 
-Upcoming = tuple[RunState, dt.datetime | None, str]
+Upcoming = tuple[IngestRun, dt.datetime | None, str]
 
 
-def upcoming(ingest: IngestService, now: dt.datetime, promote_after: dt.timedelta) -> list[Upcoming]:
+def upcoming(ingest: IngestService, now: dt.datetime, promote_after: dt.timedelta,
+             backoff: PromoteBackoff) -> list[Upcoming]:
     """Hot runs not due yet: when each will be promoted (None: once it closes), and why."""
     out: list[Upcoming] = []
-    for run in sorted(list(ingest.runs.values()), key=lambda r: r.last_data_at):
-        if run.sealed:
-            continue
-        if run.status == "live" or run.live_sources:
+    for run in ingest.hot_runs():
+        retry_at = backoff.waiting(run.run_id, now)
+        if run.status == RunStatus.LIVE or run.live_sources:
             out.append((run, None, f"live: promoted {_human(promote_after)} after its stream closes "
                                    "(or FLEET_CLOSE_AFTER_S after its last data)"))
-        elif run.next_promote_at is not None and now < run.next_promote_at:
-            out.append((run, run.next_promote_at, f"retrying after {run.promote_failures} failed attempts"))
+        elif retry_at is not None:
+            out.append((run, retry_at, f"retrying after {backoff.failures[run.run_id]} failed attempts"))
         elif now - run.last_data_at < promote_after:
             out.append((run, run.last_data_at + promote_after,
                         f"closed, idle {_human(now - run.last_data_at)} of {_human(promote_after)}"))
@@ -108,22 +131,26 @@ def _human(delta: dt.timedelta) -> str:
     return f"{seconds // 3600}h{seconds // 60 % 60:02d}m" if seconds >= 3600 else f"{seconds // 60}m{seconds % 60:02d}s"
 
 
-def promote(run: RunState, ingest: IngestService, tiers: Tiers, catalog: sessionmaker[Session],
-            now: dt.datetime, reserve_bytes: int = 0) -> RunRecord | None:
+def promote(run: IngestRun, ingest: IngestService, tiers: Tiers, catalog: sessionmaker[Session],
+            now: dt.datetime, reserve_bytes: int = 0, backoff: PromoteBackoff | None = None) -> RunRecord | None:
     """Seal `run` into the warm tier; returns its new catalog record (None when the run held nothing
-    that was not sealed already: its hot copy is simply removed). On failure the run stays hot and
-    backs off (1 s, 2 s, 4 s ... up to 5 minutes) before the next attempt."""
+    that was not sealed already: its hot copy is simply removed). On failure the run stays hot and,
+    given a `backoff`, waits there (1 s, 2 s, 4 s ... up to 5 minutes) before the next attempt."""
     try:
         record = _promote(run, ingest, tiers, catalog, now, reserve_bytes)
     except Exception:
-        run.promote_failures += 1
-        wait = min(dt.timedelta(seconds=2 ** (run.promote_failures - 1)), MAX_BACKOFF)
-        run.next_promote_at = now + wait
+        if backoff is not None:
+            if run.sealed:  # it left the hot tier (what failed came after the catalog switch)
+                backoff.forget(run.run_id)
+            else:
+                backoff.failed(run.run_id, now)
         raise
+    if backoff is not None:
+        backoff.forget(run.run_id)
     return record
 
 
-def _promote(run: RunState, ingest: IngestService, tiers: Tiers, catalog: sessionmaker[Session],
+def _promote(run: IngestRun, ingest: IngestService, tiers: Tiers, catalog: sessionmaker[Session],
              now: dt.datetime, reserve_bytes: int) -> RunRecord | None:
     size = run.hot.size
     sealed_as = _sealed_before(run, ingest)
@@ -137,21 +164,21 @@ def _promote(run: RunState, ingest: IngestService, tiers: Tiers, catalog: sessio
         shutil.rmtree(workdir, ignore_errors=True)  # a failed attempt leaves nothing on the hot disk
 
 
-def _sealed_before(run: RunState, ingest: IngestService) -> SealedInfo | None:
+def _sealed_before(run: IngestRun, ingest: IngestService) -> SealedInfo | None:
     """Whether the run was sealed before (its hot data came later): asked of the catalog now, as ingest
     may have filed the data while the catalog did not answer, or another node may have sealed it."""
     sealed = ingest.sealed_lookup(run.run_id) if ingest.sealed_lookup is not None else run.sealed_as
-    if sealed is not None and sealed.tier != "warm":
-        what = "restore it (fleet runs restore), then it is sealed in" if sealed.tier == "cold" else \
+    if sealed is not None and sealed.tier != Tier.WARM:
+        what = "restore it (fleet runs restore), then it is sealed in" if sealed.tier == Tier.COLD else \
             "it was deleted: its late data stays hot until removed by hand"
         raise LateDataError(f"run {run.run_id} received {len(run.chunk_ids)} chunks while {sealed.tier}: {what}")
     run.sealed_as = sealed
     return sealed
 
 
-def _drop_hot_copy(run: RunState, ingest: IngestService, size: int, why: str) -> None:
+def _drop_hot_copy(run: IngestRun, ingest: IngestService, size: int, why: str) -> None:
     with run.sealing:
-        if run.hot.size != size or run.status == "live":
+        if run.hot.size != size or run.status == RunStatus.LIVE:
             raise PromotionDeferredError(f"run {run.run_id} received data while being checked: promoted later")
         run.sealed_into, run.sealed = run.sealed_as, True
         ingest.forget(run)
@@ -160,7 +187,7 @@ def _drop_hot_copy(run: RunState, ingest: IngestService, size: int, why: str) ->
     log.info("hot copy of run %s removed: %s", run.run_id, why)
 
 
-def _check_room(run: RunState, tiers: Tiers, base_size: int, reserve_bytes: int) -> None:
+def _check_room(run: IngestRun, tiers: Tiers, base_size: int, reserve_bytes: int) -> None:
     """Sealing writes the recording once more on the hot disk (twice when the warm store is a folder
     on that disk): refuse before starting rather than fill the disk the catalog lives on."""
     need = run.hot.size + base_size
@@ -175,7 +202,7 @@ def _check_room(run: RunState, tiers: Tiers, base_size: int, reserve_bytes: int)
             f"{reserve_bytes} in reserve (FLEET_RESERVE_BYTES): free space, or use an s3:// warm store")
 
 
-def _seal_and_switch(run: RunState, ingest: IngestService, tiers: Tiers, catalog: sessionmaker[Session],
+def _seal_and_switch(run: IngestRun, ingest: IngestService, tiers: Tiers, catalog: sessionmaker[Session],
                      now: dt.datetime, reserve_bytes: int, size: int, sealed_as: SealedInfo | None,
                      workdir: Path) -> RunRecord:
     prefix = sealed_as.prefix if sealed_as else None
@@ -192,33 +219,29 @@ def _seal_and_switch(run: RunState, ingest: IngestService, tiers: Tiers, catalog
     sealed = seal(sources, workdir / RECORDING, run.run_id, now, analytics.add, ingest.secret_fields)  # (1)
     record = _sealed_record(run, sealed, ingest.default_robot)
     prefix = prefix or run_prefix(record.robot_id, record.date, run.run_id)
-    objects = [ObjectRecord(RECORDING, f"{prefix}/{RECORDING}", "warm", sealed.recording_size,
+    objects = [ObjectRecord(RECORDING, f"{prefix}/{RECORDING}", Tier.WARM, sealed.recording_size,
                             sealed.recording_sha256),
-               ObjectRecord(INDEX, f"{prefix}/{INDEX}", "warm", len(sealed.index), sealed.index_sha256)]
+               ObjectRecord(INDEX, f"{prefix}/{INDEX}", Tier.WARM, len(sealed.index), sealed.index_sha256)]
     with open(sealed.recording, "rb") as fh:  # (2) checked by the store against what was sent
         tiers.warm.put(objects[0].key, fh)
     tiers.warm.put(objects[1].key, sealed.index)
     objects += write_analytics(tiers.warm, analytics, record.robot_id, record.date.isoformat())
-    pin = _pin(catalog, run.run_id)
-    tiers.warm.put(f"{prefix}/{RUN_JSON}", run_json(record, prefix, objects, now, *pin))
     for obj in objects:  # (3)
         held = tiers.warm.head(obj.key).size
         if held != obj.size:
             raise StorageError(f"{tiers.warm.url}/{obj.key} holds {held} bytes after upload, {obj.size} were sealed")
     with run.sealing:  # ingest waits here only if it has data for this very run
-        if run.hot.size != size or run.status == "live":
+        if run.hot.size != size or run.status == RunStatus.LIVE:
             raise PromotionDeferredError(f"run {run.run_id} received data while being sealed: promoted later")
         detail = f"{sealed.recording_size} bytes, {len(sealed.chunk_ids)} chunks to {tiers.warm.url}/{prefix}/"
         with session_scope(catalog, write=True) as session:  # (4)
             stale = queries.analytics_keys(session, run.run_id) - {o.key for o in objects}
             queries.record_promotion(session, record, prefix, objects, now, detail)
-            pin_now = queries.pin_state(session, run.run_id)
-        run.sealed_into = SealedInfo("warm", prefix, record.robot_id, record.date, frozenset(sealed.chunk_ids))
+            write_run_json(session, tiers.warm, run.run_id)  # with the pin as the catalog has it now
+        run.sealed_into = SealedInfo(Tier.WARM, prefix, record.robot_id, record.date, frozenset(sealed.chunk_ids))
         run.sealed = True
         ingest.forget(run)
         aside = ingest.hot.set_aside(run.hot)
-    if pin_now != pin:  # pinned or unpinned while it was being sealed: run.json follows the catalog
-        tiers.warm.put(f"{prefix}/{RUN_JSON}", run_json(record, prefix, objects, now, *pin_now))
     for key in stale:  # analytics written earlier under another robot or date: one copy per run
         tiers.warm.delete(key)
     shutil.rmtree(aside, ignore_errors=True)  # (5)
@@ -226,19 +249,14 @@ def _seal_and_switch(run: RunState, ingest: IngestService, tiers: Tiers, catalog
     return record
 
 
-def _pin(catalog: sessionmaker[Session], run_id: str) -> tuple[bool, str | None]:
-    with session_scope(catalog) as session:
-        return queries.pin_state(session, run_id)
-
-
-def _sealed_record(run: RunState, sealed: SealedRun, default_robot: str) -> RunRecord:
+def _sealed_record(run: IngestRun, sealed: SealedRun, default_robot: str) -> RunRecord:
     """The run's catalog record after sealing: identity as it was filed, figures from the sealed file."""
     filed = run.record(default_robot)
     figures = sealed.facts.record(default_robot)
     if run.sealed_as is not None:
         filed.robot_id, filed.date = run.sealed_as.robot_id, run.sealed_as.date
     return dataclasses.replace(
-        filed, status="closed", tier="warm", sdk_version=figures.sdk_version or filed.sdk_version,
+        filed, status=RunStatus.CLOSED, tier=Tier.WARM, sdk_version=figures.sdk_version or filed.sdk_version,
         chunks=figures.chunks, rows=figures.rows, bytes=figures.bytes, properties=figures.properties,
         entities=figures.entities, timelines=figures.timelines, ended_at=filed.ended_at or run.last_data_at,
         started_at=figures.started_at or filed.started_at)

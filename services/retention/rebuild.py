@@ -12,13 +12,15 @@ import datetime as dt
 import logging
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
+from typing import Any
 
 from sqlalchemy.orm import Session, sessionmaker
 
 from catalog import queries
 from catalog.db import session_scope
 from catalog.models import RunLifecycle
-from services.sealed.tiers import RunFile, Tiers, parse_run_json
+from core.states import ARCHIVED_IN_STORE, Tier
+from services.sealed.tiers import RunJson, Tiers, parse_run_json
 from services.sealed.write import INDEX, RECORDING, RUN_JSON
 from services.storage.objectstore import ObjectInfo, ObjectNotFoundError
 
@@ -56,6 +58,14 @@ def rebuild(catalog: sessionmaker[Session], tiers: Tiers, now: dt.datetime,
     return steps
 
 
+def rebuild_streamed(catalog: sessionmaker[Session], tiers: Tiers, clock: Callable[[], dt.datetime],
+                     emit: Callable[[dict[str, Any]], None]) -> None:
+    """`POST /v1/catalog/rebuild`: rebuild, saying so as it goes (one line per run found, then the counts)."""
+    steps = rebuild(catalog, tiers, clock(), lambda step: emit({"event": "run", **step.to_dict()}))
+    counts = {k: sum(s.outcome == k for s in steps) for k in ("added", "present", "skipped")}
+    emit({"event": "end", **counts})
+
+
 def _rebuild_one(catalog: sessionmaker[Session], tiers: Tiers, key: str, now: dt.datetime) -> RebuildStep:
     run_id = key.split("/")[2]
     try:
@@ -77,22 +87,22 @@ def _rebuild_one(catalog: sessionmaker[Session], tiers: Tiers, key: str, now: dt
     return RebuildStep(run_id, "added", f"{tier}, {found.record.chunks} chunks, {found.record.bytes} bytes")
 
 
-def _recording(tiers: Tiers, prefix: str) -> tuple[str, str | None, ObjectInfo] | None:
+def _recording(tiers: Tiers, prefix: str) -> tuple[Tier, str | None, ObjectInfo] | None:
     key = f"{prefix}/{RECORDING}"
     try:
         info = tiers.warm.head(key)
         if info.storage_class in ARCHIVE_CLASSES:
-            return "cold", info.storage_class, info
-        return "warm", None, info
+            return Tier.COLD, info.storage_class, info
+        return Tier.WARM, None, info
     except ObjectNotFoundError:
         pass
     try:
-        return "cold", "store", tiers.cold.head(key)
+        return Tier.COLD, ARCHIVED_IN_STORE, tiers.cold.head(key)
     except ObjectNotFoundError:
         return None
 
 
-def _insert(catalog: sessionmaker[Session], found: RunFile, tier: str, mode: str | None, info: ObjectInfo,
+def _insert(catalog: sessionmaker[Session], found: RunJson, tier: Tier, mode: str | None, info: ObjectInfo,
             now: dt.datetime) -> None:
     record = dataclasses.replace(found.record, tier=tier)
     objects = [dataclasses.replace(o, tier=tier) if o.name == RECORDING else o for o in found.objects]
@@ -102,6 +112,6 @@ def _insert(catalog: sessionmaker[Session], found: RunFile, tier: str, mode: str
         assert run is not None
         run.pinned, run.pinned_by = found.pinned, found.pinned_by if found.pinned else None
         session.add(RunLifecycle(run_id=record.id, prefix=found.prefix, promoted_at=found.sealed_at,
-                                 archived_at=info.last_modified if tier == "cold" else None, archive_mode=mode))
+                                 archived_at=info.last_modified if tier == Tier.COLD else None, archive_mode=mode))
         queries.replace_objects(session, record.id, objects)
         queries.add_event(session, record.id, "rebuild", now, "catalog rebuild", None, f"from {found.prefix}/")

@@ -6,6 +6,7 @@ run as it is done, so clients can show progress; the last line sums up.
 
 from __future__ import annotations
 
+import functools
 import json
 import queue
 import threading
@@ -15,13 +16,10 @@ from typing import Annotated, Any
 from fastapi import APIRouter, Query, Request
 from fastapi.responses import StreamingResponse
 
-from catalog import queries
-from catalog.db import session_scope
-from core.clock import aware
 from core.errors import BadParameterError
 from services.retention import rebuild as rebuild_mod
 from services.retention import schedule, service
-from services.retention.service import ACTIONS, ARCHIVE, DELETE, PROMOTE, RESTORE, Retention
+from services.retention.service import ACTIONS, Retention
 
 router = APIRouter()
 NDJSON = "application/x-ndjson"
@@ -50,22 +48,7 @@ def _kinds(action: list[str] | None) -> list[str]:
 
 @router.get("/v1/retention", summary="Retention policies, settings and recent job runs")
 def retention(request: Request) -> dict[str, Any]:
-    ctx, settings = _ctx(request), request.app.state.settings
-    with session_scope(ctx.catalog) as session:
-        jobs = [{"job": j.job, "node": j.node, "started_at": aware(j.started_at).isoformat(),
-                 "finished_at": aware(j.finished_at).isoformat() if j.finished_at else None,
-                 "outcome": j.outcome, "detail": j.detail} for j in queries.recent_jobs(session)]
-    return {
-        "policies": ctx.policies.to_dict(),
-        "promote_after_s": ctx.promote_after.total_seconds(),
-        "promote_below_free_bytes": ctx.promote_below_free_bytes,
-        "restore_days": ctx.restore_days,
-        "archive": ctx.tiers.archive_mode(),
-        "warm_url": ctx.tiers.warm.url, "cold_url": ctx.tiers.cold.url,
-        "schedule": {"enabled": settings.scheduler, "promote_interval_s": settings.promote_interval_s,
-                     "retention_interval_s": settings.retention_interval_s},
-        "recent_jobs": jobs,
-    }
+    return service.overview(_ctx(request), request.app.state.settings)
 
 
 @router.get("/v1/retention/plan", summary="What would move or be deleted now, and why")
@@ -74,9 +57,7 @@ def retention_plan(
     action: Annotated[list[str] | None, Query(description=" | ".join(ACTIONS) + " (repeatable; default all)")]
     = None,
 ) -> dict[str, Any]:
-    kinds = _kinds(action)
-    upcoming = service.upcoming(_ctx(request)) if PROMOTE in kinds else []
-    return {"actions": [a.to_dict() for a in service.plan(_ctx(request), kinds)], "upcoming": upcoming}
+    return service.plan_answer(_ctx(request), _kinds(action))
 
 
 @router.post("/v1/retention/run", summary="Do what is due now; NDJSON progress, one line per run")
@@ -86,26 +67,7 @@ def retention_run(
     = None,
 ) -> StreamingResponse:
     ctx, kinds = _ctx(request), _kinds(action)
-
-    def work(emit: Callable[[dict[str, Any]], None]) -> None:
-        actions = service.plan(ctx, kinds)
-        emit({"event": "plan", "total": len(actions), "actions": [a.to_dict() for a in actions]})
-        promotions = [a for a in actions if a.action == PROMOTE]
-        others = [a for a in actions if a.action != PROMOTE]
-        done = []
-
-        def progress(outcome: service.Outcome) -> None:
-            done.append(outcome)
-            emit({"event": "done", **outcome.to_dict()})
-
-        if promotions:
-            schedule.promote_job(ctx, progress, wait=True)
-        catalog_kinds = tuple(k for k in kinds if k in (ARCHIVE, DELETE, RESTORE))
-        if others and schedule.retention_job(ctx, progress, catalog_kinds) is None:
-            emit({"event": "busy", "detail": "the retention job is running in another process; try again"})
-        emit({"event": "end", "done": sum(o.ok for o in done), "failed": sum(not o.ok for o in done)})
-
-    return StreamingResponse(_ndjson(work), media_type=NDJSON)
+    return StreamingResponse(_ndjson(functools.partial(schedule.run_now, ctx, kinds)), media_type=NDJSON)
 
 
 def _ndjson(work: Callable[[Callable[[dict[str, Any]], None]], None]) -> Iterator[bytes]:
@@ -148,17 +110,11 @@ def restore(request: Request, run_id: str) -> dict[str, Any]:
 
 @router.delete("/v1/runs/{run_id}", summary="Delete a sealed run now (objects first; a tombstone stays)")
 def delete(request: Request, run_id: str) -> dict[str, Any]:
-    return {"run": run_id, "detail": service.delete_run(_ctx(request), run_id, actor(request))}
+    return service.delete_now(_ctx(request), run_id, actor(request))
 
 
 @router.post("/v1/catalog/rebuild", summary="Add every sealed run found in the stores that the catalog lacks")
 def rebuild(request: Request) -> StreamingResponse:
     ctx = _ctx(request)
-
-    def work(emit: Callable[[dict[str, Any]], None]) -> None:
-        steps = rebuild_mod.rebuild(ctx.catalog, ctx.tiers, ctx.clock(),
-                                    lambda step: emit({"event": "run", **step.to_dict()}))
-        counts = {k: sum(s.outcome == k for s in steps) for k in ("added", "present", "skipped")}
-        emit({"event": "end", **counts})
-
+    work = functools.partial(rebuild_mod.rebuild_streamed, ctx.catalog, ctx.tiers, ctx.clock)
     return StreamingResponse(_ndjson(work), media_type=NDJSON)

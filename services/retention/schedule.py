@@ -15,6 +15,7 @@ import os
 import socket
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 import sqlalchemy as sa
 from apscheduler.schedulers.background import BackgroundScheduler
@@ -64,6 +65,27 @@ def retention_job(ctx: Retention, progress: Progress = None,
             log.info("retention job is running in another process: skipped")
             return None
         return _recorded(ctx, "retention", lambda: run_plan(ctx, plan(ctx, kinds), progress))
+
+
+def run_now(ctx: Retention, kinds: list[str], emit: Callable[[dict[str, Any]], None]) -> None:
+    """`POST /v1/retention/run`: do what is due now through the jobs (so nothing runs twice at once),
+    saying so as it goes: the plan, one line per run done, and the sums at the end."""
+    actions = plan(ctx, kinds)
+    emit({"event": "plan", "total": len(actions), "actions": [a.to_dict() for a in actions]})
+    promotions = [a for a in actions if a.action == PROMOTE]
+    others = [a for a in actions if a.action != PROMOTE]
+    done = []
+
+    def progress(outcome: Outcome) -> None:
+        done.append(outcome)
+        emit({"event": "done", **outcome.to_dict()})
+
+    if promotions:
+        promote_job(ctx, progress, wait=True)
+    catalog_kinds = tuple(k for k in kinds if k in (ARCHIVE, DELETE, RESTORE))
+    if others and retention_job(ctx, progress, catalog_kinds) is None:
+        emit({"event": "busy", "detail": "the retention job is running in another process; try again"})
+    emit({"event": "end", "done": sum(o.ok for o in done), "failed": sum(not o.ok for o in done)})
 
 
 JOB_HISTORY = dt.timedelta(days=30)  # job runs kept in the catalog (GET /v1/retention shows the newest)

@@ -7,7 +7,6 @@ one. The scheduled jobs (`services.retention.schedule`) are these two over a sub
 from __future__ import annotations
 
 import datetime as dt
-import json
 import logging
 import shutil
 import threading
@@ -21,11 +20,12 @@ from catalog import queries
 from catalog.db import session_scope
 from core.clock import aware, iso_utc, utcnow
 from core.errors import ErrorCode, FleetError
+from core.states import ARCHIVED_IN_STORE, RestoreState, RunStatus, Tier
 from services.ingest.service import IngestService
 from services.policies import Policies
 from services.retention import archive, promote
-from services.sealed.tiers import Tiers
-from services.sealed.write import RUN_JSON
+from services.sealed.tiers import Tiers, write_run_json
+from services.settings import Settings
 
 log = logging.getLogger(__name__)
 
@@ -59,6 +59,7 @@ class Retention:
     clock: Callable[[], dt.datetime] = utcnow
     free_bytes: Callable[[], int] | None = None  # of the hot disk (default: asked of the file system)
     reserve_bytes: int = 0  # promotion never takes the hot disk below this much free
+    promote_backoff: promote.PromoteBackoff = field(default_factory=promote.PromoteBackoff)  # failed promotions
 
     def hot_free_bytes(self) -> int:
         if self.free_bytes is not None:
@@ -98,6 +99,32 @@ def _days(delta: dt.timedelta) -> str:
     return f"{delta.total_seconds() / 86400:.1f} days"
 
 
+def overview(ctx: Retention, settings: Settings) -> dict[str, Any]:
+    """`GET /v1/retention`: the policies and settings retention works with, and its recent job runs."""
+    with session_scope(ctx.catalog) as session:
+        jobs = [{"job": j.job, "node": j.node, "started_at": aware(j.started_at).isoformat(),
+                 "finished_at": aware(j.finished_at).isoformat() if j.finished_at else None,
+                 "outcome": j.outcome, "detail": j.detail} for j in queries.recent_jobs(session)]
+    return {
+        "policies": ctx.policies.to_dict(),
+        "promote_after_s": ctx.promote_after.total_seconds(),
+        "promote_below_free_bytes": ctx.promote_below_free_bytes,
+        "restore_days": ctx.restore_days,
+        "archive": ctx.tiers.archive_mode(),
+        "warm_url": ctx.tiers.warm.url, "cold_url": ctx.tiers.cold.url,
+        "schedule": {"enabled": settings.scheduler, "promote_interval_s": settings.promote_interval_s,
+                     "retention_interval_s": settings.retention_interval_s},
+        "recent_jobs": jobs,
+    }
+
+
+def plan_answer(ctx: Retention, kinds: list[str]) -> dict[str, Any]:
+    """`GET /v1/retention/plan`: what is due now and why, and (with promotions asked for) the hot
+    runs that are not due yet."""
+    coming = upcoming(ctx) if PROMOTE in kinds else []
+    return {"actions": [a.to_dict() for a in plan(ctx, kinds)], "upcoming": coming}
+
+
 def plan(ctx: Retention, kinds: Iterable[str] = ACTIONS) -> list[Action]:
     """What is due now, and why (oldest first within each kind)."""
     kinds = set(kinds)
@@ -105,12 +132,12 @@ def plan(ctx: Retention, kinds: Iterable[str] = ACTIONS) -> list[Action]:
     actions: list[Action] = []
     if PROMOTE in kinds and ctx.ingest is not None:
         pressure = ctx.promote_below_free_bytes > 0 and ctx.hot_free_bytes() < ctx.promote_below_free_bytes
-        for cand in promote.due_for_promotion(ctx.ingest, now, ctx.promote_after, pressure):
+        for cand in promote.due_for_promotion(ctx.ingest, now, ctx.promote_after, pressure, ctx.promote_backoff):
             record = cand.run.record(ctx.ingest.default_robot)
-            actions.append(Action(cand.run.run_id, PROMOTE, cand.reason, record.robot_id, "hot", record.bytes))
+            actions.append(Action(cand.run.run_id, PROMOTE, cand.reason, record.robot_id, Tier.HOT, record.bytes))
     if kinds & {ARCHIVE, DELETE, RESTORE}:
         with session_scope(ctx.catalog) as session:
-            for run, life in queries.sealed_runs(session, ("warm", "cold")):
+            for run, life in queries.sealed_runs(session, (Tier.WARM, Tier.COLD)):
                 action = _due(ctx, run, life, now, kinds)
                 if action is not None:
                     actions.append(action)
@@ -126,10 +153,10 @@ def _due(ctx: Retention, run: Any, life: Any, now: dt.datetime, kinds: set[str])
                                       f"{policy.warm_days:g} days warm + {policy.cold_days:g} days cold", **common)
     if life.restore_state is not None and RESTORE in kinds:
         until = aware(life.restore_until) if life.restore_until else None
-        if life.restore_state == "restoring" or (until is not None and until <= now):
-            why = "restore asked for" if life.restore_state == "restoring" else "restore period is over"
+        if life.restore_state == RestoreState.RESTORING or (until is not None and until <= now):
+            why = "restore asked for" if life.restore_state == RestoreState.RESTORING else "restore period is over"
             return Action(run.id, RESTORE, why, **common)
-    if run.tier == "warm" and age >= policy.archive_after and policy.cold_days > 0 and ARCHIVE in kinds:
+    if run.tier == Tier.WARM and age >= policy.archive_after and policy.cold_days > 0 and ARCHIVE in kinds:
         return Action(run.id, ARCHIVE, f"ended {_days(age)} ago; policy {policy.name!r} keeps runs "
                                        f"{policy.warm_days:g} days warm", **common)
     return None
@@ -151,10 +178,11 @@ def execute(ctx: Retention, action: Action) -> Outcome:
 def _execute(ctx: Retention, action: Action, now: dt.datetime) -> str:
     if action.action == PROMOTE:
         assert ctx.ingest is not None
-        run = ctx.ingest.runs.get(action.run_id)
+        run = ctx.ingest.hot_run(action.run_id)
         if run is None:
             return "no longer hot here"
-        record = promote.promote(run, ctx.ingest, ctx.tiers, ctx.catalog, now, ctx.reserve_bytes)
+        record = promote.promote(run, ctx.ingest, ctx.tiers, ctx.catalog, now, ctx.reserve_bytes,
+                                 ctx.promote_backoff)
         if record is None:
             return "nothing new: its chunks were all sealed already, hot copy removed"
         return f"sealed {record.chunks} chunks, {record.bytes} bytes"
@@ -182,26 +210,17 @@ def run_plan(ctx: Retention, actions: list[Action], progress: Callable[[Outcome]
 
 def set_pinned(ctx: Retention, run_id: str, pinned: bool, actor: str) -> dict[str, Any]:
     """Pin (exempt from expiry) or unpin a run, hot or sealed. The pin lives on the run's catalog
-    row; a sealed run's run.json gets a copy (for rebuilds), as promotion does for a hot one."""
+    row; a sealed run's run.json is rewritten from that row in the same transaction (for rebuilds),
+    as promotion writes it for a hot one."""
     now = ctx.clock()
     with session_scope(ctx.catalog, write=True) as session:
         run = queries.require_run(session, run_id)
-        if run.tier == "deleted":
+        if run.tier == Tier.DELETED:
             raise NotSealedError(f"run {run_id!r} is deleted: there is nothing left to pin")
         run.pinned, run.pinned_by, run.updated_at = pinned, actor if pinned else None, now
-        life = queries.lifecycle(session, run_id)
         queries.add_event(session, run_id, "pin" if pinned else "unpin", now, actor, None)
-        prefix = life.prefix if life is not None else None
-    if prefix is not None:
-        _rewrite_run_json(ctx, prefix, pinned, actor if pinned else None)
+        write_run_json(session, ctx.tiers.warm, run_id)
     return {"run": run_id, "pinned": pinned, "by": actor}
-
-
-def _rewrite_run_json(ctx: Retention, prefix: str, pinned: bool, by: str | None) -> None:
-    key = f"{prefix}/{RUN_JSON}"
-    body = json.loads(ctx.tiers.warm.get_range(key))
-    body["pinned"], body["pinned_by"] = pinned, by
-    ctx.tiers.warm.put(key, json.dumps(body, indent=1, sort_keys=True).encode())
 
 
 def request_restore(ctx: Retention, run_id: str, actor: str) -> dict[str, Any]:
@@ -209,7 +228,7 @@ def request_restore(ctx: Retention, run_id: str, actor: str) -> dict[str, Any]:
     with session_scope(ctx.catalog) as session:
         queries.require_run(session, run_id)  # 404 naming the run
     life = archive.request_restore(run_id, ctx.tiers, ctx.catalog, now, actor, ctx.restore_days)
-    if life.restore_state == "restoring" and life.archive_mode == "store":
+    if life.restore_state == RestoreState.RESTORING and life.archive_mode == ARCHIVED_IN_STORE:
         # A copy back from the cold store: started now in the background rather than at the next
         # retention run; if this process stops, the retention job finishes it.
         action = Action(run_id, RESTORE, "restore asked for")
@@ -229,34 +248,40 @@ def upcoming(ctx: Retention) -> list[dict[str, Any]]:
         return []
     now = ctx.clock()
     return [{"run": run.run_id, "action": PROMOTE, "at": iso_utc(at), "reason": why,
-             "robot_id": run.robot_id or ctx.ingest.default_robot, "tier": "hot", "bytes": run.hot.size}
-            for run, at, why in promote.upcoming(ctx.ingest, now, ctx.promote_after)]
+             "robot_id": run.robot_id or ctx.ingest.default_robot, "tier": Tier.HOT, "bytes": run.hot.size}
+            for run, at, why in promote.upcoming(ctx.ingest, now, ctx.promote_after, ctx.promote_backoff)]
 
 
 def promote_now(ctx: Retention, run_id: str) -> dict[str, Any]:
     """Seal a closed hot run now, whatever its idle time (`fleet runs promote`)."""
-    run = ctx.ingest.runs.get(run_id) if ctx.ingest is not None else None
-    if run is None or run.sealed:
+    run = ctx.ingest.hot_run(run_id) if ctx.ingest is not None else None
+    if run is None:
         with session_scope(ctx.catalog) as session:
             found = queries.require_run(session, run_id)  # 404 naming the run
             tier = found.tier
-        where = "hot on another node: ask that node" if tier == "hot" else f"{tier} already"
+        where = "hot on another node: ask that node" if tier == Tier.HOT else f"{tier} already"
         raise NotHotError(f"run {run_id!r} is {where}: there is nothing to promote here")
-    if run.status == "live" or run.live_sources:
+    if run.status == RunStatus.LIVE or run.live_sources:
         raise StillLiveError(f"run {run_id!r} is live (a stream is still sending it): it can be promoted once "
                              "its stream ends, or FLEET_CLOSE_AFTER_S after its last data")
     assert ctx.ingest is not None
     with promote.PROMOTING:
-        record = promote.promote(run, ctx.ingest, ctx.tiers, ctx.catalog, ctx.clock(), ctx.reserve_bytes)
+        record = promote.promote(run, ctx.ingest, ctx.tiers, ctx.catalog, ctx.clock(), ctx.reserve_bytes,
+                                 ctx.promote_backoff)
     if record is None:
-        return {"run": run_id, "tier": "warm", "detail": "nothing new: its chunks were all sealed already"}
+        return {"run": run_id, "tier": Tier.WARM, "detail": "nothing new: its chunks were all sealed already"}
     return {"run": run_id, "tier": record.tier, "detail": f"sealed {record.chunks} chunks, {record.bytes} bytes"}
+
+
+def delete_now(ctx: Retention, run_id: str, actor: str) -> dict[str, Any]:
+    """Delete a sealed run asked for by a user (`DELETE /v1/runs/{run}`)."""
+    return {"run": run_id, "detail": delete_run(ctx, run_id, actor)}
 
 
 def delete_run(ctx: Retention, run_id: str, actor: str) -> str:
     with session_scope(ctx.catalog) as session:
         run = queries.require_run(session, run_id)
-        if run.tier == "hot":
+        if run.tier == Tier.HOT:
             raise NotSealedError(f"run {run_id!r} is still hot: delete it once it is sealed (promoted)")
         if run.pinned:
             raise NotSealedError(f"run {run_id!r} is pinned: unpin it first (fleet runs pin --unpin)")

@@ -1,4 +1,5 @@
-"""Finding runs: robots, runs with filters, sort and an opaque cursor, and one run in detail."""
+"""Finding runs: robots, runs with filters, sort and an opaque cursor, and one run in detail, each as
+the JSON the REST API answers."""
 
 from __future__ import annotations
 
@@ -10,19 +11,23 @@ from typing import Any
 
 import sqlalchemy as sa
 from sqlalchemy.dialects.postgresql import JSONB
-from sqlalchemy.orm import Session
+from sqlalchemy.orm import Session, sessionmaker
 
 from catalog import queries
+from catalog.db import session_scope
 from catalog.models import Robot, Run, RunEntity
+from core.clock import iso_utc
 from core.errors import BadParameterError
+from core.states import RunStatus, Tier
+from services.policies import Policies
 
 MAX_LIMIT = 1000
 MAX_ENTITY_FILTERS = 32  # each is a subquery: a bounded number keeps the query plannable
 MAX_PROPERTY_FILTERS = 32
 MAX_CURSOR_LENGTH = 2048  # a cursor this service gives out is a few dozen characters
 SORTS = ("-started_at", "started_at", "-bytes", "bytes", "id", "-id")
-STATUSES = ("live", "closed")
-TIERS = ("hot", "warm", "cold", "deleted")
+STATUSES = tuple(RunStatus)
+TIERS = tuple(Tier)
 
 
 @dataclass
@@ -148,7 +153,7 @@ def _decode_cursor(cursor: str, sort: str) -> tuple[Any, str]:
 def list_runs(session: Session, flt: RunFilter) -> tuple[list[Run], str | None]:
     """A page of runs and the cursor of the next page (None at the end)."""
     flt.check()
-    query = sa.select(Run).where(Run.tier != "deleted") if flt.tier is None else sa.select(Run)
+    query = sa.select(Run).where(Run.tier != Tier.DELETED) if flt.tier is None else sa.select(Run)
     if flt.robot:
         query = query.where(Run.robot_id.in_(flt.robot))
     if flt.application:
@@ -187,6 +192,73 @@ def list_runs(session: Session, flt: RunFilter) -> tuple[list[Run], str | None]:
 
 def list_robots(session: Session) -> list[tuple[Robot, int]]:
     """Robots with their number of runs."""
-    counts = dict(session.execute(sa.select(Run.robot_id, sa.func.count()).where(Run.tier != "deleted")
+    counts = dict(session.execute(sa.select(Run.robot_id, sa.func.count()).where(Run.tier != Tier.DELETED)
                                   .group_by(Run.robot_id)).all())
     return [(robot, int(counts.get(robot.id, 0))) for robot in queries.list_robots(session)]
+
+
+# --- answers ------------------------------------------------------------------------------------
+
+
+def robots_answer(catalog: sessionmaker[Session]) -> dict[str, Any]:
+    """`GET /v1/robots`: robots and how many runs each has."""
+    with session_scope(catalog) as session:
+        return {"robots": [{"id": robot.id, "runs": count, "created_at": iso_utc(robot.created_at),
+                            "last_seen_at": iso_utc(robot.last_seen_at)}
+                           for robot, count in list_robots(session)]}
+
+
+def runs_answer(catalog: sessionmaker[Session], flt: RunFilter) -> dict[str, Any]:
+    """`GET /v1/runs`: a page of runs and the cursor of the next one."""
+    with session_scope(catalog) as session:
+        page, next_cursor = list_runs(session, flt)
+        return {"runs": [run_summary(run) for run in page], "next_cursor": next_cursor}
+
+
+def run_summary(run: Run) -> dict[str, Any]:
+    return {
+        "id": run.id, "robot_id": run.robot_id, "application_id": run.application_id,
+        "date": run.date.isoformat(), "status": run.status, "tier": run.tier,
+        "started_at": iso_utc(run.started_at), "ended_at": iso_utc(run.ended_at),
+        "last_data_at": iso_utc(run.last_data_at), "sdk_version": run.sdk_version,
+        "chunks": run.chunks, "rows": run.rows, "bytes": run.bytes, "pinned": run.pinned,
+        "pinned_by": run.pinned_by,
+        "properties": json.loads(run.properties),
+    }
+
+
+def run_answer(catalog: sessionmaker[Session], run_id: str, policies: Policies | None) -> dict[str, Any]:
+    """`GET /v1/runs/{run}`: one run with its entities, timelines, policy and lifecycle (`policies`:
+    None where this node runs no retention)."""
+    with session_scope(catalog) as session:
+        found = queries.require_run(session, run_id)
+        return {
+            **run_summary(found),
+            "entities": [{"path": e.path, "chunks": e.chunks, "static_chunks": e.static_chunks, "rows": e.rows,
+                          "bytes": e.bytes, "archetypes": json.loads(e.archetypes),
+                          "components": json.loads(e.components)}
+                         for e in queries.run_entities(session, run_id)],
+            "timelines": [{"name": t.name, "type": t.type, "min": t.min, "max": t.max}
+                          for t in queries.run_timelines(session, run_id)],
+            **_lifecycle(session, found, policies),
+        }
+
+
+def _lifecycle(session: Session, run: Run, policies: Policies | None) -> dict[str, Any]:
+    """Where a sealed run's objects are, what retention did to it, and which policy applies."""
+    life = queries.lifecycle(session, run.id)
+    policy = policies.for_run(run.robot_id, run.application_id).to_dict() if policies is not None else None
+    if life is None:
+        return {"policy": policy, "lifecycle": None, "objects": [], "events": []}
+    return {
+        "policy": policy,
+        "lifecycle": {"prefix": life.prefix, "promoted_at": iso_utc(life.promoted_at),
+                      "archived_at": iso_utc(life.archived_at), "archive_mode": life.archive_mode,
+                      "restore_state": life.restore_state, "restore_until": iso_utc(life.restore_until),
+                      "pinned_by": run.pinned_by, "deleted_at": iso_utc(life.deleted_at),
+                      "deleted_by": life.deleted_by, "deleted_policy": life.deleted_policy},
+        "objects": [{"name": o.name, "key": o.key, "tier": o.tier, "size": o.size, "sha256": o.sha256}
+                    for o in queries.run_objects(session, run.id).values()],
+        "events": [{"action": e.action, "at": iso_utc(e.occurred_at), "actor": e.actor, "policy": e.policy,
+                    "detail": e.detail} for e in queries.run_events(session, run.id)],
+    }

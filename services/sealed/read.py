@@ -13,6 +13,7 @@ from catalog import queries
 from catalog.db import session_scope
 from core.clock import aware
 from core.errors import ErrorCode, FleetError
+from core.states import RestoreState, Tier
 from services.sealed.index import CHUNK, IndexRow, from_parquet
 from services.sealed.tiers import readable_when_cold
 from services.sealed.write import INDEX, RECORDING
@@ -55,15 +56,15 @@ def locate_sealed(catalog: sessionmaker[Session], warm: ObjectStore, run_id: str
         life = queries.lifecycle(session, run_id)
         if run is None or life is None:
             raise queries.run_not_found(run_id)
-        if run.tier == "deleted":
+        if run.tier == Tier.DELETED:
             raise RunDeletedError(f"run {run_id!r} was deleted on {_when(life.deleted_at)} by {life.deleted_by}"
                                   + (f" (retention policy {life.deleted_policy!r})" if life.deleted_policy else ""))
         restored = readable_when_cold(life.archive_mode) or (
-            life.restore_state == "restored" and (life.restore_until is None or
+            life.restore_state == RestoreState.RESTORED and (life.restore_until is None or
                                                   aware(life.restore_until) > now))
-        if run.tier == "cold" and not restored:
+        if run.tier == Tier.COLD and not restored:
             doing = (f"a restore was asked for at {_when(life.restore_requested_at)} and is under way: try again "
-                     "later" if life.restore_state == "restoring" else
+                     "later" if life.restore_state == RestoreState.RESTORING else
                      f"restore it with POST /v1/runs/{run_id}/restore or `fleet runs restore {run_id}`")
             raise RunArchivedError(f"run {run_id!r} is archived in the cold tier since {_when(life.archived_at)}; "
                                    f"{doing}")

@@ -13,10 +13,12 @@ from sqlalchemy.orm import Session, sessionmaker
 from catalog import queries
 from catalog.db import session_scope
 from catalog.queries import EntityRecord, RunRecord, TimelineRecord
+from core.clock import aware
 from core.errors import ErrorCode, FleetError
+from core.states import ARCHIVED_IN_STORE, Tier
 from services.ingest.service import SealedInfo
 from services.sealed.index import CHUNK, from_parquet
-from services.sealed.write import INDEX
+from services.sealed.write import INDEX, RUN_JSON
 from services.settings import Settings
 from services.storage.objectstore import ObjectStore, open_store, supports_archive
 
@@ -28,7 +30,7 @@ NEEDS_RESTORE = frozenset({"GLACIER", "DEEP_ARCHIVE"})
 
 def readable_when_cold(archive_mode: str | None) -> bool:
     """Whether a cold run's recording can be read where it lies without a restore."""
-    return archive_mode not in (None, "store") and archive_mode not in NEEDS_RESTORE
+    return archive_mode not in (None, ARCHIVED_IN_STORE) and archive_mode not in NEEDS_RESTORE
 
 
 class RetentionConfigError(FleetError):
@@ -42,7 +44,7 @@ class Tiers:
     cold_storage_class: str = ""  # archive in place to this S3 class; "" = copy to the cold store
 
     def archive_mode(self) -> str:
-        return self.cold_storage_class or "store"
+        return self.cold_storage_class or ARCHIVED_IN_STORE
 
 
 def open_tiers(settings: Settings) -> Tiers:
@@ -59,25 +61,11 @@ def run_prefix(robot_id: str, date: dt.date, run_id: str) -> str:
     return f"{robot_id}/{date.isoformat()}/{run_id}"
 
 
-def run_json(record: RunRecord, prefix: str, objects: list[queries.ObjectRecord], sealed_at: dt.datetime,
-             pinned: bool = False, pinned_by: str | None = None) -> bytes:
-    """The catalog record of a sealed run, kept beside it so the catalog can be rebuilt from the bucket.
-    The pin is the catalog's (`queries.pin_state`), copied here when it is recorded."""
-    body = {"format": RUN_JSON_FORMAT, "prefix": prefix, "sealed_at": sealed_at.isoformat(), "pinned": pinned,
-            "pinned_by": pinned_by if pinned else None, "run": asdict(record),
-            "objects": [asdict(o) for o in objects]}
-    return json.dumps(body, indent=1, sort_keys=True, default=_json_default).encode()
-
-
-def _json_default(value: Any) -> str:
-    if isinstance(value, dt.datetime | dt.date):
-        return value.isoformat()
-    raise TypeError(f"{type(value).__name__} is not JSON")
-
-
 @dataclass(frozen=True)
-class RunFile:
-    """A sealed run's `run.json`, read back."""
+class RunJson:
+    """A sealed run's `run.json`: its catalog record kept beside its recording, so that the catalog
+    can be rebuilt from the bucket. Written from the catalog rows (`write_run_json`), read back by
+    the rebuild (`parse_run_json`)."""
 
     record: RunRecord
     prefix: str
@@ -86,8 +74,24 @@ class RunFile:
     sealed_at: dt.datetime
     pinned_by: str | None = None
 
+    @property
+    def key(self) -> str:
+        return f"{self.prefix}/{RUN_JSON}"
 
-def parse_run_json(data: bytes) -> RunFile:
+    def encode(self) -> bytes:
+        body = {"format": RUN_JSON_FORMAT, "prefix": self.prefix, "sealed_at": self.sealed_at.isoformat(),
+                "pinned": self.pinned, "pinned_by": self.pinned_by if self.pinned else None,
+                "run": asdict(self.record), "objects": [asdict(o) for o in self.objects]}
+        return json.dumps(body, indent=1, sort_keys=True, default=_json_default).encode()
+
+
+def _json_default(value: Any) -> str:
+    if isinstance(value, dt.datetime | dt.date):
+        return value.isoformat()
+    raise TypeError(f"{type(value).__name__} is not JSON")
+
+
+def parse_run_json(data: bytes) -> RunJson:
     body = json.loads(data)
     if body.get("format") != RUN_JSON_FORMAT:
         raise ValueError(f"run.json format {body.get('format')!r} is not {RUN_JSON_FORMAT}")
@@ -106,7 +110,29 @@ def parse_run_json(data: bytes) -> RunFile:
         properties=run["properties"], entities=[EntityRecord(**e) for e in run["entities"]],
         timelines=[TimelineRecord(**t) for t in run["timelines"]])
     objects = [queries.ObjectRecord(**o) for o in body["objects"]]
-    return RunFile(record, body["prefix"], objects, bool(body.get("pinned")), sealed_at, body.get("pinned_by"))
+    return RunJson(record, body["prefix"], objects, bool(body.get("pinned")), sealed_at, body.get("pinned_by"))
+
+
+def catalog_run_json(session: Session, run_id: str) -> RunJson | None:
+    """A sealed run's `run.json` as its catalog rows say it now (None: the run is not sealed)."""
+    record = queries.run_record(session, run_id)
+    life = queries.lifecycle(session, run_id)
+    if record is None or life is None:
+        return None
+    pinned, pinned_by = queries.pin_state(session, run_id)
+    # in the catalog's order, which a rebuild then keeps (GET /v1/runs/RUN lists them so)
+    objects = [queries.ObjectRecord(o.name, o.key, o.tier, o.size, o.sha256)
+               for o in queries.run_objects(session, run_id).values()]
+    return RunJson(record, life.prefix, objects, pinned, aware(life.promoted_at), pinned_by)
+
+
+def write_run_json(session: Session, warm: ObjectStore, run_id: str) -> None:
+    """Put a sealed run's `run.json`, built from its catalog rows as `session` sees them. Called in
+    the transaction that changes what it holds (promotion, pin, archive), before that commits: the
+    bucket's copy is never older than the catalog, and a put that fails rolls the change back."""
+    found = catalog_run_json(session, run_id)
+    if found is not None:
+        warm.put(found.key, found.encode())
 
 
 def sealed_lookup(catalog: sessionmaker[Session], tiers: Tiers) -> Any:
@@ -116,13 +142,13 @@ def sealed_lookup(catalog: sessionmaker[Session], tiers: Tiers) -> Any:
         with session_scope(catalog) as session:
             run = queries.get_run(session, run_id)
             life = queries.lifecycle(session, run_id)
-            if run is None or life is None or run.tier == "hot":
+            if run is None or life is None or run.tier == Tier.HOT:
                 return None
-            tier, prefix, robot_id, date = run.tier, life.prefix, run.robot_id, run.date
+            tier, prefix, robot_id, date = Tier(run.tier), life.prefix, run.robot_id, run.date
             index = queries.run_objects(session, run_id).get(INDEX)
             committed = index.sha256 if index is not None else None
         chunk_ids: frozenset[bytes] = frozenset()
-        if tier == "warm":
+        if tier == Tier.WARM:
             data = tiers.warm.get_range(f"{prefix}/{INDEX}")
             # Sealing late data that stopped before its catalog switch leaves a newer index in the
             # store: the catalog has not recorded those chunks as sealed, so a hot copy of them is

@@ -26,7 +26,7 @@ import sqlalchemy as sa
 from catalog import queries
 from catalog.db import session_scope
 from services.ingest.identity import SecretFields
-from services.ingest.service import RunState
+from services.ingest.service import IngestRun
 from services.retention import promote
 from services.retention.rebuild import rebuild
 from services.retention.schedule import promote_job
@@ -435,26 +435,28 @@ def test_a_failed_promotion_backs_off_before_the_next_attempt(tiers: Tiers, make
     faulty = FaultyStore(tiers.warm, "put", RECORDING, times=3)
     node = make_node(Tiers(faulty, tiers.cold), clock=clock, promote_after_s=PROMOTE_AFTER_S)
     node.upload(sdk_runs.first)
-    run: RunState = node.ingest.runs[RUN]
-    assert run.next_promote_at is None
+    run: IngestRun = node.ingest.runs[RUN]
+    backoff = node.retention.promote_backoff
+    assert backoff.retry_at.get(RUN) is None
     clock.advance(seconds=PROMOTE_AFTER_S)
     for failures, wait in ((1, FIRST_BACKOFF_S), (2, 2.0), (3, 4.0)):  # 1 s, 2 s, 4 s ...
         failed_at = clock.now
         (outcome,) = promote_now(node)
         assert not outcome.ok
-        assert run.promote_failures == failures and run.next_promote_at == failed_at + dt.timedelta(seconds=wait)
+        assert backoff.failures[RUN] == failures and backoff.retry_at[RUN] == failed_at + dt.timedelta(seconds=wait)
         clock.advance(seconds=wait - 0.1)
-        assert plan(node.retention, [PROMOTE]) == []  # skipped until next_promote_at
+        assert plan(node.retention, [PROMOTE]) == []  # skipped until its retry time
         clock.advance(seconds=0.1)
         assert [a.run_id for a in plan(node.retention, [PROMOTE])] == [RUN]
 
-    run.promote_failures, faulty.left = 30, 1  # ... up to five minutes
+    backoff.failures[RUN], faulty.left = 30, 1  # ... up to five minutes
     with pytest.raises(StorageError):
-        promote.promote(run, node.ingest, node.tiers, node.catalog, clock.now)
-    assert run.next_promote_at == clock.now + promote.MAX_BACKOFF == clock.now + dt.timedelta(minutes=5)
+        promote.promote(run, node.ingest, node.tiers, node.catalog, clock.now, backoff=backoff)
+    assert backoff.retry_at[RUN] == clock.now + promote.MAX_BACKOFF == clock.now + dt.timedelta(minutes=5)
     clock.advance(minutes=5)
     assert [o.ok for o in promote_now(node)] == [True]
     assert_warm(node, set(chunk_ids(sdk_runs.first)))
+    assert RUN not in backoff.failures and RUN not in backoff.retry_at  # sealed: data that follows starts afresh
 
 
 # --- late data -----------------------------------------------------------------------------------

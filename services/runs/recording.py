@@ -1,0 +1,70 @@
+"""`GET /v1/runs/{run}/recording.rrd` as a service: the run found hot on this node (served from its
+file, and followed while live) or sealed (ranged reads planned from its chunk index), filtered by
+entity and time window, with an ETag naming the run's size and what was asked."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from collections.abc import AsyncIterator, Iterator
+from dataclasses import dataclass, field
+
+from sqlalchemy.orm import Session, sessionmaker
+
+from catalog import queries
+from core.clock import utcnow
+from core.errors import BadParameterError
+from services.hot.read import HotRuns
+from services.runs import download, sealed
+from services.sealed.read import locate_sealed
+from services.storage.objectstore import ObjectStore
+
+
+@dataclass(frozen=True)
+class RecordingQuery:
+    """What a download asks for (the endpoint's query parameters)."""
+
+    include: list[str] = field(default_factory=list)
+    exclude: list[str] = field(default_factory=list)
+    blueprint: bool = True
+    timeline: str | None = None
+    start: str | None = None
+    end: str | None = None
+    latest_at: bool = True
+    follow: bool = False
+    exact: bool = False
+
+
+@dataclass(frozen=True)
+class RecordingDownload:
+    body: Iterator[bytes] | AsyncIterator[bytes]
+    etag: str
+    filename: str
+
+
+def open_recording(hot_runs: HotRuns | None, catalog: sessionmaker[Session], warm: ObjectStore | None,
+                   run_id: str, query: RecordingQuery) -> RecordingDownload:
+    """The run as an .rrd stream: hot runs from this node's disk (`hot_runs`: None on a node without
+    ingest), any other from the warm store (`warm`: None on a node without the sealed tiers)."""
+    entities = download.EntityFilter(query.include, query.exclude)
+    hot = hot_runs.hot_recording(run_id) if hot_runs is not None else None
+    if hot is not None:
+        types, size = hot.timeline_types, hot.size
+    else:  # 404 naming the run, 409 for a cold run not restored, 410 for a deleted one
+        if warm is None:
+            raise queries.run_not_found(run_id)  # no sealed tier here: only hot runs are
+        found = locate_sealed(catalog, warm, run_id, utcnow())
+        types, size = found.timeline_types(), found.size
+    window = download.window_from_query(types, query.timeline, query.start, query.end, query.latest_at, query.exact)
+    if query.follow and window is not None:
+        raise BadParameterError("follow", "follow=true streams what comes next: it takes no time window")
+    filters = json.dumps([sorted(entities.include), sorted(entities.exclude), query.blueprint, repr(window)])
+    etag = f'"{run_id}-{size}-{hashlib.sha256(filters.encode()).hexdigest()[:16]}"'
+    body: Iterator[bytes] | AsyncIterator[bytes]
+    if hot is not None and query.follow:  # waits for the run on the event loop, not in a thread of its own
+        body = download.follow_run(hot, entities, blueprint=query.blueprint)
+    elif hot is not None:
+        body = download.stream_run(hot.path, hot.size, entities, blueprint=query.blueprint, window=window)
+    else:
+        body = sealed.stream_sealed(found, entities, blueprint=query.blueprint, window=window)
+    return RecordingDownload(body, etag, f"{run_id}.rrd")
