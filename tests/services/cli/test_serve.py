@@ -1,52 +1,35 @@
 import os
-import socket
 import subprocess
 import sys
-import time
 from collections.abc import Iterator
 from pathlib import Path
 
 import httpx
 import pytest
 
-from tests.services.ingest.live_server import LiveServer, free_port
+from tests.services.ingest.live_server import LiveServer
+from tests.subprocess_server import ServerProcess, answers_http, free_port
 
 FLEET = str(Path(sys.executable).with_name("fleet"))
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
-def _wait_healthy(url: str, proc: subprocess.Popen[bytes], timeout: float = 30.0) -> httpx.Response:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        assert proc.poll() is None, proc.stderr.read().decode() if proc.stderr else "exited"
-        try:
-            return httpx.get(url, timeout=1.0)
-        except httpx.TransportError:
-            time.sleep(0.05)  # polling for the condition, bounded by the deadline
-    raise AssertionError(f"{url} did not answer within {timeout}s")
-
-
 def test_serve_answers_health_on_the_configured_address(tmp_path):
-    port = _free_port()
+    port = free_port()
     env = {**os.environ, "FLEET_DATA_DIR": str(tmp_path / "data")}
-    proc = subprocess.Popen([FLEET, "serve", "--http-addr", f"127.0.0.1:{port}",
-                             "--grpc-addr", f"127.0.0.1:{_free_port()}"], env=env,  # never the machine's 51234
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    server = ServerProcess([FLEET, "serve", "--http-addr", f"127.0.0.1:{port}",
+                            "--grpc-addr", f"127.0.0.1:{free_port()}"], env=env,  # never the machine's 51234
+                           log=tmp_path / "serve.out", errors_log=tmp_path / "serve.err", name="fleet serve",
+                           ready=answers_http(f"http://127.0.0.1:{port}/healthz"))
     try:
-        response = _wait_healthy(f"http://127.0.0.1:{port}/healthz", proc)
+        server.start(timeout=30)
+        response = httpx.get(f"http://127.0.0.1:{port}/healthz")
         assert response.status_code == 200
         assert response.json()["status"] == "ok"
         assert httpx.get(f"http://127.0.0.1:{port}/openapi.json").status_code == 200
         assert (tmp_path / "data" / "catalog.duckdb").is_file()
     finally:
-        proc.terminate()
-        out, _ = proc.communicate(timeout=10)
-    assert b"created the embedded catalog" in out  # said once, on first start
+        server.stop(grace=10)
+    assert "created the embedded catalog" in server.log.read_text()  # on its output, said once, on first start
 
 
 def test_serve_refuses_a_postgres_catalog_that_is_behind(empty_postgres_url: str, tmp_path):
