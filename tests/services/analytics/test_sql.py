@@ -82,10 +82,9 @@ def fill(store: ObjectStore, catalog: sessionmaker[Session]) -> None:
 
 
 @pytest.fixture
-def blank(tmp_path: Path) -> Iterator[sessionmaker[Session]]:
-    """An empty DuckDB catalog."""
-    engine = create_engine(f"duckdb:///{tmp_path / 'catalog.duckdb'}")
-    upgrade(engine)
+def blank(fresh_catalog_url: str) -> Iterator[sessionmaker[Session]]:
+    """An empty catalog (DuckDB or Postgres)."""
+    engine = create_engine(fresh_catalog_url)
     yield sessionmaker(engine)
     engine.dispose()
 
