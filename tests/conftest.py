@@ -134,16 +134,25 @@ def migrated_postgres_template() -> Iterator[str]:
         yield database_name(url)
 
 
-@pytest.fixture(params=["duckdb", pytest.param("postgres", marks=pytest.mark.postgres)])
-def fresh_catalog_url(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[str]:
-    """A migrated catalog for this test alone: a copy of the DuckDB template file, or a Postgres
-    database created from the migrated template."""
-    if request.param == "duckdb":
+@contextlib.contextmanager
+def fresh_catalog(kind: str, request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[str]:
+    """A migrated catalog for one test alone (`kind` duckdb or postgres): a copy of the DuckDB
+    template file, or a Postgres database created from the migrated template."""
+    if kind == "duckdb":
         path = tmp_path / "catalog.duckdb"
         shutil.copyfile(request.getfixturevalue("migrated_duckdb_template"), path)
         yield f"duckdb:///{path}"
         return
     with temporary_database("fleet_test", template=request.getfixturevalue("migrated_postgres_template")) as url:
+        yield url
+
+
+CATALOG_KINDS = ["duckdb", pytest.param("postgres", marks=pytest.mark.postgres)]
+
+
+@pytest.fixture(params=CATALOG_KINDS)
+def fresh_catalog_url(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[str]:
+    with fresh_catalog(request.param, request, tmp_path) as url:
         yield url
 
 

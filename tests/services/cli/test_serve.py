@@ -32,6 +32,7 @@ def test_serve_answers_health_on_the_configured_address(tmp_path):
     assert "created the embedded catalog" in server.log.read_text()  # on its output, said once, on first start
 
 
+@pytest.mark.slow
 def test_serve_refuses_a_postgres_catalog_that_is_behind(empty_postgres_url: str, tmp_path):
     result = subprocess.run([FLEET, "serve", "--data-dir", str(tmp_path), "--catalog-url", empty_postgres_url],
                             capture_output=True, text=True, timeout=60)
@@ -50,6 +51,7 @@ def test_serve_help_documents_every_setting():
         assert f"FLEET_{name.upper()}" in out, name
 
 
+@pytest.mark.slow
 def test_bad_address_is_one_clear_error(tmp_path):
     result = subprocess.run([FLEET, "serve", "--data-dir", str(tmp_path), "--http-addr", "nonsense"],
                             capture_output=True, text=True, timeout=30)
@@ -86,6 +88,7 @@ def running(tmp_path: Path) -> Iterator[LiveServer]:
     live.stop()
 
 
+@pytest.mark.slow
 def test_a_second_serve_on_the_grpc_port_is_refused(running: LiveServer, tmp_path: Path):
     result = _second_serve(tmp_path / "second", free_port(), running.grpc_port)
     line = _one_line(result)
@@ -94,12 +97,14 @@ def test_a_second_serve_on_the_grpc_port_is_refused(running: LiveServer, tmp_pat
     assert httpx.get(f"{running.url}/healthz").status_code == 200
 
 
+@pytest.mark.slow
 def test_a_second_serve_on_the_grpc_wildcard_is_refused(running: LiveServer, tmp_path: Path):
     result = _second_serve(tmp_path / "second", free_port(), running.grpc_port, "--grpc-addr",
                            f"0.0.0.0:{running.grpc_port}")
     assert f"0.0.0.0:{running.grpc_port}" in _one_line(result)
 
 
+@pytest.mark.slow
 def test_a_second_serve_on_the_http_port_is_refused(running: LiveServer, tmp_path: Path):
     result = _second_serve(tmp_path / "second", running.http_port, free_port())
     line = _one_line(result)
@@ -107,12 +112,14 @@ def test_a_second_serve_on_the_http_port_is_refused(running: LiveServer, tmp_pat
     assert "--http-addr" in line and "FLEET_HTTP_ADDR" in line
 
 
+@pytest.mark.slow
 def test_a_second_serve_on_the_same_data_dir_names_the_first(running: LiveServer):
     assert running.proc is not None
     line = _one_line(_second_serve(running.data_dir, free_port(), free_port()))
     assert f"PID {running.proc.pid}" in line and "data dir" in line and "--data-dir" in line
 
 
+@pytest.mark.slow
 def test_db_commands_while_serving_name_the_holder(running: LiveServer):
     """The embedded catalog is one process's at a time: `fleet db` says which one holds it."""
     assert running.proc is not None
@@ -124,6 +131,7 @@ def test_db_commands_while_serving_name_the_holder(running: LiveServer):
         assert f"PID {running.proc.pid}" in line and "fleet serve" in line and "stop it" in line
 
 
+@pytest.mark.slow
 def test_a_serve_on_another_data_dir_but_the_same_embedded_catalog_is_refused(running: LiveServer,
                                                                              tmp_path: Path):
     assert running.proc is not None
@@ -132,6 +140,7 @@ def test_a_serve_on_another_data_dir_but_the_same_embedded_catalog_is_refused(ru
     assert f"PID {running.proc.pid}" in line and "embedded catalog" in line
 
 
+@pytest.mark.slow
 @pytest.mark.postgres
 def test_two_serves_never_share_a_data_dir_even_with_postgres(empty_postgres_url: str, tmp_path: Path):
     subprocess.run([FLEET, "db", "upgrade", "--catalog-url", empty_postgres_url], check=True, capture_output=True,

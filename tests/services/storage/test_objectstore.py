@@ -27,7 +27,8 @@ def seaweed_endpoint(tmp_path_factory: pytest.TempPathFactory) -> Iterator[str]:
         yield endpoint
 
 
-@pytest.fixture(params=["file", "s3-moto", pytest.param("s3-seaweedfs", marks=pytest.mark.s3server)])
+@pytest.fixture(params=["file", "s3-moto",
+                        pytest.param("s3-seaweedfs", marks=[pytest.mark.s3server, pytest.mark.slow])])
 def store(request: pytest.FixtureRequest, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Iterator[ObjectStore]:
     if request.param == "file":
         yield open_store((tmp_path / "warm").as_uri())
