@@ -55,7 +55,6 @@ class Settings(BaseSettings):
     s3_region: str | None = Field(None, description="S3 region (default: from AWS_* settings)")
     cold_storage_class: str = Field("", description="archive by moving warm objects to this S3 storage class "
                                     "(GLACIER, DEEP_ARCHIVE, STANDARD_IA, ...) instead of copying to cold_url")
-    api_url: str = Field("http://127.0.0.1:8080", description="where CLI commands reach the service")
     max_message_size: int = Field(DEFAULT_MAX_MESSAGE_SIZE, gt=0,
                                   description="largest RRD/gRPC message accepted, in bytes")
     max_chunk_bytes: int = Field(DEFAULT_MAX_CHUNK_BYTES, gt=0,

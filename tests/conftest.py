@@ -15,7 +15,7 @@ import sqlalchemy as sa
 from sqlalchemy.orm import Session
 
 from catalog.db import create_engine, upgrade
-from tests.postgres import temporary_database
+from tests.postgres import database_name, temporary_database
 from tests.services.rrd.recordings import SCENES, Recording, cut_mid_arrow, generate_scenes, rerun_rrd
 
 
@@ -109,6 +109,51 @@ def session(engine: sa.Engine) -> Iterator[Session]:
         finally:
             session.close()
             outer.rollback()
+
+
+# --- a migrated catalog of its own for each test of the domain suites (ingest, retention, runs,
+# analytics), on both kinds: copied from one migrated once per session rather than migrated per test
+
+
+@pytest.fixture(scope="session")
+def migrated_duckdb_template(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    path = tmp_path_factory.mktemp("catalog-template") / "catalog.duckdb"
+    engine = create_engine(f"duckdb:///{path}")
+    upgrade(engine)
+    engine.dispose()  # every commit is checkpointed (catalog.db): the file alone is the database
+    return path
+
+
+@pytest.fixture(scope="session")
+def migrated_postgres_template() -> Iterator[str]:
+    """The name of a migrated database no one stays connected to (CREATE DATABASE ... TEMPLATE needs that)."""
+    with temporary_database("fleet_template") as url:
+        engine = create_engine(url)
+        upgrade(engine)
+        engine.dispose()
+        yield database_name(url)
+
+
+@contextlib.contextmanager
+def fresh_catalog(kind: str, request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[str]:
+    """A migrated catalog for one test alone (`kind` duckdb or postgres): a copy of the DuckDB
+    template file, or a Postgres database created from the migrated template."""
+    if kind == "duckdb":
+        path = tmp_path / "catalog.duckdb"
+        shutil.copyfile(request.getfixturevalue("migrated_duckdb_template"), path)
+        yield f"duckdb:///{path}"
+        return
+    with temporary_database("fleet_test", template=request.getfixturevalue("migrated_postgres_template")) as url:
+        yield url
+
+
+CATALOG_KINDS = ["duckdb", pytest.param("postgres", marks=pytest.mark.postgres)]
+
+
+@pytest.fixture(params=CATALOG_KINDS)
+def fresh_catalog_url(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[str]:
+    with fresh_catalog(request.param, request, tmp_path) as url:
+        yield url
 
 
 @pytest.fixture

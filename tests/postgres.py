@@ -28,15 +28,24 @@ def admin_engine() -> sa.Engine:
             return engine
 
 
+def database_url(name: str) -> str:
+    return PG_ADMIN_URL.rsplit("/", 1)[0] + f"/{name}"
+
+
+def database_name(url: str) -> str:
+    return url.rsplit("/", 1)[1]
+
+
 @contextmanager
-def temporary_database(prefix: str) -> Iterator[str]:
-    """The URL of a new, empty database, dropped afterwards."""
+def temporary_database(prefix: str, *, template: str | None = None) -> Iterator[str]:
+    """The URL of a new database, dropped afterwards: empty, or a copy of `template` (a database
+    no one is connected to, so Postgres can copy it file by file)."""
     admin = admin_engine()
     name = f"{prefix}_{uuid.uuid4().hex[:12]}"
     with admin.connect() as conn:
-        conn.execute(sa.text(f'CREATE DATABASE "{name}"'))
+        conn.execute(sa.text(f'CREATE DATABASE "{name}"' + (f' TEMPLATE "{template}"' if template else "")))
     try:
-        yield PG_ADMIN_URL.rsplit("/", 1)[0] + f"/{name}"
+        yield database_url(name)
     finally:
         with admin.connect() as conn:
             conn.execute(sa.text(f'DROP DATABASE IF EXISTS "{name}" WITH (FORCE)'))

@@ -4,14 +4,15 @@ from __future__ import annotations
 
 import shutil
 import socket
-import subprocess
 import sys
-import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
+from typing import Any
 
-import httpx
+import boto3
+
+from tests.subprocess_server import ServerProcess, answers_http
 
 
 def _free(port: int) -> bool:
@@ -42,36 +43,44 @@ def weed_binary() -> str:
     return found
 
 
+class SeaweedFS:
+    """`weed server` with S3 on free loopback ports. It can be stopped and started again on the same
+    ports and data, so clients configured with its endpoint see an outage rather than a new server."""
+
+    def __init__(self, data_dir: Path) -> None:
+        self.data_dir = data_dir
+        data_dir.mkdir(parents=True, exist_ok=True)
+        self.s3, self.master, self.volume, self.filer = (_port_pair() for _ in range(4))
+        # no Iceberg or Lance listeners (fixed default ports); a quick raft election on a restart
+        argv = [weed_binary(), "server", f"-dir={data_dir}", "-ip=127.0.0.1", "-ip.bind=127.0.0.1", "-s3",
+                f"-s3.port={self.s3}", "-s3.port.iceberg=0", "-s3.port.lance=0", f"-master.port={self.master}",
+                f"-volume.port={self.volume}", f"-filer.port={self.filer}", "-master.electionTimeout=1s"]
+        self.process = ServerProcess(argv, log=data_dir.parent / f"{data_dir.name}-weed.log", name="weed",
+                                     ready=answers_http(self.endpoint))
+
+    @property
+    def endpoint(self) -> str:
+        return f"http://127.0.0.1:{self.s3}"
+
+    def start(self, timeout: float = 60) -> SeaweedFS:
+        self.process.start(timeout)
+        return self
+
+    def stop(self) -> None:
+        """Killed outright (its graceful stop can take half a minute); what it holds is kept on disk."""
+        if self.process.running:
+            self.process.kill()
+
+    def client(self) -> Any:
+        return boto3.client("s3", endpoint_url=self.endpoint, region_name="us-east-1", aws_access_key_id="test",
+                            aws_secret_access_key="test")
+
+
 @contextmanager
 def seaweedfs(data_dir: Path, timeout: float = 60) -> Iterator[str]:
     """Start `weed server` with S3 on free loopback ports; yields the S3 endpoint URL."""
-    data_dir.mkdir(parents=True, exist_ok=True)
-    s3, master, volume, filer = (_port_pair() for _ in range(4))
-    log = open(data_dir / "weed.log", "wb")  # noqa: SIM115 - closed below
-    proc = subprocess.Popen(
-        [weed_binary(), "server", f"-dir={data_dir}", "-ip=127.0.0.1", "-ip.bind=127.0.0.1", "-s3",
-         f"-s3.port={s3}", "-s3.port.iceberg=0", "-s3.port.lance=0", f"-master.port={master}",
-         f"-volume.port={volume}", f"-filer.port={filer}"],
-        stdout=log, stderr=subprocess.STDOUT)
-    endpoint = f"http://127.0.0.1:{s3}"
+    server = SeaweedFS(data_dir).start(timeout)
     try:
-        deadline = time.monotonic() + timeout
-        while True:
-            if proc.poll() is not None:
-                raise RuntimeError(f"weed exited: {(data_dir / 'weed.log').read_text()[-2000:]}")
-            try:
-                httpx.get(endpoint, timeout=1)
-                break
-            except httpx.TransportError:
-                if time.monotonic() > deadline:
-                    raise RuntimeError("SeaweedFS S3 did not answer") from None
-                time.sleep(0.1)  # polling for the server to come up, bounded by the deadline
-        yield endpoint
+        yield server.endpoint
     finally:
-        proc.terminate()
-        try:
-            proc.wait(timeout=3)  # its graceful stop can take half a minute; the data is scratch
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
-        log.close()
+        server.stop()

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import io
 import logging
-from collections.abc import Iterable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -136,13 +135,6 @@ def to_parquet(table: pa.Table) -> bytes:
 
 def partition_key(table: str, robot_id: str, date: str, run_id: str) -> str:
     return f"analytics/{table}/robot_id={robot_id}/date={date}/{run_id}.parquet"
-
-
-def extract(run_id: str, chunks: Iterable[tuple[ArrowMessage, ChunkMeta]]) -> dict[str, pa.Table]:
-    extractor = Extractor(run_id)
-    for msg, meta in chunks:
-        extractor.add(msg, meta)
-    return extractor.tables()
 
 
 # --- Arrow helpers -------------------------------------------------------------------------------

@@ -14,6 +14,7 @@ from services import __version__
 from services.analytics import rest as analytics_rest
 from services.analytics.service import Analytics
 from services.api import metrics as prometheus
+from services.api import readiness
 from services.ingest import rest as ingest_rest
 from services.ingest.service import IngestService
 from services.retention import rest as retention_rest
@@ -78,9 +79,23 @@ def create_app(settings: Settings, ingest: IngestService | None = None,
         """Prometheus text exposition (HELP and TYPE for every metric)."""
         return Response(prometheus.exposition(registry), media_type=prometheus.CONTENT_TYPE)
 
-    @app.get("/readyz")
-    async def readyz() -> dict[str, str]:
-        """The service can take requests."""
-        return {"status": "ready"}
+    checks: list[readiness.Check] = []
+    if ingest is not None:
+        if ingest.catalog is not None:
+            checks.append(readiness.catalog_check(ingest.catalog))
+        checks.append(readiness.hot_disk_check(ingest.hot.root, ingest.hot.min_free_bytes))
+
+    @app.get("/readyz", responses={503: {"description": "a part the service needs is not ready: named in "
+                                         "`not_ready`, what is wrong in `checks`"}})
+    async def readyz() -> JSONResponse:
+        """The service can take requests: the catalog answers and the hot disk takes writes."""
+        statuses = await readiness.check_all(checks)
+        failed = [name for name, status in statuses.items() if status != readiness.OK]
+        if not failed:
+            return JSONResponse({"status": "ready", "checks": statuses})
+        code = ErrorCode.UNAVAILABLE
+        return JSONResponse({"code": code.value, "status": "not ready", "not_ready": failed, "checks": statuses,
+                             "message": "not ready: " + "; ".join(f"{name}: {statuses[name]}" for name in failed)},
+                            status_code=http_status(code))
 
     return app

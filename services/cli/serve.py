@@ -19,7 +19,6 @@ if TYPE_CHECKING:
 
 # Settings that are no option of `fleet serve`, and why (shown after the options).
 NOT_OPTIONS = {
-    "api_url": "the client commands' --api-url, not the service's",
     "retention_policies": "a list of tables: environment or TOML only",
 }
 

@@ -64,7 +64,6 @@ class PropertyChunk:
     meta: ChunkMeta  # of `message` (a secret field is no component of it: not in the catalog either)
     name: str
     values: dict[str, Any]  # field (component) -> last value logged, secrets removed
-    had_secret: bool
 
 
 def read_property_chunk(msg: ArrowMessage, meta: ChunkMeta,
@@ -85,9 +84,9 @@ def read_property_chunk(msg: ArrowMessage, meta: ChunkMeta,
                 break
     name = property_name(meta.entity_path)
     if not secret:
-        return PropertyChunk(msg, meta, name, values, had_secret=False)
+        return PropertyChunk(msg, meta, name, values)
     stripped = with_batch(msg, batch.select([i for i in range(batch.num_columns) if i not in secret]))
-    return PropertyChunk(stripped, chunk_meta(stripped), name, values, had_secret=True)
+    return PropertyChunk(stripped, chunk_meta(stripped), name, values)
 
 
 def _is_data(fld: pa.Field) -> bool:

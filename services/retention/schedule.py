@@ -22,7 +22,6 @@ from apscheduler.schedulers.background import BackgroundScheduler
 
 from catalog import queries
 from catalog.db import session_scope
-from core.errors import ErrorCode, FleetError
 from services.retention.locks import job_lock
 from services.retention.promote import PROMOTING
 from services.retention.service import ARCHIVE, DELETE, PROMOTE, RESTORE, Outcome, Retention, plan, run_plan
@@ -30,10 +29,6 @@ from services.retention.service import ARCHIVE, DELETE, PROMOTE, RESTORE, Outcom
 log = logging.getLogger(__name__)
 
 Progress = Callable[[Outcome], None] | None
-
-
-class JobBusyError(FleetError):
-    code = ErrorCode.CONFLICT
 
 
 def node_name() -> str:

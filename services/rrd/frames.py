@@ -68,23 +68,8 @@ class RerunVersion:
     def from_bits(cls, bits: int) -> RerunVersion:
         return cls.from_bytes((bits & 0xFFFFFFFF).to_bytes(4, "little"))
 
-    @classmethod
-    def parse(cls, text: str) -> RerunVersion:
-        """Parse `0.41.0`, `0.24.0-alpha.3`, `0.24.0-rc.1` (the forms Rerun writes)."""
-        core, _, pre = text.partition("-")
-        major, minor, patch = (int(part) for part in core.split("."))
-        meta = 0
-        if pre:
-            label, _, number = pre.partition(".")
-            n = int(number or 0) & 0x3F
-            meta = {"alpha": 0b1000_0000, "rc": 0b0100_0000}[label] | n
-        return cls(major, minor, patch, meta)
-
     def to_bytes(self) -> bytes:
         return bytes((self.major, self.minor, self.patch, self.meta))
-
-    def to_bits(self) -> int:
-        return int.from_bytes(self.to_bytes(), "little", signed=True)
 
     def __str__(self) -> str:
         text = f"{self.major}.{self.minor}.{self.patch}"

@@ -8,7 +8,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from services.rrd import errors
-from services.rrd.chunk import ChunkMeta, TimeRange, chunk_meta
+from services.rrd.chunk import ChunkMeta, chunk_meta
 from services.rrd.messages import (
     ArrowMessage,
     BlueprintActivationMessage,
@@ -39,9 +39,6 @@ class TimelineSummary:
     min: int
     max: int
 
-    def widen(self, rng: TimeRange) -> None:
-        self.min = min(self.min, rng.min)
-        self.max = max(self.max, rng.max)
 
 
 @dataclass

@@ -23,7 +23,7 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.compute as pc
 
-from services.rrd.chunk import ChunkMeta, chunk_meta, read_chunk
+from services.rrd.chunk import ChunkMeta, read_chunk
 from services.rrd.messages import ArrowMessage
 
 
@@ -156,8 +156,3 @@ def _row_ids(batch: pa.RecordBatch, meta: ChunkMeta) -> list[Any]:
         return [0] * batch.num_rows
     values = batch.column(batch.schema.get_field_index(meta.row_id_field.name)).to_pylist()
     return [tuple(v.values()) if isinstance(v, dict) else (v if v is not None else b"") for v in values]
-
-
-def read_entries(messages: Iterable[ArrowMessage], timeline: str) -> list[ChunkEntry]:
-    """Entries with exact component ranges, from the chunks themselves."""
-    return [ChunkEntry.of_meta(chunk_meta(m), True, timeline) for m in messages]

@@ -7,6 +7,7 @@ import datetime as dt
 import threading
 from pathlib import Path
 
+import pytest
 from sqlalchemy.orm import sessionmaker
 
 from catalog import queries
@@ -24,6 +25,7 @@ def record(run_id: str, chunks: int) -> queries.RunRecord:
         timelines=[queries.TimelineRecord("frame", "sequence", 0, chunks)])
 
 
+@pytest.mark.slow
 def test_concurrent_writers_of_the_same_rows_all_succeed(tmp_path: Path):
     engine = create_engine(f"duckdb:///{tmp_path / 'catalog.duckdb'}")
     upgrade(engine)

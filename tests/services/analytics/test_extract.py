@@ -316,7 +316,7 @@ def malformed_seed(tmp_path_factory: pytest.TempPathFactory) -> Any:
 def test_an_invalid_chunk_is_skipped_not_read(variant: str, malformed_seed: Any) -> None:
     """A chunk stored before ingest refused such chunks: extraction validates it first and skips it
     (reading its values would go out of bounds or misread them); the other chunks are extracted."""
-    from services.analytics.extract import extract
+    from services.analytics.extract import Extractor
     from services.rrd.chunk import chunk_meta
     from services.rrd.decoder import decode_message
     from services.rrd.messages import ArrowMessage
@@ -328,8 +328,15 @@ def test_an_invalid_chunk_is_skipped_not_read(variant: str, malformed_seed: Any)
     bad = decode_message(2, raw, original.offset)
     assert isinstance(bad, ArrowMessage)
     damaged = [bad if e.offset == original.offset else e for e in chunks]
-    intact_tables = extract("r", [(e, chunk_meta(e)) for e in chunks])
-    tables = extract("r", [(e, chunk_meta(e)) for e in damaged])
+
+    def extract(messages: list[ArrowMessage]) -> dict[str, Any]:
+        extractor = Extractor("r")
+        for msg in messages:
+            extractor.add(msg, chunk_meta(msg))
+        return extractor.tables()
+
+    intact_tables = extract(chunks)
+    tables = extract(damaged)
     table = {"scalars": "scalars", "text": "text_logs", "translation": "transforms"}[variant.split("_")[0]]
     assert table not in tables
     assert set(tables) == set(intact_tables) - {table}

@@ -25,6 +25,8 @@ from services.storage.objectstore import open_store
 from tests.services.analytics.conftest import opened
 from tests.services.ingest.live_server import LiveServer
 
+pytestmark = pytest.mark.slow  # worker processes pushed to their limits: seconds each
+
 # 60,000 ORs of ANDs (1.4 MB): DuckDB spends a minute or more parsing and planning it, and interrupt()
 # does not reach it there (with 100,000 terms it answered after 146 s against a 1 s limit)
 PARSE_HEAVY = "SELECT 1 AS one WHERE " + " OR ".join(f"(1 = {i} AND 2 = {i})" for i in range(60_000))

@@ -35,6 +35,7 @@ from services.analytics.sql import Limits
 from services.api.app import create_app
 from services.settings import load_settings
 from services.storage.objectstore import ObjectStore, open_store
+from tests.conftest import CATALOG_KINDS, fresh_catalog
 from tests.seaweedfs import seaweedfs
 from tests.services.analytics.conftest import (
     START_2026_03_01_NS,
@@ -82,12 +83,17 @@ def fill(store: ObjectStore, catalog: sessionmaker[Session]) -> None:
 
 
 @pytest.fixture
-def blank(tmp_path: Path) -> Iterator[sessionmaker[Session]]:
-    """An empty DuckDB catalog."""
-    engine = create_engine(f"duckdb:///{tmp_path / 'catalog.duckdb'}")
-    upgrade(engine)
-    yield sessionmaker(engine)
-    engine.dispose()
+def blank(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[sessionmaker[Session]]:
+    """An empty catalog: DuckDB, or the kind a test names (`ON_BOTH_CATALOGS`). Most tests here are
+    about the SQL sandbox, the same whatever the catalog; those that are about what the catalog
+    lists run on both."""
+    with fresh_catalog(getattr(request, "param", "duckdb"), request, tmp_path) as url:
+        engine = create_engine(url)
+        yield sessionmaker(engine)
+        engine.dispose()
+
+
+ON_BOTH_CATALOGS = pytest.mark.parametrize("blank", CATALOG_KINDS, indirect=True)
 
 
 @pytest.fixture
@@ -108,6 +114,7 @@ def catalog(empty_catalog_url: str) -> Iterator[sessionmaker[Session]]:
     engine.dispose()
 
 
+@pytest.mark.slow
 def test_catalog_views(catalog: sessionmaker[Session], tmp_path: Path):
     t0 = dt.datetime(2026, 3, 1, 10, 0, tzinfo=dt.UTC)
     for n, robot in enumerate(("robot-1", "robot-2")):
@@ -203,6 +210,7 @@ def test_json_numbers_stay_numbers(local: ObjectStore, blank: sessionmaker[Sessi
         {"files": 36, "frames": 36, "mean": 2.5}]
 
 
+@pytest.mark.slow
 def test_nested_values_never_fail_the_server(local: ObjectStore, blank: sessionmaker[Session]):
     client = sql_app(local, blank, raise_server_exceptions=False)
     query = "SELECT run_id, list(value ORDER BY frame) AS series FROM scalars WHERE run_id = 'robot-1-2026-03-01-0' " \
@@ -249,6 +257,7 @@ def test_invalid_sql(local: ObjectStore, blank: sessionmaker[Session]):
 # --- the sandbox -------------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(("query", "rule"), [
     ("CREATE TABLE t AS SELECT * FROM scalars", READ_ONLY),
     ("INSERT INTO robots VALUES ('robot-x', now(), now())", READ_ONLY),
@@ -274,6 +283,7 @@ def test_sandbox_refuses(local: ObjectStore, blank: sessionmaker[Session], tmp_p
     assert not (tmp_path / "copied.csv").exists() and not (tmp_path / "other.duckdb").exists()
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("explain", ["EXPLAIN ANALYZE", "EXPLAIN (ANALYZE, FORMAT json)"])
 def test_explain_analyze_cannot_write(local: ObjectStore, blank: sessionmaker[Session], tmp_path: Path, explain: str):
     """EXPLAIN ANALYZE runs the statement it explains: a COPY under it must be refused like a bare COPY
@@ -291,6 +301,7 @@ def test_explain_analyze_cannot_write(local: ObjectStore, blank: sessionmaker[Se
 # --- the files the catalog lists, and nothing of the server's in any answer ---------------------
 
 
+@ON_BOTH_CATALOGS
 def test_only_the_files_the_catalog_lists_count(local: ObjectStore, blank: sessionmaker[Session]):
     """One copy per run, gone with the run: an orphan file (a crash before the catalog recorded it),
     an early extraction filed under another robot and date, and a deleted run's file are not read."""
@@ -323,6 +334,7 @@ SHOWS_THE_SERVER = [
 ]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("query", SHOWS_THE_SERVER)
 def test_nothing_shows_settings_environment_or_paths(local: ObjectStore, blank: sessionmaker[Session],
                                                      tmp_path: Path, query: str):
@@ -333,6 +345,7 @@ def test_nothing_shows_settings_environment_or_paths(local: ObjectStore, blank: 
         assert server_string not in answer.text
 
 
+@pytest.mark.slow
 def test_plans_and_errors_name_no_server_path(local: ObjectStore, blank: sessionmaker[Session], tmp_path: Path):
     client = sql_app(local, blank)
     for explain in ("EXPLAIN ANALYZE", "EXPLAIN", "EXPLAIN (FORMAT json)", "EXPLAIN (ANALYZE, FORMAT json)"):
@@ -351,6 +364,8 @@ def test_plans_and_errors_name_no_server_path(local: ObjectStore, blank: session
 # --- partition pruning -------------------------------------------------------------------------
 
 
+@pytest.mark.slow
+@ON_BOTH_CATALOGS
 def test_filters_on_robot_and_date_read_only_those_partitions(local: ObjectStore, blank: sessionmaker[Session]):
     client = sql_app(local, blank)
     assert files_read(client, "SELECT count(*) FROM scalars") == 12
@@ -396,6 +411,7 @@ def on_s3(seaweed_endpoint: str, blank: sessionmaker[Session], tmp_path: Path,
 KEY_ID, SECRET, OTHER_BUCKET = "fleet-test-key", "fleet-test-secret-6c1f", "fleet-other"
 
 
+@pytest.mark.slow
 @pytest.mark.s3server
 def test_over_s3(on_s3: tuple[TestClient, ObjectStore]):
     client, _ = on_s3
@@ -407,6 +423,7 @@ def test_over_s3(on_s3: tuple[TestClient, ObjectStore]):
     assert pa.ipc.open_stream(arrow.content).read_all().num_rows == 12
 
 
+@pytest.mark.slow
 @pytest.mark.s3server
 @pytest.mark.parametrize("query", [
     "SELECT current_setting('s3_secret_access_key') AS v", "SELECT current_setting('s3_access_key_id') AS v",
@@ -423,6 +440,7 @@ def test_no_answer_over_s3_reveals_credentials_or_where_the_store_is(on_s3: tupl
         assert server_string not in answer.text, server_string
 
 
+@pytest.mark.slow
 @pytest.mark.s3server
 @pytest.mark.parametrize("path", [
     "{prefix}/outside/notes.csv",  # the warm store, outside analytics

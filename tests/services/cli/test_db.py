@@ -13,6 +13,7 @@ def _fleet(*args: str) -> subprocess.CompletedProcess[str]:
     return subprocess.run([FLEET, *args], capture_output=True, text=True, timeout=60)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("kind", ["duckdb", pytest.param("postgres", marks=pytest.mark.postgres)])
 def test_db_upgrade_then_current(kind: str, tmp_path: Path, request: pytest.FixtureRequest):
     url = f"duckdb:///{tmp_path / 'c.duckdb'}" if kind == "duckdb" else request.getfixturevalue("empty_postgres_url")

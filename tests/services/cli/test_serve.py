@@ -1,9 +1,7 @@
 import enum
 import os
-import socket
 import subprocess
 import sys
-import time
 from collections.abc import Iterator
 from pathlib import Path
 from types import UnionType
@@ -15,46 +13,32 @@ import pytest
 from click.testing import CliRunner
 
 from services.settings import Durability, load_settings
-from tests.services.ingest.live_server import LiveServer, free_port
+from tests.services.ingest.live_server import LiveServer
+from tests.subprocess_server import ServerProcess, answers_http, free_port
 
 FLEET = str(Path(sys.executable).with_name("fleet"))
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
-def _wait_healthy(url: str, proc: subprocess.Popen[bytes], timeout: float = 30.0) -> httpx.Response:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        assert proc.poll() is None, proc.stderr.read().decode() if proc.stderr else "exited"
-        try:
-            return httpx.get(url, timeout=1.0)
-        except httpx.TransportError:
-            time.sleep(0.05)  # polling for the condition, bounded by the deadline
-    raise AssertionError(f"{url} did not answer within {timeout}s")
-
-
 def test_serve_answers_health_on_the_configured_address(tmp_path):
-    port = _free_port()
+    port = free_port()
     env = {**os.environ, "FLEET_DATA_DIR": str(tmp_path / "data")}
-    proc = subprocess.Popen([FLEET, "serve", "--http-addr", f"127.0.0.1:{port}",
-                             "--grpc-addr", f"127.0.0.1:{_free_port()}"], env=env,  # never the machine's 51234
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    server = ServerProcess([FLEET, "serve", "--http-addr", f"127.0.0.1:{port}",
+                            "--grpc-addr", f"127.0.0.1:{free_port()}"], env=env,  # never the machine's 51234
+                           log=tmp_path / "serve.out", errors_log=tmp_path / "serve.err", name="fleet serve",
+                           ready=answers_http(f"http://127.0.0.1:{port}/healthz"))
     try:
-        response = _wait_healthy(f"http://127.0.0.1:{port}/healthz", proc)
+        server.start(timeout=30)
+        response = httpx.get(f"http://127.0.0.1:{port}/healthz")
         assert response.status_code == 200
         assert response.json()["status"] == "ok"
         assert httpx.get(f"http://127.0.0.1:{port}/openapi.json").status_code == 200
         assert (tmp_path / "data" / "catalog.duckdb").is_file()
     finally:
-        proc.terminate()
-        out, _ = proc.communicate(timeout=10)
-    assert b"created the embedded catalog" in out  # said once, on first start
+        server.stop(grace=10)
+    assert "created the embedded catalog" in server.log.read_text()  # on its output, said once, on first start
 
 
+@pytest.mark.slow
 def test_serve_refuses_a_postgres_catalog_that_is_behind(empty_postgres_url: str, tmp_path):
     result = subprocess.run([FLEET, "serve", "--data-dir", str(tmp_path), "--catalog-url", empty_postgres_url],
                             capture_output=True, text=True, timeout=60)
@@ -67,8 +51,7 @@ def test_serve_help_documents_every_setting():
     out = subprocess.run([FLEET, "serve", "--help"], capture_output=True, text=True, check=True).stdout
     from services.settings import Settings
 
-    # every setting but the CLI's own (where commands reach the service) is a serve flag
-    names = [name for name in Settings.model_fields if name != "api_url"]
+    names = list(Settings.model_fields)  # every setting is a serve flag
     assert "FLEET_CONFIG" in out
     for name in names:
         assert f"FLEET_{name.upper()}" in out, name
@@ -97,7 +80,7 @@ def test_every_scalar_setting_is_an_option_described_by_its_field():
 
     options = {p.name: p for p in serve.get_params(click.Context(serve)) if isinstance(p, click.Option)}
     scalars = {name for name, field in Settings.model_fields.items() if _scalar(field.annotation)}
-    assert len(scalars) > 30 and set(NOT_OPTIONS) & scalars == {"api_url"}  # the client's setting, not serve's
+    assert len(scalars) > 30 and not set(NOT_OPTIONS) & scalars
     help_text = " ".join(CliRunner().invoke(serve, ["--help"], terminal_width=10_000,
                                             max_content_width=10_000).output.split())  # unwrapped
     for name in [*sorted(scalars - set(NOT_OPTIONS)), "secret_fields"]:  # a list read from one string
@@ -126,6 +109,7 @@ def test_an_option_left_out_leaves_the_setting_to_the_environment():
     assert settings.secret_fields == ["vin", "pin"]
 
 
+@pytest.mark.slow
 def test_bad_address_is_one_clear_error(tmp_path):
     result = subprocess.run([FLEET, "serve", "--data-dir", str(tmp_path), "--http-addr", "nonsense"],
                             capture_output=True, text=True, timeout=30)
@@ -162,6 +146,7 @@ def running(tmp_path: Path) -> Iterator[LiveServer]:
     live.stop()
 
 
+@pytest.mark.slow
 def test_a_second_serve_on_the_grpc_port_is_refused(running: LiveServer, tmp_path: Path):
     result = _second_serve(tmp_path / "second", free_port(), running.grpc_port)
     line = _one_line(result)
@@ -170,12 +155,14 @@ def test_a_second_serve_on_the_grpc_port_is_refused(running: LiveServer, tmp_pat
     assert httpx.get(f"{running.url}/healthz").status_code == 200
 
 
+@pytest.mark.slow
 def test_a_second_serve_on_the_grpc_wildcard_is_refused(running: LiveServer, tmp_path: Path):
     result = _second_serve(tmp_path / "second", free_port(), running.grpc_port, "--grpc-addr",
                            f"0.0.0.0:{running.grpc_port}")
     assert f"0.0.0.0:{running.grpc_port}" in _one_line(result)
 
 
+@pytest.mark.slow
 def test_a_second_serve_on_the_http_port_is_refused(running: LiveServer, tmp_path: Path):
     result = _second_serve(tmp_path / "second", running.http_port, free_port())
     line = _one_line(result)
@@ -183,12 +170,14 @@ def test_a_second_serve_on_the_http_port_is_refused(running: LiveServer, tmp_pat
     assert "--http-addr" in line and "FLEET_HTTP_ADDR" in line
 
 
+@pytest.mark.slow
 def test_a_second_serve_on_the_same_data_dir_names_the_first(running: LiveServer):
     assert running.proc is not None
     line = _one_line(_second_serve(running.data_dir, free_port(), free_port()))
     assert f"PID {running.proc.pid}" in line and "data dir" in line and "--data-dir" in line
 
 
+@pytest.mark.slow
 def test_db_commands_while_serving_name_the_holder(running: LiveServer):
     """The embedded catalog is one process's at a time: `fleet db` says which one holds it."""
     assert running.proc is not None
@@ -200,6 +189,7 @@ def test_db_commands_while_serving_name_the_holder(running: LiveServer):
         assert f"PID {running.proc.pid}" in line and "fleet serve" in line and "stop it" in line
 
 
+@pytest.mark.slow
 def test_a_serve_on_another_data_dir_but_the_same_embedded_catalog_is_refused(running: LiveServer,
                                                                              tmp_path: Path):
     assert running.proc is not None
@@ -208,6 +198,7 @@ def test_a_serve_on_another_data_dir_but_the_same_embedded_catalog_is_refused(ru
     assert f"PID {running.proc.pid}" in line and "embedded catalog" in line
 
 
+@pytest.mark.slow
 @pytest.mark.postgres
 def test_two_serves_never_share_a_data_dir_even_with_postgres(empty_postgres_url: str, tmp_path: Path):
     subprocess.run([FLEET, "db", "upgrade", "--catalog-url", empty_postgres_url], check=True, capture_output=True,

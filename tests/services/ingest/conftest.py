@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 from sqlalchemy.orm import sessionmaker
 
-from catalog.db import create_engine, upgrade
+from catalog.db import create_engine
 from core.clock import utcnow
 from services.hot.store import HotStore
 from services.ingest.service import IngestService
@@ -17,10 +17,10 @@ Factory = Callable[..., IngestService]
 
 
 @pytest.fixture
-def make_service(tmp_path: Path) -> Iterator[Factory]:
-    """Build ingest services on one data dir (a second one = a restart), with a DuckDB catalog."""
-    engine = create_engine(f"duckdb:///{tmp_path / 'catalog.duckdb'}")
-    upgrade(engine)
+def make_service(tmp_path: Path, fresh_catalog_url: str) -> Iterator[Factory]:
+    """Build ingest services on one data dir (a second one = a restart), with a catalog of their own
+    (DuckDB or Postgres)."""
+    engine = create_engine(fresh_catalog_url)
     made: list[IngestService] = []
 
     def make(*, durability: Durability = Durability.OFF, min_free_bytes: int = 0, max_streams: int = 10,

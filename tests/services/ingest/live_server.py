@@ -3,8 +3,6 @@
 from __future__ import annotations
 
 import os
-import signal
-import socket
 import subprocess
 import sys
 import time
@@ -13,14 +11,10 @@ from pathlib import Path
 import grpc
 import httpx
 
+from tests.subprocess_server import ServerProcess, answers_http, free_port
+
 FLEET = str(Path(sys.executable).with_name("fleet"))
 WRITE_MESSAGES = "/rerun.sdk_comms.v1alpha1.MessageProxyService/WriteMessages"
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 class LiveServer:
@@ -28,8 +22,9 @@ class LiveServer:
         self.data_dir = data_dir
         self.http_port, self.grpc_port = free_port(), free_port()
         self.settings = settings
-        self.proc: subprocess.Popen[bytes] | None = None
         self.log = data_dir.parent / f"{data_dir.name}-serve.log"
+        self.process = ServerProcess([FLEET, "serve"], log=self.log, name="fleet serve",
+                                     ready=answers_http(f"{self.url}/healthz", lambda r: r.status_code == 200))
 
     @property
     def url(self) -> str:
@@ -39,37 +34,24 @@ class LiveServer:
     def grpc_url(self) -> str:
         return f"rerun+http://127.0.0.1:{self.grpc_port}/proxy"
 
+    @property
+    def proc(self) -> subprocess.Popen[bytes]:
+        return self.process.proc
+
     def start(self, timeout: float = 60) -> LiveServer:
-        env = {**os.environ, "FLEET_DATA_DIR": str(self.data_dir),
-               "FLEET_HTTP_ADDR": f"127.0.0.1:{self.http_port}", "FLEET_GRPC_ADDR": f"127.0.0.1:{self.grpc_port}",
-               **{f"FLEET_{k.upper()}": v for k, v in self.settings.items()}}
-        log = open(self.log, "ab")  # noqa: SIM115 - the server process writes it
-        self.proc = subprocess.Popen([FLEET, "serve"], env=env, stdout=log, stderr=subprocess.STDOUT)
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            if self.proc.poll() is not None:
-                raise AssertionError(f"fleet serve exited: {self.log.read_text()[-3000:]}")
-            try:
-                if httpx.get(f"{self.url}/healthz", timeout=1).status_code == 200:
-                    return self
-            except httpx.TransportError:
-                time.sleep(0.05)  # polling for the condition, bounded by the deadline
-        raise AssertionError(f"fleet serve did not answer within {timeout}s")
+        self.process.env = {**os.environ, "FLEET_DATA_DIR": str(self.data_dir),
+                            "FLEET_HTTP_ADDR": f"127.0.0.1:{self.http_port}",
+                            "FLEET_GRPC_ADDR": f"127.0.0.1:{self.grpc_port}",
+                            **{f"FLEET_{k.upper()}": v for k, v in self.settings.items()}}
+        self.process.start(timeout)
+        return self
 
     def kill(self) -> None:
         """kill -9: no chance to clean up."""
-        assert self.proc is not None
-        self.proc.send_signal(signal.SIGKILL)
-        self.proc.wait(timeout=30)
+        self.process.kill()
 
     def stop(self) -> None:
-        if self.proc is not None and self.proc.poll() is None:
-            self.proc.terminate()
-            try:
-                self.proc.wait(timeout=30)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait()
+        self.process.stop()
 
     def metric(self, name: str) -> float:
         for line in httpx.get(f"{self.url}/metrics", timeout=10).text.splitlines():
@@ -87,7 +69,7 @@ class LiveServer:
 
     def healthy(self) -> bool:
         """The process is alive and answers /healthz."""
-        if self.proc is None or self.proc.poll() is not None:
+        if not self.process.running:
             return False
         try:
             return httpx.get(f"{self.url}/healthz", timeout=10).status_code == 200

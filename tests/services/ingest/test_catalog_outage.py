@@ -15,7 +15,7 @@ from sqlalchemy.engine import make_url
 from sqlalchemy.orm import Session, sessionmaker
 
 from catalog import queries
-from catalog.db import create_engine, session_scope, upgrade
+from catalog.db import create_engine, session_scope
 from services.hot.store import HotStore
 from services.ingest.service import IngestService
 from services.rrd import ArrowMessage, iter_events
@@ -30,11 +30,8 @@ pytestmark = [pytest.mark.postgres, pytest.mark.sdk]
 
 
 @pytest.fixture
-def proxied_catalog() -> Iterator[tuple[sessionmaker[Session], TcpProxy]]:
-    with temporary_database("fleet_outage") as url:
-        direct = create_engine(url)
-        upgrade(direct)
-        direct.dispose()
+def proxied_catalog(migrated_postgres_template: str) -> Iterator[tuple[sessionmaker[Session], TcpProxy]]:
+    with temporary_database("fleet_outage", template=migrated_postgres_template) as url:
         parsed = make_url(url)
         with tcp_proxy(parsed.host or "127.0.0.1", parsed.port or 5432) as proxy:
             engine = create_engine(parsed.set(host="127.0.0.1", port=proxy.port).render_as_string(hide_password=False))

@@ -18,7 +18,7 @@ import sqlalchemy as sa
 from sqlalchemy.orm import Session, sessionmaker
 
 from catalog import queries
-from catalog.db import create_engine, session_scope, upgrade
+from catalog.db import create_engine, session_scope
 from core.ids import NAME_BYTES, PATH_BYTES, InvalidNameError
 from services.hot.store import HotStore
 from services.ingest.service import IngestService
@@ -28,7 +28,6 @@ from services.rrd.messages import Event
 from services.rrd.pb import log_msg_pb2
 from services.runs.service import RunFilter, list_runs
 from services.settings import Durability
-from tests.postgres import temporary_database
 from tests.services.ingest import feeding
 
 pytestmark = pytest.mark.sdk
@@ -52,19 +51,11 @@ rec.flush()
     return path
 
 
-@pytest.fixture(params=["duckdb", pytest.param("postgres", marks=pytest.mark.postgres)])
-def catalog(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[sessionmaker[Session]]:
-    if request.param == "duckdb":
-        engine = create_engine(f"duckdb:///{tmp_path / 'catalog.duckdb'}")
-        upgrade(engine)
-        yield sessionmaker(engine)
-        engine.dispose()
-        return
-    with temporary_database("fleet_safety") as url:
-        engine = create_engine(url)
-        upgrade(engine)
-        yield sessionmaker(engine)
-        engine.dispose()
+@pytest.fixture
+def catalog(fresh_catalog_url: str) -> Iterator[sessionmaker[Session]]:
+    engine = create_engine(fresh_catalog_url)
+    yield sessionmaker(engine)
+    engine.dispose()
 
 
 def service(tmp_path: Path, catalog: sessionmaker[Session]) -> IngestService:

@@ -14,6 +14,7 @@ import pytest
 from services.ingest.replay import ReplayHub, read_response
 from services.rrd.pb import log_msg_pb2, sdk_comms_pb2
 from tests.services.ingest.live_server import LiveServer
+from tests.subprocess_server import free_port
 
 ROBOT = str(Path(__file__).with_name("robot.py"))
 
@@ -85,7 +86,9 @@ def test_readers_get_live_messages_and_slow_ones_are_let_go():
 def test_rerun_cli_reads_a_live_stream(tmp_path: Path, rerun_bin: str):
     server = LiveServer(tmp_path / "data").start()
     saved = tmp_path / "saved.rrd"
-    reader = subprocess.Popen([rerun_bin, "--save", str(saved), server.grpc_url],
+    # `rerun --save` also listens for SDKs (on 0.0.0.0:9876 by default): a free loopback port instead
+    reader = subprocess.Popen([rerun_bin, "--save", str(saved), "--bind", "127.0.0.1", "--port", str(free_port()),
+                               server.grpc_url],
                               stdout=subprocess.PIPE, stderr=subprocess.PIPE)
     try:
         copy = tmp_path / "copy.rrd"

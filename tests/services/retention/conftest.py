@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 from sqlalchemy.orm import Session, sessionmaker
 
-from catalog.db import create_engine, upgrade
+from catalog.db import create_engine
 from services.hot.store import HotStore
 from services.ingest.service import IngestReport, IngestService
 from services.policies import Policies, Policy, PolicyOverride
@@ -85,10 +85,10 @@ def tiers(request: pytest.FixtureRequest, tmp_path: Path, monkeypatch: pytest.Mo
 
 
 @pytest.fixture
-def make_node(tmp_path: Path) -> Iterator[NodeFactory]:
-    """Build a node over given stores with a DuckDB catalog; a second call on the same root is a restart."""
-    engine = create_engine(f"duckdb:///{tmp_path / 'catalog.duckdb'}")
-    upgrade(engine)
+def make_node(tmp_path: Path, fresh_catalog_url: str) -> Iterator[NodeFactory]:
+    """Build a node over given stores with a catalog of its own (DuckDB or Postgres); a second call
+    on the same root is a restart."""
+    engine = create_engine(fresh_catalog_url)
     catalog = sessionmaker(engine)
     made: list[IngestService] = []
 

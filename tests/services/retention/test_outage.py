@@ -9,11 +9,10 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-import boto3
 import httpx
 import pytest
 
-from tests.seaweedfs import _port_pair, weed_binary
+from tests.seaweedfs import SeaweedFS
 from tests.services.ingest.live_server import LiveServer
 from tests.services.rrd.recordings import Recording
 
@@ -24,55 +23,9 @@ SCENES = ("transforms", "points", "scalars", "textlogs")
 CATCH_UP_S = 60  # promotion backs off 1, 2, 4 ... s per run: a short outage is caught up in seconds
 
 
-class Weed:
-    """`weed server` with S3 that can be stopped and started again on the same ports and data, so
-    clients configured with its endpoint see an outage rather than a new server."""
-
-    def __init__(self, data_dir: Path) -> None:
-        self.data_dir = data_dir
-        data_dir.mkdir(parents=True, exist_ok=True)
-        self.s3, self.master, self.volume, self.filer = (_port_pair() for _ in range(4))
-        self.proc: subprocess.Popen[bytes] | None = None
-
-    @property
-    def endpoint(self) -> str:
-        return f"http://127.0.0.1:{self.s3}"
-
-    def start(self, timeout: float = 60) -> None:
-        log = open(self.data_dir.parent / "weed.log", "ab")  # noqa: SIM115 - the server process writes it
-        # no Iceberg or Lance listeners (fixed default ports); a quick raft election on a restart
-        self.proc = subprocess.Popen(
-            [weed_binary(), "server", f"-dir={self.data_dir}", "-ip=127.0.0.1", "-ip.bind=127.0.0.1", "-s3",
-             f"-s3.port={self.s3}", "-s3.port.iceberg=0", "-s3.port.lance=0", f"-master.port={self.master}",
-             f"-volume.port={self.volume}", f"-filer.port={self.filer}", "-master.electionTimeout=1s"],
-            stdout=log, stderr=subprocess.STDOUT)
-        log.close()
-        deadline = time.monotonic() + timeout
-        while True:
-            if self.proc.poll() is not None:
-                raise RuntimeError(f"weed exited: {(self.data_dir.parent / 'weed.log').read_text()[-2000:]}")
-            try:
-                httpx.get(self.endpoint, timeout=1)
-                return
-            except httpx.TransportError:
-                if time.monotonic() > deadline:
-                    raise RuntimeError("SeaweedFS S3 did not answer") from None
-                time.sleep(0.1)  # polling for the server to come up, bounded by the deadline
-
-    def stop(self) -> None:
-        """Killed outright (its graceful stop can take half a minute); what it holds is kept on disk."""
-        if self.proc is not None and self.proc.poll() is None:
-            self.proc.kill()
-            self.proc.wait()
-
-    def client(self) -> Any:
-        return boto3.client("s3", endpoint_url=self.endpoint, region_name="us-east-1", aws_access_key_id="test",
-                            aws_secret_access_key="test")
-
-
 @pytest.fixture
-def weed(tmp_path: Path) -> Iterator[Weed]:
-    server = Weed(tmp_path / "weed")
+def weed(tmp_path: Path) -> Iterator[SeaweedFS]:
+    server = SeaweedFS(tmp_path / "weed")
     server.start()
     try:
         yield server
@@ -105,7 +58,7 @@ def failed_promotions(server: LiveServer, run_id: str) -> list[dict[str, Any]]:
 
 
 def test_ingest_goes_on_through_an_s3_outage_and_promotion_catches_up(
-        weed: Weed, tmp_path: Path, recordings: dict[str, Recording], rerun_bin: str,
+        weed: SeaweedFS, tmp_path: Path, recordings: dict[str, Recording], rerun_bin: str,
         monkeypatch: pytest.MonkeyPatch):
     weed.client().create_bucket(Bucket=BUCKET)
     for name, value in (("AWS_ACCESS_KEY_ID", "test"), ("AWS_SECRET_ACCESS_KEY", "test"),

@@ -36,6 +36,7 @@ def test_resolver_fills_only_what_setstoreinfo_named():
     assert resolver.resolve(full) is full  # a complete id is never changed
 
 
+@pytest.mark.slow
 def test_decoder_completes_legacy_store_ids(recordings: dict[str, Recording], tmp_path: Path):
     rec = recordings["blueprint"]  # a recording and a blueprint store, with an activation
     legacy = legacy_file(rec.path, tmp_path / "legacy.rrd")
@@ -48,6 +49,7 @@ def test_decoder_completes_legacy_store_ids(recordings: dict[str, Recording], tm
     assert legacy_raw == [raw for kind, raw in legacy_messages(rec.path) if kind == MessageKind.ARROW_MSG]
 
 
+@pytest.mark.slow
 def test_encoder_footer_names_the_complete_store(recordings: dict[str, Recording]):
     """Messages handed over one by one (as from gRPC, with no decoder to complete them)."""
     rec = recordings["blueprint"]

@@ -13,7 +13,7 @@ from tests.seaweedfs import seaweedfs
 
 BUCKET = "fleet-warm"
 REGION = "us-east-1"
-S3_BACKENDS = ["s3-moto", pytest.param("s3-seaweedfs", marks=pytest.mark.s3server)]
+S3_BACKENDS = ["s3-moto", pytest.param("s3-seaweedfs", marks=[pytest.mark.s3server, pytest.mark.slow])]
 
 
 @dataclass(frozen=True)
