@@ -90,15 +90,23 @@ from benchmarks.ingest import FleetServer  # noqa: E402
 from services.analytics.extract import LOG_TIME, SCALARS, TABLES, partition_key, to_parquet  # noqa: E402
 from services.analytics.sql import httpfs_extension  # noqa: E402
 
-QUERY = ("SELECT robot_id, date, count(*) AS n, avg(value) AS mean, min(value) AS lo, max(value) AS hi "
-         "FROM scalars GROUP BY robot_id, date")
+QUERY = (
+    "SELECT robot_id, date, count(*) AS n, avg(value) AS mean, min(value) AS lo, max(value) AS hi "
+    "FROM scalars GROUP BY robot_id, date"
+)
 TARGET = 0.10
 BUCKET, PREFIX = "fleet", "warm"
 AWS = {"AWS_ACCESS_KEY_ID": "bench", "AWS_SECRET_ACCESS_KEY": "bench", "AWS_DEFAULT_REGION": "us-east-1"}
 GENERATOR_VERSION = 2  # 2: the catalog lists each run's analytics files
-ENTITIES = (("/battery", 1, 60.0, 20.0), ("/joints/torque", 7, 0.0, 15.0), ("/joints/velocity", 7, 0.0, 2.0),
-            ("/imu/accel", 3, 0.0, 3.0), ("/imu/gyro", 3, 0.0, 0.5), ("/motors/current", 4, 5.0, 2.0),
-            ("/cpu/temperature", 1, 55.0, 5.0))  # entity, instances per tick, mean, spread
+ENTITIES = (
+    ("/battery", 1, 60.0, 20.0),
+    ("/joints/torque", 7, 0.0, 15.0),
+    ("/joints/velocity", 7, 0.0, 2.0),
+    ("/imu/accel", 3, 0.0, 3.0),
+    ("/imu/gyro", 3, 0.0, 0.5),
+    ("/motors/current", 4, 5.0, 2.0),
+    ("/cpu/temperature", 1, 55.0, 5.0),
+)  # entity, instances per tick, mean, spread
 TICK_NS = 10_000_000  # 100 Hz
 FIRST_DAY = dt.date(2026, 11, 2)
 
@@ -130,9 +138,22 @@ def seaweedfs(data_dir: Path, timeout: float = 60) -> Iterator[str]:
     s3, master, volume, filer = (_port_pair() for _ in range(4))
     with open(data_dir / "weed.log", "ab") as out:
         proc = subprocess.Popen(
-            [weed, "server", f"-dir={data_dir}", "-ip=127.0.0.1", "-ip.bind=127.0.0.1", "-s3", f"-s3.port={s3}",
-             "-s3.port.iceberg=0", f"-master.port={master}", f"-volume.port={volume}", f"-filer.port={filer}"],
-            stdout=out, stderr=subprocess.STDOUT)
+            [
+                weed,
+                "server",
+                f"-dir={data_dir}",
+                "-ip=127.0.0.1",
+                "-ip.bind=127.0.0.1",
+                "-s3",
+                f"-s3.port={s3}",
+                "-s3.port.iceberg=0",
+                f"-master.port={master}",
+                f"-volume.port={volume}",
+                f"-filer.port={filer}",
+            ],
+            stdout=out,
+            stderr=subprocess.STDOUT,
+        )
     endpoint = f"http://127.0.0.1:{s3}"
     try:
         deadline = time.monotonic() + timeout
@@ -159,8 +180,13 @@ def seaweedfs(data_dir: Path, timeout: float = 60) -> Iterator[str]:
 def s3_client(endpoint: str) -> Any:
     import boto3
 
-    return boto3.client("s3", endpoint_url=endpoint, region_name=AWS["AWS_DEFAULT_REGION"],
-                        aws_access_key_id=AWS["AWS_ACCESS_KEY_ID"], aws_secret_access_key=AWS["AWS_SECRET_ACCESS_KEY"])
+    return boto3.client(
+        "s3",
+        endpoint_url=endpoint,
+        region_name=AWS["AWS_DEFAULT_REGION"],
+        aws_access_key_id=AWS["AWS_ACCESS_KEY_ID"],
+        aws_secret_access_key=AWS["AWS_SECRET_ACCESS_KEY"],
+    )
 
 
 def wait_for_bucket(client: Any, timeout: float = 60) -> None:
@@ -230,15 +256,17 @@ def run_table(run: FleetRun, layout: Layout, rng: np.random.Generator) -> pa.Tab
     n = run.rows
     zeros = pa.array(np.zeros(n, dtype=np.int32))
     value = layout.mean[:n] + layout.spread[:n] * rng.standard_normal(n)
-    return pa.table({
-        "run_id": pa.array([run.id], pa.string()).take(zeros),
-        "entity": layout.names.take(pa.array(layout.entity[:n])),
-        "component": pa.array([SCALARS], pa.string()).take(zeros),
-        "instance": pa.array(layout.instance[:n]),
-        "value": pa.array(value, pa.float64()),
-        LOG_TIME: pa.array(run.start_ns + layout.tick[:n] * TICK_NS, pa.timestamp("ns")),
-        "frame": pa.array(layout.tick[:n]),
-    })
+    return pa.table(
+        {
+            "run_id": pa.array([run.id], pa.string()).take(zeros),
+            "entity": layout.names.take(pa.array(layout.entity[:n])),
+            "component": pa.array([SCALARS], pa.string()).take(zeros),
+            "instance": pa.array(layout.instance[:n]),
+            "value": pa.array(value, pa.float64()),
+            LOG_TIME: pa.array(run.start_ns + layout.tick[:n] * TICK_NS, pa.timestamp("ns")),
+            "frame": pa.array(layout.tick[:n]),
+        }
+    )
 
 
 def other_tables(run: FleetRun, rng: np.random.Generator) -> dict[str, pa.Table]:
@@ -246,20 +274,38 @@ def other_tables(run: FleetRun, rng: np.random.Generator) -> dict[str, pa.Table]
     ticks = -(-run.rows // sum(e[1] for e in ENTITIES))
     out = {}
     for table, every, columns in (
-            ("text_logs", 100, lambda n: {"entity": "/logs", "level": pa.array(
-                np.array(["INFO", "WARN", "ERROR"])[rng.integers(0, 3, n)], pa.string()),
-                "text": pa.array([f"status line {i}" for i in range(n)], pa.string())}),
-            ("transforms", 10, lambda n: {"entity": "/robot/base", **{c: pa.array(rng.standard_normal(n))
-                                                                      for c in ("tx", "ty", "tz", "qx", "qy", "qz")},
-                                          "qw": pa.array(np.ones(n))})):
+        (
+            "text_logs",
+            100,
+            lambda n: {
+                "entity": "/logs",
+                "level": pa.array(np.array(["INFO", "WARN", "ERROR"])[rng.integers(0, 3, n)], pa.string()),
+                "text": pa.array([f"status line {i}" for i in range(n)], pa.string()),
+            },
+        ),
+        (
+            "transforms",
+            10,
+            lambda n: {
+                "entity": "/robot/base",
+                **{c: pa.array(rng.standard_normal(n)) for c in ("tx", "ty", "tz", "qx", "qy", "qz")},
+                "qw": pa.array(np.ones(n)),
+            },
+        ),
+    ):
         tick = np.arange(0, ticks, every, dtype=np.int64)
         n = len(tick)
         zeros = pa.array(np.zeros(n, dtype=np.int32))
         body = columns(n)
         body["entity"] = pa.array([body["entity"]], pa.string()).take(zeros)
-        out[table] = pa.table({"run_id": pa.array([run.id], pa.string()).take(zeros), **body,
-                               LOG_TIME: pa.array(run.start_ns + tick * TICK_NS, pa.timestamp("ns")),
-                               "frame": pa.array(tick)})
+        out[table] = pa.table(
+            {
+                "run_id": pa.array([run.id], pa.string()).take(zeros),
+                **body,
+                LOG_TIME: pa.array(run.start_ns + tick * TICK_NS, pa.timestamp("ns")),
+                "frame": pa.array(tick),
+            }
+        )
     return out
 
 
@@ -293,8 +339,10 @@ def generate(endpoint: str, fleet: list[FleetRun], with_others: bool, seed: int 
                     totals["other_files"] += 1
                     totals["other_bytes"] += len(data)
             if (i + 1) % 50 == 0:
-                log(f"  {i + 1}/{len(fleet)} runs, {totals['rows']:,} rows, {totals['bytes'] / MB:.0f} MB, "
-                    f"{time.perf_counter() - started:.0f} s")
+                log(
+                    f"  {i + 1}/{len(fleet)} runs, {totals['rows']:,} rows, {totals['bytes'] / MB:.0f} MB, "
+                    f"{time.perf_counter() - started:.0f} s"
+                )
         for future in pending:
             future.result()
     return totals
@@ -319,20 +367,51 @@ def fill_catalog(catalog_url: str, fleet: list[FleetRun], with_others: bool) -> 
                 ticks = -(-run.rows // per_tick)
                 start = dt.datetime.fromtimestamp(run.start_ns / 1e9, dt.UTC)
                 end = start + dt.timedelta(microseconds=ticks * TICK_NS // 1000)
-                entities = [EntityRecord(path, -(-ticks // 1000), 0, ticks, ticks * width * 8, ["Scalars"],
-                                         [SCALARS]) for path, width, _, _ in ENTITIES]
-                timelines = [TimelineRecord(LOG_TIME, "timestamp", run.start_ns, run.start_ns + ticks * TICK_NS),
-                             TimelineRecord("frame", "sequence", 0, ticks - 1)]
-                save_run(session, RunRecord(
-                    id=run.id, robot_id=run.robot_id, application_id="bench", date=run.date, status="closed",
-                    tier="warm", started_at=start, ended_at=end, last_data_at=end, sdk_version="0.41.0",
-                    chunks=sum(e.chunks for e in entities), rows=ticks * len(ENTITIES),
-                    bytes=sum(e.bytes for e in entities), properties={}, entities=entities,
-                    timelines=timelines), now)
+                entities = [
+                    EntityRecord(path, -(-ticks // 1000), 0, ticks, ticks * width * 8, ["Scalars"], [SCALARS])
+                    for path, width, _, _ in ENTITIES
+                ]
+                timelines = [
+                    TimelineRecord(LOG_TIME, "timestamp", run.start_ns, run.start_ns + ticks * TICK_NS),
+                    TimelineRecord("frame", "sequence", 0, ticks - 1),
+                ]
+                save_run(
+                    session,
+                    RunRecord(
+                        id=run.id,
+                        robot_id=run.robot_id,
+                        application_id="bench",
+                        date=run.date,
+                        status="closed",
+                        tier="warm",
+                        started_at=start,
+                        ended_at=end,
+                        last_data_at=end,
+                        sdk_version="0.41.0",
+                        chunks=sum(e.chunks for e in entities),
+                        rows=ticks * len(ENTITIES),
+                        bytes=sum(e.bytes for e in entities),
+                        properties={},
+                        entities=entities,
+                        timelines=timelines,
+                    ),
+                    now,
+                )
                 tables = TABLES if with_others else ("scalars",)
-                replace_objects(session, run.id, [
-                    ObjectRecord(f"analytics/{t}", partition_key(t, run.robot_id, run.date.isoformat(), run.id),
-                                 "warm", 0, "0" * 64) for t in tables])
+                replace_objects(
+                    session,
+                    run.id,
+                    [
+                        ObjectRecord(
+                            f"analytics/{t}",
+                            partition_key(t, run.robot_id, run.date.isoformat(), run.id),
+                            "warm",
+                            0,
+                            "0" * 64,
+                        )
+                        for t in tables
+                    ],
+                )
     finally:
         engine.dispose()
 
@@ -356,9 +435,16 @@ class AnalyticsServer(FleetServer):
 
     def __init__(self, workdir: Path, endpoint: str, threads: int, memory_limit: str) -> None:
         super().__init__(workdir)
-        self.extra = {**AWS, "FLEET_WARM_URL": f"s3://{BUCKET}/{PREFIX}", "FLEET_S3_ENDPOINT_URL": endpoint,
-                      "FLEET_SCHEDULER": "false", "FLEET_SQL_TIMEOUT_S": "3600", "FLEET_SQL_THREADS": str(threads),
-                      "FLEET_SQL_MEMORY_LIMIT": memory_limit, "FLEET_SQL_MAX_ROWS": "100000"}
+        self.extra = {
+            **AWS,
+            "FLEET_WARM_URL": f"s3://{BUCKET}/{PREFIX}",
+            "FLEET_S3_ENDPOINT_URL": endpoint,
+            "FLEET_SCHEDULER": "false",
+            "FLEET_SQL_TIMEOUT_S": "3600",
+            "FLEET_SQL_THREADS": str(threads),
+            "FLEET_SQL_MEMORY_LIMIT": memory_limit,
+            "FLEET_SQL_MAX_ROWS": "100000",
+        }
 
     def argv_env(self) -> tuple[list[str], dict[str, str]]:
         argv, env = super().argv_env()
@@ -375,8 +461,12 @@ def tree_cpu_s(pid: int) -> float:
 
 def time_endpoint(port: int) -> tuple[float, pa.Table]:
     start = time.perf_counter()
-    response = httpx.post(f"http://127.0.0.1:{port}/v1/sql", json={"query": QUERY}, timeout=3600,
-                          headers={"Accept": "application/vnd.apache.arrow.stream"})
+    response = httpx.post(
+        f"http://127.0.0.1:{port}/v1/sql",
+        json={"query": QUERY},
+        timeout=3600,
+        headers={"Accept": "application/vnd.apache.arrow.stream"},
+    )
     if response.status_code != 200:
         raise SystemExit(f"POST /v1/sql: HTTP {response.status_code}: {response.text[:2000]}")
     table = pa.ipc.open_stream(response.content).read_all()
@@ -384,24 +474,35 @@ def time_endpoint(port: int) -> tuple[float, pa.Table]:
 
 
 def direct_setup(endpoint: str, threads: int, memory_limit: str) -> duckdb.DuckDBPyConnection:
-    con = duckdb.connect(":memory:", config={"threads": threads, "memory_limit": memory_limit,
-                                             "autoinstall_known_extensions": False,
-                                             "autoload_known_extensions": False})
+    con = duckdb.connect(
+        ":memory:",
+        config={
+            "threads": threads,
+            "memory_limit": memory_limit,
+            "autoinstall_known_extensions": False,
+            "autoload_known_extensions": False,
+        },
+    )
     con.execute(f"LOAD '{httpfs_extension()}'")
-    con.execute(f"CREATE SECRET bench_s3 (TYPE s3, KEY_ID '{AWS['AWS_ACCESS_KEY_ID']}', "
-                f"SECRET '{AWS['AWS_SECRET_ACCESS_KEY']}', REGION '{AWS['AWS_DEFAULT_REGION']}', "
-                f"ENDPOINT '{endpoint.removeprefix('http://')}', URL_STYLE 'path', USE_SSL false)")
+    con.execute(
+        f"CREATE SECRET bench_s3 (TYPE s3, KEY_ID '{AWS['AWS_ACCESS_KEY_ID']}', "
+        f"SECRET '{AWS['AWS_SECRET_ACCESS_KEY']}', REGION '{AWS['AWS_DEFAULT_REGION']}', "
+        f"ENDPOINT '{endpoint.removeprefix('http://')}', URL_STYLE 'path', USE_SSL false)"
+    )
     return con
 
 
 def direct_query(con: duckdb.DuckDBPyConnection) -> pa.Table:
-    source = (f"read_parquet('s3://{BUCKET}/{PREFIX}/analytics/scalars/*/*/*.parquet', hive_partitioning = true, "
-              "union_by_name = true, hive_types = {'robot_id': VARCHAR, 'date': DATE})")
+    source = (
+        f"read_parquet('s3://{BUCKET}/{PREFIX}/analytics/scalars/*/*/*.parquet', hive_partitioning = true, "
+        "union_by_name = true, hive_types = {'robot_id': VARCHAR, 'date': DATE})"
+    )
     return con.execute(QUERY.replace("FROM scalars", f"FROM {source}")).to_arrow_table()
 
 
 def same_answer(ours: pa.Table, theirs: pa.Table) -> str:
     """'' when both answers hold the same groups and figures, else what differs."""
+
     def rows(table: pa.Table) -> dict[tuple[str, str], dict[str, Any]]:
         return {(str(r["robot_id"]), str(r["date"])): r for r in table.to_pylist()}
 
@@ -410,8 +511,9 @@ def same_answer(ours: pa.Table, theirs: pa.Table) -> str:
         return f"groups differ: {len(a)} vs {len(b)}"
     for key, row in a.items():
         other = b[key]
-        if (row["n"], row["lo"], row["hi"]) != (other["n"], other["lo"], other["hi"]) or \
-                abs(row["mean"] - other["mean"]) > 1e-9 * max(1.0, abs(other["mean"])):
+        if (row["n"], row["lo"], row["hi"]) != (other["n"], other["lo"], other["hi"]) or abs(
+            row["mean"] - other["mean"]
+        ) > 1e-9 * max(1.0, abs(other["mean"])):
             return f"group {key} differs: {row} vs {other}"
     return ""
 
@@ -420,8 +522,9 @@ def measure(endpoint: str, server: AnalyticsServer, args: argparse.Namespace) ->
     """Each repetition times ours and DuckDB (set-up, query, then the query again on the previous
     repetition's database), taking turns going first; wall clock and CPU seconds of the process that
     ran DuckDB (the server's, this one's)."""
-    results: dict[str, Any] = {k: [] for k in ("ours", "ours_cpu", "duckdb_setup", "duckdb_query", "duckdb_cpu",
-                                               "duckdb_warm")}
+    results: dict[str, Any] = {
+        k: [] for k in ("ours", "ours_cpu", "duckdb_setup", "duckdb_query", "duckdb_cpu", "duckdb_warm")
+    }
     answers: dict[str, pa.Table] = {}
     previous: duckdb.DuckDBPyConnection | None = None
 
@@ -502,19 +605,22 @@ def breakdown(workdir: Path, endpoint: str, args: argparse.Namespace) -> dict[st
         ctx.pool.start()
         while not all(_ready(p) for p in ctx.pool._idle):  # time a ready worker, as a server's
             time.sleep(0.05)
-        return timed("the query through the worker pool (all of service.query)",
-                     lambda: ctx.pool.submit(service.request(ctx, QUERY), lambda named: service.prepare(ctx, named))
-                     .result())
+        return timed(
+            "the query through the worker pool (all of service.query)",
+            lambda: ctx.pool.submit(service.request(ctx, QUERY), lambda named: service.prepare(ctx, named)).result(),
+        )
 
     try:
         for i in range(args.repeat + 1):
-            prepared = timed("catalog: file lists (and catalog tables) of the views named",
-                             lambda: service.prepare(ctx, {"scalars"}))
+            prepared = timed(
+                "catalog: file lists (and catalog tables) of the views named", lambda: service.prepare(ctx, {"scalars"})
+            )
             con = duckdb.connect(":memory:", config={"threads": args.threads, "memory_limit": args.memory_limit})
             start = time.perf_counter()
             with sql.sandbox(con, ctx.root, prepared.catalog, ctx.s3_access(), prepared.files) as box:
-                steps.setdefault("in this process: sandbox set-up (LOAD, secret, CREATE VIEW: reads every "
-                                 "footer)", []).append(time.perf_counter() - start)
+                steps.setdefault(
+                    "in this process: sandbox set-up (LOAD, secret, CREATE VIEW: reads every footer)", []
+                ).append(time.perf_counter() - start)
                 timed("in this process: the query (sql.run)", lambda box=box: sql.run(box, QUERY, limits, 1 << 40))
             table = pooled()
             timed("encode (Arrow IPC)", lambda table=table: service.encode(table, "arrow"))
@@ -545,11 +651,18 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--repeat", type=int, default=3)
     parser.add_argument("--threads", type=int, default=4, help="DuckDB threads, both sides (FLEET_SQL_THREADS)")
     parser.add_argument("--memory-limit", default="2GB", help="DuckDB memory limit, both sides")
-    parser.add_argument("--data-dir", type=Path, help="where SeaweedFS and the service keep their data; a fleet "
-                        "generated there with the same options is reused (default: a new temporary directory)")
+    parser.add_argument(
+        "--data-dir",
+        type=Path,
+        help="where SeaweedFS and the service keep their data; a fleet "
+        "generated there with the same options is reused (default: a new temporary directory)",
+    )
     parser.add_argument("--keep", action="store_true", help="keep the temporary data directory")
-    parser.add_argument("--other-tables", action="store_true", help="each run also has a text_logs and a "
-                        "transforms file (small), as runs that log those do")
+    parser.add_argument(
+        "--other-tables",
+        action="store_true",
+        help="each run also has a text_logs and a transforms file (small), as runs that log those do",
+    )
     parser.add_argument("--breakdown", action="store_true", help="then time the endpoint's steps one by one")
     parser.add_argument("--json", action="store_true")
     args = parser.parse_args(argv)
@@ -558,20 +671,36 @@ def main(argv: list[str] | None = None) -> None:
 
     workdir = args.data_dir.resolve() if args.data_dir else Path(tempfile.mkdtemp(prefix="analytics-bench-"))
     workdir.mkdir(parents=True, exist_ok=True)
-    params = {"generator": GENERATOR_VERSION, "robots": args.robots, "runs": args.runs, "rows": args.rows,
-              "days": args.days, "other_tables": args.other_tables}
+    params = {
+        "generator": GENERATOR_VERSION,
+        "robots": args.robots,
+        "runs": args.runs,
+        "rows": args.rows,
+        "days": args.days,
+        "other_tables": args.other_tables,
+    }
     sidecar = workdir / "fleet.json"
-    report: dict[str, Any] = {"params": params, "query": QUERY, "repeat": args.repeat, "threads": args.threads,
-                              "memory_limit": args.memory_limit, "cpus": os.cpu_count(),
-                              "python": platform.python_version(), "duckdb": duckdb.__version__,
-                              "load_average_1m_at_start": round(os.getloadavg()[0], 2)}
+    report: dict[str, Any] = {
+        "params": params,
+        "query": QUERY,
+        "repeat": args.repeat,
+        "threads": args.threads,
+        "memory_limit": args.memory_limit,
+        "cpus": os.cpu_count(),
+        "python": platform.python_version(),
+        "duckdb": duckdb.__version__,
+        "load_average_1m_at_start": round(os.getloadavg()[0], 2),
+    }
     try:
         with seaweedfs(workdir / "seaweedfs") as endpoint:
             client = s3_client(endpoint)
             wait_for_bucket(client)
             known = json.loads(sidecar.read_text()) if sidecar.exists() else None
-            if known is not None and known.get("params") == params and \
-                    stored_totals(endpoint) == {k: known["totals"][k] for k in ("files", "bytes")}:
+            if (
+                known is not None
+                and known.get("params") == params
+                and stored_totals(endpoint) == {k: known["totals"][k] for k in ("files", "bytes")}
+            ):
                 log(f"reusing the fleet in {workdir}")
                 totals: dict[str, float] = known["totals"]
             else:
@@ -606,43 +735,66 @@ def main(argv: list[str] | None = None) -> None:
     peers = [a + b for a, b in zip(report["duckdb_setup"], report["duckdb_query"], strict=True)]
     ours, peer = min(report["ours"]), min(peers)
     query = min(report["duckdb_query"])
-    report["best"] = {"ours_s": ours, "duckdb_setup_s": min(report["duckdb_setup"]), "duckdb_query_s": query,
-                      "duckdb_s": peer, "duckdb_warm_s": min(report["duckdb_warm"]) if report["duckdb_warm"] else None,
-                      "ours_cpu_s": min(report["ours_cpu"]), "duckdb_cpu_s": min(report["duckdb_cpu"]),
-                      "overhead": ours / peer - 1, "overhead_vs_query": ours / query - 1,
-                      "overhead_median": statistics.median(report["ours"]) / statistics.median(peers) - 1}
+    report["best"] = {
+        "ours_s": ours,
+        "duckdb_setup_s": min(report["duckdb_setup"]),
+        "duckdb_query_s": query,
+        "duckdb_s": peer,
+        "duckdb_warm_s": min(report["duckdb_warm"]) if report["duckdb_warm"] else None,
+        "ours_cpu_s": min(report["ours_cpu"]),
+        "duckdb_cpu_s": min(report["duckdb_cpu"]),
+        "overhead": ours / peer - 1,
+        "overhead_vs_query": ours / query - 1,
+        "overhead_median": statistics.median(report["ours"]) / statistics.median(peers) - 1,
+    }
     if args.json:
         print(json.dumps(report, indent=2))
         return
     best, data = report["best"], report["data"]
-    print(f"data: {data['files']:,} Parquet files (zstd), {data['rows']:,} scalar rows, {data['bytes'] / MB:,.1f} MB "
-          f"({data['bytes'] / data['rows']:.1f} bytes/row); {args.robots} robots, {args.runs} runs, {args.days} days; "
-          f"answer: {report['groups']} groups, {report['rows_counted']:,} rows counted")
+    print(
+        f"data: {data['files']:,} Parquet files (zstd), {data['rows']:,} scalar rows, {data['bytes'] / MB:,.1f} MB "
+        f"({data['bytes'] / data['rows']:.1f} bytes/row); {args.robots} robots, {args.runs} runs, {args.days} days; "
+        f"answer: {report['groups']} groups, {report['rows_counted']:,} rows counted"
+    )
     if data.get("other_files"):
-        print(f"other tables: {data['other_files']:,} files of text_logs and transforms, "
-              f"{data['other_bytes'] / MB:,.1f} MB")
-    print(f"DuckDB {duckdb.__version__}, threads {args.threads}, memory limit {args.memory_limit}; "
-          f"{report['cpus']} CPUs (load average {report['load_average_1m_at_start']} at start); "
-          f"best of {args.repeat} after a warm-up; MB = 10^6 bytes")
+        print(
+            f"other tables: {data['other_files']:,} files of text_logs and transforms, "
+            f"{data['other_bytes'] / MB:,.1f} MB"
+        )
+    print(
+        f"DuckDB {duckdb.__version__}, threads {args.threads}, memory limit {args.memory_limit}; "
+        f"{report['cpus']} CPUs (load average {report['load_average_1m_at_start']} at start); "
+        f"best of {args.repeat} after a warm-up; MB = 10^6 bytes"
+    )
 
     def line(name: str, values: list[float], cpu: list[float] | None = None, rate: bool = True) -> list[str]:
-        return [name, f"{min(values):.3f}", f"{statistics.median(values):.3f}",
-                f"{data['rows'] / min(values) / 1e6:.1f}" if rate else "", f"{min(cpu):.2f}" if cpu else ""]
+        return [
+            name,
+            f"{min(values):.3f}",
+            f"{statistics.median(values):.3f}",
+            f"{data['rows'] / min(values) / 1e6:.1f}" if rate else "",
+            f"{min(cpu):.2f}" if cpu else "",
+        ]
 
-    rows = [line("ours: POST /v1/sql (Arrow)", report["ours"], report["ours_cpu"]),
-            line("duckdb: set-up (connect, LOAD httpfs, secret)", report["duckdb_setup"], rate=False),
-            line("duckdb: query", report["duckdb_query"]),
-            line("duckdb: set-up + query", peers, report["duckdb_cpu"])]
+    rows = [
+        line("ours: POST /v1/sql (Arrow)", report["ours"], report["ours_cpu"]),
+        line("duckdb: set-up (connect, LOAD httpfs, secret)", report["duckdb_setup"], rate=False),
+        line("duckdb: query", report["duckdb_query"]),
+        line("duckdb: set-up + query", peers, report["duckdb_cpu"]),
+    ]
     if report["duckdb_warm"]:
         rows.append(line("duckdb: query, warm database (reference)", report["duckdb_warm"]))
     print(format_table(["", "best s", "median s", "M rows/s", "CPU s"], rows, "lrrrr"))
     verdict = "met" if best["overhead"] < TARGET else "MISSED"
-    print(f"endpoint overhead: {best['overhead'] * 100:+.1f} % over DuckDB set-up + query, best of "
-          f"{args.repeat} ({best['overhead_median'] * 100:+.1f} % median; {best['overhead_vs_query'] * 100:+.1f} % "
-          f"over the query alone); target < {TARGET * 100:.0f} %: {verdict}")
+    print(
+        f"endpoint overhead: {best['overhead'] * 100:+.1f} % over DuckDB set-up + query, best of "
+        f"{args.repeat} ({best['overhead_median'] * 100:+.1f} % median; {best['overhead_vs_query'] * 100:+.1f} % "
+        f"over the query alone); target < {TARGET * 100:.0f} %: {verdict}"
+    )
     if "breakdown" in report:
         print("where the endpoint's time goes (each step in this process, best of --repeat):")
         print(format_table(["step", "seconds"], [[k, f"{v:.3f}"] for k, v in report["breakdown"].items()], "lr"))
+
 
 if __name__ == "__main__":
     main()

@@ -51,33 +51,60 @@ def _free_port() -> int:
 
 
 def _store_id(run_id: str) -> common_pb2.StoreId:
-    return common_pb2.StoreId(kind=1, recording_id=run_id,  # type: ignore[arg-type]
-                              application_id=common_pb2.ApplicationId(id="memory"))
+    return common_pb2.StoreId(
+        kind=1,  # type: ignore[arg-type]
+        recording_id=run_id,
+        application_id=common_pb2.ApplicationId(id="memory"),
+    )
 
 
 def big_chunk_rrd(run_id: str, size: int) -> bytes:
     """An .rrd stream: SetStoreInfo, then one chunk at /blob whose Blob column holds `size` zero bytes."""
     chunk_id = struct.pack(">QQ", time.time_ns(), 1)
-    schema = pa.schema([
-        pa.field("rerun.controls.RowId", pa.binary(16), nullable=False, metadata={b"rerun:kind": b"control"}),
-        pa.field("frame", pa.int64(), metadata={b"rerun:kind": b"index", b"rerun:index_name": b"frame"}),
-        pa.field("Blob:blob", pa.list_(pa.list_(pa.uint8())), metadata={
-            b"rerun:kind": b"data", b"rerun:component": b"Blob:blob", b"rerun:archetype": b"rerun.archetypes.Blob"}),
-    ], metadata={b"rerun:entity_path": b"/blob", b"rerun:id": f"chunk_{chunk_id.hex()}".encode()})
+    schema = pa.schema(
+        [
+            pa.field("rerun.controls.RowId", pa.binary(16), nullable=False, metadata={b"rerun:kind": b"control"}),
+            pa.field("frame", pa.int64(), metadata={b"rerun:kind": b"index", b"rerun:index_name": b"frame"}),
+            pa.field(
+                "Blob:blob",
+                pa.list_(pa.list_(pa.uint8())),
+                metadata={
+                    b"rerun:kind": b"data",
+                    b"rerun:component": b"Blob:blob",
+                    b"rerun:archetype": b"rerun.archetypes.Blob",
+                },
+            ),
+        ],
+        metadata={b"rerun:entity_path": b"/blob", b"rerun:id": f"chunk_{chunk_id.hex()}".encode()},
+    )
     blob = pa.ListArray.from_arrays(pa.array([0, size], pa.int32()), pa.array(np.zeros(size, np.uint8)))
-    batch = pa.record_batch([pa.array([chunk_id], pa.binary(16)), pa.array([0], pa.int64()),
-                             pa.ListArray.from_arrays(pa.array([0, 1], pa.int32()), blob)], schema=schema)
+    batch = pa.record_batch(
+        [
+            pa.array([chunk_id], pa.binary(16)),
+            pa.array([0], pa.int64()),
+            pa.ListArray.from_arrays(pa.array([0, 1], pa.int32()), blob),
+        ],
+        schema=schema,
+    )
     sink = pa.BufferOutputStream()
     with pa.ipc.new_stream(sink, schema) as writer:
         writer.write_batch(batch)
     ipc = sink.getvalue().to_pybytes()
-    arrow = log_msg_pb2.ArrowMsg(store_id=_store_id(run_id), compression=2,  # type: ignore[arg-type]
-                                 uncompressed_size=len(ipc), encoding=log_msg_pb2.ENCODING_ARROW_IPC,
-                                 payload=lz4.block.compress(ipc, store_size=False))
-    arrow.chunk_id.CopyFrom(common_pb2.Tuid(time_ns=int.from_bytes(chunk_id[:8], "big"),
-                                            inc=int.from_bytes(chunk_id[8:], "big")))
-    info = log_msg_pb2.SetStoreInfo(info=log_msg_pb2.StoreInfo(
-        store_id=_store_id(run_id), store_version=log_msg_pb2.StoreVersion(crate_version_bits=0x2900)))
+    arrow = log_msg_pb2.ArrowMsg(
+        store_id=_store_id(run_id),
+        compression=2,  # type: ignore[arg-type]
+        uncompressed_size=len(ipc),
+        encoding=log_msg_pb2.ENCODING_ARROW_IPC,
+        payload=lz4.block.compress(ipc, store_size=False),
+    )
+    arrow.chunk_id.CopyFrom(
+        common_pb2.Tuid(time_ns=int.from_bytes(chunk_id[:8], "big"), inc=int.from_bytes(chunk_id[8:], "big"))
+    )
+    info = log_msg_pb2.SetStoreInfo(
+        info=log_msg_pb2.StoreInfo(
+            store_id=_store_id(run_id), store_version=log_msg_pb2.StoreVersion(crate_version_bits=0x2900)
+        )
+    )
     out = bytearray(b"RRF2\x00\x29\x00\x00\x01\x02\x00\x00")
     for kind, body in ((1, info.SerializeToString()), (2, arrow.SerializeToString())):
         out += struct.pack("<QQ", kind, len(body)) + body
@@ -88,9 +115,17 @@ class Server:
     def __init__(self, env: dict[str, str]) -> None:
         self.dir = tempfile.TemporaryDirectory()
         self.port = _free_port()
-        full = {**os.environ, "FLEET_DATA_DIR": self.dir.name, "FLEET_HTTP_ADDR": f"127.0.0.1:{self.port}",
-                "FLEET_GRPC_ADDR": f"127.0.0.1:{_free_port()}", "FLEET_DURABILITY": "off", "FLEET_SCHEDULER": "false",
-                "FLEET_MIN_FREE_BYTES": "0", "PYTHONPATH": str(ROOT), **env}
+        full = {
+            **os.environ,
+            "FLEET_DATA_DIR": self.dir.name,
+            "FLEET_HTTP_ADDR": f"127.0.0.1:{self.port}",
+            "FLEET_GRPC_ADDR": f"127.0.0.1:{_free_port()}",
+            "FLEET_DURABILITY": "off",
+            "FLEET_SCHEDULER": "false",
+            "FLEET_MIN_FREE_BYTES": "0",
+            "PYTHONPATH": str(ROOT),
+            **env,
+        }
         self.log = open(Path(self.dir.name).with_suffix(".log"), "wb")  # noqa: SIM115
         self.proc = subprocess.Popen([FLEET, "serve"], env=full, stdout=self.log, stderr=subprocess.STDOUT)
         deadline = time.monotonic() + 60
@@ -126,9 +161,15 @@ def bomb(env: dict[str, str], size_mb: int) -> dict[str, Any]:
     try:
         before = server.peak_rss_mb()
         response = httpx.post(server.url + "/v1/uploads", content=body, timeout=600)
-        return {"upload_mb": round(len(body) / MB, 2), "declared_mb": size_mb, "status": response.status_code,
-                "answer": response.json().get("message", response.json()), "peak_rss_mb_before": round(before),
-                "peak_rss_mb_after": round(server.peak_rss_mb()), "alive": server.alive()}
+        return {
+            "upload_mb": round(len(body) / MB, 2),
+            "declared_mb": size_mb,
+            "status": response.status_code,
+            "answer": response.json().get("message", response.json()),
+            "peak_rss_mb_before": round(before),
+            "peak_rss_mb_after": round(server.peak_rss_mb()),
+            "alive": server.alive(),
+        }
     finally:
         server.stop()
 
@@ -151,9 +192,14 @@ def downloads(env: dict[str, str], size_mb: int, count: int) -> dict[str, Any]:
             t.start()
         for t in threads:
             t.join()
-        return {"chunk_mb": size_mb, "downloads": count, "bytes_each": sizes,
-                "seconds": round(time.monotonic() - started, 2), "peak_rss_mb_before": round(before),
-                "peak_rss_mb_after": round(server.peak_rss_mb())}
+        return {
+            "chunk_mb": size_mb,
+            "downloads": count,
+            "bytes_each": sizes,
+            "seconds": round(time.monotonic() - started, 2),
+            "peak_rss_mb_before": round(before),
+            "peak_rss_mb_after": round(server.peak_rss_mb()),
+        }
     finally:
         server.stop()
 

@@ -86,8 +86,15 @@ def run_process(argv: list[str], env: dict[str, str] | None = None) -> ProcResul
         wall = time.perf_counter() - start
         stdout = Path(out).read_text(errors="replace")
         stderr = Path(err).read_text(errors="replace")
-    return ProcResult(argv, os.waitstatus_to_exitcode(status), wall, usage.ru_utime + usage.ru_stime,
-                      usage.ru_maxrss * 1024 / MB, stdout, stderr)  # ru_maxrss: KiB
+    return ProcResult(
+        argv,
+        os.waitstatus_to_exitcode(status),
+        wall,
+        usage.ru_utime + usage.ru_stime,
+        usage.ru_maxrss * 1024 / MB,
+        stdout,
+        stderr,
+    )  # ru_maxrss: KiB
 
 
 def checked(result: ProcResult, what: str) -> ProcResult:
@@ -113,8 +120,9 @@ def worker_gen_big(path: str, target_mb: float) -> dict[str, Any]:
     rng = np.random.default_rng(20241)
     height, width, _ = IMAGE_SHAPE
     yy, xx = np.mgrid[0:height, 0:width]
-    base = np.stack([xx * 255 // width, yy * 255 // height, (xx + yy) * 255 // (width + height)],
-                    axis=-1).astype(np.uint8)
+    base = np.stack([xx * 255 // width, yy * 255 // height, (xx + yy) * 255 // (width + height)], axis=-1).astype(
+        np.uint8
+    )
     frame = 0
     while True:
         rec.set_time("frame", sequence=frame)
@@ -244,9 +252,11 @@ def ensure_recording(data_dir: Path, name: str, params: dict[str, Any], gen_args
     }
     os.replace(tmp, path)
     sidecar.write_text(json.dumps(info, indent=2) + "\n")
-    log(f"generated {path}: {info['size_bytes'] / MB:.1f} MB in {gen.wall_s:.1f} s; our decoder counts "
+    log(
+        f"generated {path}: {info['size_bytes'] / MB:.1f} MB in {gen.wall_s:.1f} s; our decoder counts "
         f"{info['chunks']} chunks, {info['rows']} rows, {info['entities']} entities, "
-        f"timelines {', '.join(info['timelines'])}")
+        f"timelines {', '.join(info['timelines'])}"
+    )
     return info
 
 
@@ -277,15 +287,23 @@ def measure_ours(mode: str, path: Path, repeat: int) -> Measurement:
         "scan": ("ours scan only (in-process)", "iter_events(path), no chunk_meta"),
     }[mode]
     extra = {k: v for k, v in data.items() if k not in ("walls", "cpus")}
-    return Measurement(name, data["walls"][best], data["walls"], data["cpus"][best], result.peak_rss_mb,
-                       note + f"; RSS after imports {data['baseline_rss_mb']:.0f} MB", extra)
+    return Measurement(
+        name,
+        data["walls"][best],
+        data["walls"],
+        data["cpus"][best],
+        result.peak_rss_mb,
+        note + f"; RSS after imports {data['baseline_rss_mb']:.0f} MB",
+        extra,
+    )
 
 
 def measure_process(name: str, argv: list[str], repeat: int, note: str = "") -> tuple[Measurement, ProcResult]:
     runs = [checked(run_process(argv), name) for _ in range(repeat)]
     best = min(runs, key=lambda r: r.wall_s)
-    return Measurement(name, best.wall_s, [r.wall_s for r in runs], best.cpu_s,
-                       max(r.peak_rss_mb for r in runs), note), best
+    return Measurement(
+        name, best.wall_s, [r.wall_s for r in runs], best.cpu_s, max(r.peak_rss_mb for r in runs), note
+    ), best
 
 
 def parse_rerun_chunks(stdout: str) -> int | None:
@@ -332,15 +350,24 @@ def bench_file(label: str, path: Path, info: dict[str, Any], rerun_bin: str, rep
         log(f"WARNING: {label}: the footer lists {footer.extra['chunks']} chunks, the scan {chunks}")
     fleet_code = f"import sys; sys.path.insert(0, {str(ROOT)!r}); from services.cli.main import main; main()"
     fleet_argv = [sys.executable, "-c", fleet_code, "rrd", "inspect", "--scan", str(path)]
-    fleet, _ = measure_process("ours: fleet rrd inspect --scan (whole process)", fleet_argv, repeat,
-                               "interpreter start + imports included")
-    fleet_footer, _ = measure_process("ours: fleet rrd inspect (whole process)", [*fleet_argv[:-2], str(path)],
-                                      repeat, "footer index; interpreter start + imports included")
-    peer, peer_run = measure_process("rerun rrd stats", [rerun_bin, "rrd", "stats", str(path)], repeat,
-                                     "default invocation: decodes every chunk")
-    no_decode, _ = measure_process("rerun rrd stats --no-decode",
-                                   [rerun_bin, "rrd", "stats", "--no-decode", str(path)], repeat,
-                                   "reference only: transport level, Arrow never decoded (less work)")
+    fleet, _ = measure_process(
+        "ours: fleet rrd inspect --scan (whole process)", fleet_argv, repeat, "interpreter start + imports included"
+    )
+    fleet_footer, _ = measure_process(
+        "ours: fleet rrd inspect (whole process)",
+        [*fleet_argv[:-2], str(path)],
+        repeat,
+        "footer index; interpreter start + imports included",
+    )
+    peer, peer_run = measure_process(
+        "rerun rrd stats", [rerun_bin, "rrd", "stats", str(path)], repeat, "default invocation: decodes every chunk"
+    )
+    no_decode, _ = measure_process(
+        "rerun rrd stats --no-decode",
+        [rerun_bin, "rrd", "stats", "--no-decode", str(path)],
+        repeat,
+        "reference only: transport level, Arrow never decoded (less work)",
+    )
     peer_chunks = parse_rerun_chunks(peer_run.stdout)
     peer.extra = {"num_chunks": peer_chunks, "stdout_lines": peer_run.stdout.count("\n")}
     if peer_chunks is not None and peer_chunks != chunks:
@@ -379,8 +406,9 @@ def format_table(headers: list[str], rows: list[list[str]], align: str) -> str:
     widths = [max(len(h), *(len(r[i]) for r in rows)) for i, h in enumerate(headers)]
 
     def line(cells: list[str]) -> str:
-        return "  ".join(c.ljust(w) if a == "l" else c.rjust(w)
-                         for c, w, a in zip(cells, widths, align, strict=True)).rstrip()
+        return "  ".join(
+            c.ljust(w) if a == "l" else c.rjust(w) for c, w, a in zip(cells, widths, align, strict=True)
+        ).rstrip()
 
     return "\n".join([line(headers), line(["-" * w for w in widths]), *(line(r) for r in rows)])
 
@@ -388,36 +416,78 @@ def format_table(headers: list[str], rows: list[list[str]], align: str) -> str:
 def print_report(report: dict[str, Any]) -> None:
     env = report["environment"]
     print(f"rerun rrd stats: {env['rerun_binary']} ({env['rerun_version']}; found via {env['rerun_found_via']})")
-    print(f"python {env['python']}, {env['cpus']} CPUs (load average {env['load_average_1m_at_start']} at start); "
-          f"page cache warm; best of {env['repeat']}; MB = 10^6 bytes")
+    print(
+        f"python {env['python']}, {env['cpus']} CPUs (load average {env['load_average_1m_at_start']} at start); "
+        f"page cache warm; best of {env['repeat']}; MB = 10^6 bytes"
+    )
     print()
     files = report["files"]
-    print(format_table(
-        ["file", "size MB", "chunks", "ours MB/s", "ours chunks/s", "rrd stats MB/s", "rrd stats chunks/s",
-         "ours/rerun", "(whole process)", "footer/rerun"],
-        [[f["file"], f"{f['size_mb']:.1f}", f"{f['chunks']:,}", f"{f['ours_mb_s']:.1f}",
-          f"{f['ours_chunks_s']:,.0f}", f"{f['rerun_mb_s']:.1f}", f"{f['rerun_chunks_s']:,.0f}",
-          f"{f['ratio_ours_rerun']:.2f}x", f"{f['ratio_whole_process']:.2f}x", f"{f['ratio_footer_rerun']:.1f}x"]
-         for f in files],
-        "lrrrrrrrrr",
-    ))
+    print(
+        format_table(
+            [
+                "file",
+                "size MB",
+                "chunks",
+                "ours MB/s",
+                "ours chunks/s",
+                "rrd stats MB/s",
+                "rrd stats chunks/s",
+                "ours/rerun",
+                "(whole process)",
+                "footer/rerun",
+            ],
+            [
+                [
+                    f["file"],
+                    f"{f['size_mb']:.1f}",
+                    f"{f['chunks']:,}",
+                    f"{f['ours_mb_s']:.1f}",
+                    f"{f['ours_chunks_s']:,.0f}",
+                    f"{f['rerun_mb_s']:.1f}",
+                    f"{f['rerun_chunks_s']:,.0f}",
+                    f"{f['ratio_ours_rerun']:.2f}x",
+                    f"{f['ratio_whole_process']:.2f}x",
+                    f"{f['ratio_footer_rerun']:.1f}x",
+                ]
+                for f in files
+            ],
+            "lrrrrrrrrr",
+        )
+    )
     print()
-    print("ours/rerun = rerun time / our scan+index time, every chunk read (>= 1.00x meets the target); "
-          "(whole process) = same with `fleet rrd inspect --scan FILE` as a process; "
-          "footer/rerun = with the index read from the file's RRD footer instead")
+    print(
+        "ours/rerun = rerun time / our scan+index time, every chunk read (>= 1.00x meets the target); "
+        "(whole process) = same with `fleet rrd inspect --scan FILE` as a process; "
+        "footer/rerun = with the index read from the file's RRD footer instead"
+    )
     print()
     rows = []
     for f in files:
         for i, m in enumerate(f["measurements"]):
-            rows.append([f["file"] if i == 0 else "", m["name"], f"{m['best_s']:.3f}", f"{m['mb_s']:.1f}",
-                         f"{m['chunks_s']:,.0f}", f"{m['cpu_s']:.2f}", f"{m['peak_rss_mb']:.0f}", m["note"]])
-    print(format_table(["file", "measurement", "best s", "MB/s", "chunks/s", "CPU s", "peak RSS MB", "note"],
-                       rows, "llrrrrrl"))
+            rows.append(
+                [
+                    f["file"] if i == 0 else "",
+                    m["name"],
+                    f"{m['best_s']:.3f}",
+                    f"{m['mb_s']:.1f}",
+                    f"{m['chunks_s']:,.0f}",
+                    f"{m['cpu_s']:.2f}",
+                    f"{m['peak_rss_mb']:.0f}",
+                    m["note"],
+                ]
+            )
+    print(
+        format_table(
+            ["file", "measurement", "best s", "MB/s", "chunks/s", "CPU s", "peak RSS MB", "note"], rows, "llrrrrrl"
+        )
+    )
     print()
     for f in files:
         agree = "agrees" if f["rerun_num_chunks"] == f["chunks"] else f"says {f['rerun_num_chunks']}"
-        print(f"{f['file']}: {f['chunks']:,} chunks / {f['rows']:,} rows / {f['entities']} entities by our decoder "
-              f"(rerun rrd stats {agree}); timelines: {', '.join(f['timelines'])}")
+        print(
+            f"{f['file']}: {f['chunks']:,} chunks / {f['rows']:,} rows / {f['entities']} entities by our decoder "
+            f"(rerun rrd stats {agree}); timelines: {', '.join(f['timelines'])}"
+        )
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -425,15 +495,22 @@ def main(argv: list[str] | None = None) -> None:
     if argv[:1] == ["_worker"]:
         worker_main(argv[1:])
         return
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--data-dir", type=Path, default=ROOT / "benchmarks" / "data",
-                        help="where the generated recordings live (default: benchmarks/data, gitignored)")
+    parser = argparse.ArgumentParser(
+        description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument(
+        "--data-dir",
+        type=Path,
+        default=ROOT / "benchmarks" / "data",
+        help="where the generated recordings live (default: benchmarks/data, gitignored)",
+    )
     parser.add_argument("--big-mb", type=float, default=220, help="minimum size of big.rrd in MB (default 220)")
-    parser.add_argument("--small-chunks", type=int, default=50_000,
-                        help="1-row chunks (log calls) in small.rrd (default 50000)")
-    parser.add_argument("--small-entities", type=int, default=100,
-                        help="entities the small chunks are spread over (default 100)")
+    parser.add_argument(
+        "--small-chunks", type=int, default=50_000, help="1-row chunks (log calls) in small.rrd (default 50000)"
+    )
+    parser.add_argument(
+        "--small-entities", type=int, default=100, help="entities the small chunks are spread over (default 100)"
+    )
     parser.add_argument("--repeat", type=int, default=3, help="runs per measurement, the best counts (default 3)")
     parser.add_argument("--rerun", help="the rerun executable (default: the native binary of rerun-sdk)")
     parser.add_argument("--json", action="store_true", help="print the results as JSON on stdout instead of tables")
@@ -445,17 +522,21 @@ def main(argv: list[str] | None = None) -> None:
     if load > 0.5 * (os.cpu_count() or 1):
         log(f"WARNING: load average {load:.2f}: other processes compete for the CPUs, timings will be noisy")
     data_dir: Path = args.data_dir.resolve()
-    big = ensure_recording(data_dir, "big.rrd", {"kind": "big", "big_mb": args.big_mb},
-                           ["gen-big", str(args.big_mb)])
-    small = ensure_recording(data_dir, "small.rrd",
-                             {"kind": "small", "chunks": args.small_chunks, "entities": args.small_entities},
-                             ["gen-small", str(args.small_chunks), str(args.small_entities)])
+    big = ensure_recording(data_dir, "big.rrd", {"kind": "big", "big_mb": args.big_mb}, ["gen-big", str(args.big_mb)])
+    small = ensure_recording(
+        data_dir,
+        "small.rrd",
+        {"kind": "small", "chunks": args.small_chunks, "entities": args.small_entities},
+        ["gen-small", str(args.small_chunks), str(args.small_entities)],
+    )
     if big["size_bytes"] < args.big_mb * MB:
         raise SystemExit(f"big.rrd is only {big['size_bytes'] / MB:.1f} MB")
     one_row = small["chunks"] - 1  # minus the static /__properties chunk
     if small["rows"] != small["chunks"] or one_row < args.small_chunks:
-        raise SystemExit(f"small.rrd has {small['chunks']} chunks for {small['rows']} rows: the SDK batched "
-                         f"log calls together (expected {args.small_chunks} 1-row chunks)")
+        raise SystemExit(
+            f"small.rrd has {small['chunks']} chunks for {small['rows']} rows: the SDK batched "
+            f"log calls together (expected {args.small_chunks} 1-row chunks)"
+        )
 
     rerun_bin, found_via = find_rerun_binary(args.rerun)
     version = checked(run_process([rerun_bin, "--version"]), "rerun --version").stdout.split("(")[0].strip()

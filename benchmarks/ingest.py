@@ -96,8 +96,9 @@ def _renamed(store_id: Any, suffix: str, base: str) -> None:
         store_id.recording_id = base + suffix
 
 
-def prepare_requests(path: str, robots: list[int], passes: int = 1
-                     ) -> tuple[dict[int, list[bytes]], dict[int, dict[str, int]]]:
+def prepare_requests(
+    path: str, robots: list[int], passes: int = 1
+) -> tuple[dict[int, list[bytes]], dict[int, dict[str, int]]]:
     """For each robot: every message of the recording as a serialized WriteMessagesRequest with the
     robot's own recording id, and what that amounts to (messages, chunks, inner message bytes).
     With `passes` > 1 the robot sends the recording that many times in a row, each time as a new
@@ -161,8 +162,17 @@ def load_main(args: list[str]) -> None:
     usage = resource.getrusage(resource.RUSAGE_SELF)
     for k, result in results.items():
         result.update(counts[k])
-    print("DONE " + json.dumps({"robots": results, "cpu_s": usage.ru_utime + usage.ru_stime - ready["cpu0"],
-                                "peak_rss_mb": usage.ru_maxrss * 1024 / MB}), flush=True)
+    print(
+        "DONE "
+        + json.dumps(
+            {
+                "robots": results,
+                "cpu_s": usage.ru_utime + usage.ru_stime - ready["cpu0"],
+                "peak_rss_mb": usage.ru_maxrss * 1024 / MB,
+            }
+        ),
+        flush=True,
+    )
 
 
 def _cpu_now() -> float:
@@ -177,8 +187,9 @@ def _barrier(ready: dict[str, Any]) -> None:
     sys.stdin.readline()
 
 
-async def _send_aio(target: str, options: list[tuple[str, int]], requests: dict[int, list[bytes]],
-                    ready: dict[str, Any]) -> dict[int, dict[str, Any]]:
+async def _send_aio(
+    target: str, options: list[tuple[str, int]], requests: dict[int, list[bytes]], ready: dict[str, Any]
+) -> dict[int, dict[str, Any]]:
     import asyncio
 
     import grpc
@@ -191,8 +202,9 @@ async def _send_aio(target: str, options: list[tuple[str, int]], requests: dict[
     results: dict[int, dict[str, Any]] = {}
 
     async def robot(k: int) -> None:
-        call = channels[k].stream_unary(METHOD, request_serializer=None,
-                                        response_deserializer=sdk_comms_pb2.WriteMessagesResponse.FromString)
+        call = channels[k].stream_unary(
+            METHOD, request_serializer=None, response_deserializer=sdk_comms_pb2.WriteMessagesResponse.FromString
+        )
         start = time.time()
         error = None
         try:
@@ -212,8 +224,9 @@ async def _send_aio(target: str, options: list[tuple[str, int]], requests: dict[
     return results
 
 
-def _send_threads(target: str, options: list[tuple[str, int]], requests: dict[int, list[bytes]],
-                  ready: dict[str, Any]) -> dict[int, dict[str, Any]]:
+def _send_threads(
+    target: str, options: list[tuple[str, int]], requests: dict[int, list[bytes]], ready: dict[str, Any]
+) -> dict[int, dict[str, Any]]:
     import grpc
 
     from services.rrd.pb import sdk_comms_pb2
@@ -225,8 +238,9 @@ def _send_threads(target: str, options: list[tuple[str, int]], requests: dict[in
     results: dict[int, dict[str, Any]] = {}
 
     def robot(k: int) -> None:
-        call = channels[k].stream_unary(METHOD, request_serializer=None,
-                                        response_deserializer=sdk_comms_pb2.WriteMessagesResponse.FromString)
+        call = channels[k].stream_unary(
+            METHOD, request_serializer=None, response_deserializer=sdk_comms_pb2.WriteMessagesResponse.FromString
+        )
         go.wait()
         start = time.time()
         error = None
@@ -311,8 +325,9 @@ class Server:
     def start(self, timeout: float = 60) -> None:
         argv, env = self.argv_env()
         with open(self.log_path, "wb") as out:
-            self.proc = subprocess.Popen(argv, env=env, stdin=subprocess.DEVNULL, stdout=out,
-                                         stderr=subprocess.STDOUT, cwd=self.workdir)
+            self.proc = subprocess.Popen(
+                argv, env=env, stdin=subprocess.DEVNULL, stdout=out, stderr=subprocess.STDOUT, cwd=self.workdir
+            )
         deadline = time.monotonic() + timeout
         while time.monotonic() < deadline:
             if self.proc.poll() is not None:
@@ -370,8 +385,13 @@ class FleetServer(Server):
         self.data_dir = workdir / "fleet-data"
 
     def argv_env(self) -> tuple[list[str], dict[str, str]]:
-        env = {**os.environ, "FLEET_DATA_DIR": str(self.data_dir), "FLEET_DURABILITY": "interval",
-               "FLEET_HTTP_ADDR": f"127.0.0.1:{self.http_port}", "FLEET_GRPC_ADDR": f"127.0.0.1:{self.grpc_port}"}
+        env = {
+            **os.environ,
+            "FLEET_DATA_DIR": str(self.data_dir),
+            "FLEET_DURABILITY": "interval",
+            "FLEET_HTTP_ADDR": f"127.0.0.1:{self.http_port}",
+            "FLEET_GRPC_ADDR": f"127.0.0.1:{self.grpc_port}",
+        }
         fleet = Path(sys.executable).with_name("fleet")
         if fleet.is_file():
             return [str(fleet), "serve"], env
@@ -407,8 +427,16 @@ class RerunServer(Server):
         self.memory_limit = memory_limit
 
     def argv_env(self) -> tuple[list[str], dict[str, str]]:
-        argv = [self.binary, "--serve-grpc", "--bind", "127.0.0.1", "--port", str(self.grpc_port),
-                "--server-memory-limit", self.memory_limit]
+        argv = [
+            self.binary,
+            "--serve-grpc",
+            "--bind",
+            "127.0.0.1",
+            "--port",
+            str(self.grpc_port),
+            "--server-memory-limit",
+            self.memory_limit,
+        ]
         return argv, dict(os.environ)
 
     def ready(self) -> bool:
@@ -460,7 +488,7 @@ def read_line(proc: subprocess.Popen[str], prefix: str, what: str, log_path: Pat
         proc.wait()
         tail = "\n".join(log_path.read_text(errors="replace").splitlines()[-20:])
         raise SystemExit(f"{what}: expected {prefix}, got {line!r} (exit {proc.returncode})\n{tail}")
-    result: dict[str, Any] = json.loads(line[len(prefix) + 1:])
+    result: dict[str, Any] = json.loads(line[len(prefix) + 1 :])
     return result
 
 
@@ -496,8 +524,17 @@ def course(samples: list[tuple[float, int]], t0: float, t1: float) -> list[float
     return [min(samples, key=lambda s: abs(s[0] - p))[1] * 1024 / MB for p in points]
 
 
-def run_once(server: Server, workload: str, path: Path, robots: int, procs: int, expect_chunks: int,
-             client: str, passes: int = 1, check_rerun: bool = False) -> Run:
+def run_once(
+    server: Server,
+    workload: str,
+    path: Path,
+    robots: int,
+    procs: int,
+    expect_chunks: int,
+    client: str,
+    passes: int = 1,
+    check_rerun: bool = False,
+) -> Run:
     """One timed run: `server` started, the load processes prepared, "go", all calls answered."""
     groups = [list(range(robots))[i::procs] for i in range(procs)]
     groups = [g for g in groups if g]
@@ -509,10 +546,17 @@ def run_once(server: Server, workload: str, path: Path, robots: int, procs: int,
         for i, group in enumerate(groups):
             err = open(server.workdir / f"load-{i}.log", "wb")  # noqa: SIM115 - closed below
             logs.append(err)
-            argv = [sys.executable, str(Path(__file__).resolve()), "_load", client, str(passes), str(path), target,
-                    ",".join(map(str, group))]
-            loaders.append(subprocess.Popen(argv, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=err,
-                                            text=True))
+            argv = [
+                sys.executable,
+                str(Path(__file__).resolve()),
+                "_load",
+                client,
+                str(passes),
+                str(path),
+                target,
+                ",".join(map(str, group)),
+            ]
+            loaders.append(subprocess.Popen(argv, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=err, text=True))
         load_logs = [server.workdir / f"load-{i}.log" for i in range(len(loaders))]
         ready = [read_line(p, "READY", f"load process {i}", load_logs[i]) for i, p in enumerate(loaders)]
         time.sleep(0.5)  # let the preparation's page cache and allocator churn settle
@@ -537,16 +581,25 @@ def run_once(server: Server, workload: str, path: Path, robots: int, procs: int,
             tails = "\n".join(server.log_tail().splitlines()[-10:])
             raise SystemExit(f"{server.name} {workload}: {len(errors)} calls failed: {errors[:3]}\n{tails}")
         run = Run(
-            server=server.name, workload=workload, wall_s=t_end - t_go,
-            bytes=sum(r["bytes"] for r in results), chunks=sum(r["chunks"] for r in results),
+            server=server.name,
+            workload=workload,
+            wall_s=t_end - t_go,
+            bytes=sum(r["bytes"] for r in results),
+            chunks=sum(r["chunks"] for r in results),
             messages=sum(r["messages"] for r in results),
-            server_cpu_s=sum(times1) - sum(times0), server_sys_s=times1[1] - times0[1],
+            server_cpu_s=sum(times1) - sum(times0),
+            server_sys_s=times1[1] - times0[1],
             load_cpu_s=sum(d["cpu_s"] for d in done),
-            peak_rss_mb=server.peak_rss_mb(), rss_start_mb=rss_start, rss_end_mb=server.rss_mb(),
-            rss_course_mb=course(server.samples, t_go, t_end), rss_thirds_mb=thirds(server.samples, t_go, t_end),
-            drain_s=drain_s, drain_cpu_s=drain_cpu,
+            peak_rss_mb=server.peak_rss_mb(),
+            rss_start_mb=rss_start,
+            rss_end_mb=server.rss_mb(),
+            rss_course_mb=course(server.samples, t_go, t_end),
+            rss_thirds_mb=thirds(server.samples, t_go, t_end),
+            drain_s=drain_s,
+            drain_cpu_s=drain_cpu,
             prepare_s=max(r["prepare_s"] for r in ready),
-            robot_walls_s=sorted(round(r["end"] - t_go, 3) for r in results), passes=passes,
+            robot_walls_s=sorted(round(r["end"] - t_go, 3) for r in results),
+            passes=passes,
         )
         if isinstance(server, FleetServer):
             run.check, run.extra = check_ours(server, run, robots * passes * expect_chunks)
@@ -574,11 +627,14 @@ def check_peer(server: Server, expected: int, recordings: int, idle_s: float = 5
     from services.rrd import protowire
     from services.rrd.pb import log_msg_pb2, sdk_comms_pb2
 
-    channel = grpc.insecure_channel(f"127.0.0.1:{server.grpc_port}",
-                                    options=[("grpc.max_receive_message_length", MAX_SEND)])
-    read = channel.unary_stream("/rerun.sdk_comms.v1alpha1.MessageProxyService/ReadMessages",
-                                request_serializer=sdk_comms_pb2.ReadMessagesRequest.SerializeToString,
-                                response_deserializer=None)
+    channel = grpc.insecure_channel(
+        f"127.0.0.1:{server.grpc_port}", options=[("grpc.max_receive_message_length", MAX_SEND)]
+    )
+    read = channel.unary_stream(
+        "/rerun.sdk_comms.v1alpha1.MessageProxyService/ReadMessages",
+        request_serializer=sdk_comms_pb2.ReadMessagesRequest.SerializeToString,
+        response_deserializer=None,
+    )
     stream = read(sdk_comms_pb2.ReadMessagesRequest(), timeout=600)
     chunks = 0
     ids: set[str] = set()
@@ -599,7 +655,7 @@ def check_peer(server: Server, expected: int, recordings: int, idle_s: float = 5
             found = protowire.last_field(response, 1)  # ReadMessagesResponse.log_msg
             if found is None:
                 continue
-            log_msg = memoryview(response)[found[1]:found[2]]
+            log_msg = memoryview(response)[found[1] : found[2]]
             for number, _, start, end in protowire.fields(log_msg):
                 if number == 2:  # arrow_msg
                     chunks += 1
@@ -616,11 +672,15 @@ def check_peer(server: Server, expected: int, recordings: int, idle_s: float = 5
         done.set()
         stream.cancel()
         channel.close()
-    extra = {"read_back_chunks": chunks, "read_back_recordings": len(ids),
-             "read_back_s": round(time.perf_counter() - t0, 2)}
+    extra = {
+        "read_back_chunks": chunks,
+        "read_back_recordings": len(ids),
+        "read_back_s": round(time.perf_counter() - t0, 2),
+    }
     if chunks != expected or len(ids) != recordings:
-        return (f"MISMATCH: read back {chunks:,} chunks of {len(ids)} recordings, "
-                f"expected {expected:,} of {recordings}"), extra
+        return (
+            f"MISMATCH: read back {chunks:,} chunks of {len(ids)} recordings, expected {expected:,} of {recordings}"
+        ), extra
     return f"ok: {chunks:,} chunks of {len(ids)} recordings read back with ReadMessages", extra
 
 
@@ -635,8 +695,11 @@ def check_ours(server: FleetServer, run: Run, expected: int) -> tuple[str, dict[
     dup = int(metrics.get("fleet_ingest_chunks_duplicate_total", -1))
     hot = server.data_dir / "hot"
     hot_bytes = sum(p.stat().st_size for p in hot.glob("*/run.rrd")) if hot.is_dir() else 0
-    extra = {"metrics": metrics, "hot_runs": len(list(hot.glob("*/run.rrd"))) if hot.is_dir() else 0,
-             "hot_bytes": hot_bytes}
+    extra = {
+        "metrics": metrics,
+        "hot_runs": len(list(hot.glob("*/run.rrd"))) if hot.is_dir() else 0,
+        "hot_bytes": hot_bytes,
+    }
     if new != expected or dup != 0:
         return f"MISMATCH: {new} new + {dup} duplicate chunks, expected {expected} new", extra
     return f"ok: {new:,} new chunks in /metrics, {extra['hot_runs']} hot runs, {hot_bytes / MB:,.1f} MB on disk", extra
@@ -658,10 +721,14 @@ def summarize(runs: list[Run], workloads: list[str]) -> list[dict[str, Any]]:
         for name in ("ours", "rerun"):
             top = best(runs, name, w)
             if top is not None:
-                entry[name] = {"mb_s": round(top.mb_s, 1), "chunks_s": round(top.chunks_s, 1),
-                               "wall_s": round(top.wall_s, 3),
-                               "peak_rss_mb": round(max(r.peak_rss_mb for r in runs
-                                                        if r.server == name and r.workload == w and r.passes == 1), 1)}
+                entry[name] = {
+                    "mb_s": round(top.mb_s, 1),
+                    "chunks_s": round(top.chunks_s, 1),
+                    "wall_s": round(top.wall_s, 3),
+                    "peak_rss_mb": round(
+                        max(r.peak_rss_mb for r in runs if r.server == name and r.workload == w and r.passes == 1), 1
+                    ),
+                }
         if "ours" in entry and "rerun" in entry:
             ratio = entry["ours"]["mb_s"] / entry["rerun"]["mb_s"]
             entry["ratio_mb_s"], entry["met"] = round(ratio, 3), ratio >= TARGETS[w]
@@ -685,51 +752,120 @@ def memory_verdict(runs: list[Run]) -> dict[str, Any] | None:
     run, base = more[0], max(one, key=lambda r: r.peak_rss_mb)
     within = (run.rss_thirds_mb[2] - run.rss_thirds_mb[0]) / (run.bytes * 2 / 3 / 1e9)
     across = (run.peak_rss_mb - base.peak_rss_mb) / ((run.bytes - base.bytes) / 1e9)
-    return {"passes": run.passes, "gb": round(run.bytes / 1e9, 3), "peak_mb": round(run.peak_rss_mb, 1),
-            "thirds_mb": [round(v, 1) for v in run.rss_thirds_mb], "rss_after_mb": round(run.rss_end_mb, 1),
-            "gb_1_pass": round(base.bytes / 1e9, 3), "peaks_1_pass_mb": [round(r.peak_rss_mb, 1) for r in one],
-            "mb_per_gb_across": round(across, 1), "mb_per_gb_within": round(within, 1),
-            "bounded": across < 50 and within < 50}
+    return {
+        "passes": run.passes,
+        "gb": round(run.bytes / 1e9, 3),
+        "peak_mb": round(run.peak_rss_mb, 1),
+        "thirds_mb": [round(v, 1) for v in run.rss_thirds_mb],
+        "rss_after_mb": round(run.rss_end_mb, 1),
+        "gb_1_pass": round(base.bytes / 1e9, 3),
+        "peaks_1_pass_mb": [round(r.peak_rss_mb, 1) for r in one],
+        "mb_per_gb_across": round(across, 1),
+        "mb_per_gb_within": round(within, 1),
+        "bounded": across < 50 and within < 50,
+    }
 
 
 def print_report(report: dict[str, Any]) -> None:
     env = report["environment"]
-    print(f"rerun: {env['rerun_binary']} ({env['rerun_version']}), --serve-grpc "
-          f"--server-memory-limit {env['rerun_memory_limit']} (memory only, drops nothing here)")
+    print(
+        f"rerun: {env['rerun_binary']} ({env['rerun_version']}), --serve-grpc "
+        f"--server-memory-limit {env['rerun_memory_limit']} (memory only, drops nothing here)"
+    )
     print(f"ours: fleet serve, FLEET_DURABILITY=interval (group commit), hot tier in {env['tmp']}")
     per_robot = "task on a grpc.aio event loop" if env["client"] == "aio" else "thread (blocking gRPC API)"
-    print(f"load: {env['robots']} robots (distinct recording ids) from {env['procs']} processes, one gRPC channel "
-          f"(TCP connection), one WriteMessages call and one {per_robot} per robot; best of {env['repeat']}")
-    print(f"python {env['python']}, grpcio {env['grpcio']}, {env['cpus']} CPUs shared by server and load "
-          f"(load average {env['load_average_1m_at_start']} at start); MB = 10^6 bytes")
+    print(
+        f"load: {env['robots']} robots (distinct recording ids) from {env['procs']} processes, one gRPC channel "
+        f"(TCP connection), one WriteMessages call and one {per_robot} per robot; best of {env['repeat']}"
+    )
+    print(
+        f"python {env['python']}, grpcio {env['grpcio']}, {env['cpus']} CPUs shared by server and load "
+        f"(load average {env['load_average_1m_at_start']} at start); MB = 10^6 bytes"
+    )
     print()
     rows = []
     for r in report["runs"]:
         label = r["workload"] + (f" x{r['passes']}" if r["passes"] > 1 else "")
-        rows.append([label, r["server"], f"{r['bytes'] / MB:,.1f}", f"{r['chunks']:,}", f"{r['wall_s']:.2f}",
-                     f"{r['bytes'] / MB / r['wall_s']:,.1f}", f"{r['chunks'] / r['wall_s']:,.0f}",
-                     f"{r['peak_rss_mb']:,.0f}", f"{r['server_cpu_s']:.1f} ({r['server_sys_s']:.1f})",
-                     f"{r['load_cpu_s']:.1f}", f"{r['drain_s']:.1f}"])
-    print(format_table(["workload", "server", "MB sent", "chunks", "wall s", "MB/s", "chunks/s", "peak RSS MB",
-                        "server CPU s (sys)", "load CPU s", "drain s"], rows, "llrrrrrrrrr"))
+        rows.append(
+            [
+                label,
+                r["server"],
+                f"{r['bytes'] / MB:,.1f}",
+                f"{r['chunks']:,}",
+                f"{r['wall_s']:.2f}",
+                f"{r['bytes'] / MB / r['wall_s']:,.1f}",
+                f"{r['chunks'] / r['wall_s']:,.0f}",
+                f"{r['peak_rss_mb']:,.0f}",
+                f"{r['server_cpu_s']:.1f} ({r['server_sys_s']:.1f})",
+                f"{r['load_cpu_s']:.1f}",
+                f"{r['drain_s']:.1f}",
+            ]
+        )
+    print(
+        format_table(
+            [
+                "workload",
+                "server",
+                "MB sent",
+                "chunks",
+                "wall s",
+                "MB/s",
+                "chunks/s",
+                "peak RSS MB",
+                "server CPU s (sys)",
+                "load CPU s",
+                "drain s",
+            ],
+            rows,
+            "llrrrrrrrrr",
+        )
+    )
     print()
-    print("wall s: from 'go' to the last call answered; peak RSS: the server's VmHWM; server CPU s: during the "
-          "wall time; load CPU s: all load processes; drain s: server CPU still busy after the last answer")
+    print(
+        "wall s: from 'go' to the last call answered; peak RSS: the server's VmHWM; server CPU s: during the "
+        "wall time; load CPU s: all load processes; drain s: server CPU still busy after the last answer"
+    )
     print()
     rows = []
     for s in report["summary"]:
         ours, peer = s.get("ours"), s.get("rerun")
-        rows.append([s["workload"],
-                     f"{ours['mb_s']:,.1f}" if ours else "-", f"{ours['chunks_s']:,.0f}" if ours else "-",
-                     f"{peer['mb_s']:,.1f}" if peer else "-", f"{peer['chunks_s']:,.0f}" if peer else "-",
-                     f"{s['ratio_mb_s']:.2f}x" if s["ratio_mb_s"] is not None else "-", f">= {s['target']:.1f}x",
-                     {True: "met", False: "MISSED", None: "-"}[s["met"]],
-                     f"{ours['peak_rss_mb']:,.0f}" if ours else "-", f"{peer['peak_rss_mb']:,.0f}" if peer else "-"])
-    print(format_table(["workload", "ours MB/s", "ours chunks/s", "rerun MB/s", "rerun chunks/s", "ours/rerun",
-                        "target", "", "ours peak RSS MB", "rerun peak RSS MB"], rows, "lrrrrrrlrr"))
+        rows.append(
+            [
+                s["workload"],
+                f"{ours['mb_s']:,.1f}" if ours else "-",
+                f"{ours['chunks_s']:,.0f}" if ours else "-",
+                f"{peer['mb_s']:,.1f}" if peer else "-",
+                f"{peer['chunks_s']:,.0f}" if peer else "-",
+                f"{s['ratio_mb_s']:.2f}x" if s["ratio_mb_s"] is not None else "-",
+                f">= {s['target']:.1f}x",
+                {True: "met", False: "MISSED", None: "-"}[s["met"]],
+                f"{ours['peak_rss_mb']:,.0f}" if ours else "-",
+                f"{peer['peak_rss_mb']:,.0f}" if peer else "-",
+            ]
+        )
+    print(
+        format_table(
+            [
+                "workload",
+                "ours MB/s",
+                "ours chunks/s",
+                "rerun MB/s",
+                "rerun chunks/s",
+                "ours/rerun",
+                "target",
+                "",
+                "ours peak RSS MB",
+                "rerun peak RSS MB",
+            ],
+            rows,
+            "lrrrrrrlrr",
+        )
+    )
     print()
-    print("ours/rerun: our MB/s / rerun's MB/s, best run of each (the same bytes and chunks: also the chunks/s "
-          "ratio); peak RSS: the highest of the runs")
+    print(
+        "ours/rerun: our MB/s / rerun's MB/s, best run of each (the same bytes and chunks: also the chunks/s "
+        "ratio); peak RSS: the highest of the runs"
+    )
     print()
     print("ours, memory over each run (RSS MB at 0/25/50/75/100 % of the timed part; growth = peak - start):")
     for r in report["runs"]:
@@ -737,20 +873,32 @@ def print_report(report: dict[str, Any]) -> None:
             continue
         growth = r["peak_rss_mb"] - r["rss_start_mb"]
         label = r["workload"] + (f" x{r['passes']}" if r["passes"] > 1 else "")
-        print(f"  {label:8} start {r['rss_start_mb']:.0f}, course "
-              f"{' / '.join(f'{v:.0f}' for v in r['rss_course_mb'])}, peak {r['peak_rss_mb']:.0f}, after "
-              f"{r['rss_end_mb']:.0f}: +{growth:.0f} MB over start, {r['bytes'] / 1e9:.2f} GB ingested")
+        print(
+            f"  {label:8} start {r['rss_start_mb']:.0f}, course "
+            f"{' / '.join(f'{v:.0f}' for v in r['rss_course_mb'])}, peak {r['peak_rss_mb']:.0f}, after "
+            f"{r['rss_end_mb']:.0f}: +{growth:.0f} MB over start, {r['bytes'] / 1e9:.2f} GB ingested"
+        )
     verdict = report.get("memory")
     if verdict:
         t = verdict["thirds_mb"]
         peaks = ", ".join(f"{p:.0f}" for p in verdict["peaks_1_pass_mb"])
-        print(f"  across runs: peak {verdict['peak_mb']:.0f} MB for {verdict['gb']:.2f} GB (x{verdict['passes']}) "
-              f"against {peaks} MB for {verdict['gb_1_pass']:.2f} GB: "
-              f"{verdict['mb_per_gb_across']:+.1f} MB per extra GB")
-        print(f"  within the x{verdict['passes']} run: highest RSS per third {t[0]:.0f} / {t[1]:.0f} / {t[2]:.0f} MB: "
-              f"{verdict['mb_per_gb_within']:+.1f} MB per GB; RSS {verdict['rss_after_mb']:.0f} MB after the run")
-        print("  memory " + ("bounded: < 50 MB per GB both ways" if verdict["bounded"]
-                             else "NOT bounded: grows by >= 50 MB per GB ingested"))
+        print(
+            f"  across runs: peak {verdict['peak_mb']:.0f} MB for {verdict['gb']:.2f} GB (x{verdict['passes']}) "
+            f"against {peaks} MB for {verdict['gb_1_pass']:.2f} GB: "
+            f"{verdict['mb_per_gb_across']:+.1f} MB per extra GB"
+        )
+        print(
+            f"  within the x{verdict['passes']} run: highest RSS per third {t[0]:.0f} / {t[1]:.0f} / {t[2]:.0f} MB: "
+            f"{verdict['mb_per_gb_within']:+.1f} MB per GB; RSS {verdict['rss_after_mb']:.0f} MB after the run"
+        )
+        print(
+            "  memory "
+            + (
+                "bounded: < 50 MB per GB both ways"
+                if verdict["bounded"]
+                else "NOT bounded: grows by >= 50 MB per GB ingested"
+            )
+        )
     print()
     for r in report["runs"]:
         label = r["workload"] + (f" x{r['passes']}" if r["passes"] > 1 else "")
@@ -765,32 +913,51 @@ def main(argv: list[str] | None = None) -> None:
     if argv[:1] == ["_load"]:
         load_main(argv[1:])
         return
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--data-dir", type=Path, default=ROOT / "benchmarks" / "data",
-                        help="where codec.py's recordings live (default: benchmarks/data, gitignored)")
+    parser = argparse.ArgumentParser(
+        description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument(
+        "--data-dir",
+        type=Path,
+        default=ROOT / "benchmarks" / "data",
+        help="where codec.py's recordings live (default: benchmarks/data, gitignored)",
+    )
     parser.add_argument("--robots", type=int, default=8, help="robots = concurrent streams (default 8)")
     parser.add_argument("--procs", type=int, default=2, help="load processes the robots are spread over (default 2)")
     parser.add_argument("--repeat", type=int, default=2, help="runs per server and workload, best counts (default 2)")
     parser.add_argument("--workload", default="big,small", help="comma-separated: big, small (default both)")
     parser.add_argument("--big-mb", type=float, default=220, help="minimum size of big.rrd in MB (default 220)")
-    parser.add_argument("--small-chunks", type=int, default=50_000,
-                        help="1-row chunks in small.rrd (default 50000)")
+    parser.add_argument("--small-chunks", type=int, default=50_000, help="1-row chunks in small.rrd (default 50000)")
     parser.add_argument("--small-entities", type=int, default=100, help="entities of small.rrd (default 100)")
-    parser.add_argument("--servers", default="ours,rerun",
-                        help="comma-separated: ours, rerun (default both; the ratios need both)")
-    parser.add_argument("--client", choices=["aio", "thread"], default="aio",
-                        help="load client: grpc.aio, one task per robot (default; half the CPU per message of "
-                        "the blocking API), or the blocking API, one thread per robot")
+    parser.add_argument(
+        "--servers", default="ours,rerun", help="comma-separated: ours, rerun (default both; the ratios need both)"
+    )
+    parser.add_argument(
+        "--client",
+        choices=["aio", "thread"],
+        default="aio",
+        help="load client: grpc.aio, one task per robot (default; half the CPU per message of "
+        "the blocking API), or the blocking API, one thread per robot",
+    )
     parser.add_argument("--rerun", help="the rerun executable (default: the native binary of rerun-sdk)")
-    parser.add_argument("--rerun-memory-limit", default="16GiB",
-                        help="rerun --server-memory-limit: large enough that it drops nothing (default 16GiB)")
-    parser.add_argument("--no-read-back", action="store_true",
-                        help="skip reading rerun's history back after its first run of each workload (the check "
-                        "that it holds every chunk; ~30 s for the 1-row chunks)")
-    parser.add_argument("--memory-passes", type=int, default=3,
-                        help="then one more run of ours on big chunks with each robot sending the recording this "
-                        "many times (as new recordings): memory must not grow with the bytes (default 3; 0: skip)")
+    parser.add_argument(
+        "--rerun-memory-limit",
+        default="16GiB",
+        help="rerun --server-memory-limit: large enough that it drops nothing (default 16GiB)",
+    )
+    parser.add_argument(
+        "--no-read-back",
+        action="store_true",
+        help="skip reading rerun's history back after its first run of each workload (the check "
+        "that it holds every chunk; ~30 s for the 1-row chunks)",
+    )
+    parser.add_argument(
+        "--memory-passes",
+        type=int,
+        default=3,
+        help="then one more run of ours on big chunks with each robot sending the recording this "
+        "many times (as new recordings): memory must not grow with the bytes (default 3; 0: skip)",
+    )
     parser.add_argument("--tmp", type=Path, default=None, help="where our server's data dirs go (default: $TMPDIR)")
     parser.add_argument("--json", action="store_true", help="print the results as JSON on stdout instead of tables")
     args = parser.parse_args(argv)
@@ -809,12 +976,16 @@ def main(argv: list[str] | None = None) -> None:
     data_dir: Path = args.data_dir.resolve()
     infos = {}
     if "big" in workloads:
-        infos["big"] = ensure_recording(data_dir, "big.rrd", {"kind": "big", "big_mb": args.big_mb},
-                                        ["gen-big", str(args.big_mb)])
+        infos["big"] = ensure_recording(
+            data_dir, "big.rrd", {"kind": "big", "big_mb": args.big_mb}, ["gen-big", str(args.big_mb)]
+        )
     if "small" in workloads:
         infos["small"] = ensure_recording(
-            data_dir, "small.rrd", {"kind": "small", "chunks": args.small_chunks, "entities": args.small_entities},
-            ["gen-small", str(args.small_chunks), str(args.small_entities)])
+            data_dir,
+            "small.rrd",
+            {"kind": "small", "chunks": args.small_chunks, "entities": args.small_entities},
+            ["gen-small", str(args.small_chunks), str(args.small_entities)],
+        )
     rerun_bin, _ = find_rerun_binary(args.rerun)
     version = checked(run_process([rerun_bin, "--version"]), "rerun --version").stdout.split("(")[0].strip()
 
@@ -828,22 +999,43 @@ def main(argv: list[str] | None = None) -> None:
                 for name in order:
                     workdir = tmp_root / f"{w}-{name}-{i}"
                     workdir.mkdir()
-                    server: Server = (FleetServer(workdir) if name == "ours"
-                                      else RerunServer(workdir, rerun_bin, args.rerun_memory_limit))
+                    server: Server = (
+                        FleetServer(workdir)
+                        if name == "ours"
+                        else RerunServer(workdir, rerun_bin, args.rerun_memory_limit)
+                    )
                     log(f"{w} #{i + 1}: {name} ...")
-                    run = run_once(server, w, path, args.robots, args.procs, int(infos[w]["chunks"]), args.client,
-                                   check_rerun=i == 0 and not args.no_read_back)
-                    log(f"  {run.wall_s:.2f} s, {run.mb_s:,.1f} MB/s, {run.chunks_s:,.0f} chunks/s, peak RSS "
+                    run = run_once(
+                        server,
+                        w,
+                        path,
+                        args.robots,
+                        args.procs,
+                        int(infos[w]["chunks"]),
+                        args.client,
+                        check_rerun=i == 0 and not args.no_read_back,
+                    )
+                    log(
+                        f"  {run.wall_s:.2f} s, {run.mb_s:,.1f} MB/s, {run.chunks_s:,.0f} chunks/s, peak RSS "
                         f"{run.peak_rss_mb:,.0f} MB, server CPU {run.server_cpu_s:.1f} s, "
-                        f"load CPU {run.load_cpu_s:.1f} s, drain {run.drain_s:.1f} s; {run.check}")
+                        f"load CPU {run.load_cpu_s:.1f} s, drain {run.drain_s:.1f} s; {run.check}"
+                    )
                     runs.append(run)
                     shutil.rmtree(workdir, ignore_errors=True)
         if args.memory_passes > 1 and "big" in workloads and "ours" in servers:
             workdir = tmp_root / "memory-ours"
             workdir.mkdir()
             log(f"memory: ours, big, each robot sending the recording {args.memory_passes} times ...")
-            run = run_once(FleetServer(workdir), "big", data_dir / "big.rrd", args.robots, args.procs,
-                           int(infos["big"]["chunks"]), args.client, args.memory_passes)
+            run = run_once(
+                FleetServer(workdir),
+                "big",
+                data_dir / "big.rrd",
+                args.robots,
+                args.procs,
+                int(infos["big"]["chunks"]),
+                args.client,
+                args.memory_passes,
+            )
             log(f"  {run.wall_s:.2f} s, {run.mb_s:,.1f} MB/s, peak RSS {run.peak_rss_mb:,.0f} MB; {run.check}")
             runs.append(run)
             shutil.rmtree(workdir, ignore_errors=True)

@@ -74,8 +74,9 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--json", action="store_true")
     args = parser.parse_args(argv)
 
-    info = ensure_recording(args.data_dir.resolve(), "big.rrd", {"kind": "big", "big_mb": args.big_mb},
-                            ["gen-big", str(args.big_mb)])
+    info = ensure_recording(
+        args.data_dir.resolve(), "big.rrd", {"kind": "big", "big_mb": args.big_mb}, ["gen-big", str(args.big_mb)]
+    )
     source = args.data_dir.resolve() / "big.rrd"
     run_size = source.stat().st_size
     summary = summarize_from_footer(str(source))
@@ -93,16 +94,21 @@ def main(argv: list[str] | None = None) -> None:
     try:
         server.start()
         log(f"uploading {source} ({run_size / MB:.1f} MB) ...")
-        answer = httpx.post(f"http://127.0.0.1:{server.http_port}/v1/uploads", content=_pieces(source),
-                            timeout=600).json()
+        answer = httpx.post(
+            f"http://127.0.0.1:{server.http_port}/v1/uploads", content=_pieces(source), timeout=600
+        ).json()
         assert answer["runs"] == [run_id], answer
         url = f"http://127.0.0.1:{server.http_port}/v1/runs/{run_id}/recording.rrd"
         for name, params in (("full", {}), ("entity", {"include": chosen})):
             runs = [time_download(url, params) for _ in range(args.repeat)]
             ttfb = min(r[0] for r in runs)
             total = min(r[1] for r in runs)
-            results[f"ours_{name}"] = {"ttfb_s": ttfb, "seconds": total, "bytes_out": runs[0][2],
-                                       "mb_s": run_size / MB / total}
+            results[f"ours_{name}"] = {
+                "ttfb_s": ttfb,
+                "seconds": total,
+                "bytes_out": runs[0][2],
+                "mb_s": run_size / MB / total,
+            }
         for name, drop in (("full", []), ("entity", others)):
             out = workdir / f"filtered-{name}.rrd"
             runs2 = [time_filter(rerun_bin, source, drop, out) for _ in range(args.repeat)]
@@ -115,17 +121,42 @@ def main(argv: list[str] | None = None) -> None:
     if args.json:
         print(json.dumps(results, indent=2))
         return
-    print(f"run: {run_size / MB:.1f} MB, {info['chunks']} chunks; entity filter: include={chosen}; best of "
-          f"{args.repeat}; MB/s over the run's size; rerun rrd filter on the local file")
+    print(
+        f"run: {run_size / MB:.1f} MB, {info['chunks']} chunks; entity filter: include={chosen}; best of "
+        f"{args.repeat}; MB/s over the run's size; rerun rrd filter on the local file"
+    )
     rows = []
     for name in ("full", "entity"):
         ours, peer = results[f"ours_{name}"], results[f"rerun_{name}"]
         ratio = ours["mb_s"] / peer["mb_s"]
-        rows.append([name, f"{ours['ttfb_s'] * 1000:.1f}", f"{ours['mb_s']:.0f}", f"{ours['bytes_out'] / MB:.1f}",
-                     f"{peer['mb_s']:.0f}", f"{peer['bytes_out'] / MB:.1f}", f"{ratio:.2f}x",
-                     "met" if ratio >= RATIO_TARGET and ours["ttfb_s"] < TTFB_TARGET_S else "MISSED"])
-    print(format_table(["download", "ours first byte ms", "ours MB/s", "ours out MB", "rrd filter MB/s",
-                        "rrd filter out MB", "ours/rerun", "target (>= 2x, < 50 ms)"], rows, "lrrrrrrl"))
+        rows.append(
+            [
+                name,
+                f"{ours['ttfb_s'] * 1000:.1f}",
+                f"{ours['mb_s']:.0f}",
+                f"{ours['bytes_out'] / MB:.1f}",
+                f"{peer['mb_s']:.0f}",
+                f"{peer['bytes_out'] / MB:.1f}",
+                f"{ratio:.2f}x",
+                "met" if ratio >= RATIO_TARGET and ours["ttfb_s"] < TTFB_TARGET_S else "MISSED",
+            ]
+        )
+    print(
+        format_table(
+            [
+                "download",
+                "ours first byte ms",
+                "ours MB/s",
+                "ours out MB",
+                "rrd filter MB/s",
+                "rrd filter out MB",
+                "ours/rerun",
+                "target (>= 2x, < 50 ms)",
+            ],
+            rows,
+            "lrrrrrrl",
+        )
+    )
 
 
 if __name__ == "__main__":

@@ -49,8 +49,9 @@ def create_engine(url: str) -> sa.Engine:
         # A checkpoint at every commit: after a crash DuckDB 1.5 can replay its write-ahead log into
         # secondary indexes that then refuse to update the row ("Failed to delete all rows from
         # index", a FATAL error that invalidates the database); with no log left there is none to replay.
-        engine = sa.create_engine(url, pool_size=5, max_overflow=20,
-                                  connect_args={"config": {"checkpoint_threshold": "0b"}})
+        engine = sa.create_engine(
+            url, pool_size=5, max_overflow=20, connect_args={"config": {"checkpoint_threshold": "0b"}}
+        )
         sa.event.listen(engine, "handle_error", _embedded_catalog_locked)
         return engine
     if url.startswith("postgresql"):
@@ -69,7 +70,8 @@ def _embedded_catalog_locked(context: sa.engine.ExceptionContext) -> None:
         raise CatalogLockedError(
             f"the embedded catalog is in use by another process (PID {holder.group(1)}, probably a running "
             "`fleet serve`): stop it first; DuckDB lets one process at a time open the file (several "
-            "processes can share a Postgres catalog)") from None
+            "processes can share a Postgres catalog)"
+        ) from None
 
 
 def is_embedded(engine: sa.Engine) -> bool:

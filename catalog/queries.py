@@ -73,7 +73,11 @@ def save_run(session: Session, record: RunRecord, now: dt.datetime) -> None:
         # Data for a run already sealed (a late upload): the sealed figures stand until it is
         # sealed again with the new chunks; only its liveliness is news.
         run.status, run.ended_at, run.last_data_at, run.updated_at = (
-            record.status, record.ended_at, max(aware(run.last_data_at), record.last_data_at), now)
+            record.status,
+            record.ended_at,
+            max(aware(run.last_data_at), record.last_data_at),
+            now,
+        )
         return
     run.robot_id = record.robot_id
     run.application_id = record.application_id
@@ -92,14 +96,30 @@ def save_run(session: Session, record: RunRecord, now: dt.datetime) -> None:
     session.execute(sa.delete(RunTimeline).where(RunTimeline.run_id == record.id))
     # One multi-row statement each (not one per row): a flush rewrites every live run.
     if record.entities:
-        session.execute(sa.insert(RunEntity), [
-            {"run_id": record.id, "path": e.path, "chunks": e.chunks, "static_chunks": e.static_chunks,
-             "rows": e.rows, "bytes": e.bytes, "archetypes": json.dumps(sorted(e.archetypes)),
-             "components": json.dumps(sorted(e.components))} for e in record.entities])
+        session.execute(
+            sa.insert(RunEntity),
+            [
+                {
+                    "run_id": record.id,
+                    "path": e.path,
+                    "chunks": e.chunks,
+                    "static_chunks": e.static_chunks,
+                    "rows": e.rows,
+                    "bytes": e.bytes,
+                    "archetypes": json.dumps(sorted(e.archetypes)),
+                    "components": json.dumps(sorted(e.components)),
+                }
+                for e in record.entities
+            ],
+        )
     if record.timelines:
-        session.execute(sa.insert(RunTimeline), [
-            {"run_id": record.id, "name": t.name, "type": t.type, "min": t.min, "max": t.max}
-            for t in record.timelines])
+        session.execute(
+            sa.insert(RunTimeline),
+            [
+                {"run_id": record.id, "name": t.name, "type": t.type, "min": t.min, "max": t.max}
+                for t in record.timelines
+            ],
+        )
 
 
 @dataclass
@@ -111,8 +131,9 @@ class ObjectRecord:
     sha256: str
 
 
-def record_promotion(session: Session, record: RunRecord, prefix: str, objects: list[ObjectRecord],
-                     now: dt.datetime, detail: str) -> None:
+def record_promotion(
+    session: Session, record: RunRecord, prefix: str, objects: list[ObjectRecord], now: dt.datetime, detail: str
+) -> None:
     """The catalog side of sealing a run into the warm tier, in the caller's transaction."""
     save_run(session, record, now)
     life = session.get(RunLifecycle, record.id)
@@ -127,21 +148,39 @@ def record_promotion(session: Session, record: RunRecord, prefix: str, objects: 
 def replace_objects(session: Session, run_id: str, objects: list[ObjectRecord]) -> None:
     session.execute(sa.delete(RunObject).where(RunObject.run_id == run_id))
     if objects:
-        session.execute(sa.insert(RunObject), [
-            {"run_id": run_id, "name": o.name, "key": o.key, "tier": o.tier, "size": o.size, "sha256": o.sha256}
-            for o in objects])
+        session.execute(
+            sa.insert(RunObject),
+            [
+                {"run_id": run_id, "name": o.name, "key": o.key, "tier": o.tier, "size": o.size, "sha256": o.sha256}
+                for o in objects
+            ],
+        )
 
 
-def add_event(session: Session, run_id: str, action: str, now: dt.datetime, actor: str, policy: str | None,
-              detail: str = "") -> None:
-    session.add(RetentionEvent(id=uuid.uuid4().hex, run_id=run_id, action=action, occurred_at=now, actor=actor,
-                               policy=policy, detail=detail))
+def add_event(
+    session: Session, run_id: str, action: str, now: dt.datetime, actor: str, policy: str | None, detail: str = ""
+) -> None:
+    session.add(
+        RetentionEvent(
+            id=uuid.uuid4().hex,
+            run_id=run_id,
+            action=action,
+            occurred_at=now,
+            actor=actor,
+            policy=policy,
+            detail=detail,
+        )
+    )
 
 
 def analytics_keys(session: Session, run_id: str) -> set[str]:
     """Keys of the analytics files the catalog holds for a run."""
-    return {o.key for o in session.scalars(sa.select(RunObject).where(RunObject.run_id == run_id,
-                                                                       RunObject.name.like("analytics/%")))}
+    return {
+        o.key
+        for o in session.scalars(
+            sa.select(RunObject).where(RunObject.run_id == run_id, RunObject.name.like("analytics/%"))
+        )
+    }
 
 
 def replace_analytics(session: Session, run_id: str, objects: list[ObjectRecord]) -> set[str]:
@@ -149,9 +188,13 @@ def replace_analytics(session: Session, run_id: str, objects: list[ObjectRecord]
     old = analytics_keys(session, run_id)
     session.execute(sa.delete(RunObject).where(RunObject.run_id == run_id, RunObject.name.like("analytics/%")))
     if objects:
-        session.execute(sa.insert(RunObject), [
-            {"run_id": run_id, "name": o.name, "key": o.key, "tier": o.tier, "size": o.size, "sha256": o.sha256}
-            for o in objects])
+        session.execute(
+            sa.insert(RunObject),
+            [
+                {"run_id": run_id, "name": o.name, "key": o.key, "tier": o.tier, "size": o.size, "sha256": o.sha256}
+                for o in objects
+            ],
+        )
     return old - {o.key for o in objects}
 
 
@@ -162,8 +205,13 @@ def pin_state(session: Session, run_id: str) -> tuple[bool, str | None]:
 
 
 def run_events(session: Session, run_id: str) -> list[RetentionEvent]:
-    return list(session.scalars(sa.select(RetentionEvent).where(RetentionEvent.run_id == run_id)
-                                .order_by(RetentionEvent.occurred_at, RetentionEvent.id)))
+    return list(
+        session.scalars(
+            sa.select(RetentionEvent)
+            .where(RetentionEvent.run_id == run_id)
+            .order_by(RetentionEvent.occurred_at, RetentionEvent.id)
+        )
+    )
 
 
 def lifecycle(session: Session, run_id: str) -> RunLifecycle | None:
@@ -176,8 +224,12 @@ def run_objects(session: Session, run_id: str) -> dict[str, RunObject]:
 
 def sealed_runs(session: Session, tiers: tuple[str, ...]) -> list[tuple[Run, RunLifecycle]]:
     """Runs in the given tiers with their lifecycle rows, oldest end first."""
-    query = (sa.select(Run, RunLifecycle).join(RunLifecycle, RunLifecycle.run_id == Run.id)
-             .where(Run.tier.in_(tiers)).order_by(sa.func.coalesce(Run.ended_at, Run.last_data_at), Run.id))
+    query = (
+        sa.select(Run, RunLifecycle)
+        .join(RunLifecycle, RunLifecycle.run_id == Run.id)
+        .where(Run.tier.in_(tiers))
+        .order_by(sa.func.coalesce(Run.ended_at, Run.last_data_at), Run.id)
+    )
     return [(run, life) for run, life in session.execute(query).all()]
 
 
@@ -229,13 +281,28 @@ def run_record(session: Session, run_id: str) -> RunRecord | None:
     if run is None:
         return None
     return RunRecord(
-        id=run.id, robot_id=run.robot_id, application_id=run.application_id, date=run.date, status=run.status,
-        tier=run.tier, started_at=_aware_or_none(run.started_at), ended_at=_aware_or_none(run.ended_at),
-        last_data_at=aware(run.last_data_at), sdk_version=run.sdk_version, chunks=run.chunks, rows=run.rows,
-        bytes=run.bytes, properties=json.loads(run.properties),
-        entities=[EntityRecord(e.path, e.chunks, e.static_chunks, e.rows, e.bytes, json.loads(e.archetypes),
-                               json.loads(e.components)) for e in run_entities(session, run_id)],
-        timelines=[TimelineRecord(t.name, t.type, t.min, t.max) for t in run_timelines(session, run_id)])
+        id=run.id,
+        robot_id=run.robot_id,
+        application_id=run.application_id,
+        date=run.date,
+        status=run.status,
+        tier=run.tier,
+        started_at=_aware_or_none(run.started_at),
+        ended_at=_aware_or_none(run.ended_at),
+        last_data_at=aware(run.last_data_at),
+        sdk_version=run.sdk_version,
+        chunks=run.chunks,
+        rows=run.rows,
+        bytes=run.bytes,
+        properties=json.loads(run.properties),
+        entities=[
+            EntityRecord(
+                e.path, e.chunks, e.static_chunks, e.rows, e.bytes, json.loads(e.archetypes), json.loads(e.components)
+            )
+            for e in run_entities(session, run_id)
+        ],
+        timelines=[TimelineRecord(t.name, t.type, t.min, t.max) for t in run_timelines(session, run_id)],
+    )
 
 
 def _aware_or_none(value: dt.datetime | None) -> dt.datetime | None:
@@ -247,8 +314,7 @@ def run_entities(session: Session, run_id: str) -> list[RunEntity]:
 
 
 def run_timelines(session: Session, run_id: str) -> list[RunTimeline]:
-    return list(session.scalars(sa.select(RunTimeline).where(RunTimeline.run_id == run_id)
-                                .order_by(RunTimeline.name)))
+    return list(session.scalars(sa.select(RunTimeline).where(RunTimeline.run_id == run_id).order_by(RunTimeline.name)))
 
 
 def list_robots(session: Session) -> list[Robot]:

@@ -38,10 +38,14 @@ def check_id(kind: str, value: str) -> str:
 def check_name(kind: str, value: str, limit: int = NAME_BYTES) -> str:
     """`value` if the catalog can hold it (no NUL character, at most `limit` UTF-8 bytes)."""
     if "\x00" in value:
-        raise InvalidNameError(f"{kind} {value[:80]!r} contains a NUL character, which the catalog cannot "
-                               "store: remove it in the robot's logging code")
+        raise InvalidNameError(
+            f"{kind} {value[:80]!r} contains a NUL character, which the catalog cannot "
+            "store: remove it in the robot's logging code"
+        )
     size = len(value.encode("utf-8", "surrogatepass"))
     if size > limit:
-        raise InvalidNameError(f"{kind} {value[:80]!r}... is {size} bytes long, over the limit of {limit}: "
-                               "use a shorter one in the robot's logging code")
+        raise InvalidNameError(
+            f"{kind} {value[:80]!r}... is {size} bytes long, over the limit of {limit}: "
+            "use a shorter one in the robot's logging code"
+        )
     return value

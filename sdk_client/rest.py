@@ -40,8 +40,9 @@ class FleetClient:
     def __init__(self, api_url: str, *, timeout: float = 300.0, user: str | None = None) -> None:
         self.api_url = api_url.rstrip("/")
         # Who asks, recorded by the service with pins, restores and deletes.
-        self._http = httpx.Client(base_url=self.api_url, timeout=timeout,
-                                  headers={"X-Fleet-User": user or _default_user()})
+        self._http = httpx.Client(
+            base_url=self.api_url, timeout=timeout, headers={"X-Fleet-User": user or _default_user()}
+        )
 
     def close(self) -> None:
         self._http.close()
@@ -62,8 +63,9 @@ class FleetClient:
                     if on_progress is not None:
                         on_progress(len(piece))
 
-        return self._request("POST", "/v1/uploads", content=pieces(),
-                             headers={"Content-Type": "application/vnd.rerun.rrd"})
+        return self._request(
+            "POST", "/v1/uploads", content=pieces(), headers={"Content-Type": "application/vnd.rerun.rrd"}
+        )
 
     def runs(self, **params: Any) -> dict[str, Any]:
         """`GET /v1/runs` with its filters (robot, application, since, until, status, tier, entity,
@@ -87,8 +89,7 @@ class FleetClient:
         except httpx.TransportError as exc:
             raise self._unreachable(exc) from exc
 
-    def download(self, run_id: str, out: Path, on_progress: Callable[[int], None] | None = None,
-                 **params: Any) -> int:
+    def download(self, run_id: str, out: Path, on_progress: Callable[[int], None] | None = None, **params: Any) -> int:
         """Stream a run's recording to `out`; returns the bytes written."""
         url = self.recording_url(run_id, **params)
         written = 0
@@ -173,8 +174,9 @@ class FleetClient:
         return body
 
     def _unreachable(self, exc: Exception) -> UnreachableError:
-        return UnreachableError(f"cannot reach the fleet service at {self.api_url} ({exc}); "
-                                "is it running? set FLEET_API_URL")
+        return UnreachableError(
+            f"cannot reach the fleet service at {self.api_url} ({exc}); is it running? set FLEET_API_URL"
+        )
 
 
 def _check(response: httpx.Response) -> None:
@@ -187,6 +189,7 @@ def _check(response: httpx.Response) -> None:
     except ValueError:
         body = {"message": response.text[:500]}
     raise ServiceError(str(body.get("message", response.reason_phrase)), response.status_code, body)
+
 
 def _default_user() -> str:
     try:

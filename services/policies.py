@@ -58,15 +58,19 @@ class Policies:
     def for_run(self, robot_id: str, application_id: str) -> Policy:
         """The policy of a run: an override for its robot, else for its application, else the default."""
         match = next((o for o in self.overrides if o.robot == robot_id), None) or next(
-            (o for o in self.overrides if o.application == application_id), None)
+            (o for o in self.overrides if o.application == application_id), None
+        )
         return self.default if match is None else self._resolved(match)
 
     def _resolved(self, override: PolicyOverride) -> Policy:
-        return Policy(override.name,
-                      self.default.warm_days if override.warm_days is None else override.warm_days,
-                      self.default.cold_days if override.cold_days is None else override.cold_days)
+        return Policy(
+            override.name,
+            self.default.warm_days if override.warm_days is None else override.warm_days,
+            self.default.cold_days if override.cold_days is None else override.cold_days,
+        )
 
     def to_dict(self) -> dict[str, object]:
-        return {"default": self.default.to_dict(),
-                "overrides": [{**o.model_dump(exclude_none=True), **self._resolved(o).to_dict()}
-                              for o in self.overrides]}
+        return {
+            "default": self.default.to_dict(),
+            "overrides": [{**o.model_dump(exclude_none=True), **self._resolved(o).to_dict()} for o in self.overrides],
+        }

@@ -44,22 +44,47 @@ def split_addr(addr: str) -> tuple[str, int]:
 
 def build(settings: Settings) -> tuple[IngestService, Retention, Analytics]:
     """The ingest, retention and analytics sides of one node, sharing the catalog and the stores."""
-    hot = HotStore(settings.hot_dir, durability=settings.durability, interval_ms=settings.group_commit_ms,
-                   min_free_bytes=settings.min_free_bytes)
+    hot = HotStore(
+        settings.hot_dir,
+        durability=settings.durability,
+        interval_ms=settings.group_commit_ms,
+        min_free_bytes=settings.min_free_bytes,
+    )
     catalog = sessionmaker(create_engine(settings.catalog_url))
     tiers = open_tiers(settings)
     replay = ReplayHub(settings.replay_bytes) if settings.replay_bytes else None
-    ingest = IngestService(hot, catalog, default_robot=settings.default_robot,
-                           max_streams=settings.max_streams, close_after=dt.timedelta(seconds=settings.close_after_s),
-                           replay=replay, sealed_lookup=sealed_lookup(catalog, tiers),
-                           secret_fields=SecretFields(settings.secret_fields))
-    retention = Retention(catalog, tiers, settings.policies, ingest,
-                          promote_after=dt.timedelta(seconds=settings.promote_after_s),
-                          promote_below_free_bytes=settings.promote_below_free_bytes,
-                          restore_days=settings.restore_days, reserve_bytes=settings.reserve_bytes)
-    analytics = Analytics(catalog, tiers.warm, Limits(settings.sql_max_rows, settings.sql_timeout_s,
-                                                      settings.sql_memory_limit, settings.sql_threads,
-                                                      settings.sql_workers, settings.sql_queue))
+    ingest = IngestService(
+        hot,
+        catalog,
+        default_robot=settings.default_robot,
+        max_streams=settings.max_streams,
+        close_after=dt.timedelta(seconds=settings.close_after_s),
+        replay=replay,
+        sealed_lookup=sealed_lookup(catalog, tiers),
+        secret_fields=SecretFields(settings.secret_fields),
+    )
+    retention = Retention(
+        catalog,
+        tiers,
+        settings.policies,
+        ingest,
+        promote_after=dt.timedelta(seconds=settings.promote_after_s),
+        promote_below_free_bytes=settings.promote_below_free_bytes,
+        restore_days=settings.restore_days,
+        reserve_bytes=settings.reserve_bytes,
+    )
+    analytics = Analytics(
+        catalog,
+        tiers.warm,
+        Limits(
+            settings.sql_max_rows,
+            settings.sql_timeout_s,
+            settings.sql_memory_limit,
+            settings.sql_threads,
+            settings.sql_workers,
+            settings.sql_queue,
+        ),
+    )
     return ingest, retention, analytics
 
 
@@ -79,8 +104,11 @@ async def _housekeeping(ingest: IngestService, reserve: DiskReserve, every: floa
         try:
             await asyncio.to_thread(ingest.save_records, records)
         except Exception as exc:
-            log.warning("catalog update failed (%s: %s); the runs are safe on disk, retrying",
-                        type(exc).__name__, str(exc).splitlines()[0][:200] if str(exc) else "")
+            log.warning(
+                "catalog update failed (%s: %s); the runs are safe on disk, retrying",
+                type(exc).__name__,
+                str(exc).splitlines()[0][:200] if str(exc) else "",
+            )
         if not reserve.held:
             await asyncio.to_thread(reserve.ensure)
 
@@ -122,8 +150,11 @@ async def serve(settings: Settings) -> None:
     reserve = DiskReserve(settings.data_dir, settings.reserve_bytes)
     await asyncio.to_thread(reserve.ensure)
     housekeeping = asyncio.create_task(_housekeeping(ingest, reserve, settings.catalog_flush_s))
-    scheduler = (start_scheduler(retention, settings.promote_interval_s, settings.retention_interval_s)
-                 if settings.scheduler else None)
+    scheduler = (
+        start_scheduler(retention, settings.promote_interval_s, settings.retention_interval_s)
+        if settings.scheduler
+        else None
+    )
     try:
         await http.serve(sockets=[http_socket])
     finally:

@@ -34,73 +34,112 @@ class Durability(enum.StrEnum):
 # Property fields never written to disk nor served (FLEET_SECRET_FIELDS): a field is secret when
 # one of these, as words, appears in its name (see SecretFields).
 DEFAULT_SECRET_FIELDS = (
-    "token", "password", "passwd", "secret", "api_key", "apikey", "access_key", "secret_key", "private_key",
-    "credential", "credentials", "authorization", "auth_token",
+    "token",
+    "password",
+    "passwd",
+    "secret",
+    "api_key",
+    "apikey",
+    "access_key",
+    "secret_key",
+    "private_key",
+    "credential",
+    "credentials",
+    "authorization",
+    "auth_token",
 )
 
 
 class Settings(BaseSettings):
     model_config = SettingsConfigDict(env_prefix="FLEET_", extra="forbid")
 
-    data_dir: Path = Field(Path("./fleet-data"),
-                           description="hot tier and embedded defaults live here; one fleet serve per data dir")
+    data_dir: Path = Field(
+        Path("./fleet-data"), description="hot tier and embedded defaults live here; one fleet serve per data dir"
+    )
     http_addr: str = Field("0.0.0.0:8080", description="REST API address")
-    grpc_addr: str = Field("0.0.0.0:51234", description="Rerun message proxy address (Rerun's server port; "
-                           "9876 is the viewer's)")
-    catalog_url: str = Field("", description="duckdb:///PATH or postgresql+psycopg://... "
-                             "(default: DuckDB file in the data dir)")
+    grpc_addr: str = Field(
+        "0.0.0.0:51234", description="Rerun message proxy address (Rerun's server port; 9876 is the viewer's)"
+    )
+    catalog_url: str = Field(
+        "", description="duckdb:///PATH or postgresql+psycopg://... (default: DuckDB file in the data dir)"
+    )
     warm_url: str = Field("", description="file:///PATH or s3://bucket/prefix (default: data dir/warm)")
     cold_url: str = Field("", description="file:///PATH or s3://bucket/prefix (default: data dir/cold)")
     s3_endpoint_url: str | None = Field(None, description="S3-compatible endpoint; credentials from AWS_*")
     s3_region: str | None = Field(None, description="S3 region (default: from AWS_* settings)")
-    cold_storage_class: str = Field("", description="archive by moving warm objects to this S3 storage class "
-                                    "(GLACIER, DEEP_ARCHIVE, STANDARD_IA, ...) instead of copying to cold_url")
-    max_message_size: int = Field(DEFAULT_MAX_MESSAGE_SIZE, gt=0,
-                                  description="largest RRD/gRPC message accepted, in bytes")
-    max_chunk_bytes: int = Field(DEFAULT_MAX_CHUNK_BYTES, gt=0,
-                                 description="largest chunk accepted once decompressed, in bytes (checked "
-                                 "before decompressing: LZ4 may declare 255x its size)")
-    decompress_budget_bytes: int = Field(DEFAULT_DECOMPRESS_BUDGET_BYTES, gt=0,
-                                         description="decompressed chunk bytes held at once by all readers "
-                                         "of stored runs (downloads, sealing) together")
+    cold_storage_class: str = Field(
+        "",
+        description="archive by moving warm objects to this S3 storage class "
+        "(GLACIER, DEEP_ARCHIVE, STANDARD_IA, ...) instead of copying to cold_url",
+    )
+    max_message_size: int = Field(
+        DEFAULT_MAX_MESSAGE_SIZE, gt=0, description="largest RRD/gRPC message accepted, in bytes"
+    )
+    max_chunk_bytes: int = Field(
+        DEFAULT_MAX_CHUNK_BYTES,
+        gt=0,
+        description="largest chunk accepted once decompressed, in bytes (checked "
+        "before decompressing: LZ4 may declare 255x its size)",
+    )
+    decompress_budget_bytes: int = Field(
+        DEFAULT_DECOMPRESS_BUDGET_BYTES,
+        gt=0,
+        description="decompressed chunk bytes held at once by all readers of stored runs (downloads, sealing) together",
+    )
     secret_fields: Annotated[list[str], NoDecode] = Field(
         default_factory=lambda: list(DEFAULT_SECRET_FIELDS),
         description="recording property fields never stored nor served: a field is secret if one of these "
         "names, as words, appears in its name (token matches ingest_token, apiKey matches api_key; a JSON list "
-        "or comma-separated)")
-    durability: Durability = Field(Durability.INTERVAL,
-                                   description="hot-tier fsync: always (before answering) | interval (group "
-                                   "commit) | off")
+        "or comma-separated)",
+    )
+    durability: Durability = Field(
+        Durability.INTERVAL, description="hot-tier fsync: always (before answering) | interval (group commit) | off"
+    )
     group_commit_ms: int = Field(200, gt=0, description="with durability=interval, fsync every this many ms")
     min_free_bytes: int = Field(1 << 30, ge=0, description="refuse new data when the hot disk has less free")
-    reserve_bytes: int = Field(64 << 20, ge=0, description="held in reserve on the data disk for the catalog "
-                               "(released when the disk is full); promotion never takes the disk below it")
+    reserve_bytes: int = Field(
+        64 << 20,
+        ge=0,
+        description="held in reserve on the data disk for the catalog "
+        "(released when the disk is full); promotion never takes the disk below it",
+    )
     max_streams: int = Field(1000, gt=0, description="most concurrent gRPC streams on this node")
     close_after_s: float = Field(60.0, gt=0, description="a live run with no data for this long is closed")
-    replay_bytes: int = Field(64 * 1024 * 1024, ge=0,
-                              description="recent live data kept for ReadMessages readers (0: none)")
+    replay_bytes: int = Field(
+        64 * 1024 * 1024, ge=0, description="recent live data kept for ReadMessages readers (0: none)"
+    )
     catalog_flush_s: float = Field(2.0, gt=0, description="how often live runs' figures are written to the catalog")
     promote_after_s: float = Field(600.0, ge=0, description="a closed run idle this long is sealed into the warm tier")
-    promote_below_free_bytes: int = Field(4 << 30, ge=0, description="hot high-water mark: with less free disk, "
-                                          "closed runs are promoted oldest first ahead of promote_after_s")
+    promote_below_free_bytes: int = Field(
+        4 << 30,
+        ge=0,
+        description="hot high-water mark: with less free disk, "
+        "closed runs are promoted oldest first ahead of promote_after_s",
+    )
     warm_days: float = Field(30.0, ge=0, description="default policy: days warm before archiving to cold")
     cold_days: float = Field(365.0, ge=0, description="default policy: days cold before deletion (0: none)")
     restore_days: float = Field(7.0, gt=0, description="a restored cold run serves for this many days")
     retention_policies: list[PolicyOverride] = Field(
-        default_factory=list, description="overrides by robot or application: a JSON list or TOML "
-        "[[retention_policies]] tables of name, robot|application, warm_days, cold_days")
+        default_factory=list,
+        description="overrides by robot or application: a JSON list or TOML "
+        "[[retention_policies]] tables of name, robot|application, warm_days, cold_days",
+    )
     promote_interval_s: float = Field(30.0, gt=0, description="how often the promotion job runs")
     retention_interval_s: float = Field(600.0, gt=0, description="how often archive, restore and expiry jobs run")
     scheduler: bool = Field(True, description="run the retention jobs inside fleet serve")
     sql_max_rows: int = Field(100_000, gt=0, description="most rows a SQL answer may have")
     sql_timeout_s: float = Field(30.0, gt=0, description="a SQL query running longer is stopped")
-    sql_memory_limit: str = Field("2GB", pattern=r"(?i)^\s*\d+(\.\d+)?\s*([kmgt]i?b|b)?\s*$",
-                                  description="memory a SQL query's worker process may use (e.g. 2GB, 512MiB)")
+    sql_memory_limit: str = Field(
+        "2GB",
+        pattern=r"(?i)^\s*\d+(\.\d+)?\s*([kmgt]i?b|b)?\s*$",
+        description="memory a SQL query's worker process may use (e.g. 2GB, 512MiB)",
+    )
     sql_threads: int = Field(4, gt=0, description="threads a SQL query may use")
     sql_workers: int = Field(2, gt=0, description="SQL queries running at once, each in a worker process")
     sql_queue: int = Field(8, ge=0, description="SQL queries waiting for a worker; more are refused (429)")
-    default_robot: str = Field("unknown-robot", pattern=r"^[A-Za-z0-9._-]{1,128}$",
-                               description="robot id of runs that name none")
+    default_robot: str = Field(
+        "unknown-robot", pattern=r"^[A-Za-z0-9._-]{1,128}$", description="robot id of runs that name none"
+    )
 
     @property
     def hot_dir(self) -> Path:
@@ -122,8 +161,10 @@ class Settings(BaseSettings):
     @model_validator(mode="after")
     def _budget_holds_a_chunk(self) -> Settings:
         if self.decompress_budget_bytes < self.max_chunk_bytes:
-            raise ValueError(f"decompress_budget_bytes ({self.decompress_budget_bytes}) must be at least "
-                             f"max_chunk_bytes ({self.max_chunk_bytes}): the largest chunk must fit in it")
+            raise ValueError(
+                f"decompress_budget_bytes ({self.decompress_budget_bytes}) must be at least "
+                f"max_chunk_bytes ({self.max_chunk_bytes}): the largest chunk must fit in it"
+            )
         return self
 
     @model_validator(mode="after")

@@ -45,7 +45,8 @@ def hold_data_dir(data_dir: Path) -> Iterator[None]:
             holder = os.pread(fd, 32, 0).decode(errors="replace").strip() or "unknown"
             raise DataDirInUseError(
                 f"the data dir is in use by another `fleet serve` (PID {holder}): stop that one, or give this one "
-                "its own data dir (--data-dir or FLEET_DATA_DIR)") from None
+                "its own data dir (--data-dir or FLEET_DATA_DIR)"
+            ) from None
         os.ftruncate(fd, 0)
         os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
         yield
@@ -65,8 +66,10 @@ def _refusal(exc: OSError, host: str, port: int, what: str, setting: str) -> Add
         problem = "needs privileges this process lacks (ports below 1024)"
     else:
         problem = f"cannot be used here ({exc.strerror or exc})"
-    return AddressError(f"the {what} address {addr} {problem}: set another with --{setting.replace('_', '-')} "
-                        f"or FLEET_{setting.upper()}")
+    return AddressError(
+        f"the {what} address {addr} {problem}: set another with --{setting.replace('_', '-')} "
+        f"or FLEET_{setting.upper()}"
+    )
 
 
 def listen(host: str, port: int, what: str, setting: str) -> socket.socket:

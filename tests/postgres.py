@@ -22,8 +22,12 @@ def admin_engine() -> sa.Engine:
         # The machine's server may be stopped: start it (as the developers' guide says), once.
         versions = os.listdir("/etc/postgresql") if os.path.isdir("/etc/postgresql") else []
         if versions:
-            subprocess.run(["pg_ctlcluster", "--skip-systemctl-redirect", versions[0], "main", "start"],
-                           check=False, capture_output=True, timeout=60)
+            subprocess.run(
+                ["pg_ctlcluster", "--skip-systemctl-redirect", versions[0], "main", "start"],
+                check=False,
+                capture_output=True,
+                timeout=60,
+            )
         with engine.connect():
             return engine
 

@@ -52,11 +52,24 @@ class SeaweedFS:
         data_dir.mkdir(parents=True, exist_ok=True)
         self.s3, self.master, self.volume, self.filer = (_port_pair() for _ in range(4))
         # no Iceberg or Lance listeners (fixed default ports); a quick raft election on a restart
-        argv = [weed_binary(), "server", f"-dir={data_dir}", "-ip=127.0.0.1", "-ip.bind=127.0.0.1", "-s3",
-                f"-s3.port={self.s3}", "-s3.port.iceberg=0", "-s3.port.lance=0", f"-master.port={self.master}",
-                f"-volume.port={self.volume}", f"-filer.port={self.filer}", "-master.electionTimeout=1s"]
-        self.process = ServerProcess(argv, log=data_dir.parent / f"{data_dir.name}-weed.log", name="weed",
-                                     ready=answers_http(self.endpoint))
+        argv = [
+            weed_binary(),
+            "server",
+            f"-dir={data_dir}",
+            "-ip=127.0.0.1",
+            "-ip.bind=127.0.0.1",
+            "-s3",
+            f"-s3.port={self.s3}",
+            "-s3.port.iceberg=0",
+            "-s3.port.lance=0",
+            f"-master.port={self.master}",
+            f"-volume.port={self.volume}",
+            f"-filer.port={self.filer}",
+            "-master.electionTimeout=1s",
+        ]
+        self.process = ServerProcess(
+            argv, log=data_dir.parent / f"{data_dir.name}-weed.log", name="weed", ready=answers_http(self.endpoint)
+        )
 
     @property
     def endpoint(self) -> str:
@@ -72,8 +85,13 @@ class SeaweedFS:
             self.process.kill()
 
     def client(self) -> Any:
-        return boto3.client("s3", endpoint_url=self.endpoint, region_name="us-east-1", aws_access_key_id="test",
-                            aws_secret_access_key="test")
+        return boto3.client(
+            "s3",
+            endpoint_url=self.endpoint,
+            region_name="us-east-1",
+            aws_access_key_id="test",
+            aws_secret_access_key="test",
+        )
 
 
 @contextmanager

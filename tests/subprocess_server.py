@@ -25,6 +25,7 @@ def free_port() -> int:
 
 def answers_http(url: str, ok: Callable[[httpx.Response], bool] = lambda _: True) -> Callable[[], bool]:
     """A readiness check: `url` answers (and the answer passes `ok`)."""
+
     def check() -> bool:
         try:
             return ok(httpx.get(url, timeout=1))
@@ -38,9 +39,16 @@ class ServerProcess:
     """A command run as a server: its output goes to `log` (appended: a restarted server adds to
     it; its errors too unless `errors_log` is given), and `start` returns once `ready()` is true."""
 
-    def __init__(self, argv: Sequence[str], *, log: Path, ready: Callable[[], bool],
-                 env: Mapping[str, str] | None = None, name: str | None = None,
-                 errors_log: Path | None = None) -> None:
+    def __init__(
+        self,
+        argv: Sequence[str],
+        *,
+        log: Path,
+        ready: Callable[[], bool],
+        env: Mapping[str, str] | None = None,
+        name: str | None = None,
+        errors_log: Path | None = None,
+    ) -> None:
         self.argv = list(argv)
         self.env = dict(env) if env is not None else None
         self.log = log
@@ -73,8 +81,9 @@ class ServerProcess:
         deadline = time.monotonic() + timeout
         while True:
             if self.proc.poll() is not None:
-                raise AssertionError(f"{self.name} exited with {self.proc.returncode} while waiting for {what}:\n"
-                                     f"{self.log_tail()}")
+                raise AssertionError(
+                    f"{self.name} exited with {self.proc.returncode} while waiting for {what}:\n{self.log_tail()}"
+                )
             if condition():
                 return
             if time.monotonic() > deadline:

@@ -94,8 +94,10 @@ def violations(found: list[tuple[Path, str, str]]) -> list[str]:
         if unit in ONLY and target not in ONLY[unit]:
             wrong.append(f"{path.relative_to(ROOT)}: {unit} imports {module}, but may import only {sorted(ONLY[unit])}")
         elif LAYERS[target] >= LAYERS[unit]:
-            wrong.append(f"{path.relative_to(ROOT)}: {unit} (layer {LAYERS[unit]}) imports {module} "
-                         f"(layer {LAYERS[target]}): lower layers never import higher ones")
+            wrong.append(
+                f"{path.relative_to(ROOT)}: {unit} (layer {LAYERS[unit]}) imports {module} "
+                f"(layer {LAYERS[target]}): lower layers never import higher ones"
+            )
     return wrong
 
 

@@ -30,7 +30,10 @@ LOG_TIME = "log_time"
 SCALARS = "Scalars:scalars"
 TEXT, LEVEL = "TextLog:text", "TextLog:level"
 TRANSLATION, QUATERNION, AXIS_ANGLE = (
-    "Transform3D:translation", "Transform3D:quaternion", "Transform3D:rotation_axis_angle")
+    "Transform3D:translation",
+    "Transform3D:quaternion",
+    "Transform3D:rotation_axis_angle",
+)
 
 FIXED_COLUMNS = {
     "scalars": ("run_id", "entity", "component", "instance", "value"),
@@ -77,10 +80,18 @@ class Extractor:
         offsets = np.asarray(column.offsets)
         instance = np.arange(len(values), dtype=np.int64) + offsets[0] - offsets[rows]
         n = len(values)
-        self._emit("scalars", {
-            "run_id": pa.array([self.run_id] * n, pa.string()), "entity": pa.array([entity] * n, pa.string()),
-            "component": pa.array([SCALARS] * n, pa.string()), "instance": pa.array(instance.astype(np.int32)),
-            "value": pc.cast(values, pa.float64())}, times, rows)
+        self._emit(
+            "scalars",
+            {
+                "run_id": pa.array([self.run_id] * n, pa.string()),
+                "entity": pa.array([entity] * n, pa.string()),
+                "component": pa.array([SCALARS] * n, pa.string()),
+                "instance": pa.array(instance.astype(np.int32)),
+                "value": pc.cast(values, pa.float64()),
+            },
+            times,
+            rows,
+        )
 
     def _text_logs(self, entity: str, text: pa.Array, level: pa.Array | None, times: dict[str, pa.Array]) -> None:
         texts, has = _first(text)
@@ -89,9 +100,17 @@ class Extractor:
             return
         levels = _first(level)[0] if level is not None else pa.nulls(len(text), pa.string())
         n = len(rows)
-        self._emit("text_logs", {
-            "run_id": pa.array([self.run_id] * n, pa.string()), "entity": pa.array([entity] * n, pa.string()),
-            "level": levels.take(pa.array(rows)), "text": texts.take(pa.array(rows))}, times, rows)
+        self._emit(
+            "text_logs",
+            {
+                "run_id": pa.array([self.run_id] * n, pa.string()),
+                "entity": pa.array([entity] * n, pa.string()),
+                "level": levels.take(pa.array(rows)),
+                "text": texts.take(pa.array(rows)),
+            },
+            times,
+            rows,
+        )
 
     def _transforms(self, entity: str, columns: dict[str, pa.Array], times: dict[str, pa.Array]) -> None:
         length = len(next(iter(times.values()))) if times else len(next(iter(columns.values())))
@@ -105,8 +124,10 @@ class Extractor:
         if len(rows) == 0:
             return
         n = len(rows)
-        out: dict[str, pa.Array] = {"run_id": pa.array([self.run_id] * n, pa.string()),
-                                    "entity": pa.array([entity] * n, pa.string())}
+        out: dict[str, pa.Array] = {
+            "run_id": pa.array([self.run_id] * n, pa.string()),
+            "entity": pa.array([entity] * n, pa.string()),
+        }
         for i, name in enumerate(("tx", "ty", "tz")):
             out[name] = pa.array(translation[rows, i], pa.float64(), mask=~has_t[rows])
         for i, name in enumerate(("qx", "qy", "qz", "qw")):
@@ -123,8 +144,9 @@ class Extractor:
 
     def tables(self) -> dict[str, pa.Table]:
         """Each non-empty table, its per-chunk pieces unified (runs may add timelines as they go)."""
-        return {name: pa.concat_tables(parts, promote_options="permissive")
-                for name, parts in self.batches.items() if parts}
+        return {
+            name: pa.concat_tables(parts, promote_options="permissive") for name, parts in self.batches.items() if parts
+        }
 
 
 def to_parquet(table: pa.Table) -> bytes:
@@ -159,8 +181,11 @@ def _first(column: pa.Array) -> tuple[pa.Array, np.ndarray]:
     valid = np.asarray(column.is_valid())
     has = valid & (offsets[1:] > offsets[:-1])
     values = column.values
-    first = values.take(pa.array(np.where(has, offsets[:-1], 0).astype(np.int64))) if len(values) else \
-        pa.nulls(len(column), values.type)
+    first = (
+        values.take(pa.array(np.where(has, offsets[:-1], 0).astype(np.int64)))
+        if len(values)
+        else pa.nulls(len(column), values.type)
+    )
     return pc.if_else(pa.array(has), first, pa.nulls(len(column), values.type)), has
 
 
@@ -171,7 +196,7 @@ def _vectors(column: pa.Array | None, width: int, length: int) -> tuple[np.ndarr
     first, has = _first(column)
     flat = np.asarray(first.values.to_numpy(zero_copy_only=False), dtype=np.float64)
     start = first.offset * width
-    return flat[start:start + len(first) * width].reshape(len(first), width), has
+    return flat[start : start + len(first) * width].reshape(len(first), width), has
 
 
 def _axis_angle_quaternions(column: pa.Array, length: int) -> tuple[np.ndarray, np.ndarray]:

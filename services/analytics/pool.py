@@ -51,9 +51,13 @@ log = logging.getLogger(__name__)
 POLL_S = 0.02  # how often a running worker's clock and memory are checked
 START_S = 60.0  # a worker not ready (imports done) this long after it started is broken
 _ERRORS: dict[str, type[FleetError]] = {
-    ErrorCode.SQL_NOT_ALLOWED.value: SqlNotAllowedError, ErrorCode.INVALID_SQL.value: InvalidSqlError,
-    ErrorCode.QUERY_TIMEOUT.value: QueryTimeoutError, ErrorCode.RESULT_TOO_LARGE.value: ResultTooLargeError,
-    ErrorCode.QUERY_OUT_OF_MEMORY.value: QueryOutOfMemoryError, StorageError.code.value: StorageError}
+    ErrorCode.SQL_NOT_ALLOWED.value: SqlNotAllowedError,
+    ErrorCode.INVALID_SQL.value: InvalidSqlError,
+    ErrorCode.QUERY_TIMEOUT.value: QueryTimeoutError,
+    ErrorCode.RESULT_TOO_LARGE.value: ResultTooLargeError,
+    ErrorCode.QUERY_OUT_OF_MEMORY.value: QueryOutOfMemoryError,
+    StorageError.code.value: StorageError,
+}
 
 
 @dataclass
@@ -87,9 +91,11 @@ class SqlPool:
     def submit(self, request: dict[str, Any], prepare: Callable[[set[str]], Prepared]) -> Future[pa.Table]:
         with self._lock:
             if self._admitted >= self.limits.workers + self.limits.queue:
-                raise SqlBusyError(f"{self._admitted} SQL queries are running or waiting, the most this server "
-                                   f"takes (FLEET_SQL_WORKERS={self.limits.workers} running, FLEET_SQL_QUEUE="
-                                   f"{self.limits.queue} waiting): retry in a few seconds")
+                raise SqlBusyError(
+                    f"{self._admitted} SQL queries are running or waiting, the most this server "
+                    f"takes (FLEET_SQL_WORKERS={self.limits.workers} running, FLEET_SQL_QUEUE="
+                    f"{self.limits.queue} waiting): retry in a few seconds"
+                )
             self._admitted += 1
         future = self._executor.submit(self._run, {**request, "limits": asdict(self.limits)}, prepare)
         future.add_done_callback(self._release)  # also when cancelled before it started
@@ -128,11 +134,25 @@ class SqlPool:
 
     def _spawn(self) -> subprocess.Popen[bytes]:
         root = str(Path(services.__file__).resolve().parent.parent)  # where `services` is importable from
-        env = {"PATH": os.defpath, "HOME": self._workdir, "TMPDIR": self._workdir, "LANG": "C.UTF-8",
-               "PYTHONPATH": root, "PYTHONNOUSERSITE": "1", "PYTHONDONTWRITEBYTECODE": "1"}
+        env = {
+            "PATH": os.defpath,
+            "HOME": self._workdir,
+            "TMPDIR": self._workdir,
+            "LANG": "C.UTF-8",
+            "PYTHONPATH": root,
+            "PYTHONNOUSERSITE": "1",
+            "PYTHONDONTWRITEBYTECODE": "1",
+        }
         argv = [sys.executable, "-m", "services.analytics.worker"] + (["--httpfs"] if self._httpfs else [])
-        return subprocess.Popen(argv, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL,
-                                env=env, cwd=self._workdir, start_new_session=True)
+        return subprocess.Popen(
+            argv,
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.DEVNULL,
+            env=env,
+            cwd=self._workdir,
+            start_new_session=True,
+        )
 
     def start(self) -> None:
         """Start idle workers up to one per running slot (the first query's end does it, else)."""
@@ -176,8 +196,10 @@ class _Conversation:
         (size,) = worker._LENGTH.unpack(self._read(worker._LENGTH.size))
         if size > most:
             _stop(self.proc)
-            raise ResultTooLargeError(f"the answer is larger than {self.limits.memory} (FLEET_SQL_MEMORY_LIMIT): "
-                                      "select fewer or shorter columns, aggregate, or add a LIMIT")
+            raise ResultTooLargeError(
+                f"the answer is larger than {self.limits.memory} (FLEET_SQL_MEMORY_LIMIT): "
+                "select fewer or shorter columns, aggregate, or add a LIMIT"
+            )
         return self._read(size)
 
     def _read(self, size: int) -> bytes:
@@ -197,8 +219,10 @@ class _Conversation:
     def _check(self) -> None:
         if time.monotonic() >= self.deadline:
             _stop(self.proc)
-            raise QueryTimeoutError(f"the query ran longer than {self.limits.seconds:g} s (FLEET_SQL_TIMEOUT_S): "
-                                    "filter by robot_id and date to read fewer files, or aggregate less")
+            raise QueryTimeoutError(
+                f"the query ran longer than {self.limits.seconds:g} s (FLEET_SQL_TIMEOUT_S): "
+                "filter by robot_id and date to read fewer files, or aggregate less"
+            )
         if worker.resident_bytes(self.proc.pid) > self._memory:
             _stop(self.proc)
             raise QueryOutOfMemoryError(out_of_memory(self.limits))

@@ -19,17 +19,20 @@ RETRY_AFTER_S = 2  # the SQL pool was full: most queries take seconds
 
 
 class SqlRequest(BaseModel):
-    query: str = Field(description="one SELECT over robots, runs, run_entities, run_timelines, scalars, "
-                                   "text_logs, transforms")
+    query: str = Field(
+        description="one SELECT over robots, runs, run_entities, run_timelines, scalars, text_logs, transforms"
+    )
 
 
-@router.post("/v1/sql", summary="Read-only SQL over the catalog and the analytics tables",
-             responses={200: {"content": {media: {} for media in FORMATS.values()}}})
+@router.post(
+    "/v1/sql",
+    summary="Read-only SQL over the catalog and the analytics tables",
+    responses={200: {"content": {media: {} for media in FORMATS.values()}}},
+)
 async def run_sql(
     request: Request,
     body: Annotated[SqlRequest, Body()],
-    fmt: Annotated[str | None, Query(alias="format", description=" | ".join(FORMATS) + " (default: by Accept)")]
-    = None,
+    fmt: Annotated[str | None, Query(alias="format", description=" | ".join(FORMATS) + " (default: by Accept)")] = None,
 ) -> Response:
     chosen = service.pick_format(fmt, request.headers.get("accept"))
     # async: the query runs in a worker process, the catalog snapshot on the SQL pool's own threads,
@@ -39,8 +42,7 @@ async def run_sql(
     except SqlBusyError as exc:  # a hint when to come back, as well as the reason
         return JSONResponse(exc.to_dict(), exc.http_status(), headers={"Retry-After": str(RETRY_AFTER_S)})
     encoded = await asyncio.to_thread(service.encode, table, chosen)  # JSON of 100,000 rows takes a while
-    return Response(encoded, media_type=FORMATS[chosen],
-                    headers={"X-Row-Count": str(table.num_rows)})
+    return Response(encoded, media_type=FORMATS[chosen], headers={"X-Row-Count": str(table.num_rows)})
 
 
 @router.post("/v1/runs/{run_id}/analytics", summary="Write a hot run's analytics tables now")

@@ -35,8 +35,12 @@ from services.rrd.chunk import chunk_meta
 from services.rrd.messages import ArrowMessage, StoreKind
 from services.storage.objectstore import ObjectStore
 
-FORMATS = {"json": "application/json", "csv": "text/csv", "arrow": "application/vnd.apache.arrow.stream",
-           "parquet": "application/vnd.apache.parquet"}
+FORMATS = {
+    "json": "application/json",
+    "csv": "text/csv",
+    "arrow": "application/vnd.apache.arrow.stream",
+    "parquet": "application/vnd.apache.parquet",
+}
 CATALOG_TABLES = {"robots": Robot, "runs": Run, "run_entities": RunEntity, "run_timelines": RunTimeline}
 
 
@@ -60,8 +64,14 @@ class Analytics:
         found = access()
         if not found["key_id"]:
             return None
-        return sql.S3Access(found["key_id"], found["secret"], found["region"], found["endpoint"], found["use_ssl"],
-                            found["session_token"])
+        return sql.S3Access(
+            found["key_id"],
+            found["secret"],
+            found["region"],
+            found["endpoint"],
+            found["use_ssl"],
+            found["session_token"],
+        )
 
     @property
     def root(self) -> str:
@@ -93,8 +103,9 @@ def catalog_tables(session: Session, names: Iterable[str] = CATALOG_TABLES) -> d
         model = CATALOG_TABLES[name]
         columns = list(model.__table__.columns)
         rows = session.execute(sa.select(*columns)).all()
-        out[name] = pa.table({c.name: pa.array([_plain(row[i]) for row in rows], _arrow_type(c.type))
-                              for i, c in enumerate(columns)})
+        out[name] = pa.table(
+            {c.name: pa.array([_plain(row[i]) for row in rows], _arrow_type(c.type)) for i, c in enumerate(columns)}
+        )
     return out
 
 
@@ -123,9 +134,12 @@ def analytics_files(session: Session, root: str, tables: Iterable[str]) -> dict[
     files: dict[str, list[str]] = {t: [] for t in wanted.values()}
     if not wanted:
         return files
-    rows = session.execute(sa.select(RunObject.name, RunObject.key).join(Run, Run.id == RunObject.run_id)
-                           .where(RunObject.name.in_(list(wanted)), Run.tier != Tier.DELETED)
-                           .order_by(RunObject.key)).all()
+    rows = session.execute(
+        sa.select(RunObject.name, RunObject.key)
+        .join(Run, Run.id == RunObject.run_id)
+        .where(RunObject.name.in_(list(wanted)), Run.tier != Tier.DELETED)
+        .order_by(RunObject.key)
+    ).all()
     for name, key in rows:
         table = wanted[name]
         if key.startswith(f"{name}/") and ".." not in key.split("/"):  # the catalog's keys, kept in the table
@@ -137,8 +151,10 @@ def prepare(ctx: Analytics, named: set[str]) -> Prepared:
     """The catalog rows and analytics file lists of the views a query names (only those: a snapshot
     copies a whole table, and binding an analytics view reads the footer of each of its files)."""
     with session_scope(ctx.catalog) as session:
-        return Prepared(analytics_files(session, ctx.root, [t for t in TABLES if t in named]),
-                        catalog_tables(session, [t for t in CATALOG_TABLES if t in named]))
+        return Prepared(
+            analytics_files(session, ctx.root, [t for t in TABLES if t in named]),
+            catalog_tables(session, [t for t in CATALOG_TABLES if t in named]),
+        )
 
 
 def request(ctx: Analytics, text: str) -> dict[str, Any]:
@@ -185,8 +201,11 @@ def encode(table: pa.Table, fmt: str) -> bytes:
         pacsv.write_csv(_flat(textual(table)), sink)
         return sink.getvalue()
     plain = textual(table)
-    body = {"columns": [{"name": f.name, "type": str(t.type)} for f, t in zip(plain.schema, table.schema, strict=True)],
-            "rows": [list(r.values()) for r in plain.to_pylist()], "row_count": table.num_rows}
+    body = {
+        "columns": [{"name": f.name, "type": str(t.type)} for f, t in zip(plain.schema, table.schema, strict=True)],
+        "rows": [list(r.values()) for r in plain.to_pylist()],
+        "row_count": table.num_rows,
+    }
     return json.dumps(body, default=_json_value).encode()
 
 
@@ -198,8 +217,12 @@ def _json_value(value: Any) -> Any:
 
 def _flat(table: pa.Table) -> pa.Table:
     """Lists, structs and maps as JSON text: CSV has no nested values."""
-    columns = [pa.array([None if v is None else json.dumps(v, default=_json_value) for v in c.to_pylist()],
-                        pa.string()) if pa.types.is_nested(c.type) else c for c in table.columns]
+    columns = [
+        pa.array([None if v is None else json.dumps(v, default=_json_value) for v in c.to_pylist()], pa.string())
+        if pa.types.is_nested(c.type)
+        else c
+        for c in table.columns
+    ]
     return pa.table(columns, names=table.column_names)
 
 
@@ -231,4 +254,3 @@ def extract_hot_run(ctx: Analytics, ingest: IngestService, run_id: str) -> list[
     for key in stale:  # written before under another robot or date
         ctx.warm.delete(key)
     return [{"table": o.name.removeprefix("analytics/"), "key": o.key, "bytes": o.size} for o in objects]
-

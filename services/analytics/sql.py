@@ -63,12 +63,31 @@ ANALYTICS_VIEWS = ("scalars", "text_logs", "transforms")
 VIEWS = CATALOG_VIEWS + ANALYTICS_VIEWS
 TABLE_FUNCTIONS = frozenset({"range", "generate_series", "unnest", "json_each", "json_tree"})
 # Scalar functions that read settings, variables, the environment or logs, or write logs.
-DENIED_FUNCTIONS = frozenset({"current_setting", "getenv", "getvariable", "write_log", "which_secret",
-                              "json_execute_serialized_sql", "query", "query_table"})
+DENIED_FUNCTIONS = frozenset(
+    {
+        "current_setting",
+        "getenv",
+        "getvariable",
+        "write_log",
+        "which_secret",
+        "json_execute_serialized_sql",
+        "query",
+        "query_table",
+    }
+)
 DENIED_PREFIXES = ("duckdb_", "pragma_")
 SYSTEM_PREFIXES = ("duckdb_", "pragma_", "sqlite_", "pg_", "information_schema")
-MEMORY_UNITS = {"b": 1, "kb": 10**3, "mb": 10**6, "gb": 10**9, "tb": 10**12,
-                "kib": 2**10, "mib": 2**20, "gib": 2**30, "tib": 2**40}
+MEMORY_UNITS = {
+    "b": 1,
+    "kb": 10**3,
+    "mb": 10**6,
+    "gb": 10**9,
+    "tb": 10**12,
+    "kib": 2**10,
+    "mib": 2**20,
+    "gib": 2**30,
+    "tib": 2**40,
+}
 NEUTRAL_ROOT = "analytics"  # what answers and errors call the analytics folder
 
 
@@ -112,13 +131,21 @@ def duckdb_memory(limits: Limits, baseline: int) -> int:
     return max(32 * 10**6, int((limits.memory_bytes - baseline) * 0.8))
 
 
-_COLUMN_TYPES = {"run_id": "VARCHAR", "entity": "VARCHAR", "component": "VARCHAR", "instance": "INTEGER",
-                 "value": "DOUBLE", "level": "VARCHAR", "text": "VARCHAR"}
-_READ_ONLY = ("queries are read-only, only SELECT (or EXPLAIN) statements over the catalog and analytics "
-              "tables run here")
-_WHAT_IS_ALLOWED = (f"queries read only the catalog views ({', '.join(CATALOG_VIEWS)}), the analytics tables "
-                    f"({', '.join(ANALYTICS_VIEWS)}), their own WITH tables and the table functions "
-                    f"{', '.join(sorted(TABLE_FUNCTIONS))}")
+_COLUMN_TYPES = {
+    "run_id": "VARCHAR",
+    "entity": "VARCHAR",
+    "component": "VARCHAR",
+    "instance": "INTEGER",
+    "value": "DOUBLE",
+    "level": "VARCHAR",
+    "text": "VARCHAR",
+}
+_READ_ONLY = "queries are read-only, only SELECT (or EXPLAIN) statements over the catalog and analytics tables run here"
+_WHAT_IS_ALLOWED = (
+    f"queries read only the catalog views ({', '.join(CATALOG_VIEWS)}), the analytics tables "
+    f"({', '.join(ANALYTICS_VIEWS)}), their own WITH tables and the table functions "
+    f"{', '.join(sorted(TABLE_FUNCTIONS))}"
+)
 
 
 def httpfs_extension() -> str:
@@ -128,9 +155,11 @@ def httpfs_extension() -> str:
     root = Path(duckdb_extension_httpfs.__file__).parent / "extensions"
     found = sorted(root.glob(f"v{duckdb.__version__}/httpfs.duckdb_extension"))
     if not found:
-        raise AnalyticsUnavailableError(f"no httpfs extension for DuckDB {duckdb.__version__} in the "
-                                        f"duckdb-extension-httpfs package: install "
-                                        f"duckdb-extension-httpfs=={duckdb.__version__}")
+        raise AnalyticsUnavailableError(
+            f"no httpfs extension for DuckDB {duckdb.__version__} in the "
+            f"duckdb-extension-httpfs package: install "
+            f"duckdb-extension-httpfs=={duckdb.__version__}"
+        )
     return str(found[0])
 
 
@@ -163,8 +192,10 @@ def check_query(con: duckdb.DuckDBPyConnection, query: str) -> set[str]:
     serialized = con.execute("SELECT json_serialize_sql(?::VARCHAR)", [statements[0].query]).fetchone()
     tree = json.loads(serialized[0]) if serialized else {"error": True, "error_message": "no syntax tree"}
     if tree.get("error"):
-        raise SqlNotAllowedError(f"this form of query is not supported here ({tree.get('error_message')}): "
-                                 f"write it as a plain SELECT; {_WHAT_IS_ALLOWED}")
+        raise SqlNotAllowedError(
+            f"this form of query is not supported here ({tree.get('error_message')}): "
+            f"write it as a plain SELECT; {_WHAT_IS_ALLOWED}"
+        )
     named: set[str] = set()
     for node, ctes in _walk(tree, frozenset()):
         _check_node(node, ctes, named)
@@ -205,21 +236,23 @@ def _check_node(node: dict[str, Any], ctes: frozenset[str], named: set[str]) -> 
     if "function_name" in node:
         function = str(node["function_name"]).lower()
         if function in DENIED_FUNCTIONS or function.startswith(DENIED_PREFIXES):
-            raise SqlNotAllowedError(f"function {function}() is not allowed: it shows the server's settings or "
-                                     "environment; every other scalar and aggregate function is")
+            raise SqlNotAllowedError(
+                f"function {function}() is not allowed: it shows the server's settings or "
+                "environment; every other scalar and aggregate function is"
+            )
 
 
 def _explained(query: str) -> str:
     """The statement an `EXPLAIN [ANALYZE] [(options)]` wraps."""
     starts = [pos for pos, _ in duckdb.tokenize(query)]
     i = 1  # past EXPLAIN
-    if i < len(starts) and query[starts[i]:starts[i] + 7].upper() in ("ANALYZE", "ANALYSE"):
+    if i < len(starts) and query[starts[i] : starts[i] + 7].upper() in ("ANALYZE", "ANALYSE"):
         i += 1
     depth = 0
     while i < len(starts) and (depth or query[starts[i]] == "("):
         depth += {"(": 1, ")": -1}.get(query[starts[i]], 0)
         i += 1
-    return query[starts[i]:] if i < len(starts) else ""
+    return query[starts[i] :] if i < len(starts) else ""
 
 
 def is_explain(con: duckdb.DuckDBPyConnection, query: str) -> bool:
@@ -230,8 +263,13 @@ def is_explain(con: duckdb.DuckDBPyConnection, query: str) -> bool:
 
 
 @contextmanager
-def sandbox(con: duckdb.DuckDBPyConnection, root: str, catalog: dict[str, pa.Table], s3: S3Access | None,
-            files: dict[str, list[str]]) -> Iterator[duckdb.DuckDBPyConnection]:
+def sandbox(
+    con: duckdb.DuckDBPyConnection,
+    root: str,
+    catalog: dict[str, pa.Table],
+    s3: S3Access | None,
+    files: dict[str, list[str]],
+) -> Iterator[duckdb.DuckDBPyConnection]:
     """`con` with the given catalog tables and analytics views (`files`: table -> its files), locked
     down: only those files are readable afterwards."""
     try:
@@ -262,24 +300,29 @@ def analytics_view(con: duckdb.DuckDBPyConnection, table: str, paths: list[str])
     if paths:
         listed = ", ".join("'" + p.replace("'", "''") + "'" for p in paths)
         try:
-            con.execute(f"CREATE VIEW {table} AS SELECT * FROM read_parquet([{listed}], hive_partitioning = true, "
-                        "union_by_name = true, hive_types = {'robot_id': VARCHAR, 'date': DATE})")
+            con.execute(
+                f"CREATE VIEW {table} AS SELECT * FROM read_parquet([{listed}], hive_partitioning = true, "
+                "union_by_name = true, hive_types = {'robot_id': VARCHAR, 'date': DATE})"
+            )
             return
         except duckdb.Error as exc:
             raise StorageError(f"cannot read the {table} table: {first_line(exc)}") from None
     from services.analytics.extract import FIXED_COLUMNS, LOG_TIME  # here: numpy is slow to import in a worker
 
     columns = ", ".join(f"NULL::{_COLUMN_TYPES.get(c, 'DOUBLE')} AS {c}" for c in FIXED_COLUMNS[table])
-    con.execute(f"CREATE VIEW {table} AS SELECT {columns}, NULL::TIMESTAMP_NS AS {LOG_TIME}, "
-                "NULL::VARCHAR AS robot_id, NULL::DATE AS date WHERE false")
+    con.execute(
+        f"CREATE VIEW {table} AS SELECT {columns}, NULL::TIMESTAMP_NS AS {LOG_TIME}, "
+        "NULL::VARCHAR AS robot_id, NULL::DATE AS date WHERE false"
+    )
 
 
 def _s3(con: duckdb.DuckDBPyConnection, s3: S3Access | None, root: str) -> None:
     """The credentials as a secret scoped to the analytics folder: never as s3_* settings, which
     current_setting() would show (duckdb_secrets() shows a secret's scope, never its values)."""
     if s3 is None:
-        raise AnalyticsUnavailableError("the analytics tables are on S3 but no S3 credentials were found: "
-                                        "set AWS_* variables")
+        raise AnalyticsUnavailableError(
+            "the analytics tables are on S3 but no S3 credentials were found: set AWS_* variables"
+        )
     con.execute(f"LOAD '{httpfs_extension()}'")
     options = {"KEY_ID": s3.key_id, "SECRET": s3.secret, "REGION": s3.region, "SCOPE": root.rstrip("/") + "/"}
     if s3.session_token:
@@ -301,11 +344,15 @@ def run(con: duckdb.DuckDBPyConnection, query: str, limits: Limits, max_bytes: i
             rows += batch.num_rows
             size += batch.nbytes
             if rows > limits.rows:
-                raise ResultTooLargeError(f"the answer has more than {limits.rows:,} rows (FLEET_SQL_MAX_ROWS): "
-                                          "aggregate, add a WHERE or a LIMIT")
+                raise ResultTooLargeError(
+                    f"the answer has more than {limits.rows:,} rows (FLEET_SQL_MAX_ROWS): "
+                    "aggregate, add a WHERE or a LIMIT"
+                )
             if size > max_bytes:
-                raise ResultTooLargeError(f"the answer is larger than {limits.memory} (FLEET_SQL_MEMORY_LIMIT): "
-                                          "select fewer or shorter columns, aggregate, or add a LIMIT")
+                raise ResultTooLargeError(
+                    f"the answer is larger than {limits.memory} (FLEET_SQL_MEMORY_LIMIT): "
+                    "select fewer or shorter columns, aggregate, or add a LIMIT"
+                )
             batches.append(batch)
         return pa.Table.from_batches(batches, schema=reader.schema)
     except duckdb.InterruptException:
@@ -319,8 +366,10 @@ def run(con: duckdb.DuckDBPyConnection, query: str, limits: Limits, max_bytes: i
 
 
 def out_of_memory(limits: Limits, detail: str = "") -> str:
-    return (f"the query needs more memory than {limits.memory} (FLEET_SQL_MEMORY_LIMIT)"
-            f"{': ' + detail if detail else ''}: filter by robot_id and date, aggregate, or select fewer columns")
+    return (
+        f"the query needs more memory than {limits.memory} (FLEET_SQL_MEMORY_LIMIT)"
+        f"{': ' + detail if detail else ''}: filter by robot_id and date, aggregate, or select fewer columns"
+    )
 
 
 def first_line(exc: Exception) -> str:
@@ -355,14 +404,18 @@ class Scrubber:
             if left < 0 or right < 0:
                 continue
             for j in range(i + 1, len(lines)):
-                inner = lines[j][left + 1:right]
+                inner = lines[j][left + 1 : right]
                 if not inner.strip():
                     break
                 label = f"{NEUTRAL_ROOT}/..." if j == i + 1 else ""
-                lines[j] = lines[j][:left + 1] + label.center(right - left - 1) + lines[j][right:]
+                lines[j] = lines[j][: left + 1] + label.center(right - left - 1) + lines[j][right:]
         return self.text("\n".join(lines))
 
     def table(self, table: pa.Table) -> pa.Table:
-        columns = [pa.array([None if v is None else self.plan(v) for v in c.to_pylist()], pa.string())
-                   if pa.types.is_string(c.type) else c for c in table.columns]
+        columns = [
+            pa.array([None if v is None else self.plan(v) for v in c.to_pylist()], pa.string())
+            if pa.types.is_string(c.type)
+            else c
+            for c in table.columns
+        ]
         return pa.table(columns, names=table.column_names)

@@ -61,8 +61,7 @@ def main(argv: list[str]) -> int:
     from core.errors import FleetError
     from services.analytics import sql
 
-    con = duckdb.connect(":memory:", config={"autoinstall_known_extensions": False,
-                                             "autoload_known_extensions": False})
+    con = duckdb.connect(":memory:", config={"autoinstall_known_extensions": False, "autoload_known_extensions": False})
     if "--httpfs" in argv:  # while idle: a query does not wait for it
         con.execute(f"LOAD '{sql.httpfs_extension()}'")
     baseline = resident_bytes()

@@ -23,16 +23,25 @@ from services.runs import rest as runs_rest
 from services.settings import Settings
 
 
-def create_app(settings: Settings, ingest: IngestService | None = None,
-               retention: Retention | None = None, analytics: Analytics | None = None) -> FastAPI:
+def create_app(
+    settings: Settings,
+    ingest: IngestService | None = None,
+    retention: Retention | None = None,
+    analytics: Analytics | None = None,
+) -> FastAPI:
     # Swagger UI (/docs) and ReDoc (/redoc) with their scripts and styles served from this process
     # (/static-offline-docs/...), never from a CDN: the docs work on a depot with no internet. No
     # validator badge either: Swagger UI would send the spec's URL to validator.swagger.io.
-    app: FastAPI = FastAPIOffline(title="Fleet telemetry depot", version=__version__,
-                                  swagger_ui_parameters={"validatorUrl": None})
+    app: FastAPI = FastAPIOffline(
+        title="Fleet telemetry depot", version=__version__, swagger_ui_parameters={"validatorUrl": None}
+    )
     # Browser viewers (app.rerun.io, a local web viewer) fetch recordings cross-origin.
-    app.add_middleware(CORSMiddleware, allow_origins=["*"], allow_methods=["GET", "HEAD"],
-                       expose_headers=["Content-Disposition", "ETag"])
+    app.add_middleware(
+        CORSMiddleware,
+        allow_origins=["*"],
+        allow_methods=["GET", "HEAD"],
+        expose_headers=["Content-Disposition", "ETag"],
+    )
     app.state.settings = settings
     app.state.ingest = ingest
     app.state.retention = retention
@@ -50,8 +59,10 @@ def create_app(settings: Settings, ingest: IngestService | None = None,
     @app.exception_handler(RequestValidationError)
     async def _bad_parameter(_: Request, exc: RequestValidationError) -> JSONResponse:
         problems = "; ".join(f"parameter {e['loc'][-1]!r}: {e['msg']}" for e in exc.errors())
-        return JSONResponse({"code": ErrorCode.INVALID_ARGUMENT.value, "message": problems},
-                            status_code=http_status(ErrorCode.INVALID_ARGUMENT))
+        return JSONResponse(
+            {"code": ErrorCode.INVALID_ARGUMENT.value, "message": problems},
+            status_code=http_status(ErrorCode.INVALID_ARGUMENT),
+        )
 
     @app.exception_handler(FleetError)
     async def _fleet_error(_: Request, exc: FleetError) -> JSONResponse:
@@ -62,9 +73,13 @@ def create_app(settings: Settings, ingest: IngestService | None = None,
     @app.exception_handler(sa.exc.TimeoutError)
     async def _catalog_down(_: Request, exc: Exception) -> JSONResponse:
         # The database did not answer (down, restarting, overloaded): not the caller's mistake.
-        return JSONResponse({"code": ErrorCode.UNAVAILABLE.value,
-                             "message": "the catalog database is unavailable right now: retry in a moment"},
-                            status_code=http_status(ErrorCode.UNAVAILABLE))
+        return JSONResponse(
+            {
+                "code": ErrorCode.UNAVAILABLE.value,
+                "message": "the catalog database is unavailable right now: retry in a moment",
+            },
+            status_code=http_status(ErrorCode.UNAVAILABLE),
+        )
 
     @app.get("/healthz")
     async def healthz() -> dict[str, str]:
@@ -85,8 +100,14 @@ def create_app(settings: Settings, ingest: IngestService | None = None,
             checks.append(readiness.catalog_check(ingest.catalog))
         checks.append(readiness.hot_disk_check(ingest.hot.root, ingest.hot.min_free_bytes))
 
-    @app.get("/readyz", responses={503: {"description": "a part the service needs is not ready: named in "
-                                         "`not_ready`, what is wrong in `checks`"}})
+    @app.get(
+        "/readyz",
+        responses={
+            503: {
+                "description": "a part the service needs is not ready: named in `not_ready`, what is wrong in `checks`"
+            }
+        },
+    )
     async def readyz() -> JSONResponse:
         """The service can take requests: the catalog answers and the hot disk takes writes."""
         statuses = await readiness.check_all(checks)
@@ -94,8 +115,15 @@ def create_app(settings: Settings, ingest: IngestService | None = None,
         if not failed:
             return JSONResponse({"status": "ready", "checks": statuses})
         code = ErrorCode.UNAVAILABLE
-        return JSONResponse({"code": code.value, "status": "not ready", "not_ready": failed, "checks": statuses,
-                             "message": "not ready: " + "; ".join(f"{name}: {statuses[name]}" for name in failed)},
-                            status_code=http_status(code))
+        return JSONResponse(
+            {
+                "code": code.value,
+                "status": "not ready",
+                "not_ready": failed,
+                "checks": statuses,
+                "message": "not ready: " + "; ".join(f"{name}: {statuses[name]}" for name in failed),
+            },
+            status_code=http_status(code),
+        )
 
     return app

@@ -130,8 +130,9 @@ class ClientStream:
             raise ProtocolError("no request headers within the first MiB")
         return bytes(out)
 
-    def _header_frame(self, kind: int, flags: int, stream: int, payload: bytes,
-                      start: int) -> tuple[_HeaderBlock, list[HeaderTuple]] | None:
+    def _header_frame(
+        self, kind: int, flags: int, stream: int, payload: bytes, start: int
+    ) -> tuple[_HeaderBlock, list[HeaderTuple]] | None:
         if kind == _HEADERS:
             if self._block is not None:
                 raise ProtocolError("a header block was interrupted by another frame")
@@ -166,14 +167,18 @@ class ClientStream:
         fixed = [type(h)(h[0], _plain_scheme(h[1])) if h[0] == b":scheme" else h for h in headers]
         encoded = self.encoder.encode(fixed, huffman=True)
         first_room = _MAX_FRAME - len(block.priority)
-        pieces = [encoded[:first_room]] + [encoded[i : i + _MAX_FRAME] for i in range(first_room, len(encoded),
-                                                                                       _MAX_FRAME)]
+        pieces = [encoded[:first_room]] + [
+            encoded[i : i + _MAX_FRAME] for i in range(first_room, len(encoded), _MAX_FRAME)
+        ]
         flags = (block.flags & _END_STREAM) | (_PRIORITY if block.priority else 0)
         last = len(pieces) - 1
-        frames = [_frame(_HEADERS, flags | (_END_HEADERS if last == 0 else 0), block.stream,
-                         block.priority + pieces[0])]
-        frames += [_frame(_CONTINUATION, _END_HEADERS if i == last else 0, block.stream, piece)
-                   for i, piece in enumerate(pieces[1:], 1)]
+        frames = [
+            _frame(_HEADERS, flags | (_END_HEADERS if last == 0 else 0), block.stream, block.priority + pieces[0])
+        ]
+        frames += [
+            _frame(_CONTINUATION, _END_HEADERS if i == last else 0, block.stream, piece)
+            for i, piece in enumerate(pieces[1:], 1)
+        ]
         return b"".join(frames)
 
 
@@ -186,11 +191,15 @@ def http1_answer(request: bytes, version: str) -> bytes:
         status, body = "200 OK", f"{version}\n"
     else:
         status = "404 Not Found"
-        body = ("this is the depot's Rerun gRPC port: it answers gRPC and GET /version; "
-                "the REST API is on the depot's HTTP port\n")
+        body = (
+            "this is the depot's Rerun gRPC port: it answers gRPC and GET /version; "
+            "the REST API is on the depot's HTTP port\n"
+        )
     data = body.encode()
-    head = (f"HTTP/1.1 {status}\r\ncontent-type: text/plain; charset=utf-8\r\ncontent-length: {len(data)}\r\n"
-            "connection: close\r\n\r\n").encode()
+    head = (
+        f"HTTP/1.1 {status}\r\ncontent-type: text/plain; charset=utf-8\r\ncontent-length: {len(data)}\r\n"
+        "connection: close\r\n\r\n"
+    ).encode()
     return head if method == "HEAD" else head + data
 
 
@@ -199,8 +208,9 @@ class _Splice:
     no copy into Python, and one callback per read however much it moved. Stops reading while the
     destination cannot take more (back-pressure), and half-closes the destination at end of stream."""
 
-    def __init__(self, loop: asyncio.AbstractEventLoop, src: socket.socket, dst: socket.socket,
-                 done: Callable[[bool], None]) -> None:
+    def __init__(
+        self, loop: asyncio.AbstractEventLoop, src: socket.socket, dst: socket.socket, done: Callable[[bool], None]
+    ) -> None:
         self._loop, self._src, self._dst, self._done = loop, src.fileno(), dst.fileno(), done
         self._dst_sock = dst
         self._read_end, self._write_end = os.pipe2(os.O_NONBLOCK | os.O_CLOEXEC)
@@ -267,8 +277,9 @@ class _Connection:
     (`_Splice`), except from a client whose headers need rewriting, which `run` keeps reading. The
     sockets are closed by whoever finishes last, and never while `run` may still wait on them."""
 
-    def __init__(self, loop: asyncio.AbstractEventLoop, client: socket.socket, upstream_path: str,
-                 version: str) -> None:
+    def __init__(
+        self, loop: asyncio.AbstractEventLoop, client: socket.socket, upstream_path: str, version: str
+    ) -> None:
         self._loop, self._client, self._upstream_path, self._version = loop, client, upstream_path, version
         self._upstream: socket.socket | None = None
         self._splices: list[_Splice] = []

@@ -27,7 +27,7 @@ CONTENT_TYPE = CONTENT_TYPE_PLAIN_0_0_4  # the text format every Prometheus serv
 INGEST_TOTALS_HELP = {
     "chunks_new": "Chunks stored for the first time (counted when their stream or upload ends)",
     "chunks_duplicate": "Chunks received that the depot already held, skipped (counted when their stream or "
-                        "upload ends)",
+    "upload ends)",
     "bytes_new": "Bytes of chunks stored for the first time (counted when their stream or upload ends)",
     "messages": "RRD messages received over gRPC and uploads (counted when their stream or upload ends)",
 }
@@ -44,8 +44,7 @@ class IngestCollector(Collector):
         ingest = self.ingest
         if ingest is None:
             return
-        yield GaugeMetricFamily("fleet_live_streams", "gRPC WriteMessages streams open now",
-                                value=ingest.live_streams)
+        yield GaugeMetricFamily("fleet_live_streams", "gRPC WriteMessages streams open now", value=ingest.live_streams)
         hot_runs, live_runs = ingest.run_counts()
         yield GaugeMetricFamily("fleet_hot_runs", "Runs held in this node's hot tier", value=hot_runs)
         yield GaugeMetricFamily("fleet_live_runs", "Hot runs still being written to", value=live_runs)
@@ -72,10 +71,18 @@ class RequestMetrics:
 
     def __init__(self, app: ASGIApp, registry: CollectorRegistry) -> None:
         self.app = app
-        self.requests = Counter("fleet_http_requests", "HTTP requests answered, by method, route template and status",
-                                ["method", "route", "status"], registry=registry)
-        self.seconds = Histogram("fleet_http_request_seconds", "Time from an HTTP request to its response's "
-                                 "headers, by method and route template", ["method", "route"], registry=registry)
+        self.requests = Counter(
+            "fleet_http_requests",
+            "HTTP requests answered, by method, route template and status",
+            ["method", "route", "status"],
+            registry=registry,
+        )
+        self.seconds = Histogram(
+            "fleet_http_request_seconds",
+            "Time from an HTTP request to its response's headers, by method and route template",
+            ["method", "route"],
+            registry=registry,
+        )
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":

@@ -78,8 +78,9 @@ def hot_disk_check(root: Path, min_free_bytes: int) -> Check:
             probe_file.write(b"\0")
         free = shutil.disk_usage(root).free
         if free < min_free_bytes:
-            raise OSError(f"{root} has {free} bytes free, below FLEET_MIN_FREE_BYTES ({min_free_bytes}): "
-                          "new data is refused")
+            raise OSError(
+                f"{root} has {free} bytes free, below FLEET_MIN_FREE_BYTES ({min_free_bytes}): new data is refused"
+            )
 
     return Check("hot_disk", probe)
 

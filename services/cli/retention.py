@@ -76,8 +76,9 @@ def _follow(events: Iterator[dict[str, Any]], title: str) -> dict[str, Any]:
     """Show a progress bar over the service's NDJSON events; returns the last one."""
     err = Console(stderr=True)
     last: dict[str, Any] = {}
-    with Progress("{task.description}", BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
-                  console=err, transient=True) as progress:
+    with Progress(
+        "{task.description}", BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(), console=err, transient=True
+    ) as progress:
         task = progress.add_task(title, total=None)
         for event in events:
             last = event
@@ -88,8 +89,9 @@ def _follow(events: Iterator[dict[str, Any]], title: str) -> dict[str, Any]:
                 progress.update(task, advance=1, description=f"{title}: {event.get('run')}")
                 ok = event.get("ok", event.get("outcome") != "skipped")
                 verb = event.get("action", event.get("outcome", ""))
-                progress.console.print(f"{'ok ' if ok else 'FAILED '}{verb} {event.get('run')}: "
-                                       f"{event.get('detail', '')}", markup=False)
+                progress.console.print(
+                    f"{'ok ' if ok else 'FAILED '}{verb} {event.get('run')}: {event.get('detail', '')}", markup=False
+                )
             elif kind in ("busy", "error"):
                 progress.console.print(f"{kind}: {event.get('detail')}", markup=False)
     return last
@@ -109,5 +111,6 @@ def rebuild(api_url: str) -> None:
         end = _follow(client.rebuild_catalog(), "rebuild")
     if end.get("event") == "error":
         raise click.ClickException(str(end.get("detail")))
-    click.echo(f"{end.get('added', 0)} runs added, {end.get('present', 0)} already present, "
-               f"{end.get('skipped', 0)} skipped")
+    click.echo(
+        f"{end.get('added', 0)} runs added, {end.get('present', 0)} already present, {end.get('skipped', 0)} skipped"
+    )

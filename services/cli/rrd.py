@@ -25,8 +25,9 @@ def rrd() -> None:
     """Inspect Rerun .rrd files."""
 
 
-def _read_events(fh: BinaryIO, summary_bytes: list[int], max_message_size: int,
-                 progress: Progress | None, task: int | None) -> Iterator[Event]:
+def _read_events(
+    fh: BinaryIO, summary_bytes: list[int], max_message_size: int, progress: Progress | None, task: int | None
+) -> Iterator[Event]:
     decoder = RrdDecoder(max_message_size=max_message_size)
     while True:
         data = fh.read(READ_SIZE)
@@ -42,8 +43,15 @@ def _read_events(fh: BinaryIO, summary_bytes: list[int], max_message_size: int,
 def _inspect_one(name: str, fh: BinaryIO, size: int | None, max_message_size: int, quiet: bool) -> RrdSummary:
     counted = [0]
     show = not quiet and sys.stderr.isatty() and (size or 0) > 64 * READ_SIZE
-    progress = Progress("{task.description}", BarColumn(), DownloadColumn(), TransferSpeedColumn(),
-                        console=Console(stderr=True), transient=True, disable=not show)
+    progress = Progress(
+        "{task.description}",
+        BarColumn(),
+        DownloadColumn(),
+        TransferSpeedColumn(),
+        console=Console(stderr=True),
+        transient=True,
+        disable=not show,
+    )
     with progress:
         task = progress.add_task(os.path.basename(name), total=size)
         summary = summarize(_read_events(fh, counted, max_message_size, progress, task), name)
@@ -54,10 +62,14 @@ def _inspect_one(name: str, fh: BinaryIO, size: int | None, max_message_size: in
 @rrd.command()
 @click.argument("files", nargs=-1, type=click.Path(dir_okay=False, allow_dash=True))
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON document (a list, one item per file).")
-@click.option("--max-message-size", type=int, default=DEFAULT_MAX_MESSAGE_SIZE, show_default=True,
-              help="Refuse messages larger than this many bytes.")
-@click.option("--scan", is_flag=True,
-              help="Read and check every chunk even when the file has an RRD footer (slower).")
+@click.option(
+    "--max-message-size",
+    type=int,
+    default=DEFAULT_MAX_MESSAGE_SIZE,
+    show_default=True,
+    help="Refuse messages larger than this many bytes.",
+)
+@click.option("--scan", is_flag=True, help="Read and check every chunk even when the file has an RRD footer (slower).")
 def inspect(files: tuple[str, ...], as_json: bool, max_message_size: int, scan: bool) -> None:
     """Show what .rrd FILES hold (stdin when none or '-'): stores, application and recording ids,
     SDK version, entities with chunk and row counts, timelines with ranges.
@@ -93,17 +105,21 @@ def inspect(files: tuple[str, ...], as_json: bool, max_message_size: int, scan: 
 
 def _print_summary(console: Console, summary: RrdSummary) -> None:
     versions = ", ".join(sorted(set(summary.rerun_versions))) or "-"
-    console.print(f"[bold]{summary.source}[/bold]: {summary.bytes_read:,} bytes, {summary.streams} stream(s) "
-                  f"(Rerun {versions}), footer: {'yes' if summary.footers else 'no'}, indexed by {summary.index}")
+    console.print(
+        f"[bold]{summary.source}[/bold]: {summary.bytes_read:,} bytes, {summary.streams} stream(s) "
+        f"(Rerun {versions}), footer: {'yes' if summary.footers else 'no'}, indexed by {summary.index}"
+    )
     for store in summary.stores.values():
         _print_store(console, store)
 
 
 def _print_store(console: Console, store: StoreSummary) -> None:
     sid = store.store_id
-    console.print(f"  {sid.kind.name.lower()} [bold]{sid.recording_id}[/bold]  application {sid.application_id}"
-                  f"  SDK {store.sdk_version or '?'} ({store.source or '?'})  "
-                  f"{store.chunks:,} chunks, {store.rows:,} rows, {store.bytes:,} bytes")
+    console.print(
+        f"  {sid.kind.name.lower()} [bold]{sid.recording_id}[/bold]  application {sid.application_id}"
+        f"  SDK {store.sdk_version or '?'} ({store.source or '?'})  "
+        f"{store.chunks:,} chunks, {store.rows:,} rows, {store.bytes:,} bytes"
+    )
     if store.entities:
         table = Table("entity", "chunks", "static", "rows", "bytes", "archetypes", box=None, padding=(0, 2))
         for e in sorted(store.entities.values(), key=lambda e: e.path):

@@ -24,8 +24,13 @@ from services.cli.output import stdout_console
 if TYPE_CHECKING:
     from sdk_client.rest import FleetClient
 
-_api = click.option("--api-url", envvar="FLEET_API_URL", default="http://127.0.0.1:8080", show_default=True,
-                    help="Where the service answers (FLEET_API_URL).")
+_api = click.option(
+    "--api-url",
+    envvar="FLEET_API_URL",
+    default="http://127.0.0.1:8080",
+    show_default=True,
+    help="Where the service answers (FLEET_API_URL).",
+)
 
 
 def _client(api_url: str) -> FleetClient:
@@ -45,12 +50,26 @@ def _entity_options(func: Any) -> Any:
     return click.option("--no-blueprint", is_flag=True, help="leave the run's blueprint out")(func)
 
 
-def _recording_params(include: tuple[str, ...], exclude: tuple[str, ...], no_blueprint: bool,
-                      timeline: str | None, start: str | None, end: str | None,
-                      no_latest_at: bool, exact: bool) -> dict[str, Any]:
-    return {"include": list(include), "exclude": list(exclude), "blueprint": "false" if no_blueprint else None,
-            "timeline": timeline, "start": start, "end": end, "latest_at": "false" if no_latest_at else None,
-            "exact": "true" if exact else None}
+def _recording_params(
+    include: tuple[str, ...],
+    exclude: tuple[str, ...],
+    no_blueprint: bool,
+    timeline: str | None,
+    start: str | None,
+    end: str | None,
+    no_latest_at: bool,
+    exact: bool,
+) -> dict[str, Any]:
+    return {
+        "include": list(include),
+        "exclude": list(exclude),
+        "blueprint": "false" if no_blueprint else None,
+        "timeline": timeline,
+        "start": start,
+        "end": end,
+        "latest_at": "false" if no_latest_at else None,
+        "exact": "true" if exact else None,
+    }
 
 
 @click.group()
@@ -74,16 +93,24 @@ def runs() -> None:
 def runs_ls(api_url: str, as_json: bool, prop: tuple[str, ...], **filters: Any) -> None:
     """List runs, newest first."""
     with _client(api_url) as client:
-        page = client.runs(property=list(prop), **{k: list(v) if isinstance(v, tuple) else v
-                                                   for k, v in filters.items()})
+        page = client.runs(
+            property=list(prop), **{k: list(v) if isinstance(v, tuple) else v for k, v in filters.items()}
+        )
     if as_json:
         click.echo(json.dumps(page, indent=2))
         return
-    table = Table("run", "robot", "application", "started", "status", "tier", "chunks", "MB", box=None,
-                  padding=(0, 2))
+    table = Table("run", "robot", "application", "started", "status", "tier", "chunks", "MB", box=None, padding=(0, 2))
     for run in page["runs"]:
-        table.add_row(run["id"], run["robot_id"], run["application_id"], run["started_at"] or "-", run["status"],
-                      run["tier"], f"{run['chunks']:,}", f"{run['bytes'] / 1e6:,.1f}")
+        table.add_row(
+            run["id"],
+            run["robot_id"],
+            run["application_id"],
+            run["started_at"] or "-",
+            run["status"],
+            run["tier"],
+            f"{run['chunks']:,}",
+            f"{run['bytes'] / 1e6:,.1f}",
+        )
     stdout_console().print(table)
     if page["next_cursor"]:
         click.echo(f"(more: --limit, or GET /v1/runs?cursor={page['next_cursor']})")
@@ -101,22 +128,33 @@ def runs_show(api_url: str, run_id: str, as_json: bool) -> None:
         click.echo(json.dumps(run, indent=2))
         return
     console = stdout_console()
-    console.print(f"[bold]{run['id']}[/bold]  robot {run['robot_id']}  application {run['application_id']}  "
-                  f"{run['status']}, {run['tier']}  SDK {run['sdk_version']}  {run['chunks']:,} chunks, "
-                  f"{run['bytes']:,} bytes")
-    console.print(f"started {_when(run['started_at'])}  ended {_when(run.get('ended_at'))}  "
-                  f"last data {_when(run.get('last_data_at'))}", markup=False)
+    console.print(
+        f"[bold]{run['id']}[/bold]  robot {run['robot_id']}  application {run['application_id']}  "
+        f"{run['status']}, {run['tier']}  SDK {run['sdk_version']}  {run['chunks']:,} chunks, "
+        f"{run['bytes']:,} bytes"
+    )
+    console.print(
+        f"started {_when(run['started_at'])}  ended {_when(run.get('ended_at'))}  "
+        f"last data {_when(run.get('last_data_at'))}",
+        markup=False,
+    )
     if run["properties"]:
         console.print(f"properties: {json.dumps(run['properties'])}", markup=False)
     entities = Table("entity", "chunks", "rows", "bytes", "archetypes", box=None, padding=(0, 2))
     for e in run["entities"]:
-        entities.add_row(e["path"], f"{e['chunks']:,}", f"{e['rows']:,}", f"{e['bytes']:,}",
-                         ", ".join(a.rsplit(".", 1)[-1] for a in e["archetypes"]))
+        entities.add_row(
+            e["path"],
+            f"{e['chunks']:,}",
+            f"{e['rows']:,}",
+            f"{e['bytes']:,}",
+            ", ".join(a.rsplit(".", 1)[-1] for a in e["archetypes"]),
+        )
     console.print(entities)
     timelines = Table("timeline", "type", "min", "max", box=None, padding=(0, 2))
     for t in run["timelines"]:
-        timelines.add_row(t["name"], t["type"], _timeline_value(t["type"], t["min"]),
-                          _timeline_value(t["type"], t["max"]))
+        timelines.add_row(
+            t["name"], t["type"], _timeline_value(t["type"], t["min"]), _timeline_value(t["type"], t["max"])
+        )
     console.print(timelines)
 
 
@@ -208,12 +246,21 @@ def runs_rm(api_url: str, run_id: str, yes: bool) -> None:
 def download(api_url: str, run_id: str, output: Path | None, **filters: Any) -> None:
     """Download a run (or the entities you pick) as an .rrd file."""
     output = output or Path(f"{run_id}.rrd")
-    with _client(api_url) as client, Progress("{task.description}", BarColumn(), DownloadColumn(),
-                                              TransferSpeedColumn(), console=Console(stderr=True),
-                                              transient=True) as progress:
+    with (
+        _client(api_url) as client,
+        Progress(
+            "{task.description}",
+            BarColumn(),
+            DownloadColumn(),
+            TransferSpeedColumn(),
+            console=Console(stderr=True),
+            transient=True,
+        ) as progress,
+    ):
         task = progress.add_task(run_id, total=None)
-        written = client.download(run_id, output, functools.partial(_advance, progress, task),
-                                  **_recording_params(**filters))
+        written = client.download(
+            run_id, output, functools.partial(_advance, progress, task), **_recording_params(**filters)
+        )
     click.echo(f"{output}: {written:,} bytes")
 
 

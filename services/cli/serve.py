@@ -90,8 +90,12 @@ class SettingsCommand(click.Command):
         prefix = str(Settings.model_config.get("env_prefix", ""))
         fields = Settings.model_fields
         with formatter.section("Settings without an option"):
-            formatter.write_dl([(f"{prefix}{name.upper()}", f"{fields[name].description} ({why})")
-                                for name, why in NOT_OPTIONS.items()])
+            formatter.write_dl(
+                [
+                    (f"{prefix}{name.upper()}", f"{fields[name].description} ({why})")
+                    for name, why in NOT_OPTIONS.items()
+                ]
+            )
         super().format_epilog(ctx, formatter)
 
 
@@ -130,8 +134,10 @@ def serve(**flags: object) -> None:
                 click.echo(f"fleet: {done}")
             logging.basicConfig(level=logging.INFO, format="%(levelname)s:     %(name)s: %(message)s")
             logging.getLogger("apscheduler").setLevel(logging.ERROR)  # not a line per job run or skipped turn
-            click.echo(f"fleet: data in {settings.data_dir.resolve()}, REST on http://{settings.http_addr}, "
-                       f"Rerun gRPC on rerun+http://{settings.grpc_addr}/proxy, durability {settings.durability}")
+            click.echo(
+                f"fleet: data in {settings.data_dir.resolve()}, REST on http://{settings.http_addr}, "
+                f"Rerun gRPC on rerun+http://{settings.grpc_addr}/proxy, durability {settings.durability}"
+            )
             asyncio.run(run_server(settings))
         finally:
             engine.dispose()

@@ -17,8 +17,14 @@ FORMATS = ("table", "json", "csv", "arrow", "parquet")
 @click.command()
 @_api
 @click.argument("query")
-@click.option("--format", "fmt", type=click.Choice(FORMATS), default="table", show_default=True,
-              help="table (for people), or the service's json, csv, arrow (IPC stream) or parquet")
+@click.option(
+    "--format",
+    "fmt",
+    type=click.Choice(FORMATS),
+    default="table",
+    show_default=True,
+    help="table (for people), or the service's json, csv, arrow (IPC stream) or parquet",
+)
 @click.option("-o", "--output", type=click.Path(dir_okay=False, path_type=Path), help="write the answer here")
 def sql(api_url: str, query: str, fmt: str, output: Path | None) -> None:
     """Run QUERY (one SELECT) over robots, runs, run_entities, run_timelines, scalars, text_logs and

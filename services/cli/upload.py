@@ -13,8 +13,13 @@ from rich.progress import BarColumn, DownloadColumn, Progress, TaskID, TransferS
 
 @click.command()
 @click.argument("files", nargs=-1, required=True, type=click.Path(exists=True, dir_okay=False, path_type=Path))
-@click.option("--api-url", envvar="FLEET_API_URL", default="http://127.0.0.1:8080", show_default=True,
-              help="Where the service answers (FLEET_API_URL).")
+@click.option(
+    "--api-url",
+    envvar="FLEET_API_URL",
+    default="http://127.0.0.1:8080",
+    show_default=True,
+    help="Where the service answers (FLEET_API_URL).",
+)
 def upload(files: tuple[Path, ...], api_url: str) -> None:
     """Upload .rrd FILES. Chunks the service already holds (received live) are skipped, so
     uploading the same file again is harmless."""
@@ -22,9 +27,12 @@ def upload(files: tuple[Path, ...], api_url: str) -> None:
 
     console = Console(stderr=True)
     failed = 0
-    with FleetClient(api_url) as client, Progress(
-            "{task.description}", BarColumn(), DownloadColumn(), TransferSpeedColumn(), console=console,
-            transient=True) as progress:
+    with (
+        FleetClient(api_url) as client,
+        Progress(
+            "{task.description}", BarColumn(), DownloadColumn(), TransferSpeedColumn(), console=console, transient=True
+        ) as progress,
+    ):
         for path in files:
             task = progress.add_task(path.name, total=os.path.getsize(path))
             try:
@@ -32,14 +40,22 @@ def upload(files: tuple[Path, ...], api_url: str) -> None:
             except ServiceError as exc:
                 failed += 1
                 accepted = exc.body.get("accepted") or {}
-                kept = (f" (what came before it is kept: {accepted.get('chunks_new', 0)} new chunks, "
-                        f"{accepted.get('chunks_duplicate', 0)} already held)") if accepted else ""
+                kept = (
+                    (
+                        f" (what came before it is kept: {accepted.get('chunks_new', 0)} new chunks, "
+                        f"{accepted.get('chunks_duplicate', 0)} already held)"
+                    )
+                    if accepted
+                    else ""
+                )
                 progress.console.print(f"Error: {path}: {exc}{kept}", style="red", markup=False, soft_wrap=True)
                 continue
             finally:
                 progress.remove_task(task)
-            click.echo(f"{path}: runs {', '.join(report['runs']) or '-'}: {report['chunks_new']} new chunks "
-                       f"({report['bytes_new']:,} bytes), {report['chunks_duplicate']} already held")
+            click.echo(
+                f"{path}: runs {', '.join(report['runs']) or '-'}: {report['chunks_new']} new chunks "
+                f"({report['bytes_new']:,} bytes), {report['chunks_duplicate']} already held"
+            )
     if failed:
         raise SystemExit(1)
 

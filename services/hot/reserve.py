@@ -38,8 +38,12 @@ class DiskReserve:
         if not self.held or self.free() >= FULL_BELOW:
             return False
         self.path.unlink(missing_ok=True)
-        log.warning("the data disk is full: released the %d bytes held in reserve (%s) so the catalog can "
-                    "work; new data is refused until space is freed or runs are promoted", self.size, self.path)
+        log.warning(
+            "the data disk is full: released the %d bytes held in reserve (%s) so the catalog can "
+            "work; new data is refused until space is freed or runs are promoted",
+            self.size,
+            self.path,
+        )
         return True
 
     def ensure(self) -> bool:

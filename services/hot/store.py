@@ -141,8 +141,9 @@ class HotRun:
         except rrd_errors.TruncatedError:
             pass  # a crash cut the last message: everything before it is kept
         except rrd_errors.RrdError as exc:
-            log.error("hot run %s is damaged at byte %d (%s): keeping what precedes it", directory.name,
-                      exc.offset, exc)
+            log.error(
+                "hot run %s is damaged at byte %d (%s): keeping what precedes it", directory.name, exc.offset, exc
+            )
         size = path.stat().st_size
         if good < size:
             log.warning("hot run %s: cut a torn tail of %d bytes at byte %d", directory.name, size - good, good)

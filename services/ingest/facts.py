@@ -165,10 +165,17 @@ class RunFacts:
             rows=summary.rows if summary else 0,
             bytes=self.recording_bytes(),
             properties=self.properties,
-            entities=[EntityRecord(e.path, e.chunks, e.static_chunks, e.rows, e.bytes, sorted(e.archetypes),
-                                   sorted(e.components)) for e in summary.entities.values()] if summary else [],
-            timelines=[TimelineRecord(t.name, t.type, t.min, t.max)
-                       for t in summary.timelines.values()] if summary else [],
+            entities=[
+                EntityRecord(
+                    e.path, e.chunks, e.static_chunks, e.rows, e.bytes, sorted(e.archetypes), sorted(e.components)
+                )
+                for e in summary.entities.values()
+            ]
+            if summary
+            else [],
+            timelines=[TimelineRecord(t.name, t.type, t.min, t.max) for t in summary.timelines.values()]
+            if summary
+            else [],
         )
 
 

@@ -32,7 +32,7 @@ def unwrap(request: bytes, offset: int) -> tuple[int, memoryview]:
     found = protowire.last_field(request, _LOG_MSG_FIELD, offset)
     if found is None:
         raise rrd_errors.ProtobufError("WriteMessagesRequest without log_msg", offset)
-    log_msg = memoryview(request)[found[1]:found[2]]
+    log_msg = memoryview(request)[found[1] : found[2]]
     for number, _, start, end in protowire.fields(log_msg, offset):
         if number in (1, 2, 3):
             return number, log_msg[start:end]
@@ -43,8 +43,9 @@ class MessageProxy:
     def __init__(self, service: IngestService) -> None:
         self.service = service
 
-    async def write_messages(self, requests: AsyncIterator[bytes],
-                             context: grpc.aio.ServicerContext) -> sdk_comms_pb2.WriteMessagesResponse:
+    async def write_messages(
+        self, requests: AsyncIterator[bytes], context: grpc.aio.ServicerContext
+    ) -> sdk_comms_pb2.WriteMessagesResponse:
         try:
             source = self.service.open_source(live=True)
         except FleetError as exc:
@@ -65,7 +66,6 @@ class MessageProxy:
             self.service.close_source(source)
         return sdk_comms_pb2.WriteMessagesResponse()
 
-
     async def read_messages(self, request: bytes, context: grpc.aio.ServicerContext) -> AsyncIterator[bytes]:
         """What `rerun --connect rerun+http://HOST:51234/proxy` calls: recent history, then live."""
         hub = self.service.replay
@@ -79,8 +79,10 @@ class MessageProxy:
             while True:
                 live = await queue.get()
                 if live is None:
-                    await context.abort(grpc.StatusCode.RESOURCE_EXHAUSTED,
-                                        "this reader fell too far behind the live streams; connect again")
+                    await context.abort(
+                        grpc.StatusCode.RESOURCE_EXHAUSTED,
+                        "this reader fell too far behind the live streams; connect again",
+                    )
                     return
                 yield read_response(*live)
         finally:
@@ -132,24 +134,34 @@ async def refuse_legacy_read(request: bytes, context: grpc.aio.ServicerContext) 
 
 def add_legacy_refusal(server: grpc.aio.Server) -> None:
     """Answer rerun-sdk 0.22's calls with a clear refusal naming the oldest supported SDK."""
-    server.add_generic_rpc_handlers((grpc.method_handlers_generic_handler(LEGACY_SERVICE_NAME, {
-        "WriteMessages": grpc.stream_unary_rpc_method_handler(refuse_legacy_write),
-        "ReadMessages": grpc.unary_stream_rpc_method_handler(refuse_legacy_read),
-    }),))
+    server.add_generic_rpc_handlers(
+        (
+            grpc.method_handlers_generic_handler(
+                LEGACY_SERVICE_NAME,
+                {
+                    "WriteMessages": grpc.stream_unary_rpc_method_handler(refuse_legacy_write),
+                    "ReadMessages": grpc.unary_stream_rpc_method_handler(refuse_legacy_read),
+                },
+            ),
+        )
+    )
 
 
 def add_to_server(server: grpc.aio.Server, proxy: MessageProxy) -> None:
-    handler = grpc.method_handlers_generic_handler(SERVICE_NAME, {
-        "WriteMessages": grpc.stream_unary_rpc_method_handler(
-            proxy.write_messages,
-            request_deserializer=None,  # raw bytes: the inner messages are kept exactly as sent
-            response_serializer=sdk_comms_pb2.WriteMessagesResponse.SerializeToString,
-        ),
-        "ReadMessages": grpc.unary_stream_rpc_method_handler(
-            proxy.read_messages,
-            request_deserializer=None,
-            response_serializer=None,  # responses are built around the stored message bytes
-        ),
-    })
+    handler = grpc.method_handlers_generic_handler(
+        SERVICE_NAME,
+        {
+            "WriteMessages": grpc.stream_unary_rpc_method_handler(
+                proxy.write_messages,
+                request_deserializer=None,  # raw bytes: the inner messages are kept exactly as sent
+                response_serializer=sdk_comms_pb2.WriteMessagesResponse.SerializeToString,
+            ),
+            "ReadMessages": grpc.unary_stream_rpc_method_handler(
+                proxy.read_messages,
+                request_deserializer=None,
+                response_serializer=None,  # responses are built around the stored message bytes
+            ),
+        },
+    )
     server.add_generic_rpc_handlers((handler,))
     add_legacy_refusal(server)

@@ -45,7 +45,7 @@ class SecretFields:
 
     def __contains__(self, name: str) -> bool:
         got = words(name)
-        return any(got[i:i + len(p)] == p for p in self._patterns for i in range(len(got) - len(p) + 1))
+        return any(got[i : i + len(p)] == p for p in self._patterns for i in range(len(got) - len(p) + 1))
 
 
 DEFAULT_SECRETS = SecretFields()
@@ -53,7 +53,7 @@ DEFAULT_SECRETS = SecretFields()
 
 def property_name(entity_path: str) -> str:
     """`/__properties/fleet` -> `fleet`; `/__properties` (RecordingInfo) -> ``."""
-    return entity_path[len(PROPERTIES_ENTITY):].strip("/")
+    return entity_path[len(PROPERTIES_ENTITY) :].strip("/")
 
 
 @dataclass
@@ -66,8 +66,9 @@ class PropertyChunk:
     values: dict[str, Any]  # field (component) -> last value logged, secrets removed
 
 
-def read_property_chunk(msg: ArrowMessage, meta: ChunkMeta,
-                        secret_fields: SecretFields = DEFAULT_SECRETS) -> PropertyChunk:
+def read_property_chunk(
+    msg: ArrowMessage, meta: ChunkMeta, secret_fields: SecretFields = DEFAULT_SECRETS
+) -> PropertyChunk:
     """Decode a property chunk (fully validated first: its values are read); if it holds a secret
     field, return a re-encoded message without it (same chunk id, so the chunk is still stored
     exactly once)."""

@@ -68,8 +68,9 @@ class ReplayHub:
     def live_runs(self) -> int:
         return len(self._run_bytes)
 
-    def publish(self, run_id: str, kind: int, raw: bytes | bytearray | memoryview, *, persistent: bool,
-                static: bool) -> None:
+    def publish(
+        self, run_id: str, kind: int, raw: bytes | bytearray | memoryview, *, persistent: bool, static: bool
+    ) -> None:
         # Kept as the message's own bytes (a view of the request, no copy); wrapped when sent.
         response: Message = (kind, raw)
         if persistent:

@@ -14,9 +14,14 @@ from services.rrd.decoder import RrdDecoder
 router = APIRouter()
 
 
-@router.post("/v1/uploads", summary="Upload an .rrd file (idempotent: chunks already held are skipped)",
-             responses={400: {"description": "the body is not valid RRD from the byte named on"},
-                        507: {"description": "the hot tier is full"}})
+@router.post(
+    "/v1/uploads",
+    summary="Upload an .rrd file (idempotent: chunks already held are skipped)",
+    responses={
+        400: {"description": "the body is not valid RRD from the byte named on"},
+        507: {"description": "the hot tier is full"},
+    },
+)
 async def upload(request: Request) -> Any:
     """Streams the body (any size, constant memory) into the runs it names. Answers the runs
     touched, chunks new and duplicate, and bytes; `catalog` is "pending" if the catalog could not

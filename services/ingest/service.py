@@ -67,8 +67,19 @@ from services.rrd.messages import (
 )
 from services.rrd.validate import check_chunk
 
-__all__ = ["LOG_TIME", "IngestReport", "IngestRun", "IngestService", "InvalidStreamError", "RunFacts", "SealedInfo",
-           "SealedLookup", "SealedRunError", "Source", "TooManyStreamsError"]
+__all__ = [
+    "LOG_TIME",
+    "IngestReport",
+    "IngestRun",
+    "IngestService",
+    "InvalidStreamError",
+    "RunFacts",
+    "SealedInfo",
+    "SealedLookup",
+    "SealedRunError",
+    "Source",
+    "TooManyStreamsError",
+]
 
 log = logging.getLogger(__name__)
 
@@ -102,8 +113,14 @@ class IngestReport:
     catalog: str = "updated"  # "pending" when the catalog could not be written yet (the data is kept)
 
     def to_dict(self) -> dict[str, Any]:
-        return {"runs": self.runs, "chunks_new": self.chunks_new, "chunks_duplicate": self.chunks_duplicate,
-                "bytes_new": self.bytes_new, "messages": self.messages, "catalog": self.catalog}
+        return {
+            "runs": self.runs,
+            "chunks_new": self.chunks_new,
+            "chunks_duplicate": self.chunks_duplicate,
+            "bytes_new": self.bytes_new,
+            "messages": self.messages,
+            "catalog": self.catalog,
+        }
 
 
 @dataclass
@@ -123,10 +140,20 @@ class Source:
 
 
 class IngestService:
-    def __init__(self, hot: HotStore, catalog: sessionmaker[Session] | None, *, default_robot: str,
-                 max_streams: int, close_after: dt.timedelta, clock: Callable[[], dt.datetime] = utcnow,
-                 replay: ReplayHub | None = None, sealed_lookup: SealedLookup | None = None,
-                 lookup_timeout_s: float = 2.0, secret_fields: SecretFields | None = None) -> None:
+    def __init__(
+        self,
+        hot: HotStore,
+        catalog: sessionmaker[Session] | None,
+        *,
+        default_robot: str,
+        max_streams: int,
+        close_after: dt.timedelta,
+        clock: Callable[[], dt.datetime] = utcnow,
+        replay: ReplayHub | None = None,
+        sealed_lookup: SealedLookup | None = None,
+        lookup_timeout_s: float = 2.0,
+        secret_fields: SecretFields | None = None,
+    ) -> None:
         self.hot = hot
         self.secret_fields = secret_fields or SecretFields()  # property fields stripped (FLEET_SECRET_FIELDS)
         self.sealed_lookup = sealed_lookup  # asked (off the event loop) when a run id is not hot here
@@ -188,7 +215,8 @@ class IngestService:
             if self.live_streams >= self.max_streams:
                 raise TooManyStreamsError(
                     f"this node already holds {self.live_streams} streams, its limit (FLEET_MAX_STREAMS); "
-                    "retry later or send to another node")
+                    "retry later or send to another node"
+                )
             self.live_streams += 1
         return Source(live=live)
 
@@ -235,16 +263,21 @@ class IngestService:
             return
         try:
             check_id("recording id", run_id)
-            source.sealed[run_id] = await asyncio.wait_for(asyncio.to_thread(self.sealed_lookup, run_id),
-                                                           self.lookup_timeout_s)
+            source.sealed[run_id] = await asyncio.wait_for(
+                asyncio.to_thread(self.sealed_lookup, run_id), self.lookup_timeout_s
+            )
         except UnsafeIdError:
             return  # `accept` refuses the id with the reason
         except Exception as exc:  # catalog or store down or slow: the data still goes in
             self._lookup_failed(source, run_id, exc)
 
     def _lookup_failed(self, source: Source, run_id: str, exc: BaseException) -> None:
-        log.warning("could not ask the catalog whether run %s was sealed (%s): filing its data as new; "
-                    "promotion merges it with a sealed copy if there is one", run_id, type(exc).__name__)
+        log.warning(
+            "could not ask the catalog whether run %s was sealed (%s): filing its data as new; "
+            "promotion merges it with a sealed copy if there is one",
+            run_id,
+            type(exc).__name__,
+        )
         source.sealed[run_id] = None
 
     def accept(self, source: Source, event: Event) -> None:
@@ -317,8 +350,14 @@ class IngestService:
         if source.live and run.status != RunStatus.LIVE:  # closed as idle, and its stream speaks again
             run.status, run.ended_at = RunStatus.LIVE, None
             self._republish_store_infos(source, run.run_id)
-        self._publish(source, run.run_id, MessageKind.ARROW_MSG, msg.raw, persistent=msg.store_id.is_blueprint,
-                      static=meta.is_static)
+        self._publish(
+            source,
+            run.run_id,
+            MessageKind.ARROW_MSG,
+            msg.raw,
+            persistent=msg.store_id.is_blueprint,
+            static=meta.is_static,
+        )
         source.report.chunks_new += 1
         source.report.bytes_new += len(msg.raw)
 
@@ -343,7 +382,8 @@ class IngestService:
             return None
         raise InvalidStreamError(
             f"a message for recording {recording_id!r} came before its SetStoreInfo "
-            f"(at byte {getattr(msg, 'offset', 0)}): send the recording from its start")
+            f"(at byte {getattr(msg, 'offset', 0)}): send the recording from its start"
+        )
 
     def _holds(self, source: Source, run: IngestRun | None, run_id: str, chunk_id: bytes) -> bool:
         if run is not None:
@@ -376,8 +416,11 @@ class IngestService:
         whatever it held for it. A run sealed before takes the late data beside its sealed copy."""
         sealed = self._sealed_info(source, run_id)
         if sealed is not None and sealed.tier != Tier.WARM:
-            fix = ("restore it first (fleet runs restore)" if sealed.tier == Tier.COLD
-                   else "send it under a new recording id")
+            fix = (
+                "restore it first (fleet runs restore)"
+                if sealed.tier == Tier.COLD
+                else "send it under a new recording id"
+            )
             raise SealedRunError(f"run {run_id!r} is {sealed.tier}: it takes no new data; {fix}")
         info = source.store_infos.get((StoreKind.RECORDING, run_id))
         version = (info.sdk_version if info is not None else None) or source.version or DEFAULT_VERSION
@@ -419,8 +462,9 @@ class IngestService:
             self.accept(source, event)
             source.report.messages -= 1  # counted when it arrived
 
-    def _publish(self, source: Source, run_id: str, kind: MessageKind, raw: Buffer, *, persistent: bool,
-                 static: bool = False) -> None:
+    def _publish(
+        self, source: Source, run_id: str, kind: MessageKind, raw: Buffer, *, persistent: bool, static: bool = False
+    ) -> None:
         if source.live and self.replay is not None:
             self.replay.publish(run_id, kind, raw, persistent=persistent, static=static)
 
@@ -534,8 +578,13 @@ class IngestService:
             run.catalog_failures += 1
             wait = min(dt.timedelta(seconds=2 ** min(run.catalog_failures, 16)), _CATALOG_BACKOFF_MAX)
             run.catalog_retry_at = self.clock() + wait
-            log.error("the catalog refused the record of run %s (%s: %s); retrying in %s", record.id,
-                      type(exc).__name__, str(exc).splitlines()[0][:300] if str(exc) else "", wait)
+            log.error(
+                "the catalog refused the record of run %s (%s: %s); retrying in %s",
+                record.id,
+                type(exc).__name__,
+                str(exc).splitlines()[0][:300] if str(exc) else "",
+                wait,
+            )
             return
         if run is not None:
             run.catalog_failures, run.catalog_retry_at = 0, None

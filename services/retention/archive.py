@@ -41,8 +41,10 @@ def _load(session: Session, run_id: str) -> tuple[Run, RunLifecycle]:
         raise queries.run_not_found(run_id)
     life = queries.lifecycle(session, run_id)
     if life is None:
-        raise NotSealedError(f"run {run_id!r} is {run.tier}, not sealed yet: it serves as it is, and "
-                             f"`fleet runs promote {run_id}` seals it now")
+        raise NotSealedError(
+            f"run {run_id!r} is {run.tier}, not sealed yet: it serves as it is, and "
+            f"`fleet runs promote {run_id}` seals it now"
+        )
     return run, life
 
 
@@ -59,8 +61,10 @@ def archive(run_id: str, tiers: Tiers, catalog: sessionmaker[Session], now: dt.d
         if (info.storage_class or "STANDARD") != tiers.cold_storage_class:  # else an attempt that died did it
             info = store.set_storage_class(key, tiers.cold_storage_class)
         if (info.storage_class or "STANDARD") != tiers.cold_storage_class:
-            raise StorageError(f"{key} is in storage class {info.storage_class} after the move, not "
-                               f"{tiers.cold_storage_class}: the store refused the class; retried at the next run")
+            raise StorageError(
+                f"{key} is in storage class {info.storage_class} after the move, not "
+                f"{tiers.cold_storage_class}: the store refused the class; retried at the next run"
+            )
         where = f"storage class {tiers.cold_storage_class}"
     else:
         copy_object(tiers.warm, tiers.cold, key)
@@ -84,8 +88,9 @@ def _archive_store(tiers: Tiers) -> ArchiveStore:
     return tiers.warm  # type: ignore[return-value]  # checked by open_tiers
 
 
-def request_restore(run_id: str, tiers: Tiers, catalog: sessionmaker[Session], now: dt.datetime, actor: str,
-                    days: float) -> RunLifecycle:
+def request_restore(
+    run_id: str, tiers: Tiers, catalog: sessionmaker[Session], now: dt.datetime, actor: str, days: float
+) -> RunLifecycle:
     """Start making a cold run readable for `days`: an S3 restore, or a copy back to warm (done by
     `advance_restore`, so a long copy runs in the background and survives a restart)."""
     with session_scope(catalog) as session:
@@ -93,14 +98,16 @@ def request_restore(run_id: str, tiers: Tiers, catalog: sessionmaker[Session], n
         if run.tier != Tier.COLD:
             raise RestoreNotNeededError(f"run {run_id!r} is {run.tier}, not cold: it serves without a restore")
         if life.restore_state in (RestoreState.RESTORING, RestoreState.RESTORED) and (
-                life.restore_until is None or aware(life.restore_until) > now):
+            life.restore_until is None or aware(life.restore_until) > now
+        ):
             session.expunge(life)  # read after the session closes: keep its loaded state
             return life  # already asked for: restoring twice changes nothing
         key = f"{life.prefix}/{RECORDING}"
         mode = life.archive_mode
     if readable_when_cold(mode):
-        raise RestoreNotNeededError(f"run {run_id!r} is kept in storage class {mode}, which reads without a "
-                                    "restore: download it as it is")
+        raise RestoreNotNeededError(
+            f"run {run_id!r} is kept in storage class {mode}, which reads without a restore: download it as it is"
+        )
     if mode and mode != ARCHIVED_IN_STORE:
         _archive_store(tiers).restore(key, max(1, round(days)))
     with session_scope(catalog, write=True) as session:
@@ -137,8 +144,9 @@ def advance_restore(run_id: str, tiers: Tiers, catalog: sessionmaker[Session], n
     return "restored"
 
 
-def _set_restore(catalog: sessionmaker[Session], run_id: str, state: RestoreState | None, now: dt.datetime,
-                 detail: str) -> None:
+def _set_restore(
+    catalog: sessionmaker[Session], run_id: str, state: RestoreState | None, now: dt.datetime, detail: str
+) -> None:
     with session_scope(catalog, write=True) as session:
         _, life = _load(session, run_id)
         life.restore_state = state
@@ -147,8 +155,9 @@ def _set_restore(catalog: sessionmaker[Session], run_id: str, state: RestoreStat
         queries.add_event(session, run_id, "restore", now, "retention", None, detail)
 
 
-def delete(run_id: str, tiers: Tiers, catalog: sessionmaker[Session], now: dt.datetime, actor: str,
-           policy: str | None) -> str:
+def delete(
+    run_id: str, tiers: Tiers, catalog: sessionmaker[Session], now: dt.datetime, actor: str, policy: str | None
+) -> str:
     """Delete a sealed run: its analytics rows leave the catalog first (SQL reads the files the catalog
     lists, so none of them may be missing), then every object under its prefix in both stores, then
     the run is marked deleted; the tombstone keeps who, when and which policy. Safe to repeat."""

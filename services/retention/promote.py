@@ -90,8 +90,9 @@ class Candidate:
     reason: str
 
 
-def due_for_promotion(ingest: IngestService, now: dt.datetime, promote_after: dt.timedelta,
-                      disk_pressure: bool, backoff: PromoteBackoff) -> list[Candidate]:
+def due_for_promotion(
+    ingest: IngestService, now: dt.datetime, promote_after: dt.timedelta, disk_pressure: bool, backoff: PromoteBackoff
+) -> list[Candidate]:
     """Closed hot runs to promote, oldest first: idle for `promote_after`, or all of them under
     disk pressure (past the high-water mark). Runs backing off after a failure wait their turn."""
     out = []
@@ -109,20 +110,32 @@ def due_for_promotion(ingest: IngestService, now: dt.datetime, promote_after: dt
 Upcoming = tuple[IngestRun, dt.datetime | None, str]
 
 
-def upcoming(ingest: IngestService, now: dt.datetime, promote_after: dt.timedelta,
-             backoff: PromoteBackoff) -> list[Upcoming]:
+def upcoming(
+    ingest: IngestService, now: dt.datetime, promote_after: dt.timedelta, backoff: PromoteBackoff
+) -> list[Upcoming]:
     """Hot runs not due yet: when each will be promoted (None: once it closes), and why."""
     out: list[Upcoming] = []
     for run in ingest.hot_runs():
         retry_at = backoff.waiting(run.run_id, now)
         if run.status == RunStatus.LIVE or run.live_sources:
-            out.append((run, None, f"live: promoted {_human(promote_after)} after its stream closes "
-                                   "(or FLEET_CLOSE_AFTER_S after its last data)"))
+            out.append(
+                (
+                    run,
+                    None,
+                    f"live: promoted {_human(promote_after)} after its stream closes "
+                    "(or FLEET_CLOSE_AFTER_S after its last data)",
+                )
+            )
         elif retry_at is not None:
             out.append((run, retry_at, f"retrying after {backoff.failures[run.run_id]} failed attempts"))
         elif now - run.last_data_at < promote_after:
-            out.append((run, run.last_data_at + promote_after,
-                        f"closed, idle {_human(now - run.last_data_at)} of {_human(promote_after)}"))
+            out.append(
+                (
+                    run,
+                    run.last_data_at + promote_after,
+                    f"closed, idle {_human(now - run.last_data_at)} of {_human(promote_after)}",
+                )
+            )
     return out
 
 
@@ -131,8 +144,15 @@ def _human(delta: dt.timedelta) -> str:
     return f"{seconds // 3600}h{seconds // 60 % 60:02d}m" if seconds >= 3600 else f"{seconds // 60}m{seconds % 60:02d}s"
 
 
-def promote(run: IngestRun, ingest: IngestService, tiers: Tiers, catalog: sessionmaker[Session],
-            now: dt.datetime, reserve_bytes: int = 0, backoff: PromoteBackoff | None = None) -> RunRecord | None:
+def promote(
+    run: IngestRun,
+    ingest: IngestService,
+    tiers: Tiers,
+    catalog: sessionmaker[Session],
+    now: dt.datetime,
+    reserve_bytes: int = 0,
+    backoff: PromoteBackoff | None = None,
+) -> RunRecord | None:
     """Seal `run` into the warm tier; returns its new catalog record (None when the run held nothing
     that was not sealed already: its hot copy is simply removed). On failure the run stays hot and,
     given a `backoff`, waits there (1 s, 2 s, 4 s ... up to 5 minutes) before the next attempt."""
@@ -150,8 +170,14 @@ def promote(run: IngestRun, ingest: IngestService, tiers: Tiers, catalog: sessio
     return record
 
 
-def _promote(run: IngestRun, ingest: IngestService, tiers: Tiers, catalog: sessionmaker[Session],
-             now: dt.datetime, reserve_bytes: int) -> RunRecord | None:
+def _promote(
+    run: IngestRun,
+    ingest: IngestService,
+    tiers: Tiers,
+    catalog: sessionmaker[Session],
+    now: dt.datetime,
+    reserve_bytes: int,
+) -> RunRecord | None:
     size = run.hot.size
     sealed_as = _sealed_before(run, ingest)
     if sealed_as is not None and run.chunk_ids <= sealed_as.chunk_ids:
@@ -169,8 +195,11 @@ def _sealed_before(run: IngestRun, ingest: IngestService) -> SealedInfo | None:
     may have filed the data while the catalog did not answer, or another node may have sealed it."""
     sealed = ingest.sealed_lookup(run.run_id) if ingest.sealed_lookup is not None else run.sealed_as
     if sealed is not None and sealed.tier != Tier.WARM:
-        what = "restore it (fleet runs restore), then it is sealed in" if sealed.tier == Tier.COLD else \
-            "it was deleted: its late data stays hot until removed by hand"
+        what = (
+            "restore it (fleet runs restore), then it is sealed in"
+            if sealed.tier == Tier.COLD
+            else "it was deleted: its late data stays hot until removed by hand"
+        )
         raise LateDataError(f"run {run.run_id} received {len(run.chunk_ids)} chunks while {sealed.tier}: {what}")
     run.sealed_as = sealed
     return sealed
@@ -192,19 +221,31 @@ def _check_room(run: IngestRun, tiers: Tiers, base_size: int, reserve_bytes: int
     on that disk): refuse before starting rather than fill the disk the catalog lives on."""
     need = run.hot.size + base_size
     warm_root = getattr(tiers.warm, "root", None)
-    if isinstance(warm_root, Path) and warm_root.exists() and \
-            os.stat(warm_root).st_dev == os.stat(run.hot.directory).st_dev:
+    if (
+        isinstance(warm_root, Path)
+        and warm_root.exists()
+        and os.stat(warm_root).st_dev == os.stat(run.hot.directory).st_dev
+    ):
         need *= 2
     free = shutil.disk_usage(run.hot.directory).free
     if free - need < reserve_bytes:
         raise InsufficientStorageError(
             f"sealing run {run.run_id} needs about {need} bytes on the hot disk, which has {free} free and keeps "
-            f"{reserve_bytes} in reserve (FLEET_RESERVE_BYTES): free space, or use an s3:// warm store")
+            f"{reserve_bytes} in reserve (FLEET_RESERVE_BYTES): free space, or use an s3:// warm store"
+        )
 
 
-def _seal_and_switch(run: IngestRun, ingest: IngestService, tiers: Tiers, catalog: sessionmaker[Session],
-                     now: dt.datetime, reserve_bytes: int, size: int, sealed_as: SealedInfo | None,
-                     workdir: Path) -> RunRecord:
+def _seal_and_switch(
+    run: IngestRun,
+    ingest: IngestService,
+    tiers: Tiers,
+    catalog: sessionmaker[Session],
+    now: dt.datetime,
+    reserve_bytes: int,
+    size: int,
+    sealed_as: SealedInfo | None,
+    workdir: Path,
+) -> RunRecord:
     prefix = sealed_as.prefix if sealed_as else None
     base_size = tiers.warm.head(f"{prefix}/{RECORDING}").size if prefix is not None else 0
     _check_room(run, tiers, base_size, reserve_bytes)
@@ -219,9 +260,10 @@ def _seal_and_switch(run: IngestRun, ingest: IngestService, tiers: Tiers, catalo
     sealed = seal(sources, workdir / RECORDING, run.run_id, now, analytics.add, ingest.secret_fields)  # (1)
     record = _sealed_record(run, sealed, ingest.default_robot)
     prefix = prefix or run_prefix(record.robot_id, record.date, run.run_id)
-    objects = [ObjectRecord(RECORDING, f"{prefix}/{RECORDING}", Tier.WARM, sealed.recording_size,
-                            sealed.recording_sha256),
-               ObjectRecord(INDEX, f"{prefix}/{INDEX}", Tier.WARM, len(sealed.index), sealed.index_sha256)]
+    objects = [
+        ObjectRecord(RECORDING, f"{prefix}/{RECORDING}", Tier.WARM, sealed.recording_size, sealed.recording_sha256),
+        ObjectRecord(INDEX, f"{prefix}/{INDEX}", Tier.WARM, len(sealed.index), sealed.index_sha256),
+    ]
     with open(sealed.recording, "rb") as fh:  # (2) checked by the store against what was sent
         tiers.warm.put(objects[0].key, fh)
     tiers.warm.put(objects[1].key, sealed.index)
@@ -256,10 +298,19 @@ def _sealed_record(run: IngestRun, sealed: SealedRun, default_robot: str) -> Run
     if run.sealed_as is not None:
         filed.robot_id, filed.date = run.sealed_as.robot_id, run.sealed_as.date
     return dataclasses.replace(
-        filed, status=RunStatus.CLOSED, tier=Tier.WARM, sdk_version=figures.sdk_version or filed.sdk_version,
-        chunks=figures.chunks, rows=figures.rows, bytes=figures.bytes, properties=figures.properties,
-        entities=figures.entities, timelines=figures.timelines, ended_at=filed.ended_at or run.last_data_at,
-        started_at=figures.started_at or filed.started_at)
+        filed,
+        status=RunStatus.CLOSED,
+        tier=Tier.WARM,
+        sdk_version=figures.sdk_version or filed.sdk_version,
+        chunks=figures.chunks,
+        rows=figures.rows,
+        bytes=figures.bytes,
+        properties=figures.properties,
+        entities=figures.entities,
+        timelines=figures.timelines,
+        ended_at=filed.ended_at or run.last_data_at,
+        started_at=figures.started_at or filed.started_at,
+    )
 
 
 def _download(tiers: Tiers, key: str, path: object) -> None:

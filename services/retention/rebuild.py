@@ -47,8 +47,12 @@ def run_files(tiers: Tiers) -> Iterator[str]:
             yield info.key
 
 
-def rebuild(catalog: sessionmaker[Session], tiers: Tiers, now: dt.datetime,
-            progress: Callable[[RebuildStep], None] | None = None) -> list[RebuildStep]:
+def rebuild(
+    catalog: sessionmaker[Session],
+    tiers: Tiers,
+    now: dt.datetime,
+    progress: Callable[[RebuildStep], None] | None = None,
+) -> list[RebuildStep]:
     steps = []
     for key in run_files(tiers):
         step = _rebuild_one(catalog, tiers, key, now)
@@ -58,8 +62,12 @@ def rebuild(catalog: sessionmaker[Session], tiers: Tiers, now: dt.datetime,
     return steps
 
 
-def rebuild_streamed(catalog: sessionmaker[Session], tiers: Tiers, clock: Callable[[], dt.datetime],
-                     emit: Callable[[dict[str, Any]], None]) -> None:
+def rebuild_streamed(
+    catalog: sessionmaker[Session],
+    tiers: Tiers,
+    clock: Callable[[], dt.datetime],
+    emit: Callable[[dict[str, Any]], None],
+) -> None:
     """`POST /v1/catalog/rebuild`: rebuild, saying so as it goes (one line per run found, then the counts)."""
     steps = rebuild(catalog, tiers, clock(), lambda step: emit({"event": "run", **step.to_dict()}))
     counts = {k: sum(s.outcome == k for s in steps) for k in ("added", "present", "skipped")}
@@ -102,8 +110,9 @@ def _recording(tiers: Tiers, prefix: str) -> tuple[Tier, str | None, ObjectInfo]
         return None
 
 
-def _insert(catalog: sessionmaker[Session], found: RunJson, tier: Tier, mode: str | None, info: ObjectInfo,
-            now: dt.datetime) -> None:
+def _insert(
+    catalog: sessionmaker[Session], found: RunJson, tier: Tier, mode: str | None, info: ObjectInfo, now: dt.datetime
+) -> None:
     record = dataclasses.replace(found.record, tier=tier)
     objects = [dataclasses.replace(o, tier=tier) if o.name == RECORDING else o for o in found.objects]
     with session_scope(catalog, write=True) as session:
@@ -111,7 +120,14 @@ def _insert(catalog: sessionmaker[Session], found: RunJson, tier: Tier, mode: st
         run = queries.get_run(session, record.id)
         assert run is not None
         run.pinned, run.pinned_by = found.pinned, found.pinned_by if found.pinned else None
-        session.add(RunLifecycle(run_id=record.id, prefix=found.prefix, promoted_at=found.sealed_at,
-                                 archived_at=info.last_modified if tier == Tier.COLD else None, archive_mode=mode))
+        session.add(
+            RunLifecycle(
+                run_id=record.id,
+                prefix=found.prefix,
+                promoted_at=found.sealed_at,
+                archived_at=info.last_modified if tier == Tier.COLD else None,
+                archive_mode=mode,
+            )
+        )
         queries.replace_objects(session, record.id, objects)
         queries.add_event(session, record.id, "rebuild", now, "catalog rebuild", None, f"from {found.prefix}/")

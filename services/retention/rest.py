@@ -54,8 +54,7 @@ def retention(request: Request) -> dict[str, Any]:
 @router.get("/v1/retention/plan", summary="What would move or be deleted now, and why")
 def retention_plan(
     request: Request,
-    action: Annotated[list[str] | None, Query(description=" | ".join(ACTIONS) + " (repeatable; default all)")]
-    = None,
+    action: Annotated[list[str] | None, Query(description=" | ".join(ACTIONS) + " (repeatable; default all)")] = None,
 ) -> dict[str, Any]:
     return service.plan_answer(_ctx(request), _kinds(action))
 
@@ -63,8 +62,7 @@ def retention_plan(
 @router.post("/v1/retention/run", summary="Do what is due now; NDJSON progress, one line per run")
 def retention_run(
     request: Request,
-    action: Annotated[list[str] | None, Query(description=" | ".join(ACTIONS) + " (repeatable; default all)")]
-    = None,
+    action: Annotated[list[str] | None, Query(description=" | ".join(ACTIONS) + " (repeatable; default all)")] = None,
 ) -> StreamingResponse:
     ctx, kinds = _ctx(request), _kinds(action)
     return StreamingResponse(_ndjson(functools.partial(schedule.run_now, ctx, kinds)), media_type=NDJSON)
@@ -102,8 +100,11 @@ def promote(request: Request, run_id: str) -> dict[str, Any]:
     return service.promote_now(_ctx(request), run_id)
 
 
-@router.post("/v1/runs/{run_id}/restore", status_code=202,
-             summary="Make a cold run readable again for restore_days (takes time; see restore_state)")
+@router.post(
+    "/v1/runs/{run_id}/restore",
+    status_code=202,
+    summary="Make a cold run readable again for restore_days (takes time; see restore_state)",
+)
 def restore(request: Request, run_id: str) -> dict[str, Any]:
     return service.request_restore(_ctx(request), run_id, actor(request))
 

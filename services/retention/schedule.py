@@ -52,8 +52,9 @@ def promote_job(ctx: Retention, progress: Progress = None, *, wait: bool = False
         PROMOTING.release()
 
 
-def retention_job(ctx: Retention, progress: Progress = None,
-                  kinds: tuple[str, ...] = (ARCHIVE, DELETE, RESTORE)) -> list[Outcome] | None:
+def retention_job(
+    ctx: Retention, progress: Progress = None, kinds: tuple[str, ...] = (ARCHIVE, DELETE, RESTORE)
+) -> list[Outcome] | None:
     """Archive, advance restores and delete what is due; None if another process runs it now."""
     with job_lock(_engine(ctx), "retention") as got:
         if not got:
@@ -99,7 +100,8 @@ def _recorded(ctx: Retention, job: str, body: Callable[[], list[Outcome]]) -> li
         raise
     failed = [o for o in outcomes if not o.ok]
     summary = f"{len(outcomes) - len(failed)} done, {len(failed)} failed" + "".join(
-        f"; {o.action.action} {o.action.run_id}: {o.detail}" for o in failed[:5])
+        f"; {o.action.action} {o.action.run_id}: {o.detail}" for o in failed[:5]
+    )
     with session_scope(ctx.catalog, write=True) as session:
         queries.finish_job(session, job_id, ctx.clock(), "failed" if failed else "ok", summary)
     return outcomes
@@ -119,8 +121,15 @@ def jobs(promote_interval_s: float, retention_interval_s: float) -> list[Job]:
 def start_scheduler(ctx: Retention, promote_interval_s: float, retention_interval_s: float) -> BackgroundScheduler:
     scheduler = BackgroundScheduler(timezone="UTC")
     for job in jobs(promote_interval_s, retention_interval_s):
-        scheduler.add_job(_guarded(job, ctx), "interval", seconds=job.interval_s, id=job.name, name=job.name,
-                          max_instances=1, coalesce=True)
+        scheduler.add_job(
+            _guarded(job, ctx),
+            "interval",
+            seconds=job.interval_s,
+            id=job.name,
+            name=job.name,
+            max_instances=1,
+            coalesce=True,
+        )
     scheduler.start()
     return scheduler
 

@@ -79,8 +79,15 @@ class Action:
     policy: str | None = None
 
     def to_dict(self) -> dict[str, Any]:
-        return {"run": self.run_id, "action": self.action, "reason": self.reason, "robot_id": self.robot_id,
-                "tier": self.tier, "bytes": self.bytes, "policy": self.policy}
+        return {
+            "run": self.run_id,
+            "action": self.action,
+            "reason": self.reason,
+            "robot_id": self.robot_id,
+            "tier": self.tier,
+            "bytes": self.bytes,
+            "policy": self.policy,
+        }
 
 
 @dataclass
@@ -102,18 +109,30 @@ def _days(delta: dt.timedelta) -> str:
 def overview(ctx: Retention, settings: Settings) -> dict[str, Any]:
     """`GET /v1/retention`: the policies and settings retention works with, and its recent job runs."""
     with session_scope(ctx.catalog) as session:
-        jobs = [{"job": j.job, "node": j.node, "started_at": aware(j.started_at).isoformat(),
-                 "finished_at": aware(j.finished_at).isoformat() if j.finished_at else None,
-                 "outcome": j.outcome, "detail": j.detail} for j in queries.recent_jobs(session)]
+        jobs = [
+            {
+                "job": j.job,
+                "node": j.node,
+                "started_at": aware(j.started_at).isoformat(),
+                "finished_at": aware(j.finished_at).isoformat() if j.finished_at else None,
+                "outcome": j.outcome,
+                "detail": j.detail,
+            }
+            for j in queries.recent_jobs(session)
+        ]
     return {
         "policies": ctx.policies.to_dict(),
         "promote_after_s": ctx.promote_after.total_seconds(),
         "promote_below_free_bytes": ctx.promote_below_free_bytes,
         "restore_days": ctx.restore_days,
         "archive": ctx.tiers.archive_mode(),
-        "warm_url": ctx.tiers.warm.url, "cold_url": ctx.tiers.cold.url,
-        "schedule": {"enabled": settings.scheduler, "promote_interval_s": settings.promote_interval_s,
-                     "retention_interval_s": settings.retention_interval_s},
+        "warm_url": ctx.tiers.warm.url,
+        "cold_url": ctx.tiers.cold.url,
+        "schedule": {
+            "enabled": settings.scheduler,
+            "promote_interval_s": settings.promote_interval_s,
+            "retention_interval_s": settings.retention_interval_s,
+        },
         "recent_jobs": jobs,
     }
 
@@ -149,16 +168,25 @@ def _due(ctx: Retention, run: Any, life: Any, now: dt.datetime, kinds: set[str])
     age = now - aware(run.ended_at or run.last_data_at)
     common = {"robot_id": run.robot_id, "tier": run.tier, "bytes": run.bytes, "policy": policy.name}
     if age >= policy.delete_after and DELETE in kinds and not run.pinned:
-        return Action(run.id, DELETE, f"ended {_days(age)} ago; policy {policy.name!r} keeps runs "
-                                      f"{policy.warm_days:g} days warm + {policy.cold_days:g} days cold", **common)
+        return Action(
+            run.id,
+            DELETE,
+            f"ended {_days(age)} ago; policy {policy.name!r} keeps runs "
+            f"{policy.warm_days:g} days warm + {policy.cold_days:g} days cold",
+            **common,
+        )
     if life.restore_state is not None and RESTORE in kinds:
         until = aware(life.restore_until) if life.restore_until else None
         if life.restore_state == RestoreState.RESTORING or (until is not None and until <= now):
             why = "restore asked for" if life.restore_state == RestoreState.RESTORING else "restore period is over"
             return Action(run.id, RESTORE, why, **common)
     if run.tier == Tier.WARM and age >= policy.archive_after and policy.cold_days > 0 and ARCHIVE in kinds:
-        return Action(run.id, ARCHIVE, f"ended {_days(age)} ago; policy {policy.name!r} keeps runs "
-                                       f"{policy.warm_days:g} days warm", **common)
+        return Action(
+            run.id,
+            ARCHIVE,
+            f"ended {_days(age)} ago; policy {policy.name!r} keeps runs {policy.warm_days:g} days warm",
+            **common,
+        )
     return None
 
 
@@ -181,8 +209,7 @@ def _execute(ctx: Retention, action: Action, now: dt.datetime) -> str:
         run = ctx.ingest.hot_run(action.run_id)
         if run is None:
             return "no longer hot here"
-        record = promote.promote(run, ctx.ingest, ctx.tiers, ctx.catalog, now, ctx.reserve_bytes,
-                                 ctx.promote_backoff)
+        record = promote.promote(run, ctx.ingest, ctx.tiers, ctx.catalog, now, ctx.reserve_bytes, ctx.promote_backoff)
         if record is None:
             return "nothing new: its chunks were all sealed already, hot copy removed"
         return f"sealed {record.chunks} chunks, {record.bytes} bytes"
@@ -237,9 +264,12 @@ def request_restore(ctx: Retention, run_id: str, actor: str) -> dict[str, Any]:
 
 
 def restore_status(life: Any) -> dict[str, Any]:
-    return {"run": life.run_id, "restore_state": life.restore_state,
-            "restore_requested_at": iso_utc(life.restore_requested_at),
-            "restore_until": iso_utc(life.restore_until)}
+    return {
+        "run": life.run_id,
+        "restore_state": life.restore_state,
+        "restore_requested_at": iso_utc(life.restore_requested_at),
+        "restore_until": iso_utc(life.restore_until),
+    }
 
 
 def upcoming(ctx: Retention) -> list[dict[str, Any]]:
@@ -247,9 +277,18 @@ def upcoming(ctx: Retention) -> list[dict[str, Any]]:
     if ctx.ingest is None:
         return []
     now = ctx.clock()
-    return [{"run": run.run_id, "action": PROMOTE, "at": iso_utc(at), "reason": why,
-             "robot_id": run.robot_id or ctx.ingest.default_robot, "tier": Tier.HOT, "bytes": run.hot.size}
-            for run, at, why in promote.upcoming(ctx.ingest, now, ctx.promote_after, ctx.promote_backoff)]
+    return [
+        {
+            "run": run.run_id,
+            "action": PROMOTE,
+            "at": iso_utc(at),
+            "reason": why,
+            "robot_id": run.robot_id or ctx.ingest.default_robot,
+            "tier": Tier.HOT,
+            "bytes": run.hot.size,
+        }
+        for run, at, why in promote.upcoming(ctx.ingest, now, ctx.promote_after, ctx.promote_backoff)
+    ]
 
 
 def promote_now(ctx: Retention, run_id: str) -> dict[str, Any]:
@@ -262,12 +301,15 @@ def promote_now(ctx: Retention, run_id: str) -> dict[str, Any]:
         where = "hot on another node: ask that node" if tier == Tier.HOT else f"{tier} already"
         raise NotHotError(f"run {run_id!r} is {where}: there is nothing to promote here")
     if run.status == RunStatus.LIVE or run.live_sources:
-        raise StillLiveError(f"run {run_id!r} is live (a stream is still sending it): it can be promoted once "
-                             "its stream ends, or FLEET_CLOSE_AFTER_S after its last data")
+        raise StillLiveError(
+            f"run {run_id!r} is live (a stream is still sending it): it can be promoted once "
+            "its stream ends, or FLEET_CLOSE_AFTER_S after its last data"
+        )
     assert ctx.ingest is not None
     with promote.PROMOTING:
-        record = promote.promote(run, ctx.ingest, ctx.tiers, ctx.catalog, ctx.clock(), ctx.reserve_bytes,
-                                 ctx.promote_backoff)
+        record = promote.promote(
+            run, ctx.ingest, ctx.tiers, ctx.catalog, ctx.clock(), ctx.reserve_bytes, ctx.promote_backoff
+        )
     if record is None:
         return {"run": run_id, "tier": Tier.WARM, "detail": "nothing new: its chunks were all sealed already"}
     return {"run": run_id, "tier": record.tier, "detail": f"sealed {record.chunks} chunks, {record.bytes} bytes"}
@@ -286,4 +328,3 @@ def delete_run(ctx: Retention, run_id: str, actor: str) -> str:
         if run.pinned:
             raise NotSealedError(f"run {run_id!r} is pinned: unpin it first (fleet runs pin --unpin)")
     return archive.delete(run_id, ctx.tiers, ctx.catalog, ctx.clock(), actor, None)
-

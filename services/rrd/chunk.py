@@ -99,19 +99,22 @@ def decompress_payload(msg: ArrowMessage) -> bytes:
     if msg.uncompressed_size > limits.max_chunk_bytes():
         raise errors.MessageTooLargeError(
             f"chunk declares {msg.uncompressed_size} bytes uncompressed, over the limit of "
-            f"{limits.max_chunk_bytes()} (raise FLEET_MAX_CHUNK_BYTES if chunks this large are expected)", msg.offset)
+            f"{limits.max_chunk_bytes()} (raise FLEET_MAX_CHUNK_BYTES if chunks this large are expected)",
+            msg.offset,
+        )
     if msg.uncompressed_size > _LZ4_MAX_RATIO * len(msg.payload) + 64:
         # Refuse before allocating: no LZ4 block expands more than ~255x.
         raise errors.DecompressionError(
-            f"LZ4 block of {len(msg.payload)} bytes cannot decompress to the declared "
-            f"{msg.uncompressed_size} bytes", msg.offset,
+            f"LZ4 block of {len(msg.payload)} bytes cannot decompress to the declared {msg.uncompressed_size} bytes",
+            msg.offset,
         )
     try:
         data: bytes = lz4.block.decompress(msg.payload, uncompressed_size=msg.uncompressed_size)
     except (lz4.block.LZ4BlockError, ValueError, MemoryError, OverflowError) as exc:
         raise errors.DecompressionError(
             f"LZ4 block of {len(msg.payload)} bytes does not decompress to the declared "
-            f"{msg.uncompressed_size} bytes ({exc})", msg.offset,
+            f"{msg.uncompressed_size} bytes ({exc})",
+            msg.offset,
         ) from exc
     if len(data) != msg.uncompressed_size:
         raise errors.DecompressionError(
@@ -185,8 +188,12 @@ def _chunk_meta(msg: ArrowMessage, data: bytes) -> ChunkMeta:
     if values is not None:
         assert header is not None
         num_rows, ranges = values
-        components = tuple([ComponentMeta(c.column, c.component, c.archetype, c.component_type, num_rows,
-                                          ranges, c.field) for c in layout.data])
+        components = tuple(
+            [
+                ComponentMeta(c.column, c.component, c.archetype, c.component_type, num_rows, ranges, c.field)
+                for c in layout.data
+            ]
+        )
         if problem is None and any(layout.pick_required_null_counts(header.nodes)):
             problem = _null_problem(layout, [header.nodes[2 * layout.top_nodes[i] + 1] for i in layout.required])
         checked = layout.direct_lists is not None and _lists_valid(data, layout.direct_lists, header)
@@ -196,8 +203,13 @@ def _chunk_meta(msg: ArrowMessage, data: bytes) -> ChunkMeta:
         num_rows, ranges, components = _arrow_values(batch, layout, msg.offset)
         if problem is None:
             problem = _null_problem(layout, [batch.column(i).null_count for i in layout.required])
-    timelines = tuple([TimelineMeta(ix.name, ix.type, ranges[ix.name], ix.is_sorted, ix.field)
-                       for ix in layout.indexes if ix.name in ranges])
+    timelines = tuple(
+        [
+            TimelineMeta(ix.name, ix.type, ranges[ix.name], ix.is_sorted, ix.field)
+            for ix in layout.indexes
+            if ix.name in ranges
+        ]
+    )
     if msg.chunk_id:
         chunk_id = msg.chunk_id
     else:
@@ -206,9 +218,20 @@ def _chunk_meta(msg: ArrowMessage, data: bytes) -> ChunkMeta:
             chunk_id = parse_chunk_id((md.get(CHUNK_ID_KEY) or md[LEGACY_CHUNK_ID_KEY]).decode())
         except (KeyError, ValueError, UnicodeDecodeError) as exc:
             raise errors.NotAChunkError(f"chunk has no valid rerun:id ({exc})", msg.offset) from exc
-    return ChunkMeta(chunk_id, layout.entity_path, not layout.indexes, num_rows, timelines, components,
-                     len(msg.raw), msg.uncompressed_size or len(msg.payload), layout.row_id_field, layout, problem,
-                     checked)
+    return ChunkMeta(
+        chunk_id,
+        layout.entity_path,
+        not layout.indexes,
+        num_rows,
+        timelines,
+        components,
+        len(msg.raw),
+        msg.uncompressed_size or len(msg.payload),
+        layout.row_id_field,
+        layout,
+        problem,
+        checked,
+    )
 
 
 def _lists_valid(data: bytes, columns: tuple[DataColumn, ...], header: BatchHeader) -> bool:
@@ -218,9 +241,9 @@ def _lists_valid(data: bytes, columns: tuple[DataColumn, ...], header: BatchHead
     (not known) sends the chunk to pyarrow's full validation."""
     nodes, buffers, body = header.nodes, header.buffers, header.body
     for c in columns:
-        rows, nulls, values, value_nulls = nodes[2 * c.node:2 * c.node + 4]
+        rows, nulls, values, value_nulls = nodes[2 * c.node : 2 * c.node + 4]
         # Buffers: list validity, list offsets, values validity, values (each (offset, length)).
-        _, validity, at, offsets_size, _, value_validity, _, values_size = buffers[2 * c.buffer:2 * c.buffer + 8]
+        _, validity, at, offsets_size, _, value_validity, _, values_size = buffers[2 * c.buffer : 2 * c.buffer + 8]
         if not (0 <= nulls <= rows and 0 <= value_nulls <= values):
             return False
         if (nulls and validity < (rows + 7) // 8) or (value_nulls and value_validity < (values + 7) // 8):
@@ -269,8 +292,9 @@ def _direct_values(data: bytes, layout: ChunkLayout, header: BatchHeader) -> tup
     return rows, ranges
 
 
-def _arrow_values(batch: pa.RecordBatch, layout: ChunkLayout,
-                  offset: int) -> tuple[int, dict[str, TimeRange], tuple[ComponentMeta, ...]]:
+def _arrow_values(
+    batch: pa.RecordBatch, layout: ChunkLayout, offset: int
+) -> tuple[int, dict[str, TimeRange], tuple[ComponentMeta, ...]]:
     index_values: dict[str, tuple[np.ndarray, TimeRange]] = {}
     for ix in layout.indexes:
         column = batch.column(ix.position)
@@ -295,8 +319,9 @@ def _int64_values(column: pa.Array) -> np.ndarray:
     return array
 
 
-def _component(col: DataColumn, column: pa.Array,
-               index_values: dict[str, tuple[np.ndarray, TimeRange]]) -> ComponentMeta:
+def _component(
+    col: DataColumn, column: pa.Array, index_values: dict[str, tuple[np.ndarray, TimeRange]]
+) -> ComponentMeta:
     ranges: dict[str, TimeRange] = {}
     if column.null_count == 0:
         num_rows = len(column)
@@ -318,8 +343,9 @@ def with_batch(msg: ArrowMessage, batch: pa.RecordBatch, chunk_id: bytes | None 
     `chunk_id`, the new chunk gets that id (in the Arrow metadata and the message); else it keeps
     its id (the same chunk, e.g. with a secret column removed)."""
     if chunk_id is not None:
-        batch = batch.replace_schema_metadata({**(batch.schema.metadata or {}),
-                                               CHUNK_ID_KEY: chunk_id_str(chunk_id).encode()})
+        batch = batch.replace_schema_metadata(
+            {**(batch.schema.metadata or {}), CHUNK_ID_KEY: chunk_id_str(chunk_id).encode()}
+        )
     sink = pa.BufferOutputStream()
     with pa.ipc.new_stream(sink, batch.schema) as writer:
         writer.write_batch(batch)
@@ -330,5 +356,15 @@ def with_batch(msg: ArrowMessage, batch: pa.RecordBatch, chunk_id: bytes | None 
     pb.uncompressed_size = len(ipc)
     if chunk_id is not None:
         pb.chunk_id.CopyFrom(tuid_proto(chunk_id))
-    return ArrowMessage(msg.offset, msg.stream_offset, msg.stream_index, pb.SerializeToString(), msg.store_id,
-                        chunk_id or msg.chunk_id, msg.is_static, Compression.LZ4, len(ipc), pb.payload)
+    return ArrowMessage(
+        msg.offset,
+        msg.stream_offset,
+        msg.stream_index,
+        pb.SerializeToString(),
+        msg.store_id,
+        chunk_id or msg.chunk_id,
+        msg.is_static,
+        Compression.LZ4,
+        len(ipc),
+        pb.payload,
+    )

@@ -47,7 +47,8 @@ def same_type(got: pa.DataType, expected: pa.DataType) -> bool:
     if pa.types.is_fixed_size_list(got) and got.list_size != expected.list_size:
         return False
     if pa.types.is_struct(got) and [got.field(i).name for i in range(got.num_fields)] != [
-            expected.field(i).name for i in range(expected.num_fields)]:
+        expected.field(i).name for i in range(expected.num_fields)
+    ]:
         return False
     if got.num_fields == 0:
         return bool(got == expected)
@@ -61,8 +62,9 @@ def component_type_problem(component: str, column: str, arrow_type: pa.DataType)
     return f"column {column!r} ({component}) is {arrow_type}, Rerun expects {expected}"
 
 
-def schema_problem(schema: pa.Schema, row_id_field: pa.Field | None,
-                   data: list[tuple[str, str, pa.DataType]]) -> str | None:
+def schema_problem(
+    schema: pa.Schema, row_id_field: pa.Field | None, data: list[tuple[str, str, pa.DataType]]
+) -> str | None:
     """Why Rerun would refuse chunks of this schema (None: it would not, as far as checked here).
     `data`: (column, component, type) of each data column."""
     metadata = schema.metadata or {}

@@ -69,8 +69,13 @@ class _State(enum.Enum):
 class RrdDecoder:
     """Push decoder: `feed(data)` returns the events completed by `data`; `finish()` at EOF."""
 
-    def __init__(self, *, max_message_size: int = DEFAULT_MAX_MESSAGE_SIZE, max_chunk_bytes: int | None = None,
-                 start_offset: int = 0) -> None:
+    def __init__(
+        self,
+        *,
+        max_message_size: int = DEFAULT_MAX_MESSAGE_SIZE,
+        max_chunk_bytes: int | None = None,
+        start_offset: int = 0,
+    ) -> None:
         self.max_message_size = max_message_size
         # Largest chunk an Arrow message may declare (default: the process's FLEET_MAX_CHUNK_BYTES).
         self.max_chunk_bytes = max_chunk_bytes if max_chunk_bytes is not None else limits.max_chunk_bytes()
@@ -167,7 +172,7 @@ class RrdDecoder:
     def payload_filled(self, count: int) -> list[Event]:
         """`count` bytes were written at the start of the last `payload_target()`."""
         assert self._large is not None
-        del self._large[self._filled + count:]
+        del self._large[self._filled + count :]
         events: list[Event] = []
         self._advance_large(count, events)
         return events
@@ -212,8 +217,7 @@ class RrdDecoder:
                         f"stream header needs {STREAM_HEADER_SIZE} bytes, only {remaining} remain",
                         self._buf_offset,
                     )
-                raise errors.FooterError(f"{remaining} unexpected bytes after the end of the stream",
-                                         self._buf_offset)
+                raise errors.FooterError(f"{remaining} unexpected bytes after the end of the stream", self._buf_offset)
         elif self._state is _State.MESSAGE_HEADER:
             if remaining:
                 raise errors.TruncatedError(
@@ -223,8 +227,7 @@ class RrdDecoder:
         elif self._state is _State.PAYLOAD:
             have = self._filled if self._large is not None else remaining
             raise errors.TruncatedError(
-                f"{MessageKind(self._kind).name} message declares {self._length} bytes, "
-                f"only {have} remain",
+                f"{MessageKind(self._kind).name} message declares {self._length} bytes, only {have} remain",
                 self._msg_offset,
             )
         elif remaining or self._footer_entries:  # AFTER_END: a partial stream footer
@@ -242,12 +245,12 @@ class RrdDecoder:
         if state is _State.MESSAGE_HEADER:
             if available < MESSAGE_HEADER_SIZE:
                 # A new stream header may follow without an End message (concatenation).
-                if available >= 4 and looks_like_stream_header(bytes(buf[pos:pos + 4])):
+                if available >= 4 and looks_like_stream_header(bytes(buf[pos : pos + 4])):
                     self._state = _State.STREAM_HEADER
                     return self._step(buf, pos, events)
                 return None
             # A message header starts with its kind (0-3); b"R" may start a concatenated stream.
-            if buf[pos] == _R and looks_like_stream_header(bytes(buf[pos:pos + 4])):
+            if buf[pos] == _R and looks_like_stream_header(bytes(buf[pos : pos + 4])):
                 self._state = _State.STREAM_HEADER
                 return self._step(buf, pos, events)
             kind, length = decode_message_header(buf, pos)
@@ -270,12 +273,12 @@ class RrdDecoder:
                     # Large messages get their own buffer, filled in place (not re-copied), which
                     # grows with the data received, never to the declared size up front.
                     with memoryview(buf) as view:
-                        self._large = bytearray(view[pos:pos + available])
+                        self._large = bytearray(view[pos : pos + available])
                     self._filled = available
                     return available
                 return None
             with memoryview(buf) as view:  # one copy, and the view is released before resizing
-                raw = bytes(view[pos:pos + self._length])
+                raw = bytes(view[pos : pos + self._length])
             self._state = _State.MESSAGE_HEADER
             event = self._decode_message(raw)
             if event is not None:
@@ -283,10 +286,10 @@ class RrdDecoder:
             return self._length
         if state is _State.STREAM_HEADER:
             if available < STREAM_HEADER_SIZE:
-                if available >= 4 and not looks_like_stream_header(bytes(buf[pos:pos + 4])):
-                    decode_stream_header(bytes(buf[pos:pos + 4]).ljust(STREAM_HEADER_SIZE, b"\0"), here)
+                if available >= 4 and not looks_like_stream_header(bytes(buf[pos : pos + 4])):
+                    decode_stream_header(bytes(buf[pos : pos + 4]).ljust(STREAM_HEADER_SIZE, b"\0"), here)
                 return None
-            header = decode_stream_header(bytes(buf[pos:pos + STREAM_HEADER_SIZE]), here)
+            header = decode_stream_header(bytes(buf[pos : pos + STREAM_HEADER_SIZE]), here)
             events.append(StreamStart(here, self._streams, header))
             self._streams += 1
             self._stream_offset = here
@@ -294,17 +297,16 @@ class RrdDecoder:
             return STREAM_HEADER_SIZE
         return self._step_after_end(buf, pos, available, here, events)
 
-    def _step_after_end(self, buf: bytearray, pos: int, available: int, here: int,
-                        events: list[Event]) -> int | None:
+    def _step_after_end(self, buf: bytearray, pos: int, available: int, here: int, events: list[Event]) -> int | None:
         assert self._end is not None
         end_start, end_len, end_payload = self._end
         if available < 8:  # "RRF2" may begin a new stream or the b"RRF2FOOT" marker: wait
             return None
-        head = bytes(buf[pos:pos + 8])
+        head = bytes(buf[pos : pos + 8])
         if head == FOOTER_MAGIC:
             if available < FOOTER_FIXED_SIZE:
                 return None
-            count = int.from_bytes(buf[pos + 8:pos + 12], "little")
+            count = int.from_bytes(buf[pos + 8 : pos + 12], "little")
             if count != len(self._footer_entries):
                 raise errors.FooterError(
                     f"stream footer says {count} entries, {len(self._footer_entries)} precede it", here
@@ -320,7 +322,8 @@ class RrdDecoder:
                 return self._step(buf, pos, events)
             raise errors.FooterError(
                 f"expected a stream footer pointing at byte {end_start} of the stream, "
-                f"or a new stream; found {head.hex()}", here,
+                f"or a new stream; found {head.hex()}",
+                here,
             )
         if available < FOOTER_ENTRY_SIZE:
             return None
@@ -337,16 +340,26 @@ class RrdDecoder:
 
     def _decode_message(self, raw: Buffer) -> Event | None:
         offset, kind = self._msg_offset, self._kind
-        message = self._store_ids.complete(decode_message(kind, raw, offset, self._stream_offset, self._streams - 1,
-                                                          max_chunk_bytes=self.max_chunk_bytes))
+        message = self._store_ids.complete(
+            decode_message(
+                kind, raw, offset, self._stream_offset, self._streams - 1, max_chunk_bytes=self.max_chunk_bytes
+            )
+        )
         if isinstance(message, EndMessage):
             self._end = (offset + MESSAGE_HEADER_SIZE - self._stream_offset, len(message.raw), bytes(message.raw))
             self._state = _State.AFTER_END
         return message
 
 
-def decode_message(kind: int, raw: Buffer, offset: int = 0, stream_offset: int = 0,
-                   stream_index: int = 0, *, max_chunk_bytes: int | None = None) -> Message:
+def decode_message(
+    kind: int,
+    raw: Buffer,
+    offset: int = 0,
+    stream_offset: int = 0,
+    stream_index: int = 0,
+    *,
+    max_chunk_bytes: int | None = None,
+) -> Message:
     """A typed message from its kind and protobuf bytes (from an RRD frame or a gRPC LogMsg).
     An Arrow message declaring a chunk over `max_chunk_bytes` (default: the process's
     FLEET_MAX_CHUNK_BYTES) is refused here, before its payload is decompressed."""
@@ -361,8 +374,9 @@ def decode_message(kind: int, raw: Buffer, offset: int = 0, stream_offset: int =
             return _store_info_message(raw, *where)
         if kind == MessageKind.BLUEPRINT_ACTIVATION:
             pb = log_msg_pb2.BlueprintActivationCommand.FromString(raw)
-            return BlueprintActivationMessage(*where, raw, StoreId.from_proto(pb.blueprint_id),
-                                              pb.make_active, pb.make_default)
+            return BlueprintActivationMessage(
+                *where, raw, StoreId.from_proto(pb.blueprint_id), pb.make_active, pb.make_default
+            )
         if kind == MessageKind.END:
             return EndMessage(*where, raw, log_msg_pb2.RrdFooter.FromString(raw) if raw else None)
     except DecodeError as exc:
@@ -378,8 +392,7 @@ def _store_info_message(raw: bytes, offset: int, stream_offset: int, stream_inde
     store_id = StoreId.from_proto(info.store_id)
     if not store_id.application_id and info.HasField("application_id"):
         store_id = StoreId(store_id.kind, info.application_id.id, store_id.recording_id)
-    version = (RerunVersion.from_bits(info.store_version.crate_version_bits)
-               if info.HasField("store_version") else None)
+    version = RerunVersion.from_bits(info.store_version.crate_version_bits) if info.HasField("store_version") else None
     return StoreInfoMessage(offset, stream_offset, stream_index, raw, store_id, version, _source(info))
 
 
@@ -396,8 +409,7 @@ def _source(info: log_msg_pb2.StoreInfo) -> str:
     return label
 
 
-def _arrow_message(raw: Buffer, offset: int, stream_offset: int,
-                   stream_index: int) -> ArrowMessage:
+def _arrow_message(raw: Buffer, offset: int, stream_offset: int, stream_index: int) -> ArrowMessage:
     payload: bytes | memoryview
     if len(raw) >= LARGE_MESSAGE:
         # Parse everything but the payload, which stays a view into `raw` (never copied).
@@ -416,7 +428,10 @@ def _arrow_message(raw: Buffer, offset: int, stream_offset: int,
     if pb.encoding not in (log_msg_pb2.ENCODING_UNSPECIFIED, log_msg_pb2.ENCODING_ARROW_IPC):
         raise errors.ProtobufError(f"ArrowMsg encoding {pb.encoding}, expected 1 (Arrow IPC)", offset)
     return ArrowMessage(
-        offset, stream_offset, stream_index, raw,
+        offset,
+        stream_offset,
+        stream_index,
+        raw,
         store_id=_store_id(pb.store_id),
         chunk_id=tuid_bytes(pb.chunk_id) if pb.HasField("chunk_id") else None,
         is_static=pb.is_static if pb.HasField("is_static") else None,
@@ -432,7 +447,9 @@ def check_chunk_size(msg: ArrowMessage, limit: int) -> None:
     if size > limit:
         raise errors.MessageTooLargeError(
             f"chunk declares {size} bytes uncompressed ({len(msg.payload)} compressed), over the limit of "
-            f"{limit} (raise FLEET_MAX_CHUNK_BYTES if chunks this large are expected)", msg.offset)
+            f"{limit} (raise FLEET_MAX_CHUNK_BYTES if chunks this large are expected)",
+            msg.offset,
+        )
 
 
 _COMPRESSIONS = {int(c): c for c in Compression}
@@ -453,16 +470,22 @@ def _store_id(pb: common_pb2.StoreId) -> StoreId:
 _ARROW_PAYLOAD_FIELD = 5
 
 
-def iter_events(source: BinaryIO | str | os.PathLike[str], *, max_message_size: int = DEFAULT_MAX_MESSAGE_SIZE,
-                read_size: int = READ_SIZE, max_chunk_bytes: int | None = None) -> Iterator[Event]:
+def iter_events(
+    source: BinaryIO | str | os.PathLike[str],
+    *,
+    max_message_size: int = DEFAULT_MAX_MESSAGE_SIZE,
+    read_size: int = READ_SIZE,
+    max_chunk_bytes: int | None = None,
+) -> Iterator[Event]:
     """Every event of a file or binary stream, read in pieces of `read_size` bytes.
 
     Raises the codec error at the end (after yielding everything before it) if the input is bad.
     """
     if isinstance(source, (str, os.PathLike)):
         with open(source, "rb") as fh:
-            yield from iter_events(fh, max_message_size=max_message_size, read_size=read_size,
-                                   max_chunk_bytes=max_chunk_bytes)
+            yield from iter_events(
+                fh, max_message_size=max_message_size, read_size=read_size, max_chunk_bytes=max_chunk_bytes
+            )
         return
     decoder = RrdDecoder(max_message_size=max_message_size, max_chunk_bytes=max_chunk_bytes)
     can_readinto = hasattr(source, "readinto")

@@ -37,8 +37,14 @@ def with_chunk_fields(raw: Buffer, meta: ChunkMeta) -> bytes:
 class RrdEncoder:
     """Writes one RRD stream to `sink` (any binary file-like; it need not be seekable)."""
 
-    def __init__(self, sink: BinaryIO, version: RerunVersion, *,
-                 compression: int = HEADER_COMPRESSION_LZ4, write_footer: bool = True) -> None:
+    def __init__(
+        self,
+        sink: BinaryIO,
+        version: RerunVersion,
+        *,
+        compression: int = HEADER_COMPRESSION_LZ4,
+        write_footer: bool = True,
+    ) -> None:
         self._sink = sink
         self._write_footer = write_footer
         self._entries: dict[StoreId, list[ManifestEntry]] = {}
@@ -72,14 +78,16 @@ class RrdEncoder:
             self._entries.setdefault(self._store_ids.resolve(msg.store_id), []).append(entry)
         self._frame(MessageKind.ARROW_MSG, raw)
 
-    def write_raw(self, kind: MessageKind, raw: Buffer, *, store_id: StoreId | None = None,
-                  meta: ChunkMeta | None = None) -> None:
+    def write_raw(
+        self, kind: MessageKind, raw: Buffer, *, store_id: StoreId | None = None, meta: ChunkMeta | None = None
+    ) -> None:
         """Append a message given as protobuf bytes (for example from a gRPC LogMsg)."""
         if kind == MessageKind.ARROW_MSG and self._write_footer:
             if store_id is None or meta is None:
                 raise ValueError("an Arrow message needs its store id and chunk metadata for the footer")
             self._entries.setdefault(self._store_ids.resolve(store_id), []).append(
-                ManifestEntry(meta, self.position + MESSAGE_HEADER_SIZE))
+                ManifestEntry(meta, self.position + MESSAGE_HEADER_SIZE)
+            )
         self._frame(kind, raw)
 
     def finish(self) -> None:

@@ -49,7 +49,7 @@ def read_footer(fh: BinaryIO) -> log_msg_pb2.RrdFooter | None:
         return None
     fh.seek(size - _TRAILER)
     trailer = fh.read(_TRAILER)
-    if trailer[FOOTER_ENTRY_SIZE:FOOTER_ENTRY_SIZE + 8] != FOOTER_MAGIC or trailer[-4:] != b"\x01\0\0\0":
+    if trailer[FOOTER_ENTRY_SIZE : FOOTER_ENTRY_SIZE + 8] != FOOTER_MAGIC or trailer[-4:] != b"\x01\0\0\0":
         return None
     start, length, crc = decode_footer_entry(trailer)
     # One stream starting at byte 0: its End payload runs right up to the trailer.
@@ -157,8 +157,14 @@ def _add_timelines(store: StoreSummary, schema: pa.Schema, table: pa.Table) -> N
             continue
         name = md.get(b"rerun:index_name", fld.name.encode()).decode()
         type_name = timeline_type(fld.type)
-        starts = [c for c in table.schema if c.name.endswith(":start") and c.metadata
-                  and c.metadata.get(b"rerun:index") == name.encode() and b"rerun:component" not in c.metadata]
+        starts = [
+            c
+            for c in table.schema
+            if c.name.endswith(":start")
+            and c.metadata
+            and c.metadata.get(b"rerun:index") == name.encode()
+            and b"rerun:component" not in c.metadata
+        ]
         if type_name is None or not starts:
             continue
         start_col = table.column(starts[0].name)

@@ -37,8 +37,9 @@ _SERIALIZER_MSGPACK = 1
 OLDEST_SUPPORTED = (0, 23)
 # Rerun itself cannot convert recordings this old (`rerun rrd migrate` refuses them): the robot
 # has to record with a newer SDK.
-UPGRADE_HINT = ("the oldest supported rerun-sdk is 0.23: upgrade rerun-sdk on the robot "
-                "(pip install -U rerun-sdk) and record again")
+UPGRADE_HINT = (
+    "the oldest supported rerun-sdk is 0.23: upgrade rerun-sdk on the robot (pip install -U rerun-sdk) and record again"
+)
 
 _MESSAGE_HEADER = struct.Struct("<QQ")
 _FOOTER_ENTRY = struct.Struct("<QQI")
@@ -106,7 +107,8 @@ def decode_stream_header(raw: bytes, offset: int) -> StreamHeader:
     fourcc = raw[:4]
     if fourcc in OLD_FOURCCS:
         raise errors.UnsupportedVersionError(
-            f"{fourcc.decode()} stream written by a Rerun older than 0.23; {UPGRADE_HINT}", offset)
+            f"{fourcc.decode()} stream written by a Rerun older than 0.23; {UPGRADE_HINT}", offset
+        )
     if fourcc != FOURCC:
         raise errors.NotAnRrdError(f"expected magic b'RRF2', found {fourcc!r}", offset)
     version = RerunVersion.from_bytes(raw[4:8])
@@ -122,9 +124,7 @@ def decode_stream_header(raw: bytes, offset: int) -> StreamHeader:
             "MsgPack serializer was removed from Rerun; only protobuf (2) is read", offset + 9
         )
     if serializer != SERIALIZER_PROTOBUF:
-        raise errors.UnknownSerializerError(
-            f"serializer byte is {serializer}, expected 2 (protobuf)", offset + 9
-        )
+        raise errors.UnknownSerializerError(f"serializer byte is {serializer}, expected 2 (protobuf)", offset + 9)
     if raw[10:12] != b"\0\0":
         raise errors.ReservedBytesError(f"bytes 10-11 are {raw[10:12].hex()}, expected 0000", offset + 10)
     return StreamHeader(version, compression, serializer)

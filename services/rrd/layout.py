@@ -39,6 +39,7 @@ def timeline_type(arrow_type: pa.DataType) -> str | None:
     """sequence | timestamp | duration for an index column's Arrow type (None: not an index type)."""
     return _TIMELINE_TYPES.get(str(arrow_type).split("[")[0])
 
+
 _CONTINUATION = b"\xff\xff\xff\xff"
 _RECORD_BATCH = 3  # flatbuffers MessageHeader union tag
 _MAX_LAYOUTS = 4096
@@ -103,8 +104,14 @@ def _counts(t: pa.DataType) -> tuple[int, int] | None:
     """(field nodes, buffers) a column of type `t` takes in an IPC record batch; None if not counted here."""
     if pa.types.is_null(t):
         return 1, 0
-    if (pa.types.is_boolean(t) or pa.types.is_integer(t) or pa.types.is_floating(t)
-            or pa.types.is_temporal(t) or pa.types.is_fixed_size_binary(t) or pa.types.is_decimal(t)):
+    if (
+        pa.types.is_boolean(t)
+        or pa.types.is_integer(t)
+        or pa.types.is_floating(t)
+        or pa.types.is_temporal(t)
+        or pa.types.is_fixed_size_binary(t)
+        or pa.types.is_decimal(t)
+    ):
         return 1, 2
     if pa.types.is_string(t) or pa.types.is_binary(t) or pa.types.is_large_string(t) or pa.types.is_large_binary(t):
         return 1, 3
@@ -155,27 +162,44 @@ def build_layout(schema: pa.Schema, offset: int) -> ChunkLayout:
             if type_name is None:
                 raise errors.NotAChunkError(f"index column {fld.name!r} has unsupported type {fld.type}", offset)
             name = fmeta.get(INDEX_NAME_KEY, fld.name.encode()).decode()
-            indexes.append(IndexColumn(position, name, type_name, fmeta.get(IS_SORTED_KEY) == b"true", fld,
-                                       nodes, buffers + 1))
+            indexes.append(
+                IndexColumn(position, name, type_name, fmeta.get(IS_SORTED_KEY) == b"true", fld, nodes, buffers + 1)
+            )
         else:
             archetype = fmeta.get(ARCHETYPE_KEY)
             component_type = fmeta.get(COMPONENT_TYPE_KEY)
             component = fmeta.get(COMPONENT_KEY, fld.name.encode()).decode()
             # Named after the migrated descriptor when Rerun renames it, as the reading Rerun names it.
             migrated = component != (fld.metadata or {}).get(COMPONENT_KEY, b"").decode()
-            data.append(DataColumn(
-                position, component if migrated else fld.name, component,
-                archetype.decode() if archetype else None,
-                component_type.decode() if component_type else None, fld, nodes, buffers))
+            data.append(
+                DataColumn(
+                    position,
+                    component if migrated else fld.name,
+                    component,
+                    archetype.decode() if archetype else None,
+                    component_type.decode() if component_type else None,
+                    fld,
+                    nodes,
+                    buffers,
+                )
+            )
         top_nodes.append(nodes)
         if counts is not None:
             nodes, buffers = nodes + counts[0], buffers + counts[1]
     required = tuple(i for i, fld in enumerate(schema) if not fld.nullable)
     component_names = frozenset(c.component for c in data)
     return ChunkLayout(
-        metadata[ENTITY_PATH_KEY].decode(), schema, row_id_field, tuple(indexes), tuple(data),
-        tuple(top_nodes), nodes, buffers, direct,
-        frozenset(c.archetype for c in data if c.archetype), component_names,
+        metadata[ENTITY_PATH_KEY].decode(),
+        schema,
+        row_id_field,
+        tuple(indexes),
+        tuple(data),
+        tuple(top_nodes),
+        nodes,
+        buffers,
+        direct,
+        frozenset(c.archetype for c in data if c.archetype),
+        component_names,
         _picker([2 * n for n in top_nodes]),
         _picker([2 * ix.node + 1 for ix in indexes] + [2 * c.node + 1 for c in data]),
         _picker([i for ix in indexes for i in (2 * ix.data_buffer, 2 * ix.data_buffer + 1)]),
@@ -216,8 +240,9 @@ class LayoutCache:
         layout = self._layouts.get(key)
         if layout is None:
             try:
-                schema = pa.ipc.read_schema(pa.py_buffer(_CONTINUATION + struct.pack("<i", len(schema_message))
-                                                         + schema_message))
+                schema = pa.ipc.read_schema(
+                    pa.py_buffer(_CONTINUATION + struct.pack("<i", len(schema_message)) + schema_message)
+                )
             except (pa.ArrowInvalid, pa.ArrowNotImplementedError, OSError, TypeError, EOFError) as exc:
                 raise errors.NotAChunkError(f"payload is not an Arrow IPC stream ({exc})", offset) from exc
             layout = build_layout(schema, offset)
@@ -234,7 +259,7 @@ def split_ipc(data: bytes) -> tuple[bytes, int] | None:
     (size,) = struct.unpack_from("<i", data, 4)
     if size <= 0 or 8 + size > len(data):
         return None
-    return data[8:8 + size], 8 + size
+    return data[8 : 8 + size], 8 + size
 
 
 @dataclass(slots=True)
@@ -270,8 +295,9 @@ def read_batch_header(data: bytes, pos: int, layout: ChunkLayout) -> BatchHeader
     return header
 
 
-def _checked_header(data: bytes, length: int, body_length: int, nodes: tuple[int, ...],
-                    buffers: tuple[int, ...], body: int) -> BatchHeader | None:
+def _checked_header(
+    data: bytes, length: int, body_length: int, nodes: tuple[int, ...], buffers: tuple[int, ...], body: int
+) -> BatchHeader | None:
     if length < 0 or body_length < 0 or body + body_length > len(data):
         return None
     if buffers and (min(buffers) < 0 or max(map(operator.add, buffers[::2], buffers[1::2])) > body_length):
@@ -279,11 +305,12 @@ def _checked_header(data: bytes, length: int, body_length: int, nodes: tuple[int
     return BatchHeader(length, nodes, buffers, body)
 
 
-def _parse_batch_header(data: bytes, pos: int,
-                        layout: ChunkLayout) -> tuple[BatchHeader | None, BatchTemplate | None] | None:
+def _parse_batch_header(
+    data: bytes, pos: int, layout: ChunkLayout
+) -> tuple[BatchHeader | None, BatchTemplate | None] | None:
     """Reads the IPC flatbuffers (Message: 1 header_type, 2 header, 3 bodyLength; RecordBatch:
     0 length, 1 nodes, 2 buffers, 3 compression) and notes where the values sit, as a template."""
-    if data[pos:pos + 4] != _CONTINUATION:
+    if data[pos : pos + 4] != _CONTINUATION:
         return None
     size = _I32.unpack_from(data, pos + 4)[0]
     base = pos + 8
@@ -315,13 +342,16 @@ def _parse_batch_header(data: bytes, pos: int,
     if nodes is None or buffers is None:
         return None
     header = _checked_header(data, length, body_length, nodes[0], buffers[0], body)
-    values = [(batch + o_length - base, 8), (message + o_body - base, 8),
-              (nodes[1] - base, 16 * layout.num_nodes), (buffers[1] - base, 16 * layout.num_buffers)]
+    values = [
+        (batch + o_length - base, 8),
+        (message + o_body - base, 8),
+        (nodes[1] - base, 16 * layout.num_nodes),
+        (buffers[1] - base, 16 * layout.num_buffers),
+    ]
     return header, BatchTemplate.build(data, pos, size, values, layout)
 
 
-def _struct_vector(data: bytes, table: int, field_offset: int,
-                   expected: int) -> tuple[tuple[int, ...], int] | None:
+def _struct_vector(data: bytes, table: int, field_offset: int, expected: int) -> tuple[tuple[int, ...], int] | None:
     """A flatbuffers vector of 16-byte (int64, int64) structs as a flat tuple, if it has `expected`
     items, and where its items start."""
     if not field_offset:
@@ -349,31 +379,42 @@ class BatchTemplate:
     buffers_format: struct.Struct
 
     @classmethod
-    def build(cls, data: bytes, pos: int, size: int, values: list[tuple[int, int]],
-              layout: ChunkLayout) -> BatchTemplate | None:
+    def build(
+        cls, data: bytes, pos: int, size: int, values: list[tuple[int, int]], layout: ChunkLayout
+    ) -> BatchTemplate | None:
         """`values`: (start, length) in the metadata of length, bodyLength, nodes, buffers."""
         base, gaps, cursor = pos + 8, [], 0
         for start, length in sorted(values):
             if start < cursor or start + length > size:
                 return None  # overlapping or out of the metadata: do not template
             if start > cursor:
-                gaps.append((cursor, start, bytes(data[base + cursor:base + start])))
+                gaps.append((cursor, start, bytes(data[base + cursor : base + start])))
             cursor = start + length
         if cursor < size:
-            gaps.append((cursor, size, bytes(data[base + cursor:base + size])))
+            gaps.append((cursor, size, bytes(data[base + cursor : base + size])))
         (at_length, _), (at_body, _), (at_nodes, _), (at_buffers, _) = values
-        return cls(bytes(data[pos:base]), size, tuple(gaps), at_length, at_body, at_nodes, at_buffers,
-                   struct.Struct(f"<{2 * layout.num_nodes}q"), struct.Struct(f"<{2 * layout.num_buffers}q"))
+        return cls(
+            bytes(data[pos:base]),
+            size,
+            tuple(gaps),
+            at_length,
+            at_body,
+            at_nodes,
+            at_buffers,
+            struct.Struct(f"<{2 * layout.num_nodes}q"),
+            struct.Struct(f"<{2 * layout.num_buffers}q"),
+        )
 
     def match(self, data: bytes, pos: int) -> BatchHeader | None:
         base = pos + 8
         if data[pos:base] != self.prefix:
             return None
         for start, end, expected in self.gaps:
-            if data[base + start:base + end] != expected:
+            if data[base + start : base + end] != expected:
                 return None
         return _checked_header(
-            data, _I64.unpack_from(data, base + self.at_length)[0],
+            data,
+            _I64.unpack_from(data, base + self.at_length)[0],
             _I64.unpack_from(data, base + self.at_body_length)[0],
             self.nodes_format.unpack_from(data, base + self.at_nodes),
             self.buffers_format.unpack_from(data, base + self.at_buffers),

@@ -61,8 +61,9 @@ class ByteBudget:
 
 
 class ChunkLimits:
-    def __init__(self, max_chunk_bytes: int = DEFAULT_MAX_CHUNK_BYTES,
-                 budget_bytes: int = DEFAULT_DECOMPRESS_BUDGET_BYTES) -> None:
+    def __init__(
+        self, max_chunk_bytes: int = DEFAULT_MAX_CHUNK_BYTES, budget_bytes: int = DEFAULT_DECOMPRESS_BUDGET_BYTES
+    ) -> None:
         self.max_chunk_bytes = max_chunk_bytes
         self.budget = ByteBudget(budget_bytes)
 

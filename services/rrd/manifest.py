@@ -29,6 +29,8 @@ PROPERTIES_ENTITY = "/__properties"
 def is_property_entity(entity_path: str) -> bool:
     """The recording's properties: `/__properties` (RecordingInfo) and `/__properties/NAME`."""
     return entity_path == PROPERTIES_ENTITY or entity_path.startswith(PROPERTIES_ENTITY + "/")
+
+
 _UNSAFE_CHARS = str.maketrans({c: "_" for c in ", -.\\"})
 
 
@@ -63,7 +65,7 @@ def sorbet_column_name(entity_path: str, column: str) -> str:
     """The recording-wide column name: `/world/points:Points3D:positions`, and for recording
     properties `property:fleet:robot_id` / `property:RecordingInfo:start_time`."""
     if is_property_entity(entity_path):
-        rest = entity_path[len(PROPERTIES_ENTITY):].strip("/")
+        rest = entity_path[len(PROPERTIES_ENTITY) :].strip("/")
         return ":".join(p for p in ("property", rest, column) if p)
     return f"{entity_path}:{column}"
 
@@ -78,8 +80,12 @@ def sorbet_schema(chunks: Iterable[ChunkMeta]) -> pa.Schema:
             md = {k: v for k, v in (row_id.metadata or {}).items() if k != b"rerun:is_sorted"}
             fields[row_id.name] = row_id.with_metadata(md)
         for tl in meta.timelines:
-            fields.setdefault(tl.name, pa.field(tl.name, tl.field.type, metadata={
-                b"rerun:index_name": tl.name.encode(), b"rerun:kind": b"index"}))
+            fields.setdefault(
+                tl.name,
+                pa.field(
+                    tl.name, tl.field.type, metadata={b"rerun:index_name": tl.name.encode(), b"rerun:kind": b"index"}
+                ),
+            )
         for comp in meta.components:
             name = sorbet_column_name(meta.entity_path, comp.column)
             if meta.is_static:
@@ -140,8 +146,10 @@ def manifest_batch(entries: list[ManifestEntry]) -> pa.RecordBatch:
             continue
         seen.add(name)
         md = {k: v for k, v in _descriptor_metadata(comp, "rerun:static").items()}
-        add(pa.field(name, pa.bool_(), nullable=False, metadata=md),
-            [m.is_static and key in comps for m, comps in zip(metas, by_descriptor, strict=True)])
+        add(
+            pa.field(name, pa.bool_(), nullable=False, metadata=md),
+            [m.is_static and key in comps for m, comps in zip(metas, by_descriptor, strict=True)],
+        )
 
     for tl_name in sorted(timeline_types):
         tl_type = timeline_types[tl_name]
@@ -165,8 +173,10 @@ def manifest_batch(entries: list[ManifestEntry]) -> pa.RecordBatch:
             seen.add(base + ":start")
             add(pa.field(base + ":start", tl_type, metadata=md), [r.min if r else None for r in comp_ranges])
             add(pa.field(base + ":end", tl_type, metadata=md), [r.max if r else None for r in comp_ranges])
-            rows = [c.num_rows if c is not None and r is not None else 0
-                    for c, r in zip(per_chunk, comp_ranges, strict=True)]
+            rows = [
+                c.num_rows if c is not None and r is not None else 0
+                for c, r in zip(per_chunk, comp_ranges, strict=True)
+            ]
             add(pa.field(base + ":num_rows", u64, metadata=md), rows)
 
     return pa.RecordBatch.from_arrays([columns[f.name] for f in fields], schema=pa.schema(fields))

@@ -38,8 +38,9 @@ class StoreId:
 
     @classmethod
     def from_proto(cls, pb: common_pb2.StoreId) -> StoreId:
-        return cls(StoreKind(pb.kind) if pb.kind in (1, 2) else StoreKind.UNSPECIFIED,
-                   pb.application_id.id, pb.recording_id)
+        return cls(
+            StoreKind(pb.kind) if pb.kind in (1, 2) else StoreKind.UNSPECIFIED, pb.application_id.id, pb.recording_id
+        )
 
     def to_proto(self) -> common_pb2.StoreId:
         return common_pb2.StoreId(

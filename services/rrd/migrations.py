@@ -39,26 +39,39 @@ ENTITY_PATH = b"rerun:entity_path"
 # 0.0.2: (archetype -> new archetype, {field -> new field})
 _ARCHETYPE_RENAMES: dict[bytes, tuple[bytes, dict[bytes, bytes]]] = {
     b"rerun.archetypes.Scalar": (b"rerun.archetypes.Scalars", {b"scalar": b"scalars"}),
-    b"rerun.archetypes.SeriesLine": (b"rerun.archetypes.SeriesLines",
-                                     {b"color": b"colors", b"width": b"widths", b"name": b"names"}),
-    b"rerun.archetypes.SeriesPoint": (b"rerun.archetypes.SeriesPoints",
-                                      {b"color": b"colors", b"marker": b"markers", b"name": b"names",
-                                       b"marker_size": b"marker_sizes"}),
+    b"rerun.archetypes.SeriesLine": (
+        b"rerun.archetypes.SeriesLines",
+        {b"color": b"colors", b"width": b"widths", b"name": b"names"},
+    ),
+    b"rerun.archetypes.SeriesPoint": (
+        b"rerun.archetypes.SeriesPoints",
+        {b"color": b"colors", b"marker": b"markers", b"name": b"names", b"marker_size": b"marker_sizes"},
+    ),
 }
 # 0.1.2 and 0.1.3: component types
 _COMPONENT_TYPE_RENAMES: list[tuple[SorbetVersion, dict[bytes, bytes]]] = [
-    ((0, 1, 2), {b"rerun.components.PoseTranslation3D": b"rerun.components.Translation3D",
-                 b"rerun.components.PoseRotationAxisAngle": b"rerun.components.RotationAxisAngle",
-                 b"rerun.components.PoseRotationQuat": b"rerun.components.RotationQuat",
-                 b"rerun.components.PoseScale3D": b"rerun.components.Scale3D",
-                 b"rerun.components.PoseTransformMat3x3": b"rerun.components.TransformMat3x3"}),
+    (
+        (0, 1, 2),
+        {
+            b"rerun.components.PoseTranslation3D": b"rerun.components.Translation3D",
+            b"rerun.components.PoseRotationAxisAngle": b"rerun.components.RotationAxisAngle",
+            b"rerun.components.PoseRotationQuat": b"rerun.components.RotationQuat",
+            b"rerun.components.PoseScale3D": b"rerun.components.Scale3D",
+            b"rerun.components.PoseTransformMat3x3": b"rerun.components.TransformMat3x3",
+        },
+    ),
     ((0, 1, 3), {b"rerun.components.SeriesVisible": b"rerun.components.Visible"}),
     ((0, 1, 4), {b"rerun.blueprint.components.TableCellKind": b"rerun.blueprint.components.ColumnType"}),
 ]
 # components, with the archetype they move to (None: the archetype stays), by target version
 _COMPONENT_RENAMES: list[tuple[SorbetVersion, dict[bytes, tuple[bytes, bytes | None]]]] = [
-    ((0, 1, 2), {b"Transform3D:axis_length": (b"TransformAxes3D:axis_length", b"rerun.archetypes.TransformAxes3D"),
-                 b"CoordinateFrame:frame_id": (b"CoordinateFrame:frame", None)}),
+    (
+        (0, 1, 2),
+        {
+            b"Transform3D:axis_length": (b"TransformAxes3D:axis_length", b"rerun.archetypes.TransformAxes3D"),
+            b"CoordinateFrame:frame_id": (b"CoordinateFrame:frame", None),
+        },
+    ),
     ((0, 1, 4), {b"TableColumn:cell_kind": (b"TableColumn:column_type", None)}),
 ]
 
@@ -114,7 +127,7 @@ def migrate_field_metadata(name: str, md: dict[bytes, bytes], version: SorbetVer
 
 
 def _colon_key(key: bytes) -> bytes:
-    return b"rerun:" + key[len(_LEGACY_PREFIX):] if key.startswith(_LEGACY_PREFIX) else key
+    return b"rerun:" + key[len(_LEGACY_PREFIX) :] if key.startswith(_LEGACY_PREFIX) else key
 
 
 def _rename_archetype(md: dict[bytes, bytes]) -> None:

@@ -40,7 +40,6 @@ class TimelineSummary:
     max: int
 
 
-
 @dataclass
 class StoreSummary:
     store_id: StoreId
@@ -122,8 +121,9 @@ class RrdSummary:
             "rerun_versions": self.rerun_versions,
             "footers": self.footers,
             "index": self.index,
-            "error": None if self.error is None else {
-                "type": type(self.error).__name__, "offset": self.error.offset, "message": str(self.error)},
+            "error": None
+            if self.error is None
+            else {"type": type(self.error).__name__, "offset": self.error.offset, "message": str(self.error)},
             "stores": [_store_dict(s) for s in self.stores.values()],
         }
 
@@ -140,13 +140,26 @@ def _store_dict(store: StoreSummary) -> dict[str, Any]:
         "bytes": store.bytes,
         "blueprint_activations": store.blueprint_activations,
         "entities": [
-            {"path": e.path, "chunks": e.chunks, "static_chunks": e.static_chunks, "rows": e.rows,
-             "bytes": e.bytes, "archetypes": sorted(e.archetypes), "components": sorted(e.components)}
+            {
+                "path": e.path,
+                "chunks": e.chunks,
+                "static_chunks": e.static_chunks,
+                "rows": e.rows,
+                "bytes": e.bytes,
+                "archetypes": sorted(e.archetypes),
+                "components": sorted(e.components),
+            }
             for e in sorted(store.entities.values(), key=lambda e: e.path)
         ],
         "timelines": [
-            {"name": t.name, "type": t.type, "min": t.min, "max": t.max,
-             "min_text": format_time(t.type, t.min), "max_text": format_time(t.type, t.max)}
+            {
+                "name": t.name,
+                "type": t.type,
+                "min": t.min,
+                "max": t.max,
+                "min_text": format_time(t.type, t.min),
+                "max_text": format_time(t.type, t.max),
+            }
             for t in sorted(store.timelines.values(), key=lambda t: t.name)
         ],
     }

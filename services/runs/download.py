@@ -60,15 +60,21 @@ class EntityFilter:
     def __post_init__(self) -> None:
         for name, patterns in (("include", self.include), ("exclude", self.exclude)):
             if len(patterns) > MAX_PATTERNS:
-                raise BadParameterError(name, f"{len(patterns)} patterns: at most {MAX_PATTERNS}; use a subtree "
-                                              "pattern like /a/** to cover many entities")
+                raise BadParameterError(
+                    name,
+                    f"{len(patterns)} patterns: at most {MAX_PATTERNS}; use a subtree "
+                    "pattern like /a/** to cover many entities",
+                )
             for pattern in patterns:
                 if len(pattern) > MAX_PATTERN_LENGTH:
-                    raise BadParameterError(name, f"a pattern of {len(pattern)} characters: at most "
-                                                  f"{MAX_PATTERN_LENGTH}")
+                    raise BadParameterError(
+                        name, f"a pattern of {len(pattern)} characters: at most {MAX_PATTERN_LENGTH}"
+                    )
                 if not pattern.startswith("/") or "**" in pattern[:-2]:
-                    raise BadParameterError(name, f"{pattern!r} is not an entity path pattern: use /a/b (that "
-                                                  "entity) or /a/** (the subtree)")
+                    raise BadParameterError(
+                        name,
+                        f"{pattern!r} is not an entity path pattern: use /a/b (that entity) or /a/** (the subtree)",
+                    )
 
     def __call__(self, path: str) -> bool:
         verdict = self._verdicts.get(path)
@@ -130,8 +136,7 @@ class TimeWindow:
         return (self.start if self.start is not None else -(2**63), self.end if self.end is not None else 2**63 - 1)
 
 
-_UNITS_NS = {"ns": 1, "us": 1_000, "ms": 1_000_000, "s": 1_000_000_000, "m": 60_000_000_000,
-             "h": 3_600_000_000_000}
+_UNITS_NS = {"ns": 1, "us": 1_000, "ms": 1_000_000, "s": 1_000_000_000, "m": 60_000_000_000, "h": 3_600_000_000_000}
 _DURATION = re.compile(r"^(-?\d+(?:\.\d+)?)(ns|us|ms|s|m|h)$")
 _ISO = re.compile(r"^(\d{4}-\d{2}-\d{2}(?:[T ]\d{2}:\d{2}(?::\d{2})?)?)(?:\.(\d{1,9}))?(Z|[+-]\d{2}:?\d{2})?$")
 
@@ -144,8 +149,11 @@ def parse_time_value(name: str, timeline_type: str, text: str) -> int:
     `250ms` or ns; timestamps as ISO-8601 (to the nanosecond) or ns since the epoch."""
     value = _time_value(name, timeline_type, text)
     if not TIME_MIN <= value <= TIME_MAX:
-        raise BadParameterError(name, f"{text!r} is outside the range of {timeline_type} values (signed 64-bit: "
-                                      f"{TIME_MIN} to {TIME_MAX} ns, about 1677-09-21 to 2262-04-11 as timestamps)")
+        raise BadParameterError(
+            name,
+            f"{text!r} is outside the range of {timeline_type} values (signed 64-bit: "
+            f"{TIME_MIN} to {TIME_MAX} ns, about 1677-09-21 to 2262-04-11 as timestamps)",
+        )
     return value
 
 
@@ -168,14 +176,23 @@ def _time_value(name: str, timeline_type: str, text: str) -> int:
             stamp = stamp if stamp.tzinfo else stamp.replace(tzinfo=dt.UTC)
             seconds = int(stamp.timestamp())
             return seconds * 1_000_000_000 + int((frac or "0").ljust(9, "0"))
-    forms = {"sequence": "an integer", "duration": "a duration like 12.5s, 250ms or nanoseconds",
-             "timestamp": "ISO-8601 like 2026-11-21T08:00:00.5Z, or nanoseconds since the epoch"}
+    forms = {
+        "sequence": "an integer",
+        "duration": "a duration like 12.5s, 250ms or nanoseconds",
+        "timestamp": "ISO-8601 like 2026-11-21T08:00:00.5Z, or nanoseconds since the epoch",
+    }
     accepted = forms.get(timeline_type, "an integer")
     raise BadParameterError(name, f"{text!r} is not a {timeline_type} value: use {accepted}")
 
 
-def window_from_query(types: dict[str, str], timeline: str | None, start: str | None, end: str | None,
-                      latest_at: bool, exact: bool = False) -> TimeWindow | None:
+def window_from_query(
+    types: dict[str, str],
+    timeline: str | None,
+    start: str | None,
+    end: str | None,
+    latest_at: bool,
+    exact: bool = False,
+) -> TimeWindow | None:
     """The time window of a request; BadParameterError naming what is wrong and what is accepted."""
     if timeline is None:
         if exact:
@@ -184,8 +201,9 @@ def window_from_query(types: dict[str, str], timeline: str | None, start: str | 
             raise BadParameterError("timeline", f"start/end need a timeline: one of {', '.join(sorted(types))}")
         return None
     if timeline not in types:
-        raise BadParameterError("timeline", f"{timeline!r} is not a timeline of this run: "
-                                            f"{', '.join(sorted(types)) or 'it has none'}")
+        raise BadParameterError(
+            "timeline", f"{timeline!r} is not a timeline of this run: {', '.join(sorted(types)) or 'it has none'}"
+        )
     kind = types[timeline]
     lo = parse_time_value("start", kind, start) if start is not None else None
     hi = parse_time_value("end", kind, end) if end is not None else None
@@ -194,8 +212,9 @@ def window_from_query(types: dict[str, str], timeline: str | None, start: str | 
     return TimeWindow(timeline, lo, hi, latest_at, exact)
 
 
-def stream_run(path: Path, size: int, entities: EntityFilter, *, blueprint: bool = True,
-               window: TimeWindow | None = None) -> Iterator[bytes]:
+def stream_run(
+    path: Path, size: int, entities: EntityFilter, *, blueprint: bool = True, window: TimeWindow | None = None
+) -> Iterator[bytes]:
     """The run in `path` (its first `size` bytes) as an RRD stream, in pieces of about 1 MiB."""
     metas: dict[bytes, ChunkMeta] = {}
     keep: set[bytes] | None = None
@@ -211,8 +230,9 @@ def stream_run(path: Path, size: int, entities: EntityFilter, *, blueprint: bool
         keep, candidates = select_chunks(found, window.bounds, window.latest_at, resolve=lambda known: known)
         if window.exact and candidates:
             picks = pick_rows(_chunks_of(path, size, metas, candidates), window.timeline, window.bounds[0])
-    yield from encode_run(read_events(path, size), entities, blueprint=blueprint, window=window,
-                          keep=keep, picks=picks, metas=metas)
+    yield from encode_run(
+        read_events(path, size), entities, blueprint=blueprint, window=window, keep=keep, picks=picks, metas=metas
+    )
 
 
 async def follow_run(hot: HotRecording, entities: EntityFilter, *, blueprint: bool = True) -> AsyncIterator[bytes]:
@@ -249,8 +269,9 @@ async def follow_run(hot: HotRecording, entities: EntityFilter, *, blueprint: bo
         reader.close()
 
 
-def _chunks_of(path: Path, size: int, metas: dict[bytes, ChunkMeta],
-               chunk_ids: set[bytes]) -> Iterator[tuple[ArrowMessage, ChunkMeta]]:
+def _chunks_of(
+    path: Path, size: int, metas: dict[bytes, ChunkMeta], chunk_ids: set[bytes]
+) -> Iterator[tuple[ArrowMessage, ChunkMeta]]:
     for event in read_events(path, size):
         if isinstance(event, ArrowMessage) and (meta := metas[event_key(event)]).chunk_id in chunk_ids:
             yield event, meta
@@ -261,9 +282,16 @@ class RunEncoder:
     bytes are taken out as they accumulate. With an exact window, recording chunks are cut to the
     rows in it plus their `picks` (latest-at rows)."""
 
-    def __init__(self, entities: EntityFilter, *, blueprint: bool, window: TimeWindow | None = None,
-                 keep: set[bytes] | None = None, picks: dict[bytes, set[int]] | None = None,
-                 metas: dict[bytes, ChunkMeta] | None = None) -> None:
+    def __init__(
+        self,
+        entities: EntityFilter,
+        *,
+        blueprint: bool,
+        window: TimeWindow | None = None,
+        keep: set[bytes] | None = None,
+        picks: dict[bytes, set[int]] | None = None,
+        metas: dict[bytes, ChunkMeta] | None = None,
+    ) -> None:
         self.entities, self.blueprint, self.window, self.keep = entities, blueprint, window, keep
         self.picks = picks or {}
         self.metas = metas or {}
@@ -312,9 +340,16 @@ class RunEncoder:
         return self._sink.take()
 
 
-def encode_run(events: Iterable[Event | None], entities: EntityFilter, *, blueprint: bool,
-               window: TimeWindow | None, keep: set[bytes] | None, picks: dict[bytes, set[int]],
-               metas: dict[bytes, ChunkMeta]) -> Iterator[bytes]:
+def encode_run(
+    events: Iterable[Event | None],
+    entities: EntityFilter,
+    *,
+    blueprint: bool,
+    window: TimeWindow | None,
+    keep: set[bytes] | None,
+    picks: dict[bytes, set[int]],
+    metas: dict[bytes, ChunkMeta],
+) -> Iterator[bytes]:
     """The chosen messages of a run as one RRD stream with a footer (`RunEncoder`), in pieces of
     about 1 MiB; None among `events` is a pause (what is held is sent)."""
     run = RunEncoder(entities, blueprint=blueprint, window=window, keep=keep, picks=picks, metas=metas)

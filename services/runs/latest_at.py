@@ -45,18 +45,29 @@ class ChunkEntry:
     @classmethod
     def of_meta(cls, meta: ChunkMeta, is_recording: bool, timeline: str) -> ChunkEntry:
         span = next(((t.range.min, t.range.max) for t in meta.timelines if t.name == timeline), None)
-        comps = {c.component: (c.ranges[timeline].min, c.ranges[timeline].max) for c in meta.components
-                 if timeline in c.ranges}
-        return cls(meta.chunk_id, meta.entity_path, meta.is_static, is_recording, span, comps,
-                   tuple(c.component for c in meta.components))
+        comps = {
+            c.component: (c.ranges[timeline].min, c.ranges[timeline].max)
+            for c in meta.components
+            if timeline in c.ranges
+        }
+        return cls(
+            meta.chunk_id,
+            meta.entity_path,
+            meta.is_static,
+            is_recording,
+            span,
+            comps,
+            tuple(c.component for c in meta.components),
+        )
 
 
 # Reads chunks whose component ranges are not known and returns them with their ranges.
 Resolve = Callable[[list[ChunkEntry]], list[ChunkEntry]]
 
 
-def select_chunks(entries: list[ChunkEntry], bounds: tuple[int, int], latest_at: bool,
-                  resolve: Resolve) -> tuple[set[bytes], set[bytes]]:
+def select_chunks(
+    entries: list[ChunkEntry], bounds: tuple[int, int], latest_at: bool, resolve: Resolve
+) -> tuple[set[bytes], set[bytes]]:
     """Chunk ids to keep (static ones, those overlapping [lo, hi], the latest-at candidates), and the
     latest-at candidates apart (the chunks an exact download reads to find each newest earlier row)."""
     lo, hi = bounds

@@ -42,8 +42,13 @@ class RecordingDownload:
     filename: str
 
 
-def open_recording(hot_runs: HotRuns | None, catalog: sessionmaker[Session], warm: ObjectStore | None,
-                   run_id: str, query: RecordingQuery) -> RecordingDownload:
+def open_recording(
+    hot_runs: HotRuns | None,
+    catalog: sessionmaker[Session],
+    warm: ObjectStore | None,
+    run_id: str,
+    query: RecordingQuery,
+) -> RecordingDownload:
     """The run as an .rrd stream: hot runs from this node's disk (`hot_runs`: None on a node without
     ingest), any other from the warm store (`warm`: None on a node without the sealed tiers)."""
     entities = download.EntityFilter(query.include, query.exclude)

@@ -30,19 +30,33 @@ MAX_READ_BYTES = 16 * 1024 * 1024  # one read holds at most this much (memory st
 
 def _entry(row: IndexRow, timeline: str) -> ChunkEntry:
     span = next(((t.min, t.max) for t in row.timelines if t.name == timeline), None)
-    spans = None if row.component_ranges is None else {  # None: an index from before per-component ranges
-        c.component: (c.min, c.max) for c in row.component_ranges if c.timeline == timeline}
-    return ChunkEntry(row.chunk_id or b"", row.entity_path or "", row.is_static, row.store_kind == "recording",
-                      span, spans if span is not None else {}, row.components)
+    spans = (
+        None
+        if row.component_ranges is None
+        else {  # None: an index from before per-component ranges
+            c.component: (c.min, c.max) for c in row.component_ranges if c.timeline == timeline
+        }
+    )
+    return ChunkEntry(
+        row.chunk_id or b"",
+        row.entity_path or "",
+        row.is_static,
+        row.store_kind == "recording",
+        span,
+        spans if span is not None else {},
+        row.components,
+    )
 
 
-def plan_window(sealed: SealedRecording, entities: EntityFilter,
-                window: TimeWindow) -> tuple[set[bytes], dict[bytes, set[int]]]:
+def plan_window(
+    sealed: SealedRecording, entities: EntityFilter, window: TimeWindow
+) -> tuple[set[bytes], dict[bytes, set[int]]]:
     """The chunk ids a windowed download keeps, and for an exact one the latest-at rows of each chunk:
     only the candidate chunks are read (ranged reads), and with an index from before per-component
     ranges also the chunks whose ranges matter."""
-    chunks = [r for r in sealed.rows if r.kind == CHUNK and (r.store_kind != "recording"
-                                                             or entities(r.entity_path or ""))]
+    chunks = [
+        r for r in sealed.rows if r.kind == CHUNK and (r.store_kind != "recording" or entities(r.entity_path or ""))
+    ]
 
     def read(ids: set[bytes]) -> Iterator[tuple[ArrowMessage, ChunkMeta]]:
         for event in _events(sealed, [r for r in chunks if r.chunk_id in ids]):
@@ -53,14 +67,16 @@ def plan_window(sealed: SealedRecording, entities: EntityFilter,
         metas = {meta.chunk_id: meta for _, meta in read({e.chunk_id for e in entries})}
         return [ChunkEntry.of_meta(metas[e.chunk_id], True, window.timeline) for e in entries if e.chunk_id in metas]
 
-    keep, candidates = select_chunks([_entry(r, window.timeline) for r in chunks], window.bounds,
-                                     window.latest_at, resolve)
+    keep, candidates = select_chunks(
+        [_entry(r, window.timeline) for r in chunks], window.bounds, window.latest_at, resolve
+    )
     picks = pick_rows(read(candidates), window.timeline, window.bounds[0]) if window.exact and candidates else {}
     return keep, picks
 
 
-def choose_rows(rows: list[IndexRow], entities: EntityFilter, blueprint: bool,
-                keep: set[bytes] | None) -> list[IndexRow]:
+def choose_rows(
+    rows: list[IndexRow], entities: EntityFilter, blueprint: bool, keep: set[bytes] | None
+) -> list[IndexRow]:
     """The messages a download keeps, in file order (`keep`: the chunk ids of a time window)."""
     chosen = []
     for row in rows:
@@ -101,17 +117,19 @@ def _events(sealed: SealedRecording, rows: list[IndexRow]) -> Iterator[Event | N
         for row in group:
             at = row.offset - start
             kind, length = decode_message_header(data, at)
-            payload = data[at + MESSAGE_HEADER_SIZE: at + MESSAGE_HEADER_SIZE + length]
+            payload = data[at + MESSAGE_HEADER_SIZE : at + MESSAGE_HEADER_SIZE + length]
             yield decode_message(kind, payload, row.offset)
 
 
-def stream_sealed(sealed: SealedRecording, entities: EntityFilter, *, blueprint: bool = True,
-                  window: TimeWindow | None = None) -> Iterator[bytes]:
+def stream_sealed(
+    sealed: SealedRecording, entities: EntityFilter, *, blueprint: bool = True, window: TimeWindow | None = None
+) -> Iterator[bytes]:
     if not entities.include and not entities.exclude and blueprint and window is None:
         for start in range(0, sealed.size, FLUSH_BYTES):  # the sealed object is already the answer
             yield sealed.store.get_range(sealed.key, start, min(FLUSH_BYTES, sealed.size - start))
         return
     keep, picks = plan_window(sealed, entities, window) if window is not None else (None, {})
     rows = choose_rows(sealed.rows, entities, blueprint, keep)
-    yield from encode_run(_events(sealed, rows), entities, blueprint=blueprint, window=window, keep=keep,
-                          picks=picks, metas={})
+    yield from encode_run(
+        _events(sealed, rows), entities, blueprint=blueprint, window=window, keep=keep, picks=picks, metas={}
+    )

@@ -53,15 +53,21 @@ class RunFilter:
             raise BadParameterError("status", f"{self.status!r} is not one of {', '.join(STATUSES)}")
         if self.tier is not None and self.tier not in TIERS:
             raise BadParameterError("tier", f"{self.tier!r} is not one of {', '.join(TIERS)}")
-        for name, count, most in (("entity", len(self.entity), MAX_ENTITY_FILTERS),
-                                  ("property", len(self.properties), MAX_PROPERTY_FILTERS)):
+        for name, count, most in (
+            ("entity", len(self.entity), MAX_ENTITY_FILTERS),
+            ("property", len(self.properties), MAX_PROPERTY_FILTERS),
+        ):
             if count > most:
                 raise BadParameterError(name, f"{count} filters: at most {most}")
         for key in self.properties:
             if key.count(".") != 1 or not all(key.split(".")):
                 raise BadParameterError("property", f"{key!r} is not NAME.FIELD=VALUE (e.g. fleet.robot_id=robot-7)")
-        texts = (("robot", self.robot), ("application", self.application), ("entity", self.entity),
-                 ("property", [*self.properties, *self.properties.values()]))
+        texts = (
+            ("robot", self.robot),
+            ("application", self.application),
+            ("entity", self.entity),
+            ("property", [*self.properties, *self.properties.values()]),
+        )
         for name, values in texts:
             if any("\x00" in value for value in values):
                 raise BadParameterError(name, "contains a NUL character, which no run id, path or property holds")
@@ -120,8 +126,9 @@ def _encode_cursor(value: Any, run_id: str) -> str:
 def _decode_cursor(cursor: str, sort: str) -> tuple[Any, str]:
     """The sort value and run id a cursor carries, checked against the sort's type (a cursor is
     client input: a tampered one is a 422, never a query error)."""
-    bad = BadParameterError("cursor", "not a cursor this service gave out for this sort: pass `next_cursor` as is, "
-                                      "with the same sort")
+    bad = BadParameterError(
+        "cursor", "not a cursor this service gave out for this sort: pass `next_cursor` as is, with the same sort"
+    )
     if len(cursor) > MAX_CURSOR_LENGTH:
         raise bad
     try:
@@ -192,8 +199,11 @@ def list_runs(session: Session, flt: RunFilter) -> tuple[list[Run], str | None]:
 
 def list_robots(session: Session) -> list[tuple[Robot, int]]:
     """Robots with their number of runs."""
-    counts = dict(session.execute(sa.select(Run.robot_id, sa.func.count()).where(Run.tier != Tier.DELETED)
-                                  .group_by(Run.robot_id)).all())
+    counts = dict(
+        session.execute(
+            sa.select(Run.robot_id, sa.func.count()).where(Run.tier != Tier.DELETED).group_by(Run.robot_id)
+        ).all()
+    )
     return [(robot, int(counts.get(robot.id, 0))) for robot in queries.list_robots(session)]
 
 
@@ -203,9 +213,17 @@ def list_robots(session: Session) -> list[tuple[Robot, int]]:
 def robots_answer(catalog: sessionmaker[Session]) -> dict[str, Any]:
     """`GET /v1/robots`: robots and how many runs each has."""
     with session_scope(catalog) as session:
-        return {"robots": [{"id": robot.id, "runs": count, "created_at": iso_utc(robot.created_at),
-                            "last_seen_at": iso_utc(robot.last_seen_at)}
-                           for robot, count in list_robots(session)]}
+        return {
+            "robots": [
+                {
+                    "id": robot.id,
+                    "runs": count,
+                    "created_at": iso_utc(robot.created_at),
+                    "last_seen_at": iso_utc(robot.last_seen_at),
+                }
+                for robot, count in list_robots(session)
+            ]
+        }
 
 
 def runs_answer(catalog: sessionmaker[Session], flt: RunFilter) -> dict[str, Any]:
@@ -217,11 +235,20 @@ def runs_answer(catalog: sessionmaker[Session], flt: RunFilter) -> dict[str, Any
 
 def run_summary(run: Run) -> dict[str, Any]:
     return {
-        "id": run.id, "robot_id": run.robot_id, "application_id": run.application_id,
-        "date": run.date.isoformat(), "status": run.status, "tier": run.tier,
-        "started_at": iso_utc(run.started_at), "ended_at": iso_utc(run.ended_at),
-        "last_data_at": iso_utc(run.last_data_at), "sdk_version": run.sdk_version,
-        "chunks": run.chunks, "rows": run.rows, "bytes": run.bytes, "pinned": run.pinned,
+        "id": run.id,
+        "robot_id": run.robot_id,
+        "application_id": run.application_id,
+        "date": run.date.isoformat(),
+        "status": run.status,
+        "tier": run.tier,
+        "started_at": iso_utc(run.started_at),
+        "ended_at": iso_utc(run.ended_at),
+        "last_data_at": iso_utc(run.last_data_at),
+        "sdk_version": run.sdk_version,
+        "chunks": run.chunks,
+        "rows": run.rows,
+        "bytes": run.bytes,
+        "pinned": run.pinned,
         "pinned_by": run.pinned_by,
         "properties": json.loads(run.properties),
     }
@@ -234,12 +261,22 @@ def run_answer(catalog: sessionmaker[Session], run_id: str, policies: Policies |
         found = queries.require_run(session, run_id)
         return {
             **run_summary(found),
-            "entities": [{"path": e.path, "chunks": e.chunks, "static_chunks": e.static_chunks, "rows": e.rows,
-                          "bytes": e.bytes, "archetypes": json.loads(e.archetypes),
-                          "components": json.loads(e.components)}
-                         for e in queries.run_entities(session, run_id)],
-            "timelines": [{"name": t.name, "type": t.type, "min": t.min, "max": t.max}
-                          for t in queries.run_timelines(session, run_id)],
+            "entities": [
+                {
+                    "path": e.path,
+                    "chunks": e.chunks,
+                    "static_chunks": e.static_chunks,
+                    "rows": e.rows,
+                    "bytes": e.bytes,
+                    "archetypes": json.loads(e.archetypes),
+                    "components": json.loads(e.components),
+                }
+                for e in queries.run_entities(session, run_id)
+            ],
+            "timelines": [
+                {"name": t.name, "type": t.type, "min": t.min, "max": t.max}
+                for t in queries.run_timelines(session, run_id)
+            ],
             **_lifecycle(session, found, policies),
         }
 
@@ -252,13 +289,24 @@ def _lifecycle(session: Session, run: Run, policies: Policies | None) -> dict[st
         return {"policy": policy, "lifecycle": None, "objects": [], "events": []}
     return {
         "policy": policy,
-        "lifecycle": {"prefix": life.prefix, "promoted_at": iso_utc(life.promoted_at),
-                      "archived_at": iso_utc(life.archived_at), "archive_mode": life.archive_mode,
-                      "restore_state": life.restore_state, "restore_until": iso_utc(life.restore_until),
-                      "pinned_by": run.pinned_by, "deleted_at": iso_utc(life.deleted_at),
-                      "deleted_by": life.deleted_by, "deleted_policy": life.deleted_policy},
-        "objects": [{"name": o.name, "key": o.key, "tier": o.tier, "size": o.size, "sha256": o.sha256}
-                    for o in queries.run_objects(session, run.id).values()],
-        "events": [{"action": e.action, "at": iso_utc(e.occurred_at), "actor": e.actor, "policy": e.policy,
-                    "detail": e.detail} for e in queries.run_events(session, run.id)],
+        "lifecycle": {
+            "prefix": life.prefix,
+            "promoted_at": iso_utc(life.promoted_at),
+            "archived_at": iso_utc(life.archived_at),
+            "archive_mode": life.archive_mode,
+            "restore_state": life.restore_state,
+            "restore_until": iso_utc(life.restore_until),
+            "pinned_by": run.pinned_by,
+            "deleted_at": iso_utc(life.deleted_at),
+            "deleted_by": life.deleted_by,
+            "deleted_policy": life.deleted_policy,
+        },
+        "objects": [
+            {"name": o.name, "key": o.key, "tier": o.tier, "size": o.size, "sha256": o.sha256}
+            for o in queries.run_objects(session, run.id).values()
+        ],
+        "events": [
+            {"action": e.action, "at": iso_utc(e.occurred_at), "actor": e.actor, "policy": e.policy, "detail": e.detail}
+            for e in queries.run_events(session, run.id)
+        ],
     }

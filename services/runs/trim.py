@@ -25,15 +25,22 @@ def new_chunk_id() -> bytes:
     return struct.pack(">QQ", time.time_ns(), int.from_bytes(os.urandom(8), "big"))
 
 
-def trim(msg: ArrowMessage, meta: ChunkMeta, timeline: str, lo: int, hi: int,
-         also: Collection[int] = ()) -> tuple[ArrowMessage, ChunkMeta] | None:
+def trim(
+    msg: ArrowMessage, meta: ChunkMeta, timeline: str, lo: int, hi: int, also: Collection[int] = ()
+) -> tuple[ArrowMessage, ChunkMeta] | None:
     """`msg` cut to the rows whose `timeline` value lies in [lo, hi], and the rows at positions `also`
     (latest-at rows before the window), in their order: the same message when all rows stay, None when
     none do, else a new chunk."""
     batch = validated_batch(msg, meta)  # its rows are filtered and re-encoded: every value is read
-    index = next((i for i, f in enumerate(batch.schema)
-                  if (f.metadata or {}).get(b"rerun:index_name", f.name.encode()).decode() == timeline
-                  and (f.metadata or {}).get(b"rerun:kind") in (b"index", b"time")), None)
+    index = next(
+        (
+            i
+            for i, f in enumerate(batch.schema)
+            if (f.metadata or {}).get(b"rerun:index_name", f.name.encode()).decode() == timeline
+            and (f.metadata or {}).get(b"rerun:kind") in (b"index", b"time")
+        ),
+        None,
+    )
     if index is None:
         return None
     values = batch.column(index)

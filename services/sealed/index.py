@@ -24,23 +24,32 @@ STORE_INFO = "store_info"
 BLUEPRINT_ACTIVATION = "blueprint_activation"
 
 _TIMELINE = pa.struct([("name", pa.string()), ("type", pa.string()), ("min", pa.int64()), ("max", pa.int64())])
-_COMPONENT_RANGE = pa.struct([("component", pa.string()), ("timeline", pa.string()), ("min", pa.int64()),
-                              ("max", pa.int64()), ("rows", pa.int64())])
-SCHEMA = pa.schema([
-    ("kind", pa.string()),  # chunk | store_info | blueprint_activation
-    ("store_kind", pa.string()),  # recording | blueprint
-    ("chunk_id", pa.string()),  # 32 hex digits (chunks only)
-    ("entity_path", pa.string()),
-    ("is_static", pa.bool_()),
-    ("num_rows", pa.int64()),
-    ("timelines", pa.list_(_TIMELINE)),
-    ("components", pa.list_(pa.string())),
-    ("offset", pa.int64()),  # of the message's frame header in recording.rrd
-    ("length", pa.int64()),  # of the whole frame (header and payload)
-    # per component with data: where its non-null rows lie on each timeline; null in indexes written
-    # before this column existed (readers then read the chunk when they need it)
-    ("component_ranges", pa.list_(_COMPONENT_RANGE)),
-])
+_COMPONENT_RANGE = pa.struct(
+    [
+        ("component", pa.string()),
+        ("timeline", pa.string()),
+        ("min", pa.int64()),
+        ("max", pa.int64()),
+        ("rows", pa.int64()),
+    ]
+)
+SCHEMA = pa.schema(
+    [
+        ("kind", pa.string()),  # chunk | store_info | blueprint_activation
+        ("store_kind", pa.string()),  # recording | blueprint
+        ("chunk_id", pa.string()),  # 32 hex digits (chunks only)
+        ("entity_path", pa.string()),
+        ("is_static", pa.bool_()),
+        ("num_rows", pa.int64()),
+        ("timelines", pa.list_(_TIMELINE)),
+        ("components", pa.list_(pa.string())),
+        ("offset", pa.int64()),  # of the message's frame header in recording.rrd
+        ("length", pa.int64()),  # of the whole frame (header and payload)
+        # per component with data: where its non-null rows lie on each timeline; null in indexes written
+        # before this column existed (readers then read the chunk when they need it)
+        ("component_ranges", pa.list_(_COMPONENT_RANGE)),
+    ]
+)
 
 
 class ChunkIndexError(FleetError):
@@ -65,8 +74,11 @@ class ComponentRange:
 
 
 def component_ranges(meta: ChunkMeta) -> tuple[ComponentRange, ...]:
-    return tuple(ComponentRange(c.component, timeline, r.min, r.max, c.num_rows)
-                 for c in meta.components for timeline, r in c.ranges.items())
+    return tuple(
+        ComponentRange(c.component, timeline, r.min, r.max, c.num_rows)
+        for c in meta.components
+        for timeline, r in c.ranges.items()
+    )
 
 
 @dataclass(frozen=True)
@@ -90,22 +102,32 @@ class IndexRow:
 
 def to_parquet(rows: Iterable[IndexRow]) -> bytes:
     rows = list(rows)
-    table = pa.table({
-        "kind": [r.kind for r in rows],
-        "store_kind": [r.store_kind for r in rows],
-        "chunk_id": [r.chunk_id.hex() if r.chunk_id is not None else None for r in rows],
-        "entity_path": [r.entity_path for r in rows],
-        "is_static": [r.is_static for r in rows],
-        "num_rows": [r.num_rows for r in rows],
-        "timelines": [[{"name": t.name, "type": t.type, "min": t.min, "max": t.max} for t in r.timelines]
-                      for r in rows],
-        "components": [list(r.components) for r in rows],
-        "offset": [r.offset for r in rows],
-        "length": [r.length for r in rows],
-        "component_ranges": [None if r.component_ranges is None else
-                             [{"component": c.component, "timeline": c.timeline, "min": c.min, "max": c.max,
-                               "rows": c.rows} for c in r.component_ranges] for r in rows],
-    }, schema=SCHEMA)
+    table = pa.table(
+        {
+            "kind": [r.kind for r in rows],
+            "store_kind": [r.store_kind for r in rows],
+            "chunk_id": [r.chunk_id.hex() if r.chunk_id is not None else None for r in rows],
+            "entity_path": [r.entity_path for r in rows],
+            "is_static": [r.is_static for r in rows],
+            "num_rows": [r.num_rows for r in rows],
+            "timelines": [
+                [{"name": t.name, "type": t.type, "min": t.min, "max": t.max} for t in r.timelines] for r in rows
+            ],
+            "components": [list(r.components) for r in rows],
+            "offset": [r.offset for r in rows],
+            "length": [r.length for r in rows],
+            "component_ranges": [
+                None
+                if r.component_ranges is None
+                else [
+                    {"component": c.component, "timeline": c.timeline, "min": c.min, "max": c.max, "rows": c.rows}
+                    for c in r.component_ranges
+                ]
+                for r in rows
+            ],
+        },
+        schema=SCHEMA,
+    )
     out = io.BytesIO()
     pq.write_table(table, out, compression="zstd")
     return out.getvalue()
@@ -115,20 +137,29 @@ def from_parquet(data: bytes) -> list[IndexRow]:
     try:
         table = pq.read_table(io.BytesIO(data))
         if "component_ranges" not in table.column_names:  # written before the column existed
-            table = table.append_column("component_ranges", pa.nulls(table.num_rows, SCHEMA.field(
-                "component_ranges").type))
+            table = table.append_column(
+                "component_ranges", pa.nulls(table.num_rows, SCHEMA.field("component_ranges").type)
+            )
         table = table.select(SCHEMA.names).cast(SCHEMA)
     except (pa.ArrowException, ValueError) as exc:
         raise ChunkIndexError(f"chunks.parquet is unreadable ({exc}): re-seal the run from its recording") from exc
     rows = []
     for item in table.to_pylist():
-        rows.append(IndexRow(
-            kind=item["kind"], store_kind=item["store_kind"], offset=item["offset"], length=item["length"],
-            chunk_id=bytes.fromhex(item["chunk_id"]) if item["chunk_id"] else None,
-            entity_path=item["entity_path"], is_static=bool(item["is_static"]), num_rows=item["num_rows"] or 0,
-            timelines=tuple(TimelineRange(**t) for t in item["timelines"] or ()),
-            components=tuple(item["components"] or ()),
-            component_ranges=None if item["component_ranges"] is None else tuple(
-                ComponentRange(**c) for c in item["component_ranges"]),
-        ))
+        rows.append(
+            IndexRow(
+                kind=item["kind"],
+                store_kind=item["store_kind"],
+                offset=item["offset"],
+                length=item["length"],
+                chunk_id=bytes.fromhex(item["chunk_id"]) if item["chunk_id"] else None,
+                entity_path=item["entity_path"],
+                is_static=bool(item["is_static"]),
+                num_rows=item["num_rows"] or 0,
+                timelines=tuple(TimelineRange(**t) for t in item["timelines"] or ()),
+                components=tuple(item["components"] or ()),
+                component_ranges=None
+                if item["component_ranges"] is None
+                else tuple(ComponentRange(**c) for c in item["component_ranges"]),
+            )
+        )
     return rows

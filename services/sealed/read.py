@@ -47,8 +47,7 @@ def _when(value: dt.datetime | None) -> str:
     return value.strftime("%Y-%m-%d %H:%M UTC") if value is not None else "an unknown time"
 
 
-def locate_sealed(catalog: sessionmaker[Session], warm: ObjectStore, run_id: str,
-                  now: dt.datetime) -> SealedRecording:
+def locate_sealed(catalog: sessionmaker[Session], warm: ObjectStore, run_id: str, now: dt.datetime) -> SealedRecording:
     """Where a run that left the hot tier can be read: the warm store (cold runs once restored).
     A cold run not restored is a CONFLICT saying how to restore it; a deleted one is GONE."""
     with session_scope(catalog) as session:
@@ -57,17 +56,23 @@ def locate_sealed(catalog: sessionmaker[Session], warm: ObjectStore, run_id: str
         if run is None or life is None:
             raise queries.run_not_found(run_id)
         if run.tier == Tier.DELETED:
-            raise RunDeletedError(f"run {run_id!r} was deleted on {_when(life.deleted_at)} by {life.deleted_by}"
-                                  + (f" (retention policy {life.deleted_policy!r})" if life.deleted_policy else ""))
+            raise RunDeletedError(
+                f"run {run_id!r} was deleted on {_when(life.deleted_at)} by {life.deleted_by}"
+                + (f" (retention policy {life.deleted_policy!r})" if life.deleted_policy else "")
+            )
         restored = readable_when_cold(life.archive_mode) or (
-            life.restore_state == RestoreState.RESTORED and (life.restore_until is None or
-                                                  aware(life.restore_until) > now))
+            life.restore_state == RestoreState.RESTORED
+            and (life.restore_until is None or aware(life.restore_until) > now)
+        )
         if run.tier == Tier.COLD and not restored:
-            doing = (f"a restore was asked for at {_when(life.restore_requested_at)} and is under way: try again "
-                     "later" if life.restore_state == RestoreState.RESTORING else
-                     f"restore it with POST /v1/runs/{run_id}/restore or `fleet runs restore {run_id}`")
-            raise RunArchivedError(f"run {run_id!r} is archived in the cold tier since {_when(life.archived_at)}; "
-                                   f"{doing}")
+            doing = (
+                f"a restore was asked for at {_when(life.restore_requested_at)} and is under way: try again later"
+                if life.restore_state == RestoreState.RESTORING
+                else f"restore it with POST /v1/runs/{run_id}/restore or `fleet runs restore {run_id}`"
+            )
+            raise RunArchivedError(
+                f"run {run_id!r} is archived in the cold tier since {_when(life.archived_at)}; {doing}"
+            )
         prefix = life.prefix
     return open_sealed(warm, prefix)
 

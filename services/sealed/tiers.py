@@ -53,7 +53,8 @@ def open_tiers(settings: Settings) -> Tiers:
     if settings.cold_storage_class and not supports_archive(warm):
         raise RetentionConfigError(
             f"FLEET_COLD_STORAGE_CLASS={settings.cold_storage_class} needs an s3:// warm store "
-            f"({settings.warm_url} has no storage classes): unset it to archive by copying to FLEET_COLD_URL")
+            f"({settings.warm_url} has no storage classes): unset it to archive by copying to FLEET_COLD_URL"
+        )
     return Tiers(warm, cold, settings.cold_storage_class)
 
 
@@ -79,9 +80,15 @@ class RunJson:
         return f"{self.prefix}/{RUN_JSON}"
 
     def encode(self) -> bytes:
-        body = {"format": RUN_JSON_FORMAT, "prefix": self.prefix, "sealed_at": self.sealed_at.isoformat(),
-                "pinned": self.pinned, "pinned_by": self.pinned_by if self.pinned else None,
-                "run": asdict(self.record), "objects": [asdict(o) for o in self.objects]}
+        body = {
+            "format": RUN_JSON_FORMAT,
+            "prefix": self.prefix,
+            "sealed_at": self.sealed_at.isoformat(),
+            "pinned": self.pinned,
+            "pinned_by": self.pinned_by if self.pinned else None,
+            "run": asdict(self.record),
+            "objects": [asdict(o) for o in self.objects],
+        }
         return json.dumps(body, indent=1, sort_keys=True, default=_json_default).encode()
 
 
@@ -102,13 +109,23 @@ def parse_run_json(data: bytes) -> RunJson:
         return dt.datetime.fromisoformat(value) if value else None
 
     record = RunRecord(
-        id=run["id"], robot_id=run["robot_id"], application_id=run["application_id"],
-        date=dt.date.fromisoformat(run["date"]), status=run["status"], tier=run["tier"],
-        started_at=when(run["started_at"]), ended_at=when(run["ended_at"]),
+        id=run["id"],
+        robot_id=run["robot_id"],
+        application_id=run["application_id"],
+        date=dt.date.fromisoformat(run["date"]),
+        status=run["status"],
+        tier=run["tier"],
+        started_at=when(run["started_at"]),
+        ended_at=when(run["ended_at"]),
         last_data_at=when(run["last_data_at"]) or sealed_at,
-        sdk_version=run["sdk_version"], chunks=run["chunks"], rows=run["rows"], bytes=run["bytes"],
-        properties=run["properties"], entities=[EntityRecord(**e) for e in run["entities"]],
-        timelines=[TimelineRecord(**t) for t in run["timelines"]])
+        sdk_version=run["sdk_version"],
+        chunks=run["chunks"],
+        rows=run["rows"],
+        bytes=run["bytes"],
+        properties=run["properties"],
+        entities=[EntityRecord(**e) for e in run["entities"]],
+        timelines=[TimelineRecord(**t) for t in run["timelines"]],
+    )
     objects = [queries.ObjectRecord(**o) for o in body["objects"]]
     return RunJson(record, body["prefix"], objects, bool(body.get("pinned")), sealed_at, body.get("pinned_by"))
 
@@ -121,8 +138,10 @@ def catalog_run_json(session: Session, run_id: str) -> RunJson | None:
         return None
     pinned, pinned_by = queries.pin_state(session, run_id)
     # in the catalog's order, which a rebuild then keeps (GET /v1/runs/RUN lists them so)
-    objects = [queries.ObjectRecord(o.name, o.key, o.tier, o.size, o.sha256)
-               for o in queries.run_objects(session, run_id).values()]
+    objects = [
+        queries.ObjectRecord(o.name, o.key, o.tier, o.size, o.sha256)
+        for o in queries.run_objects(session, run_id).values()
+    ]
     return RunJson(record, life.prefix, objects, pinned, aware(life.promoted_at), pinned_by)
 
 

@@ -79,9 +79,14 @@ def _store_kind(store: StoreId) -> str:
     return "blueprint" if store.kind == StoreKind.BLUEPRINT else "recording"
 
 
-def seal(recordings: Iterable[Iterator[Event | None]], out: Path, run_id: str, now: dt.datetime,
-         on_chunk: Callable[[ArrowMessage, ChunkMeta], None] | None = None,
-         secret_fields: SecretFields = DEFAULT_SECRETS) -> SealedRun:
+def seal(
+    recordings: Iterable[Iterator[Event | None]],
+    out: Path,
+    run_id: str,
+    now: dt.datetime,
+    on_chunk: Callable[[ArrowMessage, ChunkMeta], None] | None = None,
+    secret_fields: SecretFields = DEFAULT_SECRETS,
+) -> SealedRun:
     """Write `out` (recording.rrd) from the events of one or more recordings of the same run (a
     sealed recording and what came after it); returns where every message went and the run's facts.
     `on_chunk` sees every recording chunk kept (analytics extraction rides on this one pass);
@@ -124,11 +129,21 @@ def seal(recordings: Iterable[Iterator[Event | None]], out: Path, run_id: str, n
                     encoder.write_arrow(event, meta)
                     if on_chunk is not None and event.store_id.kind == StoreKind.RECORDING:
                         on_chunk(event, meta)
-                    rows.append(IndexRow(
-                        CHUNK, _store_kind(event.store_id), start, encoder.position - start, meta.chunk_id,
-                        meta.entity_path, meta.is_static, meta.num_rows,
-                        tuple(TimelineRange(t.name, t.type, t.range.min, t.range.max) for t in meta.timelines),
-                        tuple(sorted(meta.component_names)), component_ranges(meta)))
+                    rows.append(
+                        IndexRow(
+                            CHUNK,
+                            _store_kind(event.store_id),
+                            start,
+                            encoder.position - start,
+                            meta.chunk_id,
+                            meta.entity_path,
+                            meta.is_static,
+                            meta.num_rows,
+                            tuple(TimelineRange(t.name, t.type, t.range.min, t.range.max) for t in meta.timelines),
+                            tuple(sorted(meta.component_names)),
+                            component_ranges(meta),
+                        )
+                    )
                 facts.replay(event, now, meta if isinstance(event, ArrowMessage) else None)
         (encoder or RrdEncoder(cast(BinaryIO, sink), DEFAULT_VERSION)).finish()
         raw.flush()

@@ -37,9 +37,11 @@ class S3Store:
         # Short connect timeout: during an outage callers learn quickly and retry on their own schedule.
         self._session = boto3.session.Session(region_name=region)
         self.endpoint_url = endpoint_url
-        self._client: Any = self._session.client("s3", endpoint_url=endpoint_url,
-                                                 config=Config(retries={"max_attempts": 3, "mode": "standard"},
-                                                               connect_timeout=5, read_timeout=60))
+        self._client: Any = self._session.client(
+            "s3",
+            endpoint_url=endpoint_url,
+            config=Config(retries={"max_attempts": 3, "mode": "standard"}, connect_timeout=5, read_timeout=60),
+        )
         self._transfer = TransferConfig(multipart_threshold=MULTIPART_BYTES, multipart_chunksize=MULTIPART_BYTES)
 
     def access(self) -> dict[str, Any]:
@@ -47,18 +49,21 @@ class S3Store:
         credentials = self._session.get_credentials()
         frozen = credentials.get_frozen_credentials() if credentials is not None else None
         endpoint = urlparse(self.endpoint_url) if self.endpoint_url else None
-        return {"key_id": frozen.access_key if frozen else None, "secret": frozen.secret_key if frozen else None,
-                "session_token": frozen.token if frozen else None,
-                "region": self._client.meta.region_name or "us-east-1",
-                "endpoint": endpoint.netloc if endpoint else None,
-                "use_ssl": endpoint.scheme != "http" if endpoint else True}
+        return {
+            "key_id": frozen.access_key if frozen else None,
+            "secret": frozen.secret_key if frozen else None,
+            "session_token": frozen.token if frozen else None,
+            "region": self._client.meta.region_name or "us-east-1",
+            "endpoint": endpoint.netloc if endpoint else None,
+            "use_ssl": endpoint.scheme != "http" if endpoint else True,
+        }
 
     def _key(self, key: str) -> str:
         check_key(key)
         return f"{self.prefix}/{key}" if self.prefix else key
 
     def _relative(self, full: str) -> str:
-        return full[len(self.prefix) + 1:] if self.prefix else full
+        return full[len(self.prefix) + 1 :] if self.prefix else full
 
     def put(self, key: str, data: bytes | BinaryIO) -> ObjectInfo:
         """Upload with a SHA-256 checksum of the body (of each part, for a multipart upload) that
@@ -68,21 +73,29 @@ class S3Store:
         try:
             if isinstance(data, bytes | bytearray | memoryview):
                 body = bytes(data)
-                self._client.put_object(Bucket=self.bucket, Key=self._key(key), Body=body,
-                                        ChecksumAlgorithm=CHECKSUM_ALGORITHM)
+                self._client.put_object(
+                    Bucket=self.bucket, Key=self._key(key), Body=body, ChecksumAlgorithm=CHECKSUM_ALGORITHM
+                )
                 sent = len(body)
             else:  # multipart above MULTIPART_BYTES
                 reader = _Counting(data)
-                self._client.upload_fileobj(reader, self.bucket, self._key(key), Config=self._transfer,
-                                            ExtraArgs={"ChecksumAlgorithm": CHECKSUM_ALGORITHM})
+                self._client.upload_fileobj(
+                    reader,
+                    self.bucket,
+                    self._key(key),
+                    Config=self._transfer,
+                    ExtraArgs={"ChecksumAlgorithm": CHECKSUM_ALGORITHM},
+                )
                 sent = reader.size
         except (ClientError, BotoCoreError) as exc:
             raise StorageError(f"cannot write {key!r} to {self.url}: {exc}") from exc
         info = self.head(key)
         if info.size != sent:  # a server that ignored the checksum and kept part of the body
             self.delete(key)
-            raise StorageError(f"upload of {key!r} to {self.url} does not match what was sent "
-                               f"({info.size} bytes stored, {sent} sent): retry")
+            raise StorageError(
+                f"upload of {key!r} to {self.url} does not match what was sent "
+                f"({info.size} bytes stored, {sent} sent): retry"
+            )
         return info
 
     def get_range(self, key: str, start: int = 0, length: int | None = None) -> bytes:
@@ -106,15 +119,26 @@ class S3Store:
             raise StorageError(f"cannot reach {self.url}: {exc}") from exc
         restore = answer.get("Restore")
         state = None if restore is None else "ongoing" if 'ongoing-request="true"' in restore else "restored"
-        return ObjectInfo(key, int(answer["ContentLength"]), answer["LastModified"], answer.get("StorageClass"),
-                          state, answer.get("ETag", "").strip('"') or None)
+        return ObjectInfo(
+            key,
+            int(answer["ContentLength"]),
+            answer["LastModified"],
+            answer.get("StorageClass"),
+            state,
+            answer.get("ETag", "").strip('"') or None,
+        )
 
     def set_storage_class(self, key: str, storage_class: str) -> ObjectInfo:
         """Move an object to another storage class in place (a copy onto itself)."""
         full = self._key(key)
         try:
-            self._client.copy_object(Bucket=self.bucket, Key=full, CopySource={"Bucket": self.bucket, "Key": full},
-                                     StorageClass=storage_class, MetadataDirective="COPY")
+            self._client.copy_object(
+                Bucket=self.bucket,
+                Key=full,
+                CopySource={"Bucket": self.bucket, "Key": full},
+                StorageClass=storage_class,
+                MetadataDirective="COPY",
+            )
         except ClientError as exc:
             raise self._error(key, exc) from exc
         except BotoCoreError as exc:
@@ -136,8 +160,9 @@ class S3Store:
         try:
             for page in self._client.get_paginator("list_objects_v2").paginate(Bucket=self.bucket, Prefix=full):
                 for item in page.get("Contents", []):
-                    yield ObjectInfo(self._relative(item["Key"]), int(item["Size"]), item["LastModified"],
-                                     item.get("StorageClass"))
+                    yield ObjectInfo(
+                        self._relative(item["Key"]), int(item["Size"]), item["LastModified"], item.get("StorageClass")
+                    )
         except (ClientError, BotoCoreError) as exc:
             raise StorageError(f"cannot list {self.url}: {exc}") from exc
 

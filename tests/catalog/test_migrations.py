@@ -23,9 +23,12 @@ def test_models_match_migrations(engine: sa.Engine):
     if engine.dialect.name == "duckdb":
         # The DuckDB dialect cannot reflect for Alembic: compare tables, columns and nullability.
         with engine.connect() as conn:
-            rows = conn.execute(sa.text(
-                "select table_name, column_name, is_nullable from information_schema.columns "
-                "where table_name != 'alembic_version'")).all()
+            rows = conn.execute(
+                sa.text(
+                    "select table_name, column_name, is_nullable from information_schema.columns "
+                    "where table_name != 'alembic_version'"
+                )
+            ).all()
         built = {(t, c, n == "YES") for t, c, n in rows}
         modelled = {(t.name, c.name, bool(c.nullable)) for t in Base.metadata.sorted_tables for c in t.columns}
         assert built == modelled, f"models and migrations differ, add a migration: {built ^ modelled}"

@@ -62,6 +62,7 @@ class Both:
         def call(*args, **kwargs):
             for rec in self.recs:
                 getattr(rec, name)(*args, **kwargs)
+
         return call
 
 

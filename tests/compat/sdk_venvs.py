@@ -53,11 +53,22 @@ def ensure_venv(version: str) -> Path:
             return root
         shutil.rmtree(root, ignore_errors=True)  # a creation that was interrupted
         _run([sys.executable, "-m", "venv", str(root)])
-        _run([str(root / "bin" / "python"), "-m", "pip", "install", "--quiet", "--disable-pip-version-check",
-              f"rerun-sdk=={version}", "numpy"])
+        _run(
+            [
+                str(root / "bin" / "python"),
+                "-m",
+                "pip",
+                "install",
+                "--quiet",
+                "--disable-pip-version-check",
+                f"rerun-sdk=={version}",
+                "numpy",
+            ]
+        )
         # The SDK's CLI must not phone home from tests.
-        subprocess.run([str(root / "bin" / "rerun"), "analytics", "disable"], capture_output=True, timeout=120,
-                       check=False)
+        subprocess.run(
+            [str(root / "bin" / "rerun"), "analytics", "disable"], capture_output=True, timeout=120, check=False
+        )
         (root / READY_MARK).write_text(version + "\n")
     return root
 

@@ -74,8 +74,7 @@ def robots(server: LiveServer, tmp_path_factory: pytest.TempPathFactory) -> dict
     def drive(version: str) -> Robot:
         robot = Robot(version, work / f"live-{version}.rrd", work / f"upload-{version}.rrd")
         python = sdk_python(version)
-        streamed = _run([python, ROBOT, "stream", server.grpc_url, str(robot.live_copy), robot.live_run],
-                        env=ROBOT_ENV)
+        streamed = _run([python, ROBOT, "stream", server.grpc_url, str(robot.live_copy), robot.live_run], env=ROBOT_ENV)
         saved = _run([python, ROBOT, "save", str(robot.upload_copy), robot.upload_run], env=ROBOT_ENV)
         if streamed.returncode != 0 or saved.returncode != 0:
             robot.error = f"the robot failed: {streamed.stderr[-2000:]}{saved.stderr[-2000:]}"
@@ -89,8 +88,10 @@ def robots(server: LiveServer, tmp_path_factory: pytest.TempPathFactory) -> dict
     with ThreadPoolExecutor(max_workers=len(VERSIONS)) as pool:
         done = dict(zip(VERSIONS, pool.map(drive, VERSIONS), strict=True))
     # A stream's run closes when its stream ends (or is refused): wait until the catalog says so.
-    server.wait_for(lambda: all(_run_json(server, r.live_run).get("status") in ("closed", None)
-                                for r in done.values()), what="every live run closed")
+    server.wait_for(
+        lambda: all(_run_json(server, r.live_run).get("status") in ("closed", None) for r in done.values()),
+        what="every live run closed",
+    )
     return done
 
 
@@ -108,16 +109,26 @@ class Served:
     compare: subprocess.CompletedProcess[str]
 
 
-def _serve_and_check(server: LiveServer, robots: dict[str, Robot], rerun_bin: str, out: Path,
-                     ) -> dict[tuple[str, str], Served]:
-    jobs = [(r, run_id, copy) for r in robots.values() if r.error is None
-            for run_id, copy in ((r.live_run, r.live_copy), (r.upload_run, r.upload_copy))]
+def _serve_and_check(
+    server: LiveServer,
+    robots: dict[str, Robot],
+    rerun_bin: str,
+    out: Path,
+) -> dict[tuple[str, str], Served]:
+    jobs = [
+        (r, run_id, copy)
+        for r in robots.values()
+        if r.error is None
+        for run_id, copy in ((r.live_run, r.live_copy), (r.upload_run, r.upload_copy))
+    ]
 
     def check(job: tuple[Robot, str, Path]) -> tuple[tuple[str, str], Served]:
         robot, run_id, copy = job
         path = out / f"{run_id}.rrd"
-        with httpx.stream("GET", f"{server.url}/v1/runs/{run_id}/recording.rrd", timeout=120) as answer, \
-                open(path, "wb") as fh:
+        with (
+            httpx.stream("GET", f"{server.url}/v1/runs/{run_id}/recording.rrd", timeout=120) as answer,
+            open(path, "wb") as fh,
+        ):
             if answer.status_code != 200:
                 fh.write(answer.read())  # not an .rrd: verify says so
             else:
@@ -132,14 +143,20 @@ def _serve_and_check(server: LiveServer, robots: dict[str, Robot], rerun_bin: st
 
 
 @pytest.fixture(scope="module")
-def hot(server: LiveServer, robots: dict[str, Robot], rerun_bin: str,
-        tmp_path_factory: pytest.TempPathFactory) -> dict[tuple[str, str], Served]:
+def hot(
+    server: LiveServer, robots: dict[str, Robot], rerun_bin: str, tmp_path_factory: pytest.TempPathFactory
+) -> dict[tuple[str, str], Served]:
     return _serve_and_check(server, robots, rerun_bin, tmp_path_factory.mktemp("hot"))
 
 
 @pytest.fixture(scope="module")
-def sealed(server: LiveServer, robots: dict[str, Robot], hot: dict[tuple[str, str], Served], rerun_bin: str,
-           tmp_path_factory: pytest.TempPathFactory) -> dict[tuple[str, str], Served]:
+def sealed(
+    server: LiveServer,
+    robots: dict[str, Robot],
+    hot: dict[tuple[str, str], Served],
+    rerun_bin: str,
+    tmp_path_factory: pytest.TempPathFactory,
+) -> dict[tuple[str, str], Served]:
     """After every run was promoted to the warm tier (sealed: one file with a footer)."""
     answer = httpx.post(f"{server.url}/v1/retention/run", params={"action": "promote"}, timeout=600)
     assert answer.status_code == 200, answer.text
@@ -165,8 +182,9 @@ def test_every_sdk_streams_and_uploads(version: str, server: LiveServer, robots:
 @pytest.mark.parametrize("tier", ["hot", "sealed"])
 @pytest.mark.parametrize("path", ["live", "upload"])
 @pytest.mark.parametrize("version", VERSIONS)
-def test_served_file_equals_the_robot_copy_and_verifies(version: str, path: str, tier: str,
-                                                         request: pytest.FixtureRequest):
+def test_served_file_equals_the_robot_copy_and_verifies(
+    version: str, path: str, tier: str, request: pytest.FixtureRequest
+):
     robot: Robot = request.getfixturevalue("robots")[version]
     assert robot.error is None, robot.error
     served: Served = request.getfixturevalue(tier)[(version, path)]

@@ -37,7 +37,10 @@ def test_no_bare_internal_error_is_raised_for_what_a_user_can_cause():
     bare = []
     for path in [*(root / "services").rglob("*.py"), *(root / "catalog").rglob("*.py")]:
         for node in ast.walk(ast.parse(path.read_text(), str(path))):
-            if isinstance(node, ast.Raise) and isinstance(node.exc, ast.Call) and \
-                    getattr(node.exc.func, "id", None) == "FleetError":
+            if (
+                isinstance(node, ast.Raise)
+                and isinstance(node.exc, ast.Call)
+                and getattr(node.exc.func, "id", None) == "FleetError"
+            ):
                 bare.append(f"{path.relative_to(root)}:{node.lineno}")
     assert bare == []

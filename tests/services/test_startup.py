@@ -32,11 +32,17 @@ def test_a_port_someone_listens_on_is_refused_for_http_and_grpc():
         taken.bind(("127.0.0.1", 0))
         taken.listen()
         port = taken.getsockname()[1]
-        with pytest.raises(AddressError, match=rf"REST API address 127\.0\.0\.1:{port} is already in use .*: "
-                                               r"set another with --http-addr or FLEET_HTTP_ADDR"):
+        with pytest.raises(
+            AddressError,
+            match=rf"REST API address 127\.0\.0\.1:{port} is already in use .*: "
+            r"set another with --http-addr or FLEET_HTTP_ADDR",
+        ):
             listen_http("127.0.0.1", port)
-        with pytest.raises(AddressError, match=rf"Rerun gRPC address 0\.0\.0\.0:{port} is already in use.*"
-                                               r"--grpc-addr or FLEET_GRPC_ADDR"):
+        with pytest.raises(
+            AddressError,
+            match=rf"Rerun gRPC address 0\.0\.0\.0:{port} is already in use.*"
+            r"--grpc-addr or FLEET_GRPC_ADDR",
+        ):
             listen_grpc("0.0.0.0", port)
 
 

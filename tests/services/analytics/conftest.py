@@ -35,7 +35,7 @@ START_2026_03_01_NS = 1_772_323_200 * 10**9  # 2026-03-01T00:00:00Z
 HOUR_NS = 3_600 * 10**9
 
 # Every SDK script starts with this: one RecordingStream per run, all in one process (one SDK import).
-SDK_PRELUDE = '''
+SDK_PRELUDE = """
 import json, math, time
 import numpy as np
 import rerun as rr
@@ -52,15 +52,16 @@ def recording(path, run_id, robot, start_ns):
 def finish(rec):
     rec.flush()
     rec.disconnect()
-'''
+"""
 
 
 def log_with_sdk(script: str, *, flush_rows: int | None = None) -> Any:
     """Run `script` (after SDK_PRELUDE) with the real SDK in a subprocess, so each test module gets its
     own SDK state; returns the JSON the script prints on its last line (its ground truth), if any."""
     env = {**os.environ, **({"RERUN_FLUSH_NUM_ROWS": str(flush_rows)} if flush_rows else {})}
-    done = subprocess.run([sys.executable, "-c", SDK_PRELUDE + script], env=env, capture_output=True, text=True,
-                          timeout=120, check=False)
+    done = subprocess.run(
+        [sys.executable, "-c", SDK_PRELUDE + script], env=env, capture_output=True, text=True, timeout=120, check=False
+    )
     assert done.returncode == 0, done.stderr[-3000:]
     lines = done.stdout.strip().splitlines()
     return json.loads(lines[-1]) if lines else None
@@ -117,31 +118,56 @@ def sql_rows(client: TestClient, query: str) -> list[dict[str, Any]]:
     return [dict(zip(names, row, strict=True)) for row in body["rows"]]
 
 
-def write_scalars(store: ObjectStore, robot: str, date: str, run_id: str, values: list[float],
-                  entity: str = "/battery") -> str:
+def write_scalars(
+    store: ObjectStore, robot: str, date: str, run_id: str, values: list[float], entity: str = "/battery"
+) -> str:
     """Write one run's `scalars` file the way promotion does (write_analytics); returns its key."""
     extractor = Extractor(run_id)
     n = len(values)
-    extractor.batches["scalars"].append(pa.table({
-        "run_id": pa.array([run_id] * n), "entity": pa.array([entity] * n),
-        "component": pa.array([SCALARS] * n), "instance": pa.array([0] * n, pa.int32()),
-        "value": pa.array(values, pa.float64()),
-        "frame": pa.array(range(n), pa.int64()),
-        "log_time": pa.array([START_2026_03_01_NS + i for i in range(n)], pa.timestamp("ns")),
-    }))
+    extractor.batches["scalars"].append(
+        pa.table(
+            {
+                "run_id": pa.array([run_id] * n),
+                "entity": pa.array([entity] * n),
+                "component": pa.array([SCALARS] * n),
+                "instance": pa.array([0] * n, pa.int32()),
+                "value": pa.array(values, pa.float64()),
+                "frame": pa.array(range(n), pa.int64()),
+                "log_time": pa.array([START_2026_03_01_NS + i for i in range(n)], pa.timestamp("ns")),
+            }
+        )
+    )
     (written,) = write_analytics(store, extractor, robot, date)
     return written.key
 
 
-def catalog_run(catalog: sessionmaker[Session], run_id: str, robot: str, date: str, keys: dict[str, str],
-                tier: str = "warm") -> None:
+def catalog_run(
+    catalog: sessionmaker[Session], run_id: str, robot: str, date: str, keys: dict[str, str], tier: str = "warm"
+) -> None:
     """The catalog's side of a run whose analytics files are `keys` (name -> key, e.g.
     {"analytics/scalars": key}): what promotion records, so SQL reads those files."""
     day = dt.date.fromisoformat(date)
     at = dt.datetime.combine(day, dt.time(), dt.UTC)
     with session_scope(catalog) as session:
-        save_run(session, RunRecord(id=run_id, robot_id=robot, application_id="test", date=day, status="closed",
-                                    tier=tier, started_at=at, ended_at=at, last_data_at=at, sdk_version="0.41.0",
-                                    chunks=1, rows=1, bytes=1, properties={}), at)
+        save_run(
+            session,
+            RunRecord(
+                id=run_id,
+                robot_id=robot,
+                application_id="test",
+                date=day,
+                status="closed",
+                tier=tier,
+                started_at=at,
+                ended_at=at,
+                last_data_at=at,
+                sdk_version="0.41.0",
+                chunks=1,
+                rows=1,
+                bytes=1,
+                properties={},
+            ),
+            at,
+        )
         for name, key in keys.items():
             session.merge(RunObject(run_id=run_id, name=name, key=key, tier="warm", size=1, sha256="0" * 64))

@@ -62,7 +62,7 @@ RUNS = (
     Run("ex-c2", "robot-c", 2, 70.0, 0.25, 30.0, 3.0, 0),
 )
 
-SCRIPT = '''
+SCRIPT = """
 PATH, FRAMES, JOINTS = {path!r}, {frames}, {joints}
 for run_id, robot, start, battery, drain, j3, j2, scale, errors, criticals in {runs!r}:
     rec = recording(FOLDER + f"/{{run_id}}.rrd", run_id, robot, start)
@@ -84,14 +84,27 @@ for run_id, robot, start, battery, drain, j3, j2, scale, errors, criticals in {r
         rec.set_time("frame", sequence=n)
         rec.log("/logs", rr.TextLog(f"line {{n}}", level=level))
     finish(rec)
-'''
+"""
 
 
 @pytest.fixture(scope="module")
 def recordings(tmp_path_factory: pytest.TempPathFactory) -> list[Path]:
     folder = tmp_path_factory.mktemp("analytics-examples")
-    runs = [(r.id, r.robot, START_2026_03_01_NS + r.day * DAY_NS + 9 * HOUR_NS, r.battery, r.drain, r.joint3_peak,
-             r.joint2_peak, r.scale, r.errors, r.criticals) for r in RUNS]
+    runs = [
+        (
+            r.id,
+            r.robot,
+            START_2026_03_01_NS + r.day * DAY_NS + 9 * HOUR_NS,
+            r.battery,
+            r.drain,
+            r.joint3_peak,
+            r.joint2_peak,
+            r.scale,
+            r.errors,
+            r.criticals,
+        )
+        for r in RUNS
+    ]
     log_with_sdk(f"FOLDER = {str(folder)!r}\n" + SCRIPT.format(path=PATH, frames=FRAMES, joints=JOINTS, runs=runs))
     return [folder / f"{r.id}.rrd" for r in RUNS]
 
@@ -111,8 +124,9 @@ def expected_answers() -> dict[int, list[dict[str, Any]]]:
     drains: dict[tuple[str, str], float] = {}
     for r in RUNS:
         drains[(r.robot, date(r.day))] = drains.get((r.robot, date(r.day)), 0.0) + r.drain
-    errors = sorted(((r.errors + r.criticals, r.id, r.robot) for r in RUNS if r.errors + r.criticals),
-                    key=lambda e: (-e[0], e[1]))
+    errors = sorted(
+        ((r.errors + r.criticals, r.id, r.robot) for r in RUNS if r.errors + r.criticals), key=lambda e: (-e[0], e[1])
+    )
     return {
         1: [{"robot_id": robot, "date": day, "drain_percent": drain} for (robot, day), drain in sorted(drains.items())],
         2: [{"run_id": run, "robot_id": robot, "errors": n} for n, run, robot in errors],
@@ -125,8 +139,11 @@ def test_the_doc_has_four_worked_examples():
     examples = doc_examples()
     assert sorted(examples) == [1, 2, 3, 4]
     assert [title for title, _ in examples.values()] == [
-        "Battery drain per robot per day", "Error logs per run", "Distance driven per run",
-        "Runs where joint 3 torque exceeded 40"]
+        "Battery drain per robot per day",
+        "Error logs per run",
+        "Distance driven per run",
+        "Runs where joint 3 torque exceeded 40",
+    ]
     assert all(sql.upper().startswith("SELECT") for _, sql in examples.values())
 
 
@@ -136,7 +153,8 @@ def test_worked_examples_answer_exactly(tmp_path: Path, make_node: NodeFactory, 
     assert sorted(promote_all(node)) == sorted(r.id for r in RUNS)
     client = api(node)
     assert sql_rows(client, "SELECT id, robot_id, date FROM runs ORDER BY id") == [
-        {"id": r.id, "robot_id": r.robot, "date": date(r.day)} for r in RUNS]  # robots and days as logged
+        {"id": r.id, "robot_id": r.robot, "date": date(r.day)} for r in RUNS
+    ]  # robots and days as logged
     expected = expected_answers()
     assert expected[4] == [{"run_id": "ex-b2", "robot_id": "robot-b", "peak_torque": 42.5}]  # the data's premise
     answers = {n: sql_rows(client, sql) for n, (_, sql) in doc_examples().items()}

@@ -47,7 +47,7 @@ CLASH = "clash-run"
 FRAMES, LATE_FRAMES, JOINTS = 6, 3, 4
 LEVELS = ("INFO", "WARN", "ERROR")
 
-SCRIPT = '''
+SCRIPT = """
 FRAMES, LATE_FRAMES, JOINTS, LEVELS = {frames}, {late_frames}, {joints}, {levels!r}
 rec = recording(FOLDER + "/run.rrd", {run!r}, {robot!r}, {start})
 rec.log("/static/notes", rr.TextLog("static note", level="INFO"), static=True)
@@ -86,7 +86,7 @@ for i in range(3):
     clash.log("/battery", rr.Scalars(70.0 + i))
 finish(clash)
 print(json.dumps({{"log_time": [lo, hi]}}))
-'''
+"""
 
 
 @dataclass(frozen=True)
@@ -102,11 +102,22 @@ class SdkRuns:
 def sdk_runs(tmp_path_factory: pytest.TempPathFactory) -> SdkRuns:
     folder = tmp_path_factory.mktemp("analytics-extract")
     script = f"FOLDER = {str(folder)!r}\n" + SCRIPT.format(
-        frames=FRAMES, late_frames=LATE_FRAMES, joints=JOINTS, levels=LEVELS, run=RUN, robot=ROBOT,
-        start=START_2026_03_01_NS + 10 * HOUR_NS, other=OTHER, other_robot=OTHER_ROBOT, day=DAY_NS, clash=CLASH)
+        frames=FRAMES,
+        late_frames=LATE_FRAMES,
+        joints=JOINTS,
+        levels=LEVELS,
+        run=RUN,
+        robot=ROBOT,
+        start=START_2026_03_01_NS + 10 * HOUR_NS,
+        other=OTHER,
+        other_robot=OTHER_ROBOT,
+        day=DAY_NS,
+        clash=CLASH,
+    )
     truth = log_with_sdk(script, flush_rows=2)  # the SDK's batcher: several chunks per entity
-    return SdkRuns(folder / "run.rrd", folder / "late.rrd", folder / "other.rrd", folder / "clash.rrd",
-                   tuple(truth["log_time"]))
+    return SdkRuns(
+        folder / "run.rrd", folder / "late.rrd", folder / "other.rrd", folder / "clash.rrd", tuple(truth["log_time"])
+    )
 
 
 def local_tiers(tmp_path: Path) -> Tiers:
@@ -133,8 +144,9 @@ def rows_of(table: pa.Table) -> list[dict[str, Any]]:
 # --- the files ----------------------------------------------------------------------------------
 
 
-def test_promotion_writes_one_partitioned_parquet_file_per_table(tiers: Tiers, make_node: NodeFactory,
-                                                                 sdk_runs: SdkRuns):
+def test_promotion_writes_one_partitioned_parquet_file_per_table(
+    tiers: Tiers, make_node: NodeFactory, sdk_runs: SdkRuns
+):
     node = make_node(tiers)
     upload_all(node, [sdk_runs.run, sdk_runs.other])
     assert sorted(promote_all(node)) == sorted([RUN, OTHER])
@@ -174,8 +186,10 @@ def test_files_read_as_they_are_with_hive_partitioning(tmp_path: Path, make_node
     seen = {(r["robot_id"], str(r["date"]), r["run_id"]) for r in identity}
     assert seen == {(ROBOT, DATE, RUN), (OTHER_ROBOT, OTHER_DATE, OTHER)}
     assert table.num_rows == FRAMES + FRAMES * JOINTS + 3
-    found = duckdb.sql(f"SELECT robot_id, date::VARCHAR AS date, count(*) AS n FROM read_parquet("
-                       f"'{folder}/*/*/*.parquet', hive_partitioning = true) GROUP BY ALL ORDER BY ALL").fetchall()
+    found = duckdb.sql(
+        f"SELECT robot_id, date::VARCHAR AS date, count(*) AS n FROM read_parquet("
+        f"'{folder}/*/*/*.parquet', hive_partitioning = true) GROUP BY ALL ORDER BY ALL"
+    ).fetchall()
     assert found == [(ROBOT, DATE, FRAMES + FRAMES * JOINTS), (OTHER_ROBOT, OTHER_DATE, 3)]
     for name, rows in (("text_logs", 2 * FRAMES), ("transforms", 3 * FRAMES)):
         assert pads.dataset(folder.parent / name, format="parquet", partitioning="hive").count_rows() == rows
@@ -246,7 +260,10 @@ def test_timelines_named_like_columns_are_renamed(tmp_path: Path, make_node: Nod
     assert "timeline_date" in schema.names and "date" not in schema.names, schema.names
     table = pads.dataset(tmp_path / "warm" / "analytics" / "scalars", format="parquet", partitioning="hive").to_table()
     assert sorted(zip(table["timeline_date"].to_pylist(), table["value"].to_pylist(), strict=True)) == [
-        (100, 70.0), (101, 71.0), (102, 72.0)]
+        (100, 70.0),
+        (101, 71.0),
+        (102, 72.0),
+    ]
 
 
 # --- when they are written and removed ---------------------------------------------------------
@@ -256,8 +273,10 @@ def test_hot_run_on_demand_then_rewritten_at_promotion(tmp_path: Path, make_node
     node = make_node(local_tiers(tmp_path))
     upload_all(node, [sdk_runs.run])
     client = api(node)
-    counts = "SELECT (SELECT count(*) FROM scalars) AS s, (SELECT count(*) FROM text_logs) AS t, " \
-             "(SELECT count(*) FROM transforms) AS x"
+    counts = (
+        "SELECT (SELECT count(*) FROM scalars) AS s, (SELECT count(*) FROM text_logs) AS t, "
+        "(SELECT count(*) FROM transforms) AS x"
+    )
     assert sql_rows(client, counts) == [{"s": 0, "t": 0, "x": 0}]  # nothing extracted yet: empty tables
     response = client.post(f"/v1/runs/{RUN}/analytics")
     assert response.status_code == 200, response.text
@@ -268,7 +287,8 @@ def test_hot_run_on_demand_then_rewritten_at_promotion(tmp_path: Path, make_node
     expected = [{"s": FRAMES + FRAMES * JOINTS, "t": 2 * FRAMES, "x": 3 * FRAMES}]
     assert sql_rows(client, counts) == expected
     assert sql_rows(client, "SELECT DISTINCT robot_id, date, run_id FROM text_logs") == [
-        {"robot_id": ROBOT, "date": DATE, "run_id": RUN}]
+        {"robot_id": ROBOT, "date": DATE, "run_id": RUN}
+    ]
     missing = client.post("/v1/runs/no-such-run/analytics")
     assert missing.status_code == 404 and "no-such-run" in missing.json()["message"]
 
@@ -311,8 +331,9 @@ def malformed_seed(tmp_path_factory: pytest.TempPathFactory) -> Any:
 
 
 @pytest.mark.sdk
-@pytest.mark.parametrize("variant", ["scalars_offsets_decreasing", "scalars_int32", "text_not_utf8",
-                                     "translation_width_2"])
+@pytest.mark.parametrize(
+    "variant", ["scalars_offsets_decreasing", "scalars_int32", "text_not_utf8", "translation_width_2"]
+)
 def test_an_invalid_chunk_is_skipped_not_read(variant: str, malformed_seed: Any) -> None:
     """A chunk stored before ingest refused such chunks: extraction validates it first and skips it
     (reading its values would go out of bounds or misread them); the other chunks are extracted."""

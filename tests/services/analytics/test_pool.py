@@ -33,8 +33,9 @@ PARSE_HEAVY = "SELECT 1 AS one WHERE " + " OR ".join(f"(1 = {i} AND 2 = {i})" fo
 # 300 MB strings, three at once: allocations DuckDB's memory_limit does not account for
 MEMORY_HUNGRY = "SELECT max(length(repeat('x', 300000000) || range::VARCHAR)) AS n FROM range(3)"
 # executes at once, then computes its rows while they are fetched (where DuckDB raised OSError)
-SLOW_FETCH = "SELECT range, hash(range::VARCHAR || repeat('x', 200)) AS h FROM range(20000000) " \
-             "WHERE hash(range) % 3 = 0"
+SLOW_FETCH = (
+    "SELECT range, hash(range::VARCHAR || repeat('x', 200)) AS h FROM range(20000000) WHERE hash(range) % 3 = 0"
+)
 SLOW = "SELECT count(*) FROM range(1000000000000) a WHERE hash(a.range) = 0"
 
 
@@ -83,8 +84,9 @@ def test_a_time_limit_during_fetch_is_408(tmp_path: Path):
 
 @pytest.fixture
 def busy_server(tmp_path: Path) -> Any:
-    server = LiveServer(tmp_path / "data", sql_workers="1", sql_queue="1", sql_timeout_s="10", sql_threads="1",
-                        scheduler="false").start()
+    server = LiveServer(
+        tmp_path / "data", sql_workers="1", sql_queue="1", sql_timeout_s="10", sql_threads="1", scheduler="false"
+    ).start()
     try:
         yield server
     finally:

@@ -53,8 +53,9 @@ ALLOWED_ONLY = "queries read only the catalog views"  # the rule for files and U
 READ_ONLY = "queries are read-only, only SELECT (or EXPLAIN)"  # the rule for statements
 
 
-def sql_app(store: ObjectStore, catalog: sessionmaker[Session], limits: Limits | None = None,
-            **client: Any) -> TestClient:
+def sql_app(
+    store: ObjectStore, catalog: sessionmaker[Session], limits: Limits | None = None, **client: Any
+) -> TestClient:
     analytics = opened(Analytics(catalog, store, limits or Limits()))
     return TestClient(create_app(load_settings(scheduler=False), analytics=analytics), **client)
 
@@ -119,50 +120,101 @@ def test_catalog_views(catalog: sessionmaker[Session], tmp_path: Path):
     t0 = dt.datetime(2026, 3, 1, 10, 0, tzinfo=dt.UTC)
     for n, robot in enumerate(("robot-1", "robot-2")):
         record = queries.RunRecord(
-            id=f"run-{n}", robot_id=robot, application_id="picker", date=t0.date(), status="closed", tier="warm",
-            started_at=t0, ended_at=t0 + dt.timedelta(minutes=5), last_data_at=t0 + dt.timedelta(minutes=5),
-            sdk_version="0.41.0", chunks=10 + n, rows=100, bytes=5_000_000_000 + n,
+            id=f"run-{n}",
+            robot_id=robot,
+            application_id="picker",
+            date=t0.date(),
+            status="closed",
+            tier="warm",
+            started_at=t0,
+            ended_at=t0 + dt.timedelta(minutes=5),
+            last_data_at=t0 + dt.timedelta(minutes=5),
+            sdk_version="0.41.0",
+            chunks=10 + n,
+            rows=100,
+            bytes=5_000_000_000 + n,
             properties={"fleet": {"robot_id": robot, "site": f"site-{n}"}},
             entities=[queries.EntityRecord("/battery", 2, 0, 40, 900, ["Scalars"], ["Scalars:scalars"])],
-            timelines=[queries.TimelineRecord("frame", "sequence", 0, 39 + n)])
+            timelines=[queries.TimelineRecord("frame", "sequence", 0, 39 + n)],
+        )
         with session_scope(catalog) as session:
             queries.save_run(session, record, t0)
     client = sql_app(open_store((tmp_path / "warm").as_uri()), catalog)
     runs = client.post("/v1/sql", json={"query": "SELECT * FROM runs ORDER BY id"}).json()
     assert [c["name"] for c in runs["columns"]] == [
-        "id", "robot_id", "application_id", "date", "status", "tier", "started_at", "ended_at", "last_data_at",
-        "sdk_version", "chunks", "rows", "bytes", "properties", "pinned", "pinned_by", "created_at", "updated_at"]
+        "id",
+        "robot_id",
+        "application_id",
+        "date",
+        "status",
+        "tier",
+        "started_at",
+        "ended_at",
+        "last_data_at",
+        "sdk_version",
+        "chunks",
+        "rows",
+        "bytes",
+        "properties",
+        "pinned",
+        "pinned_by",
+        "created_at",
+        "updated_at",
+    ]
     assert runs["row_count"] == 2
     run = dict(zip([c["name"] for c in runs["columns"]], runs["rows"][1], strict=True))
     assert run["id"] == "run-1" and run["date"] == "2026-03-01" and run["bytes"] == 5_000_000_001
     assert run["started_at"].startswith("2026-03-01 10:00:00") and run["pinned"] is False
-    assert sql_rows(client, "SELECT id, robot_id, json_extract_string(properties, '$.fleet.site') AS site, "
-                            "date_diff('second', started_at, ended_at) AS took FROM runs ORDER BY id") == [
+    assert sql_rows(
+        client,
+        "SELECT id, robot_id, json_extract_string(properties, '$.fleet.site') AS site, "
+        "date_diff('second', started_at, ended_at) AS took FROM runs ORDER BY id",
+    ) == [
         {"id": "run-0", "robot_id": "robot-1", "site": "site-0", "took": 300},
-        {"id": "run-1", "robot_id": "robot-2", "site": "site-1", "took": 300}]
+        {"id": "run-1", "robot_id": "robot-2", "site": "site-1", "took": 300},
+    ]
     assert sql_rows(client, "SELECT id, last_seen_at > created_at AS later FROM robots ORDER BY id") == [
-        {"id": "robot-1", "later": True}, {"id": "robot-2", "later": True}]
+        {"id": "robot-1", "later": True},
+        {"id": "robot-2", "later": True},
+    ]
     entities = sql_rows(client, "SELECT * FROM run_entities WHERE run_id = 'run-1'")
-    assert entities == [{"run_id": "run-1", "path": "/battery", "chunks": 2, "static_chunks": 0, "rows": 40,
-                         "bytes": 900, "archetypes": '["Scalars"]', "components": '["Scalars:scalars"]'}]
+    assert entities == [
+        {
+            "run_id": "run-1",
+            "path": "/battery",
+            "chunks": 2,
+            "static_chunks": 0,
+            "rows": 40,
+            "bytes": 900,
+            "archetypes": '["Scalars"]',
+            "components": '["Scalars:scalars"]',
+        }
+    ]
     assert sql_rows(client, "SELECT * FROM run_timelines ORDER BY run_id") == [
         {"run_id": "run-0", "name": "frame", "type": "sequence", "min": 0, "max": 39},
-        {"run_id": "run-1", "name": "frame", "type": "sequence", "min": 0, "max": 40}]
-    assert sql_rows(client, "SELECT r.robot_id, max(t.max) AS frames FROM runs r JOIN run_timelines t "
-                            "ON t.run_id = r.id GROUP BY ALL ORDER BY 1") == [
-        {"robot_id": "robot-1", "frames": 39}, {"robot_id": "robot-2", "frames": 40}]
+        {"run_id": "run-1", "name": "frame", "type": "sequence", "min": 0, "max": 40},
+    ]
+    assert sql_rows(
+        client,
+        "SELECT r.robot_id, max(t.max) AS frames FROM runs r JOIN run_timelines t "
+        "ON t.run_id = r.id GROUP BY ALL ORDER BY 1",
+    ) == [{"robot_id": "robot-1", "frames": 39}, {"robot_id": "robot-2", "frames": 40}]
     # no analytics file yet: the tables are there, empty, with their columns
     empty = client.post("/v1/sql", json={"query": "SELECT * FROM transforms"}).json()
     assert empty["row_count"] == 0 and {"robot_id", "date", "run_id", "entity", "tx", "qw", "log_time"} <= {
-        c["name"] for c in empty["columns"]}
+        c["name"] for c in empty["columns"]
+    }
 
 
 # --- answers: formats --------------------------------------------------------------------------
 
-QUERY = "SELECT robot_id, date, run_id, frame, value, log_time FROM scalars WHERE run_id = 'robot-2-2026-03-02-1' " \
-        "ORDER BY frame"
-EXPECTED = [("robot-2", "2026-03-02", "robot-2-2026-03-02-1", i, 2.0 + i, f"2026-03-01 00:00:00.00000000{i}")
-            for i in range(3)]
+QUERY = (
+    "SELECT robot_id, date, run_id, frame, value, log_time FROM scalars WHERE run_id = 'robot-2-2026-03-02-1' "
+    "ORDER BY frame"
+)
+EXPECTED = [
+    ("robot-2", "2026-03-02", "robot-2-2026-03-02-1", i, 2.0 + i, f"2026-03-01 00:00:00.00000000{i}") for i in range(3)
+]
 
 
 def test_formats_by_accept_and_by_parameter(local: ObjectStore, blank: sessionmaker[Session]):
@@ -171,8 +223,13 @@ def test_formats_by_accept_and_by_parameter(local: ObjectStore, blank: sessionma
     assert answer.headers["content-type"].startswith("application/json") and answer.headers["x-row-count"] == "3"
     body = answer.json()
     assert [(c["name"], c["type"]) for c in body["columns"]] == [
-        ("robot_id", "string"), ("date", "date32[day]"), ("run_id", "string"), ("frame", "int64"),
-        ("value", "double"), ("log_time", "timestamp[ns]")]
+        ("robot_id", "string"),
+        ("date", "date32[day]"),
+        ("run_id", "string"),
+        ("frame", "int64"),
+        ("value", "double"),
+        ("log_time", "timestamp[ns]"),
+    ]
     assert [tuple(r) for r in body["rows"]] == EXPECTED and body["row_count"] == 3  # nanoseconds kept
 
     csv = post(client, QUERY, headers={"Accept": "text/csv"})
@@ -194,8 +251,12 @@ def test_formats_by_accept_and_by_parameter(local: ObjectStore, blank: sessionma
     assert parquet.headers["content-type"] == "application/vnd.apache.parquet"
     assert pq.read_table(pa.BufferReader(parquet.content)).equals(table)
 
-    for fmt, media in (("csv", "text/csv"), ("arrow", "application/vnd.apache.arrow.stream"),
-                       ("parquet", "application/vnd.apache.parquet"), ("json", "application/json")):
+    for fmt, media in (
+        ("csv", "text/csv"),
+        ("arrow", "application/vnd.apache.arrow.stream"),
+        ("parquet", "application/vnd.apache.parquet"),
+        ("json", "application/json"),
+    ):
         chosen = post(client, QUERY, params={"format": fmt}, headers={"Accept": "text/csv; q=0.9, */*"})
         assert chosen.status_code == 200 and chosen.headers["content-type"].startswith(media), fmt
     assert post(client, QUERY, params={"format": "csv"}, headers={"Accept": "application/json"}).text == csv.text
@@ -207,14 +268,17 @@ def test_json_numbers_stay_numbers(local: ObjectStore, blank: sessionmaker[Sessi
     """sum() of integers is a HUGEINT in DuckDB (a decimal in Arrow): JSON must still say 42, not "42"."""
     client = sql_app(local, blank)
     assert sql_rows(client, "SELECT count(*) AS files, sum(frame) AS frames, avg(value) AS mean FROM scalars") == [
-        {"files": 36, "frames": 36, "mean": 2.5}]
+        {"files": 36, "frames": 36, "mean": 2.5}
+    ]
 
 
 @pytest.mark.slow
 def test_nested_values_never_fail_the_server(local: ObjectStore, blank: sessionmaker[Session]):
     client = sql_app(local, blank, raise_server_exceptions=False)
-    query = "SELECT run_id, list(value ORDER BY frame) AS series FROM scalars WHERE run_id = 'robot-1-2026-03-01-0' " \
-            "GROUP BY run_id"
+    query = (
+        "SELECT run_id, list(value ORDER BY frame) AS series FROM scalars WHERE run_id = 'robot-1-2026-03-01-0' "
+        "GROUP BY run_id"
+    )
     assert sql_rows(client, query) == [{"run_id": "robot-1-2026-03-01-0", "series": [1.0, 2.0, 3.0]}]
     csv = post(client, query, params={"format": "csv"})
     assert csv.status_code != 500, csv.text  # written as text, or refused with a clear 400
@@ -247,8 +311,11 @@ def test_time_limit(local: ObjectStore, blank: sessionmaker[Session]):
 
 def test_invalid_sql(local: ObjectStore, blank: sessionmaker[Session]):
     client = sql_app(local, blank)
-    for query, needle in (("SELEC 1", "syntax error"), ("SELECT nope FROM scalars", "nope"),
-                          ("SELECT * FROM no_such_table", "no_such_table")):
+    for query, needle in (
+        ("SELEC 1", "syntax error"),
+        ("SELECT nope FROM scalars", "nope"),
+        ("SELECT * FROM no_such_table", "no_such_table"),
+    ):
         answer = post(client, query)
         assert answer.status_code == 400 and answer.json()["code"] == "INVALID_SQL", query
         assert needle in answer.json()["message"], answer.json()
@@ -258,22 +325,25 @@ def test_invalid_sql(local: ObjectStore, blank: sessionmaker[Session]):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize(("query", "rule"), [
-    ("CREATE TABLE t AS SELECT * FROM scalars", READ_ONLY),
-    ("INSERT INTO robots VALUES ('robot-x', now(), now())", READ_ONLY),
-    ("COPY (SELECT * FROM scalars) TO '{tmp}/copied.csv'", READ_ONLY),
-    ("ATTACH '{tmp}/other.duckdb' AS other", READ_ONLY),
-    ("INSTALL httpfs", READ_ONLY),
-    ("LOAD httpfs", READ_ONLY),
-    ("SET enable_external_access = true", READ_ONLY),
-    ("PRAGMA enable_profiling", READ_ONLY),
-    ("SELECT 1; SELECT 2", "one statement per query"),
-    ("SELECT * FROM read_csv('/etc/passwd')", ALLOWED_ONLY),
-    ("SELECT * FROM read_parquet('{tmp}/outside.parquet')", ALLOWED_ONLY),
-    ("SELECT * FROM read_parquet('{tmp}/warm/analytics/../outside.parquet')", ALLOWED_ONLY),
-    ("SELECT * FROM glob('/*')", ALLOWED_ONLY),
-    ("SELECT * FROM read_text('http://127.0.0.1:9/x')", ALLOWED_ONLY),
-])
+@pytest.mark.parametrize(
+    ("query", "rule"),
+    [
+        ("CREATE TABLE t AS SELECT * FROM scalars", READ_ONLY),
+        ("INSERT INTO robots VALUES ('robot-x', now(), now())", READ_ONLY),
+        ("COPY (SELECT * FROM scalars) TO '{tmp}/copied.csv'", READ_ONLY),
+        ("ATTACH '{tmp}/other.duckdb' AS other", READ_ONLY),
+        ("INSTALL httpfs", READ_ONLY),
+        ("LOAD httpfs", READ_ONLY),
+        ("SET enable_external_access = true", READ_ONLY),
+        ("PRAGMA enable_profiling", READ_ONLY),
+        ("SELECT 1; SELECT 2", "one statement per query"),
+        ("SELECT * FROM read_csv('/etc/passwd')", ALLOWED_ONLY),
+        ("SELECT * FROM read_parquet('{tmp}/outside.parquet')", ALLOWED_ONLY),
+        ("SELECT * FROM read_parquet('{tmp}/warm/analytics/../outside.parquet')", ALLOWED_ONLY),
+        ("SELECT * FROM glob('/*')", ALLOWED_ONLY),
+        ("SELECT * FROM read_text('http://127.0.0.1:9/x')", ALLOWED_ONLY),
+    ],
+)
 def test_sandbox_refuses(local: ObjectStore, blank: sessionmaker[Session], tmp_path: Path, query: str, rule: str):
     pq.write_table(pa.table({"secret": [1]}), tmp_path / "outside.parquet")
     local.put("outside.parquet", (tmp_path / "outside.parquet").read_bytes())  # in the warm store, not analytics
@@ -291,8 +361,11 @@ def test_explain_analyze_cannot_write(local: ObjectStore, blank: sessionmaker[Se
     client = sql_app(local, blank)
     partition = tmp_path / "warm" / "analytics" / "scalars" / "robot_id=robot-1" / "date=2026-03-01"
     planted = partition / "planted.parquet"
-    answer = post(client, f"{explain} COPY (SELECT 'planted' AS run_id, '/battery' AS entity, "
-                          f"1e9::DOUBLE AS value) TO '{planted}' (FORMAT parquet)")
+    answer = post(
+        client,
+        f"{explain} COPY (SELECT 'planted' AS run_id, '/battery' AS entity, "
+        f"1e9::DOUBLE AS value) TO '{planted}' (FORMAT parquet)",
+    )
     assert not planted.exists(), "a query wrote into the analytics tables"
     assert answer.status_code == 400 and answer.json()["code"] == "SQL_NOT_ALLOWED", answer.text
     assert sql_rows(client, "SELECT max(value) AS top FROM scalars") == [{"top": 4.0}]
@@ -311,33 +384,48 @@ def test_only_the_files_the_catalog_lists_count(local: ObjectStore, blank: sessi
     write_scalars(local, "unknown-robot", "2026-02-28", "robot-1-2026-03-01-0", [1.0, 2.0, 3.0])
     with session_scope(blank) as session:
         session.execute(sa.update(Run).where(Run.id == "robot-2-2026-03-02-1").values(tier="deleted"))
-    assert sql_rows(client, "SELECT count(*) AS n, count(DISTINCT run_id) AS runs, max(value) AS top, "
-                            "count(*) FILTER (WHERE robot_id = 'unknown-robot') AS early FROM scalars") == [
-        {"n": 33, "runs": 11, "top": 4.0, "early": 0}]
+    assert sql_rows(
+        client,
+        "SELECT count(*) AS n, count(DISTINCT run_id) AS runs, max(value) AS top, "
+        "count(*) FILTER (WHERE robot_id = 'unknown-robot') AS early FROM scalars",
+    ) == [{"n": 33, "runs": 11, "top": 4.0, "early": 0}]
     assert sql_rows(client, "SELECT count(*) AS n FROM scalars WHERE run_id = 'robot-2-2026-03-02-1'") == [{"n": 0}]
 
 
 SHOWS_THE_SERVER = [
-    "SELECT * FROM duckdb_settings()", "SELECT * FROM duckdb_settings", "SELECT * FROM duckdb_secrets()",
-    "SELECT * FROM duckdb_extensions()", "SELECT * FROM duckdb_views()", "SELECT sql FROM duckdb_views",
-    "SELECT * FROM duckdb_databases()", "SELECT * FROM duckdb_temporary_files()", "SELECT * FROM pragma_version()",
-    "SELECT * FROM information_schema.tables", "SELECT * FROM sqlite_master",
-    "SELECT current_setting('home_directory') AS v", "SELECT current_setting('temp_directory') AS v",
-    "SELECT current_setting('extension_directory') AS v", "SELECT current_setting('allowed_paths') AS v",
-    "SELECT current_setting('s3_secret_access_key') AS v", "SELECT getenv('HOME') AS v",
-    "SELECT getvariable('x') AS v", "SELECT * FROM which_secret('s3://x/y', 's3')",
+    "SELECT * FROM duckdb_settings()",
+    "SELECT * FROM duckdb_settings",
+    "SELECT * FROM duckdb_secrets()",
+    "SELECT * FROM duckdb_extensions()",
+    "SELECT * FROM duckdb_views()",
+    "SELECT sql FROM duckdb_views",
+    "SELECT * FROM duckdb_databases()",
+    "SELECT * FROM duckdb_temporary_files()",
+    "SELECT * FROM pragma_version()",
+    "SELECT * FROM information_schema.tables",
+    "SELECT * FROM sqlite_master",
+    "SELECT current_setting('home_directory') AS v",
+    "SELECT current_setting('temp_directory') AS v",
+    "SELECT current_setting('extension_directory') AS v",
+    "SELECT current_setting('allowed_paths') AS v",
+    "SELECT current_setting('s3_secret_access_key') AS v",
+    "SELECT getenv('HOME') AS v",
+    "SELECT getvariable('x') AS v",
+    "SELECT * FROM which_secret('s3://x/y', 's3')",
     "SELECT * FROM query('SELECT current_setting(''home_directory'')')",
     "WITH s AS (SELECT current_setting('home_directory') AS v) SELECT * FROM s",
     "SELECT * FROM scalars WHERE run_id IN (SELECT sql FROM duckdb_views())",
-    "EXPLAIN SELECT current_setting('home_directory')", "SELECT * FROM glob('*')",
+    "EXPLAIN SELECT current_setting('home_directory')",
+    "SELECT * FROM glob('*')",
     "SELECT * FROM 'warm/analytics/scalars/robot_id=robot-1/date=2026-03-01/robot-1-2026-03-01-0.parquet'",
 ]
 
 
 @pytest.mark.slow
 @pytest.mark.parametrize("query", SHOWS_THE_SERVER)
-def test_nothing_shows_settings_environment_or_paths(local: ObjectStore, blank: sessionmaker[Session],
-                                                     tmp_path: Path, query: str):
+def test_nothing_shows_settings_environment_or_paths(
+    local: ObjectStore, blank: sessionmaker[Session], tmp_path: Path, query: str
+):
     answer = post(sql_app(local, blank), query)
     assert answer.status_code == 400 and answer.json()["code"] in ("SQL_NOT_ALLOWED", "INVALID_SQL"), answer.text
     assert answer.json()["code"] == "SQL_NOT_ALLOWED" or "getvariable" not in query
@@ -354,8 +442,15 @@ def test_plans_and_errors_name_no_server_path(local: ObjectStore, blank: session
         for server_string in (str(tmp_path), "/tmp", "pytest", "warm/"):
             assert server_string not in plan.text, (explain, server_string)
     assert files_read(client, "SELECT count(*) FROM scalars") == 12
-    (tmp_path / "warm" / "analytics" / "scalars" / "robot_id=robot-3" / "date=2026-03-02" /
-     "robot-3-2026-03-02-1.parquet").unlink()  # listed by the catalog, gone from the store
+    (
+        tmp_path
+        / "warm"
+        / "analytics"
+        / "scalars"
+        / "robot_id=robot-3"
+        / "date=2026-03-02"
+        / "robot-3-2026-03-02-1.parquet"
+    ).unlink()  # listed by the catalog, gone from the store
     broken = post(client, "SELECT count(*) FROM scalars")
     assert broken.status_code == 503 and broken.json()["code"] == "UNAVAILABLE", broken.text
     assert "scalars" in broken.json()["message"] and str(tmp_path) not in broken.text and "pytest" not in broken.text
@@ -382,26 +477,36 @@ def test_filters_on_robot_and_date_read_only_those_partitions(local: ObjectStore
 @pytest.fixture(scope="module")
 def seaweed_endpoint(tmp_path_factory: pytest.TempPathFactory) -> Iterator[str]:
     with seaweedfs(tmp_path_factory.mktemp("seaweedfs")) as endpoint:
-        boto3.client("s3", endpoint_url=endpoint, region_name="us-east-1", aws_access_key_id="test",
-                     aws_secret_access_key="test").create_bucket(Bucket=BUCKET)  # one bucket, a prefix per test
+        boto3.client(
+            "s3", endpoint_url=endpoint, region_name="us-east-1", aws_access_key_id="test", aws_secret_access_key="test"
+        ).create_bucket(Bucket=BUCKET)  # one bucket, a prefix per test
         yield endpoint
 
 
 @pytest.fixture
-def on_s3(seaweed_endpoint: str, blank: sessionmaker[Session], tmp_path: Path,
-          monkeypatch: pytest.MonkeyPatch) -> Iterator[tuple[TestClient, ObjectStore]]:
+def on_s3(
+    seaweed_endpoint: str, blank: sessionmaker[Session], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> Iterator[tuple[TestClient, ObjectStore]]:
     """A warm store on S3 with the credentials in AWS_* (where DuckDB's httpfs also looks), and
     objects outside its analytics folder: elsewhere in its prefix, another prefix, another bucket."""
-    for name, value in (("AWS_ACCESS_KEY_ID", KEY_ID), ("AWS_SECRET_ACCESS_KEY", SECRET),
-                        ("AWS_DEFAULT_REGION", "us-east-1")):
+    for name, value in (
+        ("AWS_ACCESS_KEY_ID", KEY_ID),
+        ("AWS_SECRET_ACCESS_KEY", SECRET),
+        ("AWS_DEFAULT_REGION", "us-east-1"),
+    ):
         monkeypatch.setenv(name, value)
     store = open_store(f"s3://{BUCKET}/{tmp_path.name}", endpoint_url=seaweed_endpoint, region="us-east-1")
     fill(store, blank)
     store.put("outside/notes.csv", b"secret\n1\n")
     neighbour = open_store(f"s3://{BUCKET}/{tmp_path.name}-other", endpoint_url=seaweed_endpoint, region="us-east-1")
     write_scalars(neighbour, "robot-9", "2026-03-01", "neighbour-run", [1.0])
-    s3 = boto3.client("s3", endpoint_url=seaweed_endpoint, region_name="us-east-1", aws_access_key_id=KEY_ID,
-                      aws_secret_access_key=SECRET)
+    s3 = boto3.client(
+        "s3",
+        endpoint_url=seaweed_endpoint,
+        region_name="us-east-1",
+        aws_access_key_id=KEY_ID,
+        aws_secret_access_key=SECRET,
+    )
     with contextlib.suppress(s3.exceptions.BucketAlreadyOwnedByYou, s3.exceptions.BucketAlreadyExists):
         s3.create_bucket(Bucket=OTHER_BUCKET)
     s3.put_object(Bucket=OTHER_BUCKET, Key="private/notes.csv", Body=b"secret\n1\n")
@@ -415,8 +520,9 @@ KEY_ID, SECRET, OTHER_BUCKET = "fleet-test-key", "fleet-test-secret-6c1f", "flee
 @pytest.mark.s3server
 def test_over_s3(on_s3: tuple[TestClient, ObjectStore]):
     client, _ = on_s3
-    assert sql_rows(client, "SELECT robot_id, count(*) AS n, sum(value) AS total FROM scalars GROUP BY 1 ORDER BY 1") \
-        == [{"robot_id": r, "n": 12, "total": 30.0} for r in ROBOTS]
+    assert sql_rows(
+        client, "SELECT robot_id, count(*) AS n, sum(value) AS total FROM scalars GROUP BY 1 ORDER BY 1"
+    ) == [{"robot_id": r, "n": 12, "total": 30.0} for r in ROBOTS]
     assert files_read(client, "SELECT count(*) FROM scalars") == 12
     assert files_read(client, "SELECT count(*) FROM scalars WHERE robot_id = 'robot-3' AND date = '2026-03-01'") == 2
     arrow = post(client, "SELECT * FROM scalars WHERE robot_id = 'robot-1'", params={"format": "arrow"})
@@ -425,14 +531,23 @@ def test_over_s3(on_s3: tuple[TestClient, ObjectStore]):
 
 @pytest.mark.slow
 @pytest.mark.s3server
-@pytest.mark.parametrize("query", [
-    "SELECT current_setting('s3_secret_access_key') AS v", "SELECT current_setting('s3_access_key_id') AS v",
-    "SELECT current_setting('s3_endpoint') AS v", "SELECT * FROM duckdb_secrets()", "SELECT * FROM duckdb_settings()",
-    "SELECT getenv('AWS_SECRET_ACCESS_KEY') AS v", "SELECT * FROM which_secret('s3://{bucket}/x', 's3')",
-    "EXPLAIN ANALYZE SELECT * FROM scalars", "SELECT * FROM duckdb_views()",
-])
-def test_no_answer_over_s3_reveals_credentials_or_where_the_store_is(on_s3: tuple[TestClient, ObjectStore],
-                                                                     tmp_path: Path, query: str):
+@pytest.mark.parametrize(
+    "query",
+    [
+        "SELECT current_setting('s3_secret_access_key') AS v",
+        "SELECT current_setting('s3_access_key_id') AS v",
+        "SELECT current_setting('s3_endpoint') AS v",
+        "SELECT * FROM duckdb_secrets()",
+        "SELECT * FROM duckdb_settings()",
+        "SELECT getenv('AWS_SECRET_ACCESS_KEY') AS v",
+        "SELECT * FROM which_secret('s3://{bucket}/x', 's3')",
+        "EXPLAIN ANALYZE SELECT * FROM scalars",
+        "SELECT * FROM duckdb_views()",
+    ],
+)
+def test_no_answer_over_s3_reveals_credentials_or_where_the_store_is(
+    on_s3: tuple[TestClient, ObjectStore], tmp_path: Path, query: str
+):
     client, _ = on_s3
     answer = post(client, query.format(bucket=BUCKET))
     assert answer.status_code in (200, 400), answer.text
@@ -442,20 +557,25 @@ def test_no_answer_over_s3_reveals_credentials_or_where_the_store_is(on_s3: tupl
 
 @pytest.mark.slow
 @pytest.mark.s3server
-@pytest.mark.parametrize("path", [
-    "{prefix}/outside/notes.csv",  # the warm store, outside analytics
-    "{prefix}/analytics/../outside/notes.csv",
-    "{prefix}/analytics/../../{prefix}-other/analytics/scalars/robot_id=robot-9/date=2026-03-01/neighbour-run.parquet",
-    "{prefix}/analytics/../../../{other}/private/notes.csv",  # another bucket
-    "{prefix}/analytics/scalars/../../../../{other}/private/notes.csv",
-])
-def test_no_query_reads_outside_the_analytics_folder(on_s3: tuple[TestClient, ObjectStore], tmp_path: Path,
-                                                     path: str):
+@pytest.mark.parametrize(
+    "path",
+    [
+        "{prefix}/outside/notes.csv",  # the warm store, outside analytics
+        "{prefix}/analytics/../outside/notes.csv",
+        "{prefix}/analytics/../../{prefix}-other/analytics/scalars/robot_id=robot-9/date=2026-03-01/neighbour-run.parquet",
+        "{prefix}/analytics/../../../{other}/private/notes.csv",  # another bucket
+        "{prefix}/analytics/scalars/../../../../{other}/private/notes.csv",
+    ],
+)
+def test_no_query_reads_outside_the_analytics_folder(on_s3: tuple[TestClient, ObjectStore], tmp_path: Path, path: str):
     client, _ = on_s3
     url = f"s3://{BUCKET}/" + path.format(prefix=tmp_path.name, other=OTHER_BUCKET)
     reader = "read_parquet" if url.endswith(".parquet") else "read_csv"
-    for query in (f"SELECT * FROM {reader}('{url}')", f"SELECT * FROM '{url}'",
-                  f"SELECT * FROM scalars WHERE run_id IN (SELECT * FROM {reader}('{url}'))"):
+    for query in (
+        f"SELECT * FROM {reader}('{url}')",
+        f"SELECT * FROM '{url}'",
+        f"SELECT * FROM scalars WHERE run_id IN (SELECT * FROM {reader}('{url}'))",
+    ):
         refused = post(client, query)
         assert refused.status_code == 400 and refused.json()["code"] == "SQL_NOT_ALLOWED", (query, refused.text)
         assert "rows" not in refused.json()
@@ -464,21 +584,22 @@ def test_no_query_reads_outside_the_analytics_folder(on_s3: tuple[TestClient, Ob
 # --- `fleet sql` and the Python client against `fleet serve` ----------------------------------
 
 LIVE_RUN, LIVE_ROBOT = "live-sql-run", "robot-live"
-LIVE_SCRIPT = '''
+LIVE_SCRIPT = """
 rec = recording(FOLDER + "/live.rrd", {run!r}, {robot!r}, {start})
 for i in range(4):
     rec.set_time("frame", sequence=i)
     rec.log("/battery", rr.Scalars(90.0 - 2.5 * i))
     rec.log("/logs", rr.TextLog(f"step {{i}}", level="ERROR" if i == 2 else "INFO"))
 finish(rec)
-'''
+"""
 
 
 @pytest.fixture(scope="module")
 def live(tmp_path_factory: pytest.TempPathFactory) -> Iterator[LiveServer]:
     folder = tmp_path_factory.mktemp("analytics-live")
-    log_with_sdk(f"FOLDER = {str(folder)!r}\n" + LIVE_SCRIPT.format(run=LIVE_RUN, robot=LIVE_ROBOT,
-                                                                   start=START_2026_03_01_NS))
+    log_with_sdk(
+        f"FOLDER = {str(folder)!r}\n" + LIVE_SCRIPT.format(run=LIVE_RUN, robot=LIVE_ROBOT, start=START_2026_03_01_NS)
+    )
     server = LiveServer(folder / "data", sql_max_rows="100").start()
     try:
         uploaded = httpx.post(f"{server.url}/v1/uploads", content=(folder / "live.rrd").read_bytes(), timeout=60)
@@ -495,14 +616,21 @@ def fleet_sql(server: LiveServer, *args: str) -> subprocess.CompletedProcess[byt
 
 @pytest.mark.sdk
 def test_fleet_sql_cli(live: LiveServer, tmp_path: Path):
-    query = "SELECT r.robot_id, count(*) AS errors FROM text_logs t JOIN runs r ON r.id = t.run_id " \
-            "WHERE level = 'ERROR' GROUP BY 1"
+    query = (
+        "SELECT r.robot_id, count(*) AS errors FROM text_logs t JOIN runs r ON r.id = t.run_id "
+        "WHERE level = 'ERROR' GROUP BY 1"
+    )
     table = fleet_sql(live, query)
     assert table.returncode == 0, table.stderr
     assert re.search(rf"{LIVE_ROBOT}\s+1\b", table.stdout.decode()) and b"(1 rows)" in table.stderr
     csv = fleet_sql(live, "--format", "csv", "SELECT frame, value FROM scalars ORDER BY frame")
-    assert csv.returncode == 0 and csv.stdout.decode().split() == ['"frame","value"', "0,90", "1,87.5", "2,85",
-                                                                 "3,82.5"]
+    assert csv.returncode == 0 and csv.stdout.decode().split() == [
+        '"frame","value"',
+        "0,90",
+        "1,87.5",
+        "2,85",
+        "3,82.5",
+    ]
     out = tmp_path / "answer.parquet"
     written = fleet_sql(live, "--format", "parquet", "-o", str(out), "SELECT * FROM scalars")
     assert written.returncode == 0 and pq.read_table(out).num_rows == 4

@@ -65,8 +65,7 @@ def test_swagger_ui_sends_the_spec_to_no_validator(tmp_path: Path):
 
 
 @pytest.mark.sdk
-def test_metrics_have_help_and_type_and_count_what_was_ingested(node: TestClient,
-                                                                recordings: dict[str, Recording]):
+def test_metrics_have_help_and_type_and_count_what_was_ingested(node: TestClient, recordings: dict[str, Recording]):
     answer = node.post("/v1/uploads", content=recordings["points"].data)
     assert answer.status_code == 200, answer.text
     report = answer.json()
@@ -74,9 +73,16 @@ def test_metrics_have_help_and_type_and_count_what_was_ingested(node: TestClient
     assert response.status_code == 200 and response.headers["content-type"].startswith("text/plain; version=0.0.4")
     text = response.text
     families = {f.name: f for f in text_string_to_metric_families(text)}
-    for name in ("fleet_build_info", "fleet_live_streams", "fleet_hot_runs", "fleet_live_runs",
-                 "fleet_ingest_chunks_new", "fleet_ingest_chunks_duplicate", "fleet_ingest_bytes_new",
-                 "fleet_ingest_messages"):
+    for name in (
+        "fleet_build_info",
+        "fleet_live_streams",
+        "fleet_hot_runs",
+        "fleet_live_runs",
+        "fleet_ingest_chunks_new",
+        "fleet_ingest_chunks_duplicate",
+        "fleet_ingest_bytes_new",
+        "fleet_ingest_messages",
+    ):
         assert name in families, name
     for name in families:  # every metric documented, in the text itself
         assert re.search(rf"^# HELP {name}(_total)? \S", text, re.MULTILINE), name

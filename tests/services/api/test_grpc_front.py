@@ -26,16 +26,29 @@ LEGACY_WRITE = b"/rerun.sdk_comms.v0.MessageProxy/WriteMessages"
 
 
 def request_headers(scheme: bytes, path: bytes = LEGACY_WRITE) -> list[tuple[bytes, bytes]]:
-    return [(b":method", b"POST"), (b":scheme", scheme), (b":path", path), (b":authority", b"depot:51234"),
-            (b"content-type", b"application/grpc"), (b"te", b"trailers"), (b"user-agent", b"rerun-sdk/0.22")]
+    return [
+        (b":method", b"POST"),
+        (b":scheme", scheme),
+        (b":path", path),
+        (b":authority", b"depot:51234"),
+        (b"content-type", b"application/grpc"),
+        (b"te", b"trailers"),
+        (b"user-agent", b"rerun-sdk/0.22"),
+    ]
 
 
 def frames(data: bytes) -> list[tuple[int, int, int, bytes]]:
     out, pos = [], 0
     while pos < len(data):
         length = int.from_bytes(data[pos : pos + 3], "big")
-        out.append((data[pos + 3], data[pos + 4], int.from_bytes(data[pos + 5 : pos + 9], "big"),
-                    data[pos + 9 : pos + 9 + length]))
+        out.append(
+            (
+                data[pos + 3],
+                data[pos + 4],
+                int.from_bytes(data[pos + 5 : pos + 9], "big"),
+                data[pos + 9 : pos + 9 + length],
+            )
+        )
         pos += 9 + length
     assert pos == len(data)
     return out
@@ -78,8 +91,13 @@ def test_rerun_schemes_are_rewritten_in_every_request_and_nothing_else_changes(s
     first = encoder.encode(request_headers(b"rerun+http"))
     second = encoder.encode(request_headers(b"rerun+https", b"/other/Call"))
     padded = bytes([3]) + b"\x80\x00\x00\x00\x10" + second + b"\x00\x00\x00"  # pad length, priority, pad
-    data = (SETTINGS + _frame(0x1, 0x0, 1, first[:4]) + _frame(0x9, 0x4, 1, first[4:]) + DATA
-            + _frame(0x1, 0x4 | 0x8 | 0x20 | 0x1, 3, padded))
+    data = (
+        SETTINGS
+        + _frame(0x1, 0x0, 1, first[:4])
+        + _frame(0x9, 0x4, 1, first[4:])
+        + DATA
+        + _frame(0x1, 0x4 | 0x8 | 0x20 | 0x1, 3, padded)
+    )
     out = feed_all(ClientStream(), data, step)
     assert out is not None
     assert out.startswith(SETTINGS) and DATA in out
@@ -93,20 +111,26 @@ def test_rerun_schemes_are_rewritten_in_every_request_and_nothing_else_changes(s
 
 def test_a_header_block_bigger_than_a_frame_is_split_into_continuations():
     big = [*request_headers(b"rerun+http"), (b"x-big", b"v" * 40_000)]
-    data = SETTINGS + b"".join(_frame(0x9 if i else 0x1, 0x4 if i + 16_000 >= len(e) else 0, 1, e[i : i + 16_000])
-                               for e in [Encoder().encode(big, huffman=False)] for i in range(0, len(e), 16_000))
+    data = SETTINGS + b"".join(
+        _frame(0x9 if i else 0x1, 0x4 if i + 16_000 >= len(e) else 0, 1, e[i : i + 16_000])
+        for e in [Encoder().encode(big, huffman=False)]
+        for i in range(0, len(e), 16_000)
+    )
     out = ClientStream().feed(data)
     assert out is not None
     assert all(len(payload) <= 16384 for _, _, _, payload in frames(out))
     assert header_blocks(out) == [[*request_headers(b"http"), (b"x-big", b"v" * 40_000)]]
 
 
-@pytest.mark.parametrize("data, problem", [
-    (_frame(0x9, 0x4, 1, b"\x82"), "CONTINUATION without its HEADERS"),
-    (_frame(0x1, 0x0, 1, b"\x82") + DATA, "interrupted"),
-    (_frame(0x1, 0x4, 1, b"\xff\xff\xff\xff\xff"), "undecodable"),
-    (_frame(0x1, 0x4 | 0x8, 1, b"\x09\x82"), "padding"),
-])
+@pytest.mark.parametrize(
+    "data, problem",
+    [
+        (_frame(0x9, 0x4, 1, b"\x82"), "CONTINUATION without its HEADERS"),
+        (_frame(0x1, 0x0, 1, b"\x82") + DATA, "interrupted"),
+        (_frame(0x1, 0x4, 1, b"\xff\xff\xff\xff\xff"), "undecodable"),
+        (_frame(0x1, 0x4 | 0x8, 1, b"\x09\x82"), "padding"),
+    ],
+)
 def test_broken_http2_is_refused(data: bytes, problem: str):
     with pytest.raises(ProtocolError, match=problem):
         ClientStream().feed(SETTINGS + data)

@@ -65,8 +65,11 @@ def test_a_working_node_is_ready(tmp_path: Path):
 
 
 def test_an_unreachable_postgres_catalog_is_named(tmp_path: Path):
-    settings = load_settings(data_dir=tmp_path / "data", scheduler=False,
-                             catalog_url=f"postgresql+psycopg://fleet@127.0.0.1:{closed_port()}/fleet")
+    settings = load_settings(
+        data_dir=tmp_path / "data",
+        scheduler=False,
+        catalog_url=f"postgresql+psycopg://fleet@127.0.0.1:{closed_port()}/fleet",
+    )
     with node(settings) as client:
         body = not_ready(client)
         assert body["not_ready"] == ["catalog"]

@@ -19,12 +19,16 @@ def test_requests_are_counted_by_route_template_and_status(tmp_path: Path):
     for path in ("/no/such/page", "/another/made-up/path"):
         assert client.get(path).status_code == 404
     text = client.get("/metrics").text
-    samples = {(s.name, tuple(sorted(s.labels.items()))): s.value
-               for family in text_string_to_metric_families(text) for s in family.samples}
+    samples = {
+        (s.name, tuple(sorted(s.labels.items()))): s.value
+        for family in text_string_to_metric_families(text)
+        for s in family.samples
+    }
 
     def requests(route: str, status: str) -> float:
-        return samples.get(("fleet_http_requests_total", (("method", "GET"), ("route", route),
-                                                          ("status", status))), 0.0)
+        return samples.get(
+            ("fleet_http_requests_total", (("method", "GET"), ("route", route), ("status", status))), 0.0
+        )
 
     assert requests("/healthz", "200") == 2
     assert requests("unmatched", "404") == 2  # made-up paths add no series of their own

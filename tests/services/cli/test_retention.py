@@ -20,8 +20,9 @@ pytestmark = pytest.mark.sdk
 @pytest.fixture(scope="module")
 def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[LiveServer]:
     """Embedded defaults; no scheduler, so nothing moves unless a command asks for it."""
-    live = LiveServer(Path(tmp_path_factory.mktemp("cli-retention")) / "data", scheduler="false",
-                      promote_after_s="0").start()
+    live = LiveServer(
+        Path(tmp_path_factory.mktemp("cli-retention")) / "data", scheduler="false", promote_after_s="0"
+    ).start()
     yield live
     live.stop()
 
@@ -37,12 +38,14 @@ def run_json(server: LiveServer, run_id: str) -> dict[str, Any]:
     return body
 
 
-def test_plan_then_run_promotes_with_progress(server: LiveServer, recordings: dict[str, Recording],
-                                              tmp_path: Path, rerun_bin: str):
+def test_plan_then_run_promotes_with_progress(
+    server: LiveServer, recordings: dict[str, Recording], tmp_path: Path, rerun_bin: str
+):
     rec = recordings["points"]
     run_id = rec.recordings[0]["recording_id"]
-    uploaded = subprocess.run([FLEET, "upload", str(rec.path), "--api-url", server.url], capture_output=True,
-                              text=True, timeout=120)
+    uploaded = subprocess.run(
+        [FLEET, "upload", str(rec.path), "--api-url", server.url], capture_output=True, text=True, timeout=120
+    )
     assert uploaded.returncode == 0 and f"runs {run_id}" in uploaded.stdout, uploaded.stderr
 
     plan = fleet(server, "retention", "plan")
@@ -72,8 +75,12 @@ def test_plan_then_run_promotes_with_progress(server: LiveServer, recordings: di
     # what the warm tier serves is the recording that was uploaded
     out = tmp_path / "warm.rrd"
     assert fleet(server, "download", run_id, "-o", str(out)).returncode == 0
-    compare = subprocess.run([rerun_bin, "rrd", "compare", "--unordered", str(rec.path), str(out)],
-                             capture_output=True, text=True, timeout=120)
+    compare = subprocess.run(
+        [rerun_bin, "rrd", "compare", "--unordered", str(rec.path), str(out)],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert compare.returncode == 0, compare.stderr
 
 
@@ -127,7 +134,8 @@ def test_rebuild_on_a_populated_catalog_adds_nothing(server: LiveServer, recordi
 
 
 def test_plan_says_when_hot_runs_will_be_promoted_and_promote_seals_one_now(
-        tmp_path: Path, recordings: dict[str, Recording]):
+    tmp_path: Path, recordings: dict[str, Recording]
+):
     live = LiveServer(tmp_path / "data", scheduler="false", promote_after_s="600").start()
     try:
         uploaded = httpx.post(f"{live.url}/v1/uploads", content=recordings["points"].path.read_bytes(), timeout=60)

@@ -55,8 +55,11 @@ def test_download_with_filters(server: LiveServer, recordings: dict[str, Recordi
     out = tmp_path / "part.rrd"
     result = fleet(server, "download", run_id, "-o", str(out), "--include", "/world/**")
     assert result.returncode == 0, result.stderr
-    paths = {chunk_meta(e).entity_path for e in iter_events(out)
-             if isinstance(e, ArrowMessage) and e.store_id.kind == StoreKind.RECORDING}
+    paths = {
+        chunk_meta(e).entity_path
+        for e in iter_events(out)
+        if isinstance(e, ArrowMessage) and e.store_id.kind == StoreKind.RECORDING
+    }
     assert "/__properties" in paths  # the recording's properties stay unless excluded
     assert all(p == "/world" or p.startswith(("/world/", "/__properties")) for p in paths - {"/__properties"})
     assert any(p.startswith("/world/") for p in paths)
@@ -77,9 +80,11 @@ def test_runs_show_prints_times_as_people_read_them(server: LiveServer, recordin
     types = {t["name"]: t["type"] for t in run["timelines"]}
     assert types["frame"] == "sequence" and types["sim"] == "duration" and types["log_time"] == "timestamp"
     out = fleet(server, "runs", "show", run_id).stdout
-    rows = {line.split()[0]: line.split()[1:] for line in out.splitlines() if line.split()[:1] in (["frame"],
-                                                                                                   ["sim"],
-                                                                                                   ["log_time"])}
+    rows = {
+        line.split()[0]: line.split()[1:]
+        for line in out.splitlines()
+        if line.split()[:1] in (["frame"], ["sim"], ["log_time"])
+    }
     assert rows["frame"] == ["sequence", "100", "105"]
     assert rows["sim"] == ["duration", "0s", "1.25s"]  # 250 ms steps, not nanoseconds
     day = run["started_at"][:10]
@@ -88,14 +93,18 @@ def test_runs_show_prints_times_as_people_read_them(server: LiveServer, recordin
     assert started is not None and started.group(1).startswith(day), out
 
 
-@pytest.mark.parametrize(("args", "message"), [
-    (["--timeline", "nonsense", "--start", "1"], "'nonsense' is not a timeline of this run"),
-    (["--timeline", "frame", "--start", "yesterday"], "'yesterday' is not a sequence value"),
-    (["--timeline", "log_time", "--start", "2026-13-45"], "is not a timestamp value"),
-    (["--timeline", "frame", "--start", "5", "--end", "1"], "is before start"),
-])
-def test_view_refuses_what_the_service_would_refuse(server: LiveServer, recordings: dict[str, Recording],
-                                                    args: list[str], message: str):
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["--timeline", "nonsense", "--start", "1"], "'nonsense' is not a timeline of this run"),
+        (["--timeline", "frame", "--start", "yesterday"], "'yesterday' is not a sequence value"),
+        (["--timeline", "log_time", "--start", "2026-13-45"], "is not a timestamp value"),
+        (["--timeline", "frame", "--start", "5", "--end", "1"], "is before start"),
+    ],
+)
+def test_view_refuses_what_the_service_would_refuse(
+    server: LiveServer, recordings: dict[str, Recording], args: list[str], message: str
+):
     run_id = recordings["points"].recordings[0]["recording_id"]
     result = fleet(server, "view", run_id, *args)
     assert result.returncode == 1 and result.stdout == ""  # no URL printed
@@ -112,23 +121,27 @@ def test_view_of_an_unknown_run_is_one_line(server: LiveServer):
 VENV_RERUN = Path(sys.executable).parent / "rerun"
 
 
-def test_view_prints_a_rerun_command_that_works_without_activating_the_venv(server: LiveServer,
-                                                                           recordings: dict[str, Recording]):
+def test_view_prints_a_rerun_command_that_works_without_activating_the_venv(
+    server: LiveServer, recordings: dict[str, Recording]
+):
     run_id = recordings["points"].recordings[0]["recording_id"]
     assert VENV_RERUN.is_file()
     bare = {**os.environ, "PATH": "/usr/bin:/bin"}  # the venv not activated: no `rerun` on PATH
-    printed = subprocess.run([FLEET, "view", run_id, "--api-url", server.url], env=bare, capture_output=True,
-                             text=True, timeout=120)
+    printed = subprocess.run(
+        [FLEET, "view", run_id, "--api-url", server.url], env=bare, capture_output=True, text=True, timeout=120
+    )
     assert printed.returncode == 0, printed.stderr
     assert shlex.split(printed.stdout)[0] == str(VENV_RERUN)
     activated = {**os.environ, "PATH": f"{VENV_RERUN.parent}:/usr/bin:/bin"}
-    printed = subprocess.run([FLEET, "view", run_id, "--api-url", server.url], env=activated, capture_output=True,
-                             text=True, timeout=120)
+    printed = subprocess.run(
+        [FLEET, "view", run_id, "--api-url", server.url], env=activated, capture_output=True, text=True, timeout=120
+    )
     assert shlex.split(printed.stdout)[0] == "rerun"
 
 
-def test_view_open_runs_the_rerun_of_its_own_venv(server: LiveServer, recordings: dict[str, Recording],
-                                                  monkeypatch: pytest.MonkeyPatch):
+def test_view_open_runs_the_rerun_of_its_own_venv(
+    server: LiveServer, recordings: dict[str, Recording], monkeypatch: pytest.MonkeyPatch
+):
     """`--open` finds the viewer installed beside `fleet` even when PATH has none (the viewer
     itself is not started here: the call that would start it records what it was asked to run)."""
     from services.cli import runs as runs_cli

@@ -22,10 +22,14 @@ FLEET = str(Path(sys.executable).with_name("fleet"))
 def test_serve_answers_health_on_the_configured_address(tmp_path):
     port = free_port()
     env = {**os.environ, "FLEET_DATA_DIR": str(tmp_path / "data")}
-    server = ServerProcess([FLEET, "serve", "--http-addr", f"127.0.0.1:{port}",
-                            "--grpc-addr", f"127.0.0.1:{free_port()}"], env=env,  # never the machine's 51234
-                           log=tmp_path / "serve.out", errors_log=tmp_path / "serve.err", name="fleet serve",
-                           ready=answers_http(f"http://127.0.0.1:{port}/healthz"))
+    server = ServerProcess(
+        [FLEET, "serve", "--http-addr", f"127.0.0.1:{port}", "--grpc-addr", f"127.0.0.1:{free_port()}"],
+        env=env,  # never the machine's 51234
+        log=tmp_path / "serve.out",
+        errors_log=tmp_path / "serve.err",
+        name="fleet serve",
+        ready=answers_http(f"http://127.0.0.1:{port}/healthz"),
+    )
     try:
         server.start(timeout=30)
         response = httpx.get(f"http://127.0.0.1:{port}/healthz")
@@ -40,8 +44,12 @@ def test_serve_answers_health_on_the_configured_address(tmp_path):
 
 @pytest.mark.slow
 def test_serve_refuses_a_postgres_catalog_that_is_behind(empty_postgres_url: str, tmp_path):
-    result = subprocess.run([FLEET, "serve", "--data-dir", str(tmp_path), "--catalog-url", empty_postgres_url],
-                            capture_output=True, text=True, timeout=60)
+    result = subprocess.run(
+        [FLEET, "serve", "--data-dir", str(tmp_path), "--catalog-url", empty_postgres_url],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert result.returncode == 1
     lines = result.stderr.strip().splitlines()
     assert len(lines) == 1 and "fleet db upgrade" in lines[0], result.stderr
@@ -59,10 +67,14 @@ def test_serve_help_documents_every_setting():
 
 def _scalar(annotation: object) -> bool:
     """str, int, float, bool, a path or an enum (or one of them or None)."""
-    kinds = [a for a in get_args(annotation) if a is not type(None)] if isinstance(annotation, UnionType) else [
-        annotation]
-    return len(kinds) == 1 and isinstance(kinds[0], type) and issubclass(kinds[0], str | int | float | bool | Path
-                                                                                    | enum.Enum)
+    kinds = (
+        [a for a in get_args(annotation) if a is not type(None)] if isinstance(annotation, UnionType) else [annotation]
+    )
+    return (
+        len(kinds) == 1
+        and isinstance(kinds[0], type)
+        and issubclass(kinds[0], str | int | float | bool | Path | enum.Enum)
+    )
 
 
 def _shown(default: object) -> str:
@@ -81,8 +93,9 @@ def test_every_scalar_setting_is_an_option_described_by_its_field():
     options = {p.name: p for p in serve.get_params(click.Context(serve)) if isinstance(p, click.Option)}
     scalars = {name for name, field in Settings.model_fields.items() if _scalar(field.annotation)}
     assert len(scalars) > 30 and not set(NOT_OPTIONS) & scalars
-    help_text = " ".join(CliRunner().invoke(serve, ["--help"], terminal_width=10_000,
-                                            max_content_width=10_000).output.split())  # unwrapped
+    help_text = " ".join(
+        CliRunner().invoke(serve, ["--help"], terminal_width=10_000, max_content_width=10_000).output.split()
+    )  # unwrapped
     for name in [*sorted(scalars - set(NOT_OPTIONS)), "secret_fields"]:  # a list read from one string
         field, option = Settings.model_fields[name], options.get(name)
         assert option is not None, f"Settings.{name} has no fleet serve option"
@@ -100,10 +113,27 @@ def test_every_scalar_setting_is_an_option_described_by_its_field():
 def test_an_option_left_out_leaves_the_setting_to_the_environment():
     from services.cli.serve import serve
 
-    given = serve.make_context("serve", ["--max-streams", "5", "--durability", "off", "--no-scheduler",
-                                         "--data-dir", "d", "--secret-fields", "vin, pin"]).params
+    given = serve.make_context(
+        "serve",
+        [
+            "--max-streams",
+            "5",
+            "--durability",
+            "off",
+            "--no-scheduler",
+            "--data-dir",
+            "d",
+            "--secret-fields",
+            "vin, pin",
+        ],
+    ).params
     assert {k: v for k, v in given.items() if v is not None} == {
-        "max_streams": 5, "durability": "off", "scheduler": False, "data_dir": Path("d"), "secret_fields": "vin, pin"}
+        "max_streams": 5,
+        "durability": "off",
+        "scheduler": False,
+        "data_dir": Path("d"),
+        "secret_fields": "vin, pin",
+    }
     settings = load_settings(**given)
     assert (settings.max_streams, settings.durability, settings.scheduler) == (5, Durability.OFF, False)
     assert settings.secret_fields == ["vin", "pin"]
@@ -111,8 +141,12 @@ def test_an_option_left_out_leaves_the_setting_to_the_environment():
 
 @pytest.mark.slow
 def test_bad_address_is_one_clear_error(tmp_path):
-    result = subprocess.run([FLEET, "serve", "--data-dir", str(tmp_path), "--http-addr", "nonsense"],
-                            capture_output=True, text=True, timeout=30)
+    result = subprocess.run(
+        [FLEET, "serve", "--data-dir", str(tmp_path), "--http-addr", "nonsense"],
+        capture_output=True,
+        text=True,
+        timeout=30,
+    )
     assert result.returncode != 0
     assert "HOST:PORT" in result.stderr
     assert "Traceback" not in result.stderr
@@ -121,14 +155,19 @@ def test_bad_address_is_one_clear_error(tmp_path):
 # --- a second `fleet serve` is refused in one line (issue 10 points 23, 24) -------------------------
 
 
-def _second_serve(data_dir: Path, http_port: int, grpc_port: int, *args: str,
-                  timeout: float = 60) -> subprocess.CompletedProcess[str]:
+def _second_serve(
+    data_dir: Path, http_port: int, grpc_port: int, *args: str, timeout: float = 60
+) -> subprocess.CompletedProcess[str]:
     """`fleet serve` expected to refuse to start: it must exit by itself (a start that succeeds
     would serve until the timeout, which fails the test)."""
     env = {**os.environ, "FLEET_DATA_DIR": str(data_dir)}
-    return subprocess.run([FLEET, "serve", "--http-addr", f"127.0.0.1:{http_port}",
-                           "--grpc-addr", f"127.0.0.1:{grpc_port}", *args],
-                          env=env, capture_output=True, text=True, timeout=timeout)
+    return subprocess.run(
+        [FLEET, "serve", "--http-addr", f"127.0.0.1:{http_port}", "--grpc-addr", f"127.0.0.1:{grpc_port}", *args],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+    )
 
 
 def _one_line(result: subprocess.CompletedProcess[str]) -> str:
@@ -157,8 +196,9 @@ def test_a_second_serve_on_the_grpc_port_is_refused(running: LiveServer, tmp_pat
 
 @pytest.mark.slow
 def test_a_second_serve_on_the_grpc_wildcard_is_refused(running: LiveServer, tmp_path: Path):
-    result = _second_serve(tmp_path / "second", free_port(), running.grpc_port, "--grpc-addr",
-                           f"0.0.0.0:{running.grpc_port}")
+    result = _second_serve(
+        tmp_path / "second", free_port(), running.grpc_port, "--grpc-addr", f"0.0.0.0:{running.grpc_port}"
+    )
     assert f"0.0.0.0:{running.grpc_port}" in _one_line(result)
 
 
@@ -183,15 +223,15 @@ def test_db_commands_while_serving_name_the_holder(running: LiveServer):
     assert running.proc is not None
     url = f"duckdb:///{running.data_dir / 'catalog.duckdb'}"
     for command in ("current", "upgrade"):
-        result = subprocess.run([FLEET, "db", command, "--catalog-url", url], capture_output=True, text=True,
-                                timeout=60)
+        result = subprocess.run(
+            [FLEET, "db", command, "--catalog-url", url], capture_output=True, text=True, timeout=60
+        )
         line = _one_line(result)
         assert f"PID {running.proc.pid}" in line and "fleet serve" in line and "stop it" in line
 
 
 @pytest.mark.slow
-def test_a_serve_on_another_data_dir_but_the_same_embedded_catalog_is_refused(running: LiveServer,
-                                                                             tmp_path: Path):
+def test_a_serve_on_another_data_dir_but_the_same_embedded_catalog_is_refused(running: LiveServer, tmp_path: Path):
     assert running.proc is not None
     url = f"duckdb:///{running.data_dir / 'catalog.duckdb'}"
     line = _one_line(_second_serve(tmp_path / "second", free_port(), free_port(), "--catalog-url", url))
@@ -201,13 +241,13 @@ def test_a_serve_on_another_data_dir_but_the_same_embedded_catalog_is_refused(ru
 @pytest.mark.slow
 @pytest.mark.postgres
 def test_two_serves_never_share_a_data_dir_even_with_postgres(empty_postgres_url: str, tmp_path: Path):
-    subprocess.run([FLEET, "db", "upgrade", "--catalog-url", empty_postgres_url], check=True, capture_output=True,
-                   timeout=60)
+    subprocess.run(
+        [FLEET, "db", "upgrade", "--catalog-url", empty_postgres_url], check=True, capture_output=True, timeout=60
+    )
     first = LiveServer(tmp_path / "data", catalog_url=empty_postgres_url).start()
     try:
         assert first.proc is not None
-        line = _one_line(_second_serve(first.data_dir, free_port(), free_port(), "--catalog-url",
-                                       empty_postgres_url))
+        line = _one_line(_second_serve(first.data_dir, free_port(), free_port(), "--catalog-url", empty_postgres_url))
         assert f"PID {first.proc.pid}" in line and "--data-dir" in line
     finally:
         first.stop()

@@ -56,8 +56,12 @@ def upload(server: LiveServer, path: Path) -> httpx.Response:
 
 def test_promotion_refuses_to_fill_the_disk_and_a_full_disk_still_starts(small_disk: Path, tmp_path: Path):
     data = small_disk / "data"
-    settings = {"min_free_bytes": str(32 << 20), "reserve_bytes": str(RESERVE), "promote_after_s": "3600",
-                "durability": "always"}
+    settings = {
+        "min_free_bytes": str(32 << 20),
+        "reserve_bytes": str(RESERVE),
+        "promote_after_s": "3600",
+        "durability": "always",
+    }
     server = LiveServer(data, **settings).start()
     try:
         assert (data / RESERVE_FILE).stat().st_size == RESERVE  # held from the first start

@@ -23,12 +23,23 @@ def make_service(tmp_path: Path, fresh_catalog_url: str) -> Iterator[Factory]:
     engine = create_engine(fresh_catalog_url)
     made: list[IngestService] = []
 
-    def make(*, durability: Durability = Durability.OFF, min_free_bytes: int = 0, max_streams: int = 10,
-             close_after_s: float = 60.0, clock: Callable[[], dt.datetime] = utcnow) -> IngestService:
+    def make(
+        *,
+        durability: Durability = Durability.OFF,
+        min_free_bytes: int = 0,
+        max_streams: int = 10,
+        close_after_s: float = 60.0,
+        clock: Callable[[], dt.datetime] = utcnow,
+    ) -> IngestService:
         hot = HotStore(tmp_path / "hot", durability=durability, interval_ms=50, min_free_bytes=min_free_bytes)
-        service = IngestService(hot, sessionmaker(engine), default_robot="default-robot",
-                                max_streams=max_streams, close_after=dt.timedelta(seconds=close_after_s),
-                                clock=clock)
+        service = IngestService(
+            hot,
+            sessionmaker(engine),
+            default_robot="default-robot",
+            max_streams=max_streams,
+            close_after=dt.timedelta(seconds=close_after_s),
+            clock=clock,
+        )
         made.append(service)
         return service
 

@@ -23,8 +23,12 @@ class LiveServer:
         self.http_port, self.grpc_port = free_port(), free_port()
         self.settings = settings
         self.log = data_dir.parent / f"{data_dir.name}-serve.log"
-        self.process = ServerProcess([FLEET, "serve"], log=self.log, name="fleet serve",
-                                     ready=answers_http(f"{self.url}/healthz", lambda r: r.status_code == 200))
+        self.process = ServerProcess(
+            [FLEET, "serve"],
+            log=self.log,
+            name="fleet serve",
+            ready=answers_http(f"{self.url}/healthz", lambda r: r.status_code == 200),
+        )
 
     @property
     def url(self) -> str:
@@ -39,10 +43,13 @@ class LiveServer:
         return self.process.proc
 
     def start(self, timeout: float = 60) -> LiveServer:
-        self.process.env = {**os.environ, "FLEET_DATA_DIR": str(self.data_dir),
-                            "FLEET_HTTP_ADDR": f"127.0.0.1:{self.http_port}",
-                            "FLEET_GRPC_ADDR": f"127.0.0.1:{self.grpc_port}",
-                            **{f"FLEET_{k.upper()}": v for k, v in self.settings.items()}}
+        self.process.env = {
+            **os.environ,
+            "FLEET_DATA_DIR": str(self.data_dir),
+            "FLEET_HTTP_ADDR": f"127.0.0.1:{self.http_port}",
+            "FLEET_GRPC_ADDR": f"127.0.0.1:{self.grpc_port}",
+            **{f"FLEET_{k.upper()}": v for k, v in self.settings.items()},
+        }
         self.process.start(timeout)
         return self
 

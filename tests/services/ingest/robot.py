@@ -1,11 +1,11 @@
 """A robot for the end-to-end tests: the real Rerun SDK with GrpcSink + FileSink.
 
-    python robot.py scene GRPC_URL COPY_PATH RUN_ID   logs half a scene, prints HALF, waits for a
-                                                      line on stdin, logs the rest, exits
-    python robot.py live GRPC_URL COPY_PATH RUN_ID    logs ten frames, prints READY, waits for a line,
-                                                      logs ten more, ends its stream
-    python robot.py many GRPC_URL N                   opens N recordings at once, prints READY,
-                                                      waits for a line on stdin, exits
+python robot.py scene GRPC_URL COPY_PATH RUN_ID   logs half a scene, prints HALF, waits for a
+                                                  line on stdin, logs the rest, exits
+python robot.py live GRPC_URL COPY_PATH RUN_ID    logs ten frames, prints READY, waits for a line,
+                                                  logs ten more, ends its stream
+python robot.py many GRPC_URL N                   opens N recordings at once, prints READY,
+                                                  waits for a line on stdin, exits
 """
 
 from __future__ import annotations

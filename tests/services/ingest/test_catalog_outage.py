@@ -79,20 +79,35 @@ def chunk_count(path: Path) -> int:
 
 
 def test_ingest_goes_on_while_the_catalog_is_hung_or_down_and_it_catches_up(
-        proxied_catalog: tuple[sessionmaker[Session], TcpProxy], tmp_path: Path):
+    proxied_catalog: tuple[sessionmaker[Session], TcpProxy], tmp_path: Path
+):
     catalog, proxy = proxied_catalog
     tiers = Tiers(open_store((tmp_path / "warm").as_uri()), open_store((tmp_path / "cold").as_uri()))
     hot = HotStore(tmp_path / "hot", durability=Durability.OFF, interval_ms=50, min_free_bytes=0)
-    ingest = IngestService(hot, catalog, default_robot="robot", max_streams=10, close_after=dt.timedelta(minutes=1),
-                           sealed_lookup=sealed_lookup(catalog, tiers), lookup_timeout_s=0.5)
+    ingest = IngestService(
+        hot,
+        catalog,
+        default_robot="robot",
+        max_streams=10,
+        close_after=dt.timedelta(minutes=1),
+        sealed_lookup=sealed_lookup(catalog, tiers),
+        lookup_timeout_s=0.5,
+    )
     runs = {name: log_run(tmp_path / f"{name}.rrd", name, frames=20) for name in ("live-a", "upload-b", "down-c")}
 
     async def scenario() -> dict[str, str]:
         lag = LoopLag()
         lag.start()
         proxy.set_mode(HANG)  # the database accepts connections and never answers
-        answers = dict(zip(("live-a", "upload-b"), await asyncio.gather(
-            stream(ingest, runs["live-a"], live=True), stream(ingest, runs["upload-b"], live=False)), strict=True))
+        answers = dict(
+            zip(
+                ("live-a", "upload-b"),
+                await asyncio.gather(
+                    stream(ingest, runs["live-a"], live=True), stream(ingest, runs["upload-b"], live=False)
+                ),
+                strict=True,
+            )
+        )
         proxy.set_mode(REFUSE)  # the database is down
         answers["down-c"] = await stream(ingest, runs["down-c"], live=False)
         lag.stop()

@@ -35,8 +35,14 @@ pytestmark = pytest.mark.sdk
 LONG = "t" * 300  # over the old VARCHAR(256) columns
 
 
-def log(path: Path, *, application: str, recording_id: str, timeline: str = "frame",
-        properties: str = "rr.AnyValues(site='lab')") -> Path:
+def log(
+    path: Path,
+    *,
+    application: str,
+    recording_id: str,
+    timeline: str = "frame",
+    properties: str = "rr.AnyValues(site='lab')",
+) -> Path:
     script = f"""
 import rerun as rr
 rec = rr.RecordingStream({application!r}, recording_id={recording_id!r})
@@ -60,8 +66,9 @@ def catalog(fresh_catalog_url: str) -> Iterator[sessionmaker[Session]]:
 
 def service(tmp_path: Path, catalog: sessionmaker[Session]) -> IngestService:
     hot = HotStore(tmp_path / "hot", durability=Durability.OFF, interval_ms=50, min_free_bytes=0)
-    return IngestService(hot, catalog, default_robot="default-robot", max_streams=10,
-                         close_after=dt.timedelta(seconds=60))
+    return IngestService(
+        hot, catalog, default_robot="default-robot", max_streams=10, close_after=dt.timedelta(seconds=60)
+    )
 
 
 def with_application(event: Event, application: str, recording_id: str) -> Event:
@@ -81,7 +88,8 @@ def runs(catalog: sessionmaker[Session], **filters: object) -> list[str]:
 
 
 def test_names_the_sdk_makes_are_stored_and_unusable_ones_refused_before_writing(
-        tmp_path: Path, catalog: sessionmaker[Session]):
+    tmp_path: Path, catalog: sessionmaker[Session]
+):
     ingest = service(tmp_path, catalog)
     long_names = log(tmp_path / "long.rrd", application=LONG, recording_id="long-names", timeline=LONG)
     report = feeding.upload(ingest, iter_events(long_names))
@@ -92,14 +100,20 @@ def test_names_the_sdk_makes_are_stored_and_unusable_ones_refused_before_writing
         assert run is not None and run.application_id == logged  # the SDK shortens very long ones itself
         assert LONG in [t.name for t in queries.run_timelines(session, "long-names")]
     # the longest names ingest accepts fit the columns and indexes of both catalogs
-    widest = dataclasses.replace(ingest.runs["long-names"].record("r"), id="widest", application_id="a" * NAME_BYTES,
-                                 timelines=[queries.TimelineRecord("n" * NAME_BYTES, "sequence", 0, 1)],
-                                 entities=[queries.EntityRecord("/" + "e" * (PATH_BYTES - 1), 1, 0, 1, 1, [], [])])
+    widest = dataclasses.replace(
+        ingest.runs["long-names"].record("r"),
+        id="widest",
+        application_id="a" * NAME_BYTES,
+        timelines=[queries.TimelineRecord("n" * NAME_BYTES, "sequence", 0, 1)],
+        entities=[queries.EntityRecord("/" + "e" * (PATH_BYTES - 1), 1, 0, 1, 1, [], [])],
+    )
     with session_scope(catalog, write=True) as session:
         queries.save_run(session, widest, dt.datetime.now(dt.UTC))
 
-    for name, kwargs in (("huge-timeline", {"application": "ok", "timeline": "t" * 1100}),
-                         ("nul-timeline", {"application": "ok", "timeline": "fr\x00me"})):
+    for name, kwargs in (
+        ("huge-timeline", {"application": "ok", "timeline": "t" * 1100}),
+        ("nul-timeline", {"application": "ok", "timeline": "fr\x00me"}),
+    ):
         path = log(tmp_path / f"{name}.rrd", recording_id=name, **kwargs)  # type: ignore[arg-type]
         with pytest.raises(InvalidNameError, match=r"NUL character|over the limit"):
             feeding.upload(ingest, iter_events(path))
@@ -117,9 +131,12 @@ def test_names_the_sdk_makes_are_stored_and_unusable_ones_refused_before_writing
 
 def test_nan_and_nul_in_properties_break_no_query(tmp_path: Path, catalog: sessionmaker[Session]):
     ingest = service(tmp_path, catalog)
-    odd = log(tmp_path / "odd.rrd", application="nav", recording_id="odd-values",
-              properties="rr.AnyValues(robot_id='robot-7', battery=float('nan'), peak=float('inf'), "
-                         "note='a\\x00b')")
+    odd = log(
+        tmp_path / "odd.rrd",
+        application="nav",
+        recording_id="odd-values",
+        properties="rr.AnyValues(robot_id='robot-7', battery=float('nan'), peak=float('inf'), note='a\\x00b')",
+    )
     plain = log(tmp_path / "plain.rrd", application="nav", recording_id="plain-values")
     for path in (odd, plain):
         assert feeding.upload(ingest, iter_events(path)).catalog == "updated"
@@ -133,8 +150,9 @@ def test_nan_and_nul_in_properties_break_no_query(tmp_path: Path, catalog: sessi
     assert runs(catalog, properties={"fleet.battery": "NaN"}) == ["odd-values"]
 
 
-def test_a_record_the_catalog_refuses_waits_alone(tmp_path: Path, catalog: sessionmaker[Session],
-                                                   monkeypatch: pytest.MonkeyPatch):
+def test_a_record_the_catalog_refuses_waits_alone(
+    tmp_path: Path, catalog: sessionmaker[Session], monkeypatch: pytest.MonkeyPatch
+):
     ingest = service(tmp_path, catalog)
     bad, good = (log(tmp_path / f"{n}.rrd", application="nav", recording_id=n) for n in ("bad-run", "good-run"))
     save_run = queries.save_run

@@ -32,8 +32,13 @@ def _chunk_ids(path: Path) -> list[bytes]:
 
 def test_kill_during_stream_then_upload_the_copy(server: LiveServer, tmp_path: Path, rerun_bin: str):
     copy, run_id = tmp_path / "copy.rrd", "e2e-run-1"
-    robot = subprocess.Popen([sys.executable, ROBOT, "scene", server.grpc_url, str(copy), run_id],
-                             stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    robot = subprocess.Popen(
+        [sys.executable, ROBOT, "scene", server.grpc_url, str(copy), run_id],
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     assert robot.stdout is not None and robot.stdin is not None
     assert robot.stdout.readline().strip() == "HALF"
     hot = server.data_dir / "hot" / run_id / "run.rrd"
@@ -58,15 +63,23 @@ def test_kill_during_stream_then_upload_the_copy(server: LiveServer, tmp_path: P
     filtered = {}
     for name, path in (("copy", copy), ("held", hot)):
         out = tmp_path / f"{name}-filtered.rrd"
-        subprocess.run([rerun_bin, "rrd", "filter", "--drop-entity", "/__properties/fleet", str(path), "-o", str(out)],
-                       check=True, capture_output=True)
+        subprocess.run(
+            [rerun_bin, "rrd", "filter", "--drop-entity", "/__properties/fleet", str(path), "-o", str(out)],
+            check=True,
+            capture_output=True,
+        )
         filtered[name] = out
-    compare = subprocess.run([rerun_bin, "rrd", "compare", "--unordered", str(filtered["copy"]),
-                              str(filtered["held"])], capture_output=True, text=True)
+    compare = subprocess.run(
+        [rerun_bin, "rrd", "compare", "--unordered", str(filtered["copy"]), str(filtered["held"])],
+        capture_output=True,
+        text=True,
+    )
     assert compare.returncode == 0, compare.stdout + compare.stderr
-    properties = [read_chunk(e).to_pylist() for e in iter_events(hot)
-                  if isinstance(e, ArrowMessage) and read_chunk(e).schema.metadata[b"rerun:entity_path"]
-                  == b"/__properties/fleet"]
+    properties = [
+        read_chunk(e).to_pylist()
+        for e in iter_events(hot)
+        if isinstance(e, ArrowMessage) and read_chunk(e).schema.metadata[b"rerun:entity_path"] == b"/__properties/fleet"
+    ]
     assert len(properties) == 1
     (row,) = properties[0]
     assert row["robot_id"] == ["robot-e2e"] and row["site"] == ["lab-3"]
@@ -76,8 +89,13 @@ def test_kill_during_stream_then_upload_the_copy(server: LiveServer, tmp_path: P
 
 def test_two_hundred_streams_at_once(server: LiveServer):
     n = 200
-    robot = subprocess.Popen([sys.executable, ROBOT, "many", server.grpc_url, str(n)],
-                             stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    robot = subprocess.Popen(
+        [sys.executable, ROBOT, "many", server.grpc_url, str(n)],
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     assert robot.stdout is not None and robot.stdin is not None
     try:
         assert robot.stdout.readline().strip() == "READY"

@@ -123,22 +123,26 @@ def damaged(draw: st.DrawFn, ipc: bytes) -> bytes:
             pos = start + 4 * draw(st.integers(1, entries - 2), label="entry")
             old = struct.unpack_from("<i", data, pos)[0]
             new = draw(st.sampled_from([old + (1 << 30), old + 1000, -1, -(1 << 31), old + 2]), label="offset")
-            data[pos:pos + 4] = struct.pack("<i", max(-(1 << 31), min(new, (1 << 31) - 1)))
+            data[pos : pos + 4] = struct.pack("<i", max(-(1 << 31), min(new, (1 << 31) - 1)))
         elif kind in ("offset", "bit") and where.buffers:
             if kind == "offset":  # any int32 of any buffer: long offsets buffers are hit most
                 slots = [start + 4 * i for start, length in where.buffers for i in range(length // 4)]
                 pos = draw(st.sampled_from(slots), label="slot")
                 old = struct.unpack_from("<i", data, pos)[0]
-                new = draw(st.one_of(st.sampled_from(INTERESTING_I32), st.integers(old - 3, old + 3),
-                                     st.just(old + (1 << 30))), label="int32")
-                data[pos:pos + 4] = struct.pack("<i", max(-(1 << 31), min(new, (1 << 31) - 1)))
+                new = draw(
+                    st.one_of(
+                        st.sampled_from(INTERESTING_I32), st.integers(old - 3, old + 3), st.just(old + (1 << 30))
+                    ),
+                    label="int32",
+                )
+                data[pos : pos + 4] = struct.pack("<i", max(-(1 << 31), min(new, (1 << 31) - 1)))
             else:
                 start, length = draw(st.sampled_from(where.buffers), label="buffer")
                 pos = draw(st.integers(start, start + length - 1), label="position")
                 data[pos] ^= 1 << draw(st.integers(0, 7), label="bit")
         elif kind == "node" and where.num_nodes:
             pos = where.nodes + 8 * draw(st.integers(0, 2 * where.num_nodes - 1), label="node field")
-            data[pos:pos + 8] = struct.pack("<q", draw(st.sampled_from([*INTERESTING_I64, 2, 3, 5]), label="int64"))
+            data[pos : pos + 8] = struct.pack("<q", draw(st.sampled_from([*INTERESTING_I64, 2, 3, 5]), label="int64"))
         elif kind == "header":
             pos = draw(st.integers(where.header[0], where.header[1] - 1), label="position")
             data[pos] ^= draw(st.integers(1, 255), label="xor")
@@ -164,9 +168,11 @@ def _rrd(messages: list[tuple[MessageKind, bytes]]) -> bytes:
 def _requests(messages: list[tuple[MessageKind, bytes]]) -> list[bytes]:
     out = []
     for kind, raw in messages:
-        inner = (log_msg_pb2.LogMsg(set_store_info=log_msg_pb2.SetStoreInfo.FromString(raw))
-                 if kind == MessageKind.SET_STORE_INFO else log_msg_pb2.LogMsg(
-                     arrow_msg=log_msg_pb2.ArrowMsg.FromString(raw)))
+        inner = (
+            log_msg_pb2.LogMsg(set_store_info=log_msg_pb2.SetStoreInfo.FromString(raw))
+            if kind == MessageKind.SET_STORE_INFO
+            else log_msg_pb2.LogMsg(arrow_msg=log_msg_pb2.ArrowMsg.FromString(raw))
+        )
         out.append(sdk_comms_pb2.WriteMessagesRequest(log_msg=inner).SerializeToString())
     return out
 
@@ -174,15 +180,16 @@ def _requests(messages: list[tuple[MessageKind, bytes]]) -> list[bytes]:
 @pytest.mark.timeout(300)
 @FUZZ
 @given(data=st.data())
-def test_damaged_arrow_in_chunks_never_takes_the_server_down(server: LiveServer, seed: Seed,
-                                                            chunks: list[tuple[ArrowMessage, bytes]],
-                                                            data: st.DataObject) -> None:
+def test_damaged_arrow_in_chunks_never_takes_the_server_down(
+    server: LiveServer, seed: Seed, chunks: list[tuple[ArrowMessage, bytes]], data: st.DataObject
+) -> None:
     # Half the time the identity property chunk: its values are read as it is ingested.
     msg, ipc = data.draw(st.one_of(st.just(chunks[0]), st.sampled_from(chunks)), label="chunk")
     arrow_raw = wrap(msg, data.draw(damaged(ipc), label="damaged ipc"))
     run = next(_runs)
-    response = httpx.post(f"{server.url}/v1/uploads", content=_rrd(_messages(seed, arrow_raw, f"fuzz-{run}")),
-                          timeout=60)
+    response = httpx.post(
+        f"{server.url}/v1/uploads", content=_rrd(_messages(seed, arrow_raw, f"fuzz-{run}")), timeout=60
+    )
     assert response.status_code in ACCEPTED_HTTP, response.text
     if response.status_code != 200:
         assert f"at byte {response.json()['offset']}" in response.json()["message"]

@@ -11,20 +11,55 @@ from services.rrd.chunk import chunk_meta, read_chunk
 from tests.services.rrd.malformed import Seed, record_seed
 
 
-@pytest.mark.parametrize(("name", "expected"), [
-    ("DB_PASSWORD", ("db", "password")), ("apiKey", ("api", "key")), ("APIKey", ("api", "key")),
-    ("ingest-token", ("ingest", "token")), ("aws.secret_access_key", ("aws", "secret", "access", "key")),
-    ("AnyValues:authToken", ("any", "values", "auth", "token")), ("tokens_used", ("tokens", "used")),
-])
+@pytest.mark.parametrize(
+    ("name", "expected"),
+    [
+        ("DB_PASSWORD", ("db", "password")),
+        ("apiKey", ("api", "key")),
+        ("APIKey", ("api", "key")),
+        ("ingest-token", ("ingest", "token")),
+        ("aws.secret_access_key", ("aws", "secret", "access", "key")),
+        ("AnyValues:authToken", ("any", "values", "auth", "token")),
+        ("tokens_used", ("tokens", "used")),
+    ],
+)
 def test_words(name: str, expected: tuple[str, ...]) -> None:
     assert words(name) == expected
 
 
-SECRET = ["token", "ingest_token", "DB_PASSWORD", "apiKey", "api_key", "API-KEY", "x.api.key", "passwd",
-          "MySecret", "client_secret", "secret_key", "aws_secret_access_key", "private_key_pem", "Authorization",
-          "credentials", "auth_token", "authToken", "AnyValues:token", "legacy.components:Password"]
-NOT_SECRET = ["tokens_used", "robot_id", "host", "keyframe", "passwords_rotated_at_count", "tokenizer", "author",
-              "api", "key", "accessory_key_count"]
+SECRET = [
+    "token",
+    "ingest_token",
+    "DB_PASSWORD",
+    "apiKey",
+    "api_key",
+    "API-KEY",
+    "x.api.key",
+    "passwd",
+    "MySecret",
+    "client_secret",
+    "secret_key",
+    "aws_secret_access_key",
+    "private_key_pem",
+    "Authorization",
+    "credentials",
+    "auth_token",
+    "authToken",
+    "AnyValues:token",
+    "legacy.components:Password",
+]
+NOT_SECRET = [
+    "tokens_used",
+    "robot_id",
+    "host",
+    "keyframe",
+    "passwords_rotated_at_count",
+    "tokenizer",
+    "author",
+    "api",
+    "key",
+    "accessory_key_count",
+]
 
 
 @pytest.mark.parametrize("name", SECRET)

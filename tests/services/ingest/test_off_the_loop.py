@@ -54,8 +54,9 @@ class HungCatalog(sessionmaker[Session]):
         return super().__call__(**local_kw)
 
 
-def test_an_upload_waits_for_the_catalog_and_the_store_on_worker_threads(tmp_path: Path,
-                                                                         recordings: dict[str, Recording]):
+def test_an_upload_waits_for_the_catalog_and_the_store_on_worker_threads(
+    tmp_path: Path, recordings: dict[str, Recording]
+):
     engine = create_engine(f"duckdb:///{tmp_path / 'catalog.duckdb'}")
     upgrade(engine)
     catalog = HungCatalog(engine)
@@ -67,8 +68,15 @@ def test_an_upload_waits_for_the_catalog_and_the_store_on_worker_threads(tmp_pat
         return None
 
     hot = HotStore(tmp_path / "hot", durability=Durability.OFF, interval_ms=50, min_free_bytes=0)
-    ingest = IngestService(hot, catalog, default_robot="robot", max_streams=10, close_after=dt.timedelta(minutes=1),
-                           sealed_lookup=sealed_lookup, lookup_timeout_s=HANG_S)
+    ingest = IngestService(
+        hot,
+        catalog,
+        default_robot="robot",
+        max_streams=10,
+        close_after=dt.timedelta(minutes=1),
+        sealed_lookup=sealed_lookup,
+        lookup_timeout_s=HANG_S,
+    )
     app = create_app(load_settings(data_dir=tmp_path / "data", scheduler=False), ingest)
 
     async def answers_while(hang: Hang, upload: asyncio.Task[httpx.Response], client: httpx.AsyncClient) -> float:

@@ -87,13 +87,20 @@ def test_rerun_cli_reads_a_live_stream(tmp_path: Path, rerun_bin: str):
     server = LiveServer(tmp_path / "data").start()
     saved = tmp_path / "saved.rrd"
     # `rerun --save` also listens for SDKs (on 0.0.0.0:9876 by default): a free loopback port instead
-    reader = subprocess.Popen([rerun_bin, "--save", str(saved), "--bind", "127.0.0.1", "--port", str(free_port()),
-                               server.grpc_url],
-                              stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    reader = subprocess.Popen(
+        [rerun_bin, "--save", str(saved), "--bind", "127.0.0.1", "--port", str(free_port()), server.grpc_url],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+    )
     try:
         copy = tmp_path / "copy.rrd"
-        robot = subprocess.Popen([sys.executable, ROBOT, "live", server.grpc_url, str(copy), "replay-run"],
-                                 stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        robot = subprocess.Popen(
+            [sys.executable, ROBOT, "live", server.grpc_url, str(copy), "replay-run"],
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
         assert robot.stdout is not None and robot.stdin is not None
         assert robot.stdout.readline().strip() == "READY"
         robot.stdin.write("go\n")
@@ -105,6 +112,7 @@ def test_rerun_cli_reads_a_live_stream(tmp_path: Path, rerun_bin: str):
         server.stop()  # ends the reader's stream; rerun --save then writes its file
         reader.wait(timeout=60)
     assert saved.exists() and saved.stat().st_size > 0, reader.stderr.read() if reader.stderr else ""
-    compare = subprocess.run([rerun_bin, "rrd", "compare", "--unordered", str(copy), str(saved)],
-                             capture_output=True, text=True)
+    compare = subprocess.run(
+        [rerun_bin, "rrd", "compare", "--unordered", str(copy), str(saved)], capture_output=True, text=True
+    )
     assert compare.returncode == 0, compare.stdout + compare.stderr

@@ -26,8 +26,9 @@ def server(tmp_path: Path) -> Iterator[LiveServer]:
 
 
 def _fleet_upload(server: LiveServer, *paths: Path) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([FLEET, "upload", "--api-url", server.url, *map(str, paths)], capture_output=True,
-                          text=True, timeout=300)
+    return subprocess.run(
+        [FLEET, "upload", "--api-url", server.url, *map(str, paths)], capture_output=True, text=True, timeout=300
+    )
 
 
 def test_fleet_upload_then_again(server: LiveServer, recordings: dict[str, Recording]):
@@ -69,8 +70,12 @@ def test_not_an_rrd(server: LiveServer):
 
 
 def test_service_down_is_one_clear_line(tmp_path: Path, recordings: dict[str, Recording]):
-    result = subprocess.run([FLEET, "upload", "--api-url", "http://127.0.0.1:9", str(recordings["points"].path)],
-                            capture_output=True, text=True, timeout=60)
+    result = subprocess.run(
+        [FLEET, "upload", "--api-url", "http://127.0.0.1:9", str(recordings["points"].path)],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert result.returncode == 1
     lines = result.stderr.strip().splitlines()
     assert len(lines) == 1 and "cannot reach the fleet service" in lines[0] and "FLEET_API_URL" in lines[0]
@@ -122,8 +127,10 @@ def test_postgres_catalog(tmp_path: Path, recordings: dict[str, Recording], requ
         assert _fleet_upload(live, rec.path).returncode == 0
         engine = sa.create_engine(url)
         with engine.connect() as conn:
-            row = conn.execute(sa.text("select robot_id, status, chunks from runs where id = :id"),
-                               {"id": rec.recordings[0]["recording_id"]}).one()
+            row = conn.execute(
+                sa.text("select robot_id, status, chunks from runs where id = :id"),
+                {"id": rec.recordings[0]["recording_id"]},
+            ).one()
             entities = conn.execute(sa.text("select count(*) from run_entities")).scalar()
         engine.dispose()
         assert row.status == "closed" and row.chunks > 0 and entities == len(rec.recordings[0]["entities"])

@@ -41,11 +41,16 @@ def catalog_run(service: IngestService, run_id: str) -> dict[str, Any]:
     with session_scope(service.catalog) as session:
         run = queries.get_run(session, run_id)
         assert run is not None
-        return {**{c: getattr(run, c) for c in ("robot_id", "application_id", "status", "tier", "chunks", "rows",
-                                                 "bytes", "sdk_version")},
-                "properties": json.loads(run.properties), "date": run.date,
-                "entities": {e.path: (e.chunks, e.rows) for e in queries.run_entities(session, run_id)},
-                "timelines": {t.name: (t.type, t.min, t.max) for t in queries.run_timelines(session, run_id)}}
+        return {
+            **{
+                c: getattr(run, c)
+                for c in ("robot_id", "application_id", "status", "tier", "chunks", "rows", "bytes", "sdk_version")
+            },
+            "properties": json.loads(run.properties),
+            "date": run.date,
+            "entities": {e.path: (e.chunks, e.rows) for e in queries.run_entities(session, run_id)},
+            "timelines": {t.name: (t.type, t.min, t.max) for t in queries.run_timelines(session, run_id)},
+        }
 
 
 def test_upload_files_a_run_and_catalogs_it(make_service: Factory, recordings: dict[str, Recording], rerun_bin: str):
@@ -57,12 +62,17 @@ def test_upload_files_a_run_and_catalogs_it(make_service: Factory, recordings: d
     assert report.runs == [run_id] and report.chunks_new == len(original) and report.chunks_duplicate == 0
     hot_file = service.runs[run_id].hot.path
     assert sorted(chunk_ids(hot_file)) == sorted(original)
-    subprocess.run([rerun_bin, "rrd", "verify", "--check-footers", "false", str(hot_file)], check=True,
-                   capture_output=True)
+    subprocess.run(
+        [rerun_bin, "rrd", "verify", "--check-footers", "false", str(hot_file)], check=True, capture_output=True
+    )
     row = catalog_run(service, run_id)
     truth = rec.recordings[0]
     assert (row["application_id"], row["status"], row["tier"], row["sdk_version"]) == (
-        truth["application_id"], "closed", "hot", "0.41.0")
+        truth["application_id"],
+        "closed",
+        "hot",
+        "0.41.0",
+    )
     assert row["chunks"] == len(original)
     assert set(row["entities"]) == set(truth["entities"])
     assert row["bytes"] == hot_file.stat().st_size

@@ -37,8 +37,9 @@ def test_legacy_stream_is_filed_live(make_service: Factory, recordings: dict[str
     service.flush_catalog()
     run = catalog_run(service, run_id)
     assert run["application_id"] == rec.recordings[0]["application_id"]
-    assert run["chunks"] == sum(1 for e in iter_events(rec.path)
-                                if isinstance(e, ArrowMessage) and e.store_id.kind == StoreKind.RECORDING)
+    assert run["chunks"] == sum(
+        1 for e in iter_events(rec.path) if isinstance(e, ArrowMessage) and e.store_id.kind == StoreKind.RECORDING
+    )
     held = service.runs[run_id].hot.path
     assert sorted(chunk_ids(held)) == sorted(chunk_ids(rec.path))  # blueprint chunks kept with the run
 

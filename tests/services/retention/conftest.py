@@ -60,8 +60,11 @@ NodeFactory = Callable[..., Node]
 
 
 def _s3_env(monkeypatch: pytest.MonkeyPatch) -> None:
-    for name, value in (("AWS_ACCESS_KEY_ID", "test"), ("AWS_SECRET_ACCESS_KEY", "test"),
-                        ("AWS_DEFAULT_REGION", "us-east-1")):
+    for name, value in (
+        ("AWS_ACCESS_KEY_ID", "test"),
+        ("AWS_SECRET_ACCESS_KEY", "test"),
+        ("AWS_DEFAULT_REGION", "us-east-1"),
+    ):
         monkeypatch.setenv(name, value)
 
 
@@ -80,8 +83,10 @@ def tiers(request: pytest.FixtureRequest, tmp_path: Path, monkeypatch: pytest.Mo
         client = boto3.client("s3", region_name="us-east-1")
         client.create_bucket(Bucket=WARM_BUCKET)
         client.create_bucket(Bucket=COLD_BUCKET)
-        yield Tiers(open_store(f"s3://{WARM_BUCKET}/depot", region="us-east-1"),
-                    open_store(f"s3://{COLD_BUCKET}/depot", region="us-east-1"))
+        yield Tiers(
+            open_store(f"s3://{WARM_BUCKET}/depot", region="us-east-1"),
+            open_store(f"s3://{COLD_BUCKET}/depot", region="us-east-1"),
+        )
 
 
 @pytest.fixture
@@ -92,22 +97,44 @@ def make_node(tmp_path: Path, fresh_catalog_url: str) -> Iterator[NodeFactory]:
     catalog = sessionmaker(engine)
     made: list[IngestService] = []
 
-    def make(tiers: Tiers, *, clock: Clock | None = None, promote_after_s: float = 600.0,
-             warm_days: float = 30.0, cold_days: float = 365.0, overrides: tuple[PolicyOverride, ...] = (),
-             restore_days: float = 7.0, promote_below_free_bytes: int = 0,
-             free_bytes: Callable[[], int] | None = None, recover: bool = True) -> Node:
+    def make(
+        tiers: Tiers,
+        *,
+        clock: Clock | None = None,
+        promote_after_s: float = 600.0,
+        warm_days: float = 30.0,
+        cold_days: float = 365.0,
+        overrides: tuple[PolicyOverride, ...] = (),
+        restore_days: float = 7.0,
+        promote_below_free_bytes: int = 0,
+        free_bytes: Callable[[], int] | None = None,
+        recover: bool = True,
+    ) -> Node:
         clock = clock or Clock()
         hot = HotStore(tmp_path / "hot", durability=Durability.OFF, interval_ms=50, min_free_bytes=0)
-        ingest = IngestService(hot, catalog, default_robot="robot-0", max_streams=10,
-                               close_after=dt.timedelta(seconds=60), clock=clock,
-                               sealed_lookup=sealed_lookup(catalog, tiers))
+        ingest = IngestService(
+            hot,
+            catalog,
+            default_robot="robot-0",
+            max_streams=10,
+            close_after=dt.timedelta(seconds=60),
+            clock=clock,
+            sealed_lookup=sealed_lookup(catalog, tiers),
+        )
         made.append(ingest)
         if recover:
             ingest.recover()
-        retention = Retention(catalog, tiers, Policies(Policy("default", warm_days, cold_days), overrides), ingest,
-                              promote_after=dt.timedelta(seconds=promote_after_s),
-                              promote_below_free_bytes=promote_below_free_bytes, restore_days=restore_days,
-                              clock=clock, free_bytes=free_bytes)
+        retention = Retention(
+            catalog,
+            tiers,
+            Policies(Policy("default", warm_days, cold_days), overrides),
+            ingest,
+            promote_after=dt.timedelta(seconds=promote_after_s),
+            promote_below_free_bytes=promote_below_free_bytes,
+            restore_days=restore_days,
+            clock=clock,
+            free_bytes=free_bytes,
+        )
         return Node(tmp_path, tiers, catalog, clock, ingest, retention)
 
     yield make
@@ -116,9 +143,18 @@ def make_node(tmp_path: Path, fresh_catalog_url: str) -> Iterator[NodeFactory]:
     engine.dispose()
 
 
-def log_run(path: Path, recording_id: str, *, entities: int = 10, frames: int = 30, points: int = 2000,
-            robot: str | None = None, application: str = "fleet-test", text: bool = True,
-            chunk_rows: int | None = None) -> Path:
+def log_run(
+    path: Path,
+    recording_id: str,
+    *,
+    entities: int = 10,
+    frames: int = 30,
+    points: int = 2000,
+    robot: str | None = None,
+    application: str = "fleet-test",
+    text: bool = True,
+    chunk_rows: int | None = None,
+) -> Path:
     """A run logged with the real SDK: `entities` point clouds (one chunk each, or one per
     `chunk_rows` frames), a static
     entity, optional text logs, and the robot's identity property. Runs in a subprocess so each
@@ -148,4 +184,3 @@ for i in range({frames}):
 
 def listing(store: ObjectStore) -> list[str]:
     return [info.key for info in store.list()]
-

@@ -144,8 +144,12 @@ def _store_cycle(node: Node, logged: dict[str, Path], rerun_bin: str | None = No
     if rerun_bin is not None:
         copy = node.root / "restored.rrd"
         copy.write_bytes(served.content)
-        compare = subprocess.run([rerun_bin, "rrd", "compare", "--unordered", str(logged[RUN_A]), str(copy)],
-                                 capture_output=True, text=True, timeout=120)
+        compare = subprocess.run(
+            [rerun_bin, "rrd", "compare", "--unordered", str(logged[RUN_A]), str(copy)],
+            capture_output=True,
+            text=True,
+            timeout=120,
+        )
         assert compare.returncode == 0, compare.stderr
 
     node.clock.advance(days=6)
@@ -160,8 +164,9 @@ def _store_cycle(node: Node, logged: dict[str, Path], rerun_bin: str | None = No
     assert ended.status_code == 409 and "restore" in ended.json()["message"]
 
 
-def test_store_archive_restore_and_its_end(tiers: Tiers, make_node: NodeFactory, logged: dict[str, Path],
-                                          rerun_bin: str):
+def test_store_archive_restore_and_its_end(
+    tiers: Tiers, make_node: NodeFactory, logged: dict[str, Path], rerun_bin: str
+):
     _store_cycle(make_node(tiers, clock=Clock()), logged, rerun_bin)
 
 
@@ -191,18 +196,26 @@ def seaweed_endpoint(tmp_path_factory: pytest.TempPathFactory) -> Iterator[str]:
 
     with seaweedfs(tmp_path_factory.mktemp("seaweedfs")) as endpoint:
         # One bucket; warm/ and cold/ prefixes per test (each SeaweedFS bucket reserves volumes of its own).
-        boto3.client("s3", endpoint_url=endpoint, region_name="us-east-1", aws_access_key_id="test",
-                     aws_secret_access_key="test").create_bucket(Bucket=SEAWEED_BUCKET)
+        boto3.client(
+            "s3", endpoint_url=endpoint, region_name="us-east-1", aws_access_key_id="test", aws_secret_access_key="test"
+        ).create_bucket(Bucket=SEAWEED_BUCKET)
         yield endpoint
 
 
 @pytest.mark.s3server
-def test_store_archive_on_seaweedfs(seaweed_endpoint: str, make_node: NodeFactory, logged: dict[str, Path],
-                                    tmp_path: Path, monkeypatch: pytest.MonkeyPatch):
+def test_store_archive_on_seaweedfs(
+    seaweed_endpoint: str,
+    make_node: NodeFactory,
+    logged: dict[str, Path],
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+):
     for name, value in CREDENTIALS:
         monkeypatch.setenv(name, value)
-    warm, cold = (open_store(f"s3://{SEAWEED_BUCKET}/{tmp_path.name}/{tier}", endpoint_url=seaweed_endpoint,
-                             region="us-east-1") for tier in ("warm", "cold"))
+    warm, cold = (
+        open_store(f"s3://{SEAWEED_BUCKET}/{tmp_path.name}/{tier}", endpoint_url=seaweed_endpoint, region="us-east-1")
+        for tier in ("warm", "cold")
+    )
     _store_cycle(make_node(Tiers(warm, cold), clock=Clock()), logged)
 
 
@@ -236,8 +249,13 @@ def slow_restores() -> Iterator[None]:
 
 
 @pytest.mark.parametrize("storage_class", ["GLACIER", "DEEP_ARCHIVE"])
-def test_storage_class_archive_and_restore(moto_stores: tuple[S3Store, S3Store], make_node: NodeFactory,
-                                           logged: dict[str, Path], slow_restores: None, storage_class: str):
+def test_storage_class_archive_and_restore(
+    moto_stores: tuple[S3Store, S3Store],
+    make_node: NodeFactory,
+    logged: dict[str, Path],
+    slow_restores: None,
+    storage_class: str,
+):
     warm, cold = moto_stores
     node = make_node(Tiers(warm, cold, cold_storage_class=storage_class), clock=Clock())
     [(prefix, original)] = _promoted(node, logged, RUN_A).values()
@@ -278,8 +296,9 @@ def test_storage_class_archive_and_restore(moto_stores: tuple[S3Store, S3Store],
     assert _download(client, RUN_A).status_code == 409
 
 
-def test_standard_ia_cold_run_serves_without_a_restore(moto_stores: tuple[S3Store, S3Store],
-                                                       make_node: NodeFactory, logged: dict[str, Path]):
+def test_standard_ia_cold_run_serves_without_a_restore(
+    moto_stores: tuple[S3Store, S3Store], make_node: NodeFactory, logged: dict[str, Path]
+):
     """STANDARD_IA is cheaper to keep but reads like any object (S3 refuses RestoreObject for it):
     a run archived there stays downloadable, and a restore is refused as not needed."""
     warm, cold = moto_stores
@@ -298,8 +317,9 @@ def test_standard_ia_cold_run_serves_without_a_restore(moto_stores: tuple[S3Stor
     assert _detail(client, RUN_A)["lifecycle"]["restore_state"] is None
 
 
-def test_storage_class_archive_is_safe_to_repeat(moto_stores: tuple[S3Store, S3Store],
-                                                 make_node: NodeFactory, logged: dict[str, Path]):
+def test_storage_class_archive_is_safe_to_repeat(
+    moto_stores: tuple[S3Store, S3Store], make_node: NodeFactory, logged: dict[str, Path]
+):
     """A crash after the storage-class change but before the catalog switch: the next run finishes it."""
     warm, cold = moto_stores
     node = make_node(Tiers(warm, cold, cold_storage_class="GLACIER"), clock=Clock())
@@ -313,8 +333,9 @@ def test_storage_class_archive_is_safe_to_repeat(moto_stores: tuple[S3Store, S3S
 # --- expiry --------------------------------------------------------------------------------------
 
 
-def test_expiry_deletes_objects_then_keeps_a_tombstone_unless_pinned(tiers: Tiers, make_node: NodeFactory,
-                                                                     logged: dict[str, Path]):
+def test_expiry_deletes_objects_then_keeps_a_tombstone_unless_pinned(
+    tiers: Tiers, make_node: NodeFactory, logged: dict[str, Path]
+):
     node = make_node(tiers, clock=Clock(), warm_days=30, cold_days=365)
     sealed = _promoted(node, logged, RUN_A, RUN_B)
     client = _client(node)
@@ -363,8 +384,7 @@ def test_expiry_deletes_objects_then_keeps_a_tombstone_unless_pinned(tiers: Tier
     assert _detail(client, RUN_B)["lifecycle"]["deleted_by"] == "retention"
 
 
-def test_no_cold_days_goes_straight_from_warm_to_deleted(tiers: Tiers, make_node: NodeFactory,
-                                                         logged: dict[str, Path]):
+def test_no_cold_days_goes_straight_from_warm_to_deleted(tiers: Tiers, make_node: NodeFactory, logged: dict[str, Path]):
     node = make_node(tiers, clock=Clock(), warm_days=10, cold_days=0)
     _promoted(node, logged, RUN_A)
     node.clock.advance(days=9)
@@ -407,8 +427,9 @@ class Faulty:
 
 
 @pytest.mark.parametrize("fault", ["crash", "short"])
-def test_archive_that_fails_leaves_the_run_warm(tiers: Tiers, make_node: NodeFactory, logged: dict[str, Path],
-                                               fault: str):
+def test_archive_that_fails_leaves_the_run_warm(
+    tiers: Tiers, make_node: NodeFactory, logged: dict[str, Path], fault: str
+):
     faulty = Faulty(tiers.cold, fault)
     node = make_node(Tiers(tiers.warm, faulty), clock=Clock())  # type: ignore[arg-type]
     [(prefix, original)] = _promoted(node, logged, RUN_A).values()
@@ -451,8 +472,9 @@ def test_delete_that_fails_leaves_no_tombstone(tiers: Tiers, make_node: NodeFact
     assert _detail(client, RUN_A)["lifecycle"]["deleted_by"] == "retention"
 
 
-def test_analytics_written_early_are_kept_once_and_deleted_with_the_run(tiers: Tiers, make_node: NodeFactory,
-                                                                       tmp_path: Path):
+def test_analytics_written_early_are_kept_once_and_deleted_with_the_run(
+    tiers: Tiers, make_node: NodeFactory, tmp_path: Path
+):
     """A hot run's analytics written early (under the default robot: its identity came later) are
     replaced at promotion, not added to, and go with the run when it is deleted."""
     node = make_node(tiers, clock=Clock())
@@ -497,4 +519,3 @@ def test_user_mistakes_on_run_actions_are_never_500(tiers: Tiers, make_node: Nod
     assert _detail(client, RUN_A)["tier"] == "warm"
     twice = client.post(f"/v1/runs/{RUN_A}/promote")
     assert twice.status_code == 409 and "warm already" in twice.json()["message"]
-

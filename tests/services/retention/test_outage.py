@@ -53,19 +53,31 @@ def upload(server: LiveServer, rec: Recording) -> str:
 
 
 def failed_promotions(server: LiveServer, run_id: str) -> list[dict[str, Any]]:
-    return [j for j in get(server, "/v1/retention")["recent_jobs"]
-            if j["job"] == "promote" and j["outcome"] == "failed" and f"promote {run_id}:" in j["detail"]]
+    return [
+        j
+        for j in get(server, "/v1/retention")["recent_jobs"]
+        if j["job"] == "promote" and j["outcome"] == "failed" and f"promote {run_id}:" in j["detail"]
+    ]
 
 
 def test_ingest_goes_on_through_an_s3_outage_and_promotion_catches_up(
-        weed: SeaweedFS, tmp_path: Path, recordings: dict[str, Recording], rerun_bin: str,
-        monkeypatch: pytest.MonkeyPatch):
+    weed: SeaweedFS, tmp_path: Path, recordings: dict[str, Recording], rerun_bin: str, monkeypatch: pytest.MonkeyPatch
+):
     weed.client().create_bucket(Bucket=BUCKET)
-    for name, value in (("AWS_ACCESS_KEY_ID", "test"), ("AWS_SECRET_ACCESS_KEY", "test"),
-                        ("AWS_DEFAULT_REGION", "us-east-1")):
+    for name, value in (
+        ("AWS_ACCESS_KEY_ID", "test"),
+        ("AWS_SECRET_ACCESS_KEY", "test"),
+        ("AWS_DEFAULT_REGION", "us-east-1"),
+    ):
         monkeypatch.setenv(name, value)
-    server = LiveServer(tmp_path / "data", warm_url=f"s3://{BUCKET}/warm", cold_url=f"s3://{BUCKET}/cold",
-                        s3_endpoint_url=weed.endpoint, promote_after_s="0", promote_interval_s="0.5")
+    server = LiveServer(
+        tmp_path / "data",
+        warm_url=f"s3://{BUCKET}/warm",
+        cold_url=f"s3://{BUCKET}/cold",
+        s3_endpoint_url=weed.endpoint,
+        promote_after_s="0",
+        promote_interval_s="0.5",
+    )
     try:
         server.start()
         before = upload(server, recordings["transforms"])  # the set-up works: promoted while S3 is up
@@ -73,8 +85,11 @@ def test_ingest_goes_on_through_an_s3_outage_and_promotion_catches_up(
 
         weed.stop()
         outage = [upload(server, recordings[s]) for s in ("points", "scalars")]  # ingest does not wait for S3
-        server.wait_for(lambda: all(failed_promotions(server, r) for r in outage), timeout=30,
-                        what="promotion to fail during the outage")
+        server.wait_for(
+            lambda: all(failed_promotions(server, r) for r in outage),
+            timeout=30,
+            what="promotion to fail during the outage",
+        )
         late = upload(server, recordings["textlogs"])  # still taken after promotion failed
         runs = [*outage, late]
         assert {r["id"] for r in get(server, "/v1/runs?tier=hot")["runs"]} == set(runs)
@@ -86,8 +101,11 @@ def test_ingest_goes_on_through_an_s3_outage_and_promotion_catches_up(
 
         weed.start()
         back = time.monotonic()
-        server.wait_for(lambda: all(tier(server, r) == "warm" for r in runs), timeout=CATCH_UP_S,
-                        what=f"promotion to catch up within {CATCH_UP_S}s of S3 returning")
+        server.wait_for(
+            lambda: all(tier(server, r) == "warm" for r in runs),
+            timeout=CATCH_UP_S,
+            what=f"promotion to catch up within {CATCH_UP_S}s of S3 returning",
+        )
         caught_up = time.monotonic() - back
         print(f"promotion caught up {caught_up:.1f}s after S3 returned")
 
@@ -112,6 +130,10 @@ def test_ingest_goes_on_through_an_s3_outage_and_promotion_catches_up(
     for run_id, out in served.items():
         verify = subprocess.run([rerun_bin, "rrd", "verify", str(out)], capture_output=True, text=True, timeout=120)
         assert verify.returncode == 0, verify.stderr
-        compare = subprocess.run([rerun_bin, "rrd", "compare", "--unordered", str(sources[run_id]), str(out)],
-                                 capture_output=True, text=True, timeout=120)
+        compare = subprocess.run(
+            [rerun_bin, "rrd", "compare", "--unordered", str(sources[run_id]), str(out)],
+            capture_output=True,
+            text=True,
+            timeout=120,
+        )
         assert compare.returncode == 0, f"{run_id}: {compare.stderr}"

@@ -89,10 +89,15 @@ def test_override_days_are_not_negative(field: str):
 def test_policies_from_a_json_environment_variable(monkeypatch: pytest.MonkeyPatch, tmp_path: Path):
     monkeypatch.setenv("FLEET_WARM_DAYS", "10")
     monkeypatch.setenv("FLEET_COLD_DAYS", "20")
-    monkeypatch.setenv("FLEET_RETENTION_POLICIES", json.dumps([
-        {"name": "bench", "robot": "bench-1", "warm_days": 2, "cold_days": 5},
-        {"name": "production", "application": "production", "cold_days": 355},
-    ]))
+    monkeypatch.setenv(
+        "FLEET_RETENTION_POLICIES",
+        json.dumps(
+            [
+                {"name": "bench", "robot": "bench-1", "warm_days": 2, "cold_days": 5},
+                {"name": "production", "application": "production", "cold_days": 355},
+            ]
+        ),
+    )
     policies = load_settings(data_dir=tmp_path).policies
     assert policies.default == Policy("default", 10, 20)
     assert policies.for_run("bench-1", "production") == Policy("bench", 2, 5)
@@ -100,12 +105,15 @@ def test_policies_from_a_json_environment_variable(monkeypatch: pytest.MonkeyPat
     assert policies.for_run("prod-7", "other") == Policy("default", 10, 20)
 
 
-@pytest.mark.parametrize("bad", [
-    [{"name": "both", "robot": "r", "application": "a"}],
-    [{"name": "neither", "warm_days": 1}],
-    [{"name": "negative", "robot": "r", "cold_days": -3}],
-    {"name": "not-a-list", "robot": "r"},
-])
+@pytest.mark.parametrize(
+    "bad",
+    [
+        [{"name": "both", "robot": "r", "application": "a"}],
+        [{"name": "neither", "warm_days": 1}],
+        [{"name": "negative", "robot": "r", "cold_days": -3}],
+        {"name": "not-a-list", "robot": "r"},
+    ],
+)
 def test_bad_policies_in_the_environment_are_refused(monkeypatch: pytest.MonkeyPatch, tmp_path: Path, bad: Any):
     monkeypatch.setenv("FLEET_RETENTION_POLICIES", json.dumps(bad))
     with pytest.raises(ValidationError, match="retention_policies"):
@@ -195,10 +203,14 @@ def fleet_runs(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
     """A bench robot's run of the production application, a production robot's run, and a lab run."""
     root = tmp_path_factory.mktemp("policy-runs")
     made = {}
-    for run, robot, application in (("bench-run", "bench-1", "production"), ("prod-run", "prod-7", "production"),
-                                    ("lab-run", "lab-3", "fleet-test")):
-        made[run] = log_run(root / f"{run}.rrd", run, entities=2, frames=5, points=100, robot=robot,
-                            application=application, text=False)
+    for run, robot, application in (
+        ("bench-run", "bench-1", "production"),
+        ("prod-run", "prod-7", "production"),
+        ("lab-run", "lab-3", "fleet-test"),
+    ):
+        made[run] = log_run(
+            root / f"{run}.rrd", run, entities=2, frames=5, points=100, robot=robot, application=application, text=False
+        )
     return made
 
 
@@ -215,7 +227,8 @@ def _run(client: TestClient, run: str) -> dict[str, Any]:
 
 @pytest.mark.sdk
 def test_bench_runs_expire_in_a_week_while_production_keeps_a_year(
-        tiers: Tiers, make_node: NodeFactory, fleet_runs: dict[str, Path]):
+    tiers: Tiers, make_node: NodeFactory, fleet_runs: dict[str, Path]
+):
     node = make_node(tiers, clock=Clock(), warm_days=30, cold_days=30, overrides=(BENCH, PRODUCTION))
     start = node.clock.now
     for path in fleet_runs.values():
@@ -223,8 +236,9 @@ def test_bench_runs_expire_in_a_week_while_production_keeps_a_year(
     node.clock.advance(minutes=11)
     promotions = plan(node.retention, ["promote"])
     assert len(promotions) == 3 and all(o.ok for o in run_plan(node.retention, promotions))
-    client = TestClient(create_app(load_settings(data_dir=node.root / "data", scheduler=False), node.ingest,
-                                   node.retention))
+    client = TestClient(
+        create_app(load_settings(data_dir=node.root / "data", scheduler=False), node.ingest, node.retention)
+    )
     assert _run(client, "bench-run")["policy"] == {"name": "bench", "warm_days": 2, "cold_days": 5}
     assert _run(client, "prod-run")["policy"] == {"name": "production", "warm_days": 30, "cold_days": 335}
     assert _run(client, "lab-run")["policy"] == {"name": "default", "warm_days": 30, "cold_days": 30}
@@ -248,5 +262,8 @@ def test_bench_runs_expire_in_a_week_while_production_keeps_a_year(
     assert _run(client, "prod-run")["tier"] == "cold"
     assert at(365) == [("prod-run", "delete", "production")]
     assert [_run(client, r)["lifecycle"]["deleted_policy"] for r in ("bench-run", "lab-run", "prod-run")] == [
-        "bench", "default", "production"]
+        "bench",
+        "default",
+        "production",
+    ]
     assert listing(tiers.warm) == [] and listing(tiers.cold) == []

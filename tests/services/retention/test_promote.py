@@ -66,8 +66,9 @@ def sdk_runs(tmp_path_factory: pytest.TempPathFactory) -> SdkRuns:
     with pytest.MonkeyPatch.context() as env, ThreadPoolExecutor(2) as pool:  # one SDK process each, side by side
         env.setenv("RERUN_FLUSH_NUM_ROWS", "4")  # the SDK's batcher: chunks of at most 4 frames (several per entity)
         first = pool.submit(log_run, folder / "first.rrd", RUN, entities=4, frames=10, points=200, robot=ROBOT)
-        later = pool.submit(log_run, folder / "later.rrd", RUN, entities=3, frames=4, points=100, robot=ROBOT,
-                            text=False)
+        later = pool.submit(
+            log_run, folder / "later.rrd", RUN, entities=3, frames=4, points=100, robot=ROBOT, text=False
+        )
         return SdkRuns(first.result(), later.result())
 
 
@@ -124,9 +125,17 @@ def assert_warm(node: Node, want: set[bytes], run_id: str = RUN) -> tuple[str, b
         assert run is not None and life is not None
         assert run.tier == "warm"
         prefix, date = life.prefix, run.date
-        figures = (run.robot_id, run.date, run.application_id, run.chunks, run.rows, run.bytes, run.pinned,
-                   sorted(e.path for e in queries.run_entities(session, run_id)),
-                   sorted((t.name, t.min, t.max) for t in queries.run_timelines(session, run_id)))
+        figures = (
+            run.robot_id,
+            run.date,
+            run.application_id,
+            run.chunks,
+            run.rows,
+            run.bytes,
+            run.pinned,
+            sorted(e.path for e in queries.run_entities(session, run_id)),
+            sorted((t.name, t.min, t.max) for t in queries.run_timelines(session, run_id)),
+        )
         recorded = {name: (o.key, o.size, o.sha256, o.tier) for name, o in queries.run_objects(session, run_id).items()}
     assert prefix == f"{ROBOT}/{date.isoformat()}/{run_id}"
     under = [info.key for info in node.tiers.warm.list(prefix + "/")]
@@ -146,9 +155,17 @@ def assert_warm(node: Node, want: set[bytes], run_id: str = RUN) -> tuple[str, b
     run_file = parse_run_json(node.tiers.warm.get_range(f"{prefix}/{RUN_JSON}"))  # the catalog record, beside it
     record = run_file.record
     assert (run_file.prefix, record.id, record.tier) == (prefix, run_id, "warm")
-    assert (record.robot_id, record.date, record.application_id, record.chunks, record.rows, record.bytes,
-            run_file.pinned, sorted(e.path for e in record.entities),
-            sorted((t.name, t.min, t.max) for t in record.timelines)) == figures
+    assert (
+        record.robot_id,
+        record.date,
+        record.application_id,
+        record.chunks,
+        record.rows,
+        record.bytes,
+        run_file.pinned,
+        sorted(e.path for e in record.entities),
+        sorted((t.name, t.min, t.max) for t in record.timelines),
+    ) == figures
     assert record.bytes == len(recording)
     assert {o.name: (o.key, o.size, o.sha256, o.tier) for o in run_file.objects} == recorded
     assert not hot_dir(node, run_id).exists()
@@ -159,8 +176,9 @@ def assert_warm(node: Node, want: set[bytes], run_id: str = RUN) -> tuple[str, b
 # --- promotion -----------------------------------------------------------------------------------
 
 
-def test_a_closed_run_is_sealed_once_idle_for_promote_after(tiers: Tiers, make_node: NodeFactory, sdk_runs: SdkRuns,
-                                                            rerun_bin: str, tmp_path: Path):
+def test_a_closed_run_is_sealed_once_idle_for_promote_after(
+    tiers: Tiers, make_node: NodeFactory, sdk_runs: SdkRuns, rerun_bin: str, tmp_path: Path
+):
     clock = Clock()
     node = make_node(tiers, clock=clock, promote_after_s=PROMOTE_AFTER_S)
     report = node.upload(sdk_runs.first)
@@ -208,7 +226,7 @@ def test_a_closed_run_is_sealed_once_idle_for_promote_after(tiers: Tiers, make_n
     chunk_rows = [r for r in rows if r.kind == CHUNK]
     assert len(chunk_rows) == len(truth)
     for row in chunk_rows:
-        frame = recording[row.offset:row.end]
+        frame = recording[row.offset : row.end]
         kind, length = decode_message_header(frame)
         assert MESSAGE_HEADER_SIZE + length == row.length
         meta = chunk_meta(decode_message(kind, frame[MESSAGE_HEADER_SIZE:], row.offset))  # type: ignore[arg-type]
@@ -218,11 +236,13 @@ def test_a_closed_run_is_sealed_once_idle_for_promote_after(tiers: Tiers, make_n
         assert (row.entity_path, row.is_static, row.num_rows) == (want.entity_path, want.is_static, want.num_rows)
         assert row.store_kind == "recording"
         assert {(t.name, t.type, t.min, t.max) for t in row.timelines} == {
-            (t.name, t.type, t.range.min, t.range.max) for t in want.timelines}
+            (t.name, t.type, t.range.min, t.range.max) for t in want.timelines
+        }
     static = [r for r in chunk_rows if r.entity_path == "/world/static"]
     assert len(static) == 1 and static[0].is_static and static[0].timelines == ()
-    frames = sorted((t.min, t.max) for r in chunk_rows if r.entity_path == "/world/e0" for t in r.timelines
-                    if t.name == "frame")
+    frames = sorted(
+        (t.min, t.max) for r in chunk_rows if r.entity_path == "/world/e0" for t in r.timelines if t.name == "frame"
+    )
     assert len(frames) > 1 and frames[0][0] == 0 and frames[-1][1] == 9  # split by the batcher; frames 0-9 logged
     assert all(a[1] < b[0] for a, b in itertools.pairwise(frames))
 
@@ -296,8 +316,12 @@ STEPS = [
     ("head", INDEX, False, True, "verify-index-restart"),
 ]
 ON_S3 = ("put-recording-answer-lost-restart", "put-index", "verify-index-restart")
-FAULTS = [pytest.param(tier, *step[:4], id=f"{tier}-{step[4]}") for tier in ("file", "s3-moto")
-          for step in STEPS if tier == "file" or step[4] in ON_S3]
+FAULTS = [
+    pytest.param(tier, *step[:4], id=f"{tier}-{step[4]}")
+    for tier in ("file", "s3-moto")
+    for step in STEPS
+    if tier == "file" or step[4] in ON_S3
+]
 
 
 def assert_still_hot(node: Node, want: set[bytes]) -> None:
@@ -323,9 +347,9 @@ def retry(node: Node, make_node: NodeFactory, tiers: Tiers, clock: Clock, restar
 
 
 @pytest.mark.parametrize(("tiers", "op", "name", "after", "restart"), FAULTS, indirect=["tiers"])
-def test_a_failed_step_leaves_a_state_the_next_run_completes(tiers: Tiers, make_node: NodeFactory,
-                                                             sdk_runs: SdkRuns, op: str, name: str, after: bool,
-                                                             restart: bool):
+def test_a_failed_step_leaves_a_state_the_next_run_completes(
+    tiers: Tiers, make_node: NodeFactory, sdk_runs: SdkRuns, op: str, name: str, after: bool, restart: bool
+):
     clock = Clock()
     faulty = FaultyStore(tiers.warm, op, name, after=after)
     node = make_node(Tiers(faulty, tiers.cold), clock=clock, promote_after_s=PROMOTE_AFTER_S)
@@ -344,9 +368,9 @@ def test_a_failed_step_leaves_a_state_the_next_run_completes(tiers: Tiers, make_
 
 @FILE_ONLY
 @pytest.mark.parametrize("restart", [False, True], ids=["same-node", "restarted"])
-def test_a_failed_catalog_switch_changes_nothing_in_the_catalog(tiers: Tiers, make_node: NodeFactory,
-                                                                sdk_runs: SdkRuns, monkeypatch: pytest.MonkeyPatch,
-                                                                restart: bool):
+def test_a_failed_catalog_switch_changes_nothing_in_the_catalog(
+    tiers: Tiers, make_node: NodeFactory, sdk_runs: SdkRuns, monkeypatch: pytest.MonkeyPatch, restart: bool
+):
     clock = Clock()
     node = make_node(tiers, clock=clock, promote_after_s=PROMOTE_AFTER_S)
     node.upload(sdk_runs.first)
@@ -369,8 +393,9 @@ def test_a_failed_catalog_switch_changes_nothing_in_the_catalog(tiers: Tiers, ma
     assert_warm(node, want)
 
 
-def test_a_crash_before_the_hot_files_go_is_finished_at_restart(tiers: Tiers, make_node: NodeFactory,
-                                                               sdk_runs: SdkRuns, rerun_bin: str, tmp_path: Path):
+def test_a_crash_before_the_hot_files_go_is_finished_at_restart(
+    tiers: Tiers, make_node: NodeFactory, sdk_runs: SdkRuns, rerun_bin: str, tmp_path: Path
+):
     clock = Clock()
     node = make_node(tiers, clock=clock, promote_after_s=PROMOTE_AFTER_S)
     node.upload(sdk_runs.first)
@@ -395,7 +420,8 @@ def test_a_crash_before_the_hot_files_go_is_finished_at_restart(tiers: Tiers, ma
 
 
 def test_a_crash_right_after_the_switch_leaves_a_hot_copy_removed_without_sealing_again(
-        tiers: Tiers, make_node: NodeFactory, sdk_runs: SdkRuns):
+    tiers: Tiers, make_node: NodeFactory, sdk_runs: SdkRuns
+):
     clock = Clock()
     node = make_node(tiers, clock=clock, promote_after_s=PROMOTE_AFTER_S)
     node.upload(sdk_runs.first)
@@ -429,8 +455,7 @@ def test_a_crash_right_after_the_switch_leaves_a_hot_copy_removed_without_sealin
 
 
 @FILE_ONLY
-def test_a_failed_promotion_backs_off_before_the_next_attempt(tiers: Tiers, make_node: NodeFactory,
-                                                             sdk_runs: SdkRuns):
+def test_a_failed_promotion_backs_off_before_the_next_attempt(tiers: Tiers, make_node: NodeFactory, sdk_runs: SdkRuns):
     clock = Clock()
     faulty = FaultyStore(tiers.warm, "put", RECORDING, times=3)
     node = make_node(Tiers(faulty, tiers.cold), clock=clock, promote_after_s=PROMOTE_AFTER_S)
@@ -462,8 +487,9 @@ def test_a_failed_promotion_backs_off_before_the_next_attempt(tiers: Tiers, make
 # --- late data -----------------------------------------------------------------------------------
 
 
-def test_late_data_is_sealed_in_with_the_rest(tiers: Tiers, make_node: NodeFactory, sdk_runs: SdkRuns,
-                                              rerun_bin: str, tmp_path: Path):
+def test_late_data_is_sealed_in_with_the_rest(
+    tiers: Tiers, make_node: NodeFactory, sdk_runs: SdkRuns, rerun_bin: str, tmp_path: Path
+):
     clock = Clock()
     node = make_node(tiers, clock=clock, promote_after_s=PROMOTE_AFTER_S)
     node.upload(sdk_runs.first)
@@ -502,8 +528,7 @@ def test_late_data_is_sealed_in_with_the_rest(tiers: Tiers, make_node: NodeFacto
 
 
 @FILE_ONLY
-def test_chunks_already_held_change_nothing_and_seal_nothing(tiers: Tiers, make_node: NodeFactory,
-                                                             sdk_runs: SdkRuns):
+def test_chunks_already_held_change_nothing_and_seal_nothing(tiers: Tiers, make_node: NodeFactory, sdk_runs: SdkRuns):
     """A robot's file copy uploaded again, or `rerun URL` pointed at the depot replaying a run, bring
     no new chunk: no hot run, no re-seal, and the run's facts (end, last data) stay as they were."""
     clock = Clock()
@@ -548,14 +573,17 @@ def _facts(node: Node) -> tuple[object, ...]:
         return run.status, run.ended_at, run.last_data_at, run.chunks, run.tier
 
 
-def test_sealing_reads_properties_with_the_nodes_secret_fields(tiers: Tiers, make_node: NodeFactory,
-                                                               tmp_path: Path):
+def test_sealing_reads_properties_with_the_nodes_secret_fields(tiers: Tiers, make_node: NodeFactory, tmp_path: Path):
     """A node that strips only passwords keeps a `token` field through promotion too (sealing reads
     the stored property chunks with the node's setting, not the default list)."""
     node = make_node(tiers, clock=Clock())
     node.ingest.secret_fields = SecretFields(["password"])
     path = tmp_path / "props.rrd"
-    subprocess.run([sys.executable, "-c", f"""
+    subprocess.run(
+        [
+            sys.executable,
+            "-c",
+            f"""
 import rerun as rr
 rec = rr.RecordingStream("nav", recording_id="props-run")
 rec.save({str(path)!r})
@@ -563,7 +591,12 @@ rec.send_property("fleet", rr.AnyValues(robot_id="robot-7", token="kept", passwo
 rec.set_time("frame", sequence=0)
 rec.log("/x", rr.Scalars(1.0))
 rec.flush()
-"""], check=True, timeout=120, capture_output=True)
+""",
+        ],
+        check=True,
+        timeout=120,
+        capture_output=True,
+    )
     node.upload(path)
     node.ingest.flush_catalog()
 
@@ -579,8 +612,7 @@ rec.flush()
     assert fleet_property() == {"robot_id": "robot-7", "token": "kept"}
 
 
-def test_a_pin_set_while_hot_survives_promotion_and_a_rebuild(tiers: Tiers, make_node: NodeFactory,
-                                                              sdk_runs: SdkRuns):
+def test_a_pin_set_while_hot_survives_promotion_and_a_rebuild(tiers: Tiers, make_node: NodeFactory, sdk_runs: SdkRuns):
     clock = Clock()
     node = make_node(tiers, clock=clock, promote_after_s=PROMOTE_AFTER_S)
     node.upload(sdk_runs.first)
@@ -600,11 +632,14 @@ def test_a_pin_set_while_hot_survives_promotion_and_a_rebuild(tiers: Tiers, make
 
 
 @FILE_ONLY
-@pytest.mark.parametrize(("op", "name", "restart"), [("put", INDEX, False), ("put", RUN_JSON, True),
-                                                     ("head", INDEX, True)],
-                         ids=["put-index", "put-run-json-restart", "verify-index-restart"])
-def test_a_failed_late_data_promotion_is_completed(tiers: Tiers, make_node: NodeFactory, sdk_runs: SdkRuns,
-                                                   op: str, name: str, restart: bool):
+@pytest.mark.parametrize(
+    ("op", "name", "restart"),
+    [("put", INDEX, False), ("put", RUN_JSON, True), ("head", INDEX, True)],
+    ids=["put-index", "put-run-json-restart", "verify-index-restart"],
+)
+def test_a_failed_late_data_promotion_is_completed(
+    tiers: Tiers, make_node: NodeFactory, sdk_runs: SdkRuns, op: str, name: str, restart: bool
+):
     """Sealing late data rewrites the run's objects in place: a failure after the merged recording
     is uploaded leaves it beside an index and a catalog that may be the old ones. The run is served
     whole meanwhile, and the next run of the job (after a restart too) records what the store holds."""
@@ -639,8 +674,9 @@ def test_a_failed_late_data_promotion_is_completed(tiers: Tiers, make_node: Node
 
 
 @pytest.mark.parametrize("tiers", ["s3-moto"], indirect=True)
-def test_a_large_recording_is_uploaded_in_parts_and_checked(tiers: Tiers, make_node: NodeFactory,
-                                                            monkeypatch: pytest.MonkeyPatch, tmp_path: Path):
+def test_a_large_recording_is_uploaded_in_parts_and_checked(
+    tiers: Tiers, make_node: NodeFactory, monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+):
     monkeypatch.setattr(s3, "MULTIPART_BYTES", 5 * 1024 * 1024)  # S3's smallest part: a 14 MB run takes 3
     warm = open_store(tiers.warm.url, region="us-east-1")
     original = log_run(tmp_path / "large.rrd", RUN, entities=4, frames=10, points=30000, robot=ROBOT, text=False)

@@ -19,6 +19,7 @@ from tests.services.retention.test_promote import ROBOT, chunk_ids, rerun
 
 pytestmark = [pytest.mark.sdk, pytest.mark.slow]
 
+
 def _poll(condition: Callable[[], bool], what: str, timeout: float = 60) -> None:
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:

@@ -22,8 +22,12 @@ from tests.services.rrd.recordings import Recording
 pytestmark = pytest.mark.sdk
 
 # runs of these applications are archived to cold as soon as they are warm; the others stay warm
-POLICIES = json.dumps([{"name": "camera-short", "application": "fleet_camera", "warm_days": 0},
-                       {"name": "logs-short", "application": "fleet_logs", "warm_days": 0}])
+POLICIES = json.dumps(
+    [
+        {"name": "camera-short", "application": "fleet_camera", "warm_days": 0},
+        {"name": "logs-short", "application": "fleet_logs", "warm_days": 0},
+    ]
+)
 SCENES = ("points", "image", "scalars", "textlogs", "properties")
 COLD = {"rec-image", "rec-textlogs"}
 PINNED = {"rec-points", "rec-image"}  # one warm, one cold
@@ -46,8 +50,10 @@ def get(server: LiveServer, path: str) -> Any:
 
 def answers(server: LiveServer, run_ids: list[str]) -> dict[str, Any]:
     """What clients see: the run lists (all tiers) and each run in full."""
-    seen: dict[str, Any] = {f"/v1/runs{q}": get(server, f"/v1/runs{q}")
-                            for q in ("", "?tier=hot", "?tier=warm", "?tier=cold", "?sort=id&limit=2")}
+    seen: dict[str, Any] = {
+        f"/v1/runs{q}": get(server, f"/v1/runs{q}")
+        for q in ("", "?tier=hot", "?tier=warm", "?tier=cold", "?sort=id&limit=2")
+    }
     for run_id in run_ids:
         seen[f"/v1/runs/{run_id}"] = get(server, f"/v1/runs/{run_id}")
     return seen
@@ -72,8 +78,11 @@ def recordings_served(server: LiveServer, run_ids: list[str]) -> dict[str, tuple
 def differences(before: Any, after: Any, path: str = "") -> set[str]:
     """Dotted paths where two JSON answers differ."""
     if isinstance(before, dict) and isinstance(after, dict):
-        return {d for key in before.keys() | after.keys()
-                for d in differences(before.get(key), after.get(key), f"{path}.{key}" if path else key)}
+        return {
+            d
+            for key in before.keys() | after.keys()
+            for d in differences(before.get(key), after.get(key), f"{path}.{key}" if path else key)
+        }
     if isinstance(before, list) and isinstance(after, list) and len(before) == len(after) and path != "events":
         return {d for i, (b, a) in enumerate(zip(before, after, strict=True)) for d in differences(b, a, path)}
     return set() if before == after else {path}
@@ -92,8 +101,9 @@ class Catalog:
 
     def create(self) -> None:
         if self.url:  # a server catalog is made by `fleet db upgrade`; the embedded one by `fleet serve`
-            done = subprocess.run([FLEET, "db", "upgrade", "--catalog-url", self.url], capture_output=True,
-                                  text=True, timeout=60)
+            done = subprocess.run(
+                [FLEET, "db", "upgrade", "--catalog-url", self.url], capture_output=True, text=True, timeout=60
+            )
             assert done.returncode == 0, done.stderr
 
     def drop(self) -> None:
@@ -118,16 +128,17 @@ def catalog(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[Catalog]
         yield Catalog(request.param, tmp_path / "data", stack)
 
 
-def test_rebuilt_catalog_answers_as_before(catalog: Catalog, tmp_path: Path, recordings: dict[str, Recording],
-                                           rerun_bin: str):
-    server = LiveServer(tmp_path / "data", scheduler="false", promote_after_s="0", retention_policies=POLICIES,
-                        **catalog.settings())
+def test_rebuilt_catalog_answers_as_before(
+    catalog: Catalog, tmp_path: Path, recordings: dict[str, Recording], rerun_bin: str
+):
+    server = LiveServer(
+        tmp_path / "data", scheduler="false", promote_after_s="0", retention_policies=POLICIES, **catalog.settings()
+    )
     run_ids = sorted(recordings[s].recordings[0]["recording_id"] for s in SCENES)
     try:
         server.start()
         for scene in SCENES:
-            assert httpx.post(f"{server.url}/v1/uploads", content=recordings[scene].data,
-                              timeout=60).status_code == 200
+            assert httpx.post(f"{server.url}/v1/uploads", content=recordings[scene].data, timeout=60).status_code == 200
         assert run_retention(server) == {"event": "end", "done": len(SCENES), "failed": 0}  # promoted
         assert run_retention(server) == {"event": "end", "done": len(COLD), "failed": 0}  # archived
         for run_id in PINNED:
@@ -152,8 +163,11 @@ def test_rebuilt_catalog_answers_as_before(catalog: Catalog, tmp_path: Path, rec
         assert get(server, "/v1/retention/plan") == {"actions": [], "upcoming": []}
         assert httpx.post(f"{server.url}/v1/runs/rec-image/restore", timeout=10).status_code == 202
         # the copy back from the cold store starts at once, in the background
-        server.wait_for(lambda: get(server, "/v1/runs/rec-image")["lifecycle"]["restore_state"] == "restored",
-                        timeout=30, what="the restore of a rebuilt cold run")
+        server.wait_for(
+            lambda: get(server, "/v1/runs/rec-image")["lifecycle"]["restore_state"] == "restored",
+            timeout=30,
+            what="the restore of a rebuilt cold run",
+        )
         restored = tmp_path / "restored.rrd"
         restored.write_bytes(recordings_served(server, ["rec-image"])["rec-image"][1])
     finally:
@@ -180,6 +194,10 @@ def test_rebuilt_catalog_answers_as_before(catalog: Catalog, tmp_path: Path, rec
     assert served_after == served_before
     assert {r for r, (status, _) in served_before.items() if status == 409} == COLD
     source = next(recordings[s] for s in SCENES if recordings[s].recordings[0]["recording_id"] == "rec-image")
-    compare = subprocess.run([rerun_bin, "rrd", "compare", "--unordered", str(source.path), str(restored)],
-                             capture_output=True, text=True, timeout=120)
+    compare = subprocess.run(
+        [rerun_bin, "rrd", "compare", "--unordered", str(source.path), str(restored)],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert compare.returncode == 0, compare.stderr

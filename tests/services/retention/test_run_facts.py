@@ -56,8 +56,7 @@ def _in_catalog(node: Node) -> RunJson:
     return found
 
 
-def test_run_json_says_what_the_catalog_says_after_each_change(tiers: Tiers, make_node: NodeFactory,
-                                                               logged: Path):
+def test_run_json_says_what_the_catalog_says_after_each_change(tiers: Tiers, make_node: NodeFactory, logged: Path):
     node = make_node(tiers, clock=Clock(), warm_days=30, cold_days=365)
     _promote(node, logged)
     sealed = _in_bucket(node)
@@ -95,8 +94,7 @@ class RunJsonFails:
 
 
 @pytest.mark.parametrize("tiers", ["file"], indirect=True)
-def test_a_pin_whose_run_json_cannot_be_written_is_not_recorded(tiers: Tiers, make_node: NodeFactory,
-                                                                logged: Path):
+def test_a_pin_whose_run_json_cannot_be_written_is_not_recorded(tiers: Tiers, make_node: NodeFactory, logged: Path):
     warm = RunJsonFails(tiers.warm)
     node = make_node(Tiers(warm, tiers.cold), clock=Clock())  # type: ignore[arg-type]
     _promote(node, logged)
@@ -114,8 +112,9 @@ def test_a_pin_whose_run_json_cannot_be_written_is_not_recorded(tiers: Tiers, ma
 
 
 @pytest.mark.parametrize("tiers", ["file"], indirect=True)
-def test_data_for_a_run_archived_since_this_node_sealed_it_is_refused(tiers: Tiers, make_node: NodeFactory,
-                                                                      logged: Path):
+def test_data_for_a_run_archived_since_this_node_sealed_it_is_refused(
+    tiers: Tiers, make_node: NodeFactory, logged: Path
+):
     """Ingest remembers the runs it sealed lately (for data that comes while the catalog does not
     answer), but the catalog's tier wins: the run is cold now, and takes no data until restored."""
     node = make_node(tiers, clock=Clock(), warm_days=30, cold_days=365)

@@ -102,8 +102,12 @@ def test_postgres_lock_of_a_killed_process_is_freed(postgres_url: str):
     """A process that dies holding the lock frees it (its connection ends): the job is not stuck."""
     engine = create_engine(postgres_url)
     job = f"test-{uuid.uuid4().hex[:8]}"
-    holder = subprocess.Popen([sys.executable, "-c", HOLDER, postgres_url, job], stdout=subprocess.PIPE,
-                              text=True, cwd=Path(__file__).resolve().parents[3])
+    holder = subprocess.Popen(
+        [sys.executable, "-c", HOLDER, postgres_url, job],
+        stdout=subprocess.PIPE,
+        text=True,
+        cwd=Path(__file__).resolve().parents[3],
+    )
     try:
         assert holder.stdout is not None and holder.stdout.readline().strip() == "HELD"
         assert _free(engine, job) is False
@@ -160,8 +164,9 @@ SKIPPED = "retention job is running in another process: skipped"
 @pytest.fixture
 def pg_catalog() -> Iterator[str]:
     with temporary_database("fleet_sched") as url:
-        upgraded = subprocess.run([FLEET, "db", "upgrade", "--catalog-url", url], capture_output=True, text=True,
-                                  timeout=60)
+        upgraded = subprocess.run(
+            [FLEET, "db", "upgrade", "--catalog-url", url], capture_output=True, text=True, timeout=60
+        )
         assert upgraded.returncode == 0, upgraded.stderr
         yield url
 
@@ -173,8 +178,9 @@ def _skips(server: LiveServer) -> int:
 def _overlapping(rows: list[JobRun]) -> list[tuple[JobRun, JobRun]]:
     """Pairs of job runs that overlap in time (a run not finished lasts until the end)."""
     far = dt.datetime.max.replace(tzinfo=dt.UTC)
-    spans = sorted(((_aware(r.started_at), _aware(r.finished_at) if r.finished_at else far, r) for r in rows),
-                   key=lambda s: s[0])
+    spans = sorted(
+        ((_aware(r.started_at), _aware(r.finished_at) if r.finished_at else far, r) for r in rows), key=lambda s: s[0]
+    )
     return [(a[2], b[2]) for a, b in itertools.pairwise(spans) if b[0] < a[1]]
 
 
@@ -185,11 +191,19 @@ def _aware(value: dt.datetime) -> dt.datetime:
 @pytest.mark.slow
 @pytest.mark.sdk
 @pytest.mark.postgres
-def test_two_processes_run_the_retention_job_one_at_a_time(pg_catalog: str, tmp_path: Path,
-                                                           recordings: dict[str, Recording]):
-    shared = {"catalog_url": pg_catalog, "warm_url": (tmp_path / "warm").as_uri(),
-              "cold_url": (tmp_path / "cold").as_uri(), "promote_after_s": "0", "promote_interval_s": "0.3",
-              "retention_interval_s": "0.3", "warm_days": "0", "cold_days": "365"}
+def test_two_processes_run_the_retention_job_one_at_a_time(
+    pg_catalog: str, tmp_path: Path, recordings: dict[str, Recording]
+):
+    shared = {
+        "catalog_url": pg_catalog,
+        "warm_url": (tmp_path / "warm").as_uri(),
+        "cold_url": (tmp_path / "cold").as_uri(),
+        "promote_after_s": "0",
+        "promote_interval_s": "0.3",
+        "retention_interval_s": "0.3",
+        "warm_days": "0",
+        "cold_days": "365",
+    }
     a = LiveServer(tmp_path / "a", **shared)
     b = LiveServer(tmp_path / "b", **shared)
     engine = create_engine(pg_catalog)
@@ -221,8 +235,9 @@ def test_two_processes_run_the_retention_job_one_at_a_time(pg_catalog: str, tmp_
         assert a.proc is not None and b.proc is not None
         pids = {str(a.proc.pid), str(b.proc.pid)}
         _poll(lambda: _nodes(engine) == pids, 60, "both services to have run the retention job")
-        events = {run: [e["action"] for e in httpx.get(f"{a.url}/v1/runs/{run}", timeout=10).json()["events"]]
-                  for run in runs}
+        events = {
+            run: [e["action"] for e in httpx.get(f"{a.url}/v1/runs/{run}", timeout=10).json()["events"]] for run in runs
+        }
     finally:
         a.stop()
         b.stop()
@@ -234,30 +249,36 @@ def test_two_processes_run_the_retention_job_one_at_a_time(pg_catalog: str, tmp_
     nodes = {r.node.rsplit(":", 1)[1] for r in rows}  # hostname:pid
     assert nodes == pids, f"retention ran on {nodes}, the services are {pids}"
     assert _overlapping(rows) == [], "two retention jobs ran at the same time"
-    assert not [r for r in rows if _aware(r.started_at) < held_to and (
-        r.finished_at is None or _aware(r.finished_at) > held_from)], "a job ran while the test held the lock"
+    assert not [
+        r
+        for r in rows
+        if _aware(r.started_at) < held_to and (r.finished_at is None or _aware(r.finished_at) > held_from)
+    ], "a job ran while the test held the lock"
     assert all(r.outcome == "ok" for r in rows), [r.detail for r in rows if r.outcome != "ok"]
     archived = sum(int(r.detail.split(" done")[0]) for r in rows)
     assert archived == len(runs)  # every run archived once, by one job or another
     for run, actions in events.items():
         assert actions.count("promote") == 1 and actions.count("archive") == 1, (run, actions)
     # promotion is each node's own: each promoted exactly the runs uploaded to it
-    promoted = {pid: sum(int(r.detail.split(" done")[0]) for r in promotions if r.node.endswith(f":{pid}"))
-                for pid in pids}
+    promoted = {
+        pid: sum(int(r.detail.split(" done")[0]) for r in promotions if r.node.endswith(f":{pid}")) for pid in pids
+    }
     assert promoted == {str(a.proc.pid): len(SCENES_A), str(b.proc.pid): len(SCENES_B)}
 
 
 def _nodes(engine: sa.Engine) -> set[str]:
     """The processes (pids) that have run the retention job."""
     with Session(engine) as session:
-        return {node.rsplit(":", 1)[1] for node in session.scalars(sa.select(JobRun.node)
-                                                                    .where(JobRun.job == "retention"))}
+        return {
+            node.rsplit(":", 1)[1] for node in session.scalars(sa.select(JobRun.node).where(JobRun.job == "retention"))
+        }
 
 
 def _count(engine: sa.Engine, since: dt.datetime) -> int:
     with Session(engine) as session:
-        return int(session.scalar(sa.select(sa.func.count()).where(JobRun.job == "retention",
-                                                                   JobRun.started_at > since)) or 0)
+        return int(
+            session.scalar(sa.select(sa.func.count()).where(JobRun.job == "retention", JobRun.started_at > since)) or 0
+        )
 
 
 # --- the hot high-water mark -------------------------------------------------------------------
@@ -270,8 +291,9 @@ def _upload(ingest: IngestService, path: Path) -> str:
 
 
 @pytest.mark.sdk
-def test_past_the_high_water_mark_closed_runs_are_promoted_oldest_first(make_node: NodeFactory, tmp_path: Path,
-                                                                        recordings: dict[str, Recording]):
+def test_past_the_high_water_mark_closed_runs_are_promoted_oldest_first(
+    make_node: NodeFactory, tmp_path: Path, recordings: dict[str, Recording]
+):
     free = {"bytes": 10 << 30}
     tiers = Tiers(open_store((tmp_path / "warm").as_uri()), open_store((tmp_path / "cold").as_uri()))
     node = make_node(tiers, promote_after_s=600, promote_below_free_bytes=1 << 30, free_bytes=lambda: free["bytes"])

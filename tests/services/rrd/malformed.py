@@ -52,8 +52,9 @@ TRANSLATION, QUATERNION = "Transform3D:translation", "Transform3D:quaternion"
 
 
 def record_seed(path: Path, recording_id: str = "seed") -> Path:
-    done = subprocess.run([sys.executable, "-c", SEED_SCRIPT, str(path), recording_id], capture_output=True,
-                          timeout=120, check=False)
+    done = subprocess.run(
+        [sys.executable, "-c", SEED_SCRIPT, str(path), recording_id], capture_output=True, timeout=120, check=False
+    )
     assert done.returncode == 0, done.stderr.decode(errors="replace")
     return path
 
@@ -82,8 +83,9 @@ class Seed:
         encoder.finish()
         return out.getvalue()
 
-    def messages(self, replace: dict[int, bytes] | None = None,
-                 recording_id: str | None = None) -> list[tuple[MessageKind, bytes]]:
+    def messages(
+        self, replace: dict[int, bytes] | None = None, recording_id: str | None = None
+    ) -> list[tuple[MessageKind, bytes]]:
         out: list[tuple[MessageKind, bytes]] = []
         for event in self.events:
             if isinstance(event, StoreInfoMessage):
@@ -175,7 +177,7 @@ def node_length_patched(batch: pa.RecordBatch, node: int, length: int) -> bytes:
     parsed = _parse_batch_header(bytes(ipc), pos, LayoutCache().get(schema_message, b"", 0))
     assert parsed is not None and parsed[1] is not None
     at = pos + 8 + parsed[1].at_nodes + 16 * node
-    ipc[at:at + 8] = struct.pack("<q", length)
+    ipc[at : at + 8] = struct.pack("<q", length)
     return bytes(ipc)
 
 
@@ -191,40 +193,61 @@ Builder = Callable[[pa.RecordBatch], bytes]
 
 # (variant, entity) -> the IPC bytes of the damaged chunk. Each is refused by `rerun rrd verify` 0.41.
 MALFORMED: dict[str, tuple[str, Builder]] = {
-    "scalars_float32": ("/robot/speed", lambda b: ipc_of(with_column(
-        b, SCALARS, b.column(SCALARS).cast(pa.list_(pa.float32()))))),
-    "scalars_int32": ("/robot/speed", lambda b: ipc_of(with_column(
-        b, SCALARS, b.column(SCALARS).cast(pa.list_(pa.int32()), safe=False)))),
-    "scalars_large_list": ("/robot/speed", lambda b: ipc_of(with_column(
-        b, SCALARS, b.column(SCALARS).cast(pa.large_list(pa.float64()))))),
-    "scalars_fixed_size_list": ("/robot/speed", lambda b: ipc_of(with_column(
-        b, SCALARS, pa.FixedSizeListArray.from_arrays(b.column(SCALARS).values, 2)))),
+    "scalars_float32": (
+        "/robot/speed",
+        lambda b: ipc_of(with_column(b, SCALARS, b.column(SCALARS).cast(pa.list_(pa.float32())))),
+    ),
+    "scalars_int32": (
+        "/robot/speed",
+        lambda b: ipc_of(with_column(b, SCALARS, b.column(SCALARS).cast(pa.list_(pa.int32()), safe=False))),
+    ),
+    "scalars_large_list": (
+        "/robot/speed",
+        lambda b: ipc_of(with_column(b, SCALARS, b.column(SCALARS).cast(pa.large_list(pa.float64())))),
+    ),
+    "scalars_fixed_size_list": (
+        "/robot/speed",
+        lambda b: ipc_of(with_column(b, SCALARS, pa.FixedSizeListArray.from_arrays(b.column(SCALARS).values, 2))),
+    ),
     "scalars_offsets_decreasing": ("/robot/speed", lambda b: patched(b, i32(0, 2, 4, 6, 8), i32(0, 2, 7, 6, 8))),
-    "scalars_offsets_past_values": ("/robot/speed", lambda b: patched(b, i32(0, 2, 4, 6, 8),
-                                                                      i32(0, 2, 4, 6, 1 << 20))),
+    "scalars_offsets_past_values": ("/robot/speed", lambda b: patched(b, i32(0, 2, 4, 6, 8), i32(0, 2, 4, 6, 1 << 20))),
     "scalars_offsets_negative": ("/robot/speed", lambda b: patched(b, i32(0, 2, 4, 6, 8), i32(-4, 2, 4, 6, 8))),
     "scalars_column_shorter_than_batch": ("/robot/speed", lambda b: node_length_patched(b, 3, 3)),
     "index_column_shorter_than_batch": ("/robot/speed", lambda b: node_length_patched(b, 1, 3)),
-    "row_id_null": ("/robot/speed", lambda b: ipc_of(with_column(
-        b, "rerun.controls.RowId", pa.array([None, *b.column(0).to_pylist()[1:]], pa.binary(16))))),
+    "row_id_null": (
+        "/robot/speed",
+        lambda b: ipc_of(
+            with_column(b, "rerun.controls.RowId", pa.array([None, *b.column(0).to_pylist()[1:]], pa.binary(16)))
+        ),
+    ),
     "row_id_missing": ("/robot/speed", lambda b: ipc_of(b.drop_columns(["rerun.controls.RowId"]))),
-    "row_id_binary": ("/robot/speed", lambda b: ipc_of(with_column(
-        b, "rerun.controls.RowId", pa.array(b.column(0).to_pylist(), pa.binary())))),
+    "row_id_binary": (
+        "/robot/speed",
+        lambda b: ipc_of(with_column(b, "rerun.controls.RowId", pa.array(b.column(0).to_pylist(), pa.binary()))),
+    ),
     "no_chunk_id_metadata": ("/robot/speed", lambda b: ipc_of(_without_metadata(b, b"rerun:id"))),
     "index_int32": ("/robot/speed", lambda b: ipc_of(with_column(b, "frame", pa.array(range(4), pa.int32())))),
     "text_binary": ("/log", lambda b: ipc_of(with_column(b, TEXT, b.column(TEXT).cast(pa.list_(pa.binary()))))),
     "text_not_utf8": ("/log", lambda b: patched(b, b"step 2", b"step \xff")),
     "level_int32": ("/log", lambda b: ipc_of(with_column(b, LEVEL, pa.array([[1]] * 4, pa.list_(pa.int32()))))),
-    "translation_width_2": ("/tf", lambda b: ipc_of(with_column(
-        b, TRANSLATION, _nested([[1.0, 2.0]] * 4, pa.list_(pa.float32(), 2))))),
-    "translation_float64": ("/tf", lambda b: ipc_of(with_column(
-        b, TRANSLATION, _nested([[1.0, 2.0, 3.0]] * 4, pa.list_(pa.float64(), 3))))),
-    "quaternion_width_3": ("/tf", lambda b: ipc_of(with_column(
-        b, QUATERNION, _nested([[1.0, 2.0, 3.0]] * 4, pa.list_(pa.float32(), 3))))),
+    "translation_width_2": (
+        "/tf",
+        lambda b: ipc_of(with_column(b, TRANSLATION, _nested([[1.0, 2.0]] * 4, pa.list_(pa.float32(), 2)))),
+    ),
+    "translation_float64": (
+        "/tf",
+        lambda b: ipc_of(with_column(b, TRANSLATION, _nested([[1.0, 2.0, 3.0]] * 4, pa.list_(pa.float64(), 3)))),
+    ),
+    "quaternion_width_3": (
+        "/tf",
+        lambda b: ipc_of(with_column(b, QUATERNION, _nested([[1.0, 2.0, 3.0]] * 4, pa.list_(pa.float32(), 3)))),
+    ),
     # Finding 2: a small property chunk whose list offsets point far outside its values.
     "property_offsets_past_values": ("/__properties/fleet", lambda b: _property_offsets(b)),
-    "property_not_utf8": ("/__properties/fleet", lambda b: patched(b, b"robot-seven-of-nine",
-                                                                   b"robot\xffseven-of-nine")),
+    "property_not_utf8": (
+        "/__properties/fleet",
+        lambda b: patched(b, b"robot-seven-of-nine", b"robot\xffseven-of-nine"),
+    ),
 }
 
 
@@ -243,5 +266,10 @@ def malformed_chunk(seed: Seed, variant: str) -> tuple[ArrowMessage, bytes]:
 
 
 def rerun_verify(rerun_bin: str, path: Path) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([rerun_bin, "rrd", "verify", "--check-footers", "false", str(path)],
-                          capture_output=True, text=True, timeout=120, check=False)
+    return subprocess.run(
+        [rerun_bin, "rrd", "verify", "--check-footers", "false", str(path)],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=False,
+    )

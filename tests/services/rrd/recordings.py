@@ -29,13 +29,35 @@ from typing import Any
 
 # Scenes that each produce one .rrd file with one recording (two for "merged" inputs).
 SCENES = (
-    "points", "image", "scalars", "textlogs", "transforms", "static", "properties", "blueprint",
-    "no_footer", "merge_a", "merge_b", "large",
+    "points",
+    "image",
+    "scalars",
+    "textlogs",
+    "transforms",
+    "static",
+    "properties",
+    "blueprint",
+    "no_footer",
+    "merge_a",
+    "merge_b",
+    "large",
 )
 
 # Files written by the SDK in one piece (two SetStoreInfo per store, as the SDK always sends).
-SDK_FILES = ("points", "image", "scalars", "textlogs", "transforms", "static", "properties", "blueprint",
-             "no_footer", "merge_a", "merge_b", "large")
+SDK_FILES = (
+    "points",
+    "image",
+    "scalars",
+    "textlogs",
+    "transforms",
+    "static",
+    "properties",
+    "blueprint",
+    "no_footer",
+    "merge_a",
+    "merge_b",
+    "large",
+)
 # Re-encoded by the rerun CLI (one SetStoreInfo per store).
 CLI_FILES = ("merged", "optimized")
 # Everything that decodes without error.
@@ -99,8 +121,11 @@ def walk_frames(data: bytes) -> tuple[list[Frame], int | None]:
 
 
 def start_scene(scene: str, out_dir: Path) -> subprocess.Popen[bytes]:
-    return subprocess.Popen([sys.executable, str(Path(__file__).resolve()), scene, str(out_dir)],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    return subprocess.Popen(
+        [sys.executable, str(Path(__file__).resolve()), scene, str(out_dir)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+    )
 
 
 def generate_scenes(scenes: tuple[str, ...], out_dir: Path, timeout: float = 120) -> dict[str, Recording]:
@@ -125,10 +150,13 @@ def rerun_rrd(rerun_bin: str, command: str, inputs: list[Recording], out_dir: Pa
     """`rerun rrd merge|optimize IN... -o OUT`: one stream (with footer) holding every input recording,
     re-encoded by Rerun (`optimize` also compacts chunks of an entity into one)."""
     out = out_dir / f"{name}.rrd"
-    subprocess.run([rerun_bin, "rrd", command, *(str(r.path) for r in inputs), "-o", str(out)],
-                   check=True, capture_output=True, timeout=120)
-    truth = {"scene": name, "footer": True,
-             "recordings": [rec for r in inputs for rec in r.recordings]}
+    subprocess.run(
+        [rerun_bin, "rrd", command, *(str(r.path) for r in inputs), "-o", str(out)],
+        check=True,
+        capture_output=True,
+        timeout=120,
+    )
+    truth = {"scene": name, "footer": True, "recordings": [rec for r in inputs for rec in r.recordings]}
     (out_dir / f"{name}.json").write_text(json.dumps(truth, indent=1))
     return Recording(name, out, truth)
 
@@ -159,22 +187,30 @@ class Truth:
         self.rec = rr.RecordingStream(application_id, recording_id=recording_id)
         self.times: dict[str, tuple[str, int]] = {}
         self.truth: dict[str, Any] = {
-            "application_id": application_id, "recording_id": recording_id, "blueprint": False,
-            "properties": {}, "entities": {},
+            "application_id": application_id,
+            "recording_id": recording_id,
+            "blueprint": False,
+            "properties": {},
+            "entities": {},
         }
         # send_properties=True (the default): the SDK logs RecordingInfo:start_time itself.
         self.entities["/__properties"] = {
-            "static_rows": 1, "temporal_rows": 0, "archetypes": ["rerun.archetypes.RecordingInfo"],
-            "components": ["RecordingInfo:start_time"], "component_rows": {"RecordingInfo:start_time": 1},
-            "timelines": {}, "sdk": True,
+            "static_rows": 1,
+            "temporal_rows": 0,
+            "archetypes": ["rerun.archetypes.RecordingInfo"],
+            "components": ["RecordingInfo:start_time"],
+            "component_rows": {"RecordingInfo:start_time": 1},
+            "timelines": {},
+            "sdk": True,
         }
 
     @property
     def entities(self) -> dict[str, Any]:
         return self.truth["entities"]  # type: ignore[no-any-return]
 
-    def set_time(self, timeline: str, *, sequence: int | None = None, duration: int | None = None,
-                 timestamp: int | None = None) -> None:
+    def set_time(
+        self, timeline: str, *, sequence: int | None = None, duration: int | None = None, timestamp: int | None = None
+    ) -> None:
         import numpy as np
 
         if sequence is not None:
@@ -193,10 +229,18 @@ class Truth:
         del self.times[timeline]
 
     def _record(self, path: str, archetype: Any, static: bool) -> None:
-        entity = self.entities.setdefault(path, {
-            "static_rows": 0, "temporal_rows": 0, "archetypes": [], "components": [], "component_rows": {},
-            "timelines": {}, "sdk": False,
-        })
+        entity = self.entities.setdefault(
+            path,
+            {
+                "static_rows": 0,
+                "temporal_rows": 0,
+                "archetypes": [],
+                "components": [],
+                "component_rows": {},
+                "timelines": {},
+                "sdk": False,
+            },
+        )
         for batch in archetype.as_component_batches():
             descr = batch.component_descriptor()
             if descr.archetype and descr.archetype not in entity["archetypes"]:
@@ -293,8 +337,13 @@ def _scene_scalars(rr: Any, out: Path) -> list[Truth]:
 def _scene_textlogs(rr: Any, out: Path) -> list[Truth]:
     t = Truth(rr, "fleet_logs", "rec-textlogs")
     t.rec.save(out)
-    levels = [rr.TextLogLevel.INFO, rr.TextLogLevel.WARN, rr.TextLogLevel.ERROR, rr.TextLogLevel.DEBUG,
-              rr.TextLogLevel.CRITICAL]
+    levels = [
+        rr.TextLogLevel.INFO,
+        rr.TextLogLevel.WARN,
+        rr.TextLogLevel.ERROR,
+        rr.TextLogLevel.DEBUG,
+        rr.TextLogLevel.CRITICAL,
+    ]
     for i, level in enumerate(levels):
         t.set_time("uptime", duration=1_500_000_000 * i + 123)
         t.log("/logs/robot", rr.TextLog(f"event {i}", level=level))
@@ -309,8 +358,10 @@ def _scene_transforms(rr: Any, out: Path) -> list[Truth]:
         t.set_time("frame", sequence=i * 10)
         t.set_time("wall", timestamp=BASE_TS + 10**9 * i)
         t.log("/world/robot", rr.Transform3D(translation=[i, 0.0, 0.0]))
-        t.log("/world/robot/arm", rr.Transform3D(translation=[0.0, 0.0, 1.0],
-                                                 quaternion=rr.Quaternion(xyzw=[0.0, 0.0, 0.0, 1.0])))
+        t.log(
+            "/world/robot/arm",
+            rr.Transform3D(translation=[0.0, 0.0, 1.0], quaternion=rr.Quaternion(xyzw=[0.0, 0.0, 0.0, 1.0])),
+        )
     return [t]
 
 
@@ -342,10 +393,13 @@ def _scene_blueprint(rr: Any, out: Path) -> list[Truth]:
     import rerun.blueprint as rrb
 
     t = Truth(rr, "fleet_bp", "rec-blueprint")
-    t.rec.save(out, default_blueprint=rrb.Blueprint(
-        rrb.Horizontal(rrb.Spatial3DView(origin="/world"), rrb.TimeSeriesView(origin="/robot")),
-        collapse_panels=True,
-    ))
+    t.rec.save(
+        out,
+        default_blueprint=rrb.Blueprint(
+            rrb.Horizontal(rrb.Spatial3DView(origin="/world"), rrb.TimeSeriesView(origin="/robot")),
+            collapse_panels=True,
+        ),
+    )
     t.truth["blueprint"] = True
     for i in range(3):
         t.set_time("frame", sequence=i)

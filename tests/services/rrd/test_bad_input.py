@@ -53,8 +53,9 @@ CHUNK_ID_HEX = "18EA26BD96404E103c04e43dcbb199d4"
 CHUNK_ID = bytes.fromhex(CHUNK_ID_HEX)
 
 
-def header(version: bytes = bytes([0, 41, 0, 0]), options: bytes = bytes([1, 2, 0, 0]),
-           magic: bytes = b"RRF2") -> bytes:
+def header(
+    version: bytes = bytes([0, 41, 0, 0]), options: bytes = bytes([1, 2, 0, 0]), magic: bytes = b"RRF2"
+) -> bytes:
     return magic + version + options
 
 
@@ -63,34 +64,46 @@ def frame(kind: int, body: bytes) -> bytes:
 
 
 def store_id_pb(recording_id: str = "rec-1", app: str = "app", kind: int = 1) -> common_pb2.StoreId:
-    return common_pb2.StoreId(kind=kind, recording_id=recording_id,  # type: ignore[arg-type]
-                              application_id=common_pb2.ApplicationId(id=app))
+    return common_pb2.StoreId(
+        kind=kind,  # type: ignore[arg-type]
+        recording_id=recording_id,
+        application_id=common_pb2.ApplicationId(id=app),
+    )
 
 
 def store_info_body() -> bytes:
-    info = log_msg_pb2.StoreInfo(store_id=store_id_pb(),
-                                 store_version=log_msg_pb2.StoreVersion(crate_version_bits=0x2900))
+    info = log_msg_pb2.StoreInfo(
+        store_id=store_id_pb(), store_version=log_msg_pb2.StoreVersion(crate_version_bits=0x2900)
+    )
     return log_msg_pb2.SetStoreInfo(row_id=common_pb2.Tuid(time_ns=1, inc=2), info=info).SerializeToString()
 
 
-def chunk_ipc(*, entity_path: bytes | None = b"/robot/speed",
-              chunk_id: bytes | None = ("chunk_" + CHUNK_ID_HEX).encode(),
-              frames: tuple[int, ...] = (5, 1, 3),
-              scalars: tuple[list[float] | None, ...] = (None, [1.0], [2.0, 3.0]),
-              with_index: bool = True) -> bytes:
+def chunk_ipc(
+    *,
+    entity_path: bytes | None = b"/robot/speed",
+    chunk_id: bytes | None = ("chunk_" + CHUNK_ID_HEX).encode(),
+    frames: tuple[int, ...] = (5, 1, 3),
+    scalars: tuple[list[float] | None, ...] = (None, [1.0], [2.0, 3.0]),
+    with_index: bool = True,
+) -> bytes:
     """A minimal Rerun chunk as an Arrow IPC stream: RowId, a `frame` sequence index, Scalars."""
     n = len(scalars)
     fields = [pa.field("rerun.controls.RowId", pa.binary(16), metadata={b"rerun:kind": b"control"})]
     columns: list[pa.Array] = [pa.array([i.to_bytes(16, "big") for i in range(n)], pa.binary(16))]
     if with_index:
-        fields.append(pa.field("frame", pa.int64(),
-                               metadata={b"rerun:kind": b"index", b"rerun:index_name": b"frame"}))
+        fields.append(pa.field("frame", pa.int64(), metadata={b"rerun:kind": b"index", b"rerun:index_name": b"frame"}))
         columns.append(pa.array(frames, pa.int64()))
-    fields.append(pa.field("Scalars:scalars", pa.list_(pa.float64()), metadata={
-        b"rerun:kind": b"data",
-        b"rerun:component": b"Scalars:scalars",
-        b"rerun:archetype": b"rerun.archetypes.Scalars",
-    }))
+    fields.append(
+        pa.field(
+            "Scalars:scalars",
+            pa.list_(pa.float64()),
+            metadata={
+                b"rerun:kind": b"data",
+                b"rerun:component": b"Scalars:scalars",
+                b"rerun:archetype": b"rerun.archetypes.Scalars",
+            },
+        )
+    )
     columns.append(pa.array(list(scalars), pa.list_(pa.float64())))
     metadata: dict[bytes, bytes] = {b"sorbet:version": b"0.1.3"}
     if entity_path is not None:
@@ -104,19 +117,28 @@ def chunk_ipc(*, entity_path: bytes | None = b"/robot/speed",
     return sink.getvalue()
 
 
-def arrow_body(ipc: bytes, *, compression: int = PB_LZ4, uncompressed_size: int | None = None,
-               payload: bytes | None = None, chunk_id: bytes | None = None) -> bytes:
+def arrow_body(
+    ipc: bytes,
+    *,
+    compression: int = PB_LZ4,
+    uncompressed_size: int | None = None,
+    payload: bytes | None = None,
+    chunk_id: bytes | None = None,
+) -> bytes:
     """An ArrowMsg protobuf; the payload is LZ4-block compressed (no size prefix) by default."""
     if payload is None:
         payload = lz4.block.compress(ipc, store_size=False) if compression == PB_LZ4 else ipc
     pb = log_msg_pb2.ArrowMsg(
-        store_id=store_id_pb(), compression=compression,  # type: ignore[arg-type]
+        store_id=store_id_pb(),
+        compression=compression,  # type: ignore[arg-type]
         uncompressed_size=len(ipc) if uncompressed_size is None else uncompressed_size,
-        encoding=log_msg_pb2.ENCODING_ARROW_IPC, payload=payload,
+        encoding=log_msg_pb2.ENCODING_ARROW_IPC,
+        payload=payload,
     )
     if chunk_id is not None:
-        pb.chunk_id.CopyFrom(common_pb2.Tuid(time_ns=int.from_bytes(chunk_id[:8], "big"),
-                                             inc=int.from_bytes(chunk_id[8:], "big")))
+        pb.chunk_id.CopyFrom(
+            common_pb2.Tuid(time_ns=int.from_bytes(chunk_id[:8], "big"), inc=int.from_bytes(chunk_id[8:], "big"))
+        )
     return pb.SerializeToString()
 
 
@@ -152,8 +174,9 @@ class Outcome:
     exc: errors.RrdError
 
 
-def decode_expect(good: bytes, bad: bytes, cls: type[errors.RrdError], offset: int | tuple[int, ...],
-                  **decoder_args: int) -> Outcome:
+def decode_expect(
+    good: bytes, bad: bytes, cls: type[errors.RrdError], offset: int | tuple[int, ...], **decoder_args: int
+) -> Outcome:
     """Feed `good` (must succeed), then `bad`, then finish(): the error must be `cls` at `offset`
     (or at one of `offset` if a tuple).
 
@@ -176,17 +199,17 @@ def decode_expect(good: bytes, bad: bytes, cls: type[errors.RrdError], offset: i
         whole_events += whole_decoder.feed(good + bad)
         whole_events += whole_decoder.finish()
     check_error(whole_info.value, cls, offset)
-    assert summary(whole_events[:len(before)]) == summary(before)
+    assert summary(whole_events[: len(before)]) == summary(before)
 
     byte_decoder = RrdDecoder(**decoder_args)
     byte_events: list[Event] = []
     data = good + bad
     with pytest.raises(errors.RrdError) as byte_info:
         for i in range(len(data)):
-            byte_events += byte_decoder.feed(data[i:i + 1])
+            byte_events += byte_decoder.feed(data[i : i + 1])
         byte_events += byte_decoder.finish()
     check_error(byte_info.value, cls, offset)
-    assert summary(byte_events[:len(before)]) == summary(before)
+    assert summary(byte_events[: len(before)]) == summary(before)
     assert all(e.offset < offset or isinstance(e, StreamFooter) for e in byte_events)
     return Outcome(before, info.value)
 
@@ -274,13 +297,17 @@ def test_offsets_count_from_start_offset() -> None:
 # --- one test per error ---------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("data", [
-    b"PK\x03\x04" + bytes(40),  # a zip file
-    b"\x89PNG\r\n\x1a\n" + bytes(8),
-    b"RRF3" + bytes([0, 41, 0, 0, 1, 2, 0, 0]),
-    b"rrf2" + bytes([0, 41, 0, 0, 1, 2, 0, 0]),
-    b"NOPE",  # exactly 4 bytes
-], ids=["zip", "png", "RRF3", "lowercase", "four-bytes"])
+@pytest.mark.parametrize(
+    "data",
+    [
+        b"PK\x03\x04" + bytes(40),  # a zip file
+        b"\x89PNG\r\n\x1a\n" + bytes(8),
+        b"RRF3" + bytes([0, 41, 0, 0, 1, 2, 0, 0]),
+        b"rrf2" + bytes([0, 41, 0, 0, 1, 2, 0, 0]),
+        b"NOPE",  # exactly 4 bytes
+    ],
+    ids=["zip", "png", "RRF3", "lowercase", "four-bytes"],
+)
 def test_not_an_rrd(data: bytes) -> None:
     decode_expect(b"", data, errors.NotAnRrdError, 0)
 
@@ -301,8 +328,11 @@ def test_garbage_after_end_is_a_footer_error() -> None:
     """After End comes a stream footer or a new stream; anything else is a malformed footer."""
     good = HEADER + STORE_INFO_FRAME + frame(END, b"\x12\x00")
     outcome = decode_expect(good, b"garbage!" * 3, errors.FooterError, len(good))
-    assert summary(outcome.before) == [(0, StreamStart), (12, StoreInfoMessage),
-                                       (12 + len(STORE_INFO_FRAME), EndMessage)]
+    assert summary(outcome.before) == [
+        (0, StreamStart),
+        (12, StoreInfoMessage),
+        (12 + len(STORE_INFO_FRAME), EndMessage),
+    ]
 
 
 def test_garbage_after_a_complete_stream_is_not_an_rrd() -> None:
@@ -365,16 +395,16 @@ def test_non_zero_reserved_bytes(reserved: bytes) -> None:
 def test_bad_header_of_second_concatenated_stream() -> None:
     """A concatenated stream's header is checked too, at its own absolute offset."""
     first = HEADER + STORE_INFO_FRAME
-    outcome = decode_expect(first, header(options=bytes([1, 2, 0, 9])) + STORE_INFO_FRAME,
-                            errors.ReservedBytesError, len(first) + 10)
+    outcome = decode_expect(
+        first, header(options=bytes([1, 2, 0, 9])) + STORE_INFO_FRAME, errors.ReservedBytesError, len(first) + 10
+    )
     assert summary(outcome.before) == [(0, StreamStart), (12, StoreInfoMessage)]
 
 
 def test_message_over_configured_limit() -> None:
     body = store_info_body()
     limit = len(body) - 1
-    outcome = decode_expect(HEADER, frame(STORE_INFO, body), errors.MessageTooLargeError, 12,
-                            max_message_size=limit)
+    outcome = decode_expect(HEADER, frame(STORE_INFO, body), errors.MessageTooLargeError, 12, max_message_size=limit)
     assert str(limit) in str(outcome.exc)
     assert outcome.exc.http_status() == 413
     assert outcome.exc.code.value == "MESSAGE_TOO_LARGE"
@@ -478,13 +508,17 @@ def test_stream_footer_cut_after_its_entry_is_truncated() -> None:
     check_error(info.value, errors.TruncatedError, len(good))  # where the trailer starts
 
 
-@pytest.mark.parametrize(("kind", "body"), [
-    (STORE_INFO, b"\xff\xff\xff"),
-    (ARROW, b"\x0a\xff\xff\xff\xff\x0f"),  # a length-delimited field longer than the message
-    (BLUEPRINT, b"\x08"),  # a varint tag with no value
-    (END, b"\x0a\x05ab"),
-    (STORE_INFO, log_msg_pb2.SetStoreInfo().SerializeToString()),  # parses, but no store_id
-], ids=["store-info", "arrow", "blueprint", "end", "no-store-id"])
+@pytest.mark.parametrize(
+    ("kind", "body"),
+    [
+        (STORE_INFO, b"\xff\xff\xff"),
+        (ARROW, b"\x0a\xff\xff\xff\xff\x0f"),  # a length-delimited field longer than the message
+        (BLUEPRINT, b"\x08"),  # a varint tag with no value
+        (END, b"\x0a\x05ab"),
+        (STORE_INFO, log_msg_pb2.SetStoreInfo().SerializeToString()),  # parses, but no store_id
+    ],
+    ids=["store-info", "arrow", "blueprint", "end", "no-store-id"],
+)
 def test_protobuf_does_not_parse(kind: int, body: bytes) -> None:
     outcome = decode_expect(PREFIX, frame(kind, body), errors.ProtobufError, LAST_OFFSET)
     assert summary(outcome.before) == PREFIX_EVENTS
@@ -550,14 +584,18 @@ def _schema_only_ipc() -> bytes:
     return sink.getvalue()
 
 
-@pytest.mark.parametrize("ipc", [
-    chunk_ipc(entity_path=None),
-    chunk_ipc(chunk_id=None),  # no rerun:id and no ArrowMsg.chunk_id
-    chunk_ipc(chunk_id=b"chunk_not-hex"),
-    b"this is not Arrow IPC at all, just text " * 3,
-    _schema_only_ipc(),  # a schema, but no record batch
-    chunk_ipc()[:-40],  # the record batch cut short
-], ids=["no-entity-path", "no-chunk-id", "bad-chunk-id", "text", "schema-only", "cut-batch"])
+@pytest.mark.parametrize(
+    "ipc",
+    [
+        chunk_ipc(entity_path=None),
+        chunk_ipc(chunk_id=None),  # no rerun:id and no ArrowMsg.chunk_id
+        chunk_ipc(chunk_id=b"chunk_not-hex"),
+        b"this is not Arrow IPC at all, just text " * 3,
+        _schema_only_ipc(),  # a schema, but no record batch
+        chunk_ipc()[:-40],  # the record batch cut short
+    ],
+    ids=["no-entity-path", "no-chunk-id", "bad-chunk-id", "text", "schema-only", "cut-batch"],
+)
 @pytest.mark.parametrize("compression", [PB_LZ4, PB_NONE], ids=["lz4", "none"])
 def test_arrow_payload_that_is_not_a_chunk(ipc: bytes, compression: int) -> None:
     msg = one_arrow(arrow_body(ipc, compression=compression))
@@ -568,8 +606,10 @@ def test_arrow_payload_that_is_not_a_chunk(ipc: bytes, compression: int) -> None
 
 
 def test_index_column_of_unsupported_type_is_not_a_chunk() -> None:
-    schema = pa.schema([pa.field("frame", pa.string(), metadata={b"rerun:kind": b"index"})],
-                       metadata={b"rerun:entity_path": b"/a", b"rerun:id": ("chunk_" + CHUNK_ID_HEX).encode()})
+    schema = pa.schema(
+        [pa.field("frame", pa.string(), metadata={b"rerun:kind": b"index"})],
+        metadata={b"rerun:entity_path": b"/a", b"rerun:id": ("chunk_" + CHUNK_ID_HEX).encode()},
+    )
     sink = io.BytesIO()
     with pa.ipc.new_stream(sink, schema) as writer:
         writer.write_batch(pa.record_batch([pa.array(["x"])], schema=schema))
@@ -579,8 +619,7 @@ def test_index_column_of_unsupported_type_is_not_a_chunk() -> None:
     check_error(info.value, errors.NotAChunkError, LAST_OFFSET)
 
 
-@pytest.mark.parametrize("where", [b"rerun:component", b"rerun:archetype", b"rerun:index_name",
-                                   b"rerun:entity_path"])
+@pytest.mark.parametrize("where", [b"rerun:component", b"rerun:archetype", b"rerun:index_name", b"rerun:entity_path"])
 def test_non_utf8_metadata_is_not_a_chunk(where: bytes) -> None:
     """Damaged (non-UTF-8) Rerun metadata must be reported as NotAChunkError, not UnicodeDecodeError."""
     ipc = chunk_ipc()
@@ -611,13 +650,13 @@ def _chunk_with_lengths(n: int) -> bytes:
     ipc = bytearray(chunk_ipc(scalars=([1.0], [2.0], [3.0])))
     (schema_len,) = struct.unpack_from("<i", ipc, 4)
     batch = 8 + schema_len
-    assert ipc[batch:batch + 4] == b"\xff\xff\xff\xff"
+    assert ipc[batch : batch + 4] == b"\xff\xff\xff\xff"
     (meta_len,) = struct.unpack_from("<i", ipc, batch + 4)
     three = struct.pack("<q", 3)
-    spots = [i for i in range(batch + 8, batch + 8 + meta_len) if ipc[i:i + 8] == three]
+    spots = [i for i in range(batch + 8, batch + 8 + meta_len) if ipc[i : i + 8] == three]
     assert len(spots) == 5  # batch length, RowId, frame, Scalars and its child values
     for i in spots:
-        ipc[i:i + 8] = struct.pack("<q", n)
+        ipc[i : i + 8] = struct.pack("<q", n)
     return bytes(ipc)
 
 
@@ -641,14 +680,21 @@ def test_buffers_smaller_than_declared_lengths_do_not_crash(compression: int) ->
     """Arrow metadata claiming 2**40 rows over 3 rows of buffers: NotAChunkError, not a segfault
     (run in a subprocess so that a crash fails this test only)."""
     data = PREFIX + frame(ARROW, arrow_body(_chunk_with_lengths(1 << 40), compression=compression))
-    done = subprocess.run([sys.executable, "-X", "faulthandler", "-c", _ISOLATED_CHUNK_META], input=data,
-                          capture_output=True, timeout=60, check=False, cwd=REPO_ROOT)
+    done = subprocess.run(
+        [sys.executable, "-X", "faulthandler", "-c", _ISOLATED_CHUNK_META],
+        input=data,
+        capture_output=True,
+        timeout=60,
+        check=False,
+        cwd=REPO_ROOT,
+    )
     assert done.returncode == 0, f"exit status {done.returncode}\n{done.stderr.decode(errors='replace')}"
     assert done.stdout.decode().split() == ["NotAChunkError", str(LAST_OFFSET)]
 
 
-def _footer_case(*, crc_delta: int = 0, length_delta: int = 0, count: int = 1,
-                 start_delta: int = 0) -> tuple[bytes, bytes, int]:
+def _footer_case(
+    *, crc_delta: int = 0, length_delta: int = 0, count: int = 1, start_delta: int = 0
+) -> tuple[bytes, bytes, int]:
     end_body = log_msg_pb2.RrdFooter().SerializeToString() + b"\x12\x00"  # an unknown field: 2 bytes
     assert len(end_body) == 2
     good = PREFIX + frame(END, end_body)
@@ -675,22 +721,29 @@ def test_bad_footer_crc(crc_delta: int) -> None:
     assert "CRC" in str(outcome.exc)
 
 
-@pytest.mark.parametrize(("case", "offset_delta"), [
-    ({"length_delta": 1}, 0),
-    ({"count": 2}, 20),  # the fixed part after the one entry
-    ({"count": 0}, 20),
-    ({"start_delta": 1}, 0),  # points elsewhere: neither a footer nor a new stream
-])
+@pytest.mark.parametrize(
+    ("case", "offset_delta"),
+    [
+        ({"length_delta": 1}, 0),
+        ({"count": 2}, 20),  # the fixed part after the one entry
+        ({"count": 0}, 20),
+        ({"start_delta": 1}, 0),  # points elsewhere: neither a footer nor a new stream
+    ],
+)
 def test_malformed_footer(case: dict[str, int], offset_delta: int) -> None:
     good, trailer, at = _footer_case(**case)
     decode_expect(good, trailer, errors.FooterError, at + offset_delta)
 
 
-@pytest.mark.parametrize("bad", [
-    struct.pack("<QQ", 9, 0),  # unknown kind
-    frame(STORE_INFO, b"\xff\xff"),  # protobuf
-    header(options=bytes([1, 2, 0, 1])),  # a second stream with a bad header
-], ids=["kind", "protobuf", "header"])
+@pytest.mark.parametrize(
+    "bad",
+    [
+        struct.pack("<QQ", 9, 0),  # unknown kind
+        frame(STORE_INFO, b"\xff\xff"),  # protobuf
+        header(options=bytes([1, 2, 0, 1])),  # a second stream with a bad header
+    ],
+    ids=["kind", "protobuf", "header"],
+)
 def test_error_is_sticky(bad: bytes) -> None:
     """After a fault nothing more is decoded: every later feed() and finish() raises it again."""
     decoder = RrdDecoder()
@@ -713,8 +766,9 @@ def test_error_is_sticky(bad: bytes) -> None:
     assert (type(last.value), last.value.offset) == (type(first), first.offset)
 
 
-@pytest.mark.parametrize("before", [b"", PREFIX, PREFIX + frame(END, b"\x12\x00")],
-                         ids=["alone", "after-messages", "after-end"])
+@pytest.mark.parametrize(
+    "before", [b"", PREFIX, PREFIX + frame(END, b"\x12\x00")], ids=["alone", "after-messages", "after-end"]
+)
 def test_stream_header_alone_at_end_of_input(before: bytes) -> None:
     """A (next) stream that has only its 12-byte header so far: a StreamStart, not a truncation."""
     decoder = RrdDecoder()
@@ -728,12 +782,16 @@ def test_stream_header_alone_at_end_of_input(before: bytes) -> None:
 _EMPTY_END_FOOTER = stream_footer(len(HEADER) + 16, b"")
 
 
-@pytest.mark.parametrize(("data", "kinds"), [
-    (HEADER + frame(END, b"") + _EMPTY_END_FOOTER, [StreamStart, EndMessage, StreamFooter]),
-    (HEADER + frame(END, b"") + HEADER, [StreamStart, EndMessage, StreamStart]),  # RrdEncoder(write_footer=False)
-    (HEADER + frame(BLUEPRINT, b"") + frame(END, b""), [StreamStart, "BlueprintActivationMessage", EndMessage]),
-    (HEADER + frame(ARROW, b"") + STORE_INFO_FRAME, [StreamStart, ArrowMessage, StoreInfoMessage]),
-], ids=["end-then-footer", "end-then-stream", "blueprint-then-end", "arrow-then-store-info"])
+@pytest.mark.parametrize(
+    ("data", "kinds"),
+    [
+        (HEADER + frame(END, b"") + _EMPTY_END_FOOTER, [StreamStart, EndMessage, StreamFooter]),
+        (HEADER + frame(END, b"") + HEADER, [StreamStart, EndMessage, StreamStart]),  # RrdEncoder(write_footer=False)
+        (HEADER + frame(BLUEPRINT, b"") + frame(END, b""), [StreamStart, "BlueprintActivationMessage", EndMessage]),
+        (HEADER + frame(ARROW, b"") + STORE_INFO_FRAME, [StreamStart, ArrowMessage, StoreInfoMessage]),
+    ],
+    ids=["end-then-footer", "end-then-stream", "blueprint-then-end", "arrow-then-store-info"],
+)
 def test_zero_length_message_followed_by_more_input(data: bytes, kinds: list[type | str]) -> None:
     """A message with an empty protobuf payload (valid protobuf: all fields default) must not stall
     the decoder: what follows it in the same feed() is decoded, and finish() succeeds."""
@@ -747,10 +805,19 @@ def test_zero_length_message_followed_by_more_input(data: bytes, kinds: list[typ
 # --- the error classes ----------------------------------------------------------------------
 
 ALL_ERRORS = [
-    errors.NotAnRrdError, errors.UnsupportedVersionError, errors.UnknownCompressionError,
-    errors.UnknownSerializerError, errors.ReservedBytesError, errors.UnknownMessageKindError,
-    errors.MessageTooLargeError, errors.TruncatedError, errors.ProtobufError,
-    errors.DecompressionError, errors.NotAChunkError, errors.InvalidChunkError, errors.FooterError,
+    errors.NotAnRrdError,
+    errors.UnsupportedVersionError,
+    errors.UnknownCompressionError,
+    errors.UnknownSerializerError,
+    errors.ReservedBytesError,
+    errors.UnknownMessageKindError,
+    errors.MessageTooLargeError,
+    errors.TruncatedError,
+    errors.ProtobufError,
+    errors.DecompressionError,
+    errors.NotAChunkError,
+    errors.InvalidChunkError,
+    errors.FooterError,
 ]
 
 
@@ -769,8 +836,11 @@ def test_error_classes_carry_offset_and_status(cls: type[errors.RrdError]) -> No
 
 
 def test_every_error_class_is_listed() -> None:
-    defined = {obj for obj in vars(errors).values()
-               if isinstance(obj, type) and issubclass(obj, errors.RrdError) and obj is not errors.RrdError}
+    defined = {
+        obj
+        for obj in vars(errors).values()
+        if isinstance(obj, type) and issubclass(obj, errors.RrdError) and obj is not errors.RrdError
+    }
     assert defined == set(ALL_ERRORS)
     assert len({cls.problem for cls in ALL_ERRORS}) == len(ALL_ERRORS)
 
@@ -778,11 +848,15 @@ def test_every_error_class_is_listed() -> None:
 # --- iter_events keeps what came before the fault -------------------------------------------
 
 
-@pytest.mark.parametrize(("bad", "cls"), [
-    (struct.pack("<QQ", 9, 0), errors.UnknownMessageKindError),
-    (frame(STORE_INFO, b"\xff\xff"), errors.ProtobufError),
-    (frame(ARROW, arrow_body(chunk_ipc()))[:-1], errors.TruncatedError),
-], ids=["kind", "protobuf", "truncated"])
+@pytest.mark.parametrize(
+    ("bad", "cls"),
+    [
+        (struct.pack("<QQ", 9, 0), errors.UnknownMessageKindError),
+        (frame(STORE_INFO, b"\xff\xff"), errors.ProtobufError),
+        (frame(ARROW, arrow_body(chunk_ipc()))[:-1], errors.TruncatedError),
+    ],
+    ids=["kind", "protobuf", "truncated"],
+)
 def test_iter_events_yields_everything_before_the_fault(bad: bytes, cls: type[errors.RrdError]) -> None:
     """docs/rrd-codec.md: "Messages returned before the fault stay valid"; iter_events: "Raises the
     codec error at the end (after yielding everything before it)" -- also when the whole input

@@ -106,14 +106,14 @@ def test_properties_chunks(recordings: dict[str, Recording]):
     truth = rec.recordings[0]
     chunks = chunks_by_recording(rec)[truth["recording_id"]]
     for name, values in truth["properties"].items():
-        (msg, meta), = [(msg, meta) for msg, meta in chunks if meta.entity_path == f"/__properties/{name}"]
+        ((msg, meta),) = [(msg, meta) for msg, meta in chunks if meta.entity_path == f"/__properties/{name}"]
         assert meta.is_static and meta.num_rows == 1
         assert {c.column for c in meta.components} == set(values)
         assert all(c.archetype is None for c in meta.components)
         batch, _, _ = independent_batch(msg)
         for field, value in values.items():
             assert batch.column(field).to_pylist() == [[value]]
-    (_, info), = [(msg, meta) for msg, meta in chunks if meta.entity_path == "/__properties"]
+    ((_, info),) = [(msg, meta) for msg, meta in chunks if meta.entity_path == "/__properties"]
     assert [c.column for c in info.components] == ["RecordingInfo:start_time"]
     assert info.components[0].component_type == "rerun.components.Timestamp"
 
@@ -166,8 +166,10 @@ def test_chunk_meta_matches_arrow_data(whole: Recording):
             assert tl.name == tl.field.metadata[b"rerun:index_name"].decode()
             assert (tl.range.min, tl.range.max) == (values.min(), values.max())
             assert tl.is_sorted == (tl.field.metadata.get(b"rerun:is_sorted") == b"true")
-            assert tl.type == {"int64": "sequence", "timestamp[ns]": "timestamp",
-                               "duration[ns]": "duration"}[str(tl.field.type)]
+            assert (
+                tl.type
+                == {"int64": "sequence", "timestamp[ns]": "timestamp", "duration[ns]": "duration"}[str(tl.field.type)]
+            )
         assert meta.is_static == (not index_fields)
 
         data_fields = [f for f in batch.schema if _kind(f) == b"data"]
@@ -177,8 +179,9 @@ def test_chunk_meta_matches_arrow_data(whole: Recording):
             column = batch.column(comp.column)
             assert comp.component == fmeta[b"rerun:component"].decode()
             assert comp.archetype == (fmeta[b"rerun:archetype"].decode() if b"rerun:archetype" in fmeta else None)
-            assert comp.component_type == (fmeta[b"rerun:component_type"].decode()
-                                           if b"rerun:component_type" in fmeta else None)
+            assert comp.component_type == (
+                fmeta[b"rerun:component_type"].decode() if b"rerun:component_type" in fmeta else None
+            )
             assert comp.num_rows == len(column) - column.null_count
             valid = column.is_valid()
             for name, index_column in timeline_values.items():
@@ -213,8 +216,12 @@ def _sdk_manifests(rec: Recording) -> list[pa.Table]:
             raw = lz4.block.decompress(raw, uncompressed_size=manifest.data.uncompressed_size)
         table = pa.ipc.open_stream(raw).read_all()
         # Timelines as plain int64 (pyarrow cannot turn ns timestamps into datetime objects).
-        tables.append(pa.table([c.cast(pa.int64()) if pa.types.is_temporal(c.type) else c for c in table.columns],
-                               names=table.column_names))
+        tables.append(
+            pa.table(
+                [c.cast(pa.int64()) if pa.types.is_temporal(c.type) else c for c in table.columns],
+                names=table.column_names,
+            )
+        )
     return tables
 
 

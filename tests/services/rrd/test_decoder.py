@@ -38,7 +38,7 @@ def decode(data: bytes, piece: int | None = None) -> list[Event]:
     step = piece or max(len(data), 1)
     events: list[Event] = []
     for i in range(0, len(data), step):
-        events += decoder.feed(data[i:i + step])
+        events += decoder.feed(data[i : i + step])
     events += decoder.finish()
     return events
 
@@ -49,7 +49,7 @@ def decode_until_error(data: bytes, piece: int | None = None) -> tuple[list[Even
     events: list[Event] = []
     try:
         for i in range(0, len(data), step):
-            events += decoder.feed(data[i:i + step])
+            events += decoder.feed(data[i : i + step])
         events += decoder.finish()
     except errors.RrdError as exc:
         return events, exc
@@ -126,8 +126,9 @@ def test_end_and_stream_footer(footer_file: Recording):
     chunk_stores = {e.store_id for e in events if isinstance(e, ArrowMessage)}
     assert end.footer is not None
     assert len(end.footer.manifests) == len(chunk_stores)
-    assert {(m.store_id.kind, m.store_id.application_id.id, m.store_id.recording_id)
-            for m in end.footer.manifests} == {(int(s.kind), s.application_id, s.recording_id) for s in chunk_stores}
+    assert {(m.store_id.kind, m.store_id.application_id.id, m.store_id.recording_id) for m in end.footer.manifests} == {
+        (int(s.kind), s.application_id, s.recording_id) for s in chunk_stores
+    }
 
     assert trailer.offset == end.offset + 16 + len(end.raw)
     assert trailer.offset + 32 == len(data)
@@ -135,8 +136,11 @@ def test_end_and_stream_footer(footer_file: Recording):
     assert trailer.footer_start == end.stream_payload_offset == end.offset + 16
     assert trailer.footer_length == len(end.raw)
     assert trailer.crc == xxhash.xxh32_intdigest(end.raw, seed=7850921)
-    assert struct.unpack_from("<QQI", data, trailer.offset) == (trailer.footer_start, trailer.footer_length,
-                                                                 trailer.crc)
+    assert struct.unpack_from("<QQI", data, trailer.offset) == (
+        trailer.footer_start,
+        trailer.footer_length,
+        trailer.crc,
+    )
     assert data[-12:] == b"RRF2FOOT" + struct.pack("<I", 1)
 
 
@@ -148,7 +152,7 @@ def test_offsets_point_at_headers(whole: Recording):
     assert [(m.offset, int(m.kind), len(m.raw)) for m in messages] == [(f.offset, f.kind, f.length) for f in frames]
     for m in messages:
         assert struct.unpack_from("<QQ", data, m.offset) == (m.kind, len(m.raw))
-        assert data[m.payload_offset:m.payload_offset + len(m.raw)] == m.raw
+        assert data[m.payload_offset : m.payload_offset + len(m.raw)] == m.raw
         assert (m.stream_offset, m.stream_index) == (0, 0)
         assert m.stream_payload_offset == m.offset + 16
     footers = [e for e in events if isinstance(e, StreamFooter)]
@@ -175,7 +179,8 @@ def test_start_offset_shifts_every_offset(recordings: dict[str, Recording]):
     assert events == shifted(decode(data), 1000, 0)
     assert decoder.offset == 1000 + len(data)
     assert [e.stream_payload_offset for e in events if isinstance(e, ArrowMessage)] == [
-        e.stream_payload_offset for e in decode(data) if isinstance(e, ArrowMessage)]
+        e.stream_payload_offset for e in decode(data) if isinstance(e, ArrowMessage)
+    ]
 
 
 def test_iter_events_path_and_file_object(whole: Recording):
@@ -209,8 +214,9 @@ def test_blueprint_and_recording_stores(recordings: dict[str, Recording]):
     chunks = [e for e in events if isinstance(e, ArrowMessage)]
     assert {c.store_id for c in chunks} == {blueprint, recording}
     # The activation follows the blueprint's chunks.
-    last_blueprint_chunk = max(i for i, e in enumerate(events)
-                               if isinstance(e, ArrowMessage) and e.store_id == blueprint)
+    last_blueprint_chunk = max(
+        i for i, e in enumerate(events) if isinstance(e, ArrowMessage) and e.store_id == blueprint
+    )
     assert events.index(activations[0]) > last_blueprint_chunk
 
 
@@ -218,7 +224,9 @@ def test_merged_file_holds_two_recordings(recordings: dict[str, Recording]):
     events = decode(recordings["merged"].data)
     chunk_stores = {e.store_id for e in events if isinstance(e, ArrowMessage)}
     assert {(s.kind, s.application_id, s.recording_id) for s in chunk_stores} == {
-        (StoreKind.RECORDING, "fleet_merge", "rec-merge-a"), (StoreKind.RECORDING, "fleet_merge", "rec-merge-b")}
+        (StoreKind.RECORDING, "fleet_merge", "rec-merge-a"),
+        (StoreKind.RECORDING, "fleet_merge", "rec-merge-b"),
+    }
     end = next(e for e in events if isinstance(e, EndMessage))
     assert end.footer is not None and len(end.footer.manifests) == 2
 
@@ -298,16 +306,20 @@ def test_cut_at_every_unit_edge(whole: Recording):
     data = whole.data
     full = decode(data)
     units = _units(data)
-    positions = {p for start, end in units for p in (start, start + 1, start + 8, start + 15, start + 16,
-                                                     start + 17, end - 1)}
+    positions = {
+        p for start, end in units for p in (start, start + 1, start + 8, start + 15, start + 16, start + 17, end - 1)
+    }
     for at in sorted(p for p in positions if 0 < p < len(data)):
         _check_cut(data, full, units, at, None)
         _check_cut(data, full, units, at, 7)
 
 
 @settings(max_examples=60, deadline=None)
-@given(fraction=st.floats(0, 1, exclude_max=True), piece=st.sampled_from([None, 1, 3, 16, 100, 4096]),
-       name=st.sampled_from(["points", "blueprint", "no_footer", "merged"]))
+@given(
+    fraction=st.floats(0, 1, exclude_max=True),
+    piece=st.sampled_from([None, 1, 3, 16, 100, 4096]),
+    name=st.sampled_from(["points", "blueprint", "no_footer", "merged"]),
+)
 def test_cut_anywhere(recordings: dict[str, Recording], fraction: float, piece: int | None, name: str):
     data = recordings[name].data
     at = 1 + int(fraction * (len(data) - 1))
@@ -344,12 +356,13 @@ def test_concatenated_streams(recordings: dict[str, Recording], names: tuple[str
     step = piece or len(data)
     events: list[Event] = []
     for i in range(0, len(data), step):
-        events += decoder.feed(data[i:i + step])
+        events += decoder.feed(data[i : i + step])
     events += decoder.finish()
     assert events == expected
     starts = [e for e in events if isinstance(e, StreamStart)]
     assert [(s.offset, s.stream_index) for s in starts] == [
-        (sum(len(p) for p in parts[:i]), i) for i in range(len(parts))]
+        (sum(len(p) for p in parts[:i]), i) for i in range(len(parts))
+    ]
     assert decoder.streams == len(parts)
     assert decoder.offset == len(data)
 
@@ -367,8 +380,9 @@ def test_concatenated_stream_offsets_match_sdk_manifests(recordings: dict[str, R
         assert footer is not None
         for manifest in footer.manifests:
             table = read_manifest(manifest)
-            for chunk_id, offset in zip(table.column("chunk_id").to_pylist(),
-                                        table.column("chunk_byte_offset").to_pylist(), strict=True):
+            for chunk_id, offset in zip(
+                table.column("chunk_id").to_pylist(), table.column("chunk_byte_offset").to_pylist(), strict=True
+            ):
                 byte_offsets[(stream_index, chunk_id)] = offset
     chunks = [e for e in events if isinstance(e, ArrowMessage)]
     assert len(chunks) == len(byte_offsets)

@@ -34,8 +34,9 @@ from tests.services.rrd.recordings import Recording, walk_frames
 pytestmark = pytest.mark.sdk
 
 
-def rewrite(events: Iterable[Event], out: Path, *, write_footer: bool = True,
-            keep: Callable[[Message], bool] = lambda m: True) -> None:
+def rewrite(
+    events: Iterable[Event], out: Path, *, write_footer: bool = True, keep: Callable[[Message], bool] = lambda m: True
+) -> None:
     """Write every message of `events` (not End / footers / stream headers) into one new stream."""
     encoder: RrdEncoder | None = None
     with open(out, "wb") as sink:
@@ -167,7 +168,10 @@ def test_concatenation_rewritten_as_one_stream(rerun_bin: str, recordings: dict[
     events = list(iter_events(out))
     assert sum(isinstance(e, StreamStart) for e in events) == 1
     assert {s.recording_id for s in footer_manifests(out) if not s.is_blueprint} == {
-        "rec-points", "rec-no-footer", "rec-blueprint"}
+        "rec-points",
+        "rec-no-footer",
+        "rec-blueprint",
+    }
 
 
 # --- the manifest equals the SDK's ------------------------------------------------------------
@@ -199,7 +203,10 @@ def test_manifest_equals_sdk_manifest(footer_file: Recording, tmp_path: Path):
         for sdk_field in sdk_schema:
             our_field = our_schema.field(sdk_field.name)
             assert (our_field.type, our_field.nullable, our_field.metadata) == (
-                sdk_field.type, sdk_field.nullable, sdk_field.metadata), sdk_field.name
+                sdk_field.type,
+                sdk_field.nullable,
+                sdk_field.metadata,
+            ), sdk_field.name
 
 
 def test_manifest_is_lz4_compressed_arrow(footer_file: Recording, tmp_path: Path):

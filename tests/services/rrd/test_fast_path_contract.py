@@ -37,25 +37,42 @@ from tests.services.rrd.recordings import Recording
 
 pytestmark = pytest.mark.sdk
 
-IPC_FRAMING = ("an Arrow IPC stream starts with the schema message (0xFFFFFFFF, int32 metadata size, the "
-               "flatbuffer, no body) and the record batch message follows at once (layout.split_ipc)")
-BATCH_HEADER = ("a record batch's flatbuffer header (Message: header type, header, bodyLength; RecordBatch: "
-                "length, nodes, buffers, no compression) is read by hand (layout._parse_batch_header, "
-                "BatchTemplate.match)")
-NODES_AND_BUFFERS = ("an Arrow type takes the field nodes and buffers layout._counts gives it in an IPC record "
-                     "batch, children after their parent, in column order")
-SORTED_INDEX = ("an index column marked rerun:is_sorted=true is sorted ascending, so its first and last values "
-                "are its range (chunk._direct_values)")
-LIST_F64_BUFFERS = ("a list<float64> column's buffers are validity, int32 offsets, values validity, float64 "
-                    "values (chunk._lists_valid)")
-SCHEMA_KEY = ("a chunk's schema message holds its chunk id only as the text chunk_<hex> (rerun:id), so the "
-              "schema messages of chunks with one schema are equal once it is blanked (layout.LayoutCache)")
-ARROW_MSG_AROUND_PAYLOAD = ("an ArrowMsg read around its payload (protowire finds field 5, protobuf parses the "
-                            "rest) is the message protobuf parses whole (decoder._arrow_message, large messages)")
-GRPC_UNWRAP = ("a WriteMessagesRequest holds its LogMsg in field 1, and LogMsg's oneof fields 1-3 are message "
-               "kinds 1-3 (ingest.grpc_handler.unwrap)")
-STREAM_FOOTER = ("a single-stream file ends with the stream footer (u64 start, u64 length, u32 xxh32, "
-                 "b'RRF2FOOT', u32 1) pointing at the End message's RrdFooter (footer.read_footer)")
+IPC_FRAMING = (
+    "an Arrow IPC stream starts with the schema message (0xFFFFFFFF, int32 metadata size, the "
+    "flatbuffer, no body) and the record batch message follows at once (layout.split_ipc)"
+)
+BATCH_HEADER = (
+    "a record batch's flatbuffer header (Message: header type, header, bodyLength; RecordBatch: "
+    "length, nodes, buffers, no compression) is read by hand (layout._parse_batch_header, "
+    "BatchTemplate.match)"
+)
+NODES_AND_BUFFERS = (
+    "an Arrow type takes the field nodes and buffers layout._counts gives it in an IPC record "
+    "batch, children after their parent, in column order"
+)
+SORTED_INDEX = (
+    "an index column marked rerun:is_sorted=true is sorted ascending, so its first and last values "
+    "are its range (chunk._direct_values)"
+)
+LIST_F64_BUFFERS = (
+    "a list<float64> column's buffers are validity, int32 offsets, values validity, float64 values (chunk._lists_valid)"
+)
+SCHEMA_KEY = (
+    "a chunk's schema message holds its chunk id only as the text chunk_<hex> (rerun:id), so the "
+    "schema messages of chunks with one schema are equal once it is blanked (layout.LayoutCache)"
+)
+ARROW_MSG_AROUND_PAYLOAD = (
+    "an ArrowMsg read around its payload (protowire finds field 5, protobuf parses the "
+    "rest) is the message protobuf parses whole (decoder._arrow_message, large messages)"
+)
+GRPC_UNWRAP = (
+    "a WriteMessagesRequest holds its LogMsg in field 1, and LogMsg's oneof fields 1-3 are message "
+    "kinds 1-3 (ingest.grpc_handler.unwrap)"
+)
+STREAM_FOOTER = (
+    "a single-stream file ends with the stream footer (u64 start, u64 length, u32 xxh32, "
+    "b'RRF2FOOT', u32 1) pointing at the End message's RrdFooter (footer.read_footer)"
+)
 
 
 def broken(assumption: str, where: str, detail: object = "") -> str:
@@ -92,8 +109,12 @@ def _arrays(array: pa.Array) -> Iterator[pa.Array]:
     parent offset applied, as an IPC reader builds them)."""
     yield array
     kind = array.type
-    if pa.types.is_list(kind) or pa.types.is_large_list(kind) or pa.types.is_fixed_size_list(kind) \
-            or pa.types.is_map(kind):
+    if (
+        pa.types.is_list(kind)
+        or pa.types.is_large_list(kind)
+        or pa.types.is_fixed_size_list(kind)
+        or pa.types.is_map(kind)
+    ):
         yield from _arrays(array.values)
     elif pa.types.is_struct(kind):
         for i in range(kind.num_fields):
@@ -104,8 +125,9 @@ def _header(data: bytes, layout: ChunkLayout, where: str) -> BatchHeader:
     split = split_ipc(data)
     assert split is not None, broken(IPC_FRAMING, where, "split_ipc found no schema message")
     header = read_batch_header(data, split[1], layout)
-    assert header is not None, broken(BATCH_HEADER, where, "the header was not read: every chunk falls back to "
-                                      "pyarrow (slow, not wrong)")
+    assert header is not None, broken(
+        BATCH_HEADER, where, "the header was not read: every chunk falls back to pyarrow (slow, not wrong)"
+    )
     return header
 
 
@@ -115,7 +137,8 @@ def test_ipc_stream_framing_is_what_pyarrow_reads(whole: Recording):
         _, schema_message, after, batch_message = _ipc_messages(data)
         assert found is not None, broken(IPC_FRAMING, where, "split_ipc found no schema message")
         assert schema_message.type == "schema" and batch_message.type == "record batch", broken(
-            IPC_FRAMING, where, f"pyarrow reads a {schema_message.type} then a {batch_message.type}")
+            IPC_FRAMING, where, f"pyarrow reads a {schema_message.type} then a {batch_message.type}"
+        )
         assert found[0] == schema_message.metadata.to_pybytes(), broken(IPC_FRAMING, where, "schema flatbuffer")
         assert found[1] == after, broken(IPC_FRAMING, where, f"next message at {found[1]}, pyarrow: {after}")
 
@@ -138,16 +161,18 @@ def test_record_batch_header_read_by_hand_is_what_pyarrow_reads(whole: Recording
                 headers.append(("templated", matched))
         for how, header in headers:
             detail = f"{how} header"
-            assert header.length == batch.num_rows, broken(BATCH_HEADER, where, f"{detail}: length {header.length}, "
-                                                           f"pyarrow: {batch.num_rows} rows")
+            assert header.length == batch.num_rows, broken(
+                BATCH_HEADER, where, f"{detail}: length {header.length}, pyarrow: {batch.num_rows} rows"
+            )
             assert header.body == body.address - buffer.address, broken(BATCH_HEADER, where, f"{detail}: body")
-            assert header.nodes == nodes, broken(BATCH_HEADER, where, f"{detail}: nodes {header.nodes}, "
-                                                 f"pyarrow: {nodes}")
+            assert header.nodes == nodes, broken(
+                BATCH_HEADER, where, f"{detail}: nodes {header.nodes}, pyarrow: {nodes}"
+            )
             assert len(header.buffers) == 2 * len(buffers), broken(BATCH_HEADER, where, f"{detail}: buffer count")
             for i, reference in enumerate(buffers):
                 if reference is None:
                     continue  # pyarrow drops a validity bitmap without nulls, which the writer may keep
-                got, want = header.buffers[2 * i:2 * i + 2], (reference.address - body.address, reference.size)
+                got, want = header.buffers[2 * i : 2 * i + 2], (reference.address - body.address, reference.size)
                 assert got == want, broken(BATCH_HEADER, where, f"{detail}: buffer {i} is {got}, pyarrow: {want}")
 
 
@@ -162,17 +187,25 @@ def test_nodes_and_buffers_counted_per_type_are_arrows(whole: Recording):
             first_buffer.append(buffer)
             node, buffer = node + len(list(_arrays(column))), buffer + len(column.buffers())
             assert layout.top_nodes[position] == first_node[-1], broken(
-                NODES_AND_BUFFERS, where, f"column {position} ({column.type}) starts at node "
-                f"{layout.top_nodes[position]}, pyarrow: {first_node[-1]}")
+                NODES_AND_BUFFERS,
+                where,
+                f"column {position} ({column.type}) starts at node "
+                f"{layout.top_nodes[position]}, pyarrow: {first_node[-1]}",
+            )
         assert (layout.num_nodes, layout.num_buffers) == (node, buffer), broken(
-            NODES_AND_BUFFERS, where, f"{layout.num_nodes} nodes, {layout.num_buffers} buffers; pyarrow: {node}, "
-            f"{buffer} for {[str(t) for t in batch.schema.types]}")
+            NODES_AND_BUFFERS,
+            where,
+            f"{layout.num_nodes} nodes, {layout.num_buffers} buffers; pyarrow: {node}, "
+            f"{buffer} for {[str(t) for t in batch.schema.types]}",
+        )
         for ix in layout.indexes:  # validity, then values
             assert (ix.node, ix.data_buffer) == (first_node[ix.position], first_buffer[ix.position] + 1), broken(
-                NODES_AND_BUFFERS, where, f"index column {ix.name!r}")
+                NODES_AND_BUFFERS, where, f"index column {ix.name!r}"
+            )
         for c in layout.data:
             assert (c.node, c.buffer) == (first_node[c.position], first_buffer[c.position]), broken(
-                NODES_AND_BUFFERS, where, f"column {c.column!r} ({c.field.type})")
+                NODES_AND_BUFFERS, where, f"column {c.column!r} ({c.field.type})"
+            )
 
 
 def test_sorted_index_columns_are_sorted(whole: Recording):
@@ -188,7 +221,8 @@ def test_sorted_index_columns_are_sorted(whole: Recording):
                 low_high = pc.min_max(values).as_py()
                 timeline = next(t for t in meta.timelines if t.name == ix.name)
                 assert (timeline.range.min, timeline.range.max) == (low_high["min"], low_high["max"]), broken(
-                    SORTED_INDEX, where, f"timeline {ix.name!r}")
+                    SORTED_INDEX, where, f"timeline {ix.name!r}"
+                )
 
 
 def test_scalars_offsets_checked_by_hand_are_arrows(recordings: dict[str, Recording]):
@@ -204,8 +238,8 @@ def test_scalars_offsets_checked_by_hand_are_arrows(recordings: dict[str, Record
         assert meta.layout.direct_lists is not None
         for c in meta.layout.direct_lists:
             column = batch.column(c.position)
-            at, size = header.buffers[2 * (c.buffer + 1):2 * (c.buffer + 1) + 2]
-            offsets = np.frombuffer(data, dtype="<i4", count=size // 4, offset=header.body + at)[:len(column) + 1]
+            at, size = header.buffers[2 * (c.buffer + 1) : 2 * (c.buffer + 1) + 2]
+            offsets = np.frombuffer(data, dtype="<i4", count=size // 4, offset=header.body + at)[: len(column) + 1]
             assert offsets.tolist() == column.offsets.to_pylist(), broken(LIST_F64_BUFFERS, where, c.column)
             values_at = header.buffers[2 * (c.buffer + 3)]
             values = np.frombuffer(data, dtype="<f8", count=len(column.values), offset=header.body + values_at)
@@ -219,21 +253,24 @@ def test_schema_messages_differ_only_in_the_chunk_id(whole: Recording):
         split = split_ipc(data)
         assert split is not None and msg.chunk_id is not None
         id_text = chunk_id_str(msg.chunk_id).encode()
-        assert split[0].count(id_text) == 1, broken(SCHEMA_KEY, where, f"{id_text!r} appears "
-                                                    f"{split[0].count(id_text)} times")
+        assert split[0].count(id_text) == 1, broken(
+            SCHEMA_KEY, where, f"{id_text!r} appears {split[0].count(id_text)} times"
+        )
         schema = read_chunk(msg).schema
         metadata = {k: v for k, v in (schema.metadata or {}).items() if v != id_text}
         assert len(metadata) == len(schema.metadata or {}) - 1, broken(SCHEMA_KEY, where, "rerun:id")
         keys_by_schema.setdefault(schema.with_metadata(metadata), set()).add(split[0].replace(id_text, b""))
     for schema, keys in keys_by_schema.items():
-        assert len(keys) == 1, broken(SCHEMA_KEY, whole.name, f"{len(keys)} keys for one schema "
-                                      f"(a cache miss per chunk): {schema}")
+        assert len(keys) == 1, broken(
+            SCHEMA_KEY, whole.name, f"{len(keys)} keys for one schema (a cache miss per chunk): {schema}"
+        )
 
 
 def test_arrow_message_read_around_its_payload_is_protobufs(whole: Recording, monkeypatch: pytest.MonkeyPatch):
     descriptor = log_msg_pb2.ArrowMsg.DESCRIPTOR
     assert descriptor.fields_by_name["payload"].number == decoder._ARROW_PAYLOAD_FIELD, broken(
-        ARROW_MSG_AROUND_PAYLOAD, "log_msg.proto", "the payload's field number")
+        ARROW_MSG_AROUND_PAYLOAD, "log_msg.proto", "the payload's field number"
+    )
     messages = [(msg, where) for msg, _, where in _chunks(whole)]
     monkeypatch.setattr(decoder, "LARGE_MESSAGE", 0)  # every message read the large way
     for msg, where in messages:
@@ -241,14 +278,16 @@ def test_arrow_message_read_around_its_payload_is_protobufs(whole: Recording, mo
         whole_pb = log_msg_pb2.ArrowMsg.FromString(raw)
         walked = Counter(number for number, *_ in protowire.fields(raw))
         assert walked == Counter(f.number for f, _ in whole_pb.ListFields()), broken(
-            ARROW_MSG_AROUND_PAYLOAD, where, f"protowire walks fields {walked}")
+            ARROW_MSG_AROUND_PAYLOAD, where, f"protowire walks fields {walked}"
+        )
         with assuming(ARROW_MSG_AROUND_PAYLOAD, where):
             around = decoder.decode_message(MessageKind.ARROW_MSG, raw, msg.offset)
         assert isinstance(around, ArrowMessage) and isinstance(around.payload, memoryview)
         assert bytes(around.payload) == whole_pb.payload, broken(ARROW_MSG_AROUND_PAYLOAD, where, "payload")
         fields = ("store_id", "chunk_id", "is_static", "compression", "uncompressed_size")
         assert [getattr(around, f) for f in fields] == [getattr(msg, f) for f in fields], broken(
-            ARROW_MSG_AROUND_PAYLOAD, where, "the fields beside the payload")
+            ARROW_MSG_AROUND_PAYLOAD, where, "the fields beside the payload"
+        )
 
 
 # Each message kind: its LogMsg field and its protobuf class.
@@ -261,10 +300,12 @@ _LOG_MSG_FIELDS: dict[int, tuple[str, type[Any]]] = {
 
 def test_grpc_requests_unwrapped_by_hand_are_protobufs(whole: Recording):
     assert sdk_comms_pb2.WriteMessagesRequest.DESCRIPTOR.fields_by_name["log_msg"].number == 1, broken(
-        GRPC_UNWRAP, "sdk_comms.proto", "WriteMessagesRequest.log_msg")
+        GRPC_UNWRAP, "sdk_comms.proto", "WriteMessagesRequest.log_msg"
+    )
     for message_kind, (name, _) in _LOG_MSG_FIELDS.items():
         assert log_msg_pb2.LogMsg.DESCRIPTOR.fields_by_name[name].number == message_kind, broken(
-            GRPC_UNWRAP, "log_msg.proto", f"LogMsg.{name}")
+            GRPC_UNWRAP, "log_msg.proto", f"LogMsg.{name}"
+        )
     seen: Counter[int] = Counter()
     for event in iter_events(whole.path):
         if not isinstance(event, Message) or isinstance(event, EndMessage):
@@ -288,5 +329,6 @@ def test_footer_read_from_the_end_is_the_one_scanned(footer_file: Recording):
     assert trailers[0].footer_start == ends[0].stream_payload_offset, broken(STREAM_FOOTER, footer_file.name)
     with open(footer_file.path, "rb") as fh:
         footer = read_footer(fh)
-    assert footer == ends[0].footer, broken(STREAM_FOOTER, f"{footer_file.name}.rrd",
-                                            "read_footer gives None" if footer is None else "another footer")
+    assert footer == ends[0].footer, broken(
+        STREAM_FOOTER, f"{footer_file.name}.rrd", "read_footer gives None" if footer is None else "another footer"
+    )

@@ -177,7 +177,10 @@ class Worker:
         self.stderr.truncate()
         proc = subprocess.Popen(
             [sys.executable, "-X", "faulthandler", "-c", WORKER_SCRIPT],
-            stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=self.stderr, cwd=REPO_ROOT,
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            stderr=self.stderr,
+            cwd=REPO_ROOT,
         )
         self.proc = proc
         line = self._read(6, time.monotonic() + 60)
@@ -243,8 +246,13 @@ class Worker:
 class Recording:
     """The intact recording and what it decodes to (not a dataclass: hypothesis prints it)."""
 
-    def __init__(self, data: bytes, events: list[tuple[int, str, int]], message_headers: list[int],
-                 chunks: list[tuple[int, bytes]]) -> None:
+    def __init__(
+        self,
+        data: bytes,
+        events: list[tuple[int, str, int]],
+        message_headers: list[int],
+        chunks: list[tuple[int, bytes]],
+    ) -> None:
         self.data = data
         self.events = events  # (offset, type name, end) of each event of the intact file
         self.message_headers = message_headers  # offsets of the 16-byte message headers
@@ -273,8 +281,7 @@ def _summary(events: list[Any]) -> list[tuple[int, str, int]]:
 @pytest.fixture(scope="module")
 def recording(tmp_path_factory: pytest.TempPathFactory) -> Recording:
     path = tmp_path_factory.mktemp("fuzz") / "fuzz.rrd"
-    done = subprocess.run([sys.executable, "-c", SDK_SCRIPT, str(path)], capture_output=True,
-                          timeout=120, check=False)
+    done = subprocess.run([sys.executable, "-c", SDK_SCRIPT, str(path)], capture_output=True, timeout=120, check=False)
     assert done.returncode == 0, done.stderr.decode(errors="replace")
     data = path.read_bytes()
     decoder = RrdDecoder()
@@ -323,8 +330,12 @@ def check(worker: Worker, recording: Recording, data: bytes, pieces: list[int]) 
         if info is not None:
             assert info["rrd"], _unexpected("chunk_meta", info)
             assert 0 <= info["offset"] < len(data), info
-            assert info["type"] in ("DecompressionError", "NotAChunkError", "InvalidChunkError",
-                                    "MessageTooLargeError"), info
+            assert info["type"] in (
+                "DecompressionError",
+                "NotAChunkError",
+                "InvalidChunkError",
+                "MessageTooLargeError",
+            ), info
     assert result["seconds"] < EXAMPLE_SECONDS and result["wall_seconds"] < EXAMPLE_SECONDS
     assert result["maxrss_kib"] < MAX_WORKER_RSS_MIB * 1024, f"worker RSS {result['maxrss_kib']} KiB"
     # What came before the first changed byte decodes as in the intact file.
@@ -349,7 +360,7 @@ def position(data: st.DataObject, recording: Recording) -> int:
 
 def _message_raw(recording: Recording, offset: int) -> bytes:
     (length,) = struct.unpack_from("<Q", recording.data, offset + 8)
-    return recording.data[offset + 16:offset + 16 + length]
+    return recording.data[offset + 16 : offset + 16 + length]
 
 
 # --- the intact recording ------------------------------------------------------------------
@@ -444,10 +455,14 @@ def test_flipped_bytes_in_arrow_ipc(recording: Recording, worker: Worker, data: 
     for _ in range(data.draw(st.integers(1, 4), label="edits")):
         if data.draw(st.booleans(), label="replace int64 everywhere"):
             pos = data.draw(st.sampled_from(small_ints), label="position")
-            old = bytes(mutated[pos:pos + 8])
-            new = struct.pack("<q", data.draw(st.one_of(st.integers(-(2**63), 2**63 - 1),
-                                                        st.sampled_from([0, -1, 1 << 31, 1 << 40])),
-                                              label="int64"))
+            old = bytes(mutated[pos : pos + 8])
+            new = struct.pack(
+                "<q",
+                data.draw(
+                    st.one_of(st.integers(-(2**63), 2**63 - 1), st.sampled_from([0, -1, 1 << 31, 1 << 40])),
+                    label="int64",
+                ),
+            )
             mutated = bytearray(bytes(mutated).replace(old, new))
         else:
             pos = data.draw(st.integers(0, len(mutated) - 1), label="position")
@@ -484,11 +499,10 @@ def test_truncated(recording: Recording, worker: Worker, cut: int, pieces: list[
 def test_inserted_and_deleted_runs(recording: Recording, worker: Worker, data: st.DataObject) -> None:
     mutated = bytearray(recording.data)
     for _ in range(data.draw(st.integers(1, 4), label="edits")):
-        pos = min(position(data, recording),
-                  len(mutated))
+        pos = min(position(data, recording), len(mutated))
         delete = data.draw(st.integers(0, 64), label="delete")
         insert = data.draw(st.binary(max_size=64), label="insert")
-        mutated[pos:pos + delete] = insert
+        mutated[pos : pos + delete] = insert
     check(worker, recording, bytes(mutated), data.draw(pieces_strategy(), label="pieces"))
 
 
@@ -502,15 +516,16 @@ def test_duplicated_ranges(recording: Recording, worker: Worker, data: st.DataOb
         start = data.draw(st.integers(0, len(source) - 1), label="start")
         length = data.draw(st.integers(1, len(source) - start), label="length")
         at = data.draw(st.integers(0, len(mutated)), label="insert at")
-        mutated[at:at] = source[start:start + length]
+        mutated[at:at] = source[start : start + length]
     check(worker, recording, bytes(mutated), data.draw(pieces_strategy(), label="pieces"))
 
 
 U64 = st.one_of(
     st.integers(0, 2**64 - 1),
     st.integers(0, 20_000),
-    st.sampled_from([0, 1, 2**31, 2**32, 2**62, 2**63, 2**64 - 1,
-                     DEFAULT_MAX_MESSAGE_SIZE, DEFAULT_MAX_MESSAGE_SIZE + 1]),
+    st.sampled_from(
+        [0, 1, 2**31, 2**32, 2**62, 2**63, 2**64 - 1, DEFAULT_MAX_MESSAGE_SIZE, DEFAULT_MAX_MESSAGE_SIZE + 1]
+    ),
 )
 
 
@@ -525,9 +540,9 @@ def test_overwritten_message_headers(recording: Recording, worker: Worker, data:
     value = data.draw(U64, label="value")
     mutated = bytearray(recording.data)
     at = header + (0 if field == "kind" else 8)
-    mutated[at:at + 8] = struct.pack("<Q", value)
+    mutated[at : at + 8] = struct.pack("<Q", value)
     result = check(worker, recording, bytes(mutated), data.draw(pieces_strategy(), label="pieces"))
-    looks_like_header = mutated[header:header + 3] == b"RRF" and mutated[header + 3:header + 4] in b"012"
+    looks_like_header = mutated[header : header + 3] == b"RRF" and mutated[header + 3 : header + 4] in b"012"
     kind, length = struct.unpack_from("<QQ", mutated, header)
     if looks_like_header:
         return

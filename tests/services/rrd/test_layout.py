@@ -29,7 +29,8 @@ def test_direct_batch_reading_equals_pyarrow(whole: Recording):
         assert meta.num_rows == rows
         assert {t.name: t.range for t in meta.timelines} == ranges
         assert [(c.column, c.num_rows, c.ranges) for c in meta.components] == [
-            (c.column, c.num_rows, c.ranges) for c in components]
+            (c.column, c.num_rows, c.ranges) for c in components
+        ]
         # The cached layout describes this very schema (only the chunk id differs).
         assert meta.layout.schema.remove_metadata().equals(read_chunk(event).schema.remove_metadata())
         data = decompress_payload(event)
@@ -47,7 +48,7 @@ class _ReadOnly:
 
     def read(self, size: int = -1) -> bytes:
         end = len(self._data) if size < 0 else self._pos + size
-        piece, self._pos = self._data[self._pos:end], min(end, len(self._data))
+        piece, self._pos = self._data[self._pos : end], min(end, len(self._data))
         return piece
 
 
@@ -63,12 +64,13 @@ def test_large_messages_keep_their_payload_in_place(recordings: dict[str, Record
     # The same events whether the source can `readinto` (files) or only `read`, and in odd pieces.
     without_readinto = [e for e in iter_events(_ReadOnly(rec.data)) if isinstance(e, ArrowMessage)]  # type: ignore[arg-type]
     decoder = RrdDecoder()
-    pieces = [e for i in range(0, len(rec.data), 99_991) for e in decoder.feed(rec.data[i:i + 99_991])]
+    pieces = [e for i in range(0, len(rec.data), 99_991) for e in decoder.feed(rec.data[i : i + 99_991])]
     decoder.finish()
     in_pieces = [e for e in pieces if isinstance(e, ArrowMessage)]
     for other in (without_readinto, in_pieces):
         assert [(e.offset, bytes(e.raw), bytes(e.payload)) for e in other] == [
-            (e.offset, bytes(e.raw), bytes(e.payload)) for e in events]
+            (e.offset, bytes(e.raw), bytes(e.payload)) for e in events
+        ]
 
 
 def test_large_message_cut_short_is_truncated_at_its_header():

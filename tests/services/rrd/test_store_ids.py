@@ -19,8 +19,11 @@ from tests.services.rrd.recordings import Recording
 
 
 def _store_ids(events: object) -> list[StoreId]:
-    return [e.blueprint_id if isinstance(e, BlueprintActivationMessage) else e.store_id  # type: ignore[attr-defined]
-            for e in events if isinstance(e, StoreInfoMessage | ArrowMessage | BlueprintActivationMessage)]  # type: ignore[attr-defined]
+    return [
+        e.blueprint_id if isinstance(e, BlueprintActivationMessage) else e.store_id  # type: ignore[attr-defined]
+        for e in events  # type: ignore[attr-defined]
+        if isinstance(e, StoreInfoMessage | ArrowMessage | BlueprintActivationMessage)
+    ]
 
 
 def test_resolver_fills_only_what_setstoreinfo_named():
@@ -40,8 +43,11 @@ def test_resolver_fills_only_what_setstoreinfo_named():
 def test_decoder_completes_legacy_store_ids(recordings: dict[str, Recording], tmp_path: Path):
     rec = recordings["blueprint"]  # a recording and a blueprint store, with an activation
     legacy = legacy_file(rec.path, tmp_path / "legacy.rrd")
-    raw_ids = [StoreId.from_proto(log_msg_pb2.ArrowMsg.FromString(raw).store_id)
-               for kind, raw in legacy_messages(rec.path) if kind == MessageKind.ARROW_MSG]
+    raw_ids = [
+        StoreId.from_proto(log_msg_pb2.ArrowMsg.FromString(raw).store_id)
+        for kind, raw in legacy_messages(rec.path)
+        if kind == MessageKind.ARROW_MSG
+    ]
     assert raw_ids and all(not s.application_id for s in raw_ids)  # really the legacy shape
     assert _store_ids(iter_events(legacy)) == _store_ids(iter_events(rec.path))
     # the message bytes are kept exactly as sent
@@ -67,8 +73,9 @@ def test_encoder_footer_names_the_complete_store(recordings: dict[str, Recording
 
 
 @pytest.mark.sdk
-def test_chunks_without_chunk_id_get_one_in_footer_files(recordings: dict[str, Recording], tmp_path: Path,
-                                                         rerun_bin: str):
+def test_chunks_without_chunk_id_get_one_in_footer_files(
+    recordings: dict[str, Recording], tmp_path: Path, rerun_bin: str
+):
     """0.23 sent the chunk id only inside the Arrow payload; footer readers seek by ArrowMsg.chunk_id
     (`rerun rrd verify` panics without it), so written files carry it, the payload untouched."""
     rec = recordings["points"]

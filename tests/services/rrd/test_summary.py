@@ -35,8 +35,11 @@ FLEET = _fleet_bin()
 
 
 def recording_store(summary: RrdSummary, recording_id: str) -> StoreSummary:
-    (store,) = [s for s in summary.stores.values()
-                if s.store_id.kind == StoreKind.RECORDING and s.store_id.recording_id == recording_id]
+    (store,) = [
+        s
+        for s in summary.stores.values()
+        if s.store_id.kind == StoreKind.RECORDING and s.store_id.recording_id == recording_id
+    ]
     return store
 
 
@@ -129,7 +132,12 @@ def test_summary_to_dict(recordings: dict[str, Recording]):
         assert entity["archetypes"] == sorted(truth[entity["path"]]["archetypes"])
     frame = next(t for t in recording["timelines"] if t["name"] == "frame")
     assert (frame["type"], frame["min"], frame["max"], frame["min_text"], frame["max_text"]) == (
-        "sequence", 0, 2, "0", "2")
+        "sequence",
+        0,
+        2,
+        "0",
+        "2",
+    )
     log_time = next(t for t in recording["timelines"] if t["name"] == "log_time")
     assert log_time["min_text"] == format_time("timestamp", log_time["min"])
 
@@ -157,7 +165,11 @@ def test_summary_of_concatenated_streams(recordings: dict[str, Recording]):
     assert summary.rerun_versions == ["0.41.0"] * 3
     assert summary.footers == 2
     assert {s.store_id.recording_id for s in summary.stores.values()} == {
-        "rec-no-footer", "rec-points", "rec-merge-a", "rec-merge-b"}
+        "rec-no-footer",
+        "rec-points",
+        "rec-merge-a",
+        "rec-merge-b",
+    }
     check_store_against_truth(recording_store(summary, "rec-points"), recordings["points"].recordings[0])
 
 
@@ -234,7 +246,8 @@ def check_inspect_doc(doc: dict[str, Any], rec: Recording) -> None:
     assert (store["application_id"], store["recording_id"]) == (truth["application_id"], truth["recording_id"])
     assert store["sdk_version"] == "0.41.0"
     assert {e["path"]: e["rows"] for e in store["entities"]} == {
-        path: e["static_rows"] + e["temporal_rows"] for path, e in truth["entities"].items()}
+        path: e["static_rows"] + e["temporal_rows"] for path, e in truth["entities"].items()
+    }
     assert store["rows"] == sum(e["rows"] for e in store["entities"])
     chunks = [e for e in iter_events(rec.path) if isinstance(e, ArrowMessage)]
     assert store["chunks"] == sum(e["chunks"] for e in store["entities"]) == len(chunks)

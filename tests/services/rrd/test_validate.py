@@ -84,8 +84,9 @@ def test_ingest_refuses_the_variant(seed: Seed, variant: str) -> None:
         assert isinstance(exc, errors.NotAChunkError), exc
 
 
-@pytest.mark.parametrize("variant", [v for v in MALFORMED if not v.startswith(("row_id_missing", "row_id_binary",
-                                                                                "no_chunk_id", "index_"))])
+@pytest.mark.parametrize(
+    "variant", [v for v in MALFORMED if not v.startswith(("row_id_missing", "row_id_binary", "no_chunk_id", "index_"))]
+)
 def test_every_value_reader_validates_first(seed: Seed, variant: str) -> None:
     """validated_batch (used by analytics extraction and exact trimming) refuses every variant whose
     values are wrong (the others are refused by ingest from their schema)."""
@@ -106,10 +107,12 @@ def test_types_compare_without_nested_names_or_nullability() -> None:
     assert not conformance.same_type(pa.list_(pa.list_(pa.float32(), 2)), translation)
     assert not conformance.same_type(pa.list_(pa.list_(pa.float32())), translation)
     axis_angle = conformance.READ_COMPONENTS["Transform3D:rotation_axis_angle"]
-    assert conformance.same_type(pa.list_(pa.struct([("axis", pa.list_(pa.float32(), 3)),
-                                                     ("angle", pa.float32())])), axis_angle)
-    assert not conformance.same_type(pa.list_(pa.struct([("angle", pa.float32()),
-                                                         ("axis", pa.list_(pa.float32(), 3))])), axis_angle)
+    assert conformance.same_type(
+        pa.list_(pa.struct([("axis", pa.list_(pa.float32(), 3)), ("angle", pa.float32())])), axis_angle
+    )
+    assert not conformance.same_type(
+        pa.list_(pa.struct([("angle", pa.float32()), ("axis", pa.list_(pa.float32(), 3))])), axis_angle
+    )
 
 
 def test_scalars_checked_without_pyarrow_only_when_pyarrow_agrees(seed: Seed) -> None:
@@ -125,7 +128,7 @@ def test_scalars_checked_without_pyarrow_only_when_pyarrow_agrees(seed: Seed) ->
     for slot in range(5):
         for value in (-1, 0, 1, 3, 5, 7, 8, 9, 1 << 20, -(1 << 31)):
             edited = bytearray(intact)
-            edited[offsets_at + 4 * slot:offsets_at + 4 * slot + 4] = i32(value)
+            edited[offsets_at + 4 * slot : offsets_at + 4 * slot + 4] = i32(value)
             variants.append(bytes(edited))
     variants += [node_length_patched(batch, 4, n) for n in (0, 1, 7, 9, 1 << 20)]  # the values' node
     checked = 0

@@ -31,13 +31,25 @@ FRAMES = tuple(range(0, 100, 10))
 def log_scene(chunking: str, out: Path, rerun_bin: str, timeout: float = 120) -> Path:
     if chunking == "compacted":
         logged = log_scene("per_call", out.with_name(out.stem + "-logged.rrd"), rerun_bin, timeout)
-        subprocess.run([rerun_bin, "rrd", "optimize", "--max-rows", "4", str(logged), "-o", str(out)], check=True,
-                       capture_output=True, timeout=timeout)
+        subprocess.run(
+            [rerun_bin, "rrd", "optimize", "--max-rows", "4", str(logged), "-o", str(out)],
+            check=True,
+            capture_output=True,
+            timeout=timeout,
+        )
         return out
-    env = {**os.environ, "RERUN_FLUSH_NUM_ROWS": "3", "RERUN_FLUSH_TICK_SECS": "1000"} if chunking == "batched" \
+    env = (
+        {**os.environ, "RERUN_FLUSH_NUM_ROWS": "3", "RERUN_FLUSH_TICK_SECS": "1000"}
+        if chunking == "batched"
         else dict(os.environ)
-    subprocess.run([sys.executable, str(Path(__file__).resolve()), chunking, str(out)], check=True, timeout=timeout,
-                   env=env, capture_output=True)
+    )
+    subprocess.run(
+        [sys.executable, str(Path(__file__).resolve()), chunking, str(out)],
+        check=True,
+        timeout=timeout,
+        env=env,
+        capture_output=True,
+    )
     return out
 
 
@@ -48,8 +60,11 @@ def latest_at(path: Path, times: list[int], timeline: str = "frame") -> dict[str
 
     store = rr.chunk.RrdReader(path).stream().collect()
     table = store.reader(timeline, fill_latest_at=True, using_index_values=times).to_arrow_table()
-    return {name: table.column(name).to_pylist() for name in table.column_names
-            if ":" in name and not name.startswith("/__properties")}
+    return {
+        name: table.column(name).to_pylist()
+        for name in table.column_names
+        if ":" in name and not name.startswith("/__properties")
+    }
 
 
 def _log(chunking: str, out: str) -> None:
@@ -79,9 +94,13 @@ def _log(chunking: str, out: str) -> None:
     rr.set_time("frame", sequence=90)
     rr.log("/cam", rr.Image(np.full((4, 4), 190, dtype=np.uint8)))
     flush()
-    rr.send_columns("/straddle", indexes=[rr.TimeColumn("frame", sequence=[50, 120])],
-                    columns=rr.Points3D.columns(positions=np.array([[50, 50, 50], [120, 120, 120]],
-                                                                   dtype=np.float32)).partition([1, 1]))
+    rr.send_columns(
+        "/straddle",
+        indexes=[rr.TimeColumn("frame", sequence=[50, 120])],
+        columns=rr.Points3D.columns(positions=np.array([[50, 50, 50], [120, 120, 120]], dtype=np.float32)).partition(
+            [1, 1]
+        ),
+    )
     recording.flush()
 
 

@@ -28,8 +28,12 @@ def server(tmp_path_factory: pytest.TempPathFactory, recordings: dict[str, Recor
 
 
 def _download(server: LiveServer, run_id: str, out: Path, **params: object) -> httpx.Response:
-    response = httpx.get(f"{server.url}/v1/runs/{run_id}/recording.rrd", params=params,  # type: ignore[arg-type]
-                         headers={"Origin": "http://localhost:9090"}, timeout=120)  # as a browser viewer asks
+    response = httpx.get(
+        f"{server.url}/v1/runs/{run_id}/recording.rrd",
+        params=params,  # type: ignore[arg-type]
+        headers={"Origin": "http://localhost:9090"},
+        timeout=120,
+    )  # as a browser viewer asks
     out.write_bytes(response.content)
     return response
 
@@ -39,8 +43,9 @@ def _run(*args: str) -> subprocess.CompletedProcess[str]:
 
 
 @pytest.mark.parametrize("name", NAMES)
-def test_full_download_equals_the_original(server: LiveServer, recordings: dict[str, Recording], name: str,
-                                           rerun_bin: str, tmp_path: Path):
+def test_full_download_equals_the_original(
+    server: LiveServer, recordings: dict[str, Recording], name: str, rerun_bin: str, tmp_path: Path
+):
     rec = recordings[name]
     out = tmp_path / "run.rrd"
     response = _download(server, rec.recordings[0]["recording_id"], out)
@@ -53,8 +58,9 @@ def test_full_download_equals_the_original(server: LiveServer, recordings: dict[
     assert compare.returncode == 0, compare.stdout + compare.stderr
 
 
-def test_entity_filter_equals_rerun_rrd_filter(server: LiveServer, recordings: dict[str, Recording], rerun_bin: str,
-                                               tmp_path: Path):
+def test_entity_filter_equals_rerun_rrd_filter(
+    server: LiveServer, recordings: dict[str, Recording], rerun_bin: str, tmp_path: Path
+):
     rec = recordings["transforms"]
     entities = sorted(rec.recordings[0]["entities"])
     dropped = next(e for e in entities if not e.startswith("/__properties"))
@@ -73,8 +79,11 @@ def test_include_subtree_and_exclude_wins(server: LiveServer, recordings: dict[s
     all_paths = set(rec.recordings[0]["entities"])
     out = tmp_path / "sub.rrd"
     assert _download(server, run_id, out, include="/world/**").status_code == 200
-    got = {chunk_meta(e).entity_path for e in iter_events(out)
-           if isinstance(e, ArrowMessage) and e.store_id.kind == StoreKind.RECORDING}
+    got = {
+        chunk_meta(e).entity_path
+        for e in iter_events(out)
+        if isinstance(e, ArrowMessage) and e.store_id.kind == StoreKind.RECORDING
+    }
     properties = {p for p in all_paths if p == "/__properties" or p.startswith("/__properties/")}
     assert properties  # the SDK logs the recording's start time there
     # the recording's properties stay with an entity filter (an include need not name them)
@@ -92,8 +101,9 @@ def test_blueprint_can_be_left_out(server: LiveServer, recordings: dict[str, Rec
     assert kinds == {StoreKind.RECORDING}
 
 
-def test_the_viewer_loader_saves_the_same(server: LiveServer, recordings: dict[str, Recording], rerun_bin: str,
-                                          tmp_path: Path):
+def test_the_viewer_loader_saves_the_same(
+    server: LiveServer, recordings: dict[str, Recording], rerun_bin: str, tmp_path: Path
+):
     run_id = recordings["points"].recordings[0]["recording_id"]
     url = f"{server.url}/v1/runs/{run_id}/recording.rrd"
     saved = tmp_path / "saved.rrd"
@@ -113,16 +123,31 @@ def test_errors(server: LiveServer):
 
 
 def _recording_chunks(path: Path) -> dict[bytes, object]:
-    return {e.chunk_id: chunk_meta(e) for e in iter_events(path)  # type: ignore[misc]
-            if isinstance(e, ArrowMessage) and e.store_id.kind == StoreKind.RECORDING}
+    return {
+        e.chunk_id: chunk_meta(e)  # type: ignore[misc]
+        for e in iter_events(path)
+        if isinstance(e, ArrowMessage) and e.store_id.kind == StoreKind.RECORDING
+    }
 
 
-@pytest.mark.parametrize(("timeline", "start", "end", "lo", "hi"), [
-    ("frame", "104", "105", 104, 105),
-    ("sim", "0.75s", "1s", 750_000_000, 1_000_000_000),
-])
-def test_time_window(server: LiveServer, recordings: dict[str, Recording], tmp_path: Path, rerun_bin: str,
-                     timeline: str, start: str, end: str, lo: int, hi: int):
+@pytest.mark.parametrize(
+    ("timeline", "start", "end", "lo", "hi"),
+    [
+        ("frame", "104", "105", 104, 105),
+        ("sim", "0.75s", "1s", 750_000_000, 1_000_000_000),
+    ],
+)
+def test_time_window(
+    server: LiveServer,
+    recordings: dict[str, Recording],
+    tmp_path: Path,
+    rerun_bin: str,
+    timeline: str,
+    start: str,
+    end: str,
+    lo: int,
+    hi: int,
+):
     rec = recordings["points"]
     run_id = rec.recordings[0]["recording_id"]
     original = _recording_chunks(rec.path)
@@ -131,14 +156,16 @@ def test_time_window(server: LiveServer, recordings: dict[str, Recording], tmp_p
         tl = next((t for t in meta.timelines if t.name == timeline), None)  # type: ignore[attr-defined]
         return None if tl is None else (tl.range.min, tl.range.max)
 
-    overlapping = {cid for cid, m in original.items()
-                   if (r := window_range(m)) is not None and r[1] >= lo and r[0] <= hi}
+    overlapping = {
+        cid for cid, m in original.items() if (r := window_range(m)) is not None and r[1] >= lo and r[0] <= hi
+    }
     static = {cid for cid, m in original.items() if m.is_static}  # type: ignore[attr-defined]
     assert overlapping and overlapping != set(original) - static  # the window leaves something out
 
     exact = tmp_path / "exact.rrd"
-    assert _download(server, run_id, exact, timeline=timeline, start=start, end=end,
-                     latest_at="false").status_code == 200
+    assert (
+        _download(server, run_id, exact, timeline=timeline, start=start, end=end, latest_at="false").status_code == 200
+    )
     assert set(_recording_chunks(exact)) == overlapping | static
     assert _run(rerun_bin, "rrd", "verify", str(exact)).returncode == 0
 
@@ -153,27 +180,32 @@ def test_time_window(server: LiveServer, recordings: dict[str, Recording], tmp_p
     assert _run(rerun_bin, "rrd", "verify", str(scene)).returncode == 0
 
 
-@pytest.mark.parametrize(("params", "name"), [
-    ({"timeline": "nope"}, "timeline"), ({"start": "1"}, "timeline"),
-    ({"timeline": "frame", "start": "soon"}, "start"), ({"timeline": "sim", "start": "2 weeks"}, "start"),
-    ({"timeline": "frame", "start": "5", "end": "1"}, "end"),
-])
+@pytest.mark.parametrize(
+    ("params", "name"),
+    [
+        ({"timeline": "nope"}, "timeline"),
+        ({"start": "1"}, "timeline"),
+        ({"timeline": "frame", "start": "soon"}, "start"),
+        ({"timeline": "sim", "start": "2 weeks"}, "start"),
+        ({"timeline": "frame", "start": "5", "end": "1"}, "end"),
+    ],
+)
 def test_bad_windows(server: LiveServer, recordings: dict[str, Recording], params: dict[str, str], name: str):
     run_id = recordings["points"].recordings[0]["recording_id"]
     bad = httpx.get(f"{server.url}/v1/runs/{run_id}/recording.rrd", params=params, timeout=30)
     assert bad.status_code == 422 and f"'{name}'" in bad.json()["message"], bad.text
 
 
-def test_exact_trims_rows_to_the_window(server: LiveServer, recordings: dict[str, Recording], tmp_path: Path,
-                                        rerun_bin: str):
+def test_exact_trims_rows_to_the_window(
+    server: LiveServer, recordings: dict[str, Recording], tmp_path: Path, rerun_bin: str
+):
     from services.rrd.chunk import read_chunk
 
     rec = recordings["points"]
     run_id = rec.recordings[0]["recording_id"]
     original = _recording_chunks(rec.path)
     out = tmp_path / "exact.rrd"
-    response = _download(server, run_id, out, timeline="frame", start="101", end="104", exact="true",
-                         latest_at="false")
+    response = _download(server, run_id, out, timeline="frame", start="101", end="104", exact="true", latest_at="false")
     assert response.status_code == 200
     assert _run(rerun_bin, "rrd", "verify", str(out)).returncode == 0
     frames: list[int] = []
@@ -193,17 +225,22 @@ def test_exact_trims_rows_to_the_window(server: LiveServer, recordings: dict[str
     assert bad.status_code == 422 and "'exact'" in bad.json()["message"]
 
 
-def test_exact_keeps_only_the_latest_row_before_the_window(server: LiveServer, recordings: dict[str, Recording],
-                                                           tmp_path: Path):
+def test_exact_keeps_only_the_latest_row_before_the_window(
+    server: LiveServer, recordings: dict[str, Recording], tmp_path: Path
+):
     from services.rrd.chunk import read_chunk
 
     run_id = recordings["points"].recordings[0]["recording_id"]
     out = tmp_path / "exact-latest.rrd"
     _download(server, run_id, out, timeline="frame", start="104", end="105", exact="true")
-    frames = sorted(v for e in iter_events(out)
-                    if isinstance(e, ArrowMessage) and e.store_id.kind == StoreKind.RECORDING
-                    and chunk_meta(e).entity_path == "/world/points"
-                    for v in read_chunk(e).column("frame").to_pylist())
+    frames = sorted(
+        v
+        for e in iter_events(out)
+        if isinstance(e, ArrowMessage)
+        and e.store_id.kind == StoreKind.RECORDING
+        and chunk_meta(e).entity_path == "/world/points"
+        for v in read_chunk(e).column("frame").to_pylist()
+    )
     # The window's rows, plus the newest row before it: frame 103, in the chunk (103-105) that straddles
     # the start, not the last row of the chunk wholly before it (102: its colors are older than 103's,
     # which the viewer shows at 104, a row without colors).
@@ -211,22 +248,33 @@ def test_exact_keeps_only_the_latest_row_before_the_window(server: LiveServer, r
 
 
 def _entities(path: Path) -> set[str]:
-    return {chunk_meta(e).entity_path for e in iter_events(path)
-            if isinstance(e, ArrowMessage) and e.store_id.kind == StoreKind.RECORDING}
+    return {
+        chunk_meta(e).entity_path
+        for e in iter_events(path)
+        if isinstance(e, ArrowMessage) and e.store_id.kind == StoreKind.RECORDING
+    }
 
 
-def test_entity_filters_keep_the_recordings_properties_unless_excluded(server: LiveServer,
-                                                                        recordings: dict[str, Recording],
-                                                                        tmp_path: Path):
+def test_entity_filters_keep_the_recordings_properties_unless_excluded(
+    server: LiveServer, recordings: dict[str, Recording], tmp_path: Path
+):
     run_id = recordings["points"].recordings[0]["recording_id"]
     out = tmp_path / "props.rrd"
-    kept: list[dict[str, object]] = [{"include": "/world/**"}, {"include": "/world/points"}, {"exclude": "/world/**"},
-                                     {"exclude": "/**"}, {"include": "/world/**", "exclude": "/world/points"}]
+    kept: list[dict[str, object]] = [
+        {"include": "/world/**"},
+        {"include": "/world/points"},
+        {"exclude": "/world/**"},
+        {"exclude": "/**"},
+        {"include": "/world/**", "exclude": "/world/points"},
+    ]
     for params in kept:
         assert _download(server, run_id, out, **params).status_code == 200
         assert "/__properties" in _entities(out), params
-    dropped: list[dict[str, object]] = [{"exclude": "/__properties"}, {"exclude": "/__properties/**"},
-                                        {"include": ["/world/**", "/__properties/**"], "exclude": "/__properties/**"}]
+    dropped: list[dict[str, object]] = [
+        {"exclude": "/__properties"},
+        {"exclude": "/__properties/**"},
+        {"include": ["/world/**", "/__properties/**"], "exclude": "/__properties/**"},
+    ]
     for params in dropped:
         assert _download(server, run_id, out, **params).status_code == 200
         assert "/__properties" not in _entities(out) and _entities(out), params
@@ -237,16 +285,19 @@ def test_entity_patterns_are_bounded(server: LiveServer, recordings: dict[str, R
 
     run_id = recordings["points"].recordings[0]["recording_id"]
     url = f"{server.url}/v1/runs/{run_id}/recording.rrd"
-    for params, name in (({"exclude": [f"/x{i}" for i in range(MAX_PATTERNS + 1)]}, "exclude"),
-                         ({"include": [f"/x{i}" for i in range(MAX_PATTERNS + 1)]}, "include"),
-                         ({"exclude": "/" + "a" * MAX_PATTERN_LENGTH}, "exclude")):
+    for params, name in (
+        ({"exclude": [f"/x{i}" for i in range(MAX_PATTERNS + 1)]}, "exclude"),
+        ({"include": [f"/x{i}" for i in range(MAX_PATTERNS + 1)]}, "include"),
+        ({"exclude": "/" + "a" * MAX_PATTERN_LENGTH}, "exclude"),
+    ):
         bad = httpx.get(url, params=params, timeout=30)
         assert bad.status_code == 422 and f"'{name}'" in bad.json()["message"], bad.text
     assert httpx.get(url, params={"exclude": [f"/x{i}" for i in range(MAX_PATTERNS)]}, timeout=60).status_code == 200
 
 
-def test_pattern_matching_cost_is_per_entity_not_per_chunk(recordings: dict[str, Recording],
-                                                           monkeypatch: pytest.MonkeyPatch):
+def test_pattern_matching_cost_is_per_entity_not_per_chunk(
+    recordings: dict[str, Recording], monkeypatch: pytest.MonkeyPatch
+):
     """Each entity path is matched against the patterns once, however many chunks it has."""
     from services.runs import download
 
@@ -268,13 +319,19 @@ def test_pattern_matching_cost_is_per_entity_not_per_chunk(recordings: dict[str,
     assert calls <= len(set(chunks)) * len(patterns), (calls, len(chunks))
 
 
-@pytest.mark.parametrize(("timeline", "start", "end"), [
-    ("frame", "-99999999999999999999", "5"), ("frame", "0", "9223372036854775808"),
-    ("log_time", "2263-01-01T00:00:00Z", None), ("log_time", "1600-01-01", "2026-01-01"),
-    ("sim", "9999999999h", None),
-])
-def test_windows_outside_int64_are_refused_up_front(server: LiveServer, recordings: dict[str, Recording],
-                                                    timeline: str, start: str, end: str | None):
+@pytest.mark.parametrize(
+    ("timeline", "start", "end"),
+    [
+        ("frame", "-99999999999999999999", "5"),
+        ("frame", "0", "9223372036854775808"),
+        ("log_time", "2263-01-01T00:00:00Z", None),
+        ("log_time", "1600-01-01", "2026-01-01"),
+        ("sim", "9999999999h", None),
+    ],
+)
+def test_windows_outside_int64_are_refused_up_front(
+    server: LiveServer, recordings: dict[str, Recording], timeline: str, start: str, end: str | None
+):
     run_id = recordings["points"].recordings[0]["recording_id"]
     params = {"timeline": timeline, "start": start, "exact": "true", **({"end": end} if end else {})}
     bad = httpx.get(f"{server.url}/v1/runs/{run_id}/recording.rrd", params=params, timeout=30)

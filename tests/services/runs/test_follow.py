@@ -26,8 +26,13 @@ def server(tmp_path: Path) -> Iterator[LiveServer]:
 
 def test_follow_streams_a_live_run_until_it_closes(server: LiveServer, tmp_path: Path, rerun_bin: str):
     copy, run_id = tmp_path / "copy.rrd", "follow-run-1"
-    robot = subprocess.Popen([sys.executable, ROBOT, "live", server.grpc_url, str(copy), run_id],
-                             stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    robot = subprocess.Popen(
+        [sys.executable, ROBOT, "live", server.grpc_url, str(copy), run_id],
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     assert robot.stdout is not None and robot.stdin is not None
     assert robot.stdout.readline().strip() == "READY"
     received = bytearray()
@@ -55,10 +60,12 @@ def test_follow_streams_a_live_run_until_it_closes(server: LiveServer, tmp_path:
     out.write_bytes(bytes(received))
     verify = subprocess.run([rerun_bin, "rrd", "verify", str(out)], capture_output=True, text=True)
     assert verify.returncode == 0, verify.stderr  # ends with End and a footer
-    compare = subprocess.run([rerun_bin, "rrd", "compare", "--unordered", str(copy), str(out)],
-                             capture_output=True, text=True)
+    compare = subprocess.run(
+        [rerun_bin, "rrd", "compare", "--unordered", str(copy), str(out)], capture_output=True, text=True
+    )
     assert compare.returncode == 0, compare.stdout + compare.stderr  # every chunk, the later ones too
 
-    windowed = httpx.get(f"{server.url}/v1/runs/{run_id}/recording.rrd",
-                         params={"follow": "true", "timeline": "frame"}, timeout=30)
+    windowed = httpx.get(
+        f"{server.url}/v1/runs/{run_id}/recording.rrd", params={"follow": "true", "timeline": "frame"}, timeout=30
+    )
     assert windowed.status_code == 422 and "'follow'" in windowed.json()["message"]

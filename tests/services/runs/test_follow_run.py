@@ -47,8 +47,11 @@ class LiveRun:
     def __init__(self, store: HotStore, rec: Recording) -> None:
         events = list(iter_events(rec.path))
         version = next(e.version for e in events if isinstance(e, StreamStart))
-        self.messages = [(_kind(e), e.raw) for e in events
-                         if isinstance(e, StoreInfoMessage | ArrowMessage | BlueprintActivationMessage)]
+        self.messages = [
+            (_kind(e), e.raw)
+            for e in events
+            if isinstance(e, StoreInfoMessage | ArrowMessage | BlueprintActivationMessage)
+        ]
         self.hot: HotRun = store.create("followed", version)
         self.live = True
 
@@ -81,9 +84,13 @@ async def next_piece(body: AsyncIterator[bytes]) -> bytes:
 
 @pytest.mark.parametrize("on_loop_bytes", [0, 1 << 30], ids=["read-on-a-thread", "read-on-the-loop"])
 @pytest.mark.parametrize("entities", [EntityFilter(), EntityFilter(include=["/world/points"])], ids=["all", "one"])
-def test_a_followed_run_is_the_download_of_the_finished_run(store: HotStore, recordings: dict[str, Recording],
-                                                            monkeypatch: pytest.MonkeyPatch, on_loop_bytes: int,
-                                                            entities: EntityFilter):
+def test_a_followed_run_is_the_download_of_the_finished_run(
+    store: HotStore,
+    recordings: dict[str, Recording],
+    monkeypatch: pytest.MonkeyPatch,
+    on_loop_bytes: int,
+    entities: EntityFilter,
+):
     monkeypatch.setattr(download, "ON_LOOP_BYTES", on_loop_bytes)
     run = LiveRun(store, recordings["points"])
     half = len(run.messages) // 2

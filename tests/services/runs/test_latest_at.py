@@ -35,8 +35,13 @@ PROMOTE_AFTER_S = 600.0
 WINDOWS = ((95, 99), (45, 55), (35, 35))
 
 
-def _entry(chunk: str, entity: str, span: tuple[int, int], spans: dict[str, tuple[int, int]] | None,
-           components: tuple[str, ...] = ()) -> ChunkEntry:
+def _entry(
+    chunk: str,
+    entity: str,
+    span: tuple[int, int],
+    spans: dict[str, tuple[int, int]] | None,
+    components: tuple[str, ...] = (),
+) -> ChunkEntry:
     return ChunkEntry(chunk.encode(), entity, False, True, span, spans, components or tuple(spans or ()))
 
 
@@ -50,15 +55,20 @@ def _select(entries: list[ChunkEntry], lo: int, hi: int, resolve: Any = None) ->
 
 def test_ties_at_the_newest_time_are_all_kept():
     """Two chunks whose image ends at frame 90 (a tie settled by row id, which only the rows tell)."""
-    entries = [_entry("a", "/cam", (70, 70), {"img": (70, 70)}), _entry("b", "/cam", (90, 90), {"img": (90, 90)}),
-               _entry("c", "/cam", (90, 90), {"img": (90, 90)})]
+    entries = [
+        _entry("a", "/cam", (70, 70), {"img": (70, 70)}),
+        _entry("b", "/cam", (90, 90), {"img": (90, 90)}),
+        _entry("c", "/cam", (90, 90), {"img": (90, 90)}),
+    ]
     assert _select(entries, 95, 99) == ({"b", "c"}, {"b", "c"})
 
 
 def test_sparse_component_ranges_pick_each_components_own_chunk():
     """Chunk a spans frames 0-80 but has colors only up to 20; chunk b (10-30) has colors at 25."""
-    entries = [_entry("a", "/robot", (0, 80), {"pos": (0, 80), "colors": (0, 20)}),
-               _entry("b", "/robot", (10, 30), {"pos": (10, 30), "colors": (25, 25)})]
+    entries = [
+        _entry("a", "/robot", (0, 80), {"pos": (0, 80), "colors": (0, 20)}),
+        _entry("b", "/robot", (10, 30), {"pos": (10, 30), "colors": (25, 25)}),
+    ]
     assert _select(entries, 95, 99)[1] == {"a", "b"}  # a for positions, b for colors
     entries[1] = _entry("b", "/robot", (10, 30), {"pos": (10, 30)})
     assert _select(entries, 95, 99)[1] == {"a"}
@@ -129,8 +139,10 @@ def _answers(client: TestClient, run_id: str, out: Path, tag: str) -> dict[tuple
     answers = {}
     for lo, hi in WINDOWS:
         for exact in (False, True):
-            response = client.get(f"/v1/runs/{run_id}/recording.rrd", params={
-                "timeline": "frame", "start": str(lo), "end": str(hi), "exact": str(exact).lower()})
+            response = client.get(
+                f"/v1/runs/{run_id}/recording.rrd",
+                params={"timeline": "frame", "start": str(lo), "end": str(hi), "exact": str(exact).lower()},
+            )
             assert response.status_code == 200, response.text
             path = out / f"{tag}-{lo}-{hi}-{exact}.rrd"
             path.write_bytes(response.content)
@@ -139,8 +151,9 @@ def _answers(client: TestClient, run_id: str, out: Path, tag: str) -> dict[tuple
 
 
 def _check(full: Path, answers: dict[tuple[int, int, bool], Path], rerun_bin: str) -> None:
-    verify = subprocess.run([rerun_bin, "rrd", "verify", *map(str, answers.values())], capture_output=True,
-                            text=True, timeout=120)
+    verify = subprocess.run(
+        [rerun_bin, "rrd", "verify", *map(str, answers.values())], capture_output=True, text=True, timeout=120
+    )
     assert verify.returncode == 0, verify.stdout + verify.stderr
     for (lo, hi, exact), path in answers.items():
         times = list(range(lo, hi + 1))
@@ -152,8 +165,9 @@ def _check(full: Path, answers: dict[tuple[int, int, bool], Path], rerun_bin: st
 
 @pytest.mark.sdk
 @pytest.mark.parametrize("chunking", CHUNKINGS)
-def test_window_answers_equal_rerun_latest_at(chunking: str, scenes: dict[str, Path], tiers: Tiers,
-                                              make_node: NodeFactory, rerun_bin: str, tmp_path: Path):
+def test_window_answers_equal_rerun_latest_at(
+    chunking: str, scenes: dict[str, Path], tiers: Tiers, make_node: NodeFactory, rerun_bin: str, tmp_path: Path
+):
     """Hot, sealed, and sealed with an index from before per-component ranges: every windowed download
     (whole chunks or exact) shows at each time of the window what the whole recording shows."""
     node = make_node(tiers, clock=Clock(), promote_after_s=PROMOTE_AFTER_S)

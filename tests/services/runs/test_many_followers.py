@@ -64,8 +64,9 @@ class Follower:
         self.ended = False
 
     async def follow(self, client: httpx.AsyncClient, run_id: str) -> None:
-        async with client.stream("GET", f"/v1/runs/{run_id}/recording.rrd", params={"follow": "true"},
-                                 timeout=120) as response:
+        async with client.stream(
+            "GET", f"/v1/runs/{run_id}/recording.rrd", params={"follow": "true"}, timeout=120
+        ) as response:
             assert response.status_code == 200
             async for piece in response.aiter_raw():
                 self.received.extend(piece)
@@ -82,29 +83,41 @@ class Observed:
     after: set[bytes] = field(default_factory=set)  # and once it closed
 
 
-def test_a_hundred_followers_of_a_live_run_do_not_slow_the_catalog(server: LiveServer, tmp_path: Path,
-                                                                   rerun_bin: str):
+def test_a_hundred_followers_of_a_live_run_do_not_slow_the_catalog(server: LiveServer, tmp_path: Path, rerun_bin: str):
     copy, run_id = tmp_path / "copy.rrd", "followed-by-many"
-    robot = subprocess.Popen([sys.executable, ROBOT, "live", server.grpc_url, str(copy), run_id],
-                             stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    robot = subprocess.Popen(
+        [sys.executable, ROBOT, "live", server.grpc_url, str(copy), run_id],
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     assert robot.stdout is not None and robot.stdin is not None
     assert robot.stdout.readline().strip() == "READY"  # ten frames sent, the stream stays open
-    server.wait_for(lambda: httpx.get(f"{server.url}/v1/runs/{run_id}", timeout=10).status_code == 200,
-                    what="the live run in the catalog")
+    server.wait_for(
+        lambda: httpx.get(f"{server.url}/v1/runs/{run_id}", timeout=10).status_code == 200,
+        what="the live run in the catalog",
+    )
 
     async def scenario() -> Observed:
-        async with httpx.AsyncClient(base_url=server.url) as catalog, \
-                httpx.AsyncClient(base_url=server.url, limits=httpx.Limits(max_connections=FOLLOWERS)) as viewers:
+        async with (
+            httpx.AsyncClient(base_url=server.url) as catalog,
+            httpx.AsyncClient(base_url=server.url, limits=httpx.Limits(max_connections=FOLLOWERS)) as viewers,
+        ):
             baseline = await catalog_p95(catalog, run_id)
             followers = [Follower() for _ in range(FOLLOWERS)]
             tasks = [asyncio.create_task(f.follow(viewers, run_id)) for f in followers]
             with contextlib.suppress(TimeoutError):  # asserted below, after the latencies that say why
                 await asyncio.wait_for(asyncio.gather(*(f.first_bytes.wait() for f in followers)), 30)
             with_followers = await catalog_p95(catalog, run_id)
-            assert with_followers < max(10 * baseline, 1.0), \
+            assert with_followers < max(10 * baseline, 1.0), (
                 f"catalog p95 {with_followers:.3f}s with {FOLLOWERS} followers, {baseline:.3f}s without"
-            observed = Observed(followers, all_connected=all(f.first_bytes.is_set() for f in followers),
-                                still_open=not any(f.ended for f in followers))
+            )
+            observed = Observed(
+                followers,
+                all_connected=all(f.first_bytes.is_set() for f in followers),
+                still_open=not any(f.ended for f in followers),
+            )
             observed.before = chunk_ids((await catalog.get(f"/v1/runs/{run_id}/recording.rrd", timeout=60)).content)
             assert robot.stdin is not None
             robot.stdin.write("go\n")  # ten frames more, then the stream ends and the run closes
@@ -133,6 +146,7 @@ def test_a_hundred_followers_of_a_live_run_do_not_slow_the_catalog(server: LiveS
     out.write_bytes(bytes(seen.followers[0].received))
     verify = subprocess.run([rerun_bin, "rrd", "verify", str(out)], capture_output=True, text=True)
     assert verify.returncode == 0, verify.stderr
-    compare = subprocess.run([rerun_bin, "rrd", "compare", "--unordered", str(copy), str(out)],
-                             capture_output=True, text=True)
+    compare = subprocess.run(
+        [rerun_bin, "rrd", "compare", "--unordered", str(copy), str(out)], capture_output=True, text=True
+    )
     assert compare.returncode == 0, compare.stdout + compare.stderr

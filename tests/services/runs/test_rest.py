@@ -45,9 +45,14 @@ def test_runs_list_and_detail(server: LiveServer, recordings: dict[str, Recordin
 def test_errors(server: LiveServer):
     missing = httpx.get(f"{server.url}/v1/runs/no-such-run", timeout=30)
     assert missing.status_code == 404 and "no-such-run" in missing.json()["message"]
-    for params, name in (({"limit": "many"}, "limit"), ({"limit": 5000}, "limit"), ({"sort": "x"}, "sort"),
-                         ({"since": "yesterday"}, "since"), ({"sort": "id", "cursor": "W3t9LCAxXQ"}, "cursor"),
-                         ({"entity": ["/world/x"] * 1000}, "entity")):
+    for params, name in (
+        ({"limit": "many"}, "limit"),
+        ({"limit": 5000}, "limit"),
+        ({"sort": "x"}, "sort"),
+        ({"since": "yesterday"}, "since"),
+        ({"sort": "id", "cursor": "W3t9LCAxXQ"}, "cursor"),
+        ({"entity": ["/world/x"] * 1000}, "entity"),
+    ):
         bad = httpx.get(f"{server.url}/v1/runs", params=params, timeout=30)
         assert bad.status_code == 422, params
         assert bad.json()["code"] == "INVALID_ARGUMENT" and f"'{name}'" in bad.json()["message"]

@@ -59,8 +59,12 @@ def runs(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
         chunky = log_run(root / "chunky.rrd", CHUNKY, entities=10, chunk_rows=5)
         sparse = _log_sparse(root / "sparse-logged.rrd")
     compacted = root / "sparse.rrd"
-    subprocess.run([find_rerun() or "rerun", "rrd", "optimize", "--max-rows", "10", str(sparse), "-o",
-                    str(compacted)], check=True, capture_output=True, timeout=120)
+    subprocess.run(
+        [find_rerun() or "rerun", "rrd", "optimize", "--max-rows", "10", str(sparse), "-o", str(compacted)],
+        check=True,
+        capture_output=True,
+        timeout=120,
+    )
     return {"wide": wide, "chunky": chunky, "sparse": compacted}
 
 
@@ -189,8 +193,9 @@ def _verify(rerun_bin: str, data: bytes, path: Path) -> None:
 # --- ranged reads ------------------------------------------------------------------------------
 
 
-def test_one_entity_of_ten_reads_a_small_part_of_the_object(tiers: Tiers, make_node: NodeFactory,
-                                                            runs: dict[str, Path], rerun_bin: str, tmp_path: Path):
+def test_one_entity_of_ten_reads_a_small_part_of_the_object(
+    tiers: Tiers, make_node: NodeFactory, runs: dict[str, Path], rerun_bin: str, tmp_path: Path
+):
     node, run_id = _node(make_node, tiers, runs["wide"])
     one = EntityFilter(include=["/world/e3"])
     hot = _hot(node, run_id, one)
@@ -205,14 +210,18 @@ def test_one_entity_of_ten_reads_a_small_part_of_the_object(tiers: Tiers, make_n
     assert counting.read < 0.15 * size, (counting.read, size, counting.reads)
     assert any(key.endswith("chunks.parquet") for key, *_ in counting.reads)  # the plan's read is counted
     # the entity's own chunk is in there: the reads cover at least what they serve
-    e3 = sum(len(e.payload) for e in iter_events(io.BytesIO(warm))
-             if isinstance(e, ArrowMessage) and chunk_meta(e).entity_path == "/world/e3")
+    e3 = sum(
+        len(e.payload)
+        for e in iter_events(io.BytesIO(warm))
+        if isinstance(e, ArrowMessage) and chunk_meta(e).entity_path == "/world/e3"
+    )
     assert 0.05 * size < e3 <= counting.read
 
 
 @pytest.mark.parametrize("old_index", [False, True])
-def test_exact_window_reads_only_the_candidate_chunks(tiers: Tiers, make_node: NodeFactory, runs: dict[str, Path],
-                                                      rerun_bin: str, tmp_path: Path, old_index: bool):
+def test_exact_window_reads_only_the_candidate_chunks(
+    tiers: Tiers, make_node: NodeFactory, runs: dict[str, Path], rerun_bin: str, tmp_path: Path, old_index: bool
+):
     """Finding the newest rows before the window reads the few chunks that may hold them (ranged
     reads), not the run: with per-component ranges in the index, and without (an older index, read
     newest chunk first until nothing older can matter)."""
@@ -286,8 +295,9 @@ def _get(client: TestClient, run_id: str, params: dict[str, Any]) -> bytes:
     return bytes(response.content)
 
 
-def test_same_url_serves_the_same_chunks_hot_and_warm(tiers: Tiers, make_node: NodeFactory, runs: dict[str, Path],
-                                                      rerun_bin: str, tmp_path: Path):
+def test_same_url_serves_the_same_chunks_hot_and_warm(
+    tiers: Tiers, make_node: NodeFactory, runs: dict[str, Path], rerun_bin: str, tmp_path: Path
+):
     node, run_id = _node(make_node, tiers, runs["chunky"])
     client = TestClient(_app(node))
     per_entity = Counter(e for e, _, _ in _chunks(_get(client, run_id, {})))
@@ -303,6 +313,7 @@ def test_same_url_serves_the_same_chunks_hot_and_warm(tiers: Tiers, make_node: N
             assert _ids(warm) == _ids(hot[i]), (params, len(_ids(warm)), len(_ids(hot[i])))
         assert _rows(warm) == _rows(hot[i]), params
         assert _cells(warm, params.get("timeline", "frame")) == _cells(hot[i], params.get("timeline", "frame"))
+
     # the windows pick some chunks and leave others: the comparisons above are not all or nothing
     def ids_of(params: dict[str, Any]) -> set[bytes]:
         return _ids(hot[QUERIES.index(params)])
@@ -313,7 +324,8 @@ def test_same_url_serves_the_same_chunks_hot_and_warm(tiers: Tiers, make_node: N
     window = ids_of({"timeline": "frame", "start": "15", "end": "17", "latest_at": "false"})
     assert 0 < len(window) < len(with_latest) < len(_ids(hot[0]))
     assert ids_of({"timeline": "frame", "start": "12", "end": "17"}) == ids_of(
-        {"timeline": "frame", "start": "12", "end": "17", "latest_at": "false"})
+        {"timeline": "frame", "start": "12", "end": "17", "latest_at": "false"}
+    )
     exact = _rows(hot[QUERIES.index({"timeline": "frame", "start": "12", "end": "17", "exact": "true"})])
     assert exact["/world/e3"] == 6 + 1, exact  # frames 12-17, and one row before them
 
@@ -358,9 +370,9 @@ def test_warm_download_headers(tiers: Tiers, make_node: NodeFactory, runs: dict[
 
 
 @pytest.mark.parametrize("start", [12, 22])
-def test_exact_latest_at_keeps_each_components_newest_value(tiers: Tiers, make_node: NodeFactory,
-                                                            runs: dict[str, Path], rerun_bin: str, tmp_path: Path,
-                                                            start: int):
+def test_exact_latest_at_keeps_each_components_newest_value(
+    tiers: Tiers, make_node: NodeFactory, runs: dict[str, Path], rerun_bin: str, tmp_path: Path, start: int
+):
     """A compacted run (`rerun rrd optimize`): chunk [0-9] holds colors only at frames 0-2 and 7 (nulls
     elsewhere), the later chunks none. At `start` the scene's color is frame 7's, and an exact download
     keeps that row, hot and warm alike. start=12: chunk [0-9] is the latest-at chunk of both components;
@@ -380,13 +392,18 @@ def test_exact_latest_at_keeps_each_components_newest_value(tiers: Tiers, make_n
     assert _cells(warm) == _cells(hot)
 
 
-def test_entity_filters_keep_the_recordings_properties_hot_and_warm(tiers: Tiers, make_node: NodeFactory,
-                                                                   runs: dict[str, Path]):
+def test_entity_filters_keep_the_recordings_properties_hot_and_warm(
+    tiers: Tiers, make_node: NodeFactory, runs: dict[str, Path]
+):
     node, run_id = _node(make_node, tiers, runs["wide"])
     client = TestClient(_app(node))
-    cases = [({"include": "/world/e3"}, True), ({"exclude": "/world/**"}, True),
-             ({"include": "/world/e3", "timeline": "frame", "start": "5", "end": "6"}, True),
-             ({"include": "/world/e3", "exclude": "/__properties/**"}, False), ({"exclude": "/__properties"}, False)]
+    cases = [
+        ({"include": "/world/e3"}, True),
+        ({"exclude": "/world/**"}, True),
+        ({"include": "/world/e3", "timeline": "frame", "start": "5", "end": "6"}, True),
+        ({"include": "/world/e3", "exclude": "/__properties/**"}, False),
+        ({"exclude": "/__properties"}, False),
+    ]
     hot = [_get(client, run_id, params) for params, _ in cases]
     _promote(node, run_id)
     for (params, kept), hot_answer in zip(cases, hot, strict=True):

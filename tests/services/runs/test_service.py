@@ -18,14 +18,39 @@ from services.runs.service import RunFilter, parse_properties, parse_time
 T0 = dt.datetime(2026, 11, 1, 8, 0, tzinfo=dt.UTC)
 
 
-def _add(session: Session, run_id: str, robot: str, app: str, hours: int, *, status: str = "closed",
-         entities: tuple[str, ...] = ("/world/points",), size: int = 100) -> None:
+def _add(
+    session: Session,
+    run_id: str,
+    robot: str,
+    app: str,
+    hours: int,
+    *,
+    status: str = "closed",
+    entities: tuple[str, ...] = ("/world/points",),
+    size: int = 100,
+) -> None:
     start = T0 + dt.timedelta(hours=hours)
-    queries.save_run(session, RunRecord(
-        id=run_id, robot_id=robot, application_id=app, date=start.date(), status=status, tier="hot",
-        started_at=start, ended_at=None, last_data_at=start, sdk_version="0.41.0", chunks=1, rows=1, bytes=size,
-        properties={"fleet": {"robot_id": robot, "site": "lab" if hours % 2 else "field"}},
-        entities=[EntityRecord(p, 1, 0, 1, 10, [], []) for p in entities]), T0)
+    queries.save_run(
+        session,
+        RunRecord(
+            id=run_id,
+            robot_id=robot,
+            application_id=app,
+            date=start.date(),
+            status=status,
+            tier="hot",
+            started_at=start,
+            ended_at=None,
+            last_data_at=start,
+            sdk_version="0.41.0",
+            chunks=1,
+            rows=1,
+            bytes=size,
+            properties={"fleet": {"robot_id": robot, "site": "lab" if hours % 2 else "field"}},
+            entities=[EntityRecord(p, 1, 0, 1, 10, [], []) for p in entities],
+        ),
+        T0,
+    )
 
 
 @pytest.fixture
@@ -74,11 +99,18 @@ def test_cursor_pages_cover_everything_once(fleet: Session):
     assert [r.id for r in first + rest] == ["r-a1", "r-a2", "r-b1", "r-b2"] and end is None
 
 
-@pytest.mark.parametrize(("kwargs", "name"), [
-    ({"sort": "size"}, "sort"), ({"limit": 0}, "limit"), ({"limit": 1001}, "limit"),
-    ({"status": "open"}, "status"), ({"tier": "lukewarm"}, "tier"), ({"cursor": "not-a-cursor"}, "cursor"),
-    ({"properties": {"robot": "x"}}, "property"),
-])
+@pytest.mark.parametrize(
+    ("kwargs", "name"),
+    [
+        ({"sort": "size"}, "sort"),
+        ({"limit": 0}, "limit"),
+        ({"limit": 1001}, "limit"),
+        ({"status": "open"}, "status"),
+        ({"tier": "lukewarm"}, "tier"),
+        ({"cursor": "not-a-cursor"}, "cursor"),
+        ({"properties": {"robot": "x"}}, "property"),
+    ],
+)
 def test_bad_parameters_name_themselves(fleet: Session, kwargs: dict[str, object], name: str):
     with pytest.raises(BadParameterError) as info:
         service.list_runs(fleet, RunFilter(**kwargs))  # type: ignore[arg-type]
@@ -108,14 +140,28 @@ def _cursor(payload: object) -> str:
     return base64.urlsafe_b64encode(json.dumps(payload).encode()).decode().rstrip("=")
 
 
-@pytest.mark.parametrize(("sort", "payload"), [
-    ("-started_at", [{}, 1]), ("id", [{}, 1]), ("-bytes", [{}, 1]), ("-started_at", ["r-a1"]),
-    ("-started_at", {"a": 1}), ("-started_at", 7),
-    ("-started_at", [12, "r-a1"]), ("-started_at", ["not a date", "r-a1"]), ("started_at", [None, "r-a1"]),
-    ("-bytes", ["300", "r-a1"]), ("bytes", [2**70, "r-a1"]), ("-bytes", [True, "r-a1"]), ("bytes", [1.5, "r-a1"]),
-    ("id", [["r-a1"], "r-a1"]), ("id", ["r-a1", 5]), ("id", ["r-\u0000", "r-a1"]),
-    ("-started_at", ["2026-11-01T08:00:00+00:00", "r-\u0000"]),
-])
+@pytest.mark.parametrize(
+    ("sort", "payload"),
+    [
+        ("-started_at", [{}, 1]),
+        ("id", [{}, 1]),
+        ("-bytes", [{}, 1]),
+        ("-started_at", ["r-a1"]),
+        ("-started_at", {"a": 1}),
+        ("-started_at", 7),
+        ("-started_at", [12, "r-a1"]),
+        ("-started_at", ["not a date", "r-a1"]),
+        ("started_at", [None, "r-a1"]),
+        ("-bytes", ["300", "r-a1"]),
+        ("bytes", [2**70, "r-a1"]),
+        ("-bytes", [True, "r-a1"]),
+        ("bytes", [1.5, "r-a1"]),
+        ("id", [["r-a1"], "r-a1"]),
+        ("id", ["r-a1", 5]),
+        ("id", ["r-\u0000", "r-a1"]),
+        ("-started_at", ["2026-11-01T08:00:00+00:00", "r-\u0000"]),
+    ],
+)
 def test_tampered_cursor_is_a_bad_parameter(fleet: Session, sort: str, payload: object):
     """Valid base64 JSON of the wrong shape or types is refused before any query runs."""
     with pytest.raises(BadParameterError) as info:
@@ -141,9 +187,13 @@ def test_property_filters_take_any_key(fleet: Session):
 def test_filter_counts_are_bounded(fleet: Session):
     many_entities = [f"/world/e{i}" for i in range(service.MAX_ENTITY_FILTERS + 1)]
     many_props = {f"fleet.f{i}": "x" for i in range(service.MAX_PROPERTY_FILTERS + 1)}
-    for kwargs, name in (({"entity": many_entities}, "entity"), ({"entity": many_entities * 40}, "entity"),
-                         ({"properties": many_props}, "property"), ({"robot": ["a\u0000"]}, "robot"),
-                         ({"properties": {"fleet.site": "l\u0000"}}, "property")):
+    for kwargs, name in (
+        ({"entity": many_entities}, "entity"),
+        ({"entity": many_entities * 40}, "entity"),
+        ({"properties": many_props}, "property"),
+        ({"robot": ["a\u0000"]}, "robot"),
+        ({"properties": {"fleet.site": "l\u0000"}}, "property"),
+    ):
         with pytest.raises(BadParameterError) as info:
             service.list_runs(fleet, RunFilter(**kwargs))  # type: ignore[arg-type]
         assert info.value.parameter == name and info.value.http_status() == 422

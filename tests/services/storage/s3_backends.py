@@ -30,16 +30,21 @@ def seaweed_endpoint(tmp_path_factory: pytest.TempPathFactory) -> Iterator[str]:
 
     with seaweedfs(tmp_path_factory.mktemp("seaweedfs")) as endpoint:
         # One bucket, a prefix per test: each SeaweedFS bucket reserves volumes of its own.
-        boto3.client("s3", endpoint_url=endpoint, region_name=REGION, aws_access_key_id="test",
-                     aws_secret_access_key="test").create_bucket(Bucket=BUCKET)
+        boto3.client(
+            "s3", endpoint_url=endpoint, region_name=REGION, aws_access_key_id="test", aws_secret_access_key="test"
+        ).create_bucket(Bucket=BUCKET)
         yield endpoint
 
 
-def s3_target_for(backend: str, request: pytest.FixtureRequest, tmp_path: Path,
-                  monkeypatch: pytest.MonkeyPatch) -> Iterator[S3Target]:
+def s3_target_for(
+    backend: str, request: pytest.FixtureRequest, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> Iterator[S3Target]:
     """The body of an S3 fixture parametrized over S3_BACKENDS (moto's mock lasts while it runs)."""
-    for name, value in (("AWS_ACCESS_KEY_ID", "test"), ("AWS_SECRET_ACCESS_KEY", "test"),
-                        ("AWS_DEFAULT_REGION", REGION)):
+    for name, value in (
+        ("AWS_ACCESS_KEY_ID", "test"),
+        ("AWS_SECRET_ACCESS_KEY", "test"),
+        ("AWS_DEFAULT_REGION", REGION),
+    ):
         monkeypatch.setenv(name, value)
     if backend == "s3-seaweedfs":
         yield S3Target(f"s3://{BUCKET}/{tmp_path.name}", request.getfixturevalue("seaweed_endpoint"))

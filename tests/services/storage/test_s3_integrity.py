@@ -41,8 +41,7 @@ def _sha256(data: bytes) -> str:
 
 
 @pytest.mark.parametrize("shape", SIZES)
-def test_an_upload_whose_etag_is_not_the_md5_is_kept(s3_target: S3Target, monkeypatch: pytest.MonkeyPatch,
-                                                     shape: str):
+def test_an_upload_whose_etag_is_not_the_md5_is_kept(s3_target: S3Target, monkeypatch: pytest.MonkeyPatch, shape: str):
     """What an SSE-KMS bucket answers: an object's ETag (after a put, a multipart upload, in a head)
     is 32 hex digits that are not the body's MD5. The upload is good and must be reported stored,
     not deleted. (Parts' ETags are left: the server is handed them back to complete the upload.)"""
@@ -74,7 +73,7 @@ def test_uploads_carry_a_sha256_checksum(s3_target: S3Target, monkeypatch: pytes
     if shape == "single":
         assert stored.get("ChecksumSHA256") == _sha256(data)
     else:
-        parts = [data[i:i + PART] for i in range(0, len(data), PART)]
+        parts = [data[i : i + PART] for i in range(0, len(data), PART)]
         composite = _sha256(b"".join(hashlib.sha256(p).digest() for p in parts))
         assert stored.get("ChecksumSHA256") in (composite, f"{composite}-{len(parts)}")
 
