@@ -20,17 +20,9 @@ from alembic.runtime.migration import MigrationContext
 from alembic.script import ScriptDirectory
 from sqlalchemy.orm import Session, sessionmaker
 
-from core.errors import ErrorCode, FleetError
+from core.errors import ConflictError, UnavailableError
 
 MIGRATIONS_DIR = Path(__file__).resolve().parent.parent / "migrations"
-
-
-class CatalogError(FleetError):
-    code = ErrorCode.UNAVAILABLE
-
-
-class CatalogLockedError(CatalogError):
-    code = ErrorCode.CONFLICT
 
 
 class DuckDBImpl(DefaultImpl):
@@ -56,7 +48,7 @@ def create_engine(url: str) -> sa.Engine:
         return engine
     if url.startswith("postgresql"):
         return sa.create_engine(url, pool_pre_ping=True)
-    raise CatalogError(f"unsupported catalog URL {url!r}: use duckdb:///PATH or postgresql+psycopg://USER@HOST/DB")
+    raise UnavailableError(f"unsupported catalog URL {url!r}: use duckdb:///PATH or postgresql+psycopg://USER@HOST/DB")
 
 
 _LOCK_HOLDER = re.compile(r"Could not set lock on file .*\(PID (\d+)\)", re.DOTALL)
@@ -67,7 +59,7 @@ def _embedded_catalog_locked(context: sa.engine.ExceptionContext) -> None:
     driver error (a traceback through the CLI). Say instead who holds it and what to do."""
     holder = _LOCK_HOLDER.search(str(context.original_exception))
     if holder is not None:
-        raise CatalogLockedError(
+        raise ConflictError(
             f"the embedded catalog is in use by another process (PID {holder.group(1)}, probably a running "
             "`fleet serve`): stop it first; DuckDB lets one process at a time open the file (several "
             "processes can share a Postgres catalog)"
@@ -125,7 +117,7 @@ def alembic_config(engine: sa.Engine | None = None) -> Config:
 def head_revision() -> str:
     heads = ScriptDirectory.from_config(alembic_config()).get_heads()
     if len(heads) != 1:
-        raise CatalogError(f"migrations have {len(heads)} heads ({', '.join(heads)}); expected one")
+        raise UnavailableError(f"migrations have {len(heads)} heads ({', '.join(heads)}); expected one")
     return heads[0]
 
 
@@ -147,16 +139,16 @@ def upgrade(engine: sa.Engine) -> tuple[str | None, str]:
 
 
 def check_schema(engine: sa.Engine) -> None:
-    """Raise CatalogError (one line naming the fix) unless the catalog is at the head revision."""
+    """Raise UnavailableError (one line naming the fix) unless the catalog is at the head revision."""
     current, head = current_revision(engine), head_revision()
     if current != head:
         state = "empty" if current is None else f"at revision {current}"
-        raise CatalogError(f"the catalog is {state}, the service needs {head}: run `fleet db upgrade`")
+        raise UnavailableError(f"the catalog is {state}, the service needs {head}: run `fleet db upgrade`")
 
 
 def prepare_for_service(engine: sa.Engine) -> str | None:
     """At service start: an embedded catalog is created or upgraded (returns what was done, to be
-    said); any other catalog must already be at head (CatalogError naming `fleet db upgrade`)."""
+    said); any other catalog must already be at head (UnavailableError naming `fleet db upgrade`)."""
     if not is_embedded(engine):
         check_schema(engine)
         return None

@@ -13,7 +13,7 @@ from sqlalchemy.orm import Session
 
 from catalog.models import JobRun, RetentionEvent, Robot, Run, RunEntity, RunLifecycle, RunObject, RunTimeline
 from core.clock import aware
-from core.errors import ErrorCode, FleetError
+from core.errors import NotFoundError
 from core.states import Tier
 
 
@@ -259,12 +259,8 @@ def get_run(session: Session, run_id: str) -> Run | None:
     return session.get(Run, run_id)
 
 
-class RunNotFoundError(FleetError):
-    code = ErrorCode.NOT_FOUND
-
-
-def run_not_found(run_id: str) -> RunNotFoundError:
-    return RunNotFoundError(f"no run {run_id!r}: list runs with GET /v1/runs or `fleet runs ls`")
+def run_not_found(run_id: str) -> NotFoundError:
+    return NotFoundError(f"no run {run_id!r}: list runs with GET /v1/runs or `fleet runs ls`")
 
 
 def require_run(session: Session, run_id: str) -> Run:

@@ -83,7 +83,62 @@ def grpc_status(code: ErrorCode) -> str:
     return _STATUS[code][1]
 
 
-class BadParameterError(FleetError):
+# One class per code: what a caller may catch or a test may expect. A few errors that callers
+# catch on their own (an object not found in a store, a store that failed, an unsafe id, SQL workers
+# busy, codec errors) keep classes of their own, under FleetError.
+class InvalidArgumentError(FleetError):
+    code = ErrorCode.INVALID_ARGUMENT
+
+
+class NotFoundError(FleetError):
+    code = ErrorCode.NOT_FOUND
+
+
+class ConflictError(FleetError):
+    code = ErrorCode.CONFLICT
+
+
+class GoneError(FleetError):
+    code = ErrorCode.GONE
+
+
+class InvalidSqlError(FleetError):
+    code = ErrorCode.INVALID_SQL
+
+
+class SqlNotAllowedError(FleetError):
+    code = ErrorCode.SQL_NOT_ALLOWED
+
+
+class QueryTimeoutError(FleetError):
+    code = ErrorCode.QUERY_TIMEOUT
+
+
+class ResultTooLargeError(FleetError):
+    code = ErrorCode.RESULT_TOO_LARGE
+
+
+class QueryOutOfMemoryError(FleetError):
+    code = ErrorCode.QUERY_OUT_OF_MEMORY
+
+
+class InsufficientStorageError(FleetError):
+    code = ErrorCode.INSUFFICIENT_STORAGE
+
+
+class ResourceExhaustedError(FleetError):
+    code = ErrorCode.RESOURCE_EXHAUSTED
+
+
+class UnavailableError(FleetError):
+    code = ErrorCode.UNAVAILABLE
+
+
+class InternalError(FleetError):
+    code = ErrorCode.INTERNAL
+
+
+class BadParameterError(InvalidArgumentError):
     """A request parameter that is not acceptable, named, with what would be."""
 
     code = ErrorCode.INVALID_ARGUMENT

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import re
 
-from core.errors import ErrorCode, FleetError
+from core.errors import InvalidArgumentError
 
 ID_LENGTH = 128
 SAFE_ID = re.compile(rf"[A-Za-z0-9._-]{{1,{ID_LENGTH}}}")
@@ -17,12 +17,8 @@ NAME_BYTES = 1024
 PATH_BYTES = 2048
 
 
-class UnsafeIdError(FleetError):
-    code = ErrorCode.INVALID_ARGUMENT
-
-
-class InvalidNameError(FleetError):
-    code = ErrorCode.INVALID_ARGUMENT
+class UnsafeIdError(InvalidArgumentError):
+    """Caught by ingest, which refuses the one stream and keeps the rest."""
 
 
 def check_id(kind: str, value: str) -> str:
@@ -38,13 +34,13 @@ def check_id(kind: str, value: str) -> str:
 def check_name(kind: str, value: str, limit: int = NAME_BYTES) -> str:
     """`value` if the catalog can hold it (no NUL character, at most `limit` UTF-8 bytes)."""
     if "\x00" in value:
-        raise InvalidNameError(
+        raise InvalidArgumentError(
             f"{kind} {value[:80]!r} contains a NUL character, which the catalog cannot "
             "store: remove it in the robot's logging code"
         )
     size = len(value.encode("utf-8", "surrogatepass"))
     if size > limit:
-        raise InvalidNameError(
+        raise InvalidArgumentError(
             f"{kind} {value[:80]!r}... is {size} bytes long, over the limit of {limit}: "
             "use a shorter one in the robot's logging code"
         )

@@ -11,7 +11,7 @@ from typing import TYPE_CHECKING, Any
 
 import httpx
 
-from core.errors import ErrorCode, FleetError
+from core.errors import ErrorCode, FleetError, UnavailableError
 
 if TYPE_CHECKING:
     import pyarrow as pa
@@ -30,10 +30,6 @@ class ServiceError(FleetError):
             self.code = ErrorCode(body.get("code", "INTERNAL"))
         except ValueError:
             self.code = ErrorCode.INTERNAL
-
-
-class UnreachableError(FleetError):
-    code = ErrorCode.UNAVAILABLE
 
 
 class FleetClient:
@@ -173,8 +169,8 @@ class FleetClient:
             body = {"message": response.text[:500]}
         return body
 
-    def _unreachable(self, exc: Exception) -> UnreachableError:
-        return UnreachableError(
+    def _unreachable(self, exc: Exception) -> UnavailableError:
+        return UnavailableError(
             f"cannot reach the fleet service at {self.api_url} ({exc}); is it running? set FLEET_API_URL"
         )
 

@@ -17,18 +17,10 @@ import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 
-from core.errors import ErrorCode, FleetError
+from core.errors import ConflictError
 
 LOCK_FILE = "fleet.lock"
 GRPC_SOCKET = "grpc.sock"
-
-
-class DataDirInUseError(FleetError):
-    code = ErrorCode.CONFLICT
-
-
-class AddressError(FleetError):
-    code = ErrorCode.CONFLICT
 
 
 @contextlib.contextmanager
@@ -43,7 +35,7 @@ def hold_data_dir(data_dir: Path) -> Iterator[None]:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
             holder = os.pread(fd, 32, 0).decode(errors="replace").strip() or "unknown"
-            raise DataDirInUseError(
+            raise ConflictError(
                 f"the data dir is in use by another `fleet serve` (PID {holder}): stop that one, or give this one "
                 "its own data dir (--data-dir or FLEET_DATA_DIR)"
             ) from None
@@ -58,7 +50,7 @@ def _family(host: str) -> socket.AddressFamily:
     return socket.AF_INET6 if ":" in host else socket.AF_INET
 
 
-def _refusal(exc: OSError, host: str, port: int, what: str, setting: str) -> AddressError:
+def _refusal(exc: OSError, host: str, port: int, what: str, setting: str) -> ConflictError:
     addr = f"[{host}]:{port}" if ":" in host else f"{host}:{port}"
     if exc.errno == errno.EADDRINUSE:
         problem = "is already in use (another `fleet serve`, or another program)"
@@ -66,7 +58,7 @@ def _refusal(exc: OSError, host: str, port: int, what: str, setting: str) -> Add
         problem = "needs privileges this process lacks (ports below 1024)"
     else:
         problem = f"cannot be used here ({exc.strerror or exc})"
-    return AddressError(
+    return ConflictError(
         f"the {what} address {addr} {problem}: set another with --{setting.replace('_', '-')} "
         f"or FLEET_{setting.upper()}"
     )

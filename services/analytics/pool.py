@@ -33,18 +33,17 @@ from typing import Any
 import pyarrow as pa
 
 import services
-from core.errors import ErrorCode, FleetError
-from services.analytics import worker
-from services.analytics.sql import (
+from core.errors import (
+    ErrorCode,
+    FleetError,
     InvalidSqlError,
-    Limits,
     QueryOutOfMemoryError,
     QueryTimeoutError,
     ResultTooLargeError,
-    SqlBusyError,
     SqlNotAllowedError,
-    out_of_memory,
 )
+from services.analytics import worker
+from services.analytics.sql import Limits, SqlBusyError, out_of_memory
 from services.storage.objectstore import StorageError
 
 log = logging.getLogger(__name__)

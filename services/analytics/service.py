@@ -23,7 +23,7 @@ from sqlalchemy.orm import Session, sessionmaker
 from catalog import queries
 from catalog.db import session_scope
 from catalog.models import Robot, Run, RunEntity, RunObject, RunTimeline
-from core.errors import ErrorCode, FleetError
+from core.errors import InvalidArgumentError
 from core.states import Tier
 from services.analytics import sql
 from services.analytics.extract import TABLES, Extractor
@@ -42,10 +42,6 @@ FORMATS = {
     "parquet": "application/vnd.apache.parquet",
 }
 CATALOG_TABLES = {"robots": Robot, "runs": Run, "run_entities": RunEntity, "run_timelines": RunTimeline}
-
-
-class UnsupportedFormatError(FleetError):
-    code = ErrorCode.INVALID_ARGUMENT
 
 
 @dataclass
@@ -176,7 +172,7 @@ def pick_format(name: str | None, accept: str | None) -> str:
     """`?format=` wins, else the Accept header, else JSON."""
     if name:
         if name not in FORMATS:
-            raise UnsupportedFormatError(f"format {name!r} is not one of {', '.join(FORMATS)}")
+            raise InvalidArgumentError(f"format {name!r} is not one of {', '.join(FORMATS)}")
         return name
     for part in (accept or "").split(","):
         media = part.split(";")[0].strip()

@@ -24,38 +24,20 @@ from urllib.parse import urlparse
 import duckdb
 import pyarrow as pa
 
-from core.errors import ErrorCode, FleetError
+from core.errors import (
+    InvalidSqlError,
+    QueryOutOfMemoryError,
+    QueryTimeoutError,
+    ResourceExhaustedError,
+    ResultTooLargeError,
+    SqlNotAllowedError,
+    UnavailableError,
+)
 from services.storage.objectstore import StorageError
 
 
-class AnalyticsUnavailableError(FleetError):
-    """The node cannot read the analytics tables as deployed (an operator's fix, not the query's)."""
-
-    code = ErrorCode.UNAVAILABLE
-
-
-class SqlNotAllowedError(FleetError):
-    code = ErrorCode.SQL_NOT_ALLOWED
-
-
-class InvalidSqlError(FleetError):
-    code = ErrorCode.INVALID_SQL
-
-
-class QueryTimeoutError(FleetError):
-    code = ErrorCode.QUERY_TIMEOUT
-
-
-class ResultTooLargeError(FleetError):
-    code = ErrorCode.RESULT_TOO_LARGE
-
-
-class QueryOutOfMemoryError(FleetError):
-    code = ErrorCode.QUERY_OUT_OF_MEMORY
-
-
-class SqlBusyError(FleetError):
-    code = ErrorCode.RESOURCE_EXHAUSTED
+class SqlBusyError(ResourceExhaustedError):
+    """Caught by the handler, which adds when to come back (Retry-After)."""
 
 
 CATALOG_VIEWS = ("robots", "runs", "run_entities", "run_timelines")
@@ -155,7 +137,7 @@ def httpfs_extension() -> str:
     root = Path(duckdb_extension_httpfs.__file__).parent / "extensions"
     found = sorted(root.glob(f"v{duckdb.__version__}/httpfs.duckdb_extension"))
     if not found:
-        raise AnalyticsUnavailableError(
+        raise UnavailableError(
             f"no httpfs extension for DuckDB {duckdb.__version__} in the "
             f"duckdb-extension-httpfs package: install "
             f"duckdb-extension-httpfs=={duckdb.__version__}"
@@ -320,9 +302,7 @@ def _s3(con: duckdb.DuckDBPyConnection, s3: S3Access | None, root: str) -> None:
     """The credentials as a secret scoped to the analytics folder: never as s3_* settings, which
     current_setting() would show (duckdb_secrets() shows a secret's scope, never its values)."""
     if s3 is None:
-        raise AnalyticsUnavailableError(
-            "the analytics tables are on S3 but no S3 credentials were found: set AWS_* variables"
-        )
+        raise UnavailableError("the analytics tables are on S3 but no S3 credentials were found: set AWS_* variables")
     con.execute(f"LOAD '{httpfs_extension()}'")
     options = {"KEY_ID": s3.key_id, "SECRET": s3.secret, "REGION": s3.region, "SCOPE": root.rstrip("/") + "/"}
     if s3.session_token:

@@ -23,7 +23,7 @@ import uuid
 from collections.abc import Iterator
 from pathlib import Path
 
-from core.errors import ErrorCode, FleetError
+from core.errors import InsufficientStorageError
 from services.rrd import errors as rrd_errors
 from services.rrd.decoder import iter_events
 from services.rrd.frames import MESSAGE_HEADER_SIZE, RerunVersion, StreamHeader, encode_message_header
@@ -34,10 +34,6 @@ log = logging.getLogger(__name__)
 
 RUN_FILE = "run.rrd"
 _RECHECK_BYTES = 8 * 1024 * 1024
-
-
-class InsufficientStorageError(FleetError):
-    code = ErrorCode.INSUFFICIENT_STORAGE
 
 
 class Changes:

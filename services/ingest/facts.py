@@ -15,7 +15,6 @@ from dataclasses import dataclass
 from typing import Any
 
 from catalog.queries import EntityRecord, RunRecord, TimelineRecord
-from core.errors import ErrorCode, FleetError
 from core.ids import PATH_BYTES, check_id, check_name
 from core.states import RunStatus, Tier
 from services.hot.store import HotRun
@@ -34,10 +33,6 @@ from services.rrd.messages import ArrowMessage, BlueprintActivationMessage, Even
 from services.rrd.summary import StoreSummary
 
 LOG_TIME = "log_time"
-
-
-class InvalidStreamError(FleetError):
-    code = ErrorCode.INVALID_ARGUMENT
 
 
 def check_chunk_names(meta: ChunkMeta) -> None:

@@ -32,20 +32,12 @@ from catalog import queries
 from catalog.db import session_scope
 from catalog.queries import RunRecord
 from core.clock import utcnow
-from core.errors import ErrorCode, FleetError
+from core.errors import ConflictError, InvalidArgumentError, ResourceExhaustedError
 from core.ids import UnsafeIdError, check_id, check_name
 from core.states import RunStatus, Tier
 from services.hot.read import HotRecording
 from services.hot.store import HotStore
-from services.ingest.facts import (
-    LOG_TIME,
-    IngestRun,
-    InvalidStreamError,
-    RunFacts,
-    SealedInfo,
-    check_chunk_names,
-    store_key,
-)
+from services.ingest.facts import LOG_TIME, IngestRun, RunFacts, SealedInfo, check_chunk_names, store_key
 from services.ingest.identity import (
     IDENTITY_PROPERTY,
     ROBOT_FIELD,
@@ -69,16 +61,16 @@ from services.rrd.validate import check_chunk
 
 __all__ = [
     "LOG_TIME",
+    "ConflictError",
     "IngestReport",
     "IngestRun",
     "IngestService",
-    "InvalidStreamError",
+    "InvalidArgumentError",
+    "ResourceExhaustedError",
     "RunFacts",
     "SealedInfo",
     "SealedLookup",
-    "SealedRunError",
     "Source",
-    "TooManyStreamsError",
 ]
 
 log = logging.getLogger(__name__)
@@ -91,14 +83,6 @@ _CATALOG_DOWN = (sa.exc.OperationalError, sa.exc.InterfaceError, sa.exc.TimeoutE
 
 StoreKey = tuple[StoreKind, str]
 SealedLookup = Callable[[str], SealedInfo | None]
-
-
-class TooManyStreamsError(FleetError):
-    code = ErrorCode.RESOURCE_EXHAUSTED
-
-
-class SealedRunError(FleetError):
-    code = ErrorCode.CONFLICT
 
 
 @dataclass
@@ -213,7 +197,7 @@ class IngestService:
     def open_source(self, *, live: bool) -> Source:
         if live:
             if self.live_streams >= self.max_streams:
-                raise TooManyStreamsError(
+                raise ResourceExhaustedError(
                     f"this node already holds {self.live_streams} streams, its limit (FLEET_MAX_STREAMS); "
                     "retry later or send to another node"
                 )
@@ -380,7 +364,7 @@ class IngestService:
         if kind == StoreKind.BLUEPRINT:
             self._hold(source, None, msg)
             return None
-        raise InvalidStreamError(
+        raise InvalidArgumentError(
             f"a message for recording {recording_id!r} came before its SetStoreInfo "
             f"(at byte {getattr(msg, 'offset', 0)}): send the recording from its start"
         )
@@ -421,7 +405,7 @@ class IngestService:
                 if sealed.tier == Tier.COLD
                 else "send it under a new recording id"
             )
-            raise SealedRunError(f"run {run_id!r} is {sealed.tier}: it takes no new data; {fix}")
+            raise ConflictError(f"run {run_id!r} is {sealed.tier}: it takes no new data; {fix}")
         info = source.store_infos.get((StoreKind.RECORDING, run_id))
         version = (info.sdk_version if info is not None else None) or source.version or DEFAULT_VERSION
         run = self.runs[run_id] = IngestRun(self.hot.create(run_id, version), self.clock(), self.secret_fields)
@@ -447,7 +431,7 @@ class IngestService:
     def _hold(self, source: Source, run_id: str | None, msg: Event) -> None:
         size = len(getattr(msg, "raw", b""))
         if source.held_bytes + size > _HELD_LIMIT:
-            raise InvalidStreamError(f"more than {_HELD_LIMIT} bytes of blueprint came with no recording data")
+            raise InvalidArgumentError(f"more than {_HELD_LIMIT} bytes of blueprint came with no recording data")
         source.held.append((run_id, msg))
         source.held_bytes += size
 

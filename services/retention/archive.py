@@ -17,7 +17,7 @@ from catalog import queries
 from catalog.db import session_scope
 from catalog.models import Run, RunLifecycle
 from core.clock import aware
-from core.errors import ErrorCode, FleetError
+from core.errors import ConflictError
 from core.states import ARCHIVED_IN_STORE, RestoreState, Tier
 from services.analytics.extract import TABLES, partition_key
 from services.sealed.tiers import Tiers, readable_when_cold, write_run_json
@@ -27,21 +27,13 @@ from services.storage.objectstore import ArchiveStore, ObjectNotFoundError, Stor
 log = logging.getLogger(__name__)
 
 
-class RestoreNotNeededError(FleetError):
-    code = ErrorCode.CONFLICT
-
-
-class NotSealedError(FleetError):
-    code = ErrorCode.CONFLICT
-
-
 def _load(session: Session, run_id: str) -> tuple[Run, RunLifecycle]:
     run = queries.get_run(session, run_id)
     if run is None:
         raise queries.run_not_found(run_id)
     life = queries.lifecycle(session, run_id)
     if life is None:
-        raise NotSealedError(
+        raise ConflictError(
             f"run {run_id!r} is {run.tier}, not sealed yet: it serves as it is, and "
             f"`fleet runs promote {run_id}` seals it now"
         )
@@ -96,7 +88,7 @@ def request_restore(
     with session_scope(catalog) as session:
         run, life = _load(session, run_id)
         if run.tier != Tier.COLD:
-            raise RestoreNotNeededError(f"run {run_id!r} is {run.tier}, not cold: it serves without a restore")
+            raise ConflictError(f"run {run_id!r} is {run.tier}, not cold: it serves without a restore")
         if life.restore_state in (RestoreState.RESTORING, RestoreState.RESTORED) and (
             life.restore_until is None or aware(life.restore_until) > now
         ):
@@ -105,7 +97,7 @@ def request_restore(
         key = f"{life.prefix}/{RECORDING}"
         mode = life.archive_mode
     if readable_when_cold(mode):
-        raise RestoreNotNeededError(
+        raise ConflictError(
             f"run {run_id!r} is kept in storage class {mode}, which reads without a restore: download it as it is"
         )
     if mode and mode != ARCHIVED_IN_STORE:

@@ -29,12 +29,11 @@ from sqlalchemy.orm import Session, sessionmaker
 from catalog import queries
 from catalog.db import session_scope
 from catalog.queries import ObjectRecord, RunRecord
-from core.errors import ErrorCode, FleetError
+from core.errors import ConflictError, InsufficientStorageError
 from core.states import RunStatus, Tier
 from services.analytics.extract import Extractor
 from services.analytics.store import write_analytics
 from services.hot.read import read_events
-from services.hot.store import InsufficientStorageError
 from services.ingest.service import IngestRun, IngestService, SealedInfo
 from services.rrd.decoder import iter_events
 from services.rrd.messages import Event
@@ -47,18 +46,6 @@ log = logging.getLogger(__name__)
 SEAL_DIR = "seal"
 MAX_BACKOFF = dt.timedelta(minutes=5)
 PROMOTING = threading.Lock()  # one promotion at a time in this process (scheduled pass or asked for)
-
-
-class PromotionDeferredError(FleetError):
-    """New data reached the run while it was being sealed: it is promoted later, whole."""
-
-    code = ErrorCode.CONFLICT
-
-
-class LateDataError(FleetError):
-    """Data reached a run that is cold or deleted (filed while the catalog did not answer)."""
-
-    code = ErrorCode.CONFLICT
 
 
 @dataclass
@@ -200,7 +187,7 @@ def _sealed_before(run: IngestRun, ingest: IngestService) -> SealedInfo | None:
             if sealed.tier == Tier.COLD
             else "it was deleted: its late data stays hot until removed by hand"
         )
-        raise LateDataError(f"run {run.run_id} received {len(run.chunk_ids)} chunks while {sealed.tier}: {what}")
+        raise ConflictError(f"run {run.run_id} received {len(run.chunk_ids)} chunks while {sealed.tier}: {what}")
     run.sealed_as = sealed
     return sealed
 
@@ -208,7 +195,7 @@ def _sealed_before(run: IngestRun, ingest: IngestService) -> SealedInfo | None:
 def _drop_hot_copy(run: IngestRun, ingest: IngestService, size: int, why: str) -> None:
     with run.sealing:
         if run.hot.size != size or run.status == RunStatus.LIVE:
-            raise PromotionDeferredError(f"run {run.run_id} received data while being checked: promoted later")
+            raise ConflictError(f"run {run.run_id} received data while being checked: promoted later")
         run.sealed_into, run.sealed = run.sealed_as, True
         ingest.forget(run)
         aside = ingest.hot.set_aside(run.hot)
@@ -274,7 +261,7 @@ def _seal_and_switch(
             raise StorageError(f"{tiers.warm.url}/{obj.key} holds {held} bytes after upload, {obj.size} were sealed")
     with run.sealing:  # ingest waits here only if it has data for this very run
         if run.hot.size != size or run.status == RunStatus.LIVE:
-            raise PromotionDeferredError(f"run {run.run_id} received data while being sealed: promoted later")
+            raise ConflictError(f"run {run.run_id} received data while being sealed: promoted later")
         detail = f"{sealed.recording_size} bytes, {len(sealed.chunk_ids)} chunks to {tiers.warm.url}/{prefix}/"
         with session_scope(catalog, write=True) as session:  # (4)
             stale = queries.analytics_keys(session, run.run_id) - {o.key for o in objects}

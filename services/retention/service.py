@@ -19,7 +19,7 @@ from sqlalchemy.orm import Session, sessionmaker
 from catalog import queries
 from catalog.db import session_scope
 from core.clock import aware, iso_utc, utcnow
-from core.errors import ErrorCode, FleetError
+from core.errors import ConflictError
 from core.states import ARCHIVED_IN_STORE, RestoreState, RunStatus, Tier
 from services.ingest.service import IngestService
 from services.policies import Policies
@@ -31,18 +31,6 @@ log = logging.getLogger(__name__)
 
 PROMOTE, ARCHIVE, DELETE, RESTORE = "promote", "archive", "delete", "restore"
 ACTIONS = (PROMOTE, ARCHIVE, DELETE, RESTORE)
-
-
-class NotSealedError(FleetError):
-    code = ErrorCode.CONFLICT
-
-
-class StillLiveError(FleetError):
-    code = ErrorCode.CONFLICT
-
-
-class NotHotError(FleetError):
-    code = ErrorCode.CONFLICT
 
 
 @dataclass
@@ -243,7 +231,7 @@ def set_pinned(ctx: Retention, run_id: str, pinned: bool, actor: str) -> dict[st
     with session_scope(ctx.catalog, write=True) as session:
         run = queries.require_run(session, run_id)
         if run.tier == Tier.DELETED:
-            raise NotSealedError(f"run {run_id!r} is deleted: there is nothing left to pin")
+            raise ConflictError(f"run {run_id!r} is deleted: there is nothing left to pin")
         run.pinned, run.pinned_by, run.updated_at = pinned, actor if pinned else None, now
         queries.add_event(session, run_id, "pin" if pinned else "unpin", now, actor, None)
         write_run_json(session, ctx.tiers.warm, run_id)
@@ -299,9 +287,9 @@ def promote_now(ctx: Retention, run_id: str) -> dict[str, Any]:
             found = queries.require_run(session, run_id)  # 404 naming the run
             tier = found.tier
         where = "hot on another node: ask that node" if tier == Tier.HOT else f"{tier} already"
-        raise NotHotError(f"run {run_id!r} is {where}: there is nothing to promote here")
+        raise ConflictError(f"run {run_id!r} is {where}: there is nothing to promote here")
     if run.status == RunStatus.LIVE or run.live_sources:
-        raise StillLiveError(
+        raise ConflictError(
             f"run {run_id!r} is live (a stream is still sending it): it can be promoted once "
             "its stream ends, or FLEET_CLOSE_AFTER_S after its last data"
         )
@@ -324,7 +312,7 @@ def delete_run(ctx: Retention, run_id: str, actor: str) -> str:
     with session_scope(ctx.catalog) as session:
         run = queries.require_run(session, run_id)
         if run.tier == Tier.HOT:
-            raise NotSealedError(f"run {run_id!r} is still hot: delete it once it is sealed (promoted)")
+            raise ConflictError(f"run {run_id!r} is still hot: delete it once it is sealed (promoted)")
         if run.pinned:
-            raise NotSealedError(f"run {run_id!r} is pinned: unpin it first (fleet runs pin --unpin)")
+            raise ConflictError(f"run {run_id!r} is pinned: unpin it first (fleet runs pin --unpin)")
     return archive.delete(run_id, ctx.tiers, ctx.catalog, ctx.clock(), actor, None)

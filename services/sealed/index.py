@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from core.errors import ErrorCode, FleetError
+from core.errors import InternalError
 from services.rrd.chunk import ChunkMeta
 
 CHUNK = "chunk"
@@ -50,10 +50,6 @@ SCHEMA = pa.schema(
         ("component_ranges", pa.list_(_COMPONENT_RANGE)),
     ]
 )
-
-
-class ChunkIndexError(FleetError):
-    code = ErrorCode.INTERNAL
 
 
 @dataclass(frozen=True)
@@ -142,7 +138,7 @@ def from_parquet(data: bytes) -> list[IndexRow]:
             )
         table = table.select(SCHEMA.names).cast(SCHEMA)
     except (pa.ArrowException, ValueError) as exc:
-        raise ChunkIndexError(f"chunks.parquet is unreadable ({exc}): re-seal the run from its recording") from exc
+        raise InternalError(f"chunks.parquet is unreadable ({exc}): re-seal the run from its recording") from exc
     rows = []
     for item in table.to_pylist():
         rows.append(

@@ -12,7 +12,7 @@ from sqlalchemy.orm import Session, sessionmaker
 from catalog import queries
 from catalog.db import session_scope
 from core.clock import aware
-from core.errors import ErrorCode, FleetError
+from core.errors import ConflictError, GoneError
 from core.states import RestoreState, Tier
 from services.sealed.index import CHUNK, IndexRow, from_parquet
 from services.sealed.tiers import readable_when_cold
@@ -35,14 +35,6 @@ class SealedRecording:
         return {t.name: t.type for r in self.rows if r.kind == CHUNK for t in r.timelines}
 
 
-class RunArchivedError(FleetError):
-    code = ErrorCode.CONFLICT
-
-
-class RunDeletedError(FleetError):
-    code = ErrorCode.GONE
-
-
 def _when(value: dt.datetime | None) -> str:
     return value.strftime("%Y-%m-%d %H:%M UTC") if value is not None else "an unknown time"
 
@@ -56,7 +48,7 @@ def locate_sealed(catalog: sessionmaker[Session], warm: ObjectStore, run_id: str
         if run is None or life is None:
             raise queries.run_not_found(run_id)
         if run.tier == Tier.DELETED:
-            raise RunDeletedError(
+            raise GoneError(
                 f"run {run_id!r} was deleted on {_when(life.deleted_at)} by {life.deleted_by}"
                 + (f" (retention policy {life.deleted_policy!r})" if life.deleted_policy else "")
             )
@@ -70,9 +62,7 @@ def locate_sealed(catalog: sessionmaker[Session], warm: ObjectStore, run_id: str
                 if life.restore_state == RestoreState.RESTORING
                 else f"restore it with POST /v1/runs/{run_id}/restore or `fleet runs restore {run_id}`"
             )
-            raise RunArchivedError(
-                f"run {run_id!r} is archived in the cold tier since {_when(life.archived_at)}; {doing}"
-            )
+            raise ConflictError(f"run {run_id!r} is archived in the cold tier since {_when(life.archived_at)}; {doing}")
         prefix = life.prefix
     return open_sealed(warm, prefix)
 

@@ -14,7 +14,7 @@ from catalog import queries
 from catalog.db import session_scope
 from catalog.queries import EntityRecord, RunRecord, TimelineRecord
 from core.clock import aware
-from core.errors import ErrorCode, FleetError
+from core.errors import InvalidArgumentError
 from core.states import ARCHIVED_IN_STORE, Tier
 from services.ingest.service import SealedInfo
 from services.sealed.index import CHUNK, from_parquet
@@ -33,10 +33,6 @@ def readable_when_cold(archive_mode: str | None) -> bool:
     return archive_mode not in (None, ARCHIVED_IN_STORE) and archive_mode not in NEEDS_RESTORE
 
 
-class RetentionConfigError(FleetError):
-    code = ErrorCode.INVALID_ARGUMENT
-
-
 @dataclass
 class Tiers:
     warm: ObjectStore
@@ -51,7 +47,7 @@ def open_tiers(settings: Settings) -> Tiers:
     warm = open_store(settings.warm_url, endpoint_url=settings.s3_endpoint_url, region=settings.s3_region)
     cold = open_store(settings.cold_url, endpoint_url=settings.s3_endpoint_url, region=settings.s3_region)
     if settings.cold_storage_class and not supports_archive(warm):
-        raise RetentionConfigError(
+        raise InvalidArgumentError(
             f"FLEET_COLD_STORAGE_CLASS={settings.cold_storage_class} needs an s3:// warm store "
             f"({settings.warm_url} has no storage classes): unset it to archive by copying to FLEET_COLD_URL"
         )

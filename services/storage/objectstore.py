@@ -10,23 +10,17 @@ from dataclasses import dataclass
 from typing import BinaryIO, Protocol
 from urllib.parse import urlparse
 
-from core.errors import ErrorCode, FleetError
+from core.errors import NotFoundError, UnavailableError
 
 _SAFE_KEY = re.compile(r"^[A-Za-z0-9._\-/=]+$")  # "=": Hive partitions (robot_id=R/)
 
 
-class ObjectNotFoundError(FleetError):
-    code = ErrorCode.NOT_FOUND
+class ObjectNotFoundError(NotFoundError):
+    """Caught where a missing object is an answer, not a failure (rebuild, archive)."""
 
 
-class StorageError(FleetError):
-    code = ErrorCode.UNAVAILABLE
-
-
-class ObjectArchivedError(FleetError):
-    """The object is in an archive storage class and must be restored before it can be read."""
-
-    code = ErrorCode.CONFLICT
+class StorageError(UnavailableError):
+    """A store that failed: caught where a store outage must not fail the caller (ingest, retention)."""
 
 
 @dataclass(frozen=True)

@@ -11,13 +11,8 @@ from boto3.s3.transfer import TransferConfig
 from botocore.config import Config
 from botocore.exceptions import BotoCoreError, ClientError
 
-from services.storage.objectstore import (
-    ObjectArchivedError,
-    ObjectInfo,
-    ObjectNotFoundError,
-    StorageError,
-    check_key,
-)
+from core.errors import ConflictError
+from services.storage.objectstore import ObjectInfo, ObjectNotFoundError, StorageError, check_key
 
 MULTIPART_BYTES = 64 * 1024 * 1024
 # Verified by the server on every put and part. SHA-256 needs no extra package (CRC32C and
@@ -177,11 +172,11 @@ class S3Store:
         if code in ("404", "NoSuchKey", "NotFound"):
             return ObjectNotFoundError(f"no object {key!r} in {self.url}")
         if code == "InvalidObjectState":
-            return ObjectArchivedError(f"{key!r} in {self.url} is archived: restore it before reading")
+            return ConflictError(f"{key!r} in {self.url} is archived: restore it before reading")
         return StorageError(f"{self.url}: {key!r}: {code or exc}")
 
 
-FleetErrorLike = ObjectNotFoundError | StorageError | ObjectArchivedError
+FleetErrorLike = ObjectNotFoundError | StorageError | ConflictError
 
 
 class _Counting:

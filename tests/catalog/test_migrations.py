@@ -8,9 +8,10 @@ from alembic.autogenerate import compare_metadata
 from alembic.runtime.migration import MigrationContext
 from alembic.script import ScriptDirectory
 
-from catalog.db import CatalogError, alembic_config, check_schema, create_engine, current_revision, head_revision
+from catalog.db import alembic_config, check_schema, create_engine, current_revision, head_revision
 from catalog.db import upgrade as upgrade_catalog
 from catalog.models import Base
+from core.errors import UnavailableError
 
 
 def test_one_head():
@@ -42,7 +43,7 @@ def test_models_match_migrations(engine: sa.Engine):
 def test_upgrade_from_empty_and_check(empty_catalog_url: str):
     engine = create_engine(empty_catalog_url)
     try:
-        with pytest.raises(CatalogError, match="fleet db upgrade") as info:
+        with pytest.raises(UnavailableError, match="fleet db upgrade") as info:
             check_schema(engine)
         assert "empty" in str(info.value)
         before, after = upgrade_catalog(engine)
@@ -57,5 +58,5 @@ def test_upgrade_from_empty_and_check(empty_catalog_url: str):
 
 
 def test_unsupported_url_is_one_clear_error():
-    with pytest.raises(CatalogError, match="duckdb:///PATH or postgresql"):
+    with pytest.raises(UnavailableError, match="duckdb:///PATH or postgresql"):
         create_engine("mysql://somewhere/db")

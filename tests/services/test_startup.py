@@ -8,19 +8,12 @@ from pathlib import Path
 
 import pytest
 
-from services.startup import (
-    AddressError,
-    DataDirInUseError,
-    hold_data_dir,
-    listen_grpc,
-    listen_http,
-    private_socket_path,
-    release_private_socket,
-)
+from core.errors import ConflictError
+from services.startup import hold_data_dir, listen_grpc, listen_http, private_socket_path, release_private_socket
 
 
 def test_the_data_dir_is_held_once_and_released_after(tmp_path: Path):
-    refused = pytest.raises(DataDirInUseError, match=rf"\(PID {os.getpid()}\).*--data-dir or FLEET_DATA_DIR")
+    refused = pytest.raises(ConflictError, match=rf"\(PID {os.getpid()}\).*--data-dir or FLEET_DATA_DIR")
     with hold_data_dir(tmp_path / "data"), refused, hold_data_dir(tmp_path / "data"):
         pass
     with hold_data_dir(tmp_path / "data"):  # free again: the lock went with the first holder
@@ -33,13 +26,13 @@ def test_a_port_someone_listens_on_is_refused_for_http_and_grpc():
         taken.listen()
         port = taken.getsockname()[1]
         with pytest.raises(
-            AddressError,
+            ConflictError,
             match=rf"REST API address 127\.0\.0\.1:{port} is already in use .*: "
             r"set another with --http-addr or FLEET_HTTP_ADDR",
         ):
             listen_http("127.0.0.1", port)
         with pytest.raises(
-            AddressError,
+            ConflictError,
             match=rf"Rerun gRPC address 0\.0\.0\.0:{port} is already in use.*"
             r"--grpc-addr or FLEET_GRPC_ADDR",
         ):
@@ -52,7 +45,7 @@ def test_a_listener_that_allows_port_sharing_is_still_refused():
         taken.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEPORT, 1)
         taken.bind(("127.0.0.1", 0))
         taken.listen()
-        with pytest.raises(AddressError, match="already in use"):
+        with pytest.raises(ConflictError, match="already in use"):
             listen_grpc("127.0.0.1", taken.getsockname()[1])
 
 

@@ -19,7 +19,8 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from catalog import queries
 from catalog.db import create_engine, session_scope
-from core.ids import NAME_BYTES, PATH_BYTES, InvalidNameError
+from core.errors import InvalidArgumentError
+from core.ids import NAME_BYTES, PATH_BYTES
 from services.hot.store import HotStore
 from services.ingest.service import IngestService
 from services.rrd import StoreInfoMessage, iter_events
@@ -115,12 +116,12 @@ def test_names_the_sdk_makes_are_stored_and_unusable_ones_refused_before_writing
         ("nul-timeline", {"application": "ok", "timeline": "fr\x00me"}),
     ):
         path = log(tmp_path / f"{name}.rrd", recording_id=name, **kwargs)  # type: ignore[arg-type]
-        with pytest.raises(InvalidNameError, match=r"NUL character|over the limit"):
+        with pytest.raises(InvalidArgumentError, match=r"NUL character|over the limit"):
             feeding.upload(ingest, iter_events(path))
         assert name not in ingest.runs and not (tmp_path / "hot" / name).exists()  # nothing left behind
     # the 0.41 SDK renames an application id with a NUL; another writer may not
     events = [with_application(e, "app\x00x", "nul-app") for e in iter_events(long_names)]
-    with pytest.raises(InvalidNameError, match="NUL character"):
+    with pytest.raises(InvalidArgumentError, match="NUL character"):
         feeding.upload(ingest, events)
     assert "nul-app" not in ingest.runs
     # the catalog still takes every other run's writes

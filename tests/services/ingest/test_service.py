@@ -13,10 +13,9 @@ import pytest
 
 from catalog import queries
 from catalog.db import session_scope
-from core.errors import FleetError
+from core.errors import FleetError, InsufficientStorageError, InvalidArgumentError, ResourceExhaustedError
 from core.ids import UnsafeIdError
-from services.hot.store import InsufficientStorageError
-from services.ingest.service import IngestReport, IngestService, InvalidStreamError, TooManyStreamsError
+from services.ingest.service import IngestReport, IngestService
 from services.rrd import ArrowMessage, StoreKind, errors, iter_events
 from services.rrd.chunk import read_chunk
 from services.rrd.messages import BlueprintActivationMessage, StoreInfoMessage
@@ -150,7 +149,7 @@ def test_message_before_store_info_is_refused(make_service: Factory, recordings:
     service = make_service()
     source = service.open_source(live=False)
     arrow = next(e for e in iter_events(recordings["points"].path) if isinstance(e, ArrowMessage))
-    with pytest.raises(InvalidStreamError, match="before its SetStoreInfo"):
+    with pytest.raises(InvalidArgumentError, match="before its SetStoreInfo"):
         service.accept(source, arrow)
 
 
@@ -189,7 +188,7 @@ def test_disk_guard_refuses_before_writing(make_service: Factory, recordings: di
 def test_stream_limit(make_service: Factory):
     service = make_service(max_streams=2)
     a, b = service.open_source(live=True), service.open_source(live=True)
-    with pytest.raises(TooManyStreamsError) as info:
+    with pytest.raises(ResourceExhaustedError) as info:
         service.open_source(live=True)
     assert info.value.grpc_status() == "RESOURCE_EXHAUSTED"
     service.close_source(a)
@@ -224,7 +223,7 @@ def catalog_run_after_flush(service: IngestService, run_id: str) -> dict[str, An
 
 
 def test_errors_are_fleet_errors():
-    for exc_type in (UnsafeIdError, InvalidStreamError, TooManyStreamsError, InsufficientStorageError):
+    for exc_type in (UnsafeIdError, InvalidArgumentError, ResourceExhaustedError, InsufficientStorageError):
         assert issubclass(exc_type, FleetError)
 
 

@@ -9,7 +9,7 @@ from sqlalchemy import select
 
 from catalog import models
 from catalog.db import session_scope
-from services.ingest.service import InvalidStreamError
+from core.errors import InvalidArgumentError
 from services.rrd import ArrowMessage, StoreKind, iter_events
 from services.rrd.decoder import decode_message
 from services.rrd.frames import MessageKind
@@ -62,7 +62,7 @@ def test_refused_source_leaves_no_empty_run(make_service: Factory, recordings: d
     store_info = next(raw for kind, raw in messages if kind == MessageKind.SET_STORE_INFO)
     stray = next(e for e in iter_events(recordings["scalars"].path) if isinstance(e, ArrowMessage))
     source = service.open_source(live=False)
-    with pytest.raises(InvalidStreamError, match="before its SetStoreInfo"):
+    with pytest.raises(InvalidArgumentError, match="before its SetStoreInfo"):
         service.accept(source, decode_message(MessageKind.SET_STORE_INFO, store_info))
         service.accept(source, stray)
     service.close_source(source)

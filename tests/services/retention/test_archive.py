@@ -17,6 +17,7 @@ from fastapi.testclient import TestClient
 
 from catalog import queries
 from catalog.db import session_scope
+from core.errors import ConflictError
 from services.analytics.service import Analytics, extract_hot_run
 from services.analytics.sql import Limits
 from services.api.app import create_app
@@ -26,7 +27,7 @@ from services.rrd import iter_events
 from services.sealed.tiers import Tiers
 from services.sealed.write import INDEX, RECORDING, RUN_JSON
 from services.settings import load_settings
-from services.storage.objectstore import ObjectArchivedError, ObjectInfo, ObjectStore, StorageError, open_store
+from services.storage.objectstore import ObjectInfo, ObjectStore, StorageError, open_store
 from services.storage.s3 import S3Store
 from tests.seaweedfs import seaweedfs
 from tests.services.ingest import feeding
@@ -265,7 +266,7 @@ def test_storage_class_archive_and_restore(
     [(_, _, detail)] = _retention(node)
     assert storage_class in detail
     assert warm.head(key).storage_class == storage_class and listing(cold) == []  # archived in place
-    with pytest.raises(ObjectArchivedError):  # S3 (moto) refuses the read: InvalidObjectState
+    with pytest.raises(ConflictError):  # S3 (moto) refuses the read: InvalidObjectState
         warm.get_range(key, 0, 16)
     assert warm.get_range(f"{prefix}/{INDEX}")  # the index stays readable
     run = _detail(client, RUN_A)

@@ -11,7 +11,7 @@ import pytest
 
 from catalog import queries
 from catalog.db import session_scope
-from services.ingest.service import SealedRunError
+from core.errors import ConflictError
 from services.retention.schedule import retention_job
 from services.retention.service import plan, run_plan, set_pinned
 from services.sealed.tiers import RunJson, Tiers, catalog_run_json, parse_run_json
@@ -121,6 +121,6 @@ def test_data_for_a_run_archived_since_this_node_sealed_it_is_refused(
     _promote(node, logged)
     assert node.ingest.recently_sealed[RUN].tier == "warm"
     _archive(node)
-    with pytest.raises(SealedRunError, match="is cold"):
+    with pytest.raises(ConflictError, match="is cold"):
         node.upload(logged)
     assert node.ingest.hot_run(RUN) is None

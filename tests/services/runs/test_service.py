@@ -10,8 +10,8 @@ import pytest
 from sqlalchemy.orm import Session
 
 from catalog import queries
-from catalog.queries import EntityRecord, RunNotFoundError, RunRecord
-from core.errors import BadParameterError
+from catalog.queries import EntityRecord, RunRecord
+from core.errors import BadParameterError, NotFoundError
 from services.runs import service
 from services.runs.service import RunFilter, parse_properties, parse_time
 
@@ -130,7 +130,7 @@ def test_parsers():
 
 def test_get_run_and_robots(fleet: Session):
     assert queries.require_run(fleet, "r-a1").robot_id == "robot-a"
-    with pytest.raises(RunNotFoundError, match="no run 'nope'") as info:
+    with pytest.raises(NotFoundError, match="no run 'nope'") as info:
         queries.require_run(fleet, "nope")
     assert info.value.http_status() == 404
     assert [(robot.id, count) for robot, count in service.list_robots(fleet)] == [("robot-a", 2), ("robot-b", 2)]
