@@ -188,7 +188,7 @@ def test_disk_guard_refuses_before_writing(make_service: Factory, recordings: di
 def test_stream_limit(make_service: Factory):
     service = make_service(max_streams=2)
     a, b = service.open_source(live=True), service.open_source(live=True)
-    with pytest.raises(ResourceExhaustedError) as info:
+    with pytest.raises(ResourceExhaustedError, match=r"its limit \(FLEET_MAX_STREAMS\)") as info:
         service.open_source(live=True)
     assert info.value.grpc_status() == "RESOURCE_EXHAUSTED"
     service.close_source(a)

@@ -266,7 +266,7 @@ def test_storage_class_archive_and_restore(
     [(_, _, detail)] = _retention(node)
     assert storage_class in detail
     assert warm.head(key).storage_class == storage_class and listing(cold) == []  # archived in place
-    with pytest.raises(ConflictError):  # S3 (moto) refuses the read: InvalidObjectState
+    with pytest.raises(ConflictError, match="is archived: restore it"):  # S3 (moto) refuses: InvalidObjectState
         warm.get_range(key, 0, 16)
     assert warm.get_range(f"{prefix}/{INDEX}")  # the index stays readable
     run = _detail(client, RUN_A)
