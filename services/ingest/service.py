@@ -19,17 +19,11 @@ from __future__ import annotations
 import asyncio
 import datetime as dt
 import logging
-import threading
 from collections import OrderedDict
 from collections.abc import Callable
-from dataclasses import dataclass, field
-from typing import Any
 
-import sqlalchemy as sa
 from sqlalchemy.orm import Session, sessionmaker
 
-from catalog import queries
-from catalog.db import session_scope
 from catalog.queries import RunRecord
 from core.clock import utcnow
 from core.errors import ConflictError, InvalidArgumentError, ResourceExhaustedError
@@ -37,6 +31,7 @@ from core.ids import UnsafeIdError, check_id, check_name
 from core.states import RunStatus, Tier
 from services.hot.read import HotRecording
 from services.hot.store import HotStore
+from services.ingest.catalog_sync import CatalogSync
 from services.ingest.facts import LOG_TIME, IngestRun, RunFacts, SealedInfo, check_chunk_names, store_key
 from services.ingest.identity import (
     IDENTITY_PROPERTY,
@@ -45,8 +40,9 @@ from services.ingest.identity import (
     read_property_chunk,
 )
 from services.ingest.replay import ReplayHub
+from services.ingest.source import IngestReport, Source
 from services.rrd.chunk import chunk_meta
-from services.rrd.frames import DEFAULT_VERSION, MessageKind, RerunVersion
+from services.rrd.frames import DEFAULT_VERSION, MessageKind
 from services.rrd.manifest import is_property_entity
 from services.rrd.messages import (
     ArrowMessage,
@@ -77,50 +73,7 @@ log = logging.getLogger(__name__)
 
 _HELD_LIMIT = 64 * 1024 * 1024
 _RECENTLY_SEALED = 1024
-_CATALOG_BACKOFF_MAX = dt.timedelta(minutes=5)
-# Errors of the catalog itself (unreachable, overloaded), as opposed to a record it refuses.
-_CATALOG_DOWN = (sa.exc.OperationalError, sa.exc.InterfaceError, sa.exc.TimeoutError)
-
-StoreKey = tuple[StoreKind, str]
 SealedLookup = Callable[[str], SealedInfo | None]
-
-
-@dataclass
-class IngestReport:
-    """What a source brought: the runs it touched and the chunks that were new or already held."""
-
-    runs: list[str] = field(default_factory=list)
-    chunks_new: int = 0
-    chunks_duplicate: int = 0
-    bytes_new: int = 0
-    messages: int = 0
-    catalog: str = "updated"  # "pending" when the catalog could not be written yet (the data is kept)
-
-    def to_dict(self) -> dict[str, Any]:
-        return {
-            "runs": self.runs,
-            "chunks_new": self.chunks_new,
-            "chunks_duplicate": self.chunks_duplicate,
-            "bytes_new": self.bytes_new,
-            "messages": self.messages,
-            "catalog": self.catalog,
-        }
-
-
-@dataclass
-class Source:
-    live: bool  # a gRPC stream (its runs are live while it lasts) rather than an upload
-    version: RerunVersion | None = None
-    run_of_store: dict[StoreKey, str] = field(default_factory=dict)
-    recording_run: str | None = None  # where this source's blueprints go
-    # Messages kept until they can be filed: blueprints before any recording (run None), and
-    # messages of a run that is not hot yet (written when its first new chunk arrives).
-    held: list[tuple[str | None, Event]] = field(default_factory=list)
-    held_bytes: int = 0
-    store_infos: dict[StoreKey, StoreInfoMessage] = field(default_factory=dict)
-    sealed: dict[str, SealedInfo | None] = field(default_factory=dict)  # what `prepare` learnt per run
-    attached: set[str] = field(default_factory=set)  # hot runs this source counts in their live sources
-    report: IngestReport = field(default_factory=IngestReport)
 
 
 class IngestService:
@@ -153,7 +106,7 @@ class IngestService:
         self.recently_sealed: OrderedDict[str, SealedInfo] = OrderedDict()
         self.live_streams = 0
         self.totals = {"chunks_new": 0, "chunks_duplicate": 0, "bytes_new": 0, "messages": 0}
-        self._catalog_writes = threading.Lock()  # one catalog writer at a time for ingest's own records
+        self._catalog_sync = CatalogSync(catalog, self.clock)
 
     # --- the hot runs as other services see them (read-only: only ingest changes `runs`) ------
 
@@ -231,7 +184,7 @@ class IngestService:
             await asyncio.wait_for(asyncio.to_thread(self.save_records, records), timeout_s)
         except Exception as exc:  # any catalog failure: retried by the housekeeping
             log.warning("catalog not updated after an upload (%s); it catches up when it answers", exc)
-            self._mark_dirty(records)
+            self._catalog_sync.mark_dirty(records, self.runs)
             report.catalog = "pending"
         return report
 
@@ -513,71 +466,12 @@ class IngestService:
         self.save_records(self.take_dirty_records())
 
     def take_dirty_records(self) -> list[RunRecord]:
-        """Snapshots of the runs that changed since the last flush (cheap: taken on the ingest
-        thread, then saved with `save_records`, which may run on another thread). A run whose
-        record the catalog refused waits for its retry time alone."""
-        records = []
-        now = self.clock()
-        for run in list(self.runs.values()):
-            if run.dirty and (run.catalog_retry_at is None or run.catalog_retry_at <= now):
-                run.dirty = False
-                records.append(run.record(self.default_robot))
-        return records
+        """Snapshots of the runs that changed since the last flush (`CatalogSync.take`)."""
+        return self._catalog_sync.take(self.runs, self.default_robot)
 
     def save_records(self, records: list[RunRecord]) -> None:
-        """One transaction for all; if the catalog refuses it for one record's sake, each record on
-        its own, so one bad run never holds back the others (it is retried with backoff)."""
-        if not records or self.catalog is None:
-            return
-        with self._catalog_writes:
-            try:
-                self._save(records)
-            except _CATALOG_DOWN:
-                self._mark_dirty(records)
-                raise
-            except Exception:  # a record the catalog refuses: find which
-                for record in records:
-                    self._save_one(record)
-                return
-        for record in records:
-            run = self.runs.get(record.id)
-            if run is not None:
-                run.catalog_failures, run.catalog_retry_at = 0, None
-
-    def _save(self, records: list[RunRecord]) -> None:
-        assert self.catalog is not None
-        now = self.clock()
-        with session_scope(self.catalog, write=True) as session:
-            for record in records:
-                queries.save_run(session, record, now)
-
-    def _save_one(self, record: RunRecord) -> None:
-        run = self.runs.get(record.id)
-        try:
-            self._save([record])
-        except Exception as exc:  # logged and retried; never stops the other runs
-            if run is None:
-                return
-            run.dirty = True
-            run.catalog_failures += 1
-            wait = min(dt.timedelta(seconds=2 ** min(run.catalog_failures, 16)), _CATALOG_BACKOFF_MAX)
-            run.catalog_retry_at = self.clock() + wait
-            log.error(
-                "the catalog refused the record of run %s (%s: %s); retrying in %s",
-                record.id,
-                type(exc).__name__,
-                str(exc).splitlines()[0][:300] if str(exc) else "",
-                wait,
-            )
-            return
-        if run is not None:
-            run.catalog_failures, run.catalog_retry_at = 0, None
-
-    def _mark_dirty(self, records: list[RunRecord]) -> None:
-        for record in records:
-            run = self.runs.get(record.id)
-            if run is not None:
-                run.dirty = True  # retried at the next flush
+        """Write them to the catalog (`CatalogSync.save`); may run on another thread."""
+        self._catalog_sync.save(records, self.runs)
 
     def close(self) -> None:
         try:

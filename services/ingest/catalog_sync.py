@@ -1,0 +1,100 @@
+"""Ingest's runs into the catalog: snapshots of what changed, written in one transaction, and a
+record the catalog refuses retried on its own with backoff, so one bad run never holds back the
+others. Runs' `dirty`, `catalog_failures` and `catalog_retry_at` say where each run stands."""
+
+from __future__ import annotations
+
+import datetime as dt
+import logging
+import threading
+from collections.abc import Callable
+
+import sqlalchemy as sa
+from sqlalchemy.orm import Session, sessionmaker
+
+from catalog import queries
+from catalog.db import session_scope
+from catalog.queries import RunRecord
+from services.ingest.facts import IngestRun
+
+log = logging.getLogger("services.ingest.service")
+
+BACKOFF_MAX = dt.timedelta(minutes=5)
+# Errors of the catalog itself (unreachable, overloaded), as opposed to a record it refuses.
+CATALOG_DOWN = (sa.exc.OperationalError, sa.exc.InterfaceError, sa.exc.TimeoutError)
+
+
+class CatalogSync:
+    def __init__(self, catalog: sessionmaker[Session] | None, clock: Callable[[], dt.datetime]) -> None:
+        self.catalog = catalog
+        self.clock = clock
+        self._writes = threading.Lock()  # one catalog writer at a time for ingest's own records
+
+    def take(self, runs: dict[str, IngestRun], default_robot: str) -> list[RunRecord]:
+        """Snapshots of the runs that changed since the last flush (cheap: taken on the ingest
+        thread, then saved with `save`, which may run on another thread). A run whose record the
+        catalog refused waits for its retry time alone."""
+        records = []
+        now = self.clock()
+        for run in list(runs.values()):
+            if run.dirty and (run.catalog_retry_at is None or run.catalog_retry_at <= now):
+                run.dirty = False
+                records.append(run.record(default_robot))
+        return records
+
+    def save(self, records: list[RunRecord], runs: dict[str, IngestRun]) -> None:
+        """One transaction for all; if the catalog refuses it for one record's sake, each record on
+        its own, so one bad run never holds back the others (it is retried with backoff)."""
+        if not records or self.catalog is None:
+            return
+        with self._writes:
+            try:
+                self._save(records)
+            except CATALOG_DOWN:
+                self.mark_dirty(records, runs)
+                raise
+            except Exception:  # a record the catalog refuses: find which
+                for record in records:
+                    self._save_one(record, runs)
+                return
+        for record in records:
+            run = runs.get(record.id)
+            if run is not None:
+                run.catalog_failures, run.catalog_retry_at = 0, None
+
+    def _save(self, records: list[RunRecord]) -> None:
+        assert self.catalog is not None
+        now = self.clock()
+        with session_scope(self.catalog, write=True) as session:
+            for record in records:
+                queries.save_run(session, record, now)
+
+    def _save_one(self, record: RunRecord, runs: dict[str, IngestRun]) -> None:
+        run = runs.get(record.id)
+        try:
+            self._save([record])
+        except Exception as exc:  # logged and retried; never stops the other runs
+            if run is None:
+                return
+            run.dirty = True
+            run.catalog_failures += 1
+            wait = min(dt.timedelta(seconds=2 ** min(run.catalog_failures, 16)), BACKOFF_MAX)
+            run.catalog_retry_at = self.clock() + wait
+            log.error(
+                "the catalog refused the record of run %s (%s: %s); retrying in %s",
+                record.id,
+                type(exc).__name__,
+                str(exc).splitlines()[0][:300] if str(exc) else "",
+                wait,
+            )
+            return
+        if run is not None:
+            run.catalog_failures, run.catalog_retry_at = 0, None
+
+    @staticmethod
+    def mark_dirty(records: list[RunRecord], runs: dict[str, IngestRun]) -> None:
+        """Written again at the next flush."""
+        for record in records:
+            run = runs.get(record.id)
+            if run is not None:
+                run.dirty = True  # retried at the next flush
