@@ -16,6 +16,18 @@ from tests.subprocess_server import ServerProcess, answers_http, free_port
 FLEET = str(Path(sys.executable).with_name("fleet"))
 WRITE_MESSAGES = "/rerun.sdk_comms.v1alpha1.MessageProxyService/WriteMessages"
 
+ROBOT = str(Path(__file__).with_name("robot.py"))
+
+
+def start_robot(*args: str) -> subprocess.Popen[str]:
+    """A robot (robot.py, on the real rerun-sdk) in its own process, driven over its stdin and
+    stdout: `start_robot("live", url, copy, run_id)`."""
+    robot = subprocess.Popen(
+        [sys.executable, ROBOT, *args], stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+    )
+    assert robot.stdout is not None and robot.stdin is not None
+    return robot
+
 
 class LiveServer:
     def __init__(self, data_dir: Path, **settings: str) -> None:

@@ -4,7 +4,6 @@ uploaded afterwards; the run held equals the copy, every chunk once, the token n
 from __future__ import annotations
 
 import subprocess
-import sys
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -13,10 +12,9 @@ import pytest
 
 from services.rrd import ArrowMessage, iter_events
 from services.rrd.chunk import read_chunk
-from tests.services.ingest.live_server import LiveServer
+from tests.services.ingest.live_server import LiveServer, start_robot
 
 pytestmark = pytest.mark.sdk
-ROBOT = str(Path(__file__).with_name("robot.py"))
 
 
 @pytest.fixture
@@ -32,13 +30,7 @@ def _chunk_ids(path: Path) -> list[bytes]:
 
 def test_kill_during_stream_then_upload_the_copy(server: LiveServer, tmp_path: Path, rerun_bin: str):
     copy, run_id = tmp_path / "copy.rrd", "e2e-run-1"
-    robot = subprocess.Popen(
-        [sys.executable, ROBOT, "scene", server.grpc_url, str(copy), run_id],
-        stdin=subprocess.PIPE,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-    )
+    robot = start_robot("scene", server.grpc_url, str(copy), run_id)
     assert robot.stdout is not None and robot.stdin is not None
     assert robot.stdout.readline().strip() == "HALF"
     hot = server.data_dir / "hot" / run_id / "run.rrd"
@@ -89,13 +81,7 @@ def test_kill_during_stream_then_upload_the_copy(server: LiveServer, tmp_path: P
 
 def test_two_hundred_streams_at_once(server: LiveServer):
     n = 200
-    robot = subprocess.Popen(
-        [sys.executable, ROBOT, "many", server.grpc_url, str(n)],
-        stdin=subprocess.PIPE,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-    )
+    robot = start_robot("many", server.grpc_url, str(n))
     assert robot.stdout is not None and robot.stdin is not None
     try:
         assert robot.stdout.readline().strip() == "READY"

@@ -6,17 +6,14 @@ from __future__ import annotations
 
 import asyncio
 import subprocess
-import sys
 from pathlib import Path
 
 import pytest
 
 from services.ingest.replay import ReplayHub, read_response
 from services.rrd.pb import log_msg_pb2, sdk_comms_pb2
-from tests.services.ingest.live_server import LiveServer
+from tests.services.ingest.live_server import LiveServer, start_robot
 from tests.subprocess_server import free_port
-
-ROBOT = str(Path(__file__).with_name("robot.py"))
 
 
 def test_responses_wrap_the_message_bytes():
@@ -94,13 +91,7 @@ def test_rerun_cli_reads_a_live_stream(tmp_path: Path, rerun_bin: str):
     )
     try:
         copy = tmp_path / "copy.rrd"
-        robot = subprocess.Popen(
-            [sys.executable, ROBOT, "live", server.grpc_url, str(copy), "replay-run"],
-            stdin=subprocess.PIPE,
-            stdout=subprocess.PIPE,
-            stderr=subprocess.PIPE,
-            text=True,
-        )
+        robot = start_robot("live", server.grpc_url, str(copy), "replay-run")
         assert robot.stdout is not None and robot.stdin is not None
         assert robot.stdout.readline().strip() == "READY"
         robot.stdin.write("go\n")

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import subprocess
-import sys
 import threading
 from collections.abc import Iterator
 from pathlib import Path
@@ -11,10 +10,9 @@ from pathlib import Path
 import httpx
 import pytest
 
-from tests.services.ingest.live_server import LiveServer
+from tests.services.ingest.live_server import LiveServer, start_robot
 
 pytestmark = pytest.mark.sdk
-ROBOT = str(Path(__file__).parents[1] / "ingest" / "robot.py")
 
 
 @pytest.fixture
@@ -26,13 +24,7 @@ def server(tmp_path: Path) -> Iterator[LiveServer]:
 
 def test_follow_streams_a_live_run_until_it_closes(server: LiveServer, tmp_path: Path, rerun_bin: str):
     copy, run_id = tmp_path / "copy.rrd", "follow-run-1"
-    robot = subprocess.Popen(
-        [sys.executable, ROBOT, "live", server.grpc_url, str(copy), run_id],
-        stdin=subprocess.PIPE,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-    )
+    robot = start_robot("live", server.grpc_url, str(copy), run_id)
     assert robot.stdout is not None and robot.stdin is not None
     assert robot.stdout.readline().strip() == "READY"
     received = bytearray()

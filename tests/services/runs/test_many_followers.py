@@ -8,7 +8,6 @@ import asyncio
 import contextlib
 import io
 import subprocess
-import sys
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass, field
@@ -19,10 +18,9 @@ import pytest
 
 from services.rrd import ArrowMessage, iter_events
 from services.rrd.footer import read_footer
-from tests.services.ingest.live_server import LiveServer
+from tests.services.ingest.live_server import LiveServer, start_robot
 
 pytestmark = pytest.mark.sdk
-ROBOT = str(Path(__file__).parents[1] / "ingest" / "robot.py")
 FOLLOWERS = 100  # more than the 40 worker threads Starlette runs sync handlers and sync bodies on
 SAMPLES = 20
 REQUEST_TIMEOUT_S = 5.0  # a catalog request that takes longer counts as this long
@@ -85,13 +83,7 @@ class Observed:
 
 def test_a_hundred_followers_of_a_live_run_do_not_slow_the_catalog(server: LiveServer, tmp_path: Path, rerun_bin: str):
     copy, run_id = tmp_path / "copy.rrd", "followed-by-many"
-    robot = subprocess.Popen(
-        [sys.executable, ROBOT, "live", server.grpc_url, str(copy), run_id],
-        stdin=subprocess.PIPE,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-    )
+    robot = start_robot("live", server.grpc_url, str(copy), run_id)
     assert robot.stdout is not None and robot.stdin is not None
     assert robot.stdout.readline().strip() == "READY"  # ten frames sent, the stream stays open
     server.wait_for(
