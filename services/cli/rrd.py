@@ -10,10 +10,10 @@ from typing import BinaryIO
 
 import click
 from rich.console import Console
-from rich.progress import BarColumn, DownloadColumn, Progress, TransferSpeedColumn
+from rich.progress import Progress
 from rich.table import Table
 
-from services.cli.output import stdout_console
+from services.cli.output import stdout_console, transfer_progress
 from services.rrd.decoder import DEFAULT_MAX_MESSAGE_SIZE, READ_SIZE, RrdDecoder
 from services.rrd.footer import summarize_from_footer
 from services.rrd.messages import Event
@@ -43,15 +43,7 @@ def _read_events(
 def _inspect_one(name: str, fh: BinaryIO, size: int | None, max_message_size: int, quiet: bool) -> RrdSummary:
     counted = [0]
     show = not quiet and sys.stderr.isatty() and (size or 0) > 64 * READ_SIZE
-    progress = Progress(
-        "{task.description}",
-        BarColumn(),
-        DownloadColumn(),
-        TransferSpeedColumn(),
-        console=Console(stderr=True),
-        transient=True,
-        disable=not show,
-    )
+    progress = transfer_progress(disable=not show)
     with progress:
         task = progress.add_task(os.path.basename(name), total=size)
         summary = summarize(_read_events(fh, counted, max_message_size, progress, task), name)

@@ -15,11 +15,11 @@ from typing import TYPE_CHECKING, Any
 
 import click
 from rich.console import Console
-from rich.progress import BarColumn, DownloadColumn, Progress, TaskID, TransferSpeedColumn
+from rich.progress import Progress, TaskID
 from rich.table import Table
 
 from core.states import RestoreState, RunStatus, Tier
-from services.cli.output import stdout_console
+from services.cli.output import stdout_console, transfer_progress
 
 if TYPE_CHECKING:
     from sdk_client.rest import FleetClient
@@ -248,14 +248,7 @@ def download(api_url: str, run_id: str, output: Path | None, **filters: Any) -> 
     output = output or Path(f"{run_id}.rrd")
     with (
         _client(api_url) as client,
-        Progress(
-            "{task.description}",
-            BarColumn(),
-            DownloadColumn(),
-            TransferSpeedColumn(),
-            console=Console(stderr=True),
-            transient=True,
-        ) as progress,
+        transfer_progress() as progress,
     ):
         task = progress.add_task(run_id, total=None)
         written = client.download(

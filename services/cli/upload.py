@@ -8,7 +8,9 @@ from pathlib import Path
 
 import click
 from rich.console import Console
-from rich.progress import BarColumn, DownloadColumn, Progress, TaskID, TransferSpeedColumn
+from rich.progress import Progress, TaskID
+
+from services.cli.output import transfer_progress
 
 
 @click.command()
@@ -29,9 +31,7 @@ def upload(files: tuple[Path, ...], api_url: str) -> None:
     failed = 0
     with (
         FleetClient(api_url) as client,
-        Progress(
-            "{task.description}", BarColumn(), DownloadColumn(), TransferSpeedColumn(), console=console, transient=True
-        ) as progress,
+        transfer_progress(console) as progress,
     ):
         for path in files:
             task = progress.add_task(path.name, total=os.path.getsize(path))
