@@ -10,10 +10,10 @@ import pytest
 from fastapi.testclient import TestClient
 from prometheus_client.parser import text_string_to_metric_families
 
-from catalog.db import create_engine, upgrade
 from services.api.app import create_app
-from services.server import build
 from services.settings import load_settings
+from tests.services.api.nodes import migrated_settings
+from tests.services.api.nodes import node as node_of
 from tests.services.rrd.recordings import Recording
 
 ASSET_TYPES = {".js": "javascript", ".css": "text/css", ".png": "image/png"}
@@ -22,17 +22,8 @@ ASSET_TYPES = {".js": "javascript", ".css": "text/css", ".png": "image/png"}
 @pytest.fixture
 def node(tmp_path: Path) -> Iterator[TestClient]:
     """The app as `fleet serve` wires it (ingest, retention, analytics), as a test client."""
-    settings = load_settings(data_dir=tmp_path / "data", scheduler=False)
-    engine = create_engine(settings.catalog_url)
-    upgrade(engine)
-    engine.dispose()
-    ingest, retention, analytics = build(settings)[:3]
-    try:
-        with TestClient(create_app(settings, ingest, retention, analytics)) as client:
-            yield client
-    finally:
-        ingest.hot.close()
-        retention.catalog.kw["bind"].dispose()
+    with node_of(migrated_settings(tmp_path)) as client:
+        yield client
 
 
 def _referenced_urls(html: str) -> list[str]:

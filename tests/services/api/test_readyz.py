@@ -5,47 +5,16 @@ from __future__ import annotations
 
 import asyncio
 import shutil
-import socket
 import threading
-from collections.abc import Iterator
-from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
 from fastapi.testclient import TestClient
 
-from catalog.db import create_engine, upgrade
 from services.api import readiness
-from services.api.app import create_app
-from services.server import build
-from services.settings import Settings, load_settings
-
-
-def closed_port() -> int:
-    """A loopback port nothing listens on (bound once to find a free one, then closed)."""
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        port: int = sock.getsockname()[1]
-    return port
-
-
-@contextmanager
-def node(settings: Settings) -> Iterator[TestClient]:
-    ingest, retention, analytics = build(settings)[:3]
-    try:
-        with TestClient(create_app(settings, ingest, retention, analytics)) as client:
-            yield client
-    finally:
-        ingest.hot.close()
-        retention.catalog.kw["bind"].dispose()
-
-
-def migrated_settings(tmp_path: Path, **overrides: Any) -> Settings:
-    settings = load_settings(data_dir=tmp_path / "data", scheduler=False, **overrides)
-    engine = create_engine(settings.catalog_url)
-    upgrade(engine)
-    engine.dispose()
-    return settings
+from services.settings import load_settings
+from tests.services.api.nodes import migrated_settings, node
+from tests.subprocess_server import free_port
 
 
 def not_ready(client: TestClient) -> dict[str, Any]:
@@ -68,7 +37,7 @@ def test_an_unreachable_postgres_catalog_is_named(tmp_path: Path):
     settings = load_settings(
         data_dir=tmp_path / "data",
         scheduler=False,
-        catalog_url=f"postgresql+psycopg://fleet@127.0.0.1:{closed_port()}/fleet",
+        catalog_url=f"postgresql+psycopg://fleet@127.0.0.1:{free_port()}/fleet",
     )
     with node(settings) as client:
         body = not_ready(client)
