@@ -18,7 +18,7 @@ from services import __version__
 from services.analytics.service import Analytics
 from services.analytics.sql import Limits
 from services.api.app import create_app
-from services.api.grpc_front import start_front, stop_front
+from services.api.grpc_front import Front
 from services.hot.reserve import DiskReserve
 from services.hot.store import HotStore
 from services.ingest import grpc_handler
@@ -146,7 +146,8 @@ async def serve(settings: Settings) -> None:
     app = create_app(settings, ingest, retention, analytics)
     http = uvicorn.Server(uvicorn.Config(app, log_level="info", lifespan="off"))
     await grpc_server.start()
-    front = await start_front(grpc_socket, grpc_path, f"fleet-telemetry {__version__}")
+    front = Front(grpc_socket, grpc_path, f"fleet-telemetry {__version__}")
+    front.start()
     reserve = DiskReserve(settings.data_dir, settings.reserve_bytes)
     await asyncio.to_thread(reserve.ensure)
     housekeeping = asyncio.create_task(_housekeeping(ingest, reserve, settings.catalog_flush_s))
@@ -163,7 +164,7 @@ async def serve(settings: Settings) -> None:
         housekeeping.cancel()
         with contextlib.suppress(asyncio.CancelledError):
             await housekeeping
-        await stop_front(front)
+        await front.stop()
         await grpc_server.stop(grace=5)
         release_private_socket(Path(grpc_path), settings.data_dir)
         ingest.close()

@@ -371,7 +371,8 @@ class _Connection:
 
 
 class Front:
-    """Accepts connections on the public gRPC port and serves each in its own task."""
+    """Serves the public gRPC port on `sock` (a listening socket): accepts connections and serves
+    each in its own task, passing HTTP/2 on to the gRPC server at the Unix socket `upstream_path`."""
 
     def __init__(self, sock: socket.socket, upstream_path: str, version: str) -> None:
         self._sock, self._upstream_path, self._version = sock, upstream_path, version
@@ -404,15 +405,3 @@ class Front:
             with contextlib.suppress(asyncio.CancelledError):
                 await self._accepting
         self._sock.close()
-
-
-async def start_front(sock: socket.socket, upstream_path: str, version: str) -> Front:
-    """Serve the public gRPC port on `sock` (a listening socket), passing HTTP/2 on to the gRPC
-    server at the Unix socket `upstream_path`."""
-    front = Front(sock, upstream_path, version)
-    front.start()
-    return front
-
-
-async def stop_front(front: Front) -> None:
-    await front.stop()

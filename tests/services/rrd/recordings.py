@@ -43,21 +43,8 @@ SCENES = (
     "large",
 )
 
-# Files written by the SDK in one piece (two SetStoreInfo per store, as the SDK always sends).
-SDK_FILES = (
-    "points",
-    "image",
-    "scalars",
-    "textlogs",
-    "transforms",
-    "static",
-    "properties",
-    "blueprint",
-    "no_footer",
-    "merge_a",
-    "merge_b",
-    "large",
-)
+# Files written by the SDK in one piece (two SetStoreInfo per store, as the SDK always sends): every scene.
+SDK_FILES = SCENES
 # Re-encoded by the rerun CLI (one SetStoreInfo per store).
 CLI_FILES = ("merged", "optimized")
 # Everything that decodes without error.
