@@ -237,7 +237,7 @@ def _seal_and_switch(
     base_size = tiers.warm.head(f"{prefix}/{RECORDING}").size if prefix is not None else 0
     _check_room(run, tiers, base_size, reserve_bytes)
     workdir.mkdir(exist_ok=True)
-    sources: list[Iterator[Event | None]] = []
+    sources: list[Iterator[Event]] = []
     if prefix is not None:  # chunks that came after the run was sealed: sealed in with the rest
         base = workdir / "base.rrd"
         _download(tiers, f"{prefix}/{RECORDING}", base)

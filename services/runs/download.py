@@ -341,7 +341,7 @@ class RunEncoder:
 
 
 def encode_run(
-    events: Iterable[Event | None],
+    events: Iterable[Event],
     entities: EntityFilter,
     *,
     blueprint: bool,
@@ -351,13 +351,9 @@ def encode_run(
     metas: dict[bytes, ChunkMeta],
 ) -> Iterator[bytes]:
     """The chosen messages of a run as one RRD stream with a footer (`RunEncoder`), in pieces of
-    about 1 MiB; None among `events` is a pause (what is held is sent)."""
+    about 1 MiB."""
     run = RunEncoder(entities, blueprint=blueprint, window=window, keep=keep, picks=picks, metas=metas)
     for event in events:
-        if event is None:
-            if run.pending:
-                yield run.take()
-            continue
         run.add(event)
         if run.pending >= FLUSH_BYTES:
             yield run.take()

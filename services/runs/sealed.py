@@ -109,7 +109,7 @@ def _reads(rows: list[IndexRow]) -> Iterator[tuple[int, int, list[IndexRow]]]:
         yield start, end, group
 
 
-def _events(sealed: SealedRecording, rows: list[IndexRow]) -> Iterator[Event | None]:
+def _events(sealed: SealedRecording, rows: list[IndexRow]) -> Iterator[Event]:
     head = sealed.store.get_range(sealed.key, 0, STREAM_HEADER_SIZE)
     yield StreamStart(0, 0, decode_stream_header(head, 0))
     for start, _, group in _reads(rows):

@@ -80,7 +80,7 @@ def _store_kind(store: StoreId) -> str:
 
 
 def seal(
-    recordings: Iterable[Iterator[Event | None]],
+    recordings: Iterable[Iterator[Event]],
     out: Path,
     run_id: str,
     now: dt.datetime,
