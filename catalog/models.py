@@ -144,3 +144,21 @@ class JobRun(Base):
     finished_at: Mapped[dt.datetime | None] = mapped_column(DateTime(timezone=True))
     outcome: Mapped[str] = mapped_column(String(16))  # running | ok | failed
     detail: Mapped[str] = mapped_column(Text, default="")
+
+
+class ApiToken(Base):
+    """A token the depot signed: what it grants and whether it still does. The token itself is
+    never stored, only its id (the JWT's `jti`), which every request's token is checked against."""
+
+    __tablename__ = "tokens"
+
+    id: Mapped[str] = mapped_column(String(32), primary_key=True)
+    name: Mapped[str] = mapped_column(String(256))
+    subject: Mapped[str] = mapped_column(String(256))  # who acts with it: the actor in events and tombstones
+    scopes: Mapped[str] = mapped_column(String(64))  # space-separated: ingest read write admin
+    robot_id: Mapped[str | None] = mapped_column(String(ID_LENGTH))  # the one robot an ingest token writes for
+    created_at: Mapped[dt.datetime] = mapped_column(DateTime(timezone=True))
+    created_by: Mapped[str] = mapped_column(String(256))
+    expires_at: Mapped[dt.datetime | None] = mapped_column(DateTime(timezone=True))
+    revoked_at: Mapped[dt.datetime | None] = mapped_column(DateTime(timezone=True))
+    revoked_by: Mapped[str | None] = mapped_column(String(256))

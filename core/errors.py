@@ -73,6 +73,10 @@ class FleetError(Exception):
     def to_dict(self) -> dict[str, str]:
         return {"code": self.code.value, "message": self.message}
 
+    def headers(self) -> dict[str, str]:
+        """HTTP headers the answer carries besides its status (a challenge, a time to retry)."""
+        return {}
+
 
 def http_status(code: ErrorCode) -> int:
     return _STATUS[code][0]
@@ -128,6 +132,36 @@ class InsufficientStorageError(FleetError):
 
 class ResourceExhaustedError(FleetError):
     code = ErrorCode.RESOURCE_EXHAUSTED
+
+
+class RateLimitedError(ResourceExhaustedError):
+    """Too many requests of one kind from one token: retry after `retry_after_s` seconds."""
+
+    def __init__(self, message: str, retry_after_s: int) -> None:
+        super().__init__(message)
+        self.retry_after_s = max(1, retry_after_s)
+
+    def headers(self) -> dict[str, str]:
+        return {"Retry-After": str(self.retry_after_s)}
+
+
+class UnauthenticatedError(FleetError):
+    """No token, or one this depot does not accept (malformed, not signed here, expired, revoked)."""
+
+    code = ErrorCode.UNAUTHENTICATED
+
+    def __init__(self, message: str, reason: str) -> None:
+        super().__init__(message)
+        self.reason = reason  # missing | invalid | expired | revoked: counted in /metrics
+
+    def headers(self) -> dict[str, str]:
+        return {"WWW-Authenticate": 'Bearer realm="fleet-telemetry"'}
+
+
+class PermissionDeniedError(FleetError):
+    """A valid token without the scope an action needs, or a robot's token used for another robot."""
+
+    code = ErrorCode.PERMISSION_DENIED
 
 
 class UnavailableError(FleetError):

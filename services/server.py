@@ -19,6 +19,7 @@ from services.analytics.service import Analytics
 from services.analytics.sql import Limits
 from services.api.app import create_app
 from services.api.grpc_front import Front
+from services.auth.bootstrap import ensure_admin_token, open_auth
 from services.hot.reserve import DiskReserve
 from services.hot.store import HotStore
 from services.ingest import grpc_handler
@@ -138,12 +139,25 @@ async def serve(settings: Settings) -> None:
     grpc_socket, http_socket = _claim_ports(settings)
     grpc_server, grpc_path = _grpc_server(settings)
     ingest, retention, analytics = build(settings)
+    auth = open_auth(settings, ingest.catalog)
+    admin = await asyncio.to_thread(ensure_admin_token, auth, settings.data_dir)
+    if admin is not None:  # shown this once; kept in the data dir for CLI commands on this machine
+        print(
+            f"fleet: first start: an admin token was made (shown once, also in {settings.data_dir / 'admin.token'}):\n"
+            f"{admin.token}",
+            flush=True,
+        )
     recovered = ingest.recover()
     if recovered:
         log.info("recovered %d hot runs", len(recovered))
     ingest.hot.start()
-    grpc_handler.add_to_server(grpc_server, grpc_handler.MessageProxy(ingest))
-    app = create_app(settings, ingest, retention, analytics)
+    grpc_handler.add_to_server(
+        grpc_server,
+        grpc_handler.MessageProxy(
+            ingest, auth, token_wait_s=settings.auth_wait_s, token_buffer_bytes=settings.auth_buffer_bytes
+        ),
+    )
+    app = create_app(settings, ingest, retention, analytics, auth)
     http = uvicorn.Server(uvicorn.Config(app, log_level="info", lifespan="off"))
     await grpc_server.start()
     front = Front(grpc_socket, grpc_path, f"fleet-telemetry {__version__}")

@@ -9,7 +9,8 @@ import os
 from pathlib import Path
 from typing import Annotated, Any
 
-from pydantic import Field, field_validator, model_validator
+from limits import parse as parse_rate_limit
+from pydantic import Field, SecretStr, field_validator, model_validator
 from pydantic_settings import (
     BaseSettings,
     NoDecode,
@@ -28,6 +29,13 @@ class Durability(enum.StrEnum):
 
     ALWAYS = "always"
     INTERVAL = "interval"
+    OFF = "off"
+
+
+class AuthMode(enum.StrEnum):
+    """on: every request and stream needs a token; off: none is checked (a loopback bind only)."""
+
+    ON = "on"
     OFF = "off"
 
 
@@ -137,6 +145,49 @@ class Settings(BaseSettings):
     sql_threads: int = Field(4, gt=0, description="threads a SQL query may use")
     sql_workers: int = Field(2, gt=0, description="SQL queries running at once, each in a worker process")
     sql_queue: int = Field(8, ge=0, description="SQL queries waiting for a worker; more are refused (429)")
+    auth: AuthMode = Field(
+        AuthMode.ON, description="on: every request and stream needs a token; off: nothing is checked (loopback only)"
+    )
+    insecure: bool = Field(
+        False, description="allow auth=off on a non-loopback bind: anyone who reaches the ports can do anything"
+    )
+    auth_key: SecretStr | None = Field(
+        None,
+        description="key signing tokens and links, at least 32 characters; the same on every node "
+        "(default: generated at first start into DATA_DIR/auth.key, mode 0600)",
+    )
+    auth_previous_keys: Annotated[list[SecretStr], NoDecode] = Field(
+        default_factory=list,
+        description="earlier signing keys still accepted while their tokens are replaced (key rotation; "
+        "a JSON list or comma-separated)",
+    )
+    public_hosts: Annotated[list[str], NoDecode] = Field(
+        default_factory=list,
+        description="host names clients reach the depot by, written into tokens' allowed_hosts: Rerun's viewer "
+        "and SDK send a token only to these (default: localhost, 127.0.0.1 and this machine's names)",
+    )
+    public_url: str = Field(
+        "", description="base URL of the REST API in signed links (default: the address the request came to)"
+    )
+    link_ttl_s: float = Field(
+        24 * 3600.0, gt=0, le=7 * 24 * 3600.0, description="signed download links last this long unless asked"
+    )
+    auth_wait_s: float = Field(
+        10.0, gt=0, description="an SDK stream without a token in its metadata has this long to send its fleet token"
+    )
+    auth_buffer_bytes: int = Field(
+        16 << 20, gt=0, description="what such a stream may send before its token, held in memory and then kept"
+    )
+    auth_cache_s: float = Field(
+        5.0, ge=0, description="a token's revocation is seen by every node within this many seconds"
+    )
+    cors_origins: Annotated[list[str], NoDecode] = Field(
+        default_factory=list,
+        description="web origins (https://console.example.com) allowed to call the API with a token; any "
+        "origin may still fetch recordings by signed link",
+    )
+    sql_rate: str = Field("60/minute", description="SQL queries per token (limits notation: 60/minute, 5/second)")
+    download_rate: str = Field("120/minute", description="recording downloads per token or signed link")
     default_robot: str = Field(
         "unknown-robot", pattern=r"^[A-Za-z0-9._-]{1,128}$", description="robot id of runs that name none"
     )
@@ -149,13 +200,31 @@ class Settings(BaseSettings):
     def policies(self) -> Policies:
         return Policies(Policy("default", self.warm_days, self.cold_days), tuple(self.retention_policies))
 
-    @field_validator("secret_fields", mode="before")
+    @field_validator("sql_rate", "download_rate")
+    @classmethod
+    def _rate(cls, value: str) -> str:
+        try:
+            parse_rate_limit(value)
+        except ValueError as exc:
+            raise ValueError(f"{value!r} is not a rate such as 60/minute or 5/second") from exc
+        return value
+
+    @field_validator("secret_fields", "public_hosts", "cors_origins", "auth_previous_keys", mode="before")
     @classmethod
     def _name_list(cls, value: Any) -> Any:
         """`["token", "password"]` (JSON, TOML) or `token,password`."""
         if isinstance(value, str):
             text = value.strip()
             return json.loads(text) if text.startswith("[") else [n.strip() for n in text.split(",") if n.strip()]
+        return value
+
+    @field_validator("auth_key")
+    @classmethod
+    def _long_key(cls, value: SecretStr | None) -> SecretStr | None:
+        if value is not None and len(value.get_secret_value()) < 32:
+            raise ValueError(
+                "auth_key must be at least 32 characters (python -c 'import secrets; print(secrets.token_urlsafe(32))')"
+            )
         return value
 
     @model_validator(mode="after")

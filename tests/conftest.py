@@ -18,6 +18,11 @@ from catalog.db import create_engine, upgrade
 from tests.postgres import database_name, temporary_database
 from tests.services.rrd.recordings import SCENES, Recording, cut_mid_arrow, generate_scenes, rerun_rrd
 
+# Every depot a test starts (in process or as `fleet serve`, on loopback) runs with auth off unless
+# the test turns it on: the suites about auth (tests/services/auth, and the end-to-end ones they
+# hold) pass auth="on" themselves, and everything else tests what it is about without tokens.
+os.environ["FLEET_AUTH"] = "off"
+
 
 def find_rerun() -> str | None:
     """The `rerun` CLI installed next to this Python (the venv's), else the one on PATH."""

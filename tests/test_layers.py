@@ -4,7 +4,7 @@
     rrd, storage, policies    the wire codec; object stores; retention policies (plain values)
     sdk_client                the client: imports core only, so it ships without the server
     catalog, settings         the catalog (imports core only); the one Settings
-    hot                       the hot tier: run files on this node's disk, written and read
+    auth | hot                tokens, scopes, signed links | the hot tier (neither imports the other)
     ingest                    streams and uploads into the hot tier; owns the live runs
     sealed                    the sealed-run format (recording, chunk index, run.json) and its tiers
     analytics                 extraction at promotion, SQL over what was extracted
@@ -37,6 +37,7 @@ LAYERS: dict[str, int] = {
     "catalog": 2,
     "services.settings": 2,
     "migrations": 3,
+    "services.auth": 3,
     "services.hot": 3,
     "services.ingest": 4,
     "services.sealed": 5,

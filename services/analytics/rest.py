@@ -6,13 +6,15 @@ from __future__ import annotations
 import asyncio
 from typing import Annotated, Any
 
-from fastapi import APIRouter, Body, Query, Request
+from fastapi import APIRouter, Body, Depends, Query, Request
 from fastapi.responses import JSONResponse, Response
 from pydantic import BaseModel, Field
 
 from services.analytics import service
 from services.analytics.service import FORMATS
 from services.analytics.sql import SqlBusyError
+from services.auth.depends import limited, require
+from services.auth.scopes import Principal, Scope
 
 router = APIRouter()
 RETRY_AFTER_S = 2  # the SQL pool was full: most queries take seconds
@@ -31,6 +33,7 @@ class SqlRequest(BaseModel):
 )
 async def run_sql(
     request: Request,
+    _: Annotated[Principal, Depends(limited("sql", Scope.READ))],
     body: Annotated[SqlRequest, Body()],
     fmt: Annotated[str | None, Query(alias="format", description=" | ".join(FORMATS) + " (default: by Accept)")] = None,
 ) -> Response:
@@ -46,6 +49,8 @@ async def run_sql(
 
 
 @router.post("/v1/runs/{run_id}/analytics", summary="Write a hot run's analytics tables now")
-def extract_run(request: Request, run_id: str) -> dict[str, Any]:
+def extract_run(
+    request: Request, run_id: str, _: Annotated[Principal, Depends(require(Scope.WRITE))]
+) -> dict[str, Any]:
     written = service.extract_hot_run(request.app.state.analytics, request.app.state.ingest, run_id)
     return {"run": run_id, "tables": written}

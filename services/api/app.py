@@ -2,10 +2,11 @@
 
 from __future__ import annotations
 
+from typing import Annotated
+
 import sqlalchemy as sa
-from fastapi import FastAPI, Request
+from fastapi import Depends, FastAPI, Request
 from fastapi.exceptions import RequestValidationError
-from fastapi.middleware.cors import CORSMiddleware
 from fastapi.responses import JSONResponse, Response
 from fastapi_offline import FastAPIOffline
 
@@ -15,6 +16,13 @@ from services.analytics import rest as analytics_rest
 from services.analytics.service import Analytics
 from services.api import metrics as prometheus
 from services.api import readiness
+from services.api.cors import Cors
+from services.auth import rest as auth_rest
+from services.auth.bootstrap import open_auth
+from services.auth.depends import require
+from services.auth.ratelimit import RateLimits
+from services.auth.scopes import Principal, Scope
+from services.auth.tokens import Auth
 from services.ingest import rest as ingest_rest
 from services.ingest.service import IngestService
 from services.retention import rest as retention_rest
@@ -28,6 +36,7 @@ def create_app(
     ingest: IngestService | None = None,
     retention: Retention | None = None,
     analytics: Analytics | None = None,
+    auth: Auth | None = None,
 ) -> FastAPI:
     # Swagger UI (/docs) and ReDoc (/redoc) with their scripts and styles served from this process
     # (/static-offline-docs/...), never from a CDN: the docs work on a depot with no internet. No
@@ -35,14 +44,13 @@ def create_app(
     app: FastAPI = FastAPIOffline(
         title="Fleet telemetry depot", version=__version__, swagger_ui_parameters={"validatorUrl": None}
     )
-    # Browser viewers (app.rerun.io, a local web viewer) fetch recordings cross-origin.
-    app.add_middleware(
-        CORSMiddleware,
-        allow_origins=["*"],
-        allow_methods=["GET", "HEAD"],
-        expose_headers=["Content-Disposition", "ETag"],
-    )
+    # Browser viewers (app.rerun.io, a local web viewer) fetch recordings cross-origin by signed link;
+    # only the configured origins may send a token.
+    app.add_middleware(Cors, origins=settings.cors_origins)
     app.state.settings = settings
+    app.state.auth = auth = auth or open_auth(settings, ingest.catalog if ingest is not None else None)
+    app.state.rate_limits = RateLimits({"sql": settings.sql_rate, "download": settings.download_rate})
+    app.include_router(auth_rest.router)
     app.state.ingest = ingest
     app.state.retention = retention
     app.state.analytics = analytics
@@ -66,7 +74,7 @@ def create_app(
 
     @app.exception_handler(FleetError)
     async def _fleet_error(_: Request, exc: FleetError) -> JSONResponse:
-        return JSONResponse(exc.to_dict(), status_code=exc.http_status())
+        return JSONResponse(exc.to_dict(), status_code=exc.http_status(), headers=exc.headers())
 
     @app.exception_handler(sa.exc.OperationalError)
     @app.exception_handler(sa.exc.InterfaceError)
@@ -86,11 +94,11 @@ def create_app(
         """The process is up."""
         return {"status": "ok", "version": __version__}
 
-    registry = prometheus.metrics_registry(ingest)
+    registry = prometheus.metrics_registry(ingest, auth)
     app.add_middleware(prometheus.RequestMetrics, registry=registry)
 
     @app.get("/metrics", response_class=Response, responses={200: {"content": {prometheus.CONTENT_TYPE: {}}}})
-    async def metrics() -> Response:
+    def metrics(_: Annotated[Principal, Depends(require(Scope.READ))]) -> Response:
         """Prometheus text exposition (HELP and TYPE for every metric)."""
         return Response(prometheus.exposition(registry), media_type=prometheus.CONTENT_TYPE)
 

@@ -19,6 +19,7 @@ from prometheus_client.registry import Collector
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from services import __version__
+from services.auth.tokens import Auth
 from services.ingest.service import IngestService
 
 CONTENT_TYPE = CONTENT_TYPE_PLAIN_0_0_4  # the text format every Prometheus server reads
@@ -53,9 +54,29 @@ class IngestCollector(Collector):
             yield CounterMetricFamily(f"fleet_ingest_{key}", help_text, value=value)
 
 
-def metrics_registry(ingest: IngestService | None) -> CollectorRegistry:
+class AuthCollector(Collector):
+    """Refused requests and streams, by surface (rest, grpc, stream, link) and reason (missing,
+    invalid, expired, revoked, forbidden), read from the token service at each scrape."""
+
+    def __init__(self, auth: Auth) -> None:
+        self.auth = auth
+
+    def collect(self) -> Iterator[Metric]:
+        family = CounterMetricFamily(
+            "fleet_auth_failures",
+            "Requests and streams refused for want of a valid token or scope, by surface and reason",
+            labels=["surface", "reason"],
+        )
+        for (surface, reason), count in sorted(self.auth.failures.items()):
+            family.add_metric([surface, reason], count)
+        yield family
+
+
+def metrics_registry(ingest: IngestService | None, auth: Auth | None = None) -> CollectorRegistry:
     registry = CollectorRegistry(auto_describe=False)
     registry.register(IngestCollector(ingest))
+    if auth is not None:
+        registry.register(AuthCollector(auth))
     return registry
 
 

@@ -52,9 +52,13 @@ def _click_type(name: str, kind: Any) -> click.ParamType[Any] | type:
         return click.Path(path_type=Path)
     if isinstance(kind, type) and issubclass(kind, enum.Enum):
         return click.Choice([member.value for member in kind])
+    from pydantic import SecretStr
+
+    if kind is SecretStr:
+        return str
     if kind in (str, int, float):
         return kind  # type: ignore[no-any-return]
-    if get_origin(kind) is list and get_args(kind) == (str,):
+    if get_origin(kind) is list and get_args(kind) in ((str,), (SecretStr,)):
         return str  # the field's validator reads a comma-separated or JSON list
     raise TypeError(f"Settings.{name} ({kind}) has no option type: add one, or name it in NOT_OPTIONS")
 
@@ -107,6 +111,7 @@ def serve(**flags: object) -> None:
     import logging
 
     from catalog.db import create_engine, is_embedded, prepare_for_service
+    from services.auth.bootstrap import check_auth_bind
     from services.rrd import limits
     from services.server import release_reserve_if_full, split_addr
     from services.server import serve as run_server
@@ -115,11 +120,13 @@ def serve(**flags: object) -> None:
 
     settings = load_settings(**flags)
     limits.configure(settings.max_chunk_bytes, settings.decompress_budget_bytes)  # process-wide, like the memory
+    hosts = []
     for addr in (settings.http_addr, settings.grpc_addr):
         try:
-            split_addr(addr)
+            hosts.append(split_addr(addr)[0])
         except ValueError as exc:
             raise click.BadParameter(str(exc)) from exc
+    auth_off = check_auth_bind(settings, hosts)  # auth off on a public address: refused, one line
     with hold_data_dir(settings.data_dir):  # one `fleet serve` per data dir, for the process's life
         release_reserve_if_full(settings)  # a full disk must not keep the catalog from opening
         # This engine (and its pooled connection) lives as long as the service: an embedded catalog's
@@ -138,6 +145,7 @@ def serve(**flags: object) -> None:
                 f"fleet: data in {settings.data_dir.resolve()}, REST on http://{settings.http_addr}, "
                 f"Rerun gRPC on rerun+http://{settings.grpc_addr}/proxy, durability {settings.durability}"
             )
+            click.echo(f"fleet: {auth_off}" if auth_off else "fleet: auth on: every request needs a token")
             asyncio.run(run_server(settings))
         finally:
             engine.dispose()

@@ -33,6 +33,7 @@ from services.settings import Durability
 log = logging.getLogger(__name__)
 
 RUN_FILE = "run.rrd"
+ROBOT_FILE = "robot"  # the robot of a run whose token named it (a robot's ingest token)
 _RECHECK_BYTES = 8 * 1024 * 1024
 
 
@@ -101,9 +102,10 @@ def _wake(futures: list[asyncio.Future[None]]) -> None:
 class HotRun:
     """The append-only file of one run."""
 
-    def __init__(self, directory: Path, fd: int, size: int) -> None:
+    def __init__(self, directory: Path, fd: int, size: int, robot: str | None = None) -> None:
         self.directory = directory
         self.run_id = directory.name
+        self.robot = robot  # the robot whose token created the run, if one did (kept in ROBOT_FILE)
         self._fd = fd
         self.size = size
         self.dirty = False
@@ -115,14 +117,16 @@ class HotRun:
         return self.directory / RUN_FILE
 
     @classmethod
-    def create(cls, directory: Path, version: RerunVersion) -> HotRun:
+    def create(cls, directory: Path, version: RerunVersion, robot: str | None = None) -> HotRun:
         directory.mkdir(parents=True, exist_ok=False)
+        if robot is not None:  # before the run file: a run recovered after a crash knows its robot
+            _write_synced(directory / ROBOT_FILE, robot.encode())
         header = StreamHeader(version).encode()
         fd = os.open(directory / RUN_FILE, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_APPEND, 0o644)
         os.write(fd, header)
         os.fsync(fd)
         _fsync_dir(directory.parent)  # the new run survives a crash even with durability off
-        return cls(directory, fd, len(header))
+        return cls(directory, fd, len(header), robot)
 
     @classmethod
     def recover(cls, directory: Path) -> tuple[HotRun, list[Event]]:
@@ -145,7 +149,9 @@ class HotRun:
             log.warning("hot run %s: cut a torn tail of %d bytes at byte %d", directory.name, size - good, good)
             os.truncate(path, good)
         fd = os.open(path, os.O_WRONLY | os.O_APPEND)
-        return cls(directory, fd, good), events
+        robot_file = directory / ROBOT_FILE
+        robot = robot_file.read_text().strip() or None if robot_file.is_file() else None
+        return cls(directory, fd, good, robot), events
 
     def append(self, kind: int, raw: Buffer) -> int:
         """Write one whole message; returns the offset of its header."""
@@ -180,6 +186,15 @@ def _end_of(event: Event) -> int:
     if isinstance(event, StreamStart):
         return event.offset + len(event.header.encode())
     return event.offset + MESSAGE_HEADER_SIZE + len(getattr(event, "raw", b""))
+
+
+def _write_synced(path: Path, data: bytes) -> None:
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
+    try:
+        os.write(fd, data)
+        os.fsync(fd)
+    finally:
+        os.close(fd)
 
 
 def _fsync_dir(directory: Path) -> None:
@@ -224,8 +239,8 @@ class HotStore:
             if directory.name.startswith(".") and directory.name.endswith(".done"):
                 shutil.rmtree(directory, ignore_errors=True)
 
-    def create(self, run_id: str, version: RerunVersion) -> HotRun:
-        run = HotRun.create(self.root / run_id, version)
+    def create(self, run_id: str, version: RerunVersion, robot: str | None = None) -> HotRun:
+        run = HotRun.create(self.root / run_id, version, robot)
         self.runs[run_id] = run
         return run
 

@@ -12,6 +12,7 @@ from collections.abc import AsyncIterator
 import grpc
 
 from core.errors import FleetError
+from services.auth.tokens import Auth
 from services.ingest.replay import read_response
 from services.ingest.service import IngestService
 from services.rrd import errors as rrd_errors
@@ -40,8 +41,18 @@ def unwrap(request: bytes, offset: int) -> tuple[int, memoryview]:
 
 
 class MessageProxy:
-    def __init__(self, service: IngestService) -> None:
+    def __init__(
+        self,
+        service: IngestService,
+        auth: Auth | None = None,
+        *,
+        token_wait_s: float = 10.0,
+        token_buffer_bytes: int = 16 << 20,
+    ) -> None:
         self.service = service
+        self.auth = auth or Auth(enabled=False, keys=None, catalog=None)
+        self.token_wait_s = token_wait_s  # a stream with no token in its metadata has this long to send one
+        self.token_buffer_bytes = token_buffer_bytes  # and may send this much before it
 
     async def write_messages(
         self, requests: AsyncIterator[bytes], context: grpc.aio.ServicerContext

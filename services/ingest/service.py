@@ -26,7 +26,7 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from catalog.queries import RunRecord
 from core.clock import utcnow
-from core.errors import ConflictError, InvalidArgumentError, ResourceExhaustedError
+from core.errors import ConflictError, InvalidArgumentError, PermissionDeniedError, ResourceExhaustedError
 from core.ids import UnsafeIdError, check_id, check_name
 from core.states import RunStatus, Tier
 from services.hot.read import HotRecording
@@ -147,7 +147,9 @@ class IngestService:
 
     # --- sources ---------------------------------------------------------------------------
 
-    def open_source(self, *, live: bool) -> Source:
+    def open_source(self, *, live: bool, robot: str | None = None) -> Source:
+        """A stream or upload about to bring messages; `robot`: the only robot whose runs it may
+        write (its token's), None for any."""
         if live:
             if self.live_streams >= self.max_streams:
                 raise ResourceExhaustedError(
@@ -155,7 +157,7 @@ class IngestService:
                     "retry later or send to another node"
                 )
             self.live_streams += 1
-        return Source(live=live)
+        return Source(live=live, robot=robot)
 
     def close_source(self, source: Source) -> IngestReport:
         """End of a stream or upload: its runs are closed unless another stream still feeds them."""
@@ -273,7 +275,8 @@ class IngestService:
         if msg.store_id.kind == StoreKind.RECORDING and is_property_entity(meta.entity_path):
             prop = read_property_chunk(msg, meta, self.secret_fields)
             if prop.name == IDENTITY_PROPERTY and ROBOT_FIELD in prop.values:
-                check_id("robot id", str(prop.values[ROBOT_FIELD]))  # refused before anything is written
+                robot = check_id("robot id", str(prop.values[ROBOT_FIELD]))  # refused before anything is written
+                self._check_robot(source, run_id, robot)
             msg, meta = prop.message, prop.meta  # without its secret fields, if it had any
         if run is None and (prop is not None or msg.store_id.kind == StoreKind.BLUEPRINT):
             self._hold(source, run_id, msg)  # a run starts with its data, not with properties or a layout
@@ -342,7 +345,17 @@ class IngestService:
         self._attach(source, run)
         return run
 
+    def _check_robot(self, source: Source, run_id: str, robot: str) -> None:
+        """A robot's token writes its own runs only."""
+        if source.robot is not None and robot != source.robot:
+            raise PermissionDeniedError(
+                f"run {run_id!r} is robot {robot!r}'s, and this token writes for robot {source.robot!r} only: "
+                "send it with that robot's token"
+            )
+
     def _attach(self, source: Source, run: IngestRun) -> None:
+        if source.robot is not None and run.run_id not in source.attached:
+            self._check_robot(source, run.run_id, run.robot_id or self.default_robot)
         if run.run_id not in source.attached:
             source.attached.add(run.run_id)
             if source.live:
@@ -359,9 +372,13 @@ class IngestService:
                 else "send it under a new recording id"
             )
             raise ConflictError(f"run {run_id!r} is {sealed.tier}: it takes no new data; {fix}")
+        if sealed is not None:
+            self._check_robot(source, run_id, sealed.robot_id)
         info = source.store_infos.get((StoreKind.RECORDING, run_id))
         version = (info.sdk_version if info is not None else None) or source.version or DEFAULT_VERSION
-        run = self.runs[run_id] = IngestRun(self.hot.create(run_id, version), self.clock(), self.secret_fields)
+        hot = self.hot.create(run_id, version, source.robot)
+        run = self.runs[run_id] = IngestRun(hot, self.clock(), self.secret_fields)
+        run.robot_id = source.robot or run.robot_id  # the token's robot, until a property names the same one
         run.sealed_as = sealed  # chunks sent after it was sealed: sealed in with the rest later
         self._attach(source, run)
         for key, store_info in source.store_infos.items():
@@ -440,6 +457,7 @@ class IngestService:
             hot, events = self.hot.recover(directory)
             mtime = dt.datetime.fromtimestamp(hot.path.stat().st_mtime, dt.UTC)
             run = self.runs[hot.run_id] = IngestRun(hot, mtime, self.secret_fields)
+            run.robot_id = hot.robot  # the robot of the token that started it, if its messages name none
             for event in events:
                 run.replay(event, mtime)
             # No stream survives a restart (the SDK never reconnects): what follows comes by upload.

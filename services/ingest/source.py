@@ -37,6 +37,7 @@ class IngestReport:
 @dataclass
 class Source:
     live: bool  # a gRPC stream (its runs are live while it lasts) rather than an upload
+    robot: str | None = None  # the one robot whose runs it may write (a robot's ingest token), None: any
     version: RerunVersion | None = None
     run_of_store: dict[StoreKey, str] = field(default_factory=dict)
     recording_run: str | None = None  # where this source's blueprints go

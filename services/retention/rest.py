@@ -13,29 +13,26 @@ import threading
 from collections.abc import Callable, Iterator
 from typing import Annotated, Any
 
-from fastapi import APIRouter, Query, Request
+from fastapi import APIRouter, Depends, Query, Request
 from fastapi.responses import StreamingResponse
 
 from core.errors import BadParameterError
+from services.auth.depends import actor, require
+from services.auth.scopes import Principal, Scope
 from services.retention import rebuild as rebuild_mod
 from services.retention import schedule, service
 from services.retention.service import ACTIONS, Retention
 
 router = APIRouter()
+Reader = Annotated[Principal, Depends(require(Scope.READ))]
+Writer = Annotated[Principal, Depends(require(Scope.WRITE))]
+Admin = Annotated[Principal, Depends(require(Scope.ADMIN))]
 NDJSON = "application/x-ndjson"
 
 
 def _ctx(request: Request) -> Retention:
     ctx: Retention = request.app.state.retention
     return ctx
-
-
-def actor(request: Request) -> str:
-    """Who asked: the X-Fleet-User header (the CLI sends user@host), else the client address."""
-    user = request.headers.get("x-fleet-user")
-    if user:
-        return user[:256]
-    return f"api@{request.client.host if request.client else 'unknown'}"
 
 
 def _kinds(action: list[str] | None) -> list[str]:
@@ -47,13 +44,14 @@ def _kinds(action: list[str] | None) -> list[str]:
 
 
 @router.get("/v1/retention", summary="Retention policies, settings and recent job runs")
-def retention(request: Request) -> dict[str, Any]:
+def retention(request: Request, _: Reader) -> dict[str, Any]:
     return service.overview(_ctx(request), request.app.state.settings)
 
 
 @router.get("/v1/retention/plan", summary="What would move or be deleted now, and why")
 def retention_plan(
     request: Request,
+    _: Reader,
     action: Annotated[list[str] | None, Query(description=" | ".join(ACTIONS) + " (repeatable; default all)")] = None,
 ) -> dict[str, Any]:
     return service.plan_answer(_ctx(request), _kinds(action))
@@ -62,6 +60,7 @@ def retention_plan(
 @router.post("/v1/retention/run", summary="Do what is due now; NDJSON progress, one line per run")
 def retention_run(
     request: Request,
+    _: Admin,
     action: Annotated[list[str] | None, Query(description=" | ".join(ACTIONS) + " (repeatable; default all)")] = None,
 ) -> StreamingResponse:
     ctx, kinds = _ctx(request), _kinds(action)
@@ -86,17 +85,17 @@ def _ndjson(work: Callable[[Callable[[dict[str, Any]], None]], None]) -> Iterato
 
 
 @router.post("/v1/runs/{run_id}/pin", summary="Pin a run: exempt from expiry")
-def pin(request: Request, run_id: str) -> dict[str, Any]:
-    return service.set_pinned(_ctx(request), run_id, True, actor(request))
+def pin(request: Request, run_id: str, principal: Writer) -> dict[str, Any]:
+    return service.set_pinned(_ctx(request), run_id, True, actor(request, principal))
 
 
 @router.delete("/v1/runs/{run_id}/pin", summary="Unpin a run: its policy applies again")
-def unpin(request: Request, run_id: str) -> dict[str, Any]:
-    return service.set_pinned(_ctx(request), run_id, False, actor(request))
+def unpin(request: Request, run_id: str, principal: Writer) -> dict[str, Any]:
+    return service.set_pinned(_ctx(request), run_id, False, actor(request, principal))
 
 
 @router.post("/v1/runs/{run_id}/promote", summary="Seal a closed hot run into the warm tier now")
-def promote(request: Request, run_id: str) -> dict[str, Any]:
+def promote(request: Request, run_id: str, _: Writer) -> dict[str, Any]:
     return service.promote_now(_ctx(request), run_id)
 
 
@@ -105,17 +104,17 @@ def promote(request: Request, run_id: str) -> dict[str, Any]:
     status_code=202,
     summary="Make a cold run readable again for restore_days (takes time; see restore_state)",
 )
-def restore(request: Request, run_id: str) -> dict[str, Any]:
-    return service.request_restore(_ctx(request), run_id, actor(request))
+def restore(request: Request, run_id: str, principal: Writer) -> dict[str, Any]:
+    return service.request_restore(_ctx(request), run_id, actor(request, principal))
 
 
 @router.delete("/v1/runs/{run_id}", summary="Delete a sealed run now (objects first; a tombstone stays)")
-def delete(request: Request, run_id: str) -> dict[str, Any]:
-    return service.delete_now(_ctx(request), run_id, actor(request))
+def delete(request: Request, run_id: str, principal: Admin) -> dict[str, Any]:
+    return service.delete_now(_ctx(request), run_id, actor(request, principal))
 
 
 @router.post("/v1/catalog/rebuild", summary="Add every sealed run found in the stores that the catalog lacks")
-def rebuild(request: Request) -> StreamingResponse:
+def rebuild(request: Request, _: Admin) -> StreamingResponse:
     ctx = _ctx(request)
     work = functools.partial(rebuild_mod.rebuild_streamed, ctx.catalog, ctx.tiers, ctx.clock)
     return StreamingResponse(_ndjson(work), media_type=NDJSON)

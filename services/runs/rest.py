@@ -6,24 +6,28 @@ from __future__ import annotations
 
 from typing import Annotated, Any
 
-from fastapi import APIRouter, Query, Request
+from fastapi import APIRouter, Depends, Query, Request
 from fastapi.responses import StreamingResponse
 
-from services.runs import service
+from services.auth.depends import recording_reader, require
+from services.auth.scopes import Principal, Scope
+from services.runs import links, service
 from services.runs.recording import RecordingQuery, open_recording
 from services.runs.service import RunFilter, parse_properties, parse_time
 
 router = APIRouter()
+Reader = Annotated[Principal, Depends(require(Scope.READ))]
 
 
 @router.get("/v1/robots", summary="Robots and how many runs each has")
-def robots(request: Request) -> dict[str, Any]:
+def robots(request: Request, _: Reader) -> dict[str, Any]:
     return service.robots_answer(request.app.state.catalog)
 
 
 @router.get("/v1/runs", summary="Runs, filtered, sorted, a page at a time")
 def runs(
     request: Request,
+    _: Reader,
     robot: Annotated[list[str] | None, Query(description="robot id (repeatable)")] = None,
     application: Annotated[list[str] | None, Query(description="application id (repeatable)")] = None,
     since: Annotated[str | None, Query(description="started at or after (ISO-8601)")] = None,
@@ -55,7 +59,7 @@ def runs(
 
 
 @router.get("/v1/runs/{run_id}", summary="One run: metadata, entities, timelines, sizes, tier")
-def run(request: Request, run_id: str) -> dict[str, Any]:
+def run(request: Request, run_id: str, _: Reader) -> dict[str, Any]:
     retention = request.app.state.retention
     return service.run_answer(request.app.state.catalog, run_id, retention.policies if retention else None)
 
@@ -69,6 +73,7 @@ def run(request: Request, run_id: str) -> dict[str, Any]:
 def recording(
     request: Request,
     run_id: str,
+    _: Annotated[Principal, Depends(recording_reader)],
     include: Annotated[
         list[str] | None, Query(description="entity patterns to keep: /a/b or /a/** (repeatable)")
     ] = None,
@@ -101,7 +106,8 @@ def recording(
     ] = False,
 ) -> StreamingResponse:
     """`rerun "http://HOST:8080/v1/runs/RUN/recording.rrd?include=/world/**"` opens it in the viewer.
-    Static data is always kept unless its entity is excluded; payloads are copied untouched."""
+    Static data is always kept unless its entity is excluded; payloads are copied untouched. Needs a
+    `read` token, or a signed link (`POST /v1/runs/RUN/links`) for clients that send no header."""
     tiers = getattr(request.app.state, "tiers", None)  # none on a node without retention: hot runs only
     found = open_recording(
         request.app.state.ingest,
@@ -114,4 +120,32 @@ def recording(
         found.body,
         media_type="application/octet-stream",
         headers={"Content-Disposition": f'attachment; filename="{found.filename}"', "ETag": found.etag},
+    )
+
+
+@router.post(
+    "/v1/runs/{run_id}/links",
+    summary="A signed, expiring link to the run's recording, for clients that send no header",
+)
+def recording_link(
+    request: Request,
+    run_id: str,
+    principal: Reader,
+    expires_in: Annotated[
+        float | None, Query(description="seconds the link lasts (default FLEET_LINK_TTL_S; at most 7 days)")
+    ] = None,
+) -> dict[str, Any]:
+    """Takes the recording's parameters (include, exclude, timeline, start, end, ...) as query
+    parameters and answers `{url, expires_at}`: `rerun URL`, the web viewer or a browser open it as
+    is. Changing any parameter breaks it; revoking the token that asked ends it."""
+    settings = request.app.state.settings
+    params = [(k, v) for k, v in request.query_params.multi_items() if k != "expires_in"]
+    return links.recording_link(
+        request.app.state.auth,
+        principal,
+        links.RunLookup(request.app.state.ingest, request.app.state.catalog),
+        run_id,
+        params,
+        links.lifetime(expires_in, settings.link_ttl_s),
+        settings.public_url or str(request.base_url),
     )

@@ -36,11 +36,11 @@ PRODUCTION = override(name="production", application="production", cold_days=335
 
 @pytest.fixture(autouse=True)
 def no_fleet_env(monkeypatch: pytest.MonkeyPatch) -> None:
-    """Settings come only from what each test sets."""
+    """Settings come only from what each test sets (and auth stays off, as for every test)."""
     import os
 
     for name in list(os.environ):
-        if name.startswith("FLEET_"):
+        if name.startswith("FLEET_") and name != "FLEET_AUTH":
             monkeypatch.delenv(name)
 
 
