@@ -45,7 +45,7 @@ def test_serve_answers_health_on_the_configured_address(tmp_path):
 @pytest.mark.slow
 def test_serve_refuses_a_postgres_catalog_that_is_behind(empty_postgres_url: str, tmp_path):
     result = subprocess.run(
-        [FLEET, "serve", "--data-dir", str(tmp_path), "--catalog-url", empty_postgres_url],
+        [FLEET, "serve", "--data-dir", str(tmp_path), "--catalog-url", empty_postgres_url, "--auth", "on"],
         capture_output=True,
         text=True,
         timeout=60,
@@ -197,7 +197,12 @@ def test_a_second_serve_on_the_grpc_port_is_refused(running: LiveServer, tmp_pat
 @pytest.mark.slow
 def test_a_second_serve_on_the_grpc_wildcard_is_refused(running: LiveServer, tmp_path: Path):
     result = _second_serve(
-        tmp_path / "second", free_port(), running.grpc_port, "--grpc-addr", f"0.0.0.0:{running.grpc_port}"
+        tmp_path / "second",
+        free_port(),
+        running.grpc_port,
+        "--grpc-addr",
+        f"0.0.0.0:{running.grpc_port}",
+        "--insecure",  # auth is off in tests: a public address needs it, and the port is what is tested
     )
     assert f"0.0.0.0:{running.grpc_port}" in _one_line(result)
 
