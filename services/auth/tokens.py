@@ -218,7 +218,7 @@ class Auth:
             created_by=created_by[:MAX_NAME],
             expires_at=now + expires_in if expires_in is not None else None,
         )
-        allowed = hosts or self.public_hosts
+        allowed = [_host(h) for h in hosts] if hosts else self.public_hosts
         token = jwt.encode(
             self._claims(record, allowed), self.keys.current.secret, _ALGORITHM, {"kid": self.keys.current.id}
         )
@@ -275,6 +275,13 @@ def _text(what: str, value: str) -> str:
     if not value or len(value) > MAX_NAME or not value.isprintable():
         raise InvalidArgumentError(f"a token's {what} must be 1 to {MAX_NAME} printable characters")
     return value
+
+
+def _host(host: str) -> str:
+    host = host.strip().lower()
+    if not host or len(host) > 253 or not all(c.isalnum() or c in ".-:[]*" for c in host):
+        raise InvalidArgumentError(f"{host!r} is not a host name for allowed_hosts (e.g. depot.example.com, 10.0.0.5)")
+    return host
 
 
 def _rerun_permissions(scopes: tuple[str, ...]) -> list[str]:
