@@ -37,7 +37,10 @@ from services.storage.objectstore import StorageError
 
 
 class SqlBusyError(ResourceExhaustedError):
-    """Caught by the handler, which adds when to come back (Retry-After)."""
+    """The SQL workers and their queue are full: come back in a moment (most queries take seconds)."""
+
+    def headers(self) -> dict[str, str]:
+        return {"Retry-After": "2"}
 
 
 CATALOG_VIEWS = ("robots", "runs", "run_entities", "run_timelines")
