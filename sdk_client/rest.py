@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import getpass
 import json
+import re
 import socket
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -11,12 +12,14 @@ from typing import TYPE_CHECKING, Any
 
 import httpx
 
-from core.errors import ErrorCode, FleetError, UnavailableError
+from core.errors import ErrorCode, FleetError, InvalidArgumentError, UnavailableError
 
 if TYPE_CHECKING:
     import pyarrow as pa
 
 UPLOAD_PIECE = 1024 * 1024
+# What a bearer token may hold (RFC 6750's b64token): a JWT of the depot always fits.
+_TOKEN_CHARACTERS = re.compile(r"[A-Za-z0-9._~+/-]+=*")
 
 
 class ServiceError(FleetError):
@@ -33,12 +36,19 @@ class ServiceError(FleetError):
 
 
 class FleetClient:
-    def __init__(self, api_url: str, *, timeout: float = 300.0, user: str | None = None) -> None:
+    """The service's REST API. With a `token`, every request carries `Authorization: Bearer TOKEN`;
+    the token is kept in that header only, never logged or shown."""
+
+    def __init__(
+        self, api_url: str, *, timeout: float = 300.0, user: str | None = None, token: str | None = None
+    ) -> None:
         self.api_url = api_url.rstrip("/")
-        # Who asks, recorded by the service with pins, restores and deletes.
-        self._http = httpx.Client(
-            base_url=self.api_url, timeout=timeout, headers={"X-Fleet-User": user or _default_user()}
-        )
+        # Who asks: with auth off, the service records this name with pins, restores and deletes
+        # (with auth on, the token's subject).
+        headers = {"X-Fleet-User": user or _default_user()}
+        if token:
+            headers["Authorization"] = f"Bearer {_checked_token(token)}"
+        self._http = httpx.Client(base_url=self.api_url, timeout=timeout, headers=headers)
 
     def close(self) -> None:
         self._http.close()
@@ -74,6 +84,15 @@ class FleetClient:
     def recording_url(self, run_id: str, **params: Any) -> str:
         query = httpx.QueryParams({k: v for k, v in params.items() if v not in (None, [], ())})
         return f"{self.api_url}/v1/runs/{run_id}/recording.rrd" + (f"?{query}" if query else "")
+
+    def recording_link(self, run_id: str, expires_in: float | None = None, **params: Any) -> dict[str, Any]:
+        """A signed, expiring link to `recording_url(run_id, **params)` that opens without a header
+        (`POST /v1/runs/RUN/links`): `{url, expires_at}`; with auth off, `expires_at` is None and
+        the plain URL opens it. `expires_in` in seconds (default: the service's FLEET_LINK_TTL_S)."""
+        query = {k: v for k, v in params.items() if v not in (None, [], ())}
+        if expires_in is not None:
+            query["expires_in"] = expires_in
+        return self._request("POST", f"/v1/runs/{run_id}/links", params=query)
 
     def check_recording(self, run_id: str, **params: Any) -> None:
         """Ask the service whether `recording_url(run_id, **params)` would answer, without taking the
@@ -147,6 +166,31 @@ class FleetClient:
     def delete_run(self, run_id: str) -> dict[str, Any]:
         return self._request("DELETE", f"/v1/runs/{run_id}")
 
+    def whoami(self) -> dict[str, Any]:
+        """Who the token stands for and what it may do (`GET /v1/whoami`)."""
+        return self._request("GET", "/v1/whoami")
+
+    def create_token(
+        self,
+        scopes: list[str],
+        *,
+        robot: str | None = None,
+        name: str | None = None,
+        expires_in_s: float | None = None,
+        hosts: list[str] | None = None,
+    ) -> dict[str, Any]:
+        """A new token (`POST /v1/tokens`, admin): its record, `allowed_hosts` and, this once, `token`."""
+        body = {"scopes": scopes, "robot": robot, "name": name, "expires_in_s": expires_in_s, "hosts": hosts or None}
+        return self._request("POST", "/v1/tokens", json=body)
+
+    def tokens(self, include_revoked: bool = False) -> dict[str, Any]:
+        """`{"tokens": [...]}`: what each token grants, never the token (`GET /v1/tokens`, admin)."""
+        return self._request("GET", "/v1/tokens", params={"revoked": "true"} if include_revoked else {})
+
+    def revoke_token(self, token_id: str) -> dict[str, Any]:
+        """Revoke a token (`DELETE /v1/tokens/ID`, admin); answers its record."""
+        return self._request("DELETE", f"/v1/tokens/{token_id}")
+
     def _events(self, method: str, url: str, **kwargs: Any) -> Iterator[dict[str, Any]]:
         try:
             with self._http.stream(method, url, timeout=None, **kwargs) as response:
@@ -185,6 +229,18 @@ def _check(response: httpx.Response) -> None:
     except ValueError:
         body = {"message": response.text[:500]}
     raise ServiceError(str(body.get("message", response.reason_phrase)), response.status_code, body)
+
+
+def _checked_token(token: str) -> str:
+    """A token fit for a header. A wrong one is refused here naming where tokens come from, not by
+    the HTTP library, whose error would quote the header, token and all."""
+    token = token.strip()
+    if not _TOKEN_CHARACTERS.fullmatch(token):
+        raise InvalidArgumentError(
+            "the token holds characters no token has (spaces, quotes, line breaks?): copy it whole, "
+            "as `fleet tokens create` printed it"
+        )
+    return token
 
 
 def _default_user() -> str:

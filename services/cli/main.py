@@ -13,6 +13,7 @@ from services.cli.rrd import rrd
 from services.cli.runs import download, runs, view
 from services.cli.serve import serve
 from services.cli.sql import sql
+from services.cli.tokens import tokens
 from services.cli.upload import upload
 
 
@@ -32,6 +33,7 @@ cli.add_command(view)
 cli.add_command(retention)
 cli.add_command(catalog)
 cli.add_command(sql)
+cli.add_command(tokens)
 
 
 def main() -> None:

@@ -26,3 +26,15 @@ def transfer_progress(console: Console | None = None, *, disable: bool = False) 
         transient=True,
         disable=disable,
     )
+
+
+def when(iso: str | None) -> str:
+    """A time from the service (ISO-8601 UTC) to the second, as people read it; "-" for none."""
+    import datetime as dt
+
+    if not iso:
+        return "-"
+    try:
+        return dt.datetime.fromisoformat(iso).astimezone(dt.UTC).strftime("%Y-%m-%d %H:%M:%S UTC")
+    except ValueError:
+        return iso

@@ -4,26 +4,17 @@ from __future__ import annotations
 
 import json
 from collections.abc import Iterator
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import click
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeElapsedColumn
 from rich.table import Table
 
+from services.cli.client import api_option, client
 from services.cli.output import stdout_console
-from services.cli.runs import _api
-
-if TYPE_CHECKING:
-    from sdk_client.rest import FleetClient
 
 ACTIONS = ("promote", "archive", "delete", "restore")
-
-
-def _client(api_url: str) -> FleetClient:
-    from sdk_client.rest import FleetClient
-
-    return FleetClient(api_url)
 
 
 @click.group()
@@ -32,13 +23,13 @@ def retention() -> None:
 
 
 @retention.command("plan")
-@_api
+@api_option
 @click.option("--action", multiple=True, type=click.Choice(ACTIONS), help="only these actions (repeatable)")
 @click.option("--json", "as_json", is_flag=True, help="print the service's JSON answer")
 def plan(api_url: str, action: tuple[str, ...], as_json: bool) -> None:
     """Print what would be promoted, archived, restored or deleted now, and why."""
-    with _client(api_url) as client:
-        answer = client.retention_plan(list(action))
+    with client(api_url) as fleet:
+        answer = fleet.retention_plan(list(action))
     if as_json:
         click.echo(json.dumps(answer, indent=2))
         return
@@ -61,12 +52,12 @@ def plan(api_url: str, action: tuple[str, ...], as_json: bool) -> None:
 
 
 @retention.command("run")
-@_api
+@api_option
 @click.option("--action", multiple=True, type=click.Choice(ACTIONS), help="only these actions (repeatable)")
 def run(api_url: str, action: tuple[str, ...]) -> None:
     """Do what is due now, with a progress bar; exit status 1 if any run failed."""
-    with _client(api_url) as client:
-        end = _follow(client.retention_run(list(action)), "retention")
+    with client(api_url) as fleet:
+        end = _follow(fleet.retention_run(list(action)), "retention")
     click.echo(f"{end.get('done', 0)} done, {end.get('failed', 0)} failed")
     if end.get("failed") or end.get("event") in ("error", "busy"):
         raise SystemExit(1)
@@ -103,12 +94,12 @@ def catalog() -> None:
 
 
 @catalog.command("rebuild")
-@_api
+@api_option
 def rebuild(api_url: str) -> None:
     """Add to the catalog every sealed run found in the stores (run.json + chunks.parquet) that it
     lacks: after losing the catalog, start the service on an empty one and run this."""
-    with _client(api_url) as client:
-        end = _follow(client.rebuild_catalog(), "rebuild")
+    with client(api_url) as fleet:
+        end = _follow(fleet.rebuild_catalog(), "rebuild")
     if end.get("event") == "error":
         raise click.ClickException(str(end.get("detail")))
     click.echo(

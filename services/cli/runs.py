@@ -11,7 +11,7 @@ import shutil
 import subprocess
 import sys
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import click
 from rich.console import Console
@@ -19,24 +19,8 @@ from rich.progress import Progress, TaskID
 from rich.table import Table
 
 from core.states import RestoreState, RunStatus, Tier
-from services.cli.output import stdout_console, transfer_progress
-
-if TYPE_CHECKING:
-    from sdk_client.rest import FleetClient
-
-_api = click.option(
-    "--api-url",
-    envvar="FLEET_API_URL",
-    default="http://127.0.0.1:8080",
-    show_default=True,
-    help="Where the service answers (FLEET_API_URL).",
-)
-
-
-def _client(api_url: str) -> FleetClient:
-    from sdk_client.rest import FleetClient
-
-    return FleetClient(api_url)
+from services.cli.client import Duration, api_option, client
+from services.cli.output import stdout_console, transfer_progress, when
 
 
 def _entity_options(func: Any) -> Any:
@@ -78,7 +62,7 @@ def runs() -> None:
 
 
 @runs.command("ls")
-@_api
+@api_option
 @click.option("--robot", multiple=True, help="robot id (repeatable)")
 @click.option("--application", multiple=True, help="application id (repeatable)")
 @click.option("--since", help="started at or after (ISO-8601)")
@@ -92,8 +76,8 @@ def runs() -> None:
 @click.option("--json", "as_json", is_flag=True, help="print JSON (the service's answer) instead of a table")
 def runs_ls(api_url: str, as_json: bool, prop: tuple[str, ...], **filters: Any) -> None:
     """List runs, newest first."""
-    with _client(api_url) as client:
-        page = client.runs(
+    with client(api_url) as fleet:
+        page = fleet.runs(
             property=list(prop), **{k: list(v) if isinstance(v, tuple) else v for k, v in filters.items()}
         )
     if as_json:
@@ -117,13 +101,13 @@ def runs_ls(api_url: str, as_json: bool, prop: tuple[str, ...], **filters: Any) 
 
 
 @runs.command("show")
-@_api
+@api_option
 @click.argument("run_id")
 @click.option("--json", "as_json", is_flag=True)
 def runs_show(api_url: str, run_id: str, as_json: bool) -> None:
     """One run: metadata, entities, timelines."""
-    with _client(api_url) as client:
-        run = client.run(run_id)
+    with client(api_url) as fleet:
+        run = fleet.run(run_id)
     if as_json:
         click.echo(json.dumps(run, indent=2))
         return
@@ -134,8 +118,8 @@ def runs_show(api_url: str, run_id: str, as_json: bool) -> None:
         f"{run['bytes']:,} bytes"
     )
     console.print(
-        f"started {_when(run['started_at'])}  ended {_when(run.get('ended_at'))}  "
-        f"last data {_when(run.get('last_data_at'))}",
+        f"started {when(run['started_at'])}  ended {when(run.get('ended_at'))}  "
+        f"last data {when(run.get('last_data_at'))}",
         markup=False,
     )
     if run["properties"]:
@@ -158,16 +142,6 @@ def runs_show(api_url: str, run_id: str, as_json: bool) -> None:
     console.print(timelines)
 
 
-def _when(iso: str | None) -> str:
-    """A catalog time (ISO-8601 UTC from the service) to the second, as people read it."""
-    if not iso:
-        return "-"
-    try:
-        return dt.datetime.fromisoformat(iso).astimezone(dt.UTC).strftime("%Y-%m-%d %H:%M:%S UTC")
-    except ValueError:
-        return iso
-
-
 def _timeline_value(timeline_type: str, value: int | None) -> str:
     """Timestamps as dates, durations in seconds, sequences as numbers: each in the form that
     `fleet view --start/--end` accepts for that timeline."""
@@ -177,18 +151,18 @@ def _timeline_value(timeline_type: str, value: int | None) -> str:
 
 
 @runs.command("pin")
-@_api
+@api_option
 @click.argument("run_id")
 @click.option("--unpin", is_flag=True, help="let the run's retention policy apply again")
 def runs_pin(api_url: str, run_id: str, unpin: bool) -> None:
     """Pin a run: retention never deletes it (it may still be archived to cold)."""
-    with _client(api_url) as client:
-        answer = client.pin(run_id, not unpin)
+    with client(api_url) as fleet:
+        answer = fleet.pin(run_id, not unpin)
     click.echo(f"{run_id}: {'pinned' if answer['pinned'] else 'unpinned'} by {answer['by']}")
 
 
 @runs.command("restore")
-@_api
+@api_option
 @click.argument("run_id")
 @click.option("--wait", is_flag=True, help="wait until the run can be downloaded")
 @click.option("--timeout", type=float, default=3600.0, show_default=True, help="with --wait, give up after seconds")
@@ -196,15 +170,15 @@ def runs_restore(api_url: str, run_id: str, wait: bool, timeout: float) -> None:
     """Make a cold (archived) run downloadable again for the service's restore_days."""
     import time
 
-    with _client(api_url) as client:
-        answer = client.restore(run_id)
+    with client(api_url) as fleet:
+        answer = fleet.restore(run_id)
         deadline = time.monotonic() + timeout
         with Console(stderr=True).status(f"restoring {run_id}") if wait else _nothing():
             while wait and answer.get("restore_state") != RestoreState.RESTORED:
                 if time.monotonic() > deadline:
                     raise click.ClickException(f"{run_id} is still restoring after {timeout:g}s; check again later")
                 time.sleep(2)  # polling the service: a restore takes minutes to hours
-                life = client.run(run_id).get("lifecycle") or {}
+                life = fleet.run(run_id).get("lifecycle") or {}
                 answer = {**answer, "restore_state": life.get("restore_state")}
     click.echo(f"{run_id}: {answer['restore_state']}, readable until {answer.get('restore_until')}")
 
@@ -216,42 +190,42 @@ def _nothing() -> Any:
 
 
 @runs.command("promote")
-@_api
+@api_option
 @click.argument("run_id")
 def runs_promote(api_url: str, run_id: str) -> None:
     """Seal a closed hot run into the warm tier now, whatever its idle time."""
-    with _client(api_url) as client, Console(stderr=True).status(f"sealing {run_id}"):
-        answer = client.promote(run_id)
+    with client(api_url) as fleet, Console(stderr=True).status(f"sealing {run_id}"):
+        answer = fleet.promote(run_id)
     click.echo(f"{run_id}: {answer['tier']}: {answer['detail']}")
 
 
 @runs.command("rm")
-@_api
+@api_option
 @click.argument("run_id")
 @click.option("--yes", is_flag=True, help="do not ask for confirmation")
 def runs_rm(api_url: str, run_id: str, yes: bool) -> None:
     """Delete a sealed run now: its objects first, then the run is marked deleted (a tombstone stays)."""
     if not yes:
         click.confirm(f"delete run {run_id} and all its data?", abort=True)
-    with _client(api_url) as client:
-        answer = client.delete_run(run_id)
+    with client(api_url) as fleet:
+        answer = fleet.delete_run(run_id)
     click.echo(f"{run_id}: {answer['detail']}")
 
 
 @click.command()
-@_api
+@api_option
 @click.argument("run_id")
 @click.option("-o", "--output", type=click.Path(dir_okay=False, path_type=Path), help="file to write [RUN.rrd]")
 @_entity_options
 def download(api_url: str, run_id: str, output: Path | None, **filters: Any) -> None:
-    """Download a run (or the entities you pick) as an .rrd file."""
+    """Download a run (or the entities you pick) as an .rrd file (with auth on, a `read` token)."""
     output = output or Path(f"{run_id}.rrd")
     with (
-        _client(api_url) as client,
+        client(api_url) as fleet,
         transfer_progress() as progress,
     ):
         task = progress.add_task(run_id, total=None)
-        written = client.download(
+        written = fleet.download(
             run_id, output, functools.partial(_advance, progress, task), **_recording_params(**filters)
         )
     click.echo(f"{output}: {written:,} bytes")
@@ -262,16 +236,30 @@ def _advance(progress: Progress, task: TaskID, count: int) -> None:
 
 
 @click.command()
-@_api
+@api_option
 @click.argument("run_id")
 @_entity_options
 @click.option("--open", "open_viewer", is_flag=True, help="run the command instead of printing it")
-def view(api_url: str, run_id: str, open_viewer: bool, **filters: Any) -> None:
-    """Print the `rerun` command that opens a run (or a part of it) in the viewer."""
+@click.option(
+    "--expires",
+    type=Duration(),
+    help="with auth on, how long the signed link works: 30m, 12h, 7d at most [default: the service's FLEET_LINK_TTL_S]",
+)
+def view(api_url: str, run_id: str, open_viewer: bool, expires: dt.timedelta | None, **filters: Any) -> None:
+    """Print the `rerun` command that opens a run (or a part of it) in the viewer.
+
+    With auth on, the URL is a signed link that expires: the viewer, a browser or a colleague
+    opens it with no token, and it reads only this run with these filters; anyone holding it can
+    until it expires (or until the token that asked for it is revoked). With auth off, the plain URL."""
     params = _recording_params(**filters)
-    with _client(api_url) as client:
-        client.check_recording(run_id, **params)  # an unknown run or a bad time: one line now, not an empty viewer
-        url = client.recording_url(run_id, **params)
+    with client(api_url) as fleet:
+        fleet.check_recording(run_id, **params)  # an unknown run or a bad time: one line now, not an empty viewer
+        link = fleet.recording_link(run_id, expires.total_seconds() if expires else None, **params)
+        url = link["url"] if link.get("expires_at") else fleet.recording_url(run_id, **params)
+    if link.get("expires_at"):
+        click.echo(
+            f"a signed link to {run_id}, which anyone holding it can open until {when(link['expires_at'])}", err=True
+        )
     rerun = find_rerun()
     if not open_viewer:
         click.echo(shlex.join([_as_typed(rerun), url]))

@@ -8,14 +8,14 @@ from pathlib import Path
 import click
 from rich.table import Table
 
+from services.cli.client import api_option, client
 from services.cli.output import stdout_console
-from services.cli.runs import _api
 
 FORMATS = ("table", "json", "csv", "arrow", "parquet")
 
 
 @click.command()
-@_api
+@api_option
 @click.argument("query")
 @click.option(
     "--format",
@@ -29,20 +29,18 @@ FORMATS = ("table", "json", "csv", "arrow", "parquet")
 def sql(api_url: str, query: str, fmt: str, output: Path | None) -> None:
     """Run QUERY (one SELECT) over robots, runs, run_entities, run_timelines, scalars, text_logs and
     transforms. Example: fleet sql "SELECT robot_id, count(*) FROM runs GROUP BY 1" """
-    from sdk_client.rest import FleetClient
-
-    with FleetClient(api_url) as client:
+    with client(api_url) as fleet:
         if fmt == "table":
             from services.analytics.service import textual
 
-            answer = textual(client.sql(query))
+            answer = textual(fleet.sql(query))
             table = Table(*answer.column_names, box=None, padding=(0, 2))
             for row in answer.to_pylist() if answer.num_rows <= 10_000 else answer.slice(0, 10_000).to_pylist():
                 table.add_row(*("" if v is None else str(v) for v in row.values()))
             stdout_console().print(table)
             click.echo(f"({answer.num_rows:,} rows)", err=True)
             return
-        data = client.sql_bytes(query, fmt)
+        data = fleet.sql_bytes(query, fmt)
     if output is not None:
         output.write_bytes(data)
         click.echo(f"{output}: {len(data):,} bytes", err=True)

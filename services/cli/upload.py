@@ -10,34 +10,32 @@ import click
 from rich.console import Console
 from rich.progress import Progress, TaskID
 
+from services.cli.client import api_option, client
 from services.cli.output import transfer_progress
 
 
 @click.command()
 @click.argument("files", nargs=-1, required=True, type=click.Path(exists=True, dir_okay=False, path_type=Path))
-@click.option(
-    "--api-url",
-    envvar="FLEET_API_URL",
-    default="http://127.0.0.1:8080",
-    show_default=True,
-    help="Where the service answers (FLEET_API_URL).",
-)
+@api_option
 def upload(files: tuple[Path, ...], api_url: str) -> None:
     """Upload .rrd FILES. Chunks the service already holds (received live) are skipped, so
-    uploading the same file again is harmless."""
-    from sdk_client.rest import FleetClient, ServiceError
+    uploading the same file again is harmless. With auth on: a `write` token, or a robot's
+    `ingest` token for that robot's runs."""
+    from sdk_client.rest import ServiceError
 
     console = Console(stderr=True)
     failed = 0
     with (
-        FleetClient(api_url) as client,
+        client(api_url) as fleet,
         transfer_progress(console) as progress,
     ):
         for path in files:
             task = progress.add_task(path.name, total=os.path.getsize(path))
             try:
-                report = client.upload(path, functools.partial(_advance, progress, task))
+                report = fleet.upload(path, functools.partial(_advance, progress, task))
             except ServiceError as exc:
+                if exc.status == 401:
+                    raise  # no file would go: one line about the token, not one per file
                 failed += 1
                 accepted = exc.body.get("accepted") or {}
                 kept = (
