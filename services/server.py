@@ -20,6 +20,7 @@ from services.analytics.sql import Limits
 from services.api.app import create_app
 from services.api.grpc_front import Front
 from services.auth.bootstrap import ensure_admin_token, open_auth
+from services.auth.links import MaskLinkSignatures
 from services.hot.reserve import DiskReserve
 from services.hot.store import HotStore
 from services.ingest import grpc_handler
@@ -159,6 +160,7 @@ async def serve(settings: Settings) -> None:
     )
     app = create_app(settings, ingest, retention, analytics, auth)
     http = uvicorn.Server(uvicorn.Config(app, log_level="info", lifespan="off"))
+    logging.getLogger("uvicorn.access").addFilter(MaskLinkSignatures())  # a link's signature opens it
     await grpc_server.start()
     front = Front(grpc_socket, grpc_path, f"fleet-telemetry {__version__}")
     front.start()

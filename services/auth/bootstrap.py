@@ -11,13 +11,12 @@ from pathlib import Path
 from sqlalchemy.orm import Session, sessionmaker
 
 from core.errors import InvalidArgumentError, UnauthenticatedError
+from services.auth import ADMIN_TOKEN_FILE
 from services.auth.keys import load_signing_keys, write_private
 from services.auth.tokens import Auth, IssuedToken
 from services.settings import AuthMode, Settings
 
 log = logging.getLogger(__name__)
-
-ADMIN_TOKEN_FILE = "admin.token"
 
 
 def is_loopback(host: str) -> bool:

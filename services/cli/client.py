@@ -26,6 +26,7 @@ from urllib.parse import urlsplit
 import click
 
 from core.errors import InvalidArgumentError, UnauthenticatedError
+from services.auth import ADMIN_TOKEN_FILE
 
 if TYPE_CHECKING:
     from sdk_client.rest import FleetClient
@@ -33,7 +34,6 @@ if TYPE_CHECKING:
 TOKEN_ENV = "FLEET_TOKEN"
 DATA_DIR_ENV = "FLEET_DATA_DIR"
 DEFAULT_DATA_DIR = "./fleet-data"
-ADMIN_TOKEN_FILE = "admin.token"  # as services.auth.bootstrap writes it (a test keeps the two equal)
 HOW_TO_GET_ONE = "an admin makes one with `fleet tokens create`"
 
 api_option = click.option(

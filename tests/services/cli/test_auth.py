@@ -188,6 +188,8 @@ def test_view_hands_out_a_signed_link_that_rerun_opens_and_tampering_breaks(
     entities = recording_entities(saved)
     assert any(p.startswith("/world/") for p in entities)
     assert all(p.startswith(("/world", "/__properties")) for p in entities)
+    served = [line for line in depot.log.read_text().splitlines() if f"/v1/runs/{run_id}/recording.rrd" in line]
+    assert served and params["sig"] not in depot.log.read_text()  # the access log shows the link without it
 
     for tampered in (with_param(url, "include", add="/x"), with_param(url, "expires", str(int(params["expires"]) + 1))):
         assert httpx.get(tampered, timeout=30).status_code == 403

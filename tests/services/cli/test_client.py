@@ -9,8 +9,8 @@ import pytest
 
 from core.errors import InvalidArgumentError
 from sdk_client.rest import FleetClient
-from services.auth.bootstrap import ADMIN_TOKEN_FILE as SERVICE_WRITES
-from services.cli.client import ADMIN_TOKEN_FILE, TokenSource, resolve_token, unauthenticated_message
+from services.auth import ADMIN_TOKEN_FILE
+from services.cli.client import TokenSource, resolve_token, unauthenticated_message
 
 LOCAL = "http://127.0.0.1:8080"
 
@@ -25,10 +25,6 @@ def data_dir_with(tmp_path: Path, content: str) -> Path:
     data.mkdir()
     (data / ADMIN_TOKEN_FILE).write_text(content)
     return data
-
-
-def test_the_cli_reads_the_file_the_service_writes():
-    assert ADMIN_TOKEN_FILE == SERVICE_WRITES
 
 
 def test_fleet_token_comes_first(tmp_path: Path):
