@@ -118,7 +118,7 @@ class Server:
         full = {
             **os.environ,
             "FLEET_DATA_DIR": self.dir.name,
-            "FLEET_AUTH": "off",  # on loopback, like the peer (no auth): a stream's token is checked once, not per chunk
+            "FLEET_AUTH": "off",  # on loopback, like the peer (no auth); a token is checked once per stream
             "FLEET_HTTP_ADDR": f"127.0.0.1:{self.port}",
             "FLEET_GRPC_ADDR": f"127.0.0.1:{_free_port()}",
             "FLEET_DURABILITY": "off",

@@ -388,7 +388,7 @@ class FleetServer(Server):
         env = {
             **os.environ,
             "FLEET_DATA_DIR": str(self.data_dir),
-            "FLEET_AUTH": "off",  # on loopback, like the peer (no auth): a stream's token is checked once, not per chunk
+            "FLEET_AUTH": "off",  # on loopback, like the peer (no auth); a token is checked once per stream
             "FLEET_DURABILITY": "interval",
             "FLEET_HTTP_ADDR": f"127.0.0.1:{self.http_port}",
             "FLEET_GRPC_ADDR": f"127.0.0.1:{self.grpc_port}",
