@@ -53,7 +53,8 @@ def verify(keys: SigningKeys, run_id: str, params: list[tuple[str, str]], now: d
     signed_by = [v for k, v in params if k == SIGNED_BY]
     if len(given) != 1 or len(expires) != 1 or not expires[0].isdigit() or len(signed_by) != 1:
         raise PermissionDeniedError("this link is not a complete signed link: ask for a new one (fleet view RUN)")
-    if not any(hmac.compare_digest(given[0], _signature(k.link_key, run_id, params)) for k in keys.all):
+    given_bytes = given[0].encode()  # compared as bytes: a non-ASCII str is refused, not an error
+    if not any(hmac.compare_digest(given_bytes, _signature(k.link_key, run_id, params).encode()) for k in keys.all):
         raise PermissionDeniedError(
             "this link's signature does not match its run and parameters (changed or cut?): ask for a new one"
         )
