@@ -48,7 +48,8 @@ def create_app(
     # only the configured origins may send a token.
     app.add_middleware(Cors, origins=settings.cors_origins)
     app.state.settings = settings
-    app.state.auth = auth = auth or open_auth(settings, ingest.catalog if ingest is not None else None)
+    catalog = next((side.catalog for side in (ingest, retention, analytics) if side is not None), None)
+    app.state.auth = auth = auth or open_auth(settings, catalog)
     app.state.rate_limits = RateLimits({"sql": settings.sql_rate, "download": settings.download_rate})
     app.include_router(auth_rest.router)
     app.state.ingest = ingest

@@ -10,7 +10,8 @@ import pytest
 from sqlalchemy.orm import Session, sessionmaker
 
 from core.errors import InvalidArgumentError
-from services.auth.bootstrap import ADMIN_TOKEN_FILE, check_auth_bind, ensure_admin_token, is_loopback, open_auth
+from services.auth import ADMIN_TOKEN_FILE
+from services.auth.bootstrap import check_auth_bind, ensure_admin_token, is_loopback, open_auth
 from services.auth.scopes import Scope
 from services.auth.tokens import Auth
 from services.settings import load_settings

@@ -72,8 +72,14 @@ class LiveServer:
     def stop(self) -> None:
         self.process.stop()
 
+    @property
+    def headers(self) -> dict[str, str]:
+        """The admin token's header when auth is on (the token `fleet serve` wrote at its first start)."""
+        token_file = self.data_dir / "admin.token"
+        return {"Authorization": f"Bearer {token_file.read_text().strip()}"} if token_file.is_file() else {}
+
     def metric(self, name: str) -> float:
-        for line in httpx.get(f"{self.url}/metrics", timeout=10).text.splitlines():
+        for line in httpx.get(f"{self.url}/metrics", headers=self.headers, timeout=10).text.splitlines():
             if line.startswith(name + " "):
                 return float(line.split()[1])
         raise AssertionError(f"no metric {name}")
