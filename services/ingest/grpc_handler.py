@@ -1,25 +1,29 @@
 """gRPC `rerun.sdk_comms.v1alpha1.MessageProxyService.WriteMessages`: what the SDK's GrpcSink calls.
 
-The handler only unwraps each request (the inner message bytes are taken as sent, never
-re-encoded), hands it to the ingest service and maps errors to a gRPC status.
+The handler only checks who calls (`stream_auth`), unwraps each request (the inner message bytes
+are taken as sent, never re-encoded), hands it to the ingest service and maps errors to a gRPC status.
 """
 
 from __future__ import annotations
 
 import logging
 from collections.abc import AsyncIterator
+from typing import NoReturn
 
 import grpc
 
 from core.errors import FleetError
+from services.auth.scopes import Scope
 from services.auth.tokens import Auth
 from services.ingest.replay import read_response
 from services.ingest.service import IngestService
+from services.ingest.source import Source
+from services.ingest.stream_auth import WRITERS, CallAuth
 from services.rrd import errors as rrd_errors
 from services.rrd import protowire
 from services.rrd.decoder import decode_message
 from services.rrd.frames import UPGRADE_HINT
-from services.rrd.messages import StoreInfoMessage
+from services.rrd.messages import Event, StoreInfoMessage
 from services.rrd.pb import sdk_comms_pb2
 
 log = logging.getLogger(__name__)
@@ -51,19 +55,29 @@ class MessageProxy:
     ) -> None:
         self.service = service
         self.auth = auth or Auth(enabled=False, keys=None, catalog=None)
-        self.token_wait_s = token_wait_s  # a stream with no token in its metadata has this long to send one
-        self.token_buffer_bytes = token_buffer_bytes  # and may send this much before it
+        self.calls = CallAuth(self.auth, wait_s=token_wait_s, buffer_bytes=token_buffer_bytes)
 
     async def write_messages(
         self, requests: AsyncIterator[bytes], context: grpc.aio.ServicerContext
     ) -> sdk_comms_pb2.WriteMessagesResponse:
+        metadata = context.invocation_metadata()
+        by_property = self.calls.needs_property_token(metadata)
         try:
-            source = self.service.open_source(live=True)
+            principal = None if by_property else await self.calls.principal(metadata, *WRITERS)
+            # A stream still waiting for its token counts among FLEET_MAX_STREAMS: that bounds what
+            # such streams hold in memory.
+            source = self.service.open_source(live=True, robot=principal.robot if principal else None)
         except FleetError as exc:
-            await context.abort(grpc.StatusCode[exc.grpc_status()], str(exc))
+            await refuse(context, exc)
         received = 0  # bytes of requests so far: where errors are placed
         try:
-            async for request in requests:
+            if by_property:
+                admitted = await self.calls.await_property_token(requests, decode_request)
+                source.robot = admitted.principal.robot  # bound before anything of the stream is filed
+                for event in admitted.held:
+                    await self._file(source, event)
+                received = admitted.received
+            async for request in requests:  # the hot path: nothing here but decoding and filing
                 kind, raw = unwrap(request, received)
                 event = decode_message(kind, raw, received)  # a view: no copy
                 if isinstance(event, StoreInfoMessage):  # the only message `prepare` looks at
@@ -71,14 +85,22 @@ class MessageProxy:
                 self.service.accept(source, event)
                 received += len(request)
         except FleetError as exc:
-            log.warning("stream from %s refused: %s", client_of(context), exc)
-            await context.abort(grpc.StatusCode[exc.grpc_status()], str(exc))
+            await refuse(context, exc)
         finally:
             self.service.close_source(source)
         return sdk_comms_pb2.WriteMessagesResponse()
 
+    async def _file(self, source: Source, event: Event) -> None:
+        if isinstance(event, StoreInfoMessage):
+            await self.service.prepare(source, event)
+        self.service.accept(source, event)
+
     async def read_messages(self, request: bytes, context: grpc.aio.ServicerContext) -> AsyncIterator[bytes]:
         """What `rerun --connect rerun+http://HOST:51234/proxy` calls: recent history, then live."""
+        try:
+            await self.calls.principal(context.invocation_metadata(), Scope.READ)
+        except FleetError as exc:
+            await context.abort(grpc.StatusCode[exc.grpc_status()], str(exc))
         hub = self.service.replay
         if hub is None:
             await context.abort(grpc.StatusCode.UNAVAILABLE, "this node keeps no replay (FLEET_REPLAY_BYTES=0)")
@@ -98,6 +120,18 @@ class MessageProxy:
                 yield read_response(*live)
         finally:
             hub.unsubscribe(queue)
+
+
+def decode_request(request: bytes, offset: int) -> Event:
+    """The message of a serialized WriteMessagesRequest at `offset` in its stream."""
+    kind, raw = unwrap(request, offset)
+    return decode_message(kind, raw, offset)
+
+
+async def refuse(context: grpc.aio.ServicerContext, exc: FleetError) -> NoReturn:
+    log.warning("stream from %s refused: %s", client_of(context), exc)
+    await context.abort(grpc.StatusCode[exc.grpc_status()], str(exc))
+    raise AssertionError("not reached: abort raises")
 
 
 def server_options(max_message_size: int) -> list[tuple[str, int]]:

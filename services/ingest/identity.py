@@ -9,19 +9,20 @@ from __future__ import annotations
 
 import datetime as dt
 import re
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import pyarrow as pa
 
 from services.rrd.chunk import ChunkMeta, chunk_meta, with_batch
-from services.rrd.manifest import PROPERTIES_ENTITY
+from services.rrd.manifest import PROPERTIES_ENTITY, is_property_entity
 from services.rrd.messages import ArrowMessage
 from services.rrd.validate import validated_batch
 from services.settings import DEFAULT_SECRET_FIELDS
 
 IDENTITY_PROPERTY = "fleet"
 ROBOT_FIELD = "robot_id"
+TOKEN_FIELD = "token"  # of the fleet property: how an unmodified SDK stream proves itself (a depot token)
 START_TIME_COMPONENT = "RecordingInfo:start_time"
 
 
@@ -73,21 +74,62 @@ def read_property_chunk(
     field, return a re-encoded message without it (same chunk id, so the chunk is still stored
     exactly once)."""
     batch = validated_batch(msg, meta)
-    secret = [i for i, f in enumerate(batch.schema) if _is_data(f) and _is_secret(f, secret_fields)]
+    name = property_name(meta.entity_path)
+    secret = [
+        i
+        for i, f in enumerate(batch.schema)
+        if _is_data(f) and (_is_secret(f, secret_fields) or (name == IDENTITY_PROPERTY and _is_token(f)))
+    ]
     values: dict[str, Any] = {}
     for i, fld in enumerate(batch.schema):
         if i in secret or not _is_data(fld):
             continue
-        column = batch.column(i)
-        for row in range(len(column) - 1, -1, -1):  # the newest non-null value wins
-            if column[row].is_valid:
-                values[_component(fld)] = _plain(column[row].as_py())
-                break
-    name = property_name(meta.entity_path)
+        value = _newest(batch.column(i))
+        if value is not None:
+            values[_component(fld)] = _plain(value)
     if not secret:
         return PropertyChunk(msg, meta, name, values)
     stripped = with_batch(msg, batch.select([i for i in range(batch.num_columns) if i not in secret]))
     return PropertyChunk(stripped, chunk_meta(stripped), name, values)
+
+
+@dataclass(frozen=True)
+class FleetClaim:
+    """What a `fleet` property chunk says of who sent it: a token, and the robot it names, if any."""
+
+    token: str = field(repr=False)
+    robot: str | None
+
+
+def fleet_claim(msg: ArrowMessage, meta: ChunkMeta) -> FleetClaim | None:
+    """The `token` (and `robot_id`) of a `fleet` property chunk (`rr.send_property("fleet",
+    rr.AnyValues(robot_id=..., token=...))`); None if `msg` is no such chunk or has no token. Read
+    to authenticate a stream, and kept nowhere: the chunk is filed by `read_property_chunk`, which
+    strips that field whatever FLEET_SECRET_FIELDS says."""
+    if not is_property_entity(meta.entity_path) or property_name(meta.entity_path) != IDENTITY_PROPERTY:
+        return None
+    batch = validated_batch(msg, meta)
+    token = robot = None
+    for i, fld in enumerate(batch.schema):
+        if _is_data(fld) and _is_token(fld):
+            token = _newest(batch.column(i))
+        elif _is_data(fld) and _component(fld) == ROBOT_FIELD:
+            robot = _newest(batch.column(i))
+    if token is None:
+        return None
+    return FleetClaim(str(_plain(token)), None if robot is None else str(_plain(robot)))
+
+
+def _newest(column: pa.Array | pa.ChunkedArray) -> Any:
+    """The newest non-null value of a property column, as Python; None if it has none."""
+    for row in range(len(column) - 1, -1, -1):
+        if column[row].is_valid:
+            return column[row].as_py()
+    return None
+
+
+def _is_token(fld: pa.Field) -> bool:
+    return _component(fld).rpartition(":")[2] == TOKEN_FIELD
 
 
 def _is_data(fld: pa.Field) -> bool:

@@ -6,6 +6,7 @@ import os
 import subprocess
 import sys
 import time
+from collections.abc import Iterable
 from pathlib import Path
 
 import grpc
@@ -101,12 +102,16 @@ class LiveServer:
         except httpx.TransportError:
             return False
 
-    def write_messages(self, requests: list[bytes], timeout: float = 60) -> tuple[grpc.StatusCode, str]:
-        """One WriteMessages call of serialized WriteMessagesRequests: (status code, details)."""
+    def write_messages(
+        self, requests: Iterable[bytes], timeout: float = 60, token: str | None = None
+    ) -> tuple[grpc.StatusCode, str]:
+        """One WriteMessages call of serialized WriteMessagesRequests, with `token` as its
+        `authorization` metadata if given: (status code, details)."""
+        metadata = [("authorization", f"Bearer {token}")] if token is not None else None
         with grpc.insecure_channel(f"127.0.0.1:{self.grpc_port}") as channel:
             call = channel.stream_unary(WRITE_MESSAGES, request_serializer=None, response_deserializer=None)
             try:
-                call(iter(requests), timeout=timeout)
+                call(iter(requests), timeout=timeout, metadata=metadata)
             except grpc.RpcError as exc:
                 return exc.code(), exc.details() or ""  # type: ignore[attr-defined]
         return grpc.StatusCode.OK, ""

@@ -6,11 +6,15 @@ python robot.py live GRPC_URL COPY_PATH RUN_ID    logs ten frames, prints READY,
                                                   logs ten more, ends its stream
 python robot.py many GRPC_URL N                   opens N recordings at once, prints READY,
                                                   waits for a line on stdin, exits
+python robot.py token GRPC_URL RUN_ID ROBOT TOKEN  proves itself by its fleet property's token
+                                                  ("-": none; ROBOT "-": no robot_id), logs ten
+                                                  frames, ends its stream, prints how it ended
 """
 
 from __future__ import annotations
 
 import sys
+from typing import Any
 
 import numpy as np
 import rerun as rr
@@ -78,10 +82,32 @@ def many(url: str, n: int) -> None:
         rec.disconnect()
 
 
+def with_token(url: str, run_id: str, robot: str, token: str) -> None:
+    """What a robot on an auth-on depot does: its token in its fleet property, logged first."""
+    rec = rr.RecordingStream("fleet_token", recording_id=run_id)
+    rec.set_sinks(rr.GrpcSink(url))
+    fleet: dict[str, Any] = {
+        **({"robot_id": robot} if robot != "-" else {}),
+        **({"token": token} if token != "-" else {}),
+    }
+    if fleet:
+        rec.send_property("fleet", rr.AnyValues(**fleet))
+    for i in range(10):
+        log_frame(rec, i)
+    try:
+        rec.flush(timeout_sec=30)
+        print("FLUSHED", flush=True)
+    except Exception as exc:  # a refused stream: the SDK reports the severed connection
+        print(f"FLUSH FAILED: {exc}", flush=True)
+    rec.disconnect()
+
+
 if __name__ == "__main__":
     if sys.argv[1] == "scene":
         scene(sys.argv[2], sys.argv[3], sys.argv[4])
     elif sys.argv[1] == "live":
         live(sys.argv[2], sys.argv[3], sys.argv[4])
+    elif sys.argv[1] == "token":
+        with_token(*sys.argv[2:6])
     else:
         many(sys.argv[2], int(sys.argv[3]))

@@ -6,8 +6,9 @@ from pathlib import Path
 
 import pytest
 
-from services.ingest.identity import SecretFields, read_property_chunk, words
-from services.rrd.chunk import chunk_meta, read_chunk
+from services.ingest.identity import SecretFields, fleet_claim, read_property_chunk, words
+from services.rrd.chunk import chunk_meta, decompress_payload, read_chunk
+from tests.services.ingest.authed import recorded_requests
 from tests.services.rrd.malformed import Seed, record_seed
 
 
@@ -91,3 +92,29 @@ def test_property_chunk_without_its_secrets(tmp_path: Path) -> None:
     assert {c.component for c in prop.meta.components} == {"robot_id", "tokens_used", "tags"}
     custom = read_property_chunk(msg, chunk_meta(msg), SecretFields(["robot_id"]))
     assert set(custom.values) == {"ingest_token", "apiKey", "tokens_used", "tags"}
+
+
+@pytest.mark.sdk
+def test_the_fleet_token_is_read_and_stripped_whatever_the_secret_fields(tmp_path: Path) -> None:
+    """The token an SDK stream proves itself with is read from its fleet property, and the chunk is
+    filed without it even where FLEET_SECRET_FIELDS leaves `token` out."""
+    recorded_requests(tmp_path / "token.rrd", "token-run", robot="r1", token="head.body.signature")
+    seed = Seed.read(tmp_path / "token.rrd")
+    msg = seed.chunk("/__properties/fleet")
+    claim = fleet_claim(msg, chunk_meta(msg))
+    assert claim is not None and (claim.token, claim.robot) == ("head.body.signature", "r1")
+    assert "signature" not in repr(claim)
+    prop = read_property_chunk(msg, chunk_meta(msg), SecretFields(["vin"]))
+    assert prop.values == {"robot_id": "r1"}
+    assert {f.name for f in read_chunk(prop.message).schema} == {"rerun.controls.RowId", "robot_id"}
+    assert b"head.body.signature" in decompress_payload(msg)
+    assert b"signature" not in decompress_payload(prop.message)
+    info = seed.chunk("/__properties")  # RecordingInfo: no fleet property
+    assert fleet_claim(info, chunk_meta(info)) is None
+
+
+@pytest.mark.sdk
+def test_a_fleet_property_without_a_token_claims_nothing(tmp_path: Path) -> None:
+    recorded_requests(tmp_path / "robot.rrd", "robot-run", robot="r1")
+    msg = Seed.read(tmp_path / "robot.rrd").chunk("/__properties/fleet")
+    assert fleet_claim(msg, chunk_meta(msg)) is None
