@@ -90,7 +90,7 @@ class Auth:
         if not self.enabled:
             return local_principal()
         try:
-            return self._principal(token)
+            return self._principal(token, surface)
         except UnauthenticatedError as exc:
             self.refused(surface, exc.reason)
             raise
@@ -99,11 +99,11 @@ class Auth:
         with self._lock:
             self.failures[(surface, reason)] += 1
 
-    def _principal(self, token: str | None) -> Principal:
+    def _principal(self, token: str | None, surface: str) -> Principal:
         if not token:
+            how = "`authorization: Bearer TOKEN` metadata" if surface == "grpc" else "`Authorization: Bearer TOKEN`"
             raise UnauthenticatedError(
-                "no token: send `Authorization: Bearer TOKEN` (the CLI reads FLEET_TOKEN; "
-                "an admin creates tokens with fleet tokens create)",
+                f"no token: send {how} (the CLI reads FLEET_TOKEN; an admin creates tokens with fleet tokens create)",
                 MISSING,
             )
         claims = self.claims(token)
