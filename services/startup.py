@@ -11,6 +11,7 @@ from __future__ import annotations
 import contextlib
 import errno
 import fcntl
+import ipaddress
 import os
 import socket
 import tempfile
@@ -111,3 +112,13 @@ def release_private_socket(path: Path, data_dir: Path) -> None:
     if not path.parent.is_relative_to(data_dir.resolve()):
         with contextlib.suppress(OSError):
             path.parent.rmdir()
+
+
+def is_loopback(host: str) -> bool:
+    """Only this machine reaches `host` (127.0.0.0/8, ::1, localhost); a host name may be anywhere."""
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False

@@ -3,7 +3,6 @@ service, and on first start make the admin token (printed once, kept in the data
 
 from __future__ import annotations
 
-import ipaddress
 import logging
 import socket
 from pathlib import Path
@@ -15,17 +14,9 @@ from services.auth import ADMIN_TOKEN_FILE
 from services.auth.keys import load_signing_keys, write_private
 from services.auth.tokens import Auth, IssuedToken
 from services.settings import AuthMode, Settings
+from services.startup import is_loopback
 
 log = logging.getLogger(__name__)
-
-
-def is_loopback(host: str) -> bool:
-    if host == "localhost":
-        return True
-    try:
-        return ipaddress.ip_address(host).is_loopback
-    except ValueError:
-        return False  # a host name: it may be reached from anywhere
 
 
 def check_auth_bind(settings: Settings, hosts: list[str]) -> str | None:

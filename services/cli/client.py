@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import contextlib
 import datetime as dt
-import ipaddress
 import os
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
@@ -27,6 +26,7 @@ import click
 
 from core.errors import InvalidArgumentError, UnauthenticatedError
 from services.auth import ADMIN_TOKEN_FILE
+from services.startup import is_loopback
 
 if TYPE_CHECKING:
     from sdk_client.rest import FleetClient
@@ -70,20 +70,11 @@ def resolve_token(api_url: str, env: Mapping[str, str]) -> TokenSource:
     if not token:
         return TokenSource(None, "", f"{path} is empty")
     host = urlsplit(api_url).hostname or ""
-    if not (_is_loopback(host) or host in _allowed_hosts(token)):
+    if not (is_loopback(host) or host in _allowed_hosts(token)):
         return TokenSource(
             None, "", f"{path} was not sent to {host}: neither a loopback address nor in the token's allowed_hosts"
         )
     return TokenSource(token, str(path))
-
-
-def _is_loopback(host: str) -> bool:
-    if host == "localhost":
-        return True
-    try:
-        return ipaddress.ip_address(host).is_loopback
-    except ValueError:
-        return False
 
 
 def _allowed_hosts(token: str) -> list[str]:

@@ -11,10 +11,11 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from core.errors import InvalidArgumentError
 from services.auth import ADMIN_TOKEN_FILE
-from services.auth.bootstrap import check_auth_bind, ensure_admin_token, is_loopback, open_auth
+from services.auth.bootstrap import check_auth_bind, ensure_admin_token, open_auth
 from services.auth.scopes import Scope
 from services.auth.tokens import Auth
 from services.settings import load_settings
+from services.startup import is_loopback
 
 
 @pytest.mark.parametrize("host", ["127.0.0.1", "127.0.0.2", "::1", "localhost"])
