@@ -574,8 +574,9 @@ def _facts(node: Node) -> tuple[object, ...]:
 
 
 def test_sealing_reads_properties_with_the_nodes_secret_fields(tiers: Tiers, make_node: NodeFactory, tmp_path: Path):
-    """A node that strips only passwords keeps a `token` field through promotion too (sealing reads
-    the stored property chunks with the node's setting, not the default list)."""
+    """A node that strips only passwords keeps an `api_key` field through promotion too (sealing reads
+    the stored property chunks with the node's setting, not the default list; the fleet property's
+    `token`, the depot's own credential, is stripped whatever the setting)."""
     node = make_node(tiers, clock=Clock())
     node.ingest.secret_fields = SecretFields(["password"])
     path = tmp_path / "props.rrd"
@@ -587,7 +588,7 @@ def test_sealing_reads_properties_with_the_nodes_secret_fields(tiers: Tiers, mak
 import rerun as rr
 rec = rr.RecordingStream("nav", recording_id="props-run")
 rec.save({str(path)!r})
-rec.send_property("fleet", rr.AnyValues(robot_id="robot-7", token="kept", password="hidden"))
+rec.send_property("fleet", rr.AnyValues(robot_id="robot-7", api_key="kept", token="hidden", password="hidden"))
 rec.set_time("frame", sequence=0)
 rec.log("/x", rr.Scalars(1.0))
 rec.flush()
@@ -606,10 +607,10 @@ rec.flush()
             assert run is not None
             return dict(json.loads(run.properties)["fleet"])
 
-    assert fleet_property() == {"robot_id": "robot-7", "token": "kept"}
+    assert fleet_property() == {"robot_id": "robot-7", "api_key": "kept"}
     node.clock.advance(seconds=PROMOTE_AFTER_S)
     assert [o.ok for o in promote_now(node)] == [True]
-    assert fleet_property() == {"robot_id": "robot-7", "token": "kept"}
+    assert fleet_property() == {"robot_id": "robot-7", "api_key": "kept"}
 
 
 def test_a_pin_set_while_hot_survives_promotion_and_a_rebuild(tiers: Tiers, make_node: NodeFactory, sdk_runs: SdkRuns):
