@@ -9,11 +9,10 @@ from typing import Annotated
 from fastapi import Depends, Request
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
-from core.errors import PermissionDeniedError
 from services.auth.links import SIGNATURE
 from services.auth.ratelimit import RateLimits
 from services.auth.scopes import Principal, Scope
-from services.auth.tokens import FORBIDDEN, Auth
+from services.auth.tokens import Auth
 
 bearer = HTTPBearer(
     auto_error=False,
@@ -32,11 +31,7 @@ def _checked(
 ) -> Principal:
     auth = _auth(request)
     principal = auth.authenticate(credentials.credentials if credentials else None, "rest")
-    try:
-        return principal.require(*scopes)
-    except PermissionDeniedError:
-        auth.refused("rest", FORBIDDEN)
-        raise
+    return auth.authorize(principal, "rest", *scopes)
 
 
 def require(*scopes: Scope) -> Callable[[Request, HTTPAuthorizationCredentials | None], Principal]:

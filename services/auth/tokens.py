@@ -95,6 +95,14 @@ class Auth:
             self.refused(surface, exc.reason)
             raise
 
+    def authorize(self, principal: Principal, surface: str, *scopes: Scope) -> Principal:
+        """`principal`, if it holds one of `scopes`; else PERMISSION_DENIED, counted for `surface`."""
+        try:
+            return principal.require(*scopes)
+        except PermissionDeniedError:
+            self.refused(surface, FORBIDDEN)
+            raise
+
     def refused(self, surface: str, reason: str) -> None:
         with self._lock:
             self.failures[(surface, reason)] += 1

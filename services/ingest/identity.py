@@ -14,6 +14,7 @@ from typing import Any
 
 import pyarrow as pa
 
+from core.errors import PermissionDeniedError
 from services.rrd.chunk import ChunkMeta, chunk_meta, with_batch
 from services.rrd.manifest import PROPERTIES_ENTITY, is_property_entity
 from services.rrd.messages import ArrowMessage
@@ -91,6 +92,15 @@ def read_property_chunk(
         return PropertyChunk(msg, meta, name, values)
     stripped = with_batch(msg, batch.select([i for i in range(batch.num_columns) if i not in secret]))
     return PropertyChunk(stripped, chunk_meta(stripped), name, values)
+
+
+def check_robot(bound: str | None, run_id: str, robot: str) -> None:
+    """A robot's token (`bound`: its robot, None for a token of no robot) writes its own runs only."""
+    if bound is not None and robot != bound:
+        raise PermissionDeniedError(
+            f"run {run_id!r} is robot {robot!r}'s, and this token writes for robot {bound!r} only: "
+            "send it with that robot's token"
+        )
 
 
 @dataclass(frozen=True)

@@ -26,7 +26,7 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from catalog.queries import RunRecord
 from core.clock import utcnow
-from core.errors import ConflictError, InvalidArgumentError, PermissionDeniedError, ResourceExhaustedError
+from core.errors import ConflictError, InvalidArgumentError, ResourceExhaustedError
 from core.ids import UnsafeIdError, check_id, check_name
 from core.states import RunStatus, Tier
 from services.hot.read import HotRecording
@@ -37,6 +37,7 @@ from services.ingest.identity import (
     IDENTITY_PROPERTY,
     ROBOT_FIELD,
     SecretFields,
+    check_robot,
     read_property_chunk,
 )
 from services.ingest.replay import ReplayHub
@@ -276,7 +277,7 @@ class IngestService:
             prop = read_property_chunk(msg, meta, self.secret_fields)
             if prop.name == IDENTITY_PROPERTY and ROBOT_FIELD in prop.values:
                 robot = check_id("robot id", str(prop.values[ROBOT_FIELD]))  # refused before anything is written
-                self._check_robot(source, run_id, robot)
+                check_robot(source.robot, run_id, robot)
             msg, meta = prop.message, prop.meta  # without its secret fields, if it had any
         if run is None and (prop is not None or msg.store_id.kind == StoreKind.BLUEPRINT):
             self._hold(source, run_id, msg)  # a run starts with its data, not with properties or a layout
@@ -345,17 +346,9 @@ class IngestService:
         self._attach(source, run)
         return run
 
-    def _check_robot(self, source: Source, run_id: str, robot: str) -> None:
-        """A robot's token writes its own runs only."""
-        if source.robot is not None and robot != source.robot:
-            raise PermissionDeniedError(
-                f"run {run_id!r} is robot {robot!r}'s, and this token writes for robot {source.robot!r} only: "
-                "send it with that robot's token"
-            )
-
     def _attach(self, source: Source, run: IngestRun) -> None:
         if source.robot is not None and run.run_id not in source.attached:
-            self._check_robot(source, run.run_id, run.robot_id or self.default_robot)
+            check_robot(source.robot, run.run_id, run.robot_id or self.default_robot)
         if run.run_id not in source.attached:
             source.attached.add(run.run_id)
             if source.live:
@@ -373,7 +366,7 @@ class IngestService:
             )
             raise ConflictError(f"run {run_id!r} is {sealed.tier}: it takes no new data; {fix}")
         if sealed is not None:
-            self._check_robot(source, run_id, sealed.robot_id)
+            check_robot(source.robot, run_id, sealed.robot_id)
         info = source.store_infos.get((StoreKind.RECORDING, run_id))
         version = (info.sdk_version if info is not None else None) or source.version or DEFAULT_VERSION
         hot = self.hot.create(run_id, version, source.robot)

@@ -19,7 +19,7 @@ from core.errors import PermissionDeniedError, UnauthenticatedError
 from services.auth.metadata import bearer_token
 from services.auth.scopes import Principal, Scope
 from services.auth.tokens import FORBIDDEN, MISSING, Auth
-from services.ingest.identity import IDENTITY_PROPERTY, TOKEN_FIELD, FleetClaim, fleet_claim
+from services.ingest.identity import IDENTITY_PROPERTY, TOKEN_FIELD, FleetClaim, check_robot, fleet_claim
 from services.rrd.chunk import chunk_meta
 from services.rrd.messages import ArrowMessage, Event, StoreKind
 
@@ -64,7 +64,7 @@ class CallAuth:
         if not self.auth.enabled:
             return self.auth.authenticate(token, GRPC)  # the local principal: nothing to look up
         principal = await asyncio.to_thread(self.auth.authenticate, token, GRPC)  # may ask the catalog
-        return self._require(principal, GRPC, scopes)
+        return self.auth.authorize(principal, GRPC, *scopes)
 
     async def await_property_token(self, requests: AsyncIterator[bytes], decode: Decode) -> Admitted:
         """Read the stream up to the message carrying its fleet property's token, holding every
@@ -89,27 +89,21 @@ class CallAuth:
             held.append(event)
             if isinstance(event, ArrowMessage) and (claim := _claim_of(event)) is not None:
                 principal = await asyncio.to_thread(self.auth.authenticate, claim.token, STREAM)
-                self._require(principal, STREAM, WRITERS)
+                self.auth.authorize(principal, STREAM, *WRITERS)
                 self._check_robot(principal, claim, event.store_id.recording_id)
                 return Admitted(principal, held, received)
 
-    def _require(self, principal: Principal, surface: str, scopes: tuple[Scope, ...]) -> Principal:
-        try:
-            return principal.require(*scopes)
-        except PermissionDeniedError:
-            self.auth.refused(surface, FORBIDDEN)
-            raise
-
     def _check_robot(self, principal: Principal, claim: FleetClaim, run_id: str) -> None:
-        """A robot's token streams its own runs only. Checked here, before anything is filed: what
-        the SDK sends before its fleet property (the same batch may hold data first) would else be
-        filed before the ingest service sees the robot the property names."""
-        if principal.robot is not None and claim.robot is not None and claim.robot != principal.robot:
+        """Checked here, before anything is filed: what the SDK sends before its fleet property (the
+        same batch may hold data first) would else be filed before the ingest service sees the robot
+        the property names."""
+        if claim.robot is None:
+            return
+        try:
+            check_robot(principal.robot, run_id, claim.robot)
+        except PermissionDeniedError:
             self.auth.refused(STREAM, FORBIDDEN)
-            raise PermissionDeniedError(
-                f"run {run_id!r} is robot {claim.robot!r}'s, and this token writes for robot {principal.robot!r} "
-                "only: send it with that robot's token"
-            )
+            raise
 
     def _no_token(self, what: str) -> UnauthenticatedError:
         self.auth.refused(STREAM, MISSING)
