@@ -122,6 +122,21 @@ def save_run(session: Session, record: RunRecord, now: dt.datetime) -> None:
         )
 
 
+def remove_hot_run(session: Session, run_id: str) -> None:
+    """Remove a run that never left the hot tier (ingest dropped it), and its robot if it has no
+    other run; a sealed run is left alone."""
+    run = session.get(Run, run_id)
+    if run is None or run.tier != Tier.HOT or session.get(RunLifecycle, run_id) is not None:
+        return
+    session.execute(sa.delete(RunEntity).where(RunEntity.run_id == run_id))
+    session.execute(sa.delete(RunTimeline).where(RunTimeline.run_id == run_id))
+    robot_id = run.robot_id
+    session.delete(run)
+    session.flush()
+    if session.scalar(sa.select(sa.func.count()).select_from(Run).where(Run.robot_id == robot_id)) == 0:
+        session.execute(sa.delete(Robot).where(Robot.id == robot_id))
+
+
 @dataclass
 class ObjectRecord:
     name: str

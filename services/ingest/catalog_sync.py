@@ -29,6 +29,7 @@ class CatalogSync:
         self.catalog = catalog
         self.clock = clock
         self._writes = threading.Lock()  # one catalog writer at a time for ingest's own records
+        self.dropped: set[str] = set()  # hot runs dropped by ingest, removed from the catalog at the next save
 
     def take(self, runs: dict[str, IngestRun], default_robot: str) -> list[RunRecord]:
         """Snapshots of the runs that changed since the last flush (cheap: taken on the ingest
@@ -42,10 +43,19 @@ class CatalogSync:
                 records.append(run.record(default_robot))
         return records
 
+    def drop(self, run_id: str) -> None:
+        """Ingest dropped this hot run: its catalog row (if a save got there first) goes at the next
+        save, after any save of it already under way."""
+        self.dropped.add(run_id)
+
     def save(self, records: list[RunRecord], runs: dict[str, IngestRun]) -> None:
         """One transaction for all; if the catalog refuses it for one record's sake, each record on
         its own, so one bad run never holds back the others (it is retried with backoff)."""
-        if not records or self.catalog is None:
+        if self.catalog is None:
+            return
+        if self.dropped:
+            self._remove_dropped()
+        if not records:
             return
         with self._writes:
             try:
@@ -68,6 +78,15 @@ class CatalogSync:
         with session_scope(self.catalog, write=True) as session:
             for record in records:
                 queries.save_run(session, record, now)
+
+    def _remove_dropped(self) -> None:
+        assert self.catalog is not None
+        with self._writes:
+            gone = set(self.dropped)
+            with session_scope(self.catalog, write=True) as session:
+                for run_id in gone:
+                    queries.remove_hot_run(session, run_id)
+            self.dropped -= gone
 
     def _save_one(self, record: RunRecord, runs: dict[str, IngestRun]) -> None:
         run = runs.get(record.id)

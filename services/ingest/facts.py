@@ -93,6 +93,7 @@ class RunFacts:
         self.created_at = now
         self.last_data_at = now
         self.live_sources = 0
+        self.sources = 0  # streams and uploads feeding it now (live or not)
         self.status = RunStatus.LIVE
         self.ended_at: dt.datetime | None = None
         self.dirty = True

@@ -26,7 +26,7 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from catalog.queries import RunRecord
 from core.clock import utcnow
-from core.errors import ConflictError, InvalidArgumentError, ResourceExhaustedError
+from core.errors import ConflictError, InvalidArgumentError, PermissionDeniedError, ResourceExhaustedError
 from core.ids import UnsafeIdError, check_id, check_name
 from core.states import RunStatus, Tier
 from services.hot.read import HotRecording
@@ -172,6 +172,7 @@ class IngestService:
         self.hot.sync_if_always([r.hot for r in runs])
         now = self.clock()
         for run in runs:
+            run.sources -= 1
             if source.live:
                 run.live_sources -= 1
             if run.live_sources == 0 and run.status == RunStatus.LIVE:
@@ -277,7 +278,7 @@ class IngestService:
             prop = read_property_chunk(msg, meta, self.secret_fields)
             if prop.name == IDENTITY_PROPERTY and ROBOT_FIELD in prop.values:
                 robot = check_id("robot id", str(prop.values[ROBOT_FIELD]))  # refused before anything is written
-                check_robot(source.robot, run_id, robot)
+                self._check_named_robot(source, run, robot)
             msg, meta = prop.message, prop.meta  # without its secret fields, if it had any
         if run is None and (prop is not None or msg.store_id.kind == StoreKind.BLUEPRINT):
             self._hold(source, run_id, msg)  # a run starts with its data, not with properties or a layout
@@ -301,6 +302,33 @@ class IngestService:
         )
         source.report.chunks_new += 1
         source.report.bytes_new += len(msg.raw)
+
+    def _check_named_robot(self, source: Source, run: IngestRun | None, robot: str) -> None:
+        """A `robot_id` property that disagrees with the source's token is refused, and the run this
+        source started for it (filed under the token's robot, as its data came first) is dropped:
+        nothing of a refused run is kept, and its id stays free for its own robot."""
+        run_id = source.recording_run if run is None else run.run_id
+        try:
+            check_robot(source.robot, run_id or "", robot)
+        except PermissionDeniedError:
+            if run is not None and run.run_id in source.created and run.sources == 1:
+                self._drop(source, run)
+            raise
+
+    def _drop(self, source: Source, run: IngestRun) -> None:
+        with run.sealing:
+            if run.sealed:  # promotion took it meanwhile: it stays, and says so
+                log.warning("run %s was sealed before its robot was refused; delete it if unwanted", run.run_id)
+                return
+            run.sealed = True  # nothing more is written to it
+        del self.runs[run.run_id]
+        source.attached.discard(run.run_id)
+        source.report.runs = [r for r in source.report.runs if r != run.run_id]
+        self.hot.discard(run.hot)
+        self._catalog_sync.drop(run.run_id)
+        if self.replay is not None:
+            self.replay.end_run(run.run_id)
+        log.info("dropped run %s: its robot_id property disagrees with the token that started it", run.run_id)
 
     def _activation(self, source: Source, msg: BlueprintActivationMessage) -> None:
         run_id = self._run_id_of(source, msg.blueprint_id.kind, msg.blueprint_id.recording_id, msg)
@@ -351,6 +379,7 @@ class IngestService:
             check_robot(source.robot, run.run_id, run.robot_id or self.default_robot)
         if run.run_id not in source.attached:
             source.attached.add(run.run_id)
+            run.sources += 1
             if source.live:
                 run.live_sources += 1
 
@@ -373,6 +402,7 @@ class IngestService:
         run = self.runs[run_id] = IngestRun(hot, self.clock(), self.secret_fields)
         run.robot_id = source.robot or run.robot_id  # the token's robot, until a property names the same one
         run.sealed_as = sealed  # chunks sent after it was sealed: sealed in with the rest later
+        source.created.add(run_id)
         self._attach(source, run)
         for key, store_info in source.store_infos.items():
             if source.run_of_store.get(key) == run_id and key not in run.stores_written:

@@ -47,5 +47,6 @@ class Source:
     held_bytes: int = 0
     store_infos: dict[StoreKey, StoreInfoMessage] = field(default_factory=dict)
     sealed: dict[str, SealedInfo | None] = field(default_factory=dict)  # what `prepare` learnt per run
-    attached: set[str] = field(default_factory=set)  # hot runs this source counts in their live sources
+    attached: set[str] = field(default_factory=set)  # hot runs this source counts in their sources
+    created: set[str] = field(default_factory=set)  # hot runs this source started
     report: IngestReport = field(default_factory=IngestReport)

@@ -39,12 +39,6 @@ def test_the_robot_a_run_names_may_upload_it(depot: Depot, scenes: dict[str, Rec
     assert _run(depot, "rec-properties")["robot_id"] == ROBOT_B
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="the ingest service keeps, under the token's robot, the chunks of the refused run that came "
-    "before its fleet property (the SDK writes that property after the first data chunks): robot A's token "
-    "then holds robot B's run id, and robot B's own upload of it is refused",
-)
 def test_nothing_of_a_run_refused_to_a_robot_token_is_kept(depot: Depot, scenes: dict[str, Recording]):
     robot = bearer(depot.token("ingest", robot=ROBOT_A))
     assert depot.client.post("/v1/uploads", content=scenes["properties"].data, headers=robot).status_code == 403

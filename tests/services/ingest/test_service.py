@@ -17,7 +17,7 @@ from core.errors import FleetError, InsufficientStorageError, InvalidArgumentErr
 from core.ids import UnsafeIdError
 from services.ingest.service import IngestReport, IngestService
 from services.rrd import ArrowMessage, StoreKind, errors, iter_events
-from services.rrd.chunk import read_chunk
+from services.rrd.chunk import chunk_meta, read_chunk
 from services.rrd.messages import BlueprintActivationMessage, StoreInfoMessage
 from services.settings import Durability
 from tests.services.ingest import feeding
@@ -239,3 +239,49 @@ def test_several_recordings_in_one_source(make_service: Factory, recordings: dic
             by_store.setdefault(event.store_id.recording_id, []).append(event.chunk_id)  # type: ignore[arg-type]
     for run_id in ids:
         assert sorted(chunk_ids(service.runs[run_id].hot.path)) == sorted(by_store[run_id])
+
+
+def _data_before_properties(events: list[Any]) -> list[Any]:
+    """The recording's events with its property chunks after its first data chunk (as the SDK's
+    batcher often sends them), so a run exists before its fleet property names its robot."""
+    props = [e for e in events if isinstance(e, ArrowMessage) and chunk_meta(e).entity_path.startswith("/__properties")]
+    rest = [e for e in events if not any(e is p for p in props)]
+    first_data = next(i for i, e in enumerate(rest) if isinstance(e, ArrowMessage))
+    return rest[: first_data + 1] + props + rest[first_data + 1 :]
+
+
+def test_a_run_refused_for_its_robot_is_dropped_even_once_catalogued(
+    make_service: Factory, recordings: dict[str, Recording]
+):
+    service = make_service()
+    events = _data_before_properties(list(iter_events(recordings["properties"].path)))
+    first_data = next(i for i, e in enumerate(events) if isinstance(e, ArrowMessage))
+    stream = service.open_source(live=True, robot="robot-a")
+    feeding.feed(service, stream, events[: first_data + 1])
+    service.flush_catalog()
+    assert catalog_run(service, "rec-properties")["robot_id"] == "robot-a"  # filed under the token's robot so far
+    with pytest.raises(FleetError, match="robot 'robot-7'"):
+        feeding.feed(service, stream, events[first_data + 1 :])
+    service.close_source(stream)
+    service.flush_catalog()
+    assert service.hot_run("rec-properties") is None and list(service.hot.existing()) == []
+    assert service.catalog is not None
+    with session_scope(service.catalog) as session:
+        assert queries.get_run(session, "rec-properties") is None
+        assert queries.list_robots(session) == []  # robot-a had no other run
+    own = service.open_source(live=False, robot="robot-7")
+    feeding.feed(service, own, events)
+    asyncio.run(service.finish_upload(own))
+    assert catalog_run(service, "rec-properties")["robot_id"] == "robot-7"
+
+
+def test_a_refused_robot_keeps_a_run_that_another_source_feeds(make_service: Factory, recordings: dict[str, Recording]):
+    service = make_service()
+    events = _data_before_properties(list(iter_events(recordings["properties"].path)))
+    first_data = next(i for i, e in enumerate(events) if isinstance(e, ArrowMessage))
+    robot_a, other = service.open_source(live=True, robot="robot-a"), service.open_source(live=True, robot="robot-a")
+    feeding.feed(service, robot_a, events[: first_data + 1])
+    feeding.feed(service, other, events[:first_data])  # attached to the same run, not its starter
+    with pytest.raises(FleetError, match="robot 'robot-7'"):
+        feeding.feed(service, robot_a, events[first_data + 1 :])
+    assert service.hot_run("rec-properties") is not None  # another stream still feeds it: not dropped
