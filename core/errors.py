@@ -28,6 +28,7 @@ class ErrorCode(enum.Enum):
     RESOURCE_EXHAUSTED = "RESOURCE_EXHAUSTED"
     INSUFFICIENT_STORAGE = "INSUFFICIENT_STORAGE"
     UNAVAILABLE = "UNAVAILABLE"
+    UNIMPLEMENTED = "UNIMPLEMENTED"
     INTERNAL = "INTERNAL"
 
 
@@ -51,6 +52,7 @@ _STATUS: dict[ErrorCode, tuple[int, str]] = {
     ErrorCode.RESOURCE_EXHAUSTED: (429, "RESOURCE_EXHAUSTED"),
     ErrorCode.INSUFFICIENT_STORAGE: (507, "RESOURCE_EXHAUSTED"),
     ErrorCode.UNAVAILABLE: (503, "UNAVAILABLE"),
+    ErrorCode.UNIMPLEMENTED: (501, "UNIMPLEMENTED"),
     ErrorCode.INTERNAL: (500, "INTERNAL"),
 }
 
@@ -166,6 +168,12 @@ class PermissionDeniedError(FleetError):
 
 class UnavailableError(FleetError):
     code = ErrorCode.UNAVAILABLE
+
+
+class UnimplementedError(FleetError):
+    """A call this depot does not answer (a part of a client protocol it leaves out)."""
+
+    code = ErrorCode.UNIMPLEMENTED
 
 
 class InternalError(FleetError):

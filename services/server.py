@@ -27,6 +27,8 @@ from services.ingest import grpc_handler
 from services.ingest.identity import SecretFields
 from services.ingest.replay import ReplayHub
 from services.ingest.service import IngestService
+from services.redap import grpc_handler as redap_handler
+from services.redap.depot import Depot
 from services.retention.schedule import start_scheduler
 from services.retention.service import Retention
 from services.runtime import tune_allocator
@@ -157,6 +159,10 @@ async def serve(settings: Settings) -> None:
         grpc_handler.MessageProxy(
             ingest, auth, token_wait_s=settings.auth_wait_s, token_buffer_bytes=settings.auth_buffer_bytes
         ),
+    )
+    redap_handler.add_to_server(
+        grpc_server,
+        redap_handler.CatalogServer(Depot(retention.catalog, retention.tiers.warm, ingest, settings.public_url), auth),
     )
     app = create_app(settings, ingest, retention, analytics, auth)
     http = uvicorn.Server(uvicorn.Config(app, log_level="info", lifespan="off"))

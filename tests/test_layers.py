@@ -9,7 +9,8 @@
     sealed                    the sealed-run format (recording, chunk index, run.json) and its tiers
     analytics                 extraction at promotion, SQL over what was extracted
     retention | runs          promotion, archive, expiry | serving runs (neither imports the other)
-    api, then server, then cli   the REST app and the gRPC port; the wiring; the command line
+    api | redap               the REST app and the gRPC port's front | the Rerun catalog server
+    server, then cli          the wiring; the command line
 
 An import from a layer to one above it, or between two modules of one layer (other than within a
 package), fails this test, which names the file and the import. Imports inside functions and under
@@ -45,6 +46,7 @@ LAYERS: dict[str, int] = {
     "services.retention": 7,
     "services.runs": 7,
     "services.api": 8,
+    "services.redap": 8,
     "services.server": 9,
     "services.cli": 10,
 }

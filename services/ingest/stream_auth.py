@@ -16,15 +16,14 @@ from dataclasses import dataclass
 from typing import Any
 
 from core.errors import PermissionDeniedError, UnauthenticatedError
-from services.auth.metadata import bearer_token
+from services.auth.metadata import GRPC, bearer_token
 from services.auth.scopes import Principal, Scope
 from services.auth.tokens import FORBIDDEN, MISSING, Auth
 from services.ingest.identity import IDENTITY_PROPERTY, TOKEN_FIELD, FleetClaim, check_robot, fleet_claim
 from services.rrd.chunk import chunk_meta
 from services.rrd.messages import ArrowMessage, Event, StoreKind
 
-GRPC = "grpc"  # surfaces, as refusals are counted in /metrics: a call's metadata,
-STREAM = "stream"  # and the token of an SDK stream's fleet property
+STREAM = "stream"  # the surface of an SDK stream's fleet property token, as refusals are counted
 WRITERS = (Scope.INGEST, Scope.WRITE)  # who may stream runs in
 Metadata = Iterable[tuple[str, Any]] | None
 Decode = Callable[[bytes, int], Event]  # a request's bytes and its offset in the stream -> its message

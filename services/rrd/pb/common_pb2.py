@@ -24,19 +24,25 @@ _sym_db = _symbol_database.Default()
 
 
 
-DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x1cservices/rrd/pb/common.proto\x12\x15rerun.common.v1alpha1\"\x1b\n\rApplicationId\x12\n\n\x02id\x18\x01 \x01(\t\"\x8d\x01\n\x07StoreId\x12.\n\x04kind\x18\x01 \x01(\x0e\x32 .rerun.common.v1alpha1.StoreKind\x12\x14\n\x0crecording_id\x18\x02 \x01(\t\x12<\n\x0e\x61pplication_id\x18\x03 \x01(\x0b\x32$.rerun.common.v1alpha1.ApplicationId\"B\n\x04Tuid\x12\x14\n\x07time_ns\x18\x01 \x01(\x06H\x00\x88\x01\x01\x12\x10\n\x03inc\x18\x02 \x01(\x06H\x01\x88\x01\x01\x42\n\n\x08_time_nsB\x06\n\x04_inc\"\x1e\n\x06Schema\x12\x14\n\x0c\x61rrow_schema\x18\x01 \x01(\x0c\"\xb4\x01\n\rDataframePart\x12>\n\x0f\x65ncoder_version\x18\x01 \x01(\x0e\x32%.rerun.common.v1alpha1.EncoderVersion\x12\x0f\n\x07payload\x18\x02 \x01(\x0c\x12\x37\n\x0b\x63ompression\x18\x03 \x01(\x0e\x32\".rerun.common.v1alpha1.Compression\x12\x19\n\x11uncompressed_size\x18\x04 \x01(\x04*[\n\tStoreKind\x12\x1a\n\x16STORE_KIND_UNSPECIFIED\x10\x00\x12\x18\n\x14STORE_KIND_RECORDING\x10\x01\x12\x18\n\x14STORE_KIND_BLUEPRINT\x10\x02*U\n\x0b\x43ompression\x12\x1b\n\x17\x43OMPRESSION_UNSPECIFIED\x10\x00\x12\x14\n\x10\x43OMPRESSION_NONE\x10\x01\x12\x13\n\x0f\x43OMPRESSION_LZ4\x10\x02*I\n\x0e\x45ncoderVersion\x12\x1f\n\x1b\x45NCODER_VERSION_UNSPECIFIED\x10\x00\x12\x16\n\x12\x45NCODER_VERSION_V0\x10\x01\x62\x06proto3')
+DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x1cservices/rrd/pb/common.proto\x12\x15rerun.common.v1alpha1\"\x1b\n\rApplicationId\x12\n\n\x02id\x18\x01 \x01(\t\"\x8d\x01\n\x07StoreId\x12.\n\x04kind\x18\x01 \x01(\x0e\x32 .rerun.common.v1alpha1.StoreKind\x12\x14\n\x0crecording_id\x18\x02 \x01(\t\x12<\n\x0e\x61pplication_id\x18\x03 \x01(\x0b\x32$.rerun.common.v1alpha1.ApplicationId\"B\n\x04Tuid\x12\x14\n\x07time_ns\x18\x01 \x01(\x06H\x00\x88\x01\x01\x12\x10\n\x03inc\x18\x02 \x01(\x06H\x01\x88\x01\x01\x42\n\n\x08_time_nsB\x06\n\x04_inc\"\x1e\n\x06Schema\x12\x14\n\x0c\x61rrow_schema\x18\x01 \x01(\x0c\"\xb4\x01\n\rDataframePart\x12>\n\x0f\x65ncoder_version\x18\x01 \x01(\x0e\x32%.rerun.common.v1alpha1.EncoderVersion\x12\x0f\n\x07payload\x18\x02 \x01(\x0c\x12\x37\n\x0b\x63ompression\x18\x03 \x01(\x0e\x32\".rerun.common.v1alpha1.Compression\x12\x19\n\x11uncompressed_size\x18\x04 \x01(\x04\"2\n\x07\x45ntryId\x12\'\n\x02id\x18\x01 \x01(\x0b\x32\x1b.rerun.common.v1alpha1.Tuid\"#\n\tSegmentId\x12\x0f\n\x02id\x18\x01 \x01(\tH\x00\x88\x01\x01\x42\x05\n\x03_id\"\x1a\n\nEntityPath\x12\x0c\n\x04path\x18\x01 \x01(\t\"\x18\n\x08Timeline\x12\x0c\n\x04name\x18\x01 \x01(\t\"\'\n\tTimeRange\x12\r\n\x05start\x18\x01 \x01(\x03\x12\x0b\n\x03\x65nd\x18\x02 \x01(\x03\"H\n\x13IndexColumnSelector\x12\x31\n\x08timeline\x18\x01 \x01(\x0b\x32\x1f.rerun.common.v1alpha1.Timeline\"\xdf\x01\n\rDatasetHandle\x12\x30\n\x08\x65ntry_id\x18\x01 \x01(\x0b\x32\x1e.rerun.common.v1alpha1.EntryId\x12\x38\n\nstore_kind\x18\x03 \x01(\x0e\x32 .rerun.common.v1alpha1.StoreKindB\x02\x18\x01\x12\x38\n\x0c\x64\x61taset_kind\x18\x04 \x01(\x0e\x32\".rerun.common.v1alpha1.DatasetKind\x12\x18\n\x0b\x64\x61taset_url\x18\x02 \x01(\tH\x00\x88\x01\x01\x42\x0e\n\x0c_dataset_url\"m\n\x19ScanParametersOrderClause\x12\x12\n\ndescending\x18\x01 \x01(\x08\x12\x12\n\nnulls_last\x18\x02 \x01(\x08\x12\x18\n\x0b\x63olumn_name\x18\x03 \x01(\tH\x00\x88\x01\x01\x42\x0e\n\x0c_column_name\"\xcb\x02\n\x0eScanParameters\x12\x0f\n\x07\x63olumns\x18\x01 \x03(\t\x12\x44\n\x12on_missing_columns\x18\x02 \x01(\x0e\x32(.rerun.common.v1alpha1.IfMissingBehavior\x12\x13\n\x06\x66ilter\x18\x03 \x01(\tH\x00\x88\x01\x01\x12\x19\n\x0climit_offset\x18\x04 \x01(\x03H\x01\x88\x01\x01\x12\x16\n\tlimit_len\x18\x05 \x01(\x03H\x02\x88\x01\x01\x12\x42\n\x08order_by\x18\x06 \x03(\x0b\x32\x30.rerun.common.v1alpha1.ScanParametersOrderClause\x12\x14\n\x0c\x65xplain_plan\x18\x07 \x01(\x08\x12\x16\n\x0e\x65xplain_filter\x18\x08 \x01(\x08\x42\t\n\x07_filterB\x0f\n\r_limit_offsetB\x0c\n\n_limit_len\"H\n\x08\x44\x65vAlpha\x12\x12\n\x05\x61lpha\x18\x01 \x01(\x07H\x00\x88\x01\x01\x12\x13\n\x06\x63ommit\x18\x02 \x01(\tH\x01\x88\x01\x01\x42\x08\n\x06_alphaB\t\n\x07_commit\"\xc8\x01\n\x0fSemanticVersion\x12\x12\n\x05major\x18\x01 \x01(\x07H\x01\x88\x01\x01\x12\x12\n\x05minor\x18\x02 \x01(\x07H\x02\x88\x01\x01\x12\x12\n\x05patch\x18\x03 \x01(\x07H\x03\x88\x01\x01\x12\x0c\n\x02rc\x18\x04 \x01(\x07H\x00\x12\x0f\n\x05\x61lpha\x18\x05 \x01(\x07H\x00\x12\x34\n\tdev_alpha\x18\x06 \x01(\x0b\x32\x1f.rerun.common.v1alpha1.DevAlphaH\x00\x42\x06\n\x04metaB\x08\n\x06_majorB\x08\n\x06_minorB\x08\n\x06_patch\"\xcd\x03\n\tBuildInfo\x12\x17\n\ncrate_name\x18\x01 \x01(\tH\x00\x88\x01\x01\x12\x15\n\x08\x66\x65\x61tures\x18\x02 \x01(\tH\x01\x88\x01\x01\x12<\n\x07version\x18\x03 \x01(\x0b\x32&.rerun.common.v1alpha1.SemanticVersionH\x02\x88\x01\x01\x12\x1a\n\rrustc_version\x18\x04 \x01(\tH\x03\x88\x01\x01\x12\x19\n\x0cllvm_version\x18\x05 \x01(\tH\x04\x88\x01\x01\x12\x15\n\x08git_hash\x18\x06 \x01(\tH\x05\x88\x01\x01\x12\x17\n\ngit_branch\x18\x07 \x01(\tH\x06\x88\x01\x01\x12\x1a\n\rtarget_triple\x18\x08 \x01(\tH\x07\x88\x01\x01\x12\x17\n\nbuild_time\x18\t \x01(\tH\x08\x88\x01\x01\x12\x1b\n\x0eis_debug_build\x18\n \x01(\x08H\t\x88\x01\x01\x42\r\n\x0b_crate_nameB\x0b\n\t_featuresB\n\n\x08_versionB\x10\n\x0e_rustc_versionB\x0f\n\r_llvm_versionB\x0b\n\t_git_hashB\r\n\x0b_git_branchB\x10\n\x0e_target_tripleB\r\n\x0b_build_timeB\x11\n\x0f_is_debug_build*[\n\tStoreKind\x12\x1a\n\x16STORE_KIND_UNSPECIFIED\x10\x00\x12\x18\n\x14STORE_KIND_RECORDING\x10\x01\x12\x18\n\x14STORE_KIND_BLUEPRINT\x10\x02*U\n\x0b\x43ompression\x12\x1b\n\x17\x43OMPRESSION_UNSPECIFIED\x10\x00\x12\x14\n\x10\x43OMPRESSION_NONE\x10\x01\x12\x13\n\x0f\x43OMPRESSION_LZ4\x10\x02*I\n\x0e\x45ncoderVersion\x12\x1f\n\x1b\x45NCODER_VERSION_UNSPECIFIED\x10\x00\x12\x16\n\x12\x45NCODER_VERSION_V0\x10\x01*{\n\x0b\x44\x61tasetKind\x12\x1c\n\x18\x44\x41TASET_KIND_UNSPECIFIED\x10\x00\x12\x1a\n\x16\x44\x41TASET_KIND_RECORDING\x10\x01\x12\x1a\n\x16\x44\x41TASET_KIND_BLUEPRINT\x10\x02\x12\x16\n\x12\x44\x41TASET_KIND_ASSET\x10\x03*u\n\x11IfMissingBehavior\x12#\n\x1fIF_MISSING_BEHAVIOR_UNSPECIFIED\x10\x00\x12\x1c\n\x18IF_MISSING_BEHAVIOR_SKIP\x10\x01\x12\x1d\n\x19IF_MISSING_BEHAVIOR_ERROR\x10\x02\x62\x06proto3')
 
 _globals = globals()
 _builder.BuildMessageAndEnumDescriptors(DESCRIPTOR, _globals)
 _builder.BuildTopDescriptorsAndMessages(DESCRIPTOR, 'services.rrd.pb.common_pb2', _globals)
 if not _descriptor._USE_C_DESCRIPTORS:
   DESCRIPTOR._loaded_options = None
-  _globals['_STOREKIND']._serialized_start=511
-  _globals['_STOREKIND']._serialized_end=602
-  _globals['_COMPRESSION']._serialized_start=604
-  _globals['_COMPRESSION']._serialized_end=689
-  _globals['_ENCODERVERSION']._serialized_start=691
-  _globals['_ENCODERVERSION']._serialized_end=764
+  _globals['_DATASETHANDLE'].fields_by_name['store_kind']._loaded_options = None
+  _globals['_DATASETHANDLE'].fields_by_name['store_kind']._serialized_options = b'\030\001'
+  _globals['_STOREKIND']._serialized_start=2181
+  _globals['_STOREKIND']._serialized_end=2272
+  _globals['_COMPRESSION']._serialized_start=2274
+  _globals['_COMPRESSION']._serialized_end=2359
+  _globals['_ENCODERVERSION']._serialized_start=2361
+  _globals['_ENCODERVERSION']._serialized_end=2434
+  _globals['_DATASETKIND']._serialized_start=2436
+  _globals['_DATASETKIND']._serialized_end=2559
+  _globals['_IFMISSINGBEHAVIOR']._serialized_start=2561
+  _globals['_IFMISSINGBEHAVIOR']._serialized_end=2678
   _globals['_APPLICATIONID']._serialized_start=55
   _globals['_APPLICATIONID']._serialized_end=82
   _globals['_STOREID']._serialized_start=85
@@ -47,4 +53,28 @@ if not _descriptor._USE_C_DESCRIPTORS:
   _globals['_SCHEMA']._serialized_end=326
   _globals['_DATAFRAMEPART']._serialized_start=329
   _globals['_DATAFRAMEPART']._serialized_end=509
+  _globals['_ENTRYID']._serialized_start=511
+  _globals['_ENTRYID']._serialized_end=561
+  _globals['_SEGMENTID']._serialized_start=563
+  _globals['_SEGMENTID']._serialized_end=598
+  _globals['_ENTITYPATH']._serialized_start=600
+  _globals['_ENTITYPATH']._serialized_end=626
+  _globals['_TIMELINE']._serialized_start=628
+  _globals['_TIMELINE']._serialized_end=652
+  _globals['_TIMERANGE']._serialized_start=654
+  _globals['_TIMERANGE']._serialized_end=693
+  _globals['_INDEXCOLUMNSELECTOR']._serialized_start=695
+  _globals['_INDEXCOLUMNSELECTOR']._serialized_end=767
+  _globals['_DATASETHANDLE']._serialized_start=770
+  _globals['_DATASETHANDLE']._serialized_end=993
+  _globals['_SCANPARAMETERSORDERCLAUSE']._serialized_start=995
+  _globals['_SCANPARAMETERSORDERCLAUSE']._serialized_end=1104
+  _globals['_SCANPARAMETERS']._serialized_start=1107
+  _globals['_SCANPARAMETERS']._serialized_end=1438
+  _globals['_DEVALPHA']._serialized_start=1440
+  _globals['_DEVALPHA']._serialized_end=1512
+  _globals['_SEMANTICVERSION']._serialized_start=1515
+  _globals['_SEMANTICVERSION']._serialized_end=1715
+  _globals['_BUILDINFO']._serialized_start=1718
+  _globals['_BUILDINFO']._serialized_end=2179
 # @@protoc_insertion_point(module_scope)

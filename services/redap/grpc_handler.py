@@ -1,0 +1,173 @@
+"""gRPC `rerun.cloud.v1alpha1.RerunCloudService`: parse the call (its token, its
+`x-rerun-entry-id`, its client version), call a service function off the event loop, and map
+errors to gRPC statuses. The answers are built in `entries`, `segments`, `manifest`, `chunks` and
+`query`."""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+from collections.abc import AsyncIterator, Callable, Iterable, Iterator
+from typing import Any, NoReturn, TypeVar
+
+import grpc
+from google.protobuf.message import Message
+
+from core.errors import FleetError, InvalidArgumentError
+from services.auth.metadata import call_principal
+from services.auth.scopes import Principal, Scope
+from services.auth.tokens import Auth
+from services.redap import chunks, entries, manifest, query, segments
+from services.redap.clients import check_client
+from services.redap.depot import Depot
+from services.redap.pb import cloud_pb2, cloud_pb2_grpc
+from services.redap.tuid import Tuid
+
+log = logging.getLogger(__name__)
+
+ENTRY_ID_HEADER = "x-rerun-entry-id"
+R = TypeVar("R", bound=Message)
+Metadata = Iterable[tuple[str, Any]] | None
+
+
+def entry_id(metadata: Metadata) -> Tuid:
+    """The dataset or table a call is about: its `x-rerun-entry-id` header (INVALID_ARGUMENT without)."""
+    for key, value in metadata or ():
+        if key == ENTRY_ID_HEADER:
+            return Tuid.parse(value.decode() if isinstance(value, bytes) else str(value))
+    raise InvalidArgumentError(f"this call needs the {ENTRY_ID_HEADER} header naming a dataset or table")
+
+
+async def _abort(context: grpc.aio.ServicerContext, exc: FleetError) -> NoReturn:
+    await context.abort(grpc.StatusCode[exc.grpc_status()], str(exc))
+    raise AssertionError("not reached: abort raises")
+
+
+class CatalogServer(cloud_pb2_grpc.RerunCloudServiceServicer):
+    def __init__(self, depot: Depot, auth: Auth) -> None:
+        self.depot = depot
+        self.auth = auth
+
+    async def _caller(self, context: grpc.aio.ServicerContext, *scopes: Scope) -> Principal:
+        metadata = context.invocation_metadata()
+        check_client(metadata)
+        return await call_principal(self.auth, metadata, *scopes)
+
+    async def _unary(
+        self,
+        context: grpc.aio.ServicerContext,
+        answer: Callable[..., R],
+        *args: Any,
+        scopes: tuple[Scope, ...],
+        entry: bool = False,
+    ) -> R:
+        """`answer(depot, principal, [entry id,] *args)` on a worker thread; `entry`: the call names
+        its dataset or table by header."""
+        try:
+            principal = await self._caller(context, *scopes)
+            named = (entry_id(context.invocation_metadata()),) if entry else ()
+            return await asyncio.to_thread(answer, self.depot, principal, *named, *args)
+        except FleetError as exc:
+            await _abort(context, exc)
+
+    async def _stream(
+        self,
+        context: grpc.aio.ServicerContext,
+        answers: Callable[..., Iterator[R]],
+        *args: Any,
+        scopes: tuple[Scope, ...],
+        entry: bool = False,
+    ) -> AsyncIterator[R]:
+        """As `_unary`, for a stream: each response made on a worker thread, one at a time, so a
+        large answer is never whole in memory and the event loop never blocks."""
+        try:
+            principal = await self._caller(context, *scopes)
+            named = (entry_id(context.invocation_metadata()),) if entry else ()
+            made = await asyncio.to_thread(answers, self.depot, principal, *named, *args)
+            while (response := await asyncio.to_thread(next, made, None)) is not None:
+                yield response
+        except FleetError as exc:
+            await _abort(context, exc)
+
+    # --- the server and its catalog -------------------------------------------------------
+
+    async def Version(self, request: cloud_pb2.VersionRequest, context: Any) -> cloud_pb2.VersionResponse:
+        return entries.version()  # open, as Rerun's own servers answer it
+
+    async def WhoAmI(self, request: cloud_pb2.WhoAmIRequest, context: Any) -> cloud_pb2.WhoAmIResponse:
+        # Any valid token may ask what it may do; anonymous callers are UNAUTHENTICATED when auth is on,
+        # which is what makes Rerun's clients offer a token.
+        return await self._unary(context, entries.who_am_i, scopes=tuple(Scope))
+
+    async def FindEntries(self, request: cloud_pb2.FindEntriesRequest, context: Any) -> cloud_pb2.FindEntriesResponse:
+        return await self._unary(context, entries.find_entries, request, scopes=(Scope.READ,))
+
+    async def ReadDatasetEntry(
+        self, request: cloud_pb2.ReadDatasetEntryRequest, context: Any
+    ) -> cloud_pb2.ReadDatasetEntryResponse:
+        return await self._unary(context, entries.read_dataset_entry, scopes=(Scope.READ,), entry=True)
+
+    async def ReadTableEntry(
+        self, request: cloud_pb2.ReadTableEntryRequest, context: Any
+    ) -> cloud_pb2.ReadTableEntryResponse:
+        return await self._unary(context, entries.read_table_entry, request, scopes=(Scope.READ,), entry=True)
+
+    async def GetTableSchema(
+        self, request: cloud_pb2.GetTableSchemaRequest, context: Any
+    ) -> cloud_pb2.GetTableSchemaResponse:
+        return await self._unary(context, entries.table_schema, request, scopes=(Scope.READ,), entry=True)
+
+    def ScanTable(
+        self, request: cloud_pb2.ScanTableRequest, context: Any
+    ) -> AsyncIterator[cloud_pb2.ScanTableResponse]:
+        return self._stream(context, entries.scan_table, request, scopes=(Scope.READ,), entry=True)
+
+    # --- a dataset's segments (runs) -------------------------------------------------------
+
+    async def GetSegmentTableSchema(
+        self, request: cloud_pb2.GetSegmentTableSchemaRequest, context: Any
+    ) -> cloud_pb2.GetSegmentTableSchemaResponse:
+        return await self._unary(context, segments.table_schema, scopes=(Scope.READ,), entry=True)
+
+    def ScanSegmentTable(
+        self, request: cloud_pb2.ScanSegmentTableRequest, context: Any
+    ) -> AsyncIterator[cloud_pb2.ScanSegmentTableResponse]:
+        return self._stream(context, segments.scan, request, scopes=(Scope.READ,), entry=True)
+
+    # --- opening a segment in the viewer ---------------------------------------------------
+
+    def GetRrdManifest(
+        self, request: cloud_pb2.GetRrdManifestRequest, context: Any
+    ) -> AsyncIterator[cloud_pb2.GetRrdManifestResponse]:
+        return self._stream(context, manifest.rrd_manifest, request, scopes=(Scope.READ,), entry=True)
+
+    def GetAssetsForSegment(
+        self, request: cloud_pb2.GetAssetsForSegmentRequest, context: Any
+    ) -> AsyncIterator[cloud_pb2.GetAssetsForSegmentResponse]:
+        return self._stream(context, manifest.assets, request, scopes=(Scope.READ,), entry=True)
+
+    def FetchChunks(
+        self, request: cloud_pb2.FetchChunksRequest, context: Any
+    ) -> AsyncIterator[cloud_pb2.FetchChunksResponse]:
+        return self._stream(context, chunks.fetch_chunks, request, scopes=(Scope.READ,))
+
+    # --- querying from the SDK -------------------------------------------------------------
+
+    async def GetDatasetSchema(
+        self, request: cloud_pb2.GetDatasetSchemaRequest, context: Any
+    ) -> cloud_pb2.GetDatasetSchemaResponse:
+        return await self._unary(context, query.dataset_schema, scopes=(Scope.READ,), entry=True)
+
+    def FindChunks(
+        self, request: cloud_pb2.FindChunksRequest, context: Any
+    ) -> AsyncIterator[cloud_pb2.FindChunksResponse]:
+        return self._stream(context, query.find_chunks, request, scopes=(Scope.READ,), entry=True)
+
+    def QueryDataset(
+        self, request: cloud_pb2.QueryDatasetRequest, context: Any
+    ) -> AsyncIterator[cloud_pb2.QueryDatasetResponse]:
+        return self._stream(context, query.query_dataset, request, scopes=(Scope.READ,), entry=True)
+
+
+def add_to_server(server: grpc.aio.Server, catalog_server: CatalogServer) -> None:
+    cloud_pb2_grpc.add_RerunCloudServiceServicer_to_server(catalog_server, server)  # type: ignore[no-untyped-call]

@@ -1,0 +1,95 @@
+"""Shared pieces of the catalog-server tests: a small client of the protocol (our generated stubs,
+with Rerun's headers), the reference `rerun server` serving the same files, and a depot holding
+runs logged with the real SDK."""
+
+from __future__ import annotations
+
+import shutil
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import grpc
+import pytest
+
+from services.redap.pb import cloud_pb2, cloud_pb2_grpc
+from tests.services.rrd.recordings import Recording
+from tests.subprocess_server import ServerProcess, free_port
+
+CLIENT_VERSION = "rerun-py/0.41.0"
+
+
+def grpc_answers(port: int) -> bool:
+    """The server answers gRPC: a Version call returns (any status but UNAVAILABLE)."""
+    with grpc.insecure_channel(f"127.0.0.1:{port}") as channel:
+        try:
+            cloud_pb2_grpc.RerunCloudServiceStub(channel).Version(cloud_pb2.VersionRequest(), timeout=1)
+        except grpc.RpcError as exc:
+            return bool(exc.code() != grpc.StatusCode.UNAVAILABLE)
+    return True
+
+
+@dataclass
+class Redap:
+    """A client of a catalog server on `port`: every call carries Rerun's client-version header, the
+    token if given, and `x-rerun-entry-id` when `entry` is given."""
+
+    port: int
+    token: str | None = None
+    client_version: str = CLIENT_VERSION
+    channel: grpc.Channel = field(init=False)
+
+    def __post_init__(self) -> None:
+        self.channel = grpc.insecure_channel(f"127.0.0.1:{self.port}")
+        self.stub = cloud_pb2_grpc.RerunCloudServiceStub(self.channel)
+
+    def metadata(self, entry: str | None = None) -> list[tuple[str, str]]:
+        md = [("x-rerun-client-version", self.client_version)]
+        if self.token:
+            md.append(("authorization", f"Bearer {self.token}"))
+        if entry is not None:
+            md.append(("x-rerun-entry-id", entry))
+        return md
+
+    def call(self, rpc: str, request: Any, entry: str | None = None, timeout: float = 30) -> Any:
+        """A unary call's response, or a list of a streaming call's responses."""
+        answer = getattr(self.stub, rpc)(request, metadata=self.metadata(entry), timeout=timeout)
+        return answer if hasattr(answer, "SerializeToString") else list(answer)
+
+    def close(self) -> None:
+        self.channel.close()
+
+
+@pytest.fixture
+def reference_server(rerun_bin: str, tmp_path: Path) -> Iterator[Any]:
+    """Start Rerun's own `rerun server -d NAME=DIR` on the given recordings (a dataset per name);
+    returns a `Redap` client of it. Stopped at the end of the test."""
+    started: list[ServerProcess] = []
+    clients: list[Redap] = []
+
+    def start(datasets: dict[str, list[Recording]]) -> Redap:
+        args = []
+        for name, recordings in datasets.items():
+            folder = tmp_path / f"reference-{name}"
+            folder.mkdir()
+            for rec in recordings:
+                shutil.copy(rec.path, folder / Path(rec.path).name)
+            args += ["-d", f"{name}={folder}"]
+        port = free_port()
+        server = ServerProcess(
+            [rerun_bin, "server", "--host", "127.0.0.1", "-p", str(port), *args],
+            log=tmp_path / "reference-server.log",
+            ready=lambda: grpc_answers(port),
+            name="rerun server",
+        )
+        server.start(timeout=60)
+        started.append(server)
+        clients.append(Redap(port))
+        return clients[-1]
+
+    yield start
+    for client in clients:
+        client.close()
+    for server in started:
+        server.stop()
