@@ -162,3 +162,17 @@ class ApiToken(Base):
     expires_at: Mapped[dt.datetime | None] = mapped_column(DateTime(timezone=True))
     revoked_at: Mapped[dt.datetime | None] = mapped_column(DateTime(timezone=True))
     revoked_by: Mapped[str | None] = mapped_column(String(256))
+
+
+class Dataset(Base):
+    """A dataset of Rerun's catalog protocol: the runs of one application id, which share their
+    entity layout. Its entry id is a TUID (32 hex digits) that Rerun's clients keep in URLs, so it
+    never changes: made when the first run of the application is catalogued, copied into each
+    sealed run's run.json so that a catalog rebuild keeps it."""
+
+    __tablename__ = "datasets"
+
+    name: Mapped[str] = mapped_column(Text, primary_key=True)  # the application id
+    entry_id: Mapped[str] = mapped_column(String(32))
+    created_at: Mapped[dt.datetime] = mapped_column(DateTime(timezone=True))
+    updated_at: Mapped[dt.datetime] = mapped_column(DateTime(timezone=True))  # a run was added

@@ -11,9 +11,20 @@ from typing import Any
 import sqlalchemy as sa
 from sqlalchemy.orm import Session
 
-from catalog.models import JobRun, RetentionEvent, Robot, Run, RunEntity, RunLifecycle, RunObject, RunTimeline
+from catalog.models import (
+    Dataset,
+    JobRun,
+    RetentionEvent,
+    Robot,
+    Run,
+    RunEntity,
+    RunLifecycle,
+    RunObject,
+    RunTimeline,
+)
 from core.clock import aware
 from core.errors import NotFoundError
+from core.ids import new_entry_id
 from core.states import Tier
 
 
@@ -67,6 +78,8 @@ def save_run(session: Session, record: RunRecord, now: dt.datetime) -> None:
         robot.last_seen_at = record.last_data_at
     run = session.get(Run, record.id)
     if run is None:
+        if record.application_id:  # a new run of the dataset (made with its first run)
+            ensure_dataset(session, record.application_id, now).updated_at = now
         run = Run(id=record.id, created_at=now, pinned=False)
         session.add(run)
     elif run.tier != Tier.HOT and record.tier == Tier.HOT:
@@ -120,6 +133,27 @@ def save_run(session: Session, record: RunRecord, now: dt.datetime) -> None:
                 for t in record.timelines
             ],
         )
+
+
+def ensure_dataset(session: Session, name: str, now: dt.datetime, entry_id: str | None = None) -> Dataset:
+    """The dataset of application `name`, made if it has none yet (with `entry_id` when a rebuild
+    restores the one it had, else a new one)."""
+    dataset = session.get(Dataset, name)
+    if dataset is None:
+        made = entry_id or new_entry_id(name, int(now.timestamp() * 1e9))
+        dataset = Dataset(name=name, entry_id=made, created_at=now, updated_at=now)
+        session.add(dataset)
+        session.flush()
+    return dataset
+
+
+def datasets(session: Session) -> list[Dataset]:
+    return list(session.scalars(sa.select(Dataset).order_by(Dataset.name)))
+
+
+def dataset_entry_id(session: Session, name: str) -> str | None:
+    dataset = session.get(Dataset, name)
+    return dataset.entry_id if dataset is not None else None
 
 
 def remove_hot_run(session: Session, run_id: str) -> None:

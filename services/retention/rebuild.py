@@ -116,6 +116,8 @@ def _insert(
     record = dataclasses.replace(found.record, tier=tier)
     objects = [dataclasses.replace(o, tier=tier) if o.name == RECORDING else o for o in found.objects]
     with session_scope(catalog, write=True) as session:
+        if record.application_id:  # the entry id Rerun's clients know it by, kept in run.json
+            queries.ensure_dataset(session, record.application_id, now, found.dataset_id)
         queries.save_run(session, record, now)
         run = queries.get_run(session, record.id)
         assert run is not None

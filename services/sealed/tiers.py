@@ -70,6 +70,7 @@ class RunJson:
     pinned: bool
     sealed_at: dt.datetime
     pinned_by: str | None = None
+    dataset_id: str | None = None  # its application's entry id in Rerun's catalog protocol (a copy)
 
     @property
     def key(self) -> str:
@@ -82,6 +83,7 @@ class RunJson:
             "sealed_at": self.sealed_at.isoformat(),
             "pinned": self.pinned,
             "pinned_by": self.pinned_by if self.pinned else None,
+            "dataset_id": self.dataset_id,
             "run": asdict(self.record),
             "objects": [asdict(o) for o in self.objects],
         }
@@ -123,7 +125,15 @@ def parse_run_json(data: bytes) -> RunJson:
         timelines=[TimelineRecord(**t) for t in run["timelines"]],
     )
     objects = [queries.ObjectRecord(**o) for o in body["objects"]]
-    return RunJson(record, body["prefix"], objects, bool(body.get("pinned")), sealed_at, body.get("pinned_by"))
+    return RunJson(
+        record,
+        body["prefix"],
+        objects,
+        bool(body.get("pinned")),
+        sealed_at,
+        body.get("pinned_by"),
+        body.get("dataset_id"),  # absent from run.json written before datasets existed
+    )
 
 
 def catalog_run_json(session: Session, run_id: str) -> RunJson | None:
@@ -138,7 +148,8 @@ def catalog_run_json(session: Session, run_id: str) -> RunJson | None:
         queries.ObjectRecord(o.name, o.key, o.tier, o.size, o.sha256)
         for o in queries.run_objects(session, run_id).values()
     ]
-    return RunJson(record, life.prefix, objects, pinned, aware(life.promoted_at), pinned_by)
+    dataset_id = queries.dataset_entry_id(session, record.application_id)
+    return RunJson(record, life.prefix, objects, pinned, aware(life.promoted_at), pinned_by, dataset_id)
 
 
 def write_run_json(session: Session, warm: ObjectStore, run_id: str) -> None:
