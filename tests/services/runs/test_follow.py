@@ -26,7 +26,11 @@ def test_follow_streams_a_live_run_until_it_closes(server: LiveServer, tmp_path:
     copy, run_id = tmp_path / "copy.rrd", "follow-run-1"
     robot = start_robot("live", server.grpc_url, str(copy), run_id)
     assert robot.stdout is not None and robot.stdin is not None
-    assert robot.stdout.readline().strip() == "READY"
+    assert robot.stdout.readline().strip() == "READY"  # sent by the SDK: not yet filed by the depot, maybe
+    server.wait_for(
+        lambda: httpx.get(f"{server.url}/v1/runs/{run_id}/recording.rrd", timeout=10).status_code == 200,
+        what="the live run to be served",
+    )
     received = bytearray()
     first_data = threading.Event()
     done = threading.Event()
