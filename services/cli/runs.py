@@ -245,13 +245,20 @@ def _advance(progress: Progress, task: TaskID, count: int) -> None:
     type=Duration(),
     help="with auth on, how long the signed link works: 30m, 12h, 7d at most [default: the service's FLEET_LINK_TTL_S]",
 )
-def view(api_url: str, run_id: str, open_viewer: bool, expires: dt.timedelta | None, **filters: Any) -> None:
+@click.option("--follow", is_flag=True, help="a live run: keep showing what it sends until it closes")
+def view(
+    api_url: str, run_id: str, open_viewer: bool, expires: dt.timedelta | None, follow: bool, **filters: Any
+) -> None:
     """Print the `rerun` command that opens a run (or a part of it) in the viewer.
 
     With auth on, the URL is a signed link that expires: the viewer, a browser or a colleague
     opens it with no token, and it reads only this run with these filters; anyone holding it can
-    until it expires (or until the token that asked for it is revoked). With auth off, the plain URL."""
+    until it expires (or until the token that asked for it is revoked). With auth off, the plain URL.
+    With --follow, the viewer follows a live run over HTTP (Rerun's viewer sends no token to the
+    message proxy, so with auth on this is how to watch one run live)."""
     params = _recording_params(**filters)
+    if follow:
+        params["follow"] = "true"
     with client(api_url) as fleet:
         fleet.check_recording(run_id, **params)  # an unknown run or a bad time: one line now, not an empty viewer
         link = fleet.recording_link(run_id, expires.total_seconds() if expires else None, **params)

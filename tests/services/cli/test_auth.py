@@ -203,3 +203,14 @@ def test_a_link_needs_no_header_but_the_plain_url_does(depot: LiveServer, run_id
     _, url = shlex.split(viewed.stdout)
     assert httpx.get(url, timeout=30).status_code == 200
     assert httpx.get(f"{depot.url}/v1/runs/{run_id}/recording.rrd", timeout=30).status_code == 401
+
+
+def test_view_follow_signs_a_link_that_follows_the_run(depot: LiveServer, run_id: str):
+    viewed = fleet(depot, "view", run_id, "--follow", env=as_admin(depot))
+    assert viewed.returncode == 0, viewed.stderr
+    _, url = shlex.split(viewed.stdout)
+    params = dict(parse_qsl(urlsplit(url).query))
+    assert params["follow"] == "true" and "sig" in params
+    answer = httpx.get(url, timeout=30)  # no header; the run is closed, so the stream ends
+    assert answer.status_code == 200 and answer.content.startswith(b"RRF2")
+    assert httpx.get(with_param(url, "follow", "false"), timeout=30).status_code == 403  # follow is signed too
