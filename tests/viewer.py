@@ -44,13 +44,18 @@ V = TypeVar("V")
 
 ICD_DIR = Path("/usr/share/vulkan/icd.d")
 INSTALL_HINT = "apt-get install mesa-vulkan-drivers (Mesa's software Vulkan driver, lavapipe)"
-# Variables of the developer's environment that would change what the viewer does or whom it talks to.
-LEAKY_VARIABLES = ("REDAP_TOKEN", "XDG_CONFIG_HOME", "XDG_DATA_HOME", "XDG_CACHE_HOME", "XDG_STATE_HOME", "RUST_LOG")
+# Variables of the developer's environment that would change what the viewer does or whom it talks
+# to (a token, Rerun's own settings, where its state lives); a test passes what it needs in `env`.
+LEAKY_VARIABLES = ("REDAP_TOKEN", "RERUN_", "XDG_", "RUST_LOG", "WGPU_", "VK_")
 LOG_TAIL = 4000
 
 
 class ViewerFailed(AssertionError):
     """The viewer reports a failure: no need to wait any longer."""
+
+
+class NotYet(Exception):
+    """Raised by a probe of `wait_until`: the condition does not hold yet, and what was seen instead."""
 
 
 def lavapipe_icd() -> Path:
@@ -185,7 +190,7 @@ class HeadlessViewer:
     def _environment(self, extra: Mapping[str, str]) -> dict[str, str]:
         home = self.workdir / "home"
         home.mkdir(parents=True, exist_ok=True)
-        base = {k: v for k, v in os.environ.items() if k not in LEAKY_VARIABLES}
+        base = {k: v for k, v in os.environ.items() if not k.startswith(LEAKY_VARIABLES)}
         return {**base, "HOME": str(home), "VK_ICD_FILENAMES": str(lavapipe_icd()), **extra}
 
     @property
@@ -275,14 +280,18 @@ class HeadlessViewer:
         """Poll `probe` until it returns something truthy (its value is returned, with how long it
         took), while the viewer lives; fails with what the viewer shows after `timeout` seconds."""
         started = time.monotonic()
+        seen = ""
         while True:
             if self._proc is None or self._proc.poll() is not None:
                 raise AssertionError(f"the viewer is not running while waiting for {what}:\n{self.log_tail()}")
-            value = probe()
+            try:
+                value = probe()
+            except NotYet as instead:
+                value, seen = None, f"last seen: {instead}\n"
             if value:
                 return Waited(value, time.monotonic() - started)
             if time.monotonic() - started > timeout:
-                raise AssertionError(f"waited {timeout:g} s for {what}\n{self.describe()}")
+                raise AssertionError(f"waited {timeout:g} s for {what}\n{seen}{self.describe()}")
             time.sleep(0.1)  # polling for the condition, bounded by the deadline
 
     def describe(self) -> str:
@@ -321,14 +330,18 @@ class HeadlessViewer:
 
         return self.wait_until(listed, f"{origin} to list {sorted(names)}", timeout)
 
-    def wait_for_texts(self, texts: list[str], pane: str, timeout: float = 30) -> Waited[list[str]]:
-        """The texts shown in the pane labelled `pane` once each of `texts` is among them."""
+    def wait_for_texts(
+        self, pane: str, holds: Callable[[list[str]], bool], what: str, timeout: float = 30
+    ) -> Waited[list[str]]:
+        """The texts shown in the pane labelled `pane` (e.g. "Server page") once `holds(texts)`."""
 
-        def shown() -> list[str] | None:
+        def shown() -> list[str]:
             on_screen = self.widgets.texts(pane)
-            return on_screen if all(t in on_screen for t in texts) else None
+            if not holds(on_screen):
+                raise NotYet(f"{pane!r} shows {on_screen}")
+            return on_screen
 
-        return self.wait_until(shown, f"{texts} shown in the {pane!r} pane", timeout)
+        return self.wait_until(shown, f"{what} shown in the {pane!r} pane", timeout)
 
     def wait_for_recording(self, segment_id: str, opened_at: int = 0, timeout: float = 30) -> Waited[Any]:
         """The open recording of `segment_id` once it is active and fully loaded (nothing loading,
