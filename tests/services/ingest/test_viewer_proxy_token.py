@@ -71,7 +71,7 @@ def test_the_viewer_sends_no_token_on_read_messages_so_an_auth_on_depot_refuses_
             told = viewer.wait_until(
                 lambda: [e for e in viewer.errors() if live.grpc_url in e], "the viewer to report the refusal"
             ).value
-            assert "no token" in told[0] and "(Unauthenticated)" in told[0]
+            assert "(Unauthenticated)" in told[0]  # the status the depot answered, as the viewer shows it
 
             # A run streamed now is filed by the depot but never reaches the viewer: it did not call again.
             stream_run(live, token=depot.token("ingest", robot=ROBOT).token)
