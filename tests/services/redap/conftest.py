@@ -16,6 +16,7 @@ import pytest
 from services.redap.pb import cloud_pb2, cloud_pb2_grpc
 from tests.services.rrd.recordings import Recording
 from tests.subprocess_server import ServerProcess, free_port
+from tests.viewer import native_rerun
 
 CLIENT_VERSION = "rerun-py/0.41.0"
 
@@ -78,7 +79,7 @@ def reference_server(rerun_bin: str, tmp_path: Path) -> Iterator[Any]:
             args += ["-d", f"{name}={folder}"]
         port = free_port()
         server = ServerProcess(
-            [rerun_bin, "server", "--host", "127.0.0.1", "-p", str(port), *args],
+            [native_rerun(rerun_bin), "server", "--host", "127.0.0.1", "-p", str(port), *args],
             log=tmp_path / "reference-server.log",
             ready=lambda: grpc_answers(port),
             name="rerun server",
