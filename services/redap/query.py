@@ -75,6 +75,7 @@ class DatasetView:
     name: str
     timelines: frozenset[str]
     sources: list[RunSource]
+    empty: bool  # the dataset holds no run (any timeline may be named of it)
 
 
 # --- the three calls ---------------------------------------------------------------------------
@@ -96,7 +97,7 @@ def find_chunks(
     depot: Depot, principal: Principal, entry: Tuid, request: cloud_pb2.FindChunksRequest
 ) -> Iterator[cloud_pb2.FindChunksResponse]:
     plan = find_chunks_plan(request)
-    view = _dataset(depot, entry)
+    view = _dataset(depot, entry, plan.segments)
     _check_timeline(view, plan.timeline)
     for batch in _candidates(depot, view, plan, find_chunks_schema(), plan.timeline):
         yield cloud_pb2.FindChunksResponse(data=dataframe_part(batch))
@@ -106,7 +107,7 @@ def query_dataset(
     depot: Depot, principal: Principal, entry: Tuid, request: cloud_pb2.QueryDatasetRequest
 ) -> Iterator[cloud_pb2.QueryDatasetResponse]:
     plan = query_dataset_plan(request)
-    view = _dataset(depot, entry)
+    view = _dataset(depot, entry, plan.segments)
     _check_timeline(view, plan.timeline)
     timeline = plan.timeline or _start_column_timeline(request.scan_parameters.columns, view.timelines)
     for batch in _candidates(depot, view, plan, query_dataset_schema(timeline), timeline):
@@ -116,11 +117,14 @@ def query_dataset(
 # --- answering a plan --------------------------------------------------------------------------
 
 
-def _dataset(depot: Depot, entry: Tuid) -> DatasetView:
+def _dataset(depot: Depot, entry: Tuid, only: frozenset[str] | None = None) -> DatasetView:
+    """The dataset and its runs (`only` those named, when a query names its segments)."""
     with session_scope(depot.catalog) as session:
         dataset = dataset_by_entry(session, entry)
-        sources = dataset_sources(depot, session, dataset, depot.clock())
-        return DatasetView(dataset.name, _timelines(session, dataset), sources)
+        sources = dataset_sources(depot, session, dataset, depot.clock(), only)
+        held = sa.select(Run.id).where(Run.application_id == dataset.name, Run.tier != Tier.DELETED).limit(1)
+        empty = session.scalar(held) is None
+        return DatasetView(dataset.name, _timelines(session, dataset), sources, empty)
 
 
 def _timelines(session: Session, dataset: Dataset) -> frozenset[str]:
@@ -134,7 +138,7 @@ def _timelines(session: Session, dataset: Dataset) -> frozenset[str]:
 
 
 def _check_timeline(view: DatasetView, timeline: str | None) -> None:
-    if timeline is not None and view.sources and timeline not in view.timelines:
+    if timeline is not None and not view.empty and timeline not in view.timelines:
         known = ", ".join(sorted(view.timelines)) or "none (its runs hold static data only)"
         raise InvalidArgumentError(f"unknown timeline {timeline!r}: dataset {view.name!r} has {known}")
 

@@ -22,9 +22,9 @@ from sqlalchemy.orm import Session
 
 from catalog.models import Dataset, Run, RunLifecycle, RunObject
 from core.errors import ConflictError, FleetError, GoneError, InternalError, UnavailableError
+from core.states import Tier
 from services.hot.read import HotRecording, read_events
 from services.redap.cache import WeightedLru
-from services.redap.datasets import dataset_runs
 from services.redap.depot import Depot
 from services.redap.schema import merge_schemas, rerun_order
 from services.rrd.chunk import chunk_meta
@@ -81,9 +81,14 @@ def clear_caches() -> None:
 # --- which runs, and where ---------------------------------------------------------------------
 
 
-def dataset_sources(depot: Depot, session: Session, dataset: Dataset, now: dt.datetime) -> list[RunSource]:
-    """Every run of the dataset that holds data (by run id), with where it can be read."""
-    runs = dataset_runs(session, dataset)
+def dataset_sources(
+    depot: Depot, session: Session, dataset: Dataset, now: dt.datetime, only: frozenset[str] | None = None
+) -> list[RunSource]:
+    """The dataset's runs that hold data (by run id; `only` those named), with where each can be read."""
+    query = sa.select(Run).where(Run.application_id == dataset.name, Run.tier != Tier.DELETED)
+    if only is not None:
+        query = query.where(Run.id.in_(sorted(only)))
+    runs = list(session.scalars(query.order_by(Run.id)))
     ids = [run.id for run in runs]
     lives = {life.run_id: life for life in session.scalars(sa.select(RunLifecycle).where(RunLifecycle.run_id.in_(ids)))}
     recordings = {

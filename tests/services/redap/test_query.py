@@ -22,6 +22,7 @@ from google.protobuf import empty_pb2
 
 from catalog import queries
 from catalog.db import session_scope
+from services.redap import candidate_table
 from services.redap.chunks import parse_chunk_key
 from services.redap.dataframe import read_dataframe_part
 from services.redap.pb import cloud_pb2
@@ -695,3 +696,13 @@ def test_a_cold_run_fails_a_query_naming_it_and_is_left_out_of_one_over_every_ru
     finally:
         client.close()
         server.stop()
+
+
+def test_candidates_stream_in_parts_of_bounded_size(servers: Servers, monkeypatch: pytest.MonkeyPatch):
+    request = cloud_pb2.FindChunksRequest(contents=EVERYTHING, range=time_range("frame"))
+    whole = servers.ours.call("FindChunks", request, entry=servers.our_ids["fleet-latest-at"])
+    monkeypatch.setattr(candidate_table, "PART_ROWS", 5)
+    parts = servers.ours.call("FindChunks", request, entry=servers.our_ids["fleet-latest-at"])
+    sizes = [read_dataframe_part(p.data).num_rows for p in parts]
+    assert len(whole) == 2 and max(sizes) == 5 and len(sizes) > 2  # a part a run at most; now five rows a part
+    assert table(parts).equals(table(whole))
