@@ -24,7 +24,7 @@ from services.rrd.encoder import RrdEncoder
 from services.rrd.messages import StreamStart
 from services.rrd.pb import common_pb2
 from tests.services.redap.conftest import Redap, grpc_answers
-from tests.services.redap.serving import CatalogServerThread, DepotNode, build_node
+from tests.services.redap.serving import CatalogServerThread, DepotNode, build_node, rerun_executable
 from tests.services.rrd.recordings import generate_scenes
 from tests.services.runs.latest_at_scenes import log_scene
 from tests.subprocess_server import ServerProcess, free_port
@@ -120,7 +120,7 @@ def _start_reference(rerun_bin: str, root: Path, datasets: dict[str, list[Path]]
         args += ["-d", f"{name}={folder}"]
     port = free_port()
     server = ServerProcess(
-        [rerun_bin, "server", "--host", "127.0.0.1", "-p", str(port), *args],
+        [rerun_executable(rerun_bin), "server", "--host", "127.0.0.1", "-p", str(port), *args],
         log=root / "reference-server.log",
         ready=lambda: grpc_answers(port),
         name="rerun server",

@@ -25,6 +25,7 @@ import pytest
 from tests.compat.sdk_venvs import sdk_bin
 from tests.services.ingest.live_server import LiveServer
 from tests.services.redap.conftest import grpc_answers
+from tests.services.redap.serving import rerun_executable
 from tests.subprocess_server import ServerProcess, free_port
 
 pytestmark = pytest.mark.sdk
@@ -74,7 +75,7 @@ def reference_url(
         shutil.copy(path, folder / path.name)
     port = free_port()
     server = ServerProcess(
-        [rerun_bin, "server", "--host", "127.0.0.1", "-p", str(port), "-d", f"{DATASET}={folder}"],
+        [rerun_executable(rerun_bin), "server", "--host", "127.0.0.1", "-p", str(port), "-d", f"{DATASET}={folder}"],
         log=folder.parent / "reference-server.log",
         ready=lambda: grpc_answers(port),
         name="rerun server",
