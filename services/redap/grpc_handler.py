@@ -158,15 +158,19 @@ class CatalogServer(cloud_pb2_grpc.RerunCloudServiceServicer):
     ) -> cloud_pb2.GetDatasetSchemaResponse:
         return await self._unary(context, query.dataset_schema, scopes=(Scope.READ,), entry=True)
 
-    def FindChunks(
+    # Async generators themselves: grpc.aio streams what a servicer method yields only when the
+    # method is one (a plain method returning an async generator is taken for a sync iterator).
+    async def FindChunks(
         self, request: cloud_pb2.FindChunksRequest, context: Any
     ) -> AsyncIterator[cloud_pb2.FindChunksResponse]:
-        return self._stream(context, query.find_chunks, request, scopes=(Scope.READ,), entry=True)
+        async for response in self._stream(context, query.find_chunks, request, scopes=(Scope.READ,), entry=True):
+            yield response
 
-    def QueryDataset(
+    async def QueryDataset(
         self, request: cloud_pb2.QueryDatasetRequest, context: Any
     ) -> AsyncIterator[cloud_pb2.QueryDatasetResponse]:
-        return self._stream(context, query.query_dataset, request, scopes=(Scope.READ,), entry=True)
+        async for response in self._stream(context, query.query_dataset, request, scopes=(Scope.READ,), entry=True):
+            yield response
 
 
 def add_to_server(server: grpc.aio.Server, catalog_server: CatalogServer) -> None:

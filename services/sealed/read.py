@@ -11,6 +11,7 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from catalog import queries
 from catalog.db import session_scope
+from catalog.models import Run, RunLifecycle
 from core.clock import aware
 from core.errors import ConflictError, GoneError
 from core.states import RestoreState, Tier
@@ -47,24 +48,30 @@ def locate_sealed(catalog: sessionmaker[Session], warm: ObjectStore, run_id: str
         life = queries.lifecycle(session, run_id)
         if run is None or life is None:
             raise queries.run_not_found(run_id)
-        if run.tier == Tier.DELETED:
-            raise GoneError(
-                f"run {run_id!r} was deleted on {_when(life.deleted_at)} by {life.deleted_by}"
-                + (f" (retention policy {life.deleted_policy!r})" if life.deleted_policy else "")
-            )
-        restored = readable_when_cold(life.archive_mode) or (
-            life.restore_state == RestoreState.RESTORED
-            and (life.restore_until is None or aware(life.restore_until) > now)
-        )
-        if run.tier == Tier.COLD and not restored:
-            doing = (
-                f"a restore was asked for at {_when(life.restore_requested_at)} and is under way: try again later"
-                if life.restore_state == RestoreState.RESTORING
-                else f"restore it with POST /v1/runs/{run_id}/restore or `fleet runs restore {run_id}`"
-            )
-            raise ConflictError(f"run {run_id!r} is archived in the cold tier since {_when(life.archived_at)}; {doing}")
-        prefix = life.prefix
+        prefix = readable_prefix(run, life, now)
     return open_sealed(warm, prefix)
+
+
+def readable_prefix(run: Run, life: RunLifecycle, now: dt.datetime) -> str:
+    """The warm prefix of a sealed run that can be read now; CONFLICT for a cold run not restored
+    (saying how to restore it), GONE for a deleted one."""
+    run_id = run.id
+    if run.tier == Tier.DELETED:
+        raise GoneError(
+            f"run {run_id!r} was deleted on {_when(life.deleted_at)} by {life.deleted_by}"
+            + (f" (retention policy {life.deleted_policy!r})" if life.deleted_policy else "")
+        )
+    restored = readable_when_cold(life.archive_mode) or (
+        life.restore_state == RestoreState.RESTORED and (life.restore_until is None or aware(life.restore_until) > now)
+    )
+    if run.tier == Tier.COLD and not restored:
+        doing = (
+            f"a restore was asked for at {_when(life.restore_requested_at)} and is under way: try again later"
+            if life.restore_state == RestoreState.RESTORING
+            else f"restore it with POST /v1/runs/{run_id}/restore or `fleet runs restore {run_id}`"
+        )
+        raise ConflictError(f"run {run_id!r} is archived in the cold tier since {_when(life.archived_at)}; {doing}")
+    return life.prefix
 
 
 def open_sealed(store: ObjectStore, prefix: str) -> SealedRecording:

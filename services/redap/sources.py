@@ -1,0 +1,242 @@
+"""A dataset's runs as a query reads them: where each run's chunks are (this node's hot file, or the
+sealed `recording.rrd` in the warm store), its chunk index rows, and its Sorbet schema.
+
+A sealed run is read from its `chunks.parquet` and the footer of its `recording.rrd` (the schema,
+and each chunk's size once decompressed), and kept in a bounded cache under the recording's digest:
+a run sealed again with chunks that came later is a new recording, so a new entry. A hot run is
+read from its file as it stands (until hot runs keep a chunk index of their own, each chunk is
+decoded once per size of the file)."""
+
+from __future__ import annotations
+
+import datetime as dt
+import io
+import logging
+import os
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+
+import pyarrow as pa
+import sqlalchemy as sa
+from sqlalchemy.orm import Session
+
+from catalog.models import Dataset, Run, RunLifecycle, RunObject
+from core.errors import ConflictError, FleetError, GoneError, InternalError, UnavailableError
+from core.states import Tier
+from services.hot.read import HotRecording, read_events
+from services.redap.cache import WeightedLru
+from services.redap.depot import Depot
+from services.redap.schema import merge_schemas, rerun_order
+from services.rrd.chunk import chunk_meta
+from services.rrd.footer import read_footer
+from services.rrd.frames import MESSAGE_HEADER_SIZE
+from services.rrd.manifest import read_manifest, read_sorbet_schema, sorbet_schema
+from services.rrd.messages import ArrowMessage, StoreKind
+from services.rrd.pb import common_pb2, log_msg_pb2
+from services.sealed.index import CHUNK, IndexRow, TimelineRange, component_ranges, from_parquet
+from services.sealed.read import readable_prefix
+from services.sealed.write import INDEX, RECORDING
+from services.storage.objectstore import ObjectStore
+
+log = logging.getLogger(__name__)
+
+RECORDING_STORE = "recording"  # IndexRow.store_kind of a recording's chunks (not its blueprint's)
+# What the cache holds of runs' chunk rows, over all runs (a few hundred bytes a row).
+CACHED_ROWS = 400_000
+CACHED_SCHEMAS = 20_000
+
+
+@dataclass(frozen=True)
+class RunSource:
+    """Where one run of a dataset is read from, or why it cannot be now."""
+
+    run_id: str
+    hot: HotRecording | None = None
+    prefix: str | None = None  # of a sealed run in the warm store
+    digest: str = ""  # sha256 of the sealed recording.rrd: what the cache knows it by
+    size: int = 0  # of the sealed recording.rrd
+    unreadable: FleetError | None = None  # a cold run not restored, a hot run on another node
+
+
+@dataclass(frozen=True)
+class RunChunks:
+    """One run's recording chunks as their index rows, each chunk's size once decompressed (when
+    known) and the run's Sorbet schema in Rerun's column order."""
+
+    run_id: str
+    rows: tuple[IndexRow, ...]
+    uncompressed: Mapping[bytes, int] = field(default_factory=dict)
+    schema: pa.Schema = field(default_factory=lambda: pa.schema([]))
+
+
+_chunks: WeightedLru[RunChunks] = WeightedLru(CACHED_ROWS, lambda found: max(1, len(found.rows)))
+_schemas: WeightedLru[pa.Schema] = WeightedLru(CACHED_SCHEMAS)
+
+
+def clear_caches() -> None:
+    _chunks.clear()
+    _schemas.clear()
+
+
+# --- which runs, and where ---------------------------------------------------------------------
+
+
+def dataset_sources(
+    depot: Depot, session: Session, dataset: Dataset, now: dt.datetime, only: frozenset[str] | None = None
+) -> list[RunSource]:
+    """The dataset's runs that hold data (by run id; `only` those named), with where each can be read."""
+    query = sa.select(Run).where(Run.application_id == dataset.name, Run.tier != Tier.DELETED)
+    if only is not None:
+        query = query.where(Run.id.in_(sorted(only)))
+    runs = list(session.scalars(query.order_by(Run.id)))
+    ids = [run.id for run in runs]
+    lives = {life.run_id: life for life in session.scalars(sa.select(RunLifecycle).where(RunLifecycle.run_id.in_(ids)))}
+    recordings = {
+        obj.run_id: obj
+        for obj in session.scalars(sa.select(RunObject).where(RunObject.run_id.in_(ids), RunObject.name == RECORDING))
+    }
+    return [_source(depot, run, lives.get(run.id), recordings.get(run.id), now) for run in runs]
+
+
+def _source(
+    depot: Depot, run: Run, life: RunLifecycle | None, recording: RunObject | None, now: dt.datetime
+) -> RunSource:
+    hot = depot.hot.hot_recording(run.id) if depot.hot is not None else None
+    if hot is not None:
+        return RunSource(run.id, hot=hot)
+    if life is None or recording is None or depot.warm is None:
+        return RunSource(
+            run.id,
+            unreadable=UnavailableError(
+                f"run {run.id!r} is being written on another node of the depot: query it once it is sealed"
+            ),
+        )
+    try:
+        prefix = readable_prefix(run, life, now)
+    except (ConflictError, GoneError) as exc:
+        return RunSource(run.id, unreadable=exc)
+    return RunSource(run.id, prefix=prefix, digest=recording.sha256, size=recording.size)
+
+
+# --- reading a run -----------------------------------------------------------------------------
+
+
+def run_chunks(depot: Depot, source: RunSource) -> RunChunks:
+    """The run's chunks (cached for sealed runs); the source's error if it cannot be read now."""
+    if source.unreadable is not None:
+        raise source.unreadable
+    if source.hot is not None:
+        hot = source.hot
+        return _chunks.get_or_load(("hot", str(hot.path), hot.size), lambda: _read_hot(source.run_id, hot))
+    store, prefix = _sealed(depot, source)
+    found = _chunks.get_or_load(
+        (store.url, prefix, source.digest), lambda: _read_sealed(store, prefix, source.run_id, source.size)
+    )
+    _schemas.put((store.url, prefix, source.digest), found.schema)
+    return found
+
+
+def run_schema(depot: Depot, source: RunSource) -> pa.Schema:
+    """The run's Sorbet schema in Rerun's order: for a sealed run, from its footer alone."""
+    if source.unreadable is not None:
+        raise source.unreadable
+    if source.hot is not None:
+        return run_chunks(depot, source).schema
+    store, prefix = _sealed(depot, source)
+    return _schemas.get_or_load(
+        (store.url, prefix, source.digest), lambda: _footer_schema(_footer(store, prefix, source.size))
+    )
+
+
+def _sealed(depot: Depot, source: RunSource) -> tuple[ObjectStore, str]:
+    assert depot.warm is not None and source.prefix is not None  # a sealed source has both
+    return depot.warm, source.prefix
+
+
+def _read_sealed(store: ObjectStore, prefix: str, run_id: str, size: int) -> RunChunks:
+    index = from_parquet(store.get_range(f"{prefix}/{INDEX}"))
+    rows = tuple(r for r in index if r.kind == CHUNK and r.store_kind == RECORDING_STORE)
+    footer = _footer(store, prefix, size)
+    uncompressed: dict[bytes, int] = {}
+    for manifest in _recording_manifests(footer):
+        table = read_manifest(manifest)
+        ids = table.column("chunk_id").to_pylist()
+        sizes = table.column("chunk_byte_size_uncompressed").to_pylist()
+        uncompressed.update(zip(ids, sizes, strict=True))
+    return RunChunks(run_id, rows, uncompressed, _footer_schema(footer))
+
+
+def _recording_manifests(footer: log_msg_pb2.RrdFooter) -> list[log_msg_pb2.RrdManifest]:
+    return [m for m in footer.manifests if m.store_id.kind == common_pb2.STORE_KIND_RECORDING]
+
+
+def _footer_schema(footer: log_msg_pb2.RrdFooter) -> pa.Schema:
+    return rerun_order(merge_schemas(read_sorbet_schema(m) for m in _recording_manifests(footer)))
+
+
+def _footer(store: ObjectStore, prefix: str, size: int) -> log_msg_pb2.RrdFooter:
+    footer = read_footer(ObjectFile(store, f"{prefix}/{RECORDING}", size))  # type: ignore[arg-type]
+    if footer is None:
+        raise InternalError(f"the sealed recording {prefix}/{RECORDING} has no readable footer: seal the run again")
+    return footer
+
+
+def _read_hot(run_id: str, hot: HotRecording) -> RunChunks:
+    rows: list[IndexRow] = []
+    uncompressed: dict[bytes, int] = {}
+    metas = []
+    for event in read_events(hot.path, hot.size):
+        if not isinstance(event, ArrowMessage) or event.store_id.kind != StoreKind.RECORDING:
+            continue
+        meta = chunk_meta(event)
+        if meta.chunk_id in uncompressed:
+            continue  # a chunk sent twice is kept once, as sealing keeps it
+        metas.append(meta)
+        uncompressed[meta.chunk_id] = meta.uncompressed_size
+        rows.append(
+            IndexRow(
+                CHUNK,
+                RECORDING_STORE,
+                event.offset,
+                MESSAGE_HEADER_SIZE + event.size,
+                meta.chunk_id,
+                meta.entity_path,
+                meta.is_static,
+                meta.num_rows,
+                tuple(TimelineRange(t.name, t.type, t.range.min, t.range.max) for t in meta.timelines),
+                tuple(sorted(meta.component_names)),
+                component_ranges(meta),
+            )
+        )
+    return RunChunks(run_id, tuple(rows), uncompressed, rerun_order(sorbet_schema(metas)))
+
+
+class ObjectFile(io.RawIOBase):
+    """An object of a store read as a seekable file, by ranged reads: what reading a footer from
+    the end of a recording takes, without fetching the recording."""
+
+    def __init__(self, store: ObjectStore, key: str, size: int) -> None:
+        self._store, self._key, self._size = store, key, size
+        self._position = 0
+
+    def readable(self) -> bool:
+        return True
+
+    def seekable(self) -> bool:
+        return True
+
+    def seek(self, offset: int, whence: int = os.SEEK_SET) -> int:
+        base = {os.SEEK_SET: 0, os.SEEK_CUR: self._position, os.SEEK_END: self._size}[whence]
+        self._position = max(0, base + offset)
+        return self._position
+
+    def tell(self) -> int:
+        return self._position
+
+    def read(self, size: int = -1) -> bytes:
+        end = self._size if size is None or size < 0 else min(self._size, self._position + size)
+        if end <= self._position:
+            return b""
+        data = self._store.get_range(self._key, self._position, end - self._position)
+        self._position += len(data)
+        return data
