@@ -6,8 +6,10 @@ from __future__ import annotations
 import datetime as dt
 from collections.abc import Iterator
 from contextlib import contextmanager
+from pathlib import Path
 from typing import Any
 
+import grpc
 import httpx
 from sqlalchemy.orm import sessionmaker
 
@@ -117,3 +119,42 @@ def table_ids(client: Redap) -> dict[str, str]:
     kinds = [cloud_pb2.ENTRY_KIND_TABLE]
     found = client.call("FindEntries", cloud_pb2.FindEntriesRequest(filter=cloud_pb2.EntryFilter(entry_kinds=kinds)))
     return {e.name: str(Tuid.from_proto(e.id.id)) for e in found.entries}
+
+
+# --- the same scenes in the depot and in Rerun's own server --------------------------------------
+
+
+@contextmanager
+def serving(scenes: dict[str, Recording], data_dir: Path, **settings: str) -> Iterator[LiveServer]:
+    """`fleet serve` holding the scenes, rec-points sealed into the warm tier, the others hot;
+    `settings` as for LiveServer (auth="on": uploads and promotion with the admin token)."""
+    server = LiveServer(data_dir, scheduler="false", promote_after_s="0", **settings)
+    server.start()
+    try:
+        for scene in SCENES:
+            upload(server, scenes[scene], server.headers)
+        promote(server, "rec-points", server.headers)
+        yield server
+    finally:
+        server.stop()
+
+
+def reference_datasets(scenes: dict[str, Recording]) -> dict[str, list[Recording]]:
+    """The scenes as Rerun's server loads them: a dataset per application id, named after it."""
+    found: dict[str, list[Recording]] = {}
+    for scene in SCENES:
+        found.setdefault(scenes[scene].recordings[0]["application_id"], []).append(scenes[scene])
+    return found
+
+
+def rerun_own(name: str) -> bool:
+    """Entries Rerun's server makes that the depot has no use for: blueprint and asset datasets."""
+    return name.startswith(("__bp_", "__as_"))
+
+
+def status_of(client: Redap, rpc: str, request: object, entry: str | None = None) -> grpc.StatusCode:
+    try:
+        client.call(rpc, request, entry=entry)
+    except grpc.RpcError as exc:
+        return exc.code()  # type: ignore[no-any-return,attr-defined]
+    return grpc.StatusCode.OK

@@ -35,11 +35,13 @@ from tests.services.redap.depots import (
     catalog_depot,
     dataset_ids,
     entry_of,
-    promote,
     record,
+    reference_datasets,
+    rerun_own,
     save,
+    serving,
+    status_of,
     table_ids,
-    upload,
 )
 from tests.services.rrd.recordings import Recording, generate_scenes
 
@@ -278,37 +280,8 @@ def scenes(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Recording]:
 
 @pytest.fixture(scope="module")
 def served(scenes: dict[str, Recording], tmp_path_factory: pytest.TempPathFactory) -> Iterator[LiveServer]:
-    """`fleet serve` (auth off) holding the scenes, rec-points sealed into the warm tier."""
-    server = LiveServer(tmp_path_factory.mktemp("redap-depot") / "data", scheduler="false", promote_after_s="0")
-    server.start()
-    try:
-        for scene in SCENES:
-            upload(server, scenes[scene])
-        promote(server, "rec-points")
+    with serving(scenes, tmp_path_factory.mktemp("redap-depot") / "data") as server:
         yield server
-    finally:
-        server.stop()
-
-
-def reference_datasets(scenes: dict[str, Recording]) -> dict[str, list[Recording]]:
-    """The scenes as Rerun's server loads them: a dataset per application id, named after it."""
-    found: dict[str, list[Recording]] = {}
-    for scene in SCENES:
-        found.setdefault(scenes[scene].recordings[0]["application_id"], []).append(scenes[scene])
-    return found
-
-
-def rerun_own(name: str) -> bool:
-    """Entries Rerun's server makes that the depot has no use for: blueprint and asset datasets."""
-    return name.startswith(("__bp_", "__as_"))
-
-
-def status_of(client: Redap, rpc: str, request: object, entry: str | None = None) -> grpc.StatusCode:
-    try:
-        client.call(rpc, request, entry=entry)
-    except grpc.RpcError as exc:
-        return exc.code()  # type: ignore[no-any-return,attr-defined]
-    return grpc.StatusCode.OK
 
 
 @pytest.mark.sdk
@@ -430,12 +403,7 @@ class Guarded:
 @pytest.fixture(scope="module")
 def guarded(scenes: dict[str, Recording], tmp_path_factory: pytest.TempPathFactory) -> Iterator[Guarded]:
     data = tmp_path_factory.mktemp("redap-guarded") / "data"
-    server = LiveServer(data, auth="on", scheduler="false", promote_after_s="0")
-    server.start()
-    try:
-        for scene in SCENES:
-            upload(server, scenes[scene], server.headers)
-        promote(server, "rec-points", server.headers)
+    with serving(scenes, data, auth="on") as server:
         admin = (data / "admin.token").read_text().strip()
         created = subprocess.run(
             [FLEET, "tokens", "create", "--scope", "read", "--name", "alice", "--api-url", server.url],
@@ -446,8 +414,6 @@ def guarded(scenes: dict[str, Recording], tmp_path_factory: pytest.TempPathFacto
         )
         assert created.returncode == 0, created.stderr
         yield Guarded(server, admin, created.stdout.strip())
-    finally:
-        server.stop()
 
 
 @pytest.fixture
