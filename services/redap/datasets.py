@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import datetime as dt
 import json
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -68,8 +68,24 @@ class SegmentRow:
     timelines: dict[str, tuple[str, int, int]]  # name -> (type, min, max)
 
 
-def _segments(name: str) -> sa.Select[Run]:
-    return select(Run).where(Run.application_id == name, Run.tier != Tier.DELETED)
+# The columns a segment row is read from (not whole ORM objects: a page holds a thousand runs).
+_SEGMENT_COLUMNS = (
+    Run.id,
+    Run.robot_id,
+    Run.status,
+    Run.tier,
+    Run.started_at,
+    Run.ended_at,
+    Run.pinned,
+    Run.chunks,
+    Run.bytes,
+    Run.updated_at,
+    Run.properties,
+)
+
+
+def _segments(name: str) -> sa.Select[*tuple[Any, ...]]:
+    return select(*_SEGMENT_COLUMNS).where(Run.application_id == name, Run.tier != Tier.DELETED).order_by(Run.id)
 
 
 def _properties(text: str | None) -> dict[str, Any]:
@@ -82,23 +98,34 @@ def _properties(text: str | None) -> dict[str, Any]:
 
 def segment_rows(session: Session, name: str, after: str | None, limit: int) -> list[SegmentRow]:
     """Up to `limit` segments of dataset `name` with ids after `after`, in id order."""
-    query = _segments(name).order_by(Run.id).limit(limit)
+    query = _segments(name).limit(limit)
     if after is not None:
         query = query.where(Run.id > after)
-    return _rows(session, list(session.scalars(query)))
+    return _rows(session, session.execute(query).all())
 
 
 def segment_rows_named(session: Session, name: str, run_ids: list[str]) -> list[SegmentRow]:
     """The segments of dataset `name` among `run_ids` (other datasets' runs, or none, left out)."""
-    return _rows(session, list(session.scalars(_segments(name).where(Run.id.in_(run_ids)).order_by(Run.id))))
+    return _rows(session, session.execute(_segments(name).where(Run.id.in_(run_ids))).all()) if run_ids else []
 
 
-def _rows(session: Session, runs: list[Run]) -> list[SegmentRow]:
-    timelines: dict[str, dict[str, tuple[str, int, int]]] = {run.id: {} for run in runs}
-    if runs:
-        found = session.scalars(select(RunTimeline).where(RunTimeline.run_id.in_(list(timelines))))
-        for tl in found:
-            timelines[tl.run_id][tl.name] = (tl.type, tl.min, tl.max)
+def _timelines(session: Session, run_ids: list[str]) -> dict[str, dict[str, tuple[str, int, int]]]:
+    """The timelines of runs `run_ids` (in id order). Read by id range, not a list of ids: the
+    embedded catalog binds each listed value slowly, and a page's ids are neighbours."""
+    found: dict[str, dict[str, tuple[str, int, int]]] = {run_id: {} for run_id in run_ids}
+    if not run_ids:
+        return found
+    query = select(RunTimeline.run_id, RunTimeline.name, RunTimeline.type, RunTimeline.min, RunTimeline.max).where(
+        RunTimeline.run_id >= run_ids[0], RunTimeline.run_id <= run_ids[-1]
+    )
+    for run_id, name, kind, low, high in session.execute(query):
+        if run_id in found:  # another dataset's run between two of these
+            found[run_id][name] = (kind, low, high)
+    return found
+
+
+def _rows(session: Session, runs: Sequence[sa.Row[Any]]) -> list[SegmentRow]:
+    timelines = _timelines(session, [run.id for run in runs])
     return [
         SegmentRow(
             run.id,

@@ -156,3 +156,16 @@ def test_property_archetypes_are_those_of_property_entities_only(session: Sessio
         "/__properties/location": {"rerun.archetypes.GeoPoints"},
     }
     assert datasets.property_archetypes(session, "arm") == {}
+
+
+def test_a_page_holds_its_own_runs_timelines_only(session: Session):
+    save(
+        session,
+        record("run-1", timelines=[TimelineRecord("frame", "sequence", 1, 2)]),
+        record("run-2", "arm", timelines=[TimelineRecord("arm_time", "sequence", 0, 1)]),  # between nav's runs
+        record("run-3", timelines=[TimelineRecord("frame", "sequence", 3, 4)]),
+    )
+    found = {r.run_id: r.timelines for r in datasets.segment_rows(session, "nav", None, 10)}
+    assert found == {"run-1": {"frame": ("sequence", 1, 2)}, "run-3": {"frame": ("sequence", 3, 4)}}
+    named = datasets.segment_rows_named(session, "nav", ["run-3", "run-1"])
+    assert [r.timelines for r in named] == [{"frame": ("sequence", 1, 2)}, {"frame": ("sequence", 3, 4)}]
