@@ -3,14 +3,23 @@ TUID in the `datasets` table), a segment one of its runs."""
 
 from __future__ import annotations
 
+import datetime as dt
+import json
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import sqlalchemy as sa
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from catalog import queries
-from catalog.models import Dataset, Run
+from catalog.models import Dataset, Run, RunEntity, RunTimeline
+from core.clock import aware
 from core.errors import NotFoundError
 from core.states import Tier
 from services.redap.tuid import Tuid
+from services.rrd.manifest import PROPERTIES_ENTITY
 
 
 def dataset_by_entry(session: Session, entry: Tuid) -> Dataset:
@@ -36,3 +45,157 @@ def dataset_runs(session: Session, dataset: Dataset) -> list[Run]:
             select(Run).where(Run.application_id == dataset.name, Run.tier != Tier.DELETED).order_by(Run.id)
         )
     )
+
+
+# --- the segment table's rows, read in pages so a fleet's whole history is never in memory -----
+
+
+@dataclass(frozen=True)
+class SegmentRow:
+    """What the segment table shows of one run, read from its catalog rows alone."""
+
+    run_id: str
+    robot_id: str
+    status: str
+    tier: str
+    started_at: dt.datetime | None
+    ended_at: dt.datetime | None
+    pinned: bool
+    chunks: int
+    bytes: int
+    updated_at: dt.datetime
+    properties: dict[str, Any]  # property name -> component -> value ("recording": `/__properties`)
+    timelines: dict[str, tuple[str, int, int]]  # name -> (type, min, max)
+
+
+# The columns a segment row is read from (not whole ORM objects: a page holds a thousand runs).
+_SEGMENT_COLUMNS = (
+    Run.id,
+    Run.robot_id,
+    Run.status,
+    Run.tier,
+    Run.started_at,
+    Run.ended_at,
+    Run.pinned,
+    Run.chunks,
+    Run.bytes,
+    Run.updated_at,
+    Run.properties,
+)
+
+
+def _segments(name: str) -> sa.Select[*tuple[Any, ...]]:
+    return select(*_SEGMENT_COLUMNS).where(Run.application_id == name, Run.tier != Tier.DELETED).order_by(Run.id)
+
+
+def _properties(text: str | None) -> dict[str, Any]:
+    try:
+        found = json.loads(text or "{}")
+    except ValueError:  # a row no writer of the catalog makes; shown without properties
+        return {}
+    return found if isinstance(found, dict) else {}
+
+
+def segment_rows(session: Session, name: str, after: str | None, limit: int) -> list[SegmentRow]:
+    """Up to `limit` segments of dataset `name` with ids after `after`, in id order."""
+    query = _segments(name).limit(limit)
+    if after is not None:
+        query = query.where(Run.id > after)
+    return _rows(session, session.execute(query).all())
+
+
+def segment_rows_named(session: Session, name: str, run_ids: list[str]) -> list[SegmentRow]:
+    """The segments of dataset `name` among `run_ids` (other datasets' runs, or none, left out)."""
+    return _rows(session, session.execute(_segments(name).where(Run.id.in_(run_ids))).all()) if run_ids else []
+
+
+def _timelines(session: Session, run_ids: list[str]) -> dict[str, dict[str, tuple[str, int, int]]]:
+    """The timelines of runs `run_ids` (in id order). Read by id range, not a list of ids: the
+    embedded catalog binds each listed value slowly, and a page's ids are neighbours."""
+    found: dict[str, dict[str, tuple[str, int, int]]] = {run_id: {} for run_id in run_ids}
+    if not run_ids:
+        return found
+    query = select(RunTimeline.run_id, RunTimeline.name, RunTimeline.type, RunTimeline.min, RunTimeline.max).where(
+        RunTimeline.run_id >= run_ids[0], RunTimeline.run_id <= run_ids[-1]
+    )
+    for run_id, name, kind, low, high in session.execute(query):
+        if run_id in found:  # another dataset's run between two of these
+            found[run_id][name] = (kind, low, high)
+    return found
+
+
+def _rows(session: Session, runs: Sequence[sa.Row[Any]]) -> list[SegmentRow]:
+    timelines = _timelines(session, [run.id for run in runs])
+    return [
+        SegmentRow(
+            run.id,
+            run.robot_id,
+            run.status,
+            run.tier,
+            aware(run.started_at) if run.started_at is not None else None,
+            aware(run.ended_at) if run.ended_at is not None else None,
+            bool(run.pinned),
+            run.chunks,
+            run.bytes,
+            aware(run.updated_at),
+            _properties(run.properties),
+            timelines[run.id],
+        )
+        for run in runs
+    ]
+
+
+def property_pages(session: Session, name: str, page: int) -> Iterator[list[dict[str, Any]]]:
+    """The recording properties of every segment of dataset `name`, `page` runs at a time."""
+    after = ""
+    while True:
+        query = (
+            select(Run.id, Run.properties)
+            .where(Run.application_id == name, Run.tier != Tier.DELETED, Run.id > after)
+            .order_by(Run.id)
+            .limit(page)
+        )
+        found = session.execute(query).all()
+        if not found:
+            return
+        yield [_properties(text) for _, text in found]
+        after = found[-1][0]
+
+
+def timeline_types(session: Session, name: str) -> dict[str, str]:
+    """Each timeline of the segments of dataset `name` and its type (sequence, timestamp, duration): the
+    type most of them log it with, should runs disagree."""
+    query = (
+        select(RunTimeline.name, RunTimeline.type, sa.func.count())
+        .join(Run, Run.id == RunTimeline.run_id)
+        .where(Run.application_id == name, Run.tier != Tier.DELETED)
+        .group_by(RunTimeline.name, RunTimeline.type)
+    )
+    best: dict[str, tuple[int, str]] = {}
+    for name, kind, count in session.execute(query):
+        if name not in best or (count, kind) > best[name]:
+            best[name] = (count, kind)
+    return {name: kind for name, (_, kind) in best.items()}
+
+
+def property_archetypes(session: Session, name: str) -> dict[str, set[str]]:
+    """The archetypes logged on each property entity (`/__properties...`) of dataset `name`'s segments."""
+    query = (
+        select(RunEntity.path, RunEntity.archetypes)
+        .join(Run, Run.id == RunEntity.run_id)
+        .where(Run.application_id == name, Run.tier != Tier.DELETED)
+        .where(RunEntity.path.startswith(PROPERTIES_ENTITY, autoescape=True))
+        .distinct()
+    )
+    found: dict[str, set[str]] = {}
+    for path, archetypes in session.execute(query):
+        found.setdefault(path, set()).update(_names(archetypes))
+    return found
+
+
+def _names(text: str | None) -> list[str]:
+    try:
+        listed = json.loads(text or "[]")
+    except ValueError:
+        return []
+    return [name for name in listed if isinstance(name, str)] if isinstance(listed, list) else []

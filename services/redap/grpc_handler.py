@@ -22,11 +22,13 @@ from services.redap.clients import check_client
 from services.redap.depot import Depot
 from services.redap.pb import cloud_pb2, cloud_pb2_grpc
 from services.redap.tuid import Tuid
+from services.rrd.pb import common_pb2
 
 log = logging.getLogger(__name__)
 
 ENTRY_ID_HEADER = "x-rerun-entry-id"
 R = TypeVar("R", bound=Message)
+T = TypeVar("T")
 Metadata = Iterable[tuple[str, Any]] | None
 
 
@@ -36,6 +38,26 @@ def entry_id(metadata: Metadata) -> Tuid:
         if key == ENTRY_ID_HEADER:
             return Tuid.parse(value.decode() if isinstance(value, bytes) else str(value))
     raise InvalidArgumentError(f"this call needs the {ENTRY_ID_HEADER} header naming a dataset or table")
+
+
+def header_entry_id(metadata: Metadata) -> Tuid | None:
+    """The `x-rerun-entry-id` header's entry, if the call has one (INVALID_ARGUMENT if malformed)."""
+    for key, value in metadata or ():
+        if key == ENTRY_ID_HEADER:
+            return Tuid.parse(value.decode() if isinstance(value, bytes) else str(value))
+    return None
+
+
+def _table_call(answer: Callable[..., T], context: Any, body: common_pb2.EntryId | None) -> Callable[..., T]:
+    """`answer(depot, principal, table id, request)` with the table named by the call's header or,
+    for clients from before that header, by its request body (`entries.table_id`); resolved on the
+    worker thread after the caller's token is checked."""
+    metadata = context.invocation_metadata()
+
+    def call(depot: Depot, principal: Principal, request: Any) -> T:
+        return answer(depot, principal, entries.table_id(header_entry_id(metadata), body), request)
+
+    return call
 
 
 async def _abort(context: grpc.aio.ServicerContext, exc: FleetError) -> NoReturn:
@@ -110,17 +132,22 @@ class CatalogServer(cloud_pb2_grpc.RerunCloudServiceServicer):
     async def ReadTableEntry(
         self, request: cloud_pb2.ReadTableEntryRequest, context: Any
     ) -> cloud_pb2.ReadTableEntryResponse:
-        return await self._unary(context, entries.read_table_entry, request, scopes=(Scope.READ,), entry=True)
+        named = _table_call(entries.read_table_entry, context, request.id if request.HasField("id") else None)
+        return await self._unary(context, named, request, scopes=(Scope.READ,))
 
     async def GetTableSchema(
         self, request: cloud_pb2.GetTableSchemaRequest, context: Any
     ) -> cloud_pb2.GetTableSchemaResponse:
-        return await self._unary(context, entries.table_schema, request, scopes=(Scope.READ,), entry=True)
+        named = _table_call(entries.table_schema, context, request.table_id if request.HasField("table_id") else None)
+        return await self._unary(context, named, request, scopes=(Scope.READ,))
 
-    def ScanTable(
+    async def ScanTable(
         self, request: cloud_pb2.ScanTableRequest, context: Any
     ) -> AsyncIterator[cloud_pb2.ScanTableResponse]:
-        return self._stream(context, entries.scan_table, request, scopes=(Scope.READ,), entry=True)
+        # An async generator itself: grpc.aio runs a plain method's answer as a synchronous iterator.
+        named = _table_call(entries.scan_table, context, request.table_id if request.HasField("table_id") else None)
+        async for response in self._stream(context, named, request, scopes=(Scope.READ,)):
+            yield response
 
     # --- a dataset's segments (runs) -------------------------------------------------------
 
@@ -129,10 +156,11 @@ class CatalogServer(cloud_pb2_grpc.RerunCloudServiceServicer):
     ) -> cloud_pb2.GetSegmentTableSchemaResponse:
         return await self._unary(context, segments.table_schema, scopes=(Scope.READ,), entry=True)
 
-    def ScanSegmentTable(
+    async def ScanSegmentTable(
         self, request: cloud_pb2.ScanSegmentTableRequest, context: Any
     ) -> AsyncIterator[cloud_pb2.ScanSegmentTableResponse]:
-        return self._stream(context, segments.scan, request, scopes=(Scope.READ,), entry=True)
+        async for response in self._stream(context, segments.scan, request, scopes=(Scope.READ,), entry=True):
+            yield response
 
     # --- opening a segment in the viewer ---------------------------------------------------
 

@@ -1,21 +1,346 @@
-"""A dataset's segment table: one row per run, with Rerun's columns and the fleet's."""
+"""A dataset's segment table: one row per run, with Rerun's columns and the fleet's.
+
+Columns, named and typed as Rerun's own server does (the golden tests compare):
+- `rerun_segment_id`, `rerun_layer_names`, `rerun_storage_urls`, `rerun_last_updated_at`,
+  `rerun_num_chunks`, `rerun_size_bytes`;
+- the runs' recording properties, `property:NAME:COMPONENT` for `rr.send_property(NAME, ...)` and
+  `property:COMPONENT` for the recording's own (`property:RecordingInfo:start_time`), each a list
+  column with the `rerun:*` metadata of the property entity it comes from;
+- what the depot knows of each run, as the properties of a `depot` property entity:
+  `property:depot:robot_id`, `:tier`, `:status`, `:started_at`, `:ended_at`, `:pinned`;
+- per timeline, `TIMELINE:start` and `TIMELINE:end` with their `rerun:index*` metadata.
+
+Everything comes from catalog rows (runs, run_timelines, run_entities): no run file is opened.
+"""
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+import json
+import math
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from typing import Any
 
-from core.errors import UnimplementedError
+import pyarrow as pa
+from sqlalchemy.orm import Session
+
+from catalog.db import session_scope
+from core.errors import InvalidArgumentError
 from services.auth.scopes import Principal
+from services.redap import datasets
+from services.redap.dataframe import dataframe_part, schema_proto
+from services.redap.datasets import SegmentRow, dataset_by_entry
 from services.redap.depot import Depot
+from services.redap.entries import depot_url, epoch_ns
 from services.redap.pb import cloud_pb2
 from services.redap.tuid import Tuid
+from services.rrd.manifest import PROPERTIES_ENTITY
+
+LAYER = "base"  # Rerun's name for a segment's first layer; a run is one recording, one layer
+PAGE_ROWS = 1000  # runs read from the catalog at a time
+PART_BYTES = 4 << 20  # a response's table is cut below this many bytes
+DEPOT_PROPERTY = "depot"  # the property entity the depot's own facts are shown under
+RECORDING_PROPERTY = "recording"  # how the catalog keys the `/__properties` entity's own components
+
+Cell = Any  # one value of a column, as pyarrow takes it
+
+
+@dataclass(frozen=True)
+class Column:
+    field: pa.Field
+    value: Callable[[SegmentRow], Cell]
+
+    @property
+    def name(self) -> str:
+        return str(self.field.name)
+
+
+def _strings() -> pa.DataType:
+    return pa.list_(pa.field("item", pa.utf8(), nullable=False))
+
+
+def _fixed_columns(depot: Depot) -> list[Column]:
+    def storage_url(row: SegmentRow) -> list[str]:
+        return [depot_url(depot, f"/v1/runs/{row.run_id}/recording.rrd")]
+
+    return [
+        Column(pa.field("rerun_segment_id", pa.utf8(), nullable=False), lambda row: row.run_id),
+        Column(pa.field("rerun_layer_names", _strings(), nullable=False), lambda row: [LAYER]),
+        Column(pa.field("rerun_storage_urls", _strings(), nullable=False), storage_url),
+        Column(
+            pa.field("rerun_last_updated_at", pa.timestamp("ns"), nullable=False),
+            lambda row: epoch_ns(row.updated_at),
+        ),
+        Column(pa.field("rerun_num_chunks", pa.uint64(), nullable=False), lambda row: max(row.chunks, 0)),
+        Column(pa.field("rerun_size_bytes", pa.uint64(), nullable=False), lambda row: max(row.bytes, 0)),
+    ]
+
+
+# --- property columns ------------------------------------------------------------------------
+
+
+def property_column_name(prop: str, component: str) -> str:
+    return f"property:{component}" if prop == RECORDING_PROPERTY else f"property:{prop}:{component}"
+
+
+def property_entity(prop: str) -> str:
+    return PROPERTIES_ENTITY if prop == RECORDING_PROPERTY else f"{PROPERTIES_ENTITY}/{prop}"
+
+
+# Component types of the recording's own properties (the catalog keeps values, not types).
+KNOWN_COMPONENT_TYPES = {
+    "RecordingInfo:start_time": "rerun.components.Timestamp",
+    "RecordingInfo:name": "rerun.components.Name",
+}
+
+
+def _property_field(prop: str, component: str, item: pa.DataType, archetypes: set[str]) -> pa.Field:
+    metadata = {
+        "rerun:component": component,
+        "rerun:entity_path": property_entity(prop),
+        "rerun:kind": "data",
+    }
+    prefix, colon, _ = component.partition(":")
+    if colon:  # `Archetype:field`: the archetype logged on that entity with that short name
+        archetype = next((a for a in sorted(archetypes) if a.rpartition(".")[2] == prefix), None)
+        if archetype is None and prefix == "RecordingInfo":
+            archetype = "rerun.archetypes.RecordingInfo"
+        if archetype is not None:
+            metadata["rerun:archetype"] = archetype
+    if component in KNOWN_COMPONENT_TYPES and prop == RECORDING_PROPERTY:
+        metadata["rerun:component_type"] = KNOWN_COMPONENT_TYPES[component]
+    return pa.field(property_column_name(prop, component), pa.list_(item), nullable=True, metadata=metadata)
+
+
+NONFINITE = {"NaN": math.nan, "Infinity": math.inf, "-Infinity": -math.inf}  # how the catalog writes them
+
+
+def _items(value: Any) -> list[Any] | None:
+    """A property's values as a list: the catalog keeps a one-value property as the value."""
+    if value is None:
+        return None
+    return value if isinstance(value, list) else [value]
+
+
+def _kind(item: Any) -> str:
+    if isinstance(item, bool):
+        return "bool"
+    if isinstance(item, int):
+        return "int"
+    if isinstance(item, float):
+        return "float"
+    if isinstance(item, str):
+        return "nonfinite" if item in NONFINITE else "str"
+    return "other"  # structs and nested lists: shown as JSON text
+
+
+def item_type(kinds: set[str]) -> pa.DataType:
+    """The Arrow type of a property's values from the kinds of values the runs hold."""
+    if kinds == {"bool"}:
+        return pa.bool_()
+    if kinds == {"int"}:
+        return pa.int64()
+    if kinds and kinds <= {"int", "float", "nonfinite"} and kinds & {"float", "nonfinite"} and kinds != {"nonfinite"}:
+        return pa.float64()
+    return pa.utf8()
+
+
+def _convert(item: Any, kind: pa.DataType) -> Any:
+    if item is None:
+        return None
+    if pa.types.is_string(kind):
+        return item if isinstance(item, str) else json.dumps(item, sort_keys=True)
+    if pa.types.is_floating(kind):
+        return NONFINITE[item] if isinstance(item, str) else float(item)
+    return item
+
+
+def _property_column(prop: str, component: str, kinds: set[str], archetypes: set[str]) -> Column:
+    item = item_type(kinds)
+
+    def value(row: SegmentRow) -> Cell:
+        values = row.properties.get(prop)
+        found = _items(values.get(component)) if isinstance(values, dict) else None
+        return None if found is None else [_convert(v, item) for v in found]
+
+    return Column(_property_field(prop, component, item, archetypes), value)
+
+
+def recording_property_columns(session: Session, name: str) -> list[Column]:
+    """A column per property component any segment of dataset `name` holds."""
+    kinds: dict[tuple[str, str], set[str]] = {}
+    for page in datasets.property_pages(session, name, PAGE_ROWS):
+        for properties in page:
+            for prop, values in properties.items():
+                if not isinstance(values, dict) or prop == DEPOT_PROPERTY:  # the depot's own column names win
+                    continue
+                for component, value in values.items():
+                    seen = kinds.setdefault((prop, component), set())
+                    seen.update(_kind(item) for item in _items(value) or ())
+    archetypes = datasets.property_archetypes(session, name)
+    return [
+        _property_column(prop, component, found, archetypes.get(property_entity(prop), set()))
+        for (prop, component), found in kinds.items()
+    ]
+
+
+def _depot_column(component: str, item: pa.DataType, value: Callable[[SegmentRow], Any]) -> Column:
+    def cell(row: SegmentRow) -> Cell:
+        found = value(row)
+        return None if found is None else [found]
+
+    return Column(_property_field(DEPOT_PROPERTY, component, item, set()), cell)
+
+
+def depot_columns() -> list[Column]:
+    """What the catalog knows of each run, beside what the run itself says."""
+
+    def ns(moment: Any) -> int | None:
+        return epoch_ns(moment) if moment is not None else None
+
+    return [
+        _depot_column("robot_id", pa.utf8(), lambda row: row.robot_id),
+        _depot_column("tier", pa.utf8(), lambda row: row.tier),
+        _depot_column("status", pa.utf8(), lambda row: row.status),
+        _depot_column("started_at", pa.timestamp("ns"), lambda row: ns(row.started_at)),
+        _depot_column("ended_at", pa.timestamp("ns"), lambda row: ns(row.ended_at)),
+        _depot_column("pinned", pa.bool_(), lambda row: row.pinned),
+    ]
+
+
+# --- timeline columns ------------------------------------------------------------------------
+
+INDEX_TYPES = {"sequence": pa.int64(), "timestamp": pa.timestamp("ns"), "duration": pa.duration("ns")}
+
+
+def _timeline_column(timeline: str, kind: str, marker: str) -> Column:
+    metadata = {"rerun:index": timeline, "rerun:index_kind": kind, "rerun:index_marker": marker, "rerun:kind": "index"}
+    at = 1 if marker == "start" else 2
+
+    def value(row: SegmentRow) -> Cell:
+        found = row.timelines.get(timeline)
+        return found[at] if found is not None and found[0] == kind else None  # another type: not this column's
+
+    return Column(pa.field(f"{timeline}:{marker}", INDEX_TYPES[kind], nullable=True, metadata=metadata), value)
+
+
+def timeline_columns(session: Session, name: str) -> list[Column]:
+    return [
+        _timeline_column(timeline, kind, marker)
+        for timeline, kind in datasets.timeline_types(session, name).items()
+        if kind in INDEX_TYPES
+        for marker in ("start", "end")
+    ]
+
+
+# --- the table -------------------------------------------------------------------------------
+
+
+class SegmentTable:
+    """The segment table's columns, in order, and how to fill them from catalog rows."""
+
+    def __init__(self, columns: list[Column]) -> None:
+        self.columns = columns
+        self.schema = pa.schema([c.field for c in columns])
+        self.names = {c.name for c in columns}
+
+    def project(self, names: list[str]) -> SegmentTable:
+        """Only `names`, in that order (all when empty); INVALID_ARGUMENT for a column asked twice
+        or one the table does not have, as Rerun's servers answer."""
+        if not names:
+            return self
+        by_name = {c.name: c for c in self.columns}
+        seen: set[str] = set()
+        for name in names:
+            if name in seen:
+                raise InvalidArgumentError(f"column {name!r} is asked for twice: name each column once")
+            if name not in by_name:
+                raise InvalidArgumentError(
+                    f"the segment table has no column {name!r}: GetSegmentTableSchema lists its columns"
+                )
+            seen.add(name)
+        return SegmentTable([by_name[name] for name in names])
+
+    def batch(self, rows: list[SegmentRow]) -> pa.RecordBatch:
+        arrays = [pa.array([c.value(row) for row in rows], type=c.field.type) for c in self.columns]
+        return pa.RecordBatch.from_arrays(arrays, schema=self.schema)
+
+
+def segment_table(session: Session, name: str, depot: Depot, *, properties: bool = True) -> SegmentTable:
+    """Dataset `name`'s segment table: Rerun's columns, the property columns (the recording's
+    and the depot's) sorted by name, then the timelines' sorted by name. `properties=False` leaves
+    the recording's properties out (reading them means reading every run's row)."""
+    found = recording_property_columns(session, name) if properties else []
+    props = sorted([*found, *depot_columns()], key=lambda c: c.name)
+    timelines = sorted(timeline_columns(session, name), key=lambda c: c.name)
+    return SegmentTable([*_fixed_columns(depot), *props, *timelines])
 
 
 def table_schema(depot: Depot, principal: Principal, entry: Tuid) -> cloud_pb2.GetSegmentTableSchemaResponse:
-    raise UnimplementedError("table_schema is not served yet")
+    with session_scope(depot.catalog) as session:
+        dataset = dataset_by_entry(session, entry)
+        table = segment_table(session, dataset.name, depot)
+    return cloud_pb2.GetSegmentTableSchemaResponse(schema=schema_proto(table.schema))
+
+
+# --- scanning --------------------------------------------------------------------------------
+
+
+def _wanted(request: cloud_pb2.ScanSegmentTableRequest) -> tuple[list[str] | None, frozenset[str]]:
+    """(the only segments to scan, or None for all; the segments to skip)."""
+    if not request.HasField("segment_id_filter"):
+        return None, frozenset()
+    strategy = request.segment_id_filter.WhichOneof("strategy")
+    if strategy == "scan_only":
+        return sorted(set(request.segment_id_filter.scan_only.segment_ids)), frozenset()
+    if strategy == "skip":
+        return None, frozenset(request.segment_id_filter.skip.segment_ids)
+    return None, frozenset()
+
+
+def _row_pages(depot: Depot, name: str, only: list[str] | None, skip: frozenset[str]) -> Iterator[list[SegmentRow]]:
+    """The rows to scan, a page at a time, each page read in a short transaction of its own."""
+    if only is not None:
+        for start in range(0, len(only), PAGE_ROWS):
+            with session_scope(depot.catalog) as session:
+                yield datasets.segment_rows_named(session, name, only[start : start + PAGE_ROWS])
+        return
+    after: str | None = None
+    while True:
+        with session_scope(depot.catalog) as session:
+            rows = datasets.segment_rows(session, name, after, PAGE_ROWS)
+        if not rows:
+            return
+        yield [row for row in rows if row.run_id not in skip]
+        after = rows[-1].run_id
+
+
+def _parts(batch: pa.RecordBatch) -> Iterator[pa.RecordBatch]:
+    """`batch` cut into parts of at most about PART_BYTES each."""
+    count = max(1, math.ceil(batch.nbytes / PART_BYTES))
+    rows = max(1, math.ceil(batch.num_rows / count))
+    for start in range(0, batch.num_rows, rows):
+        yield batch.slice(start, rows)
 
 
 def scan(
     depot: Depot, principal: Principal, entry: Tuid, request: cloud_pb2.ScanSegmentTableRequest
 ) -> Iterator[cloud_pb2.ScanSegmentTableResponse]:
-    raise UnimplementedError("scan is not served yet")
+    """The segment table, projected and filtered by segment id, in parts of bounded size; a table
+    with no rows is one empty part (its columns still say what it holds)."""
+    asked = list(request.columns)
+    with session_scope(depot.catalog) as session:
+        name = dataset_by_entry(session, entry).name
+        table = segment_table(session, name, depot, properties=False)
+        if not asked or not set(asked) <= table.names:  # the recording's properties are asked for (or unknown)
+            table = segment_table(session, name, depot)
+    table = table.project(asked)
+    only, skip = _wanted(request)
+    sent = False
+    for rows in _row_pages(depot, name, only, skip):
+        if rows:
+            for part in _parts(table.batch(rows)):
+                sent = True
+                yield cloud_pb2.ScanSegmentTableResponse(data=dataframe_part(part))
+    if not sent:
+        yield cloud_pb2.ScanSegmentTableResponse(data=dataframe_part(table.batch([])))

@@ -19,6 +19,7 @@ from sqlalchemy.orm import Session, sessionmaker
 from catalog import queries
 from catalog.db import session_scope
 from catalog.models import RunLifecycle
+from core.clock import aware
 from core.states import ARCHIVED_IN_STORE, Tier
 from services.sealed.tiers import RunJson, Tiers, parse_run_json
 from services.sealed.write import INDEX, RECORDING, RUN_JSON
@@ -110,6 +111,15 @@ def _recording(tiers: Tiers, prefix: str) -> tuple[Tier, str | None, ObjectInfo]
         return None
 
 
+def _restore_dataset(session: Session, name: str, now: dt.datetime, entry_id: str | None) -> None:
+    """The dataset of application `name` with the entry id its run.json kept. A run.json from before
+    datasets keeps none, and the dataset is given a new one; a later run.json's kept id replaces it
+    if this same rebuild (`now`) made it, whatever order the store lists them in."""
+    dataset = queries.ensure_dataset(session, name, now, entry_id)
+    if entry_id and dataset.entry_id != entry_id and aware(dataset.created_at) == now:
+        dataset.entry_id = entry_id
+
+
 def _insert(
     catalog: sessionmaker[Session], found: RunJson, tier: Tier, mode: str | None, info: ObjectInfo, now: dt.datetime
 ) -> None:
@@ -117,7 +127,7 @@ def _insert(
     objects = [dataclasses.replace(o, tier=tier) if o.name == RECORDING else o for o in found.objects]
     with session_scope(catalog, write=True) as session:
         if record.application_id:  # the entry id Rerun's clients know it by, kept in run.json
-            queries.ensure_dataset(session, record.application_id, now, found.dataset_id)
+            _restore_dataset(session, record.application_id, now, found.dataset_id)
         queries.save_run(session, record, now)
         run = queries.get_run(session, record.id)
         assert run is not None

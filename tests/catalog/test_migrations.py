@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import datetime as dt
+import re
+
 import pytest
 import sqlalchemy as sa
 from alembic.autogenerate import compare_metadata
@@ -10,7 +13,7 @@ from alembic.script import ScriptDirectory
 
 from catalog.db import alembic_config, check_schema, create_engine, current_revision, head_revision
 from catalog.db import upgrade as upgrade_catalog
-from catalog.models import Base
+from catalog.models import Base, Run
 from core.errors import UnavailableError
 
 
@@ -60,3 +63,57 @@ def test_upgrade_from_empty_and_check(empty_catalog_url: str):
 def test_unsupported_url_is_one_clear_error():
     with pytest.raises(UnavailableError, match="duckdb:///PATH or postgresql"):
         create_engine("mysql://somewhere/db")
+
+
+def _upgrade_to(engine: sa.Engine, revision: str) -> None:
+    from alembic import command
+
+    with engine.begin() as conn:
+        config = alembic_config()
+        config.attributes["connection"] = conn
+        command.upgrade(config, revision)
+
+
+def _run_row(run_id: str, application_id: str) -> dict[str, object]:
+    now = dt.datetime(2026, 11, 20, 8, 0, tzinfo=dt.UTC)
+    return {
+        "id": run_id,
+        "robot_id": "robot-1",
+        "application_id": application_id,
+        "date": now.date(),
+        "status": "closed",
+        "tier": "warm",
+        "started_at": now,
+        "ended_at": now,
+        "last_data_at": now,
+        "sdk_version": "0.41.0",
+        "chunks": 1,
+        "rows": 1,
+        "bytes": 1,
+        "properties": "{}",
+        "pinned": False,
+        "pinned_by": None,
+        "created_at": now,
+        "updated_at": now,
+    }
+
+
+def test_0006_gives_every_application_already_catalogued_a_dataset(empty_catalog_url: str):
+    engine = create_engine(empty_catalog_url)
+    try:
+        _upgrade_to(engine, "0005")
+        runs = [("run-1", "nav"), ("run-2", "nav"), ("run-3", "arm"), ("run-4", "")]
+        with engine.begin() as conn:
+            conn.execute(sa.insert(Run), [_run_row(run, app) for run, app in runs])
+        before = dt.datetime.now(dt.UTC)
+        upgrade_catalog(engine)
+        with engine.connect() as conn:
+            found = {name: entry for name, entry in conn.execute(sa.text("SELECT name, entry_id FROM datasets"))}
+    finally:
+        engine.dispose()
+    assert sorted(found) == ["arm", "nav"]  # one per application id; a run without one makes none
+    assert len(set(found.values())) == 2
+    for entry_id in found.values():
+        assert re.fullmatch(r"[0-9A-F]{16}[0-9a-f]{16}", entry_id), entry_id
+        made = dt.datetime.fromtimestamp(int(entry_id[:16], 16) / 1e9, dt.UTC)  # a TUID: its time first
+        assert before - dt.timedelta(seconds=1) <= made <= dt.datetime.now(dt.UTC)

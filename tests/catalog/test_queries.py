@@ -4,10 +4,12 @@ from __future__ import annotations
 
 import datetime as dt
 import json
+import re
 
 from sqlalchemy.orm import Session
 
 from catalog import queries
+from catalog.models import Dataset
 from catalog.queries import EntityRecord, RunRecord, TimelineRecord
 from core.clock import aware
 
@@ -89,3 +91,59 @@ def test_save_again_replaces_entities_and_timelines(session: Session):
 def test_unknown_run_is_none(session: Session):
     assert queries.get_run(session, "nope") is None
     assert queries.run_entities(session, "nope") == []
+
+
+# --- datasets: one per application id, made with its first run --------------------------------
+
+
+def _dataset(session: Session, name: str) -> Dataset:
+    found = session.get(Dataset, name)
+    assert found is not None, f"no dataset {name!r}"
+    return found
+
+
+def test_an_applications_first_run_makes_its_dataset_with_a_tuid(session: Session):
+    queries.save_run(session, _record(), NOW)
+    session.flush()
+    dataset = _dataset(session, "nav")
+    assert re.fullmatch(r"[0-9A-F]{16}[0-9a-f]{16}", dataset.entry_id), dataset.entry_id
+    assert int(dataset.entry_id[:16], 16) == int(NOW.timestamp()) * 10**9  # a TUID: its time first
+    assert (aware(dataset.created_at), aware(dataset.updated_at)) == (NOW, NOW)
+    assert queries.dataset_entry_id(session, "nav") == dataset.entry_id
+    assert [d.name for d in queries.datasets(session)] == ["nav"]
+
+
+def test_a_dataset_keeps_its_entry_id_while_its_runs_are_saved_and_added(session: Session):
+    queries.save_run(session, _record(), NOW)
+    first = _dataset(session, "nav").entry_id
+    later, latest = NOW + dt.timedelta(minutes=1), NOW + dt.timedelta(minutes=2)
+    queries.save_run(session, _record(chunks=20, status="closed"), later)  # the same run again
+    session.flush()
+    assert (_dataset(session, "nav").entry_id, aware(_dataset(session, "nav").updated_at)) == (first, NOW)
+    queries.save_run(session, _record(id="run-2"), latest)  # another run of the application
+    session.flush()
+    dataset = _dataset(session, "nav")
+    assert (dataset.entry_id, aware(dataset.created_at), aware(dataset.updated_at)) == (first, NOW, latest)
+
+
+def test_each_application_has_its_own_dataset_and_a_run_without_one_makes_none(session: Session):
+    queries.save_run(session, _record(), NOW)
+    queries.save_run(session, _record(id="run-2", application_id="arm"), NOW)
+    queries.save_run(session, _record(id="run-3", application_id=""), NOW)
+    session.flush()
+    found = {d.name: d.entry_id for d in queries.datasets(session)}
+    assert sorted(found) == ["arm", "nav"]
+    assert found["arm"] != found["nav"]  # made at the same instant, told apart by their names
+    assert queries.dataset_entry_id(session, "") is None
+    assert queries.dataset_entry_id(session, "unknown") is None
+
+
+def test_ensure_dataset_restores_a_given_entry_id_but_never_replaces_one(session: Session):
+    kept = "18EA6CA8C3020B3029d1569232672548"
+    restored = queries.ensure_dataset(session, "nav", NOW, kept)
+    assert restored.entry_id == kept
+    again = queries.ensure_dataset(session, "nav", NOW + dt.timedelta(days=1), "18EA6CA8C3020B30ffffffffffffffff")
+    assert again.entry_id == kept
+    queries.save_run(session, _record(), NOW + dt.timedelta(days=2))  # its first run, after a rebuild made it
+    session.flush()
+    assert queries.dataset_entry_id(session, "nav") == kept

@@ -5,8 +5,10 @@ from __future__ import annotations
 
 import datetime as dt
 import json
+import re
 import subprocess
 from collections.abc import Iterator
+from concurrent.futures import ThreadPoolExecutor
 from contextlib import ExitStack
 from pathlib import Path
 from typing import Any
@@ -15,8 +17,18 @@ import httpx
 import pytest
 import sqlalchemy as sa
 
+from catalog import queries
+from catalog.db import session_scope
+from services.redap.pb import cloud_pb2
+from services.redap.tuid import Tuid
+from services.retention.rebuild import rebuild
+from services.retention.service import PROMOTE, plan, run_plan
+from services.sealed.tiers import Tiers, parse_run_json
+from services.sealed.write import RUN_JSON
 from tests.postgres import admin_engine, temporary_database
 from tests.services.ingest.live_server import FLEET, LiveServer
+from tests.services.redap.conftest import Redap
+from tests.services.retention.conftest import Clock, Node, NodeFactory, log_run
 from tests.services.rrd.recordings import Recording
 
 pytestmark = pytest.mark.sdk
@@ -57,6 +69,19 @@ def answers(server: LiveServer, run_ids: list[str]) -> dict[str, Any]:
     for run_id in run_ids:
         seen[f"/v1/runs/{run_id}"] = get(server, f"/v1/runs/{run_id}")
     return seen
+
+
+def catalog_datasets(server: LiveServer) -> dict[str, str]:
+    """The datasets the catalog server lists (FindEntries, as Rerun's clients ask): name -> entry id."""
+    client = Redap(server.grpc_port)
+    try:
+        found = client.call(
+            "FindEntries",
+            cloud_pb2.FindEntriesRequest(filter=cloud_pb2.EntryFilter(entry_kinds=[cloud_pb2.ENTRY_KIND_DATASET])),
+        )
+    finally:
+        client.close()
+    return {e.name: str(Tuid.from_proto(e.id.id)) for e in found.entries}
 
 
 def run_retention(server: LiveServer, *actions: str) -> dict[str, Any]:
@@ -145,6 +170,7 @@ def test_rebuilt_catalog_answers_as_before(
             assert httpx.post(f"{server.url}/v1/runs/{run_id}/pin", timeout=10).status_code == 200
         before = answers(server, run_ids)
         served_before = recordings_served(server, run_ids)
+        datasets_before = catalog_datasets(server)
         server.stop()
 
         catalog.drop()
@@ -154,6 +180,7 @@ def test_rebuilt_catalog_answers_as_before(
         assert rebuilt.stdout.strip() == f"{len(run_ids)} runs added, 0 already present, 0 skipped"
         after = answers(server, run_ids)
         served_after = recordings_served(server, run_ids)
+        datasets_after = catalog_datasets(server)
 
         again = fleet(server, "catalog", "rebuild")  # repeatable: the catalog is left as it is
         assert again.stdout.strip() == f"0 runs added, {len(run_ids)} already present, 0 skipped"
@@ -173,6 +200,9 @@ def test_rebuilt_catalog_answers_as_before(
     finally:
         server.stop()
 
+    # Rerun's clients find the same datasets under the same entry ids (kept in run.json)
+    assert sorted(datasets_before) == sorted({r["application_id"] for r in before["/v1/runs"]["runs"]})
+    assert datasets_after == datasets_before
     # the tiers are where the data is, as before
     assert {r["id"] for r in before["/v1/runs?tier=cold"]["runs"]} == COLD
     assert {r["id"] for r in before["/v1/runs?tier=warm"]["runs"]} == set(run_ids) - COLD
@@ -201,3 +231,70 @@ def test_rebuilt_catalog_answers_as_before(
         timeout=120,
     )
     assert compare.returncode == 0, compare.stderr
+
+
+# --- datasets: their entry ids are kept in run.json and come back with a rebuild -----------------
+
+
+@pytest.fixture(scope="module")
+def app_runs(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
+    """Three small runs logged with the real SDK: two of application `nav` (robots a and b), one of `arm`."""
+    folder = tmp_path_factory.mktemp("dataset-runs")
+    runs = {"nav-a": ("nav", "robot-a"), "nav-b": ("nav", "robot-b"), "arm-a": ("arm", "robot-a")}
+    with ThreadPoolExecutor(2) as pool:
+        made = {
+            run_id: pool.submit(
+                log_run, folder / f"{run_id}.rrd", run_id, entities=1, frames=3, points=10, robot=robot, application=app
+            )
+            for run_id, (app, robot) in runs.items()
+        }
+        return {run_id: future.result() for run_id, future in made.items()}
+
+
+def _datasets(node: Node) -> dict[str, str]:
+    with session_scope(node.catalog) as session:
+        return {d.name: d.entry_id for d in queries.datasets(session)}
+
+
+def _run_json_key(node: Node, run_id: str) -> str:
+    with session_scope(node.catalog) as session:
+        life = queries.lifecycle(session, run_id)
+        assert life is not None, f"{run_id} is not sealed"
+        return f"{life.prefix}/{RUN_JSON}"
+
+
+@pytest.mark.parametrize("tiers", ["file"], indirect=True)
+def test_a_rebuild_gives_each_dataset_the_entry_id_its_run_json_kept(
+    tiers: Tiers, make_node: NodeFactory, app_runs: dict[str, Path]
+):
+    clock = Clock()
+    node = make_node(tiers, clock=clock, promote_after_s=60)
+    for path in app_runs.values():
+        node.upload(path)
+    clock.advance(seconds=60)
+    assert [o.ok for o in run_plan(node.retention, plan(node.retention, [PROMOTE]))] == [True] * 3
+    kept = _datasets(node)
+    assert sorted(kept) == ["arm", "nav"]
+    for run_id in app_runs:  # every sealed run carries its dataset's entry id
+        found = parse_run_json(tiers.warm.get_range(_run_json_key(node, run_id)))
+        assert found.dataset_id == kept[found.record.application_id], run_id
+    # The first nav run listed (robot-a's) was sealed before datasets existed: its run.json has no id.
+    old_key = _run_json_key(node, "nav-a")
+    old = json.loads(tiers.warm.get_range(old_key))
+    del old["dataset_id"]
+    tiers.warm.put(old_key, json.dumps(old).encode())
+    arm_key = _run_json_key(node, "arm-a")
+    arm = json.loads(tiers.warm.get_range(arm_key))
+    del arm["dataset_id"]  # an application whose every run.json is that old
+    tiers.warm.put(arm_key, json.dumps(arm).encode())
+
+    with session_scope(node.catalog, write=True) as session:  # the catalog is lost
+        for table in ("runs", "run_lifecycle", "run_objects", "run_entities", "run_timelines", "datasets"):
+            session.execute(sa.text(f"DELETE FROM {table}"))
+    steps = rebuild(node.catalog, node.tiers, clock.advance(days=1))
+    assert sorted(s.outcome for s in steps) == ["added"] * 3
+    after = _datasets(node)
+    assert after["nav"] == kept["nav"]  # from nav-b's run.json, though nav-a's came first
+    assert after["arm"] != kept["arm"] and re.fullmatch(r"[0-9A-F]{16}[0-9a-f]{16}", after["arm"])
+    again = rebuild(node.catalog, node.tiers, clock.advance(days=1))  # repeatable: ids stay as they are
+    assert {s.outcome for s in again} == {"present"} and _datasets(node) == after
