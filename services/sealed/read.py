@@ -42,6 +42,12 @@ def _when(value: dt.datetime | None) -> str:
 def locate_sealed(catalog: sessionmaker[Session], warm: ObjectStore, run_id: str, now: dt.datetime) -> SealedRecording:
     """Where a run that left the hot tier can be read: the warm store (cold runs once restored).
     A cold run not restored is a CONFLICT saying how to restore it; a deleted one is GONE."""
+    return open_sealed(warm, sealed_prefix(catalog, run_id, now))
+
+
+def sealed_prefix(catalog: sessionmaker[Session], run_id: str, now: dt.datetime) -> str:
+    """The prefix of a sealed run's objects in the warm store, checked as `locate_sealed` checks it,
+    for readers that need its recording but not its chunk index."""
     with session_scope(catalog) as session:
         run = queries.get_run(session, run_id)
         life = queries.lifecycle(session, run_id)
@@ -63,8 +69,8 @@ def locate_sealed(catalog: sessionmaker[Session], warm: ObjectStore, run_id: str
                 else f"restore it with POST /v1/runs/{run_id}/restore or `fleet runs restore {run_id}`"
             )
             raise ConflictError(f"run {run_id!r} is archived in the cold tier since {_when(life.archived_at)}; {doing}")
-        prefix = life.prefix
-    return open_sealed(warm, prefix)
+        prefix: str = life.prefix
+    return prefix
 
 
 def open_sealed(store: ObjectStore, prefix: str) -> SealedRecording:
