@@ -38,7 +38,7 @@ import pyarrow as pa
 
 from services.rrd import errors as rrd_errors
 from services.rrd.chunk import ChunkMeta, ComponentMeta, TimelineMeta, TimeRange, chunk_meta
-from services.rrd.chunk_index import BLUEPRINT_ACTIVATION, STORE_INFO, IndexRow, chunk_row, store_kind_name
+from services.rrd.chunk_index import BLUEPRINT_ACTIVATION, CHUNK, STORE_INFO, IndexRow, chunk_row, store_kind_name
 from services.rrd.decoder import decode_message
 from services.rrd.frames import MESSAGE_HEADER_SIZE, STREAM_HEADER_SIZE, MessageKind, decode_message_header
 from services.rrd.layout import ChunkLayout, build_layout
@@ -56,16 +56,37 @@ _RANGE = struct.Struct("<Hqq")
 _EXPLICIT = struct.Struct("<BqH")
 _SAME = b"\0"
 _KINDS = {MessageKind.SET_STORE_INFO: STORE_INFO, MessageKind.BLUEPRINT_ACTIVATION: BLUEPRINT_ACTIVATION}
+_STORE_KINDS = {int(kind): store_kind_name(kind) for kind in StoreKind}
 _READ_BYTES = 1 << 20
 
 
-@dataclass(frozen=True, slots=True)
 class HotEntry:
-    """One message of a hot run file: its index row and, for a chunk, its metadata (what a footer
-    manifest is built from)."""
+    """One message of a hot run file: where it is, what it is and, for a chunk, its metadata (what a
+    footer manifest is built from). Its index row is made when first asked for (a manifest does not
+    need it)."""
 
-    row: IndexRow
-    meta: ChunkMeta | None = None
+    __slots__ = ("_row", "kind", "length", "meta", "offset", "store_kind")
+
+    def __init__(self, kind: str, store_kind: str, offset: int, length: int, meta: ChunkMeta | None = None) -> None:
+        self.kind = kind  # chunk | store_info | blueprint_activation, as index rows say
+        self.store_kind = store_kind  # recording | blueprint
+        self.offset = offset  # of the message's frame
+        self.length = length  # of the whole frame
+        self.meta = meta
+        self._row: IndexRow | None = None
+
+    @property
+    def row(self) -> IndexRow:
+        if self._row is None:
+            if self.meta is not None:
+                self._row = chunk_row(self.store_kind, self.offset, self.length, self.meta)
+            else:
+                self._row = IndexRow(self.kind, self.store_kind, self.offset, self.length)
+        return self._row
+
+    @property
+    def end(self) -> int:
+        return self.offset + self.length
 
 
 @dataclass(frozen=True)
@@ -328,11 +349,10 @@ def _read_index(path: Path, size: int) -> tuple[list[HotEntry], int]:
             break
         if entry is None:
             continue
-        row = entry.row
-        if row.offset != covered or row.end > size:
+        if entry.offset != covered or entry.end > size:
             break  # past what the reader was given, or not the next frame: the rest comes from the run file
         entries.append(entry)
-        covered = row.end
+        covered = entry.end
     return entries, covered
 
 
@@ -346,9 +366,7 @@ def _entry(payload: bytes, layouts: dict[int, tuple[ChunkLayout, list[str]]]) ->
         return None
     if kind == b"M":
         _, message_kind, store_kind, offset, length = _MESSAGE.unpack_from(payload)
-        return HotEntry(
-            IndexRow(_KINDS[MessageKind(message_kind)], store_kind_name(StoreKind(store_kind)), offset, length)
-        )
+        return HotEntry(_KINDS[message_kind], _STORE_KINDS[store_kind], offset, length)
     if kind != b"C":
         raise ValueError(f"unknown record type {kind!r}")
     _, store_kind, layout_id, offset, length, rows, uncompressed, chunk_id, count = _CHUNK.unpack_from(payload)
@@ -400,7 +418,7 @@ def _entry(payload: bytes, layouts: dict[int, tuple[ChunkLayout, list[str]]]) ->
         layout.row_id_field,
         layout,
     )
-    return HotEntry(chunk_row(store_kind_name(StoreKind(store_kind)), offset, length, meta), meta)
+    return HotEntry(CHUNK, _STORE_KINDS[store_kind], offset, length, meta)
 
 
 def _scan_run_file(run_file: Path, start: int, size: int) -> list[HotEntry]:
@@ -432,7 +450,7 @@ def _scan_run_file(run_file: Path, start: int, size: int) -> list[HotEntry]:
 def _scanned_entry(message: object, offset: int, length: int) -> HotEntry:
     if isinstance(message, ArrowMessage):
         meta = chunk_meta(message)
-        return HotEntry(chunk_row(store_kind_name(message.store_id.kind), offset, length, meta), meta)
+        return HotEntry(CHUNK, store_kind_name(message.store_id.kind), offset, length, meta)
     if isinstance(message, StoreInfoMessage):
-        return HotEntry(IndexRow(STORE_INFO, store_kind_name(message.store_id.kind), offset, length))
-    return HotEntry(IndexRow(BLUEPRINT_ACTIVATION, "blueprint", offset, length))
+        return HotEntry(STORE_INFO, store_kind_name(message.store_id.kind), offset, length)
+    return HotEntry(BLUEPRINT_ACTIVATION, "blueprint", offset, length)

@@ -20,7 +20,7 @@ import pyarrow as pa
 from google.protobuf.message import DecodeError
 
 from catalog.db import session_scope
-from core.errors import InternalError, InvalidArgumentError
+from core.errors import InternalError, InvalidArgumentError, UnavailableError
 from services.auth.scopes import Principal
 from services.hot.read import HotRecording
 from services.redap.chunks import chunk_keys
@@ -57,16 +57,18 @@ def rrd_manifest(
     depot: Depot, principal: Principal, entry: Tuid, request: cloud_pb2.GetRrdManifestRequest
 ) -> Iterator[cloud_pb2.GetRrdManifestResponse]:
     run_id = _segment(depot, entry, request.segment_id.id if request.HasField("segment_id") else "")
-    recording = open_recording(depot, run_id)
-    try:
-        if recording.hot is not None:
+    for _ in range(2):  # a hot run sealed (its file removed) while its manifest was read is read again
+        recording = open_recording(depot, run_id)
+        try:
+            if recording.hot is None:
+                assert recording.store is not None
+                return served_manifest(run_id, sealed_manifest(run_id, recording.store, recording.key, recording.size))
             manifest = hot_manifest(run_id, recording.hot)
-        else:
-            assert recording.store is not None
-            manifest = sealed_manifest(run_id, recording.store, recording.key, recording.size)
-    finally:
-        recording.close()
-    return served_manifest(run_id, manifest)
+            if recording.hot.path.exists():
+                return served_manifest(run_id, manifest)
+        finally:
+            recording.close()
+    raise UnavailableError(f"run {run_id!r} is being sealed right now: try again in a moment")
 
 
 def assets(
@@ -123,12 +125,12 @@ def hot_manifest(run_id: str, hot: HotRecording) -> log_msg_pb2.RrdManifest:
     """The manifest of a hot run's recording store, from its chunk index, as sealing will write it."""
     index = hot.chunk_index()
     entries = [
-        ManifestEntry(e.meta, e.row.offset + MESSAGE_HEADER_SIZE)
+        ManifestEntry(e.meta, e.offset + MESSAGE_HEADER_SIZE)
         for e in index.entries
-        if e.meta is not None and e.row.store_kind == "recording"
+        if e.meta is not None and e.store_kind == "recording"
     ]
     store = StoreId(StoreKind.RECORDING, "", run_id)
-    info = next((e.row for e in index.entries if e.row.kind == STORE_INFO and e.row.store_kind == "recording"), None)
+    info = next((e for e in index.entries if e.kind == STORE_INFO and e.store_kind == "recording"), None)
     if info is not None:
         with open(hot.path, "rb") as fh:
             fh.seek(info.offset + MESSAGE_HEADER_SIZE)

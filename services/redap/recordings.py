@@ -53,7 +53,10 @@ def open_recording(depot: Depot, run_id: str) -> RunRecording:
     unknown run, FAILED_PRECONDITION naming `fleet runs restore` for a cold run not restored."""
     hot = depot.hot.hot_recording(run_id) if depot.hot is not None else None
     if hot is not None:
-        return _hot(run_id, hot)
+        try:
+            return _hot(run_id, hot)
+        except FileNotFoundError:
+            pass  # sealed and removed since it was asked for: read it where it went
     if depot.warm is None:
         raise UnavailableError(f"run {run_id!r} is not hot on this node, and this node reads no sealed runs")
     try:

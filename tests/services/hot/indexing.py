@@ -12,7 +12,7 @@ from services.hot.index import HotEntry
 from services.hot.store import HotRun
 from services.rrd import iter_events
 from services.rrd.chunk import ChunkMeta, chunk_meta
-from services.rrd.chunk_index import BLUEPRINT_ACTIVATION, STORE_INFO, IndexRow, chunk_row, store_kind_name
+from services.rrd.chunk_index import BLUEPRINT_ACTIVATION, CHUNK, STORE_INFO, IndexRow, store_kind_name
 from services.rrd.frames import MESSAGE_HEADER_SIZE
 from services.rrd.manifest import ManifestEntry, build_manifest, read_manifest, read_sorbet_schema
 from services.rrd.messages import ArrowMessage, BlueprintActivationMessage, StoreId, StoreInfoMessage, StoreKind
@@ -25,13 +25,13 @@ def expected_entries(path: Path) -> list[HotEntry]:
         if isinstance(event, ArrowMessage):
             meta = chunk_meta(event)
             length = MESSAGE_HEADER_SIZE + len(event.raw)
-            entries.append(HotEntry(chunk_row(store_kind_name(event.store_id.kind), event.offset, length, meta), meta))
+            entries.append(HotEntry(CHUNK, store_kind_name(event.store_id.kind), event.offset, length, meta))
         elif isinstance(event, StoreInfoMessage):
             kind = store_kind_name(event.store_id.kind)
-            entries.append(HotEntry(IndexRow(STORE_INFO, kind, event.offset, MESSAGE_HEADER_SIZE + len(event.raw))))
+            entries.append(HotEntry(STORE_INFO, kind, event.offset, MESSAGE_HEADER_SIZE + len(event.raw)))
         elif isinstance(event, BlueprintActivationMessage):
             length = MESSAGE_HEADER_SIZE + len(event.raw)
-            entries.append(HotEntry(IndexRow(BLUEPRINT_ACTIVATION, "blueprint", event.offset, length)))
+            entries.append(HotEntry(BLUEPRINT_ACTIVATION, "blueprint", event.offset, length))
     return entries
 
 
@@ -66,9 +66,9 @@ def entry_keys(entries: list[HotEntry]) -> list[tuple[IndexRow, Any]]:
 def manifest_of(entries: list[HotEntry], store: StoreId) -> tuple[pa.Table, pa.Schema, bytes]:
     """The footer manifest of the recording's chunks (table, sorbet schema, its SHA-256)."""
     chunks = [
-        ManifestEntry(e.meta, e.row.offset + MESSAGE_HEADER_SIZE)
+        ManifestEntry(e.meta, e.offset + MESSAGE_HEADER_SIZE)
         for e in entries
-        if e.meta is not None and e.row.store_kind == "recording"
+        if e.meta is not None and e.store_kind == "recording"
     ]
     manifest = build_manifest(store, chunks)
     return read_manifest(manifest), read_sorbet_schema(manifest), manifest.sorbet_schema_sha256
