@@ -14,6 +14,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Protocol
 
+from services.hot.index import HotChunkIndex, read_hot_index
 from services.hot.store import Changes
 from services.rrd.decoder import RrdDecoder
 from services.rrd.messages import Event
@@ -39,6 +40,12 @@ class HotRecording:
     timeline_types: dict[str, str]
     follow: Follow
     changes: Changes  # notified when the file grows or the run ends
+
+    def chunk_index(self) -> HotChunkIndex:
+        """Every message of the file up to `size` with its index row (and a chunk's metadata):
+        from the chunk index kept beside the file, and what it lacks read from the file. Reads
+        files only, so it may run on any thread while ingest appends."""
+        return read_hot_index(self.path, self.size)
 
 
 class HotRuns(Protocol):

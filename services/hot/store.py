@@ -7,7 +7,8 @@ chunk. After a crash, `recover()` trims a torn tail and rebuilds the run from wh
 Durability: `always` fsyncs when a caller asks (an upload before it is answered, a stream at its
 end), `interval` fsyncs dirty runs every `interval_ms` from a group-commit thread, `off` never.
 Readers following a run wait on its `changes` (a wake-up per append and when the run ends), not on
-a timer.
+a timer. Beside the file, `chunks.idx` indexes every message as it is appended (`hot.index`), so a
+reader learns what a run holds without decompressing its chunks.
 """
 
 from __future__ import annotations
@@ -24,10 +25,12 @@ from collections.abc import Iterator
 from pathlib import Path
 
 from core.errors import InsufficientStorageError
+from services.hot.index import HotIndexWriter
 from services.rrd import errors as rrd_errors
+from services.rrd.chunk import ChunkMeta
 from services.rrd.decoder import iter_events
 from services.rrd.frames import MESSAGE_HEADER_SIZE, RerunVersion, StreamHeader, encode_message_header
-from services.rrd.messages import Buffer, Event, StreamStart
+from services.rrd.messages import Buffer, Event, StoreKind, StreamStart
 from services.settings import Durability
 
 log = logging.getLogger(__name__)
@@ -102,12 +105,15 @@ def _wake(futures: list[asyncio.Future[None]]) -> None:
 class HotRun:
     """The append-only file of one run."""
 
-    def __init__(self, directory: Path, fd: int, size: int, robot: str | None = None) -> None:
+    def __init__(
+        self, directory: Path, fd: int, size: int, robot: str | None = None, index: HotIndexWriter | None = None
+    ) -> None:
         self.directory = directory
         self.run_id = directory.name
         self.robot = robot  # the robot whose token created the run, if one did (kept in ROBOT_FILE)
         self._fd = fd
         self.size = size
+        self.index = index  # the chunk index beside the file (None: not kept)
         self.dirty = False
         self.closed = False
         self.changes = Changes()  # followers wait on it: the file grew, or the run ended
@@ -126,11 +132,12 @@ class HotRun:
         os.write(fd, header)
         os.fsync(fd)
         _fsync_dir(directory.parent)  # the new run survives a crash even with durability off
-        return cls(directory, fd, len(header), robot)
+        return cls(directory, fd, len(header), robot, HotIndexWriter.create(directory, len(header)))
 
     @classmethod
     def recover(cls, directory: Path) -> tuple[HotRun, list[Event]]:
-        """Reopen a run after a restart: every whole message is kept, a torn tail is cut off."""
+        """Reopen a run after a restart: every whole message is kept, a torn tail is cut off, and
+        the chunk index made to match what is kept."""
         path = directory / RUN_FILE
         events: list[Event] = []
         good = 0
@@ -151,10 +158,14 @@ class HotRun:
         fd = os.open(path, os.O_WRONLY | os.O_APPEND)
         robot_file = directory / ROBOT_FILE
         robot = robot_file.read_text().strip() or None if robot_file.is_file() else None
-        return cls(directory, fd, good, robot), events
+        return cls(directory, fd, good, robot, HotIndexWriter.recover(directory, events)), events
 
-    def append(self, kind: int, raw: Buffer) -> int:
-        """Write one whole message; returns the offset of its header."""
+    def append(
+        self, kind: int, raw: Buffer, store_kind: StoreKind = StoreKind.RECORDING, meta: ChunkMeta | None = None
+    ) -> int:
+        """Write one whole message; returns the offset of its header. `store_kind` and, for a
+        chunk, `meta` are what the chunk index records of it (a chunk without: the index stops
+        there and readers read on from the file)."""
         offset = self.size
         header = encode_message_header(kind, len(raw))
         try:
@@ -166,6 +177,8 @@ class HotRun:
             raise InsufficientStorageError(f"cannot write run {self.run_id} to the hot tier: {exc}") from exc
         self.size = offset + written
         self.dirty = True
+        if self.index is not None:
+            self.index.add(kind, store_kind, offset, written, meta)
         self.changes.notify()
         return offset
 
@@ -179,6 +192,8 @@ class HotRun:
             self.sync()
             self.closed = True
             os.close(self._fd)
+            if self.index is not None:
+                self.index.close()
             self.changes.notify()
 
 

@@ -42,7 +42,7 @@ from services.ingest.identity import (
 )
 from services.ingest.replay import ReplayHub
 from services.ingest.source import IngestReport, Source
-from services.rrd.chunk import chunk_meta
+from services.rrd.chunk import ChunkMeta, chunk_meta
 from services.rrd.frames import DEFAULT_VERSION, MessageKind
 from services.rrd.manifest import is_property_entity
 from services.rrd.messages import (
@@ -253,7 +253,7 @@ class IngestService:
         source.store_infos[key] = msg
         run = self._hot_run(source, run_id)
         if run is not None and key not in run.stores_written:
-            run = self._append(source, run, MessageKind.SET_STORE_INFO, msg.raw)
+            run = self._append(source, run, MessageKind.SET_STORE_INFO, msg.raw, store.kind)
             run.observe_store_info(msg)
             self._publish(source, run.run_id, MessageKind.SET_STORE_INFO, msg.raw, persistent=True)
         if store.kind == StoreKind.RECORDING and run_id == source.recording_run:
@@ -285,7 +285,7 @@ class IngestService:
             return
         self.hot.check_space(len(msg.raw))
         run = run or self._materialize(source, run_id)
-        run = self._append(source, run, MessageKind.ARROW_MSG, msg.raw)
+        run = self._append(source, run, MessageKind.ARROW_MSG, msg.raw, msg.store_id.kind, meta)
         if prop is not None:
             run.observe_property(prop.name, prop.values)
         run.observe_chunk(msg, meta, self.clock())
@@ -338,7 +338,7 @@ class IngestService:
         if run is None:
             self._hold(source, run_id, msg)
         elif bytes(msg.raw) not in run.activations:
-            run = self._append(source, run, MessageKind.BLUEPRINT_ACTIVATION, msg.raw)
+            run = self._append(source, run, MessageKind.BLUEPRINT_ACTIVATION, msg.raw, StoreKind.BLUEPRINT)
             run.activations.add(bytes(msg.raw))
             self._publish(source, run.run_id, MessageKind.BLUEPRINT_ACTIVATION, msg.raw, persistent=True)
 
@@ -406,18 +406,27 @@ class IngestService:
         self._attach(source, run)
         for key, store_info in source.store_infos.items():
             if source.run_of_store.get(key) == run_id and key not in run.stores_written:
-                run.hot.append(MessageKind.SET_STORE_INFO, store_info.raw)
+                run.hot.append(MessageKind.SET_STORE_INFO, store_info.raw, key[0])
                 run.observe_store_info(store_info)
                 self._publish(source, run_id, MessageKind.SET_STORE_INFO, store_info.raw, persistent=True)
         self._release(source, run_id)
         return run
 
-    def _append(self, source: Source, run: IngestRun, kind: MessageKind, raw: Buffer) -> IngestRun:
-        """Write one message to the run's hot file, unless promotion has just taken the run."""
+    def _append(
+        self,
+        source: Source,
+        run: IngestRun,
+        kind: MessageKind,
+        raw: Buffer,
+        store_kind: StoreKind,
+        meta: ChunkMeta | None = None,
+    ) -> IngestRun:
+        """Write one message to the run's hot file (and its chunk index: `store_kind`, and a chunk's
+        `meta`), unless promotion has just taken the run."""
         while True:
             with run.sealing:
                 if not run.sealed:
-                    run.hot.append(kind, raw)
+                    run.hot.append(kind, raw, store_kind, meta)
                     return run
             run = self._materialize(source, run.run_id)
 

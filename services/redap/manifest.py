@@ -1,24 +1,198 @@
 """Opening a segment: its RRD manifest (the sealed footer's, or the hot run's chunk index) with
-chunk keys, and its assets."""
+chunk keys, and its assets.
+
+Answered as Rerun's own server answers a recording with a footer: the footer manifest's columns
+(every field nullable, as it serves them) plus `chunk_key` (binary), the footer's Sorbet schema
+with `sorbet:version` in its metadata, and the schema's hash as Rerun computes it. A sealed run's footer is read
+from the end of its `recording.rrd` by byte range; a hot run's manifest is built from its chunk
+index with the same builder that writes footers at sealing, so a run looks the same before and
+after. `generate_direct_urls` is not honoured (the protocol lets a server inline the manifest
+whatever the client asks, and Rerun's server does the same).
+"""
 
 from __future__ import annotations
 
+import math
 from collections.abc import Iterator
 
-from core.errors import UnimplementedError
+import lz4.block
+import pyarrow as pa
+from google.protobuf.message import DecodeError
+
+from catalog.db import session_scope
+from core.errors import InternalError, InvalidArgumentError, UnavailableError
 from services.auth.scopes import Principal
+from services.hot.read import HotRecording
+from services.redap.chunks import chunk_keys
+from services.redap.datasets import dataset_by_entry, segment_run
 from services.redap.depot import Depot
 from services.redap.pb import cloud_pb2
+from services.redap.recordings import open_recording
 from services.redap.tuid import Tuid
+from services.rrd.chunk_index import STORE_INFO
+from services.rrd.decoder import decode_message
+from services.rrd.frames import (
+    FOOTER_ENTRY_SIZE,
+    FOOTER_FIXED_SIZE,
+    FOOTER_MAGIC,
+    MESSAGE_HEADER_SIZE,
+    MessageKind,
+    decode_footer_entry,
+    footer_crc,
+)
+from services.rrd.manifest import ManifestEntry, build_manifest, read_manifest, read_sorbet_schema, schema_sha256
+from services.rrd.messages import StoreId, StoreInfoMessage, StoreKind
+from services.rrd.migrations import CURRENT_VERSION, VERSION_KEY
+from services.rrd.pb import common_pb2, log_msg_pb2
+from services.storage.objectstore import ObjectStore
+
+_TRAILER = FOOTER_ENTRY_SIZE + FOOTER_FIXED_SIZE
+SORBET_VERSION = ".".join(map(str, CURRENT_VERSION)).encode()
+# A manifest larger than this (Arrow IPC) goes in several parts of whole rows, which clients merge:
+# every part carries the same schemas.
+PART_BYTES = 16 * 1024 * 1024
 
 
 def rrd_manifest(
     depot: Depot, principal: Principal, entry: Tuid, request: cloud_pb2.GetRrdManifestRequest
 ) -> Iterator[cloud_pb2.GetRrdManifestResponse]:
-    raise UnimplementedError("rrd_manifest is not served yet")
+    run_id = _segment(depot, entry, request.segment_id.id if request.HasField("segment_id") else "")
+    for _ in range(2):  # a hot run sealed (its file removed) while its manifest was read is read again
+        recording = open_recording(depot, run_id)
+        try:
+            if recording.hot is None:
+                assert recording.store is not None
+                return served_manifest(run_id, sealed_manifest(run_id, recording.store, recording.key, recording.size))
+            manifest = hot_manifest(run_id, recording.hot)
+            if recording.hot.path.exists():
+                return served_manifest(run_id, manifest)
+        finally:
+            recording.close()
+    raise UnavailableError(f"run {run_id!r} is being sealed right now: try again in a moment")
 
 
 def assets(
     depot: Depot, principal: Principal, entry: Tuid, request: cloud_pb2.GetAssetsForSegmentRequest
 ) -> Iterator[cloud_pb2.GetAssetsForSegmentResponse]:
-    raise UnimplementedError("assets is not served yet")
+    """No asset dataset: an empty stream, which Rerun's clients read as "this dataset has no
+    assets" (one response naming an asset dataset is what a server with assets sends)."""
+    if request.HasField("segment_id") and request.segment_id.id:
+        _segment(depot, entry, request.segment_id.id)
+    else:
+        with session_scope(depot.catalog) as session:
+            dataset_by_entry(session, entry)
+    return iter(())
+
+
+def _segment(depot: Depot, entry: Tuid, segment_id: str) -> str:
+    """The run a segment of the dataset names (NOT_FOUND if it is none of the dataset's)."""
+    if not segment_id:
+        raise InvalidArgumentError("name the segment: segment_id is a run id, as the segment table lists them")
+    with session_scope(depot.catalog) as session:
+        run_id: str = segment_run(session, dataset_by_entry(session, entry), segment_id).id
+    return run_id
+
+
+# --- the manifests --------------------------------------------------------------------------------
+
+
+def sealed_manifest(run_id: str, store: ObjectStore, key: str, size: int) -> log_msg_pb2.RrdManifest:
+    """The recording's manifest from the footer of its sealed `recording.rrd`: the trailer, then
+    the footer, by range (two reads, however large the run)."""
+    damaged = InternalError(f"the sealed recording of run {run_id!r} has no usable footer: seal it again")
+    if size < _TRAILER:
+        raise damaged
+    trailer = store.get_range(key, size - _TRAILER, _TRAILER)
+    if trailer[FOOTER_ENTRY_SIZE : FOOTER_ENTRY_SIZE + len(FOOTER_MAGIC)] != FOOTER_MAGIC:
+        raise damaged
+    start, length, crc = decode_footer_entry(trailer)  # stream-relative: the sealed stream starts at 0
+    if start + length + _TRAILER != size:
+        raise damaged
+    payload = store.get_range(key, start, length)
+    if footer_crc(payload) != crc:
+        raise damaged
+    try:
+        footer = log_msg_pb2.RrdFooter.FromString(payload)
+    except DecodeError as exc:
+        raise damaged from exc
+    recordings = [m for m in footer.manifests if m.store_id.kind == common_pb2.STORE_KIND_RECORDING]
+    if not recordings:  # a run of nothing but a blueprint and properties held back: no chunks
+        return build_manifest(StoreId(StoreKind.RECORDING, "", run_id), [])
+    return next((m for m in recordings if m.store_id.recording_id == run_id), recordings[0])
+
+
+def hot_manifest(run_id: str, hot: HotRecording) -> log_msg_pb2.RrdManifest:
+    """The manifest of a hot run's recording store, from its chunk index, as sealing will write it."""
+    index = hot.chunk_index()
+    entries = [
+        ManifestEntry(e.meta, e.offset + MESSAGE_HEADER_SIZE)
+        for e in index.entries
+        if e.meta is not None and e.store_kind == "recording"
+    ]
+    store = StoreId(StoreKind.RECORDING, "", run_id)
+    info = next((e for e in index.entries if e.kind == STORE_INFO and e.store_kind == "recording"), None)
+    if info is not None:
+        with open(hot.path, "rb") as fh:
+            fh.seek(info.offset + MESSAGE_HEADER_SIZE)
+            message = decode_message(MessageKind.SET_STORE_INFO, fh.read(info.length - MESSAGE_HEADER_SIZE))
+        if isinstance(message, StoreInfoMessage):
+            store = message.store_id
+    return build_manifest(store, entries)
+
+
+def served_manifest(run_id: str, manifest: log_msg_pb2.RrdManifest) -> Iterator[cloud_pb2.GetRrdManifestResponse]:
+    """The manifest as clients get it: nullable columns plus `chunk_key`, in parts of whole rows."""
+    table = read_manifest(manifest)
+    keys = chunk_keys(
+        run_id,
+        table.column("chunk_byte_offset").to_pylist(),
+        table.column("chunk_byte_size").to_pylist(),
+        table.column("chunk_id").to_pylist(),
+    )
+    fields = [f.with_nullable(True) for f in table.schema] + [pa.field("chunk_key", pa.binary())]
+    table = table.combine_chunks()
+    columns = [column.chunk(0) if column.num_chunks else pa.array([], column.type) for column in table.columns]
+    served = pa.RecordBatch.from_arrays([*columns, pa.array(keys, pa.binary())], schema=pa.schema(fields))
+    sorbet = read_sorbet_schema(manifest)
+    # Hashed again as Rerun hashes it: footers sealed before the depot did so carry another hash.
+    sha256 = schema_sha256(sorbet)
+    sorbet = sorbet.with_metadata({**(sorbet.metadata or {}), VERSION_KEY: SORBET_VERSION})
+    sorbet_proto = common_pb2.Schema(arrow_schema=sorbet.serialize().to_pybytes())
+    for part in _parts(served):
+        yield cloud_pb2.GetRrdManifestResponse(
+            rrd_manifest=log_msg_pb2.RrdManifest(
+                store_id=manifest.store_id,
+                sorbet_schema=sorbet_proto,
+                sorbet_schema_sha256=sha256,
+                data=part,
+            )
+        )
+
+
+def _parts(batch: pa.RecordBatch) -> Iterator[common_pb2.DataframePart]:
+    """One record batch per part (what Rerun's clients read of a part)."""
+    whole = _ipc(batch)
+    count = max(1, math.ceil(len(whole) / PART_BYTES))
+    if count == 1:
+        yield _lz4_part(whole)
+        return
+    rows = math.ceil(batch.num_rows / count)
+    for start in range(0, batch.num_rows, rows):
+        yield _lz4_part(_ipc(batch.slice(start, rows)))
+
+
+def _ipc(batch: pa.RecordBatch) -> bytes:
+    sink = pa.BufferOutputStream()
+    with pa.ipc.new_stream(sink, batch.schema) as writer:
+        writer.write_batch(batch)
+    ipc: bytes = sink.getvalue().to_pybytes()
+    return ipc
+
+
+def _lz4_part(ipc: bytes) -> common_pb2.DataframePart:
+    return common_pb2.DataframePart(
+        encoder_version=common_pb2.ENCODER_VERSION_V0,
+        payload=lz4.block.compress(ipc, store_size=False),
+        compression=common_pb2.COMPRESSION_LZ4,
+        uncompressed_size=len(ipc),
+    )

@@ -12,7 +12,6 @@ footer over chunks of an older SDK names what `rerun rrd verify` and `rerun serv
 
 from __future__ import annotations
 
-import hashlib
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 
@@ -22,6 +21,7 @@ import pyarrow as pa
 from services.rrd.chunk import ChunkMeta, ComponentMeta
 from services.rrd.messages import Compression, StoreId
 from services.rrd.pb import common_pb2, log_msg_pb2
+from services.rrd.schema_hash import sorbet_schema_sha256
 
 PROPERTIES_ENTITY = "/__properties"
 
@@ -106,9 +106,9 @@ def sorbet_schema(chunks: Iterable[ChunkMeta]) -> pa.Schema:
 
 
 def schema_sha256(schema: pa.Schema) -> bytes:
-    """SHA-256 of the schema's IPC encoding, fields sorted by name and no schema metadata."""
-    ordered = pa.schema(sorted(schema, key=lambda f: f.name))
-    return hashlib.sha256(ordered.serialize().to_pybytes()).digest()
+    """SHA-256 of the schema's IPC encoding, fields sorted by name and no schema metadata, as
+    Rerun computes it (see schema_hash)."""
+    return sorbet_schema_sha256(schema)
 
 
 def manifest_batch(entries: list[ManifestEntry]) -> pa.RecordBatch:

@@ -1,4 +1,5 @@
-"""`chunks.parquet`: the index of a sealed run, one row per message of its `recording.rrd`.
+"""`chunks.parquet`: the index of a sealed run, one row per message of its `recording.rrd`
+(rows: `services.rrd.chunk_index`, shared with the hot index).
 
 Every chunk has a row (id, entity, static, rows, per-timeline min/max, components, byte offset
 and length of its whole frame, and per component and timeline the min/max/count of its non-null
@@ -11,17 +12,32 @@ from __future__ import annotations
 
 import io
 from collections.abc import Iterable
-from dataclasses import dataclass
 
 import pyarrow as pa
 import pyarrow.parquet as pq
 
 from core.errors import InternalError
-from services.rrd.chunk import ChunkMeta
+from services.rrd.chunk_index import (
+    BLUEPRINT_ACTIVATION,
+    CHUNK,
+    STORE_INFO,
+    ComponentRange,
+    IndexRow,
+    TimelineRange,
+    component_ranges,
+)
 
-CHUNK = "chunk"
-STORE_INFO = "store_info"
-BLUEPRINT_ACTIVATION = "blueprint_activation"
+__all__ = [
+    "BLUEPRINT_ACTIVATION",
+    "CHUNK",
+    "STORE_INFO",
+    "ComponentRange",
+    "IndexRow",
+    "TimelineRange",
+    "component_ranges",
+    "from_parquet",
+    "to_parquet",
+]
 
 _TIMELINE = pa.struct([("name", pa.string()), ("type", pa.string()), ("min", pa.int64()), ("max", pa.int64())])
 _COMPONENT_RANGE = pa.struct(
@@ -50,50 +66,6 @@ SCHEMA = pa.schema(
         ("component_ranges", pa.list_(_COMPONENT_RANGE)),
     ]
 )
-
-
-@dataclass(frozen=True)
-class TimelineRange:
-    name: str
-    type: str
-    min: int
-    max: int
-
-
-@dataclass(frozen=True)
-class ComponentRange:
-    component: str
-    timeline: str
-    min: int
-    max: int
-    rows: int  # non-null rows of the component in the chunk
-
-
-def component_ranges(meta: ChunkMeta) -> tuple[ComponentRange, ...]:
-    return tuple(
-        ComponentRange(c.component, timeline, r.min, r.max, c.num_rows)
-        for c in meta.components
-        for timeline, r in c.ranges.items()
-    )
-
-
-@dataclass(frozen=True)
-class IndexRow:
-    kind: str
-    store_kind: str
-    offset: int
-    length: int
-    chunk_id: bytes | None = None
-    entity_path: str | None = None
-    is_static: bool = False
-    num_rows: int = 0
-    timelines: tuple[TimelineRange, ...] = ()
-    components: tuple[str, ...] = ()
-    component_ranges: tuple[ComponentRange, ...] | None = None  # None: not known (an older index)
-
-    @property
-    def end(self) -> int:
-        return self.offset + self.length
 
 
 def to_parquet(rows: Iterable[IndexRow]) -> bytes:

@@ -43,13 +43,18 @@ def _when(value: dt.datetime | None) -> str:
 def locate_sealed(catalog: sessionmaker[Session], warm: ObjectStore, run_id: str, now: dt.datetime) -> SealedRecording:
     """Where a run that left the hot tier can be read: the warm store (cold runs once restored).
     A cold run not restored is a CONFLICT saying how to restore it; a deleted one is GONE."""
+    return open_sealed(warm, sealed_prefix(catalog, run_id, now))
+
+
+def sealed_prefix(catalog: sessionmaker[Session], run_id: str, now: dt.datetime) -> str:
+    """The prefix of a sealed run's objects in the warm store, checked as `locate_sealed` checks it,
+    for readers that need its recording but not its chunk index."""
     with session_scope(catalog) as session:
         run = queries.get_run(session, run_id)
         life = queries.lifecycle(session, run_id)
         if run is None or life is None:
             raise queries.run_not_found(run_id)
-        prefix = readable_prefix(run, life, now)
-    return open_sealed(warm, prefix)
+        return readable_prefix(run, life, now)
 
 
 def readable_prefix(run: Run, life: RunLifecycle, now: dt.datetime) -> str:
