@@ -109,17 +109,7 @@ def _promoted(server: LiveServer, run_id: str) -> bool:
     return answer.status_code == 200 or (answer.status_code == 409 and "warm already" in answer.text)
 
 
-SERVERS = [
-    "reference",
-    pytest.param(
-        "depot",
-        marks=pytest.mark.xfail(
-            strict=False,
-            reason="the SDK's reader also needs WhoAmI/FindEntries/ReadDatasetEntry, the segment table and "
-            "FetchChunks, served on other branches of the catalog server",
-        ),
-    ),
-]
+SERVERS = ["reference", "depot"]
 
 
 @pytest.fixture(params=SERVERS)
