@@ -4,8 +4,7 @@ sealed `recording.rrd` in the warm store), its chunk index rows, and its Sorbet 
 A sealed run is read from its `chunks.parquet` and the footer of its `recording.rrd` (the schema,
 and each chunk's size once decompressed), and kept in a bounded cache under the recording's digest:
 a run sealed again with chunks that came later is a new recording, so a new entry. A hot run is
-read from its file as it stands (until hot runs keep a chunk index of their own, each chunk is
-decoded once per size of the file)."""
+read from the chunk index kept beside its file, as the file stands (cached per size of the file)."""
 
 from __future__ import annotations
 
@@ -23,17 +22,14 @@ from sqlalchemy.orm import Session
 from catalog.models import Dataset, Run, RunLifecycle, RunObject
 from core.errors import ConflictError, FleetError, GoneError, InternalError, UnavailableError
 from core.states import Tier
-from services.hot.read import HotRecording, read_events
+from services.hot.read import HotRecording
 from services.redap.cache import WeightedLru
 from services.redap.depot import Depot
 from services.redap.schema import merge_schemas, rerun_order
-from services.rrd.chunk import chunk_meta
 from services.rrd.footer import read_footer
-from services.rrd.frames import MESSAGE_HEADER_SIZE
 from services.rrd.manifest import read_manifest, read_sorbet_schema, sorbet_schema
-from services.rrd.messages import ArrowMessage, StoreKind
 from services.rrd.pb import common_pb2, log_msg_pb2
-from services.sealed.index import CHUNK, IndexRow, TimelineRange, component_ranges, from_parquet
+from services.sealed.index import CHUNK, IndexRow, from_parquet
 from services.sealed.read import readable_prefix
 from services.sealed.write import INDEX, RECORDING
 from services.storage.objectstore import ObjectStore
@@ -182,32 +178,19 @@ def _footer(store: ObjectStore, prefix: str, size: int) -> log_msg_pb2.RrdFooter
 
 
 def _read_hot(run_id: str, hot: HotRecording) -> RunChunks:
+    """A hot run's chunks from the chunk index ingest keeps beside its file (no chunk decoded)."""
     rows: list[IndexRow] = []
     uncompressed: dict[bytes, int] = {}
     metas = []
-    for event in read_events(hot.path, hot.size):
-        if not isinstance(event, ArrowMessage) or event.store_id.kind != StoreKind.RECORDING:
+    for entry in hot.chunk_index().entries:
+        meta = entry.meta
+        if meta is None or entry.kind != CHUNK or entry.store_kind != RECORDING_STORE:
             continue
-        meta = chunk_meta(event)
         if meta.chunk_id in uncompressed:
             continue  # a chunk sent twice is kept once, as sealing keeps it
         metas.append(meta)
         uncompressed[meta.chunk_id] = meta.uncompressed_size
-        rows.append(
-            IndexRow(
-                CHUNK,
-                RECORDING_STORE,
-                event.offset,
-                MESSAGE_HEADER_SIZE + event.size,
-                meta.chunk_id,
-                meta.entity_path,
-                meta.is_static,
-                meta.num_rows,
-                tuple(TimelineRange(t.name, t.type, t.range.min, t.range.max) for t in meta.timelines),
-                tuple(sorted(meta.component_names)),
-                component_ranges(meta),
-            )
-        )
+        rows.append(entry.row)
     return RunChunks(run_id, tuple(rows), uncompressed, rerun_order(sorbet_schema(metas)))
 
 
