@@ -155,8 +155,21 @@ class CatalogServer(cloud_pb2_grpc.RerunCloudServiceServicer):
     async def FetchChunks(self, request: cloud_pb2.FetchChunksRequest, context: Any) -> AsyncIterator[bytes]:
         # Serialized FetchChunksResponses around the stored chunk bytes (see add_to_server). No entry
         # header: Rerun's clients send none with this call, so the read scope is what is checked.
-        async for response in self._stream(context, chunks.fetch_chunks, request, scopes=(Scope.READ,)):
-            yield response
+        # The next response is read while this one is sent: disk and network both busy, two
+        # responses in memory at most.
+        try:
+            principal = await self._caller(context, Scope.READ)
+            made = await asyncio.to_thread(chunks.fetch_chunks, self.depot, principal, request)
+            ahead = asyncio.ensure_future(asyncio.to_thread(next, made, None))
+            try:
+                while (response := await ahead) is not None:
+                    ahead = asyncio.ensure_future(asyncio.to_thread(next, made, None))
+                    yield response
+            finally:
+                if not ahead.done():  # the call ended early: let the read under way finish, then drop it
+                    await asyncio.wait([ahead])
+        except FleetError as exc:
+            await _abort(context, exc)
 
     # --- querying from the SDK -------------------------------------------------------------
 
