@@ -27,7 +27,6 @@ log = logging.getLogger(__name__)
 
 ENTRY_ID_HEADER = "x-rerun-entry-id"
 R = TypeVar("R", bound=Message)
-S = TypeVar("S", bound=Message | bytes)  # a streamed response: a message, or one already serialized
 Metadata = Iterable[tuple[str, Any]] | None
 
 
@@ -74,11 +73,11 @@ class CatalogServer(cloud_pb2_grpc.RerunCloudServiceServicer):
     async def _stream(
         self,
         context: grpc.aio.ServicerContext,
-        answers: Callable[..., Iterator[S]],
+        answers: Callable[..., Iterator[R]],
         *args: Any,
         scopes: tuple[Scope, ...],
         entry: bool = False,
-    ) -> AsyncIterator[S]:
+    ) -> AsyncIterator[R]:
         """As `_unary`, for a stream: each response made on a worker thread, one at a time, so a
         large answer is never whole in memory and the event loop never blocks."""
         try:
