@@ -114,7 +114,7 @@ def fetch_chunks(depot: Depot, principal: Principal, request: cloud_pb2.FetchChu
     try:
         for location in wanted:
             if location.run_id not in runs:
-                runs[location.run_id] = open_recording(depot, location.run_id)
+                runs[location.run_id] = open_recording(depot, location.run_id, cached=True)
             recording = runs[location.run_id]
             if location.end > recording.size:
                 raise InvalidArgumentError(

@@ -29,7 +29,6 @@ log = logging.getLogger(__name__)
 ENTRY_ID_HEADER = "x-rerun-entry-id"
 R = TypeVar("R", bound=Message)
 T = TypeVar("T")
-S = TypeVar("S", bound=Message | bytes)  # a streamed response: a message, or one already serialized
 Metadata = Iterable[tuple[str, Any]] | None
 
 
@@ -96,11 +95,11 @@ class CatalogServer(cloud_pb2_grpc.RerunCloudServiceServicer):
     async def _stream(
         self,
         context: grpc.aio.ServicerContext,
-        answers: Callable[..., Iterator[S]],
+        answers: Callable[..., Iterator[R]],
         *args: Any,
         scopes: tuple[Scope, ...],
         entry: bool = False,
-    ) -> AsyncIterator[S]:
+    ) -> AsyncIterator[R]:
         """As `_unary`, for a stream: each response made on a worker thread, one at a time, so a
         large answer is never whole in memory and the event loop never blocks."""
         try:
@@ -183,8 +182,21 @@ class CatalogServer(cloud_pb2_grpc.RerunCloudServiceServicer):
     async def FetchChunks(self, request: cloud_pb2.FetchChunksRequest, context: Any) -> AsyncIterator[bytes]:
         # Serialized FetchChunksResponses around the stored chunk bytes (see add_to_server). No entry
         # header: Rerun's clients send none with this call, so the read scope is what is checked.
-        async for response in self._stream(context, chunks.fetch_chunks, request, scopes=(Scope.READ,)):
-            yield response
+        # The next response is read while this one is sent: disk and network both busy, two
+        # responses in memory at most.
+        try:
+            principal = await self._caller(context, Scope.READ)
+            made = await asyncio.to_thread(chunks.fetch_chunks, self.depot, principal, request)
+            ahead = asyncio.ensure_future(asyncio.to_thread(next, made, None))
+            try:
+                while (response := await ahead) is not None:
+                    ahead = asyncio.ensure_future(asyncio.to_thread(next, made, None))
+                    yield response
+            finally:
+                if not ahead.done():  # the call ended early: let the read under way finish, then drop it
+                    await asyncio.wait([ahead])
+        except FleetError as exc:
+            await _abort(context, exc)
 
     # --- querying from the SDK -------------------------------------------------------------
 

@@ -5,6 +5,9 @@ with its chunk index to find a chunk by id."""
 from __future__ import annotations
 
 import os
+import threading
+import time
+import weakref
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -18,7 +21,10 @@ from services.rrd.chunk_index import CHUNK, IndexRow
 from services.sealed.index import from_parquet
 from services.sealed.read import sealed_prefix
 from services.sealed.write import INDEX, RECORDING
-from services.storage.objectstore import ObjectStore
+from services.storage.objectstore import ObjectNotFoundError, ObjectStore
+
+LOCATION_TTL_S = 10.0
+LOCATIONS_KEPT = 4096
 
 
 @dataclass
@@ -48,9 +54,14 @@ class RunRecording:
         return self._by_chunk.get(chunk_id)
 
 
-def open_recording(depot: Depot, run_id: str) -> RunRecording:
+def open_recording(depot: Depot, run_id: str, *, cached: bool = False) -> RunRecording:
     """The run's hot file if this node writes it, else its sealed recording. NOT_FOUND for an
-    unknown run, FAILED_PRECONDITION naming `fleet runs restore` for a cold run not restored."""
+    unknown run, FAILED_PRECONDITION naming `fleet runs restore` for a cold run not restored.
+
+    `cached`: a sealed run found in the last `LOCATION_TTL_S` is not looked up in the catalog again
+    (a viewer opening a run asks for its chunks in many calls) if its recording is still there with
+    the same size (deleted or sealed again: the catalog is asked). A run archived in that time may
+    be read from its warm copy until then."""
     hot = depot.hot.hot_recording(run_id) if depot.hot is not None else None
     if hot is not None:
         try:
@@ -59,12 +70,53 @@ def open_recording(depot: Depot, run_id: str) -> RunRecording:
             pass  # sealed and removed since it was asked for: read it where it went
     if depot.warm is None:
         raise UnavailableError(f"run {run_id!r} is not hot on this node, and this node reads no sealed runs")
+    found = _LOCATIONS.get(depot.catalog, run_id) if cached else None
+    if found is not None:
+        prefix, size = found
+        try:
+            recording = _sealed(run_id, depot.warm, prefix)
+            if recording.size == size:  # the same object: not deleted, not sealed again meanwhile
+                return recording
+        except ObjectNotFoundError:
+            pass
+        _LOCATIONS.forget(depot.catalog, run_id)
     try:
         prefix = sealed_prefix(depot.catalog, run_id, depot.clock())
     except NotFoundError:
         _not_sealed_yet(depot, run_id)
         raise
-    return _sealed(run_id, depot.warm, prefix)
+    recording = _sealed(run_id, depot.warm, prefix)
+    _LOCATIONS.put(depot.catalog, run_id, (prefix, recording.size))
+    return recording
+
+
+class _Locations:
+    """Sealed runs found lately, per catalog: run id -> (prefix, size of its recording, when)."""
+
+    def __init__(self) -> None:
+        self._found: weakref.WeakKeyDictionary[object, dict[str, tuple[str, int, float]]] = weakref.WeakKeyDictionary()
+        self._lock = threading.Lock()
+
+    def get(self, catalog: object, run_id: str) -> tuple[str, int] | None:
+        with self._lock:
+            found = self._found.get(catalog, {}).get(run_id)
+        if found is None or time.monotonic() - found[2] > LOCATION_TTL_S:
+            return None
+        return found[0], found[1]
+
+    def put(self, catalog: object, run_id: str, where: tuple[str, int]) -> None:
+        with self._lock:
+            runs = self._found.setdefault(catalog, {})
+            if len(runs) >= LOCATIONS_KEPT:
+                runs.clear()
+            runs[run_id] = (*where, time.monotonic())
+
+    def forget(self, catalog: object, run_id: str) -> None:
+        with self._lock:
+            self._found.get(catalog, {}).pop(run_id, None)
+
+
+_LOCATIONS = _Locations()
 
 
 def _not_sealed_yet(depot: Depot, run_id: str) -> None:
