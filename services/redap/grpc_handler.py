@@ -66,6 +66,10 @@ async def _abort(context: grpc.aio.ServicerContext, exc: FleetError) -> NoReturn
 
 
 class CatalogServer(cloud_pb2_grpc.RerunCloudServiceServicer):
+    """One method per RPC. Streaming RPCs are async generators themselves (`async for ... yield`
+    over `_stream`): grpc.aio takes a plain method that returns an async generator for a
+    synchronous iterator, and every call then fails."""
+
     def __init__(self, depot: Depot, auth: Auth) -> None:
         self.depot = depot
         self.auth = auth
@@ -144,7 +148,6 @@ class CatalogServer(cloud_pb2_grpc.RerunCloudServiceServicer):
     async def ScanTable(
         self, request: cloud_pb2.ScanTableRequest, context: Any
     ) -> AsyncIterator[cloud_pb2.ScanTableResponse]:
-        # An async generator itself: grpc.aio runs a plain method's answer as a synchronous iterator.
         named = _table_call(entries.scan_table, context, request.table_id if request.HasField("table_id") else None)
         async for response in self._stream(context, named, request, scopes=(Scope.READ,)):
             yield response
@@ -163,9 +166,6 @@ class CatalogServer(cloud_pb2_grpc.RerunCloudServiceServicer):
             yield response
 
     # --- opening a segment in the viewer ---------------------------------------------------
-
-    # Async generators themselves (not functions returning one): grpc.aio serves a handler as a
-    # stream of the event loop only when it is an async generator function.
 
     async def GetRrdManifest(
         self, request: cloud_pb2.GetRrdManifestRequest, context: Any
@@ -205,8 +205,6 @@ class CatalogServer(cloud_pb2_grpc.RerunCloudServiceServicer):
     ) -> cloud_pb2.GetDatasetSchemaResponse:
         return await self._unary(context, query.dataset_schema, scopes=(Scope.READ,), entry=True)
 
-    # Async generators themselves: grpc.aio streams what a servicer method yields only when the
-    # method is one (a plain method returning an async generator is taken for a sync iterator).
     async def FindChunks(
         self, request: cloud_pb2.FindChunksRequest, context: Any
     ) -> AsyncIterator[cloud_pb2.FindChunksResponse]:

@@ -11,6 +11,7 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 
 import grpc
+import pytest
 from sqlalchemy import select
 
 from catalog.db import session_scope
@@ -85,3 +86,17 @@ def entry_of(node: Node, application_id: str) -> str:
         found = session.scalars(select(Dataset.entry_id).where(Dataset.name == application_id)).first()
     assert found is not None, f"no dataset for {application_id!r}"
     return str(found)
+
+
+def count_reads(monkeypatch: pytest.MonkeyPatch, store: object) -> list[tuple[str, int, int | None]]:
+    """Record every ranged read of `store`'s kind of object store from now on (key, start, length),
+    reading as before: how many reads an answer took, and of what."""
+    reads: list[tuple[str, int, int | None]] = []
+    real = type(store).get_range  # type: ignore[attr-defined]
+
+    def counted(self: object, key: str, start: int = 0, length: int | None = None) -> bytes:
+        reads.append((key, start, length))
+        return real(self, key, start, length)  # type: ignore[no-any-return]
+
+    monkeypatch.setattr(type(store), "get_range", counted)
+    return reads

@@ -28,7 +28,7 @@ from services.rrd.messages import ArrowMessage, tuid_bytes
 from services.rrd.pb import common_pb2
 from services.sealed.tiers import Tiers
 from services.sealed.write import RECORDING
-from tests.services.redap.catalog_node import BigRedap, catalog_server, entry_of
+from tests.services.redap.catalog_node import BigRedap, catalog_server, count_reads, entry_of
 from tests.services.redap.conftest import Redap
 from tests.services.retention import conftest as retention
 from tests.services.retention.conftest import Node, NodeFactory
@@ -196,17 +196,10 @@ def test_adjacent_chunks_are_read_together(
     node = uploaded(make_node, tiers, [rec])
     run_id = recording_id(rec)
     promote_now(node.retention, run_id)
-    reads: list[tuple[str, int, int | None]] = []
-    real = type(node.tiers.warm).get_range
-
-    def counted(store: Any, key: str, start: int = 0, length: int | None = None) -> bytes:
-        reads.append((key, start, length))
-        return real(store, key, start, length)
-
     with catalog_server(node) as ours:
         table = manifest_keys(ours, entry_of(node, rec.recordings[0]["application_id"]), run_id)
         keys = table.column("chunk_key").to_pylist()
-        monkeypatch.setattr(type(node.tiers.warm), "get_range", counted)
+        reads = count_reads(monkeypatch, node.tiers.warm)
         got = fetched(raw_answers(ours, fetch_request(keys[::-1])))  # any order
     monkeypatch.undo()
     assert got == stored(sealed_bytes(node, run_id), keys)

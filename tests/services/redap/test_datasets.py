@@ -14,35 +14,14 @@ from catalog.queries import EntityRecord, RunRecord, TimelineRecord
 from core.errors import NotFoundError
 from services.redap import datasets
 from services.redap.tuid import Tuid
+from tests.services.redap import depots
 
 NOW = dt.datetime(2026, 11, 21, 12, 0, tzinfo=dt.UTC)
 
 
 def record(run_id: str, application: str = "nav", **changes: Any) -> RunRecord:
-    made = RunRecord(
-        id=run_id,
-        robot_id="robot-7",
-        application_id=application,
-        date=NOW.date(),
-        status="closed",
-        tier="warm",
-        started_at=NOW - dt.timedelta(minutes=5),
-        ended_at=NOW,
-        last_data_at=NOW,
-        sdk_version="0.41.0",
-        chunks=3,
-        rows=30,
-        bytes=1000,
-        properties={"fleet": {"robot_id": "robot-7"}},
-        entities=[
-            EntityRecord("/world/points", 2, 0, 20, 900, ["rerun.archetypes.Points3D"], ["Points3D:positions"]),
-            EntityRecord("/__properties/fleet", 1, 1, 1, 100, [], ["robot_id"]),
-        ],
-        timelines=[TimelineRecord("frame", "sequence", 0, 9)],
-    )
-    for key, value in changes.items():
-        setattr(made, key, value)
-    return made
+    """A sealed run's record (tests change its tier where they need another)."""
+    return depots.record(run_id, application, **{"tier": "warm", **changes})
 
 
 def save(session: Session, *records: RunRecord, tiers: dict[str, str] | None = None) -> None:

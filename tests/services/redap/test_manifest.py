@@ -32,7 +32,7 @@ from services.rrd.messages import ArrowMessage
 from services.rrd.pb import common_pb2, log_msg_pb2
 from services.sealed.tiers import Tiers
 from services.sealed.write import RECORDING
-from tests.services.redap.catalog_node import catalog_server, entry_of
+from tests.services.redap.catalog_node import catalog_server, count_reads, entry_of
 from tests.services.redap.conftest import Redap
 from tests.services.retention import conftest as retention
 from tests.services.retention.conftest import Node, NodeFactory
@@ -221,14 +221,7 @@ def test_a_sealed_manifest_reads_the_footer_by_range(
     node = uploaded(make_node, tiers, [rec])
     run_id = recording_id(rec)
     promote_now(node.retention, run_id)
-    reads: list[tuple[str, int, int | None]] = []
-    real = type(node.tiers.warm).get_range
-
-    def counted(store: Any, key: str, start: int = 0, length: int | None = None) -> bytes:
-        reads.append((key, start, length))
-        return real(store, key, start, length)
-
-    monkeypatch.setattr(type(node.tiers.warm), "get_range", counted)
+    reads = count_reads(monkeypatch, node.tiers.warm)
     with catalog_server(node) as ours:
         table, _, _, _ = served(ours, entry_of(node, application_id(rec)), run_id)
     assert table.num_rows > 0
