@@ -7,7 +7,9 @@ to start with one line naming the command.
 
 from __future__ import annotations
 
+import importlib.util
 import re
+import sys
 import threading
 from collections.abc import Iterator
 from contextlib import contextmanager, nullcontext
@@ -41,6 +43,7 @@ def create_engine(url: str) -> sa.Engine:
         # A checkpoint at every commit: after a crash DuckDB 1.5 can replay its write-ahead log into
         # secondary indexes that then refuse to update the row ("Failed to delete all rows from
         # index", a FATAL error that invalidates the database); with no log left there is none to replay.
+        skip_missing_pandas()
         engine = sa.create_engine(
             url, pool_size=5, max_overflow=20, connect_args={"config": {"checkpoint_threshold": "0b"}}
         )
@@ -49,6 +52,30 @@ def create_engine(url: str) -> sa.Engine:
     if url.startswith("postgresql"):
         return sa.create_engine(url, pool_pre_ping=True)
     raise UnavailableError(f"unsupported catalog URL {url!r}: use duckdb:///PATH or postgresql+psycopg://USER@HOST/DB")
+
+
+class _NoPandas:
+    """An import finder that fails `import pandas` at once (see `skip_missing_pandas`)."""
+
+    def find_spec(self, name: str, path: object = None, target: object = None) -> None:
+        if name == "pandas":
+            raise ModuleNotFoundError("No module named 'pandas'", name="pandas")
+
+
+def skip_missing_pandas() -> None:
+    """DuckDB's Python driver tries `import pandas` for every bound parameter of every query (to
+    tell pandas objects apart); without pandas installed, each failed import searches the whole
+    `sys.path` again, which made a catalog query on DuckDB ~5x slower (benchmarks/duckdb_params.py).
+    When pandas is not installed, fail that import at once instead; a pandas installed later is
+    seen after a restart. tests/catalog/test_db.py pins the driver behaviour this assumes."""
+    if any(isinstance(f, _NoPandas) for f in sys.meta_path):
+        return
+    try:
+        missing = importlib.util.find_spec("pandas") is None
+    except ImportError:  # another finder already refuses it
+        missing = False
+    if missing:
+        sys.meta_path.insert(0, _NoPandas())
 
 
 _LOCK_HOLDER = re.compile(r"Could not set lock on file .*\(PID (\d+)\)", re.DOTALL)
