@@ -318,7 +318,7 @@ class RunEncoder:
     ) -> None:
         self.entities, self.blueprint, self.window, self.keep = entities, blueprint, window, keep
         self.picks = picks or {}
-        self.metas = metas or {}
+        self.metas = metas if metas is not None else {}  # may be filled as the run is read
         self._sink = _Chunks()
         self._out = cast(BinaryIO, self._sink)
         self._encoder: RrdEncoder | None = None

@@ -15,7 +15,7 @@ End message and footer that make it a complete stream.
 from __future__ import annotations
 
 import os
-from collections.abc import Callable, Iterator, Mapping
+from collections.abc import Callable, Iterable, Iterator, Mapping
 from dataclasses import dataclass, field
 
 from core.errors import UnavailableError
@@ -25,11 +25,14 @@ from services.rrd.chunk_index import BLUEPRINT_ACTIVATION, CHUNK, STORE_INFO, In
 from services.rrd.decoder import decode_message
 from services.rrd.frames import MESSAGE_HEADER_SIZE, STREAM_HEADER_SIZE, decode_message_header, decode_stream_header
 from services.rrd.messages import ArrowMessage, Event, StreamStart
-from services.runs.download import EntityFilter, TimeWindow, encode_run
+from services.runs.download import FLUSH_BYTES, EntityFilter, TimeWindow, encode_run
 from services.runs.latest_at import ChunkEntry, pick_rows, select_chunks
 
 GAP_BYTES = 64 * 1024  # neighbouring messages closer than this are fetched in one read
 MAX_READ_BYTES = 16 * 1024 * 1024  # one read holds at most this much (memory stays bounded)
+# The first read is smaller, and each next one twice the last, up to the most: the first bytes go
+# out soon, even when every row of a run's index has to be parsed before its message is read.
+FIRST_READ_BYTES = 2 * FLUSH_BYTES
 
 # (offset, length) -> those bytes of the recording
 ReadRange = Callable[[int, int], bytes]
@@ -42,7 +45,7 @@ class IndexedRecording:
 
     read: ReadRange
     size: int
-    rows: list[IndexRow]
+    rows: Iterable[IndexRow]  # in file order; gone through once, unless a window is planned
     # chunk metadata by frame offset, where the index holds it (a hot run's): what the footer's
     # manifest and the window's plan need, so those chunks are never decompressed
     metas: Mapping[int, ChunkMeta] = field(default_factory=dict)
@@ -53,10 +56,14 @@ def stream_indexed(
 ) -> Iterator[bytes | memoryview]:
     """The messages a download keeps, read by range and copied as they are, as one RRD stream with
     a footer."""
-    keep, picks = plan_window(recording, entities, window) if window is not None else (None, {})
-    rows = choose_rows(recording.rows, entities, blueprint, keep)
+    rows = recording.rows
+    keep: set[bytes] | None = None
+    picks: dict[bytes, set[int]] = {}
+    if window is not None:  # planned over every chunk before the first is read
+        rows = list(rows)
+        keep, picks = plan_window(recording, rows, entities, window)
     yield from encode_run(
-        read_events(recording, rows),
+        read_events(recording, choose_rows(rows, entities, blueprint, keep)),
         entities,
         blueprint=blueprint,
         window=window,
@@ -71,34 +78,59 @@ def stream_hot(
 ) -> Iterator[bytes | memoryview]:
     """A hot run as it stands (its file's first `hot.size` bytes), served from its chunk index."""
     fd = os.open(hot.path, os.O_RDONLY)  # opened first: a run sealed meanwhile stays readable
+
+    def read(offset: int, length: int) -> bytes:
+        data = os.pread(fd, length, offset)
+        if len(data) != length:  # a hot run file only grows: never shorter than its index says
+            raise UnavailableError(f"hot run file {hot.path} is shorter than its index says: try again")
+        return data
+
+    metas: dict[int, ChunkMeta] = {}
     try:
-        index = hot.chunk_index()
-        if (index.entries[-1].end if index.entries else STREAM_HEADER_SIZE) != hot.size:
-            raise UnavailableError(f"run {hot.path.parent.name!r} was sealed while it was being read: try again")
-        metas = {entry.offset: entry.meta for entry in index.entries if entry.meta is not None}
-
-        def read(offset: int, length: int) -> bytes:
-            data = os.pread(fd, length, offset)
-            if len(data) != length:  # the run file only grows while hot: never shorter than its index
-                raise UnavailableError(f"hot run file {hot.path} is shorter than its index says: try again")
-            return data
-
-        yield from stream_indexed(
-            IndexedRecording(read, hot.size, index.rows, metas), entities, blueprint=blueprint, window=window
-        )
+        if window is None:  # chosen in file order as the index is read: the first bytes go out at once
+            rows: Iterable[IndexRow] = _checked(hot, _hot_rows(hot, metas))
+        else:  # planned over every chunk's time ranges first
+            index = hot.chunk_index()
+            metas.update((e.offset, e.meta) for e in index.entries if e.meta is not None)
+            rows = list(_checked(hot, index.rows))
+        recording = IndexedRecording(read, hot.size, rows, metas)
+        yield from stream_indexed(recording, entities, blueprint=blueprint, window=window)
     finally:
         os.close(fd)
 
 
+def _hot_rows(hot: HotRecording, metas: dict[int, ChunkMeta]) -> Iterator[IndexRow]:
+    """Where each message of a hot run lies and what it is, without its time ranges (what choosing
+    by entity needs); each chunk's metadata is put in `metas` before its row is handed out."""
+    for entry in hot.index_entries():
+        meta = entry.meta
+        if meta is None:
+            yield IndexRow(entry.kind, entry.store_kind, entry.offset, entry.length)
+            continue
+        metas[entry.offset] = meta
+        yield IndexRow(
+            entry.kind, entry.store_kind, entry.offset, entry.length, meta.chunk_id, meta.entity_path, meta.is_static
+        )
+
+
+def _checked(hot: HotRecording, rows: Iterable[IndexRow]) -> Iterator[IndexRow]:
+    """`rows`, then UNAVAILABLE unless they reach the size the reader was given (the run was sealed
+    and its files removed while they were read)."""
+    end = STREAM_HEADER_SIZE
+    for row in rows:
+        end = row.end
+        yield row
+    if end != hot.size:
+        raise UnavailableError(f"run {hot.path.parent.name!r} was sealed while it was being read: try again")
+
+
 def plan_window(
-    recording: IndexedRecording, entities: EntityFilter, window: TimeWindow
+    recording: IndexedRecording, rows: list[IndexRow], entities: EntityFilter, window: TimeWindow
 ) -> tuple[set[bytes], dict[bytes, set[int]]]:
     """The chunk ids a windowed download keeps, and for an exact one the latest-at rows of each chunk:
     only the candidate chunks are read (ranged reads), and with an index from before per-component
     ranges also the chunks whose ranges matter."""
-    chunks = [
-        r for r in recording.rows if r.kind == CHUNK and (r.store_kind != "recording" or entities(r.entity_path or ""))
-    ]
+    chunks = [r for r in rows if r.kind == CHUNK and (r.store_kind != "recording" or entities(r.entity_path or ""))]
 
     def read(ids: set[bytes]) -> Iterator[tuple[ArrowMessage, ChunkMeta]]:
         for event in read_events(recording, [r for r in chunks if r.chunk_id in ids]):
@@ -137,10 +169,9 @@ def _entry(row: IndexRow, timeline: str) -> ChunkEntry:
 
 
 def choose_rows(
-    rows: list[IndexRow], entities: EntityFilter, blueprint: bool, keep: set[bytes] | None
-) -> list[IndexRow]:
+    rows: Iterable[IndexRow], entities: EntityFilter, blueprint: bool, keep: set[bytes] | None
+) -> Iterator[IndexRow]:
     """The messages a download keeps, in file order (`keep`: the chunk ids of a time window)."""
-    chosen = []
     for row in rows:
         if row.store_kind == "blueprint" and not blueprint:
             continue
@@ -151,27 +182,28 @@ def choose_rows(
                 continue
         elif row.kind not in (STORE_INFO, BLUEPRINT_ACTIVATION):
             continue
-        chosen.append(row)
-    return chosen
+        yield row
 
 
-def _reads(rows: list[IndexRow]) -> Iterator[tuple[int, int, list[IndexRow]]]:
+def _reads(rows: Iterable[IndexRow]) -> Iterator[tuple[int, int, list[IndexRow]]]:
     """Ranged reads covering `rows`: (start, end, rows in it), neighbours merged."""
     start = end = -1
     group: list[IndexRow] = []
+    limit = FIRST_READ_BYTES
     for row in rows:
-        if group and row.offset - end <= GAP_BYTES and row.end - start <= MAX_READ_BYTES:
+        if group and row.offset - end <= GAP_BYTES and row.end - start <= limit:
             end = row.end
             group.append(row)
             continue
         if group:
             yield start, end, group
+            limit = min(2 * limit, MAX_READ_BYTES)
         start, end, group = row.offset, row.end, [row]
     if group:
         yield start, end, group
 
 
-def read_events(recording: IndexedRecording, rows: list[IndexRow]) -> Iterator[Event]:
+def read_events(recording: IndexedRecording, rows: Iterable[IndexRow]) -> Iterator[Event]:
     """The stream's start, then the messages of `rows` (decoded, their payloads left as they are:
     views of what was read)."""
     yield StreamStart(0, 0, decode_stream_header(recording.read(0, STREAM_HEADER_SIZE), 0))

@@ -6,14 +6,18 @@ decompresses a chunk."""
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import datetime as dt
 import itertools
+import shutil
 import subprocess
 from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
 
+from core.errors import UnavailableError
+from services.hot.index import INDEX_FILE, HotEntry
 from services.hot.read import HotRecording
 from services.hot.store import HotStore
 from services.ingest.service import IngestService
@@ -21,7 +25,7 @@ from services.rrd import chunk, iter_events
 from services.rrd.chunk_index import CHUNK
 from services.rrd.footer import read_footer
 from services.rrd.manifest import is_property_entity
-from services.runs import trim
+from services.runs import download, indexed, trim
 from services.runs.download import EntityFilter, TimeWindow, stream_run
 from services.runs.indexed import stream_hot
 from services.settings import Durability
@@ -190,3 +194,50 @@ def test_unfiltered_and_entity_filtered_hot_downloads_decompress_no_chunk(
     with pytest.raises(AssertionError, match="decompressed"):
         _old(hot, queries[0])  # the old path reads every chunk's payload
     assert [_new(hot, q) for q in queries] == expected
+
+
+def test_an_unfiltered_hot_download_starts_before_the_index_is_read_through(
+    hot_runs: dict[str, HotRecording], monkeypatch: pytest.MonkeyPatch
+):
+    """Rows are chosen as the index is parsed: a run of many small chunks sends its first bytes
+    after the first of them, not after all (here with pieces and reads made small)."""
+    hot = hot_runs["points-0"]
+    total = len(hot.chunk_index().entries)
+    monkeypatch.setattr(download, "FLUSH_BYTES", 1024)
+    monkeypatch.setattr(indexed, "FIRST_READ_BYTES", 2048)
+    parsed = 0
+    entries = HotRecording.index_entries
+
+    def counted(self: HotRecording) -> Iterator[HotEntry]:
+        nonlocal parsed
+        for entry in entries(self):
+            parsed += 1
+            yield entry
+
+    monkeypatch.setattr(HotRecording, "index_entries", counted)
+    stream = stream_hot(hot, EntityFilter())
+    first = next(stream)
+    assert len(first) >= 1024 and 0 < parsed < total / 2, (parsed, total)
+    rest = b"".join(stream)
+    assert parsed == total and bytes(first) + rest == _old(hot, (EntityFilter(), True, None))
+
+
+def test_a_run_sealed_while_it_is_read_is_not_served_short(
+    hot_runs: dict[str, HotRecording], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+):
+    """Promotion removes a sealed run's hot files: a download that had only opened the run file
+    then has no index and no file to read it from, and fails rather than end the stream early."""
+    hot = hot_runs["points-0"]
+    for name in (hot.path.name, INDEX_FILE):
+        shutil.copyfile(hot.path.with_name(name), tmp_path / name)
+    copy = dataclasses.replace(hot, path=tmp_path / hot.path.name)
+    entries = HotRecording.index_entries
+
+    def sealed_meanwhile(self: HotRecording) -> Iterator[HotEntry]:
+        (tmp_path / INDEX_FILE).unlink()
+        self.path.unlink()
+        return entries(self)
+
+    monkeypatch.setattr(HotRecording, "index_entries", sealed_meanwhile)
+    with pytest.raises(UnavailableError, match="sealed while it was being read"):
+        b"".join(stream_hot(copy, EntityFilter()))
