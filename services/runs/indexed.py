@@ -9,7 +9,8 @@ holds it, so nothing is decompressed; a sealed run's `chunks.parquet` does not (
 schemas), so its kept chunks are read for it. An exact window reads and cuts the chunks it trims.
 
 An unfiltered hot download is thus the run file's first `size` bytes as they are, followed by the
-End message and footer that make it a complete stream.
+End message and footer that make it a complete stream (a chunk from an SDK before 0.24, which sent
+no chunk id, gets it appended, as in any download).
 """
 
 from __future__ import annotations
