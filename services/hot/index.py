@@ -324,21 +324,33 @@ def _records(data: bytes | memoryview) -> Iterator[tuple[int, bytes]]:
 def read_hot_index(run_file: Path, size: int) -> HotChunkIndex:
     """The entries of the first `size` bytes of a run file: from its index, and from the run file
     for what the index does not hold (yet)."""
-    entries, covered = _read_index(run_file.with_name(INDEX_FILE), size)
+    entries = list(_indexed_entries(run_file.with_name(INDEX_FILE), size))
     from_index = len(entries)
+    covered = entries[-1].end if entries else STREAM_HEADER_SIZE
     if covered < size:
         entries += _scan_run_file(run_file, covered, size)
     return HotChunkIndex(entries, size, from_index)
 
 
-def _read_index(path: Path, size: int) -> tuple[list[HotEntry], int]:
+def iter_hot_index(run_file: Path, size: int) -> Iterator[HotEntry]:
+    """The entries of `read_hot_index`, one at a time as the index is parsed: a reader that goes
+    through a run in file order starts on its first messages before the last record is read."""
+    covered = STREAM_HEADER_SIZE
+    for entry in _indexed_entries(run_file.with_name(INDEX_FILE), size):
+        covered = entry.end
+        yield entry
+    if covered < size:
+        yield from _scan_run_file(run_file, covered, size)
+
+
+def _indexed_entries(path: Path, size: int) -> Iterator[HotEntry]:
+    """The entries the index file holds, from the run file's first message on, up to `size`."""
     try:
         data = path.read_bytes()
     except OSError:
-        return [], STREAM_HEADER_SIZE
+        return
     if not data.startswith(MAGIC):
-        return [], STREAM_HEADER_SIZE
-    entries: list[HotEntry] = []
+        return
     covered = STREAM_HEADER_SIZE
     layouts: dict[int, tuple[ChunkLayout, list[str]]] = {}
     for _, payload in _records(data):
@@ -346,14 +358,13 @@ def _read_index(path: Path, size: int) -> tuple[list[HotEntry], int]:
             entry = _entry(payload, layouts)
         except (struct.error, IndexError, KeyError, ValueError, pa.ArrowException, rrd_errors.RrdError) as exc:
             log.warning("chunk index %s is damaged (%s): the rest is read from the run file", path, exc)
-            break
+            return
         if entry is None:
             continue
         if entry.offset != covered or entry.end > size:
-            break  # past what the reader was given, or not the next frame: the rest comes from the run file
-        entries.append(entry)
+            return  # past what the reader was given, or not the next frame: the rest comes from the run file
+        yield entry
         covered = entry.end
-    return entries, covered
 
 
 def _entry(payload: bytes, layouts: dict[int, tuple[ChunkLayout, list[str]]]) -> HotEntry | None:

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Protocol
 
-from services.hot.index import HotChunkIndex, read_hot_index
+from services.hot.index import HotChunkIndex, HotEntry, iter_hot_index, read_hot_index
 from services.hot.store import Changes
 from services.rrd.decoder import RrdDecoder
 from services.rrd.messages import Event
@@ -46,6 +46,11 @@ class HotRecording:
         from the chunk index kept beside the file, and what it lacks read from the file. Reads
         files only, so it may run on any thread while ingest appends."""
         return read_hot_index(self.path, self.size)
+
+    def index_entries(self) -> Iterator[HotEntry]:
+        """The entries of `chunk_index()`, one at a time as the index is read (a download that
+        copies the run in file order starts before the whole index is parsed)."""
+        return iter_hot_index(self.path, self.size)
 
 
 class HotRuns(Protocol):

@@ -11,7 +11,7 @@ from __future__ import annotations
 import datetime as dt
 import io
 import re
-from collections.abc import AsyncIterator, Iterable, Iterator
+from collections.abc import AsyncIterator, Iterable, Iterator, Mapping
 from contextlib import aclosing
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -37,6 +37,7 @@ from services.runs.latest_at import ChunkEntry, pick_rows, select_chunks
 from services.runs.trim import trim
 
 FLUSH_BYTES = 1024 * 1024
+PASS_THROUGH_BYTES = 256 * 1024  # a piece this large is sent as it is rather than joined with others
 # A follower decodes what was just appended on the event loop (a chunk or a few: well under a
 # millisecond); a bigger piece, such as the run so far, goes to a worker thread.
 ON_LOOP_BYTES = 16 * 1024
@@ -98,17 +99,23 @@ def _matches(pattern: str, path: str) -> bool:
 
 
 class _Chunks(io.RawIOBase):
-    """A sink the encoder writes to; the bytes are handed out in pieces as they accumulate."""
+    """A sink the encoder writes to; the bytes are handed out in pieces as they accumulate. A large
+    piece that is a view of immutable bytes (a chunk read by range) is held and handed out as it is,
+    not copied; anything else is copied, as the buffer it lives in may be reused."""
 
     def __init__(self) -> None:
-        self.pending: list[bytes] = []
+        self.pending: list[bytes | memoryview] = []
         self.size = 0
 
     def writable(self) -> bool:
         return True
 
     def write(self, data: object) -> int:
-        piece = bytes(data)  # type: ignore[call-overload]
+        piece: bytes | memoryview
+        if isinstance(data, memoryview) and isinstance(data.obj, bytes) and len(data) >= PASS_THROUGH_BYTES:
+            piece = data
+        else:
+            piece = bytes(data)  # type: ignore[call-overload]
         self.pending.append(piece)
         self.size += len(piece)
         return len(piece)
@@ -117,6 +124,21 @@ class _Chunks(io.RawIOBase):
         out = b"".join(self.pending)
         self.pending, self.size = [], 0
         return out
+
+    def take_pieces(self) -> Iterator[bytes | memoryview]:
+        """What is pending, the small pieces joined and the large ones as they are."""
+        pending, self.pending, self.size = self.pending, [], 0
+        small: list[bytes | memoryview] = []
+        for piece in pending:
+            if len(piece) < PASS_THROUGH_BYTES:
+                small.append(piece)
+                continue
+            if small:
+                yield b"".join(small)
+                small = []
+            yield piece
+        if small:
+            yield b"".join(small)
 
 
 @dataclass(frozen=True)
@@ -214,16 +236,18 @@ def window_from_query(
 
 def stream_run(
     path: Path, size: int, entities: EntityFilter, *, blueprint: bool = True, window: TimeWindow | None = None
-) -> Iterator[bytes]:
-    """The run in `path` (its first `size` bytes) as an RRD stream, in pieces of about 1 MiB."""
-    metas: dict[bytes, ChunkMeta] = {}
+) -> Iterator[bytes | memoryview]:
+    """The run in `path` (its first `size` bytes) as an RRD stream, in pieces of about 1 MiB, every
+    chunk's metadata read from its payload: for a run file read without its chunk index. Hot runs
+    are served from their index (`services.runs.indexed.stream_hot`), with the same bytes."""
+    metas: dict[int, ChunkMeta] = {}  # by frame offset
     keep: set[bytes] | None = None
     picks: dict[bytes, set[int]] = {}  # exact: chunk id -> its rows kept as latest-at rows
     if window is not None:  # a first pass picks the chunks; payloads are only read in the second
         found = []
         for first in read_events(path, size):
             if isinstance(first, ArrowMessage):
-                meta = metas[event_key(first)] = chunk_meta(first)
+                meta = metas[first.offset] = chunk_meta(first)
                 recording = first.store_id.kind == StoreKind.RECORDING
                 if not recording or entities(meta.entity_path):
                     found.append(ChunkEntry.of_meta(meta, recording, window.timeline))
@@ -270,10 +294,10 @@ async def follow_run(hot: HotRecording, entities: EntityFilter, *, blueprint: bo
 
 
 def _chunks_of(
-    path: Path, size: int, metas: dict[bytes, ChunkMeta], chunk_ids: set[bytes]
+    path: Path, size: int, metas: dict[int, ChunkMeta], chunk_ids: set[bytes]
 ) -> Iterator[tuple[ArrowMessage, ChunkMeta]]:
     for event in read_events(path, size):
-        if isinstance(event, ArrowMessage) and (meta := metas[event_key(event)]).chunk_id in chunk_ids:
+        if isinstance(event, ArrowMessage) and (meta := metas[event.offset]).chunk_id in chunk_ids:
             yield event, meta
 
 
@@ -290,11 +314,11 @@ class RunEncoder:
         window: TimeWindow | None = None,
         keep: set[bytes] | None = None,
         picks: dict[bytes, set[int]] | None = None,
-        metas: dict[bytes, ChunkMeta] | None = None,
+        metas: Mapping[int, ChunkMeta] | None = None,
     ) -> None:
         self.entities, self.blueprint, self.window, self.keep = entities, blueprint, window, keep
         self.picks = picks or {}
-        self.metas = metas or {}
+        self.metas = metas if metas is not None else {}  # may be filled as the run is read
         self._sink = _Chunks()
         self._out = cast(BinaryIO, self._sink)
         self._encoder: RrdEncoder | None = None
@@ -306,6 +330,10 @@ class RunEncoder:
 
     def take(self) -> bytes:
         return self._sink.take()
+
+    def take_pieces(self) -> Iterator[bytes | memoryview]:
+        """What is encoded and not taken yet, large chunks as they are (not joined, not copied)."""
+        return self._sink.take_pieces()
 
     def add(self, event: Event) -> None:
         if isinstance(event, StreamStart):
@@ -320,7 +348,7 @@ class RunEncoder:
         if not isinstance(event, ArrowMessage):
             encoder.write(event)
             return
-        meta = self.metas.get(event_key(event)) or chunk_meta(event)
+        meta = self.metas.get(event.offset) or chunk_meta(event)
         if store.kind == StoreKind.RECORDING and not self.entities(meta.entity_path):
             return
         if self.keep is not None and meta.chunk_id not in self.keep:
@@ -348,17 +376,13 @@ def encode_run(
     window: TimeWindow | None,
     keep: set[bytes] | None,
     picks: dict[bytes, set[int]],
-    metas: dict[bytes, ChunkMeta],
-) -> Iterator[bytes]:
+    metas: Mapping[int, ChunkMeta],
+) -> Iterator[bytes | memoryview]:
     """The chosen messages of a run as one RRD stream with a footer (`RunEncoder`), in pieces of
-    about 1 MiB."""
+    about 1 MiB (a large chunk read by range as a piece of its own, not copied)."""
     run = RunEncoder(entities, blueprint=blueprint, window=window, keep=keep, picks=picks, metas=metas)
     for event in events:
         run.add(event)
         if run.pending >= FLUSH_BYTES:
-            yield run.take()
+            yield from run.take_pieces()
     yield run.finish()
-
-
-def event_key(event: ArrowMessage) -> bytes:
-    return event.chunk_id or event.offset.to_bytes(8, "little")

@@ -1,6 +1,7 @@
-"""`GET /v1/runs/{run}/recording.rrd` as a service: the run found hot on this node (served from its
-file, and followed while live) or sealed (ranged reads planned from its chunk index), filtered by
-entity and time window, with an ETag naming the run's size and what was asked."""
+"""`GET /v1/runs/{run}/recording.rrd` as a service: the run found hot on this node (its file read by
+range as its chunk index plans, or followed while live) or sealed (ranged reads planned from its
+chunk index alike), filtered by entity and time window, with an ETag naming the run's size and what
+was asked."""
 
 from __future__ import annotations
 
@@ -15,7 +16,7 @@ from catalog import queries
 from core.clock import utcnow
 from core.errors import BadParameterError
 from services.hot.read import HotRuns
-from services.runs import download, sealed
+from services.runs import download, indexed, sealed
 from services.sealed.read import locate_sealed
 from services.storage.objectstore import ObjectStore
 
@@ -37,7 +38,7 @@ class RecordingQuery:
 
 @dataclass(frozen=True)
 class RecordingDownload:
-    body: Iterator[bytes] | AsyncIterator[bytes]
+    body: Iterator[bytes | memoryview] | AsyncIterator[bytes]
     etag: str
     filename: str
 
@@ -65,11 +66,11 @@ def open_recording(
         raise BadParameterError("follow", "follow=true streams what comes next: it takes no time window")
     filters = json.dumps([sorted(entities.include), sorted(entities.exclude), query.blueprint, repr(window)])
     etag = f'"{run_id}-{size}-{hashlib.sha256(filters.encode()).hexdigest()[:16]}"'
-    body: Iterator[bytes] | AsyncIterator[bytes]
+    body: Iterator[bytes | memoryview] | AsyncIterator[bytes]
     if hot is not None and query.follow:  # waits for the run on the event loop, not in a thread of its own
         body = download.follow_run(hot, entities, blueprint=query.blueprint)
     elif hot is not None:
-        body = download.stream_run(hot.path, hot.size, entities, blueprint=query.blueprint, window=window)
+        body = indexed.stream_hot(hot, entities, blueprint=query.blueprint, window=window)
     else:
         body = sealed.stream_sealed(found, entities, blueprint=query.blueprint, window=window)
     return RecordingDownload(body, etag, f"{run_id}.rrd")

@@ -1,0 +1,217 @@
+"""Serving a run from its chunk index: ranged reads planned from index rows, for either tier.
+
+A run's chunk index (`chunks.parquet` beside a sealed recording, `chunks.idx` beside a hot run file)
+says where every message of the recording lies, with its entity and time ranges. A download picks
+the messages it keeps from the index alone and reads only those, neighbouring ones in one read, so a
+one-entity download of a ten-entity run reads about a tenth of the recording. The messages kept are
+copied as they are, and the footer's manifest is built from each chunk's metadata: a hot run's index
+holds it, so nothing is decompressed; a sealed run's `chunks.parquet` does not (it lacks the chunks'
+schemas), so its kept chunks are read for it. An exact window reads and cuts the chunks it trims.
+
+An unfiltered hot download is thus the run file's first `size` bytes as they are, followed by the
+End message and footer that make it a complete stream (a chunk from an SDK before 0.24, which sent
+no chunk id, gets it appended, as in any download).
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable, Iterable, Iterator, Mapping
+from dataclasses import dataclass, field
+
+from core.errors import UnavailableError
+from services.hot.read import HotRecording
+from services.rrd.chunk import ChunkMeta, chunk_meta
+from services.rrd.chunk_index import BLUEPRINT_ACTIVATION, CHUNK, STORE_INFO, IndexRow
+from services.rrd.decoder import decode_message
+from services.rrd.frames import MESSAGE_HEADER_SIZE, STREAM_HEADER_SIZE, decode_message_header, decode_stream_header
+from services.rrd.messages import ArrowMessage, Event, StreamStart
+from services.runs.download import FLUSH_BYTES, EntityFilter, TimeWindow, encode_run
+from services.runs.latest_at import ChunkEntry, pick_rows, select_chunks
+
+GAP_BYTES = 64 * 1024  # neighbouring messages closer than this are fetched in one read
+MAX_READ_BYTES = 16 * 1024 * 1024  # one read holds at most this much (memory stays bounded)
+# The first read is smaller, and each next one twice the last, up to the most: the first bytes go
+# out soon, even when every row of a run's index has to be parsed before its message is read.
+FIRST_READ_BYTES = 2 * FLUSH_BYTES
+
+# (offset, length) -> those bytes of the recording
+ReadRange = Callable[[int, int], bytes]
+
+
+@dataclass(frozen=True)
+class IndexedRecording:
+    """A run's recording readable by byte range, with its chunk index: a sealed run's object in the
+    warm store, or a hot run's file up to the size its reader was given."""
+
+    read: ReadRange
+    size: int
+    rows: Iterable[IndexRow]  # in file order; gone through once, unless a window is planned
+    # chunk metadata by frame offset, where the index holds it (a hot run's): what the footer's
+    # manifest and the window's plan need, so those chunks are never decompressed
+    metas: Mapping[int, ChunkMeta] = field(default_factory=dict)
+
+
+def stream_indexed(
+    recording: IndexedRecording, entities: EntityFilter, *, blueprint: bool = True, window: TimeWindow | None = None
+) -> Iterator[bytes | memoryview]:
+    """The messages a download keeps, read by range and copied as they are, as one RRD stream with
+    a footer."""
+    rows = recording.rows
+    keep: set[bytes] | None = None
+    picks: dict[bytes, set[int]] = {}
+    if window is not None:  # planned over every chunk before the first is read
+        rows = list(rows)
+        keep, picks = plan_window(recording, rows, entities, window)
+    yield from encode_run(
+        read_events(recording, choose_rows(rows, entities, blueprint, keep)),
+        entities,
+        blueprint=blueprint,
+        window=window,
+        keep=keep,
+        picks=picks,
+        metas=recording.metas,
+    )
+
+
+def stream_hot(
+    hot: HotRecording, entities: EntityFilter, *, blueprint: bool = True, window: TimeWindow | None = None
+) -> Iterator[bytes | memoryview]:
+    """A hot run as it stands (its file's first `hot.size` bytes), served from its chunk index."""
+    fd = os.open(hot.path, os.O_RDONLY)  # opened first: a run sealed meanwhile stays readable
+
+    def read(offset: int, length: int) -> bytes:
+        data = os.pread(fd, length, offset)
+        if len(data) != length:  # a hot run file only grows: never shorter than its index says
+            raise UnavailableError(f"hot run file {hot.path} is shorter than its index says: try again")
+        return data
+
+    metas: dict[int, ChunkMeta] = {}
+    try:
+        if window is None:  # chosen in file order as the index is read: the first bytes go out at once
+            rows: Iterable[IndexRow] = _checked(hot, _hot_rows(hot, metas))
+        else:  # planned over every chunk's time ranges first
+            index = hot.chunk_index()
+            metas.update((e.offset, e.meta) for e in index.entries if e.meta is not None)
+            rows = list(_checked(hot, index.rows))
+        recording = IndexedRecording(read, hot.size, rows, metas)
+        yield from stream_indexed(recording, entities, blueprint=blueprint, window=window)
+    finally:
+        os.close(fd)
+
+
+def _hot_rows(hot: HotRecording, metas: dict[int, ChunkMeta]) -> Iterator[IndexRow]:
+    """Where each message of a hot run lies and what it is, without its time ranges (what choosing
+    by entity needs); each chunk's metadata is put in `metas` before its row is handed out."""
+    for entry in hot.index_entries():
+        meta = entry.meta
+        if meta is None:
+            yield IndexRow(entry.kind, entry.store_kind, entry.offset, entry.length)
+            continue
+        metas[entry.offset] = meta
+        yield IndexRow(
+            entry.kind, entry.store_kind, entry.offset, entry.length, meta.chunk_id, meta.entity_path, meta.is_static
+        )
+
+
+def _checked(hot: HotRecording, rows: Iterable[IndexRow]) -> Iterator[IndexRow]:
+    """`rows`, then UNAVAILABLE unless they reach the size the reader was given (the run was sealed
+    and its files removed while they were read)."""
+    end = STREAM_HEADER_SIZE
+    for row in rows:
+        end = row.end
+        yield row
+    if end != hot.size:
+        raise UnavailableError(f"run {hot.path.parent.name!r} was sealed while it was being read: try again")
+
+
+def plan_window(
+    recording: IndexedRecording, rows: list[IndexRow], entities: EntityFilter, window: TimeWindow
+) -> tuple[set[bytes], dict[bytes, set[int]]]:
+    """The chunk ids a windowed download keeps, and for an exact one the latest-at rows of each chunk:
+    only the candidate chunks are read (ranged reads), and with an index from before per-component
+    ranges also the chunks whose ranges matter."""
+    chunks = [r for r in rows if r.kind == CHUNK and (r.store_kind != "recording" or entities(r.entity_path or ""))]
+
+    def read(ids: set[bytes]) -> Iterator[tuple[ArrowMessage, ChunkMeta]]:
+        for event in read_events(recording, [r for r in chunks if r.chunk_id in ids]):
+            if isinstance(event, ArrowMessage):
+                yield event, recording.metas.get(event.offset) or chunk_meta(event)
+
+    def resolve(entries: list[ChunkEntry]) -> list[ChunkEntry]:
+        metas = {meta.chunk_id: meta for _, meta in read({e.chunk_id for e in entries})}
+        return [ChunkEntry.of_meta(metas[e.chunk_id], True, window.timeline) for e in entries if e.chunk_id in metas]
+
+    keep, candidates = select_chunks(
+        [_entry(r, window.timeline) for r in chunks], window.bounds, window.latest_at, resolve
+    )
+    picks = pick_rows(read(candidates), window.timeline, window.bounds[0]) if window.exact and candidates else {}
+    return keep, picks
+
+
+def _entry(row: IndexRow, timeline: str) -> ChunkEntry:
+    span = next(((t.min, t.max) for t in row.timelines if t.name == timeline), None)
+    spans = (
+        None
+        if row.component_ranges is None
+        else {  # None: an index from before per-component ranges
+            c.component: (c.min, c.max) for c in row.component_ranges if c.timeline == timeline
+        }
+    )
+    return ChunkEntry(
+        row.chunk_id or b"",
+        row.entity_path or "",
+        row.is_static,
+        row.store_kind == "recording",
+        span,
+        spans if span is not None else {},
+        row.components,
+    )
+
+
+def choose_rows(
+    rows: Iterable[IndexRow], entities: EntityFilter, blueprint: bool, keep: set[bytes] | None
+) -> Iterator[IndexRow]:
+    """The messages a download keeps, in file order (`keep`: the chunk ids of a time window)."""
+    for row in rows:
+        if row.store_kind == "blueprint" and not blueprint:
+            continue
+        if row.kind == CHUNK:
+            if row.store_kind == "recording" and not entities(row.entity_path or ""):
+                continue
+            if keep is not None and row.chunk_id not in keep:
+                continue
+        elif row.kind not in (STORE_INFO, BLUEPRINT_ACTIVATION):
+            continue
+        yield row
+
+
+def _reads(rows: Iterable[IndexRow]) -> Iterator[tuple[int, int, list[IndexRow]]]:
+    """Ranged reads covering `rows`: (start, end, rows in it), neighbours merged."""
+    start = end = -1
+    group: list[IndexRow] = []
+    limit = FIRST_READ_BYTES
+    for row in rows:
+        if group and row.offset - end <= GAP_BYTES and row.end - start <= limit:
+            end = row.end
+            group.append(row)
+            continue
+        if group:
+            yield start, end, group
+            limit = min(2 * limit, MAX_READ_BYTES)
+        start, end, group = row.offset, row.end, [row]
+    if group:
+        yield start, end, group
+
+
+def read_events(recording: IndexedRecording, rows: Iterable[IndexRow]) -> Iterator[Event]:
+    """The stream's start, then the messages of `rows` (decoded, their payloads left as they are:
+    views of what was read)."""
+    yield StreamStart(0, 0, decode_stream_header(recording.read(0, STREAM_HEADER_SIZE), 0))
+    for start, end, group in _reads(rows):
+        data = memoryview(recording.read(start, end - start))
+        for row in group:
+            at = row.offset - start
+            kind, length = decode_message_header(data, at)
+            payload = data[at + MESSAGE_HEADER_SIZE : at + MESSAGE_HEADER_SIZE + length]
+            yield decode_message(kind, payload, row.offset)
