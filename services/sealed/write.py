@@ -19,6 +19,7 @@ from typing import BinaryIO, cast
 from services.ingest.identity import DEFAULT_SECRETS, SecretFields
 from services.ingest.service import RunFacts
 from services.rrd.chunk import ChunkMeta, chunk_meta
+from services.rrd.chunk_index import chunk_row
 from services.rrd.encoder import RrdEncoder
 from services.rrd.frames import DEFAULT_VERSION
 from services.rrd.messages import (
@@ -30,15 +31,7 @@ from services.rrd.messages import (
     StoreKind,
     StreamStart,
 )
-from services.sealed.index import (
-    BLUEPRINT_ACTIVATION,
-    CHUNK,
-    STORE_INFO,
-    IndexRow,
-    TimelineRange,
-    component_ranges,
-    to_parquet,
-)
+from services.sealed.index import BLUEPRINT_ACTIVATION, STORE_INFO, IndexRow, to_parquet
 
 RECORDING = "recording.rrd"
 INDEX = "chunks.parquet"
@@ -129,21 +122,7 @@ def seal(
                     encoder.write_arrow(event, meta)
                     if on_chunk is not None and event.store_id.kind == StoreKind.RECORDING:
                         on_chunk(event, meta)
-                    rows.append(
-                        IndexRow(
-                            CHUNK,
-                            _store_kind(event.store_id),
-                            start,
-                            encoder.position - start,
-                            meta.chunk_id,
-                            meta.entity_path,
-                            meta.is_static,
-                            meta.num_rows,
-                            tuple(TimelineRange(t.name, t.type, t.range.min, t.range.max) for t in meta.timelines),
-                            tuple(sorted(meta.component_names)),
-                            component_ranges(meta),
-                        )
-                    )
+                    rows.append(chunk_row(_store_kind(event.store_id), start, encoder.position - start, meta))
                 facts.replay(event, now, meta if isinstance(event, ArrowMessage) else None)
         (encoder or RrdEncoder(cast(BinaryIO, sink), DEFAULT_VERSION)).finish()
         raw.flush()
