@@ -100,10 +100,11 @@ def test_a_tampered_link_is_refused_and_counted(uploaded: Depot):
 
 
 def test_an_expired_link_is_refused(uploaded: Depot):
-    url = _link(uploaded, uploaded.token("read"), expires_in="1")
+    # Expiry times are whole seconds: a one-second link may be gone a moment after it is made.
+    url = _link(uploaded, uploaded.token("read"), expires_in="60")
     assert uploaded.client.get(url).status_code == 200
     real = uploaded.auth.clock
-    uploaded.auth.clock = lambda: real() + dt.timedelta(seconds=2)
+    uploaded.auth.clock = lambda: real() + dt.timedelta(seconds=61)
     answer = uploaded.client.get(url)
     assert answer.status_code == 403 and "expired" in answer.json()["message"], answer.text
 
