@@ -88,9 +88,10 @@ def reference_url(
 
 
 @pytest.fixture(scope="module")
-def depot_url(robot_files: dict[str, Path], tmp_path_factory: pytest.TempPathFactory) -> Iterator[str]:
-    """A real `fleet serve` that received the robot's files by upload and sealed them."""
-    server = LiveServer(tmp_path_factory.mktemp("depot") / "data").start()
+def depot_access(robot_files: dict[str, Path], tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[str, str]]:
+    """A real `fleet serve` with auth on that received the robot's files by upload and sealed them:
+    its catalog URL, and a read token for it (a JWT whose allowed_hosts names 127.0.0.1)."""
+    server = LiveServer(tmp_path_factory.mktemp("depot") / "data", auth="on").start()
     try:
         for run_id, path in robot_files.items():
             answer = httpx.post(
@@ -98,9 +99,23 @@ def depot_url(robot_files: dict[str, Path], tmp_path_factory: pytest.TempPathFac
             )
             assert answer.status_code == 200, answer.text
             server.wait_for(lambda run_id=run_id: _promoted(server, run_id), timeout=60, what=f"{run_id} sealed")
-        yield f"rerun+http://127.0.0.1:{server.grpc_port}"
+        made = httpx.post(
+            f"{server.url}/v1/tokens", json={"scopes": ["read"], "name": "analyst"}, headers=server.headers, timeout=30
+        )
+        assert made.status_code == 201, made.text
+        yield f"rerun+http://127.0.0.1:{server.grpc_port}", made.json()["token"]
     finally:
         server.stop()
+
+
+@pytest.fixture(scope="module")
+def depot_url(depot_access: tuple[str, str]) -> str:
+    return depot_access[0]
+
+
+def _token(request: pytest.FixtureRequest, server: str) -> str | None:
+    """The read token a client of `server` sends: the depot's; Rerun's own server takes none."""
+    return request.getfixturevalue("depot_access")[1] if server == "depot" else None
 
 
 def _promoted(server: LiveServer, run_id: str) -> bool:
@@ -118,7 +133,9 @@ def dataset(request: pytest.FixtureRequest) -> Iterator[Any]:
     they read through it)."""
     import rerun as rr
 
-    client = rr.catalog.CatalogClient(request.getfixturevalue(f"{request.param}_url"))
+    client = rr.catalog.CatalogClient(
+        request.getfixturevalue(f"{request.param}_url"), token=_token(request, request.param)
+    )
     yield client.get_dataset(DATASET)
     del client
 
@@ -196,7 +213,7 @@ import rerun as rr
 from datafusion import col, lit
 
 out = sys.argv[2]
-dataset = rr.catalog.CatalogClient(sys.argv[1]).get_dataset({DATASET!r})
+dataset = rr.catalog.CatalogClient(sys.argv[1], token=sys.argv[3] or None).get_dataset({DATASET!r})
 chosen = dataset.filter_segments([{RUNS[0]!r}]).filter_contents({CONTENTS!r})
 window = (col("frame") >= lit(17)) & (col("frame") < lit(30))
 for name, frame in (
@@ -228,7 +245,10 @@ def test_an_sdk_without_find_chunks_reads_the_same_rows(
 ):
     url = request.getfixturevalue(f"{server}_url")
     done = subprocess.run(
-        [str(_old_sdk_python()), "-c", OLD_SDK_READS, url, str(tmp_path)], capture_output=True, text=True, timeout=300
+        [str(_old_sdk_python()), "-c", OLD_SDK_READS, url, str(tmp_path), _token(request, server) or ""],
+        capture_output=True,
+        text=True,
+        timeout=300,
     )
     assert done.returncode == 0, done.stderr[-3000:]
     whole = pa.ipc.open_file(tmp_path / "whole.arrow").read_all()
