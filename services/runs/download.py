@@ -14,13 +14,12 @@ import re
 from collections.abc import AsyncIterator, Iterable, Iterator, Mapping
 from contextlib import aclosing
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import BinaryIO, cast
 
 import anyio.to_thread
 
 from core.errors import BadParameterError
-from services.hot.read import HotReader, HotRecording, follow_sizes, read_events
+from services.hot.read import HotReader, HotRecording, follow_sizes
 from services.rrd.chunk import ChunkMeta, chunk_meta
 from services.rrd.encoder import RrdEncoder
 from services.rrd.frames import DEFAULT_VERSION
@@ -33,7 +32,6 @@ from services.rrd.messages import (
     StoreKind,
     StreamStart,
 )
-from services.runs.latest_at import ChunkEntry, pick_rows, select_chunks
 from services.runs.trim import trim
 
 FLUSH_BYTES = 1024 * 1024
@@ -234,31 +232,6 @@ def window_from_query(
     return TimeWindow(timeline, lo, hi, latest_at, exact)
 
 
-def stream_run(
-    path: Path, size: int, entities: EntityFilter, *, blueprint: bool = True, window: TimeWindow | None = None
-) -> Iterator[bytes | memoryview]:
-    """The run in `path` (its first `size` bytes) as an RRD stream, in pieces of about 1 MiB, every
-    chunk's metadata read from its payload: for a run file read without its chunk index. Hot runs
-    are served from their index (`services.runs.indexed.stream_hot`), with the same bytes."""
-    metas: dict[int, ChunkMeta] = {}  # by frame offset
-    keep: set[bytes] | None = None
-    picks: dict[bytes, set[int]] = {}  # exact: chunk id -> its rows kept as latest-at rows
-    if window is not None:  # a first pass picks the chunks; payloads are only read in the second
-        found = []
-        for first in read_events(path, size):
-            if isinstance(first, ArrowMessage):
-                meta = metas[first.offset] = chunk_meta(first)
-                recording = first.store_id.kind == StoreKind.RECORDING
-                if not recording or entities(meta.entity_path):
-                    found.append(ChunkEntry.of_meta(meta, recording, window.timeline))
-        keep, candidates = select_chunks(found, window.bounds, window.latest_at, resolve=lambda known: known)
-        if window.exact and candidates:
-            picks = pick_rows(_chunks_of(path, size, metas, candidates), window.timeline, window.bounds[0])
-    yield from encode_run(
-        read_events(path, size), entities, blueprint=blueprint, window=window, keep=keep, picks=picks, metas=metas
-    )
-
-
 async def follow_run(hot: HotRecording, entities: EntityFilter, *, blueprint: bool = True) -> AsyncIterator[bytes]:
     """A live run as an RRD stream: what it holds, then what is written to it as it comes, ending
     with the footer when the run closes. The waiting is done on the event loop (a quiet follower
@@ -291,14 +264,6 @@ async def follow_run(hot: HotRecording, entities: EntityFilter, *, blueprint: bo
         yield run.finish()
     finally:
         reader.close()
-
-
-def _chunks_of(
-    path: Path, size: int, metas: dict[int, ChunkMeta], chunk_ids: set[bytes]
-) -> Iterator[tuple[ArrowMessage, ChunkMeta]]:
-    for event in read_events(path, size):
-        if isinstance(event, ArrowMessage) and (meta := metas[event.offset]).chunk_id in chunk_ids:
-            yield event, meta
 
 
 class RunEncoder:

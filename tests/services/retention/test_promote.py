@@ -45,6 +45,7 @@ from services.storage import s3
 from services.storage.objectstore import ObjectInfo, ObjectStore, StorageError, open_store
 from tests.services.ingest import feeding
 from tests.services.retention.conftest import Clock, Node, NodeFactory, listing, log_run
+from tests.services.runs import decoded
 
 pytestmark = pytest.mark.sdk
 
@@ -94,7 +95,7 @@ def served(node: Node, run_id: str) -> bytes:
     everything = download.EntityFilter()
     hot = node.ingest.hot_recording(run_id)
     if hot is not None:
-        return b"".join(download.stream_run(hot.path, hot.size, everything))
+        return b"".join(decoded.stream_run(hot.path, hot.size, everything))
     found = locate_sealed(node.catalog, node.tiers.warm, run_id, node.clock())
     return b"".join(sealed.stream_sealed(found, everything))
 

@@ -20,9 +20,10 @@ from services.rrd.footer import read_footer
 from services.rrd.frames import MessageKind
 from services.rrd.messages import BlueprintActivationMessage, StoreInfoMessage, StreamStart
 from services.runs import download
-from services.runs.download import EntityFilter, follow_run, stream_run
+from services.runs.download import EntityFilter, follow_run
 from services.settings import Durability
 from tests.services.rrd.recordings import Recording
+from tests.services.runs.decoded import stream_run
 
 pytestmark = pytest.mark.sdk
 WAKE_S = 5.0

@@ -26,12 +26,13 @@ from services.rrd.chunk_index import CHUNK
 from services.rrd.footer import read_footer
 from services.rrd.manifest import is_property_entity
 from services.runs import download, indexed, trim
-from services.runs.download import EntityFilter, TimeWindow, stream_run
+from services.runs.download import EntityFilter, TimeWindow
 from services.runs.indexed import stream_hot
 from services.settings import Durability
 from tests.services.ingest import feeding
 from tests.services.rrd.legacy import legacy_file
 from tests.services.rrd.recordings import SCENES, Recording
+from tests.services.runs.decoded import stream_run
 
 pytestmark = pytest.mark.sdk
 

@@ -27,7 +27,7 @@ from services.retention import archive
 from services.retention.service import PROMOTE, plan, run_plan
 from services.rrd import ArrowMessage, StoreKind, iter_events
 from services.rrd.chunk import chunk_meta, read_chunk
-from services.runs.download import EntityFilter, TimeWindow, stream_run
+from services.runs.download import EntityFilter, TimeWindow
 from services.runs.sealed import stream_sealed
 from services.sealed.read import open_sealed
 from services.sealed.tiers import Tiers
@@ -37,6 +37,7 @@ from services.storage.objectstore import ObjectInfo, ObjectStore
 from tests.conftest import find_rerun
 from tests.services.retention import conftest as retention
 from tests.services.retention.conftest import Clock, Node, NodeFactory, log_run
+from tests.services.runs.decoded import stream_run
 
 pytestmark = pytest.mark.sdk
 tiers, make_node = retention.tiers, retention.make_node  # the retention tests' fixtures: stores and nodes
