@@ -192,6 +192,50 @@ class Settings(BaseSettings):
         "unknown-robot", pattern=r"^[A-Za-z0-9._-]{1,128}$", description="robot id of runs that name none"
     )
 
+    # `fleet agent`, on the robot (DESIGN.md: each also a flag)
+    agent_spool: Path = Field(
+        Path("./fleet-agent"), description="the agent's spool on the robot's disk: its runs and its state"
+    )
+    agent_listen: str = Field("127.0.0.1:9876", description="where the robot's SDK streams (GrpcSink URL .../proxy)")
+    agent_status_addr: str = Field("127.0.0.1:9877", description="the agent's /status, /metrics and /healthz")
+    agent_depot: str = Field(
+        "rerun+http://127.0.0.1:51234", description="the depot's gRPC address (rerun+http[s]://HOST:PORT)"
+    )
+    agent_api_url: str = Field("", description="the depot's REST API (default: http://DEPOT_HOST:8080)")
+    agent_token: SecretStr | None = Field(None, description="the robot's ingest token (FLEET_TOKEN)")
+    agent_retain_hours: float = Field(24.0, ge=0, description="runs the depot holds are kept on the robot this long")
+    agent_max_bytes: int = Field(
+        0, ge=0, description="the spool is kept under this size by deleting its oldest confirmed runs (0: no cap)"
+    )
+    agent_min_free_bytes: int = Field(
+        256 << 20, ge=0, description="hard limit: with less free disk the agent refuses new data"
+    )
+    agent_bandwidth: str = Field("0", description="upload cap in bytes per second (500k, 2M; 0: none)")
+    agent_bandwidth_rules: list[dict[str, Any]] = Field(
+        default_factory=list,
+        description="caps by time of day or network: TOML [[agent_bandwidth_rules]] tables of from, to, "
+        "interface, bytes_per_s; the first that applies wins, else agent_bandwidth",
+    )
+    agent_live_include: Annotated[list[str], NoDecode] = Field(
+        default_factory=lambda: ["/**"],
+        description="entities forwarded live (the rest stays on the robot until pulled); "
+        "a JSON list or comma-separated",
+    )
+    agent_live_exclude: Annotated[list[str], NoDecode] = Field(
+        default_factory=list, description="entities never forwarded live; wins over agent_live_include"
+    )
+    agent_watch: Annotated[list[Path], NoDecode] = Field(
+        default_factory=list, description="folders where the robot writes .rrd files (FileSink) for the agent to send"
+    )
+    agent_file_idle_s: float = Field(30.0, gt=0, description="a watched file that stops growing this long is complete")
+    agent_check_s: float = Field(
+        30.0, gt=0, description="how often the agent asks the depot which of the chunks it sent it holds"
+    )
+    agent_pull_poll_s: float = Field(5.0, gt=0, description="how often the agent asks the depot for pulls")
+    agent_durability: Durability = Field(
+        Durability.INTERVAL, description="spool fsync: always | interval (group_commit_ms) | off"
+    )
+
     @property
     def hot_dir(self) -> Path:
         return self.data_dir / "hot"
@@ -209,7 +253,16 @@ class Settings(BaseSettings):
             raise ValueError(f"{value!r} is not a rate such as 60/minute or 5/second") from exc
         return value
 
-    @field_validator("secret_fields", "public_hosts", "cors_origins", "auth_previous_keys", mode="before")
+    @field_validator(
+        "secret_fields",
+        "public_hosts",
+        "cors_origins",
+        "auth_previous_keys",
+        "agent_live_include",
+        "agent_live_exclude",
+        "agent_watch",
+        mode="before",
+    )
     @classmethod
     def _name_list(cls, value: Any) -> Any:
         """`["token", "password"]` (JSON, TOML) or `token,password`."""

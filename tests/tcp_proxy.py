@@ -1,5 +1,6 @@
 """A TCP forwarder on loopback that a test can make refuse or hang, to play a database that is
-down or stuck without touching the real server other tests use."""
+down or stuck, or a robot's link that is cut, without touching the real server other tests use.
+It counts the bytes it forwards each way (`bytes_up`: client to target)."""
 
 from __future__ import annotations
 
@@ -20,6 +21,8 @@ class TcpProxy:
         self._listener = socket.create_server(("127.0.0.1", 0))
         self.port = int(self._listener.getsockname()[1])
         self._held: list[socket.socket] = []
+        self.bytes_up = 0  # forwarded from clients to the target
+        self.bytes_down = 0
         self._lock = threading.Lock()
         self._stop = threading.Event()
         threading.Thread(target=self._accept, daemon=True).start()
@@ -73,6 +76,11 @@ class TcpProxy:
                     if not data:
                         return
                     pair[sock].sendall(data)
+                    with self._lock:
+                        if sock is client:
+                            self.bytes_up += len(data)
+                        else:
+                            self.bytes_down += len(data)
         except OSError:
             return
         finally:

@@ -47,6 +47,7 @@ LAYERS: dict[str, int] = {
     "services.runs": 7,
     "services.api": 8,
     "services.redap": 8,
+    "services.agent": 8,
     "services.server": 9,
     "services.cli": 10,
 }

@@ -30,6 +30,8 @@ INGEST_TOTALS_HELP = {
     "chunks_duplicate": "Chunks received that the depot already held, skipped (counted when their stream or "
     "upload ends)",
     "bytes_new": "Bytes of chunks stored for the first time (counted when their stream or upload ends)",
+    "bytes_duplicate": "Bytes of chunks received that the depot already held (counted when their stream or "
+    "upload ends)",
     "messages": "RRD messages received over gRPC and uploads (counted when their stream or upload ends)",
 }
 

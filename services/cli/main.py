@@ -7,6 +7,7 @@ import sys
 import click
 
 from services import __version__
+from services.cli.agent import agent
 from services.cli.db import db
 from services.cli.retention import catalog, retention
 from services.cli.rrd import rrd
@@ -34,6 +35,7 @@ cli.add_command(retention)
 cli.add_command(catalog)
 cli.add_command(sql)
 cli.add_command(tokens)
+cli.add_command(agent)
 
 
 def main() -> None:

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import enum
 import types
+from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Union, get_args, get_origin
 
@@ -17,27 +18,48 @@ import click
 if TYPE_CHECKING:
     from pydantic.fields import FieldInfo
 
-# Settings that are no option of `fleet serve`, and why (shown after the options).
+AGENT = "agent_"  # the settings of `fleet agent` (its flags drop the prefix: --spool, --listen, ...)
+# Settings the agent shares with the depot's ingest (the spool is its hot tier).
+AGENT_SHARED = ("max_message_size", "group_commit_ms", "close_after_s", "secret_fields", "default_robot")
+# Settings that are no option of their command, and why (shown after the options).
 NOT_OPTIONS = {
     "retention_policies": "a list of tables: environment or TOML only",
+    "agent_bandwidth_rules": "a list of tables: TOML only",
 }
+# Options also read from a variable of the CLI's own (as every command that talks to the depot).
+ENVVARS = {"agent_token": "FLEET_TOKEN", "agent_api_url": "FLEET_API_URL"}
 
 
-def settings_options() -> list[click.Option]:
-    """One option per field of Settings but NOT_OPTIONS."""
+def serve_setting(name: str) -> bool:
+    return not name.startswith(AGENT)
+
+
+def agent_setting(name: str) -> bool:
+    return name.startswith(AGENT) or name in AGENT_SHARED
+
+
+def settings_options(selected: Callable[[str], bool] = serve_setting) -> list[click.Option]:
+    """One option per selected field of Settings but NOT_OPTIONS."""
     from services.settings import Settings
 
     prefix = str(Settings.model_config.get("env_prefix", ""))
-    return [_option(name, field, prefix) for name, field in Settings.model_fields.items() if name not in NOT_OPTIONS]
+    return [
+        _option(name, field, prefix)
+        for name, field in Settings.model_fields.items()
+        if selected(name) and name not in NOT_OPTIONS
+    ]
 
 
 def _option(name: str, field: FieldInfo, env_prefix: str) -> click.Option:
-    flag = "--" + name.replace("_", "-")
-    help_text = f"{env_prefix}{name.upper()}: {field.description}{_shown_default(field)}"
+    flag = "--" + name.removeprefix(AGENT).replace("_", "-")
+    variables = " or ".join(v for v in (f"{env_prefix}{name.upper()}", ENVVARS.get(name)) if v)
+    help_text = f"{variables}: {field.description}{_shown_default(field)}"
     kind = _without_none(field.annotation)
     if kind is bool:
-        return click.Option([f"{flag}/--no-{flag[2:]}"], default=None, help=help_text)
-    return click.Option([flag], type=_click_type(name, kind), default=None, help=help_text)
+        return click.Option([f"{flag}/--no-{flag[2:]}", name], default=None, help=help_text)
+    return click.Option(
+        [flag, name], type=_click_type(name, kind), default=None, help=help_text, envvar=ENVVARS.get(name)
+    )
 
 
 def _without_none(annotation: Any) -> Any:
@@ -58,7 +80,7 @@ def _click_type(name: str, kind: Any) -> click.ParamType[Any] | type:
         return str
     if kind in (str, int, float):
         return kind  # type: ignore[no-any-return]
-    if get_origin(kind) is list and get_args(kind) in ((str,), (SecretStr,)):
+    if get_origin(kind) is list and get_args(kind) in ((str,), (SecretStr,), (Path,)):
         return str  # the field's validator reads a comma-separated or JSON list
     raise TypeError(f"Settings.{name} ({kind}) has no option type: add one, or name it in NOT_OPTIONS")
 
@@ -81,10 +103,11 @@ class SettingsCommand(click.Command):
     Settings (pydantic-settings) would otherwise slow every other `fleet` command."""
 
     _made = False
+    selected: Callable[[str], bool] = staticmethod(serve_setting)
 
     def get_params(self, ctx: click.Context) -> list[click.Parameter]:
         if not self._made:
-            self.params[:0] = settings_options()
+            self.params[:0] = settings_options(self.selected)
             self._made = True
         return super().get_params(ctx)
 
@@ -98,6 +121,7 @@ class SettingsCommand(click.Command):
                 [
                     (f"{prefix}{name.upper()}", f"{fields[name].description} ({why})")
                     for name, why in NOT_OPTIONS.items()
+                    if self.selected(name)
                 ]
             )
         super().format_epilog(ctx, formatter)

@@ -272,7 +272,7 @@ def _matching_records(path: Path, frames: Sequence[Event]) -> tuple[int, int | N
     if not data.startswith(MAGIC):
         return 0, None, 0
     kept, cut_at, next_layout = 0, len(MAGIC), 0
-    for end, payload in _records(data):
+    for end, payload in index_records(data):
         kind = payload[:1]
         if kind == b"L":
             if len(payload) < _LAYOUT.size:
@@ -301,7 +301,7 @@ def _describes(payload: bytes, event: Event) -> bool:
     return False
 
 
-def _records(data: bytes | memoryview) -> Iterator[tuple[int, bytes]]:
+def index_records(data: bytes | memoryview) -> Iterator[tuple[int, bytes]]:
     """(end position, payload) of each whole, intact record after the magic; stops at the first
     record that is cut short or fails its CRC."""
     pos = len(MAGIC)
@@ -328,7 +328,7 @@ def read_hot_index(run_file: Path, size: int) -> HotChunkIndex:
     from_index = len(entries)
     covered = entries[-1].end if entries else STREAM_HEADER_SIZE
     if covered < size:
-        entries += _scan_run_file(run_file, covered, size)
+        entries += scan_run_file(run_file, covered, size)
     return HotChunkIndex(entries, size, from_index)
 
 
@@ -340,7 +340,7 @@ def iter_hot_index(run_file: Path, size: int) -> Iterator[HotEntry]:
         covered = entry.end
         yield entry
     if covered < size:
-        yield from _scan_run_file(run_file, covered, size)
+        yield from scan_run_file(run_file, covered, size)
 
 
 def _indexed_entries(path: Path, size: int) -> Iterator[HotEntry]:
@@ -353,9 +353,9 @@ def _indexed_entries(path: Path, size: int) -> Iterator[HotEntry]:
         return
     covered = STREAM_HEADER_SIZE
     layouts: dict[int, tuple[ChunkLayout, list[str]]] = {}
-    for _, payload in _records(data):
+    for _, payload in index_records(data):
         try:
-            entry = _entry(payload, layouts)
+            entry = parse_record(payload, layouts)
         except (struct.error, IndexError, KeyError, ValueError, pa.ArrowException, rrd_errors.RrdError) as exc:
             log.warning("chunk index %s is damaged (%s): the rest is read from the run file", path, exc)
             return
@@ -367,7 +367,7 @@ def _indexed_entries(path: Path, size: int) -> Iterator[HotEntry]:
         covered = entry.end
 
 
-def _entry(payload: bytes, layouts: dict[int, tuple[ChunkLayout, list[str]]]) -> HotEntry | None:
+def parse_record(payload: bytes, layouts: dict[int, tuple[ChunkLayout, list[str]]]) -> HotEntry | None:
     kind = payload[:1]
     if kind == b"L":
         _, layout_id = _LAYOUT.unpack_from(payload)
@@ -432,7 +432,7 @@ def _entry(payload: bytes, layouts: dict[int, tuple[ChunkLayout, list[str]]]) ->
     return HotEntry(CHUNK, _STORE_KINDS[store_kind], offset, length, meta)
 
 
-def _scan_run_file(run_file: Path, start: int, size: int) -> list[HotEntry]:
+def scan_run_file(run_file: Path, start: int, size: int) -> list[HotEntry]:
     """Entries of the whole messages between `start` and `size` of a run file, read from it."""
     entries: list[HotEntry] = []
     try:

@@ -106,7 +106,7 @@ class IngestService:
         # Runs this node sealed lately, for data that follows a promotion while the catalog does not answer.
         self.recently_sealed: OrderedDict[str, SealedInfo] = OrderedDict()
         self.live_streams = 0
-        self.totals = {"chunks_new": 0, "chunks_duplicate": 0, "bytes_new": 0, "messages": 0}
+        self.totals = {"chunks_new": 0, "chunks_duplicate": 0, "bytes_new": 0, "bytes_duplicate": 0, "messages": 0}
         self._catalog_sync = CatalogSync(catalog, self.clock)
 
     # --- the hot runs as other services see them (read-only: only ingest changes `runs`) ------
@@ -266,10 +266,12 @@ class IngestService:
         run = self._hot_run(source, run_id)
         if msg.chunk_id is not None and self._holds(source, run, run_id, msg.chunk_id):
             source.report.chunks_duplicate += 1
+            source.report.bytes_duplicate += len(msg.raw)
             return
         meta = chunk_meta(msg)
         if self._holds(source, run, run_id, meta.chunk_id):
             source.report.chunks_duplicate += 1
+            source.report.bytes_duplicate += len(msg.raw)
             return
         check_chunk_names(meta)
         check_chunk(msg, meta)  # what Rerun refuses, and full validation of chunks whose values are read

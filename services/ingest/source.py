@@ -19,6 +19,7 @@ class IngestReport:
     runs: list[str] = field(default_factory=list)
     chunks_new: int = 0
     chunks_duplicate: int = 0
+    bytes_duplicate: int = 0
     bytes_new: int = 0
     messages: int = 0
     catalog: str = "updated"  # "pending" when the catalog could not be written yet (the data is kept)
@@ -28,6 +29,7 @@ class IngestReport:
             "runs": self.runs,
             "chunks_new": self.chunks_new,
             "chunks_duplicate": self.chunks_duplicate,
+            "bytes_duplicate": self.bytes_duplicate,
             "bytes_new": self.bytes_new,
             "messages": self.messages,
             "catalog": self.catalog,

@@ -87,12 +87,13 @@ def _shown(default: object) -> str:
 
 def test_every_scalar_setting_is_an_option_described_by_its_field():
     """The options are made from Settings: one description and one default, in one place."""
-    from services.cli.serve import NOT_OPTIONS, serve
+    from services.cli.serve import NOT_OPTIONS, serve, serve_setting
     from services.settings import Settings
 
     options = {p.name: p for p in serve.get_params(click.Context(serve)) if isinstance(p, click.Option)}
-    scalars = {name for name, field in Settings.model_fields.items() if _scalar(field.annotation)}
+    scalars = {n for n, field in Settings.model_fields.items() if _scalar(field.annotation) and serve_setting(n)}
     assert len(scalars) > 30 and not set(NOT_OPTIONS) & scalars
+    assert not {n for n in options if not serve_setting(n)}, "the agent's settings are no options of fleet serve"
     help_text = " ".join(
         CliRunner().invoke(serve, ["--help"], terminal_width=10_000, max_content_width=10_000).output.split()
     )  # unwrapped
@@ -106,7 +107,7 @@ def test_every_scalar_setting_is_an_option_described_by_its_field():
             assert option.help.endswith(f" [default: {_shown(default)}]"), option.help
         assert option.default is None, "a flag's default would override the environment and the TOML file"
         assert f"{option.opts[0]} " in help_text and " ".join(option.help.split()) in help_text
-    for name in NOT_OPTIONS:  # named after the options, with their description
+    for name in filter(serve_setting, NOT_OPTIONS):  # named after the options, with their description
         assert f"FLEET_{name.upper()} {' '.join(str(Settings.model_fields[name].description).split())}" in help_text
 
 

@@ -1,0 +1,188 @@
+"""The agent's link to the depot: gRPC streams that carry a run's messages (as the SDK's would, with
+the robot's token as metadata), and the REST calls that ask which chunks the depot holds.
+
+The link is one gRPC channel (streams of several runs share its connection) and one REST client.
+Its state is what the last call learnt: up, or down since when and why. A refusal the robot cannot
+fix by waiting (a bad token, another robot's run) is `DepotRefused`: the agent retries it slowly and
+says it loudly, as it may be fixed at the depot (a new token) without the agent restarting.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import random
+import time
+from dataclasses import dataclass, field
+from typing import Any
+from urllib.parse import urlsplit
+
+import grpc
+import httpx
+
+from core.errors import FleetError, InvalidArgumentError
+from sdk_client.rest import FleetClient, ServiceError
+
+log = logging.getLogger("fleet.agent")
+
+WRITE_METHOD = "/rerun.sdk_comms.v1alpha1.MessageProxyService/WriteMessages"
+HELD_BATCH = 20_000  # chunk ids per question to the depot
+BACKOFF_FIRST_S = 0.25
+BACKOFF_MAX_S = 10.0
+REFUSED_RETRY_S = 60.0
+# gRPC statuses that waiting does not change: the depot refused what it was sent or who sent it.
+_REFUSALS = {
+    grpc.StatusCode.UNAUTHENTICATED,
+    grpc.StatusCode.PERMISSION_DENIED,
+    grpc.StatusCode.INVALID_ARGUMENT,
+    grpc.StatusCode.FAILED_PRECONDITION,
+}
+
+
+class LinkDown(Exception):
+    """The depot could not be reached, or the connection broke: retry after a backoff."""
+
+
+class DepotRefused(Exception):
+    """The depot answered, and refused: retried slowly, said loudly."""
+
+
+@dataclass(frozen=True)
+class Held:
+    """The depot's answer about some chunks of a run (`POST /v1/runs/RUN/held`)."""
+
+    tier: str | None
+    status: str | None
+    accepts_data: bool
+    missing: set[bytes] = field(default_factory=set)
+    unsealed: set[bytes] = field(default_factory=set)
+
+
+def grpc_target(url: str) -> tuple[str, bool]:
+    """`rerun+http://HOST:PORT` -> (`HOST:PORT`, TLS or not)."""
+    parts = urlsplit(url)
+    if parts.scheme not in ("rerun+http", "rerun+https", "http", "https") or not parts.hostname:
+        raise InvalidArgumentError(
+            f"depot address {url!r} is not rerun+http://HOST:PORT (or rerun+https://): set --depot or FLEET_AGENT_DEPOT"
+        )
+    secure = parts.scheme.endswith("https")
+    host = f"[{parts.hostname}]" if ":" in parts.hostname else parts.hostname
+    return f"{host}:{parts.port or (443 if secure else 51234)}", secure
+
+
+def default_api_url(depot_url: str) -> str:
+    parts = urlsplit(depot_url)
+    scheme = "https" if parts.scheme.endswith("https") else "http"
+    host = f"[{parts.hostname}]" if parts.hostname and ":" in parts.hostname else parts.hostname
+    return f"{scheme}://{host}:8080"
+
+
+def channel_options(max_message_size: int, keepalive_s: float) -> list[tuple[str, int]]:
+    """Keepalive pings notice a link that went silent (no reset, no answer) within a few seconds."""
+    return [
+        ("grpc.max_send_message_length", max_message_size + 1024),
+        ("grpc.max_receive_message_length", 1 << 20),
+        ("grpc.keepalive_time_ms", int(keepalive_s * 1000)),
+        ("grpc.keepalive_timeout_ms", int(keepalive_s * 1000)),
+        ("grpc.keepalive_permit_without_calls", 1),
+        ("grpc.http2.max_pings_without_data", 0),
+        ("grpc.initial_reconnect_backoff_ms", 250),
+        ("grpc.max_reconnect_backoff_ms", int(BACKOFF_MAX_S * 1000)),
+        ("grpc.http2.bdp_probe", 0),  # a bounded window: what a cut loses in flight stays small
+    ]
+
+
+class DepotLink:
+    def __init__(
+        self, depot_url: str, api_url: str, token: str | None, *, max_message_size: int, keepalive_s: float = 5.0
+    ) -> None:
+        target, secure = grpc_target(depot_url)
+        options = channel_options(max_message_size, keepalive_s)
+        self.target = target
+        self.channel = (
+            grpc.aio.secure_channel(target, grpc.ssl_channel_credentials(), options=options)
+            if secure
+            else grpc.aio.insecure_channel(target, options=options)
+        )
+        self._write = self.channel.stream_unary(WRITE_METHOD, request_serializer=None, response_deserializer=None)
+        self._metadata = (("authorization", f"Bearer {token}"),) if token else ()
+        self.api = FleetClient(api_url, timeout=30.0, token=token, user="fleet-agent")
+        self.up = False
+        self.since = time.time()
+        self.error = "not connected yet"
+        self.refused: str | None = None  # the depot's last refusal, until a call succeeds
+
+    async def close(self) -> None:
+        await self.channel.close()
+        self.api.close()
+
+    def open_stream(self) -> grpc.aio.StreamUnaryCall[Any, Any]:
+        return self._write(metadata=self._metadata, wait_for_ready=False)
+
+    def mark_up(self) -> None:
+        if not self.up:
+            log.info("depot link up (%s)", self.target)
+            self.up, self.since = True, time.time()
+        self.error, self.refused = "", None
+
+    def mark_down(self, why: str) -> None:
+        if self.up:
+            log.warning("depot link down: %s", why)
+            self.up, self.since = False, time.time()
+        self.error = why
+
+    async def held(self, run_id: str, chunk_ids: list[bytes]) -> Held:
+        """Which of `chunk_ids` the depot lacks and which it holds only unsealed (asked in batches)."""
+        answer = Held(None, None, True)
+        for start in range(0, max(len(chunk_ids), 1), HELD_BATCH):
+            batch = [c.hex() for c in chunk_ids[start : start + HELD_BATCH]]
+            body = await self._call(self.api.held, run_id, batch)
+            answer = Held(
+                body.get("tier"),
+                body.get("status"),
+                bool(body.get("accepts_data", True)),
+                answer.missing | {bytes.fromhex(c) for c in body.get("missing", [])},
+                answer.unsealed | {bytes.fromhex(c) for c in body.get("unsealed", [])},
+            )
+        return answer
+
+    async def _call(self, fn: Any, *args: Any, **kwargs: Any) -> Any:
+        """A REST call off the event loop, its failures as LinkDown or DepotRefused."""
+        try:
+            result = await asyncio.to_thread(fn, *args, **kwargs)
+        except ServiceError as exc:
+            if exc.status >= 500 or exc.status == 429:
+                raise LinkDown(f"depot answered {exc.status}: {exc}") from exc
+            raise DepotRefused(str(exc)) from exc
+        except (httpx.TransportError, FleetError) as exc:
+            raise LinkDown(f"depot API unreachable ({type(exc).__name__}: {exc})") from exc
+        self.mark_up()
+        return result
+
+    async def call(self, fn: Any, *args: Any, **kwargs: Any) -> Any:
+        return await self._call(fn, *args, **kwargs)
+
+
+def stream_failure(exc: BaseException) -> Exception:
+    """What a failed stream means: the depot refused it, or the link broke."""
+    if isinstance(exc, grpc.aio.AioRpcError):
+        if exc.code() in _REFUSALS:
+            return DepotRefused(f"{exc.code().name}: {exc.details()}")
+        return LinkDown(f"{exc.code().name}: {exc.details()}")
+    return LinkDown(f"{type(exc).__name__}: {exc}")
+
+
+class Backoff:
+    """Waits that grow from a quarter second to ten, with jitter; reset by a success."""
+
+    def __init__(self, first_s: float = BACKOFF_FIRST_S, max_s: float = BACKOFF_MAX_S) -> None:
+        self.first_s, self.max_s = first_s, max_s
+        self.next_s = first_s
+
+    def reset(self) -> None:
+        self.next_s = self.first_s
+
+    async def wait(self, refused: bool = False) -> None:
+        delay = REFUSED_RETRY_S if refused else self.next_s
+        self.next_s = min(self.next_s * 2, self.max_s)
+        await asyncio.sleep(delay * random.uniform(0.8, 1.2))

@@ -1,0 +1,73 @@
+"""The agent's Prometheus metrics (`http://AGENT_STATUS_ADDR/metrics`), read from the running agent
+at each scrape."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from typing import TYPE_CHECKING
+
+from prometheus_client import CollectorRegistry, start_http_server
+from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metric
+from prometheus_client.registry import Collector
+
+if TYPE_CHECKING:
+    from services.agent.service import Agent
+
+
+class AgentCollector(Collector):
+    def __init__(self, agent: Agent) -> None:
+        self.agent = agent
+
+    def collect(self) -> Iterator[Metric]:
+        agent = self.agent
+        runs = agent.spool.runs()
+        progress = {run_id: sender.sent_until for run_id, sender in list(agent.runners.items())}
+        saved = agent.state.runs()
+        spool_bytes = sum(run.hot.size for run in runs)
+        backlog = sum(
+            max(run.hot.size - progress.get(run.run_id, 0), 0)
+            for run in runs
+            if not (saved.get(run.run_id) and saved[run.run_id].confirmed)
+        )
+        unconfirmed = sum(run.hot.size for run in runs if not (saved.get(run.run_id) and saved[run.run_id].confirmed))
+        yield GaugeMetricFamily("fleet_agent_spool_bytes", "Bytes of runs in the robot's spool", value=spool_bytes)
+        yield GaugeMetricFamily("fleet_agent_backlog_bytes", "Spooled bytes not yet sent to the depot", value=backlog)
+        yield GaugeMetricFamily(
+            "fleet_agent_unconfirmed_bytes",
+            "Spooled bytes of runs the depot has not confirmed sealed (never deleted by retention)",
+            value=unconfirmed,
+        )
+        yield GaugeMetricFamily("fleet_agent_runs", "Runs in the spool", value=len(runs))
+        yield GaugeMetricFamily("fleet_agent_link_up", "1 while the depot answers", value=int(agent.link.up))
+        over = agent.retention.over_by if agent.retention else 0
+        yield GaugeMetricFamily(
+            "fleet_agent_spool_over_cap_bytes",
+            "Bytes over agent_max_bytes that only unconfirmed runs hold (nothing can be deleted)",
+            value=over,
+        )
+        cap = agent.bucket_cap()
+        yield GaugeMetricFamily(
+            "fleet_agent_bandwidth_cap_bytes_per_second", "The upload cap now (0: none)", value=cap or 0
+        )
+        sent = CounterMetricFamily(
+            "fleet_agent_sent_bytes", "Bytes sent to the depot, by priority", labels=["priority"]
+        )
+        for priority, value in agent.bucket.sent_bytes.items():
+            sent.add_metric([priority.name.lower()], value)
+        yield sent
+        counters = agent.forwarding.counters
+        yield CounterMetricFamily(
+            "fleet_agent_resent_bytes",
+            "Chunk bytes sent again because the depot lacked them after a break",
+            value=counters["bytes_resent"],
+        )
+        yield CounterMetricFamily(
+            "fleet_agent_messages_sent", "Messages sent to the depot", value=counters["messages_sent"]
+        )
+
+
+def serve_metrics(agent: Agent, host: str, port: int) -> None:
+    """Serve /metrics on a thread of its own (prometheus_client's server)."""
+    registry = CollectorRegistry()
+    registry.register(AgentCollector(agent))
+    start_http_server(port, addr=host, registry=registry)

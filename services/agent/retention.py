@@ -1,0 +1,100 @@
+"""The robot keeps its last day: spooled runs are deleted once the depot holds them sealed, after
+`agent_retain_hours`, or sooner, oldest first, when the spool outgrows `agent_max_bytes`.
+
+A run the depot has not confirmed is never deleted: when the spool is over its size and nothing
+more can go, the agent says so loudly (a warning each time, and `fleet agent status`) and keeps
+accepting data until the disk's hard limit (`agent_min_free_bytes`), where new data is refused.
+A confirmed run may still hold chunks the live rules kept on the robot (never pulled): those go
+with it at its age, or under pressure after every run without such chunks, and the log names them.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import logging
+from dataclasses import dataclass
+
+from core.clock import utcnow
+from services.agent.spool import Spool
+from services.agent.state import AgentState, RunState
+from services.ingest.facts import IngestRun
+
+log = logging.getLogger("fleet.agent")
+
+
+@dataclass(frozen=True)
+class Deletion:
+    run_id: str
+    bytes: int
+    why: str  # "age" | "size"
+    local_only_bytes: int  # of them, bytes the depot never received (kept on the robot by the live rules)
+
+
+@dataclass(frozen=True)
+class RetentionReport:
+    deleted: list[Deletion]
+    spool_bytes: int
+    unconfirmed_bytes: int
+    over_by: int  # bytes over agent_max_bytes that only unconfirmed runs hold (0: within the cap)
+
+
+def enforce(
+    spool: Spool, state: AgentState, *, retain: dt.timedelta, max_bytes: int, now: dt.datetime | None = None
+) -> RetentionReport:
+    """Delete what may go (re-runnable: each call looks at the spool as it is)."""
+    now = now or utcnow()
+    saved = state.runs()
+    runs = [run for run in spool.runs() if not spool.is_open(run)]
+    confirmed = sorted((run for run in runs if _confirmed(saved.get(run.run_id))), key=lambda run: run.last_data_at)
+    deleted = [
+        _delete(spool, state, run, saved[run.run_id], "age") for run in confirmed if now - run.last_data_at >= retain
+    ]
+    gone = {d.run_id for d in deleted}
+    total = spool.size()
+    if max_bytes and total > max_bytes:
+        # runs the depot holds whole first, then those that take robot-only chunks with them
+        for run in sorted(
+            (run for run in confirmed if run.run_id not in gone),
+            key=lambda run: (saved[run.run_id].local_only_bytes > 0, run.last_data_at),
+        ):
+            if total <= max_bytes:
+                break
+            deletion = _delete(spool, state, run, saved[run.run_id], "size")
+            deleted.append(deletion)
+            total -= deletion.bytes
+    deleted = [d for d in deleted if d.bytes >= 0]
+    unconfirmed = sum(run.hot.size for run in spool.runs() if not _confirmed(saved.get(run.run_id)))
+    over_by = max(total - max_bytes, 0) if max_bytes else 0
+    if over_by:
+        log.warning(
+            "spool %s is %d bytes over its cap (agent_max_bytes %d) and the depot has confirmed none of the "
+            "%d bytes left: nothing is deleted until it does; new data is refused only when the disk's free "
+            "space falls below agent_min_free_bytes",
+            spool.root,
+            over_by,
+            max_bytes,
+            unconfirmed,
+        )
+    return RetentionReport(deleted, total, unconfirmed, over_by)
+
+
+def _confirmed(run: RunState | None) -> bool:
+    return run is not None and run.confirmed
+
+
+def _delete(spool: Spool, state: AgentState, run: IngestRun, saved: RunState, why: str) -> Deletion:
+    size = run.hot.size
+    if not spool.remove(run.run_id):
+        return Deletion(run.run_id, -1, why, 0)  # something feeds it again: kept
+    state.forget_run(run.run_id)
+    if saved.local_only_bytes:
+        log.warning(
+            "deleted run %s from the spool (%s): the depot holds what was sent; %d bytes kept on the robot "
+            "only (never pulled) are gone with it",
+            run.run_id,
+            why,
+            saved.local_only_bytes,
+        )
+    else:
+        log.info("deleted run %s from the spool (%s): the depot holds it sealed", run.run_id, why)
+    return Deletion(run.run_id, size, why, saved.local_only_bytes)

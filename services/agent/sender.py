@@ -1,0 +1,421 @@
+"""Forwarding one spooled run to the depot, and knowing how much of it the depot holds.
+
+A run's messages are sent in the order they were spooled, on a gRPC stream of their own (so the
+depot sees the run live while the robot streams it and closed when it ends). Where forwarding
+stands is two offsets in the run file: `checked_until` (every forwarded message before it is known
+to be at the depot) and `sent_until` (written to the stream). What lies between is in flight: after
+a cut, a depot restart or an agent restart, the agent asks the depot which of those chunks it lacks
+and sends only those, then carries on from `sent_until`. Data spooled while the link was down is
+sent from the file behind the newest data (backfill), so live data goes first.
+
+Every `check_s` the chunks sent before the previous check are asked about, so `checked_until`
+advances and a later question stays small. Once the run is closed and all of it is held, the depot
+is asked whether it is sealed in its warm tier: then the run is `confirmed`, and the robot may
+delete it. Entities the live rules keep on the robot are skipped here (and counted as local-only).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import os
+import time
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+from services.agent.bandwidth import Priority, TokenBucket
+from services.agent.link import Backoff, DepotLink, DepotRefused, LinkDown, stream_failure
+from services.agent.spool import Spool
+from services.agent.state import AgentState, RunState
+from services.hot.index import HotEntry
+from services.hot.tail import HotIndexTail
+from services.ingest.replay import read_response
+from services.rrd.chunk_index import CHUNK, STORE_INFO
+from services.rrd.frames import MESSAGE_HEADER_SIZE, decode_message_header
+
+log = logging.getLogger("fleet.agent")
+
+BACKFILL_SPLIT_BYTES = 1 << 20  # a gap larger than this at reconnect is sent behind the newest data
+LINGER_S = 5.0  # a closed run's stream stays open this long for more (a watched file still growing)
+BATCH_BYTES = 1 << 20  # read from the spool file at once
+SEALED = "warm"
+
+
+@dataclass
+class Lane:
+    """Messages waiting to be sent at one priority: a tail of the run file, or a given list."""
+
+    priority: Priority
+    tail: HotIndexTail | None = None
+    end: int | None = None  # a tail's last offset (a backfill); None: follows the file (live)
+    entries: deque[HotEntry] = field(default_factory=deque)
+    on_sent: Callable[[HotEntry], None] | None = None
+
+    def exhausted(self, size: int) -> bool:
+        """Nothing left to send of a file of `size` bytes."""
+        if self.entries:
+            return False
+        return self.tail is None or self.tail.position >= (size if self.end is None else min(self.end, size))
+
+
+class Forwarding:
+    """What every run's sender shares: the spool, the link, the bandwidth, the state and the rules."""
+
+    def __init__(
+        self,
+        spool: Spool,
+        link: DepotLink,
+        bucket: TokenBucket,
+        state: AgentState,
+        forwards: Callable[[str], bool],
+        check_s: float,
+    ) -> None:
+        self.spool = spool
+        self.link = link
+        self.bucket = bucket
+        self.state = state
+        self.forwards = forwards  # entity path -> sent live (else kept on the robot until pulled)
+        self.check_s = check_s
+        self.counters = {"messages_sent": 0, "bytes_sent": 0, "bytes_resent": 0, "chunks_resent": 0}
+
+
+class RunSender:
+    def __init__(self, ctx: Forwarding, run_id: str, state: RunState, *, fresh: bool) -> None:
+        """`fresh`: a run this agent saw begin (nothing of it sent yet); else one an earlier agent
+        process forwarded, from which anything up to the file's size may be in flight."""
+        self.ctx = ctx
+        self.run_id = run_id
+        self.state = state
+        self.fresh = fresh
+        self.sent_until = state.checked_until
+        self.check_mark: int | None = None  # sent_until at the previous check
+        self.store_infos: list[HotEntry] = []
+        self.lanes: list[Lane] = []
+        self.wake = asyncio.Event()
+        self.backoff = Backoff()
+        self.started = False
+        self.settled = False  # what was in flight at the last break was asked about
+        self.streaming = False
+        self.last_check = time.monotonic()
+        self.last_append = time.monotonic()
+
+    # --- the run as the spool holds it ------------------------------------------------------------
+
+    def _run(self) -> Any:
+        return self.ctx.spool.run(self.run_id)
+
+    def _size(self) -> int:
+        run = self._run()
+        return run.hot.size if run is not None else 0
+
+    def _forwarded(self, entry: HotEntry) -> bool:
+        if entry.kind != CHUNK or entry.meta is None:
+            return True
+        if entry.store_kind != "recording":
+            return True  # blueprints are small and make the run look as the robot meant
+        return self.ctx.forwards(entry.meta.entity_path)
+
+    def _read(self, entries: list[HotEntry]) -> list[bytes]:
+        """The frames of `entries` from the spool file (one read for neighbours), as requests."""
+        run = self._run()
+        if run is None:
+            return []
+        out: list[bytes] = []
+        fd = os.open(run.hot.path, os.O_RDONLY)
+        try:
+            for entry in entries:
+                frame = os.pread(fd, entry.length, entry.offset)
+                kind, length = decode_message_header(frame[:MESSAGE_HEADER_SIZE])
+                out.append(read_response(kind, memoryview(frame)[MESSAGE_HEADER_SIZE : MESSAGE_HEADER_SIZE + length]))
+        finally:
+            os.close(fd)
+        return out
+
+    # --- the sender's life ------------------------------------------------------------------------
+
+    async def run(self) -> None:
+        """Forward until the run is confirmed (sealed at the depot) or removed from the spool."""
+        while self._run() is not None and not self.state.confirmed:
+            try:
+                await self._session()
+                self.backoff.reset()
+            except LinkDown as exc:
+                self.ctx.link.mark_down(str(exc))
+                self.lanes.clear()  # what was queued is re-read from the file at the next session
+                self.settled = False
+                await self.backoff.wait()
+            except DepotRefused as exc:
+                self.ctx.link.refused = str(exc)
+                log.error("depot refused run %s: %s (retrying in a minute)", self.run_id, exc)
+                self.lanes.clear()
+                self.settled = False
+                await self.backoff.wait(refused=True)
+            except Exception:  # a bug, or the spool's disk failing: said, and tried again later
+                log.exception("forwarding run %s failed; retrying", self.run_id)
+                self.lanes.clear()
+                self.settled = False
+                await self.backoff.wait(refused=True)
+
+    async def _session(self) -> None:
+        """One stream to the depot: settle what was in flight, then send until nothing is left."""
+        if not self.started:
+            if not self.fresh:
+                self.sent_until = max(self.sent_until, self._size())  # what the last agent sent is unknown
+            await asyncio.to_thread(self._learn_run, self.sent_until)
+            self.started = True
+        self.lanes = []
+        if not self.settled:
+            await self._settle_in_flight()
+            self.settled = True
+        self._plan_lanes()
+        if not self._has_work():
+            await self._idle()
+            return
+        call = self.ctx.link.open_stream()
+        self.streaming = True
+        try:
+            for request in await asyncio.to_thread(self._read, self.store_infos):
+                await self._write(call, request, Priority.LIVE)
+            await self._pump(call)
+            await call.done_writing()
+            await call
+            self.ctx.link.mark_up()
+        except (LinkDown, DepotRefused):
+            call.cancel()
+            raise
+        except Exception as exc:  # grpc errors of the stream: refused or broken
+            call.cancel()
+            raise stream_failure(exc) from exc
+        finally:
+            self.streaming = False
+
+    def _learn_run(self, passed: int) -> None:
+        """The run's store infos (sent first on every stream), and its chunks kept on the robot up to
+        `passed` (the lanes count those after it as they pass them)."""
+        tail = HotIndexTail(self._run().hot.path)
+        size = self._size()
+        local_chunks = local_bytes = 0
+        while entries := tail.read(size):
+            for entry in entries:
+                if entry.kind == STORE_INFO:
+                    self.store_infos.append(entry)
+                elif entry.end <= passed and not self._forwarded(entry):
+                    local_chunks, local_bytes = local_chunks + 1, local_bytes + entry.length
+        self.state.local_only_chunks, self.state.local_only_bytes = local_chunks, local_bytes
+
+    async def _settle_in_flight(self) -> None:
+        """Ask the depot which chunks in [checked_until, sent_until) it lacks; queue those."""
+        start, end = self.state.checked_until, self.sent_until
+        if end <= start:
+            return
+        entries = await asyncio.to_thread(self._entries, start, end)
+        missing = await self._missing(entries)
+        # blueprint activations are not chunks the depot can be asked about: sent again (it keeps one)
+        missing += [e for e in entries if e.kind not in (CHUNK, STORE_INFO)]
+        missing.sort(key=lambda e: e.offset)
+        if missing:
+            self.lanes.append(Lane(Priority.BACKFILL, entries=deque(missing), on_sent=self._count_resent))
+            log.info("run %s: re-sending %d chunks the depot lacks", self.run_id, len(missing))
+        else:
+            self._checked(end)
+
+    def _entries(self, start: int, end: int) -> list[HotEntry]:
+        tail = HotIndexTail(self._run().hot.path, start)
+        out: list[HotEntry] = []
+        while entries := tail.read(end):
+            out += [e for e in entries if e.end <= end]
+        return out
+
+    async def _missing(self, entries: list[HotEntry]) -> list[HotEntry]:
+        chunks = [e for e in entries if e.kind == CHUNK and e.meta is not None and self._forwarded(e)]
+        if not chunks:
+            return []
+        held = await self.ctx.link.held(self.run_id, [e.meta.chunk_id for e in chunks if e.meta is not None])
+        self.state.depot_tier = held.tier
+        if not held.accepts_data:
+            return []  # cold or deleted at the depot: nothing more can go
+        return [e for e in chunks if e.meta is not None and e.meta.chunk_id in held.missing]
+
+    def _plan_lanes(self) -> None:
+        """Live data from the file's end; a large gap behind it as backfill."""
+        size = self._size()
+        path = self._run().hot.path
+        if size - self.sent_until > BACKFILL_SPLIT_BYTES:
+            self.lanes.append(
+                Lane(Priority.BACKFILL, HotIndexTail(path, self.sent_until), end=size, on_sent=self._count_backfill)
+            )
+            self.lanes.append(Lane(Priority.LIVE, HotIndexTail(path, size), on_sent=self._advance))
+            self._gap_start, self._gap_end = self.sent_until, size
+        else:
+            self.lanes.append(Lane(Priority.LIVE, HotIndexTail(path, self.sent_until), on_sent=self._advance))
+            self._gap_start = self._gap_end = size
+
+    def _has_work(self) -> bool:
+        run = self._run()
+        if run is None:
+            return False
+        size = self._size()
+        return any(not lane.exhausted(size) for lane in self.lanes)
+
+    async def _idle(self) -> None:
+        """Nothing to send: wait for more data, or check on what the depot holds."""
+        run = self._run()
+        if run is None:
+            return
+        seen = run.hot.changes.count
+        await self._maybe_check()
+        if self._size() <= self.sent_until and not self.wake.is_set():
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(self._woken(run.hot.changes, seen), self.ctx.check_s)
+        self.wake.clear()
+        self.lanes.clear()
+
+    async def _woken(self, changes: Any, seen: int) -> None:
+        waiters = [asyncio.ensure_future(changes.wait(seen)), asyncio.ensure_future(self.wake.wait())]
+        try:
+            await asyncio.wait(waiters, return_when=asyncio.FIRST_COMPLETED)
+        finally:
+            for waiter in waiters:
+                waiter.cancel()
+
+    async def _pump(self, call: Any) -> None:
+        """Send lane by lane, highest priority first, until all is sent and the run stays quiet."""
+        while True:
+            lane, entries = await asyncio.to_thread(self._next_batch)
+            if lane is None:
+                run = self._run()
+                if run is None:
+                    return
+                if not self.ctx.spool.is_open(run) and time.monotonic() - self.last_append > LINGER_S:
+                    return
+                seen = run.hot.changes.count
+                if self._size() > self.sent_until or self.wake.is_set():
+                    self.wake.clear()
+                    continue
+                await self._maybe_check()
+                with contextlib.suppress(TimeoutError):
+                    await asyncio.wait_for(self._woken(run.hot.changes, seen), min(LINGER_S, self.ctx.check_s))
+                self.wake.clear()
+                continue
+            self.last_append = time.monotonic()
+            requests = await asyncio.to_thread(self._read, entries)
+            for entry, request in zip(entries, requests, strict=True):
+                await self._write(call, request, lane.priority)
+                if lane.on_sent is not None:
+                    lane.on_sent(entry)
+            await self._maybe_check()
+
+    def _next_batch(self) -> tuple[Lane | None, list[HotEntry]]:
+        """The next messages to send: of the highest-priority lane that has any (up to a read's worth)."""
+        size = self._size()
+        for lane in sorted(self.lanes, key=lambda lane: lane.priority):
+            batch: list[HotEntry] = []
+            nbytes = 0
+            while nbytes < BATCH_BYTES:
+                if not lane.entries and lane.tail is not None:
+                    lane.entries.extend(lane.tail.read(size if lane.end is None else min(size, lane.end), limit=256))
+                if not lane.entries:
+                    break
+                entry = lane.entries.popleft()
+                if entry.kind == STORE_INFO and all(known.offset != entry.offset for known in self.store_infos):
+                    self.store_infos.append(entry)  # a store that starts mid-run (a blueprint sent later)
+                    batch.append(entry)
+                    nbytes += entry.length
+                    continue
+                if entry.kind == STORE_INFO or not self._forwarded(entry):
+                    if lane.on_sent is not None:
+                        lane.on_sent(entry)  # passed over, but counted as gone by
+                    continue
+                batch.append(entry)
+                nbytes += entry.length
+            if batch:
+                return lane, batch
+        self.lanes = [lane for lane in self.lanes if lane.priority == Priority.LIVE or not lane.exhausted(size)]
+        return None, []
+
+    async def _write(self, call: Any, request: bytes, priority: Priority) -> None:
+        await self.ctx.bucket.acquire(len(request), priority)
+        try:
+            await call.write(request)
+        except Exception as exc:
+            raise stream_failure(exc) from exc
+        self.ctx.counters["messages_sent"] += 1
+        self.ctx.counters["bytes_sent"] += len(request)
+
+    # --- bookkeeping ------------------------------------------------------------------------------
+
+    def _advance(self, entry: HotEntry) -> None:
+        self.sent_until = max(self.sent_until, entry.end)
+        if entry.kind == CHUNK and not self._forwarded(entry):
+            self.state.local_only_chunks += 1
+            self.state.local_only_bytes += entry.length
+
+    def _count_backfill(self, entry: HotEntry) -> None:
+        if entry.kind == CHUNK and not self._forwarded(entry):
+            self.state.local_only_chunks += 1
+            self.state.local_only_bytes += entry.length
+
+    def _count_resent(self, entry: HotEntry) -> None:
+        self.ctx.counters["chunks_resent"] += 1
+        self.ctx.counters["bytes_resent"] += entry.length
+
+    def _checked(self, offset: int) -> None:
+        if offset > self.state.checked_until:
+            self.state.checked_until = offset
+            self.ctx.state.save_run(self.state)
+
+    def _backfill_pending(self) -> int | None:
+        """The first offset a backfill lane has yet to send, if any."""
+        starts = [
+            lane.tail.position
+            for lane in self.lanes
+            if lane.priority == Priority.BACKFILL and lane.tail is not None and not lane.exhausted(self._size())
+        ]
+        starts += [lane.entries[0].offset for lane in self.lanes if lane.entries]
+        return min(starts) if starts else None
+
+    async def _maybe_check(self) -> None:
+        """Every `check_s`: ask about what was sent before the previous check, and, for a closed run
+        all held, whether the depot sealed it."""
+        if time.monotonic() - self.last_check < self.ctx.check_s:
+            return
+        self.last_check = time.monotonic()
+        mark, self.check_mark = self.check_mark, self.sent_until
+        pending = self._backfill_pending()
+        if mark is not None and pending is not None:
+            mark = min(mark, pending)
+        if mark is not None and mark > self.state.checked_until:
+            entries = await asyncio.to_thread(self._entries, self.state.checked_until, mark)
+            missing = await self._missing(entries)
+            if missing:
+                self.lanes.append(Lane(Priority.BACKFILL, entries=deque(missing), on_sent=self._count_resent))
+                mark = missing[0].offset
+            self._checked(mark)
+        await self._maybe_confirm()
+
+    async def _maybe_confirm(self) -> None:
+        run = self._run()
+        size = self._size()
+        if run is None or self.ctx.spool.is_open(run) or self.state.checked_until < size or self.streaming:
+            return
+        entries = await asyncio.to_thread(self._entries, self.state.confirmed_until, size)
+        chunks = [e for e in entries if e.kind == CHUNK and e.meta is not None and self._forwarded(e)]
+        if chunks and self.state.depot_tier != SEALED:  # one chunk tells whether the depot sealed the run
+            probe = await self.ctx.link.held(self.run_id, [chunks[-1].meta.chunk_id] if chunks[-1].meta else [])
+            self.state.depot_tier = probe.tier
+            if probe.tier != SEALED and probe.accepts_data:
+                return
+        held = await self.ctx.link.held(self.run_id, [e.meta.chunk_id for e in chunks if e.meta is not None])
+        self.state.depot_tier = held.tier
+        if held.missing and held.accepts_data:
+            self.state.checked_until = min(e.offset for e in chunks if e.meta and e.meta.chunk_id in held.missing)
+            self.ctx.state.save_run(self.state)
+            return
+        if (held.tier == SEALED and not held.unsealed) or not held.accepts_data:
+            self.state.confirmed_until = size
+            self.state.confirmed = True
+            log.info("run %s: the depot holds it sealed (%s); the robot may delete its copy", self.run_id, held.tier)
+        self.ctx.state.save_run(self.state)

@@ -1,0 +1,171 @@
+"""`fleet agent`: the robot's local proxy and spool, and the forwarding of its runs to the depot.
+
+The robot's SDK streams to the agent (`rerun+http://127.0.0.1:9876/proxy`) as it would to the depot;
+the agent files every message into its spool first (so the SDK never sees the depot's link break)
+and a sender per run forwards the run to the depot on a stream of its own, with the robot's token.
+Watched folders bring the runs of robots that only write files. The state of each run's forwarding
+lives in SQLite beside the spool, so a restart resumes where the last process stopped.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import datetime as dt
+import logging
+import time
+from pathlib import Path
+from typing import Any
+
+import grpc
+
+from services.agent.bandwidth import RateSchedule, TokenBucket
+from services.agent.link import DepotLink, default_api_url
+from services.agent.retention import RetentionReport, enforce
+from services.agent.sender import Forwarding, RunSender
+from services.agent.spool import Spool
+from services.agent.state import AgentState, RunState
+from services.ingest import grpc_handler
+from services.rrd.messages import Event
+from services.runs.download import EntityFilter
+from services.settings import Settings
+
+log = logging.getLogger("fleet.agent")
+
+DISCOVER_S = 0.2  # how often new spooled runs are looked for
+HEARTBEAT_S = 2.0
+RETENTION_S = 10.0
+
+
+async def run_agent(settings: Settings) -> None:
+    """Build the agent on the running event loop (its gRPC channel belongs to that loop) and serve."""
+    await Agent(settings).serve()
+
+
+class Agent:
+    def __init__(self, settings: Settings) -> None:
+        self.settings = settings
+        self.spool = Spool(settings)
+        self.state = AgentState(settings.agent_spool)
+        token = settings.agent_token.get_secret_value() if settings.agent_token else None
+        self.link = DepotLink(
+            settings.agent_depot,
+            settings.agent_api_url or default_api_url(settings.agent_depot),
+            token,
+            max_message_size=settings.max_message_size,
+        )
+        self.schedule = RateSchedule.from_config(settings.agent_bandwidth_rules, settings.agent_bandwidth)
+        self.bucket = TokenBucket(self.schedule)
+        self.forwarding = Forwarding(
+            self.spool,
+            self.link,
+            self.bucket,
+            self.state,
+            EntityFilter(settings.agent_live_include, settings.agent_live_exclude),
+            settings.agent_check_s,
+        )
+        self.senders: dict[str, asyncio.Task[None]] = {}
+        self.runners: dict[str, RunSender] = {}
+        self.started_at = time.time()
+        self.retention: RetentionReport | None = None
+
+    # --- runs -----------------------------------------------------------------------------------
+
+    def discover(self) -> None:
+        """Start a sender for every spooled run that is not confirmed and has none."""
+        known = self.state.runs()
+        for run in self.spool.runs():
+            task = self.senders.get(run.run_id)
+            if task is not None and not task.done():
+                continue
+            state = known.get(run.run_id)
+            if state is not None and state.confirmed:
+                continue
+            fresh = state is None
+            if state is None:
+                state = RunState(run.run_id)
+                self.state.save_run(state)
+            sender = self.runners[run.run_id] = RunSender(self.forwarding, run.run_id, state, fresh=fresh)
+            self.senders[run.run_id] = asyncio.create_task(sender.run(), name=f"forward {run.run_id}")
+
+    def bucket_cap(self) -> int | None:
+        return self.schedule.current()
+
+    def keep_last_day(self) -> RetentionReport:
+        """Delete the spooled runs the depot holds sealed that are old enough, or too many."""
+        self.retention = enforce(
+            self.spool,
+            self.state,
+            retain=dt.timedelta(hours=self.settings.agent_retain_hours),
+            max_bytes=self.settings.agent_max_bytes,
+        )
+        for deletion in self.retention.deleted:
+            self.runners.pop(deletion.run_id, None)
+            self.senders.pop(deletion.run_id, None)
+        return self.retention
+
+    async def _discover_loop(self) -> None:
+        beat = kept = 0.0
+        while True:
+            self.spool.ingest.close_idle()
+            self.discover()
+            if time.monotonic() - kept > RETENTION_S:
+                kept = time.monotonic()
+                self.keep_last_day()
+            if time.monotonic() - beat > HEARTBEAT_S:
+                beat = time.monotonic()
+                progress = {
+                    run_id: {"sent_until": sender.sent_until, "open": self._open(run_id)}
+                    for run_id, sender in self.runners.items()
+                }
+                await asyncio.to_thread(self._heartbeat, progress)
+            await asyncio.sleep(DISCOVER_S)
+
+    def _open(self, run_id: str) -> bool:
+        run = self.spool.run(run_id)
+        return run is not None and self.spool.is_open(run)
+
+    def _heartbeat(self, progress: dict[str, Any]) -> None:
+        self.state.set_fact("progress", progress)
+        self.state.set_fact("agent", {"started_at": self.started_at, "listen": self.settings.agent_listen})
+        self.state.set_fact(
+            "link",
+            {"up": self.link.up, "since": self.link.since, "error": self.link.error, "refused": self.link.refused},
+        )
+        self.state.set_fact("counters", dict(self.forwarding.counters))
+        if self.retention is not None:
+            self.state.set_fact(
+                "retention",
+                {"over_by": self.retention.over_by, "unconfirmed_bytes": self.retention.unconfirmed_bytes},
+            )
+
+    # --- watched files -----------------------------------------------------------------------------
+
+    async def file_events(self, path: Path, events: list[Event]) -> None:
+        self.spool.file_events(path, events)
+
+    # --- serving ----------------------------------------------------------------------------------
+
+    async def serve(self) -> None:
+        """Run until cancelled."""
+        recovered = self.spool.recover()
+        if recovered:
+            log.info("spool: %d runs recovered", len(recovered))
+        server = grpc.aio.server(options=grpc_handler.server_options(self.settings.max_message_size))
+        grpc_handler.add_to_server(server, grpc_handler.MessageProxy(self.spool.ingest))
+        server.add_insecure_port(self.settings.agent_listen)
+        await server.start()
+        log.info("agent listening on %s, forwarding to %s", self.settings.agent_listen, self.settings.agent_depot)
+        tasks = [asyncio.create_task(self._discover_loop(), name="discover")]
+        try:
+            await asyncio.gather(*tasks)
+        finally:
+            for task in [*tasks, *self.senders.values()]:
+                task.cancel()
+            for task in [*tasks, *self.senders.values()]:
+                with contextlib.suppress(asyncio.CancelledError, Exception):
+                    await task
+            await server.stop(grace=2)
+            await self.link.close()
+            self.spool.close()
+            self.state.close()

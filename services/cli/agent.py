@@ -1,0 +1,89 @@
+"""`fleet agent`: run the robot's agent; `fleet agent status`: where its runs stand.
+
+The agent's flags are made from the `agent_*` settings (`--spool`, `--listen`, `--depot`, ...), as
+`fleet serve`'s are from the others: each also a FLEET_AGENT_* variable or a key of the TOML file
+named by FLEET_CONFIG; the token also FLEET_TOKEN, the depot's REST address also FLEET_API_URL."""
+
+from __future__ import annotations
+
+import contextlib
+import json
+from pathlib import Path
+from typing import Any
+
+import click
+
+from services.cli.serve import SettingsCommand, agent_setting
+
+
+class AgentCommand(click.Group, SettingsCommand):
+    """`fleet agent` runs the agent unless a subcommand (status) is named."""
+
+    selected = staticmethod(agent_setting)
+
+
+@click.group(cls=AgentCommand, invoke_without_command=True)
+@click.pass_context
+def agent(ctx: click.Context, /, **flags: object) -> None:
+    """Run the robot's agent: the SDK streams to it (rr.GrpcSink("rerun+http://127.0.0.1:9876/proxy")),
+    it keeps every message in its spool and forwards runs to the depot, filling any gap a cut link
+    leaves. Every flag can also be set as the variable named in its help, or in a TOML file named by
+    FLEET_CONFIG."""
+    if ctx.invoked_subcommand is not None:
+        ctx.obj = flags
+        return
+    import asyncio
+    import logging
+
+    from services.agent.service import run_agent
+    from services.settings import load_settings
+
+    settings = load_settings(**flags)
+    logging.basicConfig(level=logging.INFO, format="%(levelname)s:     %(name)s: %(message)s")
+    if settings.agent_token is None:
+        click.echo("fleet agent: no token (FLEET_TOKEN): a depot with auth on refuses the robot's runs", err=True)
+    click.echo(
+        f"fleet agent: spool {settings.agent_spool.resolve()}, SDK to rerun+http://{settings.agent_listen}/proxy, "
+        f"depot {settings.agent_depot}"
+    )
+    with contextlib.suppress(KeyboardInterrupt):  # Ctrl-C: the spool is safe, the agent stops
+        asyncio.run(run_agent(settings))
+
+
+@agent.command()
+@click.option("--spool", type=click.Path(path_type=Path), help="The agent's spool (else as `fleet agent` reads it).")
+@click.option("--json", "as_json", is_flag=True, help="Print the status as JSON.")
+@click.pass_context
+def status(ctx: click.Context, spool: Path | None, as_json: bool) -> None:
+    """Per run: bytes on the robot, sent, not yet confirmed at the depot, kept on the robot only; the
+    link and the backlog. Works whether the agent runs or not (give the same --spool)."""
+    from services.agent.status import status_report
+    from services.settings import load_settings
+
+    settings = load_settings(**{**(ctx.obj or {}), "agent_spool": spool})
+    report = status_report(settings.agent_spool)
+    if as_json:
+        click.echo(json.dumps(report, indent=2))
+        return
+    _print(report)
+    if "error" in report:
+        raise SystemExit(1)
+
+
+def _print(report: dict[str, Any]) -> None:
+    if "error" in report:
+        click.echo(f"Error: {report['error']}", err=True)
+        return
+    link = report["link"]
+    state = "running" if report["running"] else f"not running (last seen {report['heartbeat_age_s']} s ago)"
+    linked = "up" if link.get("up") else f"down ({link.get('error') or 'not connected'})"
+    click.echo(f"agent: {state}; spool {Path(report['spool'])}: {report['spool_bytes']} bytes")
+    click.echo(f"depot link: {linked}" + (f"; refused: {link['refused']}" if link.get("refused") else ""))
+    click.echo(f"backlog: {report['backlog_bytes']} bytes not yet sent")
+    for run in report["runs"]:
+        where = "confirmed at the depot" if run["confirmed"] else f"{run['unconfirmed_at_depot_bytes']} B unconfirmed"
+        local = f", {run['local_only_chunks']} chunks on the robot only" if run["local_only_chunks"] else ""
+        click.echo(
+            f"  {run['run']}: {run['local_bytes']} B local, {run['sent_bytes']} B sent, {where}"
+            f"{', open' if run['open'] else ''}{local}"
+        )

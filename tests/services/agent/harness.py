@@ -1,0 +1,162 @@
+"""The agent and the depot as real processes for end-to-end tests, the link between them through
+loopback TCP proxies the test can cut and restore, and a robot on the real SDK."""
+
+from __future__ import annotations
+
+import os
+import socket
+import subprocess
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import httpx
+
+from services.agent.status import status_report
+from tests.services.ingest.live_server import FLEET, LiveServer
+from tests.subprocess_server import ServerProcess, free_port
+from tests.tcp_proxy import FORWARD, REFUSE, TcpProxy
+
+ROBOT = str(Path(__file__).with_name("robot.py"))
+
+
+def listening(port: int) -> Callable[[], bool]:
+    def check() -> bool:
+        try:
+            socket.create_connection(("127.0.0.1", port), timeout=1).close()
+        except OSError:
+            return False
+        return True
+
+    return check
+
+
+class Link:
+    """The robot's link to the depot: its gRPC and REST connections, each through a proxy."""
+
+    def __init__(self, depot: LiveServer) -> None:
+        self.grpc = TcpProxy("127.0.0.1", depot.grpc_port)
+        self.rest = TcpProxy("127.0.0.1", depot.http_port)
+
+    def cut(self) -> None:
+        self.grpc.set_mode(REFUSE)
+        self.rest.set_mode(REFUSE)
+
+    def restore(self) -> None:
+        self.grpc.set_mode(FORWARD)
+        self.rest.set_mode(FORWARD)
+
+    def close(self) -> None:
+        self.grpc.close()
+        self.rest.close()
+
+
+class AgentProcess:
+    """`fleet agent` on a free loopback port, forwarding through `link`."""
+
+    def __init__(self, spool: Path, link: Link, **settings: str) -> None:
+        self.spool = spool
+        self.port = free_port()
+        self.log = spool.parent / f"{spool.name}-agent.log"
+        env = {
+            **os.environ,
+            "FLEET_AGENT_SPOOL": str(spool),
+            "FLEET_AGENT_LISTEN": f"127.0.0.1:{self.port}",
+            "FLEET_AGENT_STATUS_ADDR": f"127.0.0.1:{free_port()}",
+            "FLEET_AGENT_DEPOT": f"rerun+http://127.0.0.1:{link.grpc.port}",
+            "FLEET_AGENT_API_URL": f"http://127.0.0.1:{link.rest.port}",
+            "FLEET_AGENT_CHECK_S": "1",
+            **{f"FLEET_AGENT_{k.upper()}": v for k, v in settings.items()},
+        }
+        self.process = ServerProcess(
+            [FLEET, "agent"], log=self.log, ready=listening(self.port), env=env, name="fleet agent"
+        )
+
+    @property
+    def url(self) -> str:
+        return f"rerun+http://127.0.0.1:{self.port}/proxy"
+
+    def start(self) -> AgentProcess:
+        self.process.start()
+        return self
+
+    def kill(self) -> None:
+        self.process.kill()
+
+    def stop(self) -> None:
+        self.process.stop()
+
+    def status(self) -> dict[str, Any]:
+        return status_report(self.spool)
+
+    def spool_bytes(self, run_id: str) -> int:
+        path = self.spool / "runs" / run_id / "run.rrd"
+        return path.stat().st_size if path.is_file() else 0
+
+
+class Robot:
+    """robot.py in its own process, driven over stdin/stdout."""
+
+    def __init__(self, *args: str) -> None:
+        self.proc = subprocess.Popen(
+            [sys.executable, ROBOT, *args],
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+
+    def expect(self, line: str) -> None:
+        assert self.proc.stdout is not None
+        got = self.proc.stdout.readline().strip()
+        if got != line:
+            _, err = self.proc.communicate(timeout=30)
+            raise AssertionError(f"robot said {got!r}, not {line!r}: {err[-2000:]}")
+
+    def go_on(self) -> None:
+        assert self.proc.stdin is not None
+        self.proc.stdin.write("\n")
+        self.proc.stdin.flush()
+
+    def finish(self) -> None:
+        self.proc.wait(timeout=60)
+        assert self.proc.returncode == 0, self.proc.stderr.read() if self.proc.stderr else ""
+
+
+def wait_for(condition: Callable[[], Any], timeout: float, what: str) -> Any:
+    deadline = time.monotonic() + timeout
+    while True:
+        value = condition()
+        if value:
+            return value
+        if time.monotonic() > deadline:
+            raise AssertionError(f"waited {timeout:g} s for {what}")
+        time.sleep(0.1)  # polling for the condition, bounded by the deadline
+
+
+def depot_chunks(depot: LiveServer, run_id: str) -> int:
+    answer = httpx.get(f"{depot.url}/v1/runs/{run_id}", headers=depot.headers, timeout=10)
+    return int(answer.json().get("chunks", 0)) if answer.status_code == 200 else 0
+
+
+def run_status(depot: LiveServer, run_id: str) -> str | None:
+    answer = httpx.get(f"{depot.url}/v1/runs/{run_id}", headers=depot.headers, timeout=10)
+    return str(answer.json().get("status")) if answer.status_code == 200 else None
+
+
+def same_recording(rerun_bin: str, a: Path, b: Path) -> tuple[bool, str]:
+    done = subprocess.run(
+        [rerun_bin, "rrd", "compare", "--unordered", str(a), str(b)], capture_output=True, text=True, timeout=120
+    )
+    return done.returncode == 0, done.stderr[-2000:] + done.stdout[-2000:]
+
+
+def download(depot: LiveServer, run_id: str, to: Path) -> Path:
+    with httpx.stream("GET", f"{depot.url}/v1/runs/{run_id}/recording.rrd", headers=depot.headers, timeout=60) as r:
+        r.raise_for_status()
+        with open(to, "wb") as fh:
+            for piece in r.iter_bytes():
+                fh.write(piece)
+    return to

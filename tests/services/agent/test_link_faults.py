@@ -1,0 +1,157 @@
+"""The agent and the depot as real processes, a robot on the real SDK streaming to the agent, and
+the link between agent and depot through proxies the test cuts and restores: whatever happens to the
+link, the depot or the agent, the depot's run ends equal to the robot's own FileSink copy, with no
+one uploading anything, and what is sent again stays within 5% of the gap."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+from tests.services.agent.harness import (
+    AgentProcess,
+    Link,
+    Robot,
+    depot_chunks,
+    download,
+    run_status,
+    same_recording,
+    wait_for,
+)
+from tests.services.ingest.live_server import LiveServer
+
+pytestmark = [pytest.mark.sdk, pytest.mark.slow]
+
+FRAMES = 25  # per step: about 1.5 MB
+
+
+@pytest.fixture
+def depot(tmp_path: Path) -> Iterator[LiveServer]:
+    server = LiveServer(tmp_path / "depot").start()
+    yield server
+    server.stop()
+
+
+@pytest.fixture
+def link(depot: LiveServer) -> Iterator[Link]:
+    proxies = Link(depot)
+    yield proxies
+    proxies.close()
+
+
+@pytest.fixture
+def agent(tmp_path: Path, link: Link) -> Iterator[AgentProcess]:
+    process = AgentProcess(tmp_path / "spool", link).start()
+    yield process
+    process.stop()
+
+
+def resent_bytes(depot: LiveServer, agent: AgentProcess) -> int:
+    """Chunk bytes that crossed the link twice: the agent's re-sends of what the depot lacked after a
+    break, and what the depot received but already held."""
+    return int(agent.status()["counters"].get("bytes_resent", 0)) + int(depot.metric("fleet_ingest_bytes_duplicate"))
+
+
+def depot_equals_copy(depot: LiveServer, run_id: str, copy: Path, rerun_bin: str, tmp_path: Path) -> None:
+    served = tmp_path / f"{run_id}-served.rrd"
+
+    def same() -> bool:
+        if depot_chunks(depot, run_id) == 0:
+            return False
+        download(depot, run_id, served)
+        return same_recording(rerun_bin, copy, served)[0]
+
+    try:
+        wait_for(same, 90, f"the depot's {run_id} to equal the robot's copy")
+    except AssertionError:
+        raise AssertionError(same_recording(rerun_bin, copy, served)[1]) from None
+    # the agent ends its stream once the robot's has ended: then the depot has counted what it got
+    wait_for(lambda: run_status(depot, run_id) == "closed", 60, f"the depot to close {run_id}")
+
+
+def test_a_cut_link_loses_nothing_and_resends_little(
+    depot: LiveServer, link: Link, agent: AgentProcess, tmp_path: Path, rerun_bin: str
+):
+    copy = tmp_path / "copy.rrd"
+    robot = Robot("steps", agent.url, str(copy), "run-cut", "3", str(FRAMES))
+    robot.expect("STEP 1")
+    wait_for(lambda: depot_chunks(depot, "run-cut") > 0, 60, "the depot to hold the run's first chunks")
+    link.cut()
+    at_cut = agent.spool_bytes("run-cut")
+    robot.go_on()
+    robot.expect("STEP 2")  # logged while the link is down: the SDK never noticed
+    wait_for(lambda: agent.spool_bytes("run-cut") - at_cut > 1_000_000, 30, "the gap to reach the spool")
+    gap = agent.spool_bytes("run-cut") - at_cut
+    link.restore()
+    robot.go_on()
+    robot.expect("STEP 3")
+    robot.go_on()
+    robot.expect("DONE")
+    robot.finish()
+    depot_equals_copy(depot, "run-cut", copy, rerun_bin, tmp_path)
+    assert resent_bytes(depot, agent) <= 0.05 * gap, (resent_bytes(depot, agent), gap)
+
+
+def test_a_depot_killed_mid_run_loses_nothing(depot: LiveServer, agent: AgentProcess, tmp_path: Path, rerun_bin: str):
+    copy = tmp_path / "copy.rrd"
+    robot = Robot("steps", agent.url, str(copy), "run-depot-kill", "3", str(FRAMES))
+    robot.expect("STEP 1")
+    wait_for(lambda: depot_chunks(depot, "run-depot-kill") > 0, 60, "the depot to hold the run's first chunks")
+    depot.kill()
+    at_kill = agent.spool_bytes("run-depot-kill")
+    robot.go_on()
+    robot.expect("STEP 2")
+    gap = agent.spool_bytes("run-depot-kill") - at_kill
+    depot.start()
+    robot.go_on()
+    robot.expect("STEP 3")
+    robot.go_on()
+    robot.expect("DONE")
+    robot.finish()
+    depot_equals_copy(depot, "run-depot-kill", copy, rerun_bin, tmp_path)
+    assert gap > 0
+    assert resent_bytes(depot, agent) <= 0.05 * gap, (resent_bytes(depot, agent), gap)
+
+
+def test_an_agent_killed_mid_run_loses_nothing(depot: LiveServer, link: Link, tmp_path: Path, rerun_bin: str):
+    """The SDK's stream breaks with the agent and never reconnects: the rest of the run reaches the
+    agent again by the FileSink copy it watches, and the depot gets each chunk once."""
+    watched = tmp_path / "robot-files"
+    watched.mkdir()
+    agent = AgentProcess(tmp_path / "spool", link, watch=str(watched), file_idle_s="2").start()
+    copy = watched / "run-agent-kill.rrd"
+    try:
+        robot = Robot("steps", agent.url, str(copy), "run-agent-kill", "3", str(FRAMES))
+        robot.expect("STEP 1")
+        wait_for(lambda: depot_chunks(depot, "run-agent-kill") > 0, 60, "the depot to hold the run's first chunks")
+        agent.kill()
+        robot.go_on()
+        robot.expect("STEP 2")
+        agent.start()
+        robot.go_on()
+        robot.expect("STEP 3")
+        robot.go_on()
+        robot.expect("DONE")
+        robot.finish()
+        depot_equals_copy(depot, "run-agent-kill", copy, rerun_bin, tmp_path)
+        assert int(depot.metric("fleet_ingest_bytes_duplicate")) <= 0.05 * copy.stat().st_size
+    finally:
+        agent.stop()
+
+
+def test_a_robot_that_only_writes_files_reaches_the_depot(
+    depot: LiveServer, link: Link, tmp_path: Path, rerun_bin: str
+):
+    watched = tmp_path / "robot-files"
+    watched.mkdir()
+    agent = AgentProcess(tmp_path / "spool", link, watch=str(watched), file_idle_s="2").start()
+    try:
+        copy = watched / "run-file.rrd"
+        robot = Robot("file", str(copy), "run-file", str(FRAMES))
+        robot.expect("DONE")
+        robot.finish()
+        depot_equals_copy(depot, "run-file", copy, rerun_bin, tmp_path)
+    finally:
+        agent.stop()
