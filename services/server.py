@@ -34,16 +34,9 @@ from services.retention.service import Retention
 from services.runtime import tune_allocator
 from services.sealed.tiers import open_tiers, sealed_lookup
 from services.settings import Settings
-from services.startup import listen_grpc, listen_http, private_socket_path, release_private_socket
+from services.startup import listen_grpc, listen_http, private_socket_path, release_private_socket, split_addr
 
 log = logging.getLogger("fleet")
-
-
-def split_addr(addr: str) -> tuple[str, int]:
-    host, _, port = addr.rpartition(":")
-    if not host or not port.isdigit():
-        raise ValueError(f"{addr!r} is not HOST:PORT (for example 0.0.0.0:8080)")
-    return host.strip("[]"), int(port)
 
 
 def build(settings: Settings) -> tuple[IngestService, Retention, Analytics]:

@@ -25,7 +25,9 @@ GRPC_SOCKET = "grpc.sock"
 
 
 @contextlib.contextmanager
-def hold_data_dir(data_dir: Path) -> Iterator[None]:
+def hold_data_dir(
+    data_dir: Path, *, what: str = "data dir", command: str = "fleet serve", fix: str = "--data-dir or FLEET_DATA_DIR"
+) -> Iterator[None]:
     """An exclusive lock on the data dir for as long as the block runs (the process's life when it
     wraps `serve`). The lock file holds the owner's PID so that a refused start can name it; the
     kernel drops the lock when the process dies, however it dies, so a stale file never blocks."""
@@ -37,8 +39,8 @@ def hold_data_dir(data_dir: Path) -> Iterator[None]:
         except BlockingIOError:
             holder = os.pread(fd, 32, 0).decode(errors="replace").strip() or "unknown"
             raise ConflictError(
-                f"the data dir is in use by another `fleet serve` (PID {holder}): stop that one, or give this one "
-                "its own data dir (--data-dir or FLEET_DATA_DIR)"
+                f"the {what} is in use by another `{command}` (PID {holder}): stop that one, or give this one "
+                f"its own {what} ({fix})"
             ) from None
         os.ftruncate(fd, 0)
         os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
@@ -63,6 +65,13 @@ def _refusal(exc: OSError, host: str, port: int, what: str, setting: str) -> Con
         f"the {what} address {addr} {problem}: set another with --{setting.replace('_', '-')} "
         f"or FLEET_{setting.upper()}"
     )
+
+
+def split_addr(addr: str) -> tuple[str, int]:
+    host, _, port = addr.rpartition(":")
+    if not host or not port.isdigit():
+        raise ValueError(f"{addr!r} is not HOST:PORT (for example 0.0.0.0:8080)")
+    return host.strip("[]"), int(port)
 
 
 def listen(host: str, port: int, what: str, setting: str) -> socket.socket:

@@ -20,15 +20,18 @@ from typing import Any
 import grpc
 
 from services.agent.bandwidth import RateSchedule, TokenBucket
+from services.agent.files import FileProgress, FileWatcher
 from services.agent.link import DepotLink, default_api_url
+from services.agent.metrics import serve_metrics
 from services.agent.retention import RetentionReport, enforce
 from services.agent.sender import Forwarding, RunSender
-from services.agent.spool import Spool
+from services.agent.spool import Spool, store_infos
 from services.agent.state import AgentState, RunState
 from services.ingest import grpc_handler
-from services.rrd.messages import Event
+from services.rrd.messages import Event, StreamStart
 from services.runs.download import EntityFilter
 from services.settings import Settings
+from services.startup import listen, split_addr
 
 log = logging.getLogger("fleet.agent")
 
@@ -141,13 +144,45 @@ class Agent:
 
     # --- watched files -----------------------------------------------------------------------------
 
-    async def file_events(self, path: Path, events: list[Event]) -> None:
-        self.spool.file_events(path, events)
+    async def file_events(self, path: Path, events: list[Event], progress: FileProgress) -> None:
+        """A watched file's new messages: filed, then where the file stands saved (a crash in
+        between reads them again; their chunks are already held, so nothing is filed twice)."""
+        infos = None
+        if events and not isinstance(events[0], StreamStart) and not self.spool.reading(path):
+            infos = await asyncio.to_thread(store_infos, path)  # resumed mid-file after a restart
+        self.spool.file_events(path, events, infos)
+        await asyncio.to_thread(self.state.save_file, progress.path, progress.to_dict())
+
+    async def file_complete(self, path: Path, progress: FileProgress) -> None:
+        self.spool.file_done(path)
+        await asyncio.to_thread(self.state.save_file, progress.path, progress.to_dict())
+
+    def _watcher(self) -> FileWatcher | None:
+        if not self.settings.agent_watch:
+            return None
+        known = []
+        for path, saved in self.state.file_progress().items():
+            try:
+                known.append(FileProgress.from_dict(saved))
+            except ValueError as exc:
+                log.warning("forgetting where file %s stood (%s): it is read again", path, exc)
+        return FileWatcher(
+            self.settings.agent_watch,
+            self.file_events,
+            self.file_complete,
+            progress=known,
+            idle_s=self.settings.agent_file_idle_s,
+            max_message_size=self.settings.max_message_size,
+        )
 
     # --- serving ----------------------------------------------------------------------------------
 
     async def serve(self) -> None:
         """Run until cancelled."""
+        host, port = split_addr(self.settings.agent_listen)
+        listen(host, port, "agent's SDK", "agent_listen").close()  # a port in use: one line, before anything
+        status_host, status_port = split_addr(self.settings.agent_status_addr)
+        listen(status_host, status_port, "agent's status", "agent_status_addr").close()
         recovered = self.spool.recover()
         if recovered:
             log.info("spool: %d runs recovered", len(recovered))
@@ -155,8 +190,13 @@ class Agent:
         grpc_handler.add_to_server(server, grpc_handler.MessageProxy(self.spool.ingest))
         server.add_insecure_port(self.settings.agent_listen)
         await server.start()
+        serve_metrics(self, status_host, status_port)
         log.info("agent listening on %s, forwarding to %s", self.settings.agent_listen, self.settings.agent_depot)
         tasks = [asyncio.create_task(self._discover_loop(), name="discover")]
+        watcher = self._watcher()
+        if watcher is not None:
+            tasks.append(asyncio.create_task(watcher.run(), name="watch files"))
+            log.info("watching %s for .rrd files", ", ".join(map(str, self.settings.agent_watch)))
         try:
             await asyncio.gather(*tasks)
         finally:

@@ -11,7 +11,7 @@ from __future__ import annotations
 import datetime as dt
 import logging
 import shutil
-from collections.abc import Iterable
+from collections.abc import Sequence
 from pathlib import Path
 
 from core.states import RunStatus
@@ -22,7 +22,9 @@ from services.ingest.identity import SecretFields
 from services.ingest.replay import ReplayHub
 from services.ingest.service import IngestService
 from services.ingest.source import Source
-from services.rrd.messages import Event
+from services.rrd import errors as rrd_errors
+from services.rrd.decoder import iter_events
+from services.rrd.messages import Event, StoreInfoMessage
 from services.settings import Settings
 
 log = logging.getLogger("fleet.agent")
@@ -95,13 +97,22 @@ class Spool:
 
     # --- watched files --------------------------------------------------------------------------
 
-    def file_events(self, path: Path, events: Iterable[Event]) -> list[str]:
+    def reading(self, path: Path) -> bool:
+        """Whether messages of this file were filed since the agent started."""
+        return str(path) in self._file_sources
+
+    def file_events(
+        self, path: Path, events: Sequence[Event], store_infos: Sequence[StoreInfoMessage] | None = None
+    ) -> list[str]:
         """File messages read from a watched file: one source per file while it is read, so its
-        SetStoreInfo, read once, names the store of the chunks that follow in later reads."""
+        SetStoreInfo, read once, names the store of the chunks that follow in later reads (a file
+        resumed mid-way after a restart comes with its `store_infos`, read again from its start)."""
         key = str(path)
         source = self._file_sources.get(key)
         if source is None:
             source = self._file_sources[key] = self.ingest.open_source(live=False)
+            for info in store_infos or ():
+                self.ingest.accept(source, info)
         for event in events:
             self.ingest.accept(source, event)
         return list(source.report.runs)
@@ -111,3 +122,15 @@ class Spool:
         source = self._file_sources.pop(str(path), None)
         if source is not None:
             self.ingest.close_source(source)
+
+
+def store_infos(path: Path) -> list[StoreInfoMessage]:
+    """The SetStoreInfo messages of a file (what names the stores of the chunks read after them)."""
+    found: list[StoreInfoMessage] = []
+    try:
+        for event in iter_events(path):
+            if isinstance(event, StoreInfoMessage):
+                found.append(event)
+    except (rrd_errors.RrdError, OSError) as exc:  # a torn tail: the infos before it are what counts
+        log.debug("reading the store infos of %s stopped: %s", path, exc)
+    return found

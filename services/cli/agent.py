@@ -37,6 +37,7 @@ def agent(ctx: click.Context, /, **flags: object) -> None:
 
     from services.agent.service import run_agent
     from services.settings import load_settings
+    from services.startup import hold_data_dir
 
     settings = load_settings(**flags)
     logging.basicConfig(level=logging.INFO, format="%(levelname)s:     %(name)s: %(message)s")
@@ -46,7 +47,8 @@ def agent(ctx: click.Context, /, **flags: object) -> None:
         f"fleet agent: spool {settings.agent_spool.resolve()}, SDK to rerun+http://{settings.agent_listen}/proxy, "
         f"depot {settings.agent_depot}"
     )
-    with contextlib.suppress(KeyboardInterrupt):  # Ctrl-C: the spool is safe, the agent stops
+    held = hold_data_dir(settings.agent_spool, what="spool", command="fleet agent", fix="--spool or FLEET_AGENT_SPOOL")
+    with held, contextlib.suppress(KeyboardInterrupt):  # Ctrl-C: the spool is safe, the agent stops
         asyncio.run(run_agent(settings))
 
 

@@ -137,10 +137,10 @@ def serve(**flags: object) -> None:
     from catalog.db import create_engine, is_embedded, prepare_for_service
     from services.auth.bootstrap import check_auth_bind
     from services.rrd import limits
-    from services.server import release_reserve_if_full, split_addr
+    from services.server import release_reserve_if_full
     from services.server import serve as run_server
     from services.settings import load_settings
-    from services.startup import hold_data_dir
+    from services.startup import hold_data_dir, split_addr
 
     settings = load_settings(**flags)
     limits.configure(settings.max_chunk_bytes, settings.decompress_budget_bytes)  # process-wide, like the memory
