@@ -45,6 +45,24 @@ SEALED = "warm"
 
 
 @dataclass
+class PullJob:
+    """Chunks a pull asks for: sent behind live data and backfill, then asked about at the next
+    check (a cut may have lost some: those are sent again), then done."""
+
+    pull_id: str
+    entries: list[HotEntry]
+    chunks_sent: int = 0
+    bytes_sent: int = 0
+    written_at_check: int | None = None  # the check count when its last chunk was written
+    done: asyncio.Event = field(default_factory=asyncio.Event)
+    error: str | None = None
+
+    def count(self, entry: HotEntry) -> None:
+        self.chunks_sent += 1
+        self.bytes_sent += entry.length
+
+
+@dataclass
 class Lane:
     """Messages waiting to be sent at one priority: a tail of the run file, or a given list."""
 
@@ -53,6 +71,7 @@ class Lane:
     end: int | None = None  # a tail's last offset (a backfill); None: follows the file (live)
     entries: deque[HotEntry] = field(default_factory=deque)
     on_sent: Callable[[HotEntry], None] | None = None
+    job: PullJob | None = None
 
     def exhausted(self, size: int) -> bool:
         """Nothing left to send of a file of `size` bytes."""
@@ -100,7 +119,10 @@ class RunSender:
         self.settled = False  # what was in flight at the last break was asked about
         self.streaming = False
         self.last_check = time.monotonic()
+        self.checks = 0
         self.last_append = time.monotonic()
+        self.pulls: list[PullJob] = []
+        self.local_only_entities: set[str] = set()  # entities the live rules kept on the robot
 
     # --- the run as the spool holds it ------------------------------------------------------------
 
@@ -138,7 +160,7 @@ class RunSender:
 
     async def run(self) -> None:
         """Forward until the run is confirmed (sealed at the depot) or removed from the spool."""
-        while self._run() is not None and not self.state.confirmed:
+        while self._run() is not None and (not self.state.confirmed or self.pulls):
             try:
                 await self._session()
                 self.backoff.reset()
@@ -171,6 +193,7 @@ class RunSender:
             await self._settle_in_flight()
             self.settled = True
         self._plan_lanes()
+        await self._plan_pulls()
         if not self._has_work():
             await self._idle()
             return
@@ -202,8 +225,9 @@ class RunSender:
             for entry in entries:
                 if entry.kind == STORE_INFO:
                     self.store_infos.append(entry)
-                elif entry.end <= passed and not self._forwarded(entry):
+                elif entry.end <= passed and not self._forwarded(entry) and entry.meta is not None:
                     local_chunks, local_bytes = local_chunks + 1, local_bytes + entry.length
+                    self.local_only_entities.add(entry.meta.entity_path)
         self.state.local_only_chunks, self.state.local_only_bytes = local_chunks, local_bytes
 
     async def _settle_in_flight(self) -> None:
@@ -229,8 +253,9 @@ class RunSender:
             out += [e for e in entries if e.end <= end]
         return out
 
-    async def _missing(self, entries: list[HotEntry]) -> list[HotEntry]:
-        chunks = [e for e in entries if e.kind == CHUNK and e.meta is not None and self._forwarded(e)]
+    async def _missing(self, entries: list[HotEntry], *, pulled: bool = False) -> list[HotEntry]:
+        """The chunks of `entries` the depot lacks: of those forwarded live (or all, for a pull)."""
+        chunks = [e for e in entries if e.kind == CHUNK and e.meta is not None and (pulled or self._forwarded(e))]
         if not chunks:
             return []
         held = await self.ctx.link.held(self.run_id, [e.meta.chunk_id for e in chunks if e.meta is not None])
@@ -252,6 +277,30 @@ class RunSender:
         else:
             self.lanes.append(Lane(Priority.LIVE, HotIndexTail(path, self.sent_until), on_sent=self._advance))
             self._gap_start = self._gap_end = size
+
+    def add_pull(self, job: PullJob) -> None:
+        self.pulls.append(job)
+        self.wake.set()
+
+    async def _plan_pulls(self) -> None:
+        """A lane per pull not yet written: the chunks of it the depot lacks."""
+        for job in self.pulls:
+            if job.written_at_check is None:
+                missing = await self._missing(job.entries, pulled=True)
+                self.lanes.append(Lane(Priority.PULL, entries=deque(missing), on_sent=job.count, job=job))
+
+    async def _verify_pulls(self) -> None:
+        """Pulls written before the previous check: done if the depot holds them, else sent again."""
+        for job in list(self.pulls):
+            if job.written_at_check is None or job.written_at_check >= self.checks - 1:
+                continue
+            missing = await self._missing(job.entries, pulled=True)
+            if missing:
+                job.written_at_check = None
+                self.lanes.append(Lane(Priority.PULL, entries=deque(missing), on_sent=job.count, job=job))
+            else:
+                self.pulls.remove(job)
+                job.done.set()
 
     def _has_work(self) -> bool:
         run = self._run()
@@ -325,7 +374,7 @@ class RunSender:
                     batch.append(entry)
                     nbytes += entry.length
                     continue
-                if entry.kind == STORE_INFO or not self._forwarded(entry):
+                if entry.kind == STORE_INFO or (lane.job is None and not self._forwarded(entry)):
                     if lane.on_sent is not None:
                         lane.on_sent(entry)  # passed over, but counted as gone by
                     continue
@@ -333,6 +382,9 @@ class RunSender:
                 nbytes += entry.length
             if batch:
                 return lane, batch
+        for lane in self.lanes:
+            if lane.job is not None and lane.exhausted(size) and lane.job.written_at_check is None:
+                lane.job.written_at_check = self.checks
         self.lanes = [lane for lane in self.lanes if lane.priority == Priority.LIVE or not lane.exhausted(size)]
         return None, []
 
@@ -349,14 +401,13 @@ class RunSender:
 
     def _advance(self, entry: HotEntry) -> None:
         self.sent_until = max(self.sent_until, entry.end)
-        if entry.kind == CHUNK and not self._forwarded(entry):
-            self.state.local_only_chunks += 1
-            self.state.local_only_bytes += entry.length
+        self._count_backfill(entry)
 
     def _count_backfill(self, entry: HotEntry) -> None:
-        if entry.kind == CHUNK and not self._forwarded(entry):
+        if entry.kind == CHUNK and entry.meta is not None and not self._forwarded(entry):
             self.state.local_only_chunks += 1
             self.state.local_only_bytes += entry.length
+            self.local_only_entities.add(entry.meta.entity_path)
 
     def _count_resent(self, entry: HotEntry) -> None:
         self.ctx.counters["chunks_resent"] += 1
@@ -383,6 +434,8 @@ class RunSender:
         if time.monotonic() - self.last_check < self.ctx.check_s:
             return
         self.last_check = time.monotonic()
+        self.checks += 1
+        await self._verify_pulls()
         mark, self.check_mark = self.check_mark, self.sent_until
         pending = self._backfill_pending()
         if mark is not None and pending is not None:

@@ -14,6 +14,7 @@ import contextlib
 import datetime as dt
 import logging
 import time
+from collections.abc import Coroutine
 from pathlib import Path
 from typing import Any
 
@@ -21,8 +22,9 @@ import grpc
 
 from services.agent.bandwidth import RateSchedule, TokenBucket
 from services.agent.files import FileProgress, FileWatcher
-from services.agent.link import DepotLink, default_api_url
+from services.agent.link import DepotLink, DepotRefused, LinkDown, default_api_url
 from services.agent.metrics import serve_metrics
+from services.agent.reports import REPORT_S, Reports
 from services.agent.retention import RetentionReport, enforce
 from services.agent.sender import Forwarding, RunSender
 from services.agent.spool import Spool, store_infos
@@ -71,6 +73,8 @@ class Agent:
         self.runners: dict[str, RunSender] = {}
         self.started_at = time.time()
         self.retention: RetentionReport | None = None
+        self.reports = Reports(self)
+        self._tasks: set[asyncio.Task[None]] = set()
 
     # --- runs -----------------------------------------------------------------------------------
 
@@ -78,18 +82,27 @@ class Agent:
         """Start a sender for every spooled run that is not confirmed and has none."""
         known = self.state.runs()
         for run in self.spool.runs():
-            task = self.senders.get(run.run_id)
-            if task is not None and not task.done():
-                continue
             state = known.get(run.run_id)
-            if state is not None and state.confirmed:
-                continue
-            fresh = state is None
-            if state is None:
-                state = RunState(run.run_id)
-                self.state.save_run(state)
-            sender = self.runners[run.run_id] = RunSender(self.forwarding, run.run_id, state, fresh=fresh)
-            self.senders[run.run_id] = asyncio.create_task(sender.run(), name=f"forward {run.run_id}")
+            if state is None or not state.confirmed:
+                self.sender_for(run.run_id, state)
+
+    def sender_for(self, run_id: str, state: RunState | None = None) -> RunSender:
+        """The run's sender, started if it is not running (a pull may need one for a confirmed run)."""
+        sender = self.runners.get(run_id)
+        task = self.senders.get(run_id)
+        if sender is not None and task is not None and not task.done():
+            return sender
+        state = state or (sender.state if sender is not None else self.state.runs().get(run_id))
+        fresh = state is None
+        if state is None:
+            state = RunState(run_id)
+            self.state.save_run(state)
+        new = RunSender(self.forwarding, run_id, state, fresh=fresh)
+        if sender is not None:
+            new.pulls = sender.pulls  # pulls given to a sender that stopped
+        self.runners[run_id] = new
+        self.senders[run_id] = asyncio.create_task(new.run(), name=f"forward {run_id}")
+        return new
 
     def bucket_cap(self) -> int | None:
         return self.schedule.current()
@@ -105,7 +118,26 @@ class Agent:
         for deletion in self.retention.deleted:
             self.runners.pop(deletion.run_id, None)
             self.senders.pop(deletion.run_id, None)
+            self._background(self.reports.forget_copy(deletion.run_id))
         return self.retention
+
+    def _background(self, work: Coroutine[Any, Any, None]) -> None:
+        task = asyncio.create_task(work)
+        self._tasks.add(task)
+        task.add_done_callback(self._tasks.discard)
+
+    async def _report_loop(self) -> None:
+        """Poll for pulls and report robot copies; a depot that does not answer is asked again later."""
+        reported = 0.0
+        while True:
+            try:
+                await self.reports.poll_pulls()
+                if time.monotonic() - reported > REPORT_S:
+                    reported = time.monotonic()
+                    await self.reports.report_copies()
+            except (LinkDown, DepotRefused) as exc:
+                log.debug("pulls and reports wait for the depot: %s", exc)
+            await asyncio.sleep(self.settings.agent_pull_poll_s)
 
     async def _discover_loop(self) -> None:
         beat = kept = 0.0
@@ -192,7 +224,10 @@ class Agent:
         await server.start()
         serve_metrics(self, status_host, status_port)
         log.info("agent listening on %s, forwarding to %s", self.settings.agent_listen, self.settings.agent_depot)
-        tasks = [asyncio.create_task(self._discover_loop(), name="discover")]
+        tasks = [
+            asyncio.create_task(self._discover_loop(), name="discover"),
+            asyncio.create_task(self._report_loop(), name="pulls and reports"),
+        ]
         watcher = self._watcher()
         if watcher is not None:
             tasks.append(asyncio.create_task(watcher.run(), name="watch files"))
