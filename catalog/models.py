@@ -176,3 +176,43 @@ class Dataset(Base):
     entry_id: Mapped[str] = mapped_column(String(32))
     created_at: Mapped[dt.datetime] = mapped_column(DateTime(timezone=True))
     updated_at: Mapped[dt.datetime] = mapped_column(DateTime(timezone=True))  # a run was added
+
+
+class Pull(Base):
+    """A request that a robot's agent send the depot (part of) a run it holds: queued by an
+    engineer, polled by the agent, which reports its progress until done, failed or cancelled."""
+
+    __tablename__ = "pulls"
+
+    id: Mapped[str] = mapped_column(String(32), primary_key=True)  # pull- and 12 hex digits
+    run_id: Mapped[str] = mapped_column(String(ID_LENGTH), index=True)
+    robot_id: Mapped[str] = mapped_column(String(ID_LENGTH), index=True)  # whose agent sends it
+    include: Mapped[str] = mapped_column(Text, default="[]")  # JSON list of entity path patterns
+    exclude: Mapped[str] = mapped_column(Text, default="[]")  # JSON list of entity path patterns
+    timeline: Mapped[str | None] = mapped_column(Text)
+    start: Mapped[str | None] = mapped_column(Text)  # as given: the agent reads it by the timeline's type
+    end: Mapped[str | None] = mapped_column(Text)
+    state: Mapped[str] = mapped_column(String(16))  # pending | sending | done | failed | cancelled
+    requested_by: Mapped[str] = mapped_column(String(256))  # the token's subject, never the token
+    requested_at: Mapped[dt.datetime] = mapped_column(DateTime(timezone=True))
+    updated_at: Mapped[dt.datetime] = mapped_column(DateTime(timezone=True))
+    chunks_sent: Mapped[int] = mapped_column(BigInteger, default=0)
+    bytes_sent: Mapped[int] = mapped_column(BigInteger, default=0)
+    error: Mapped[str | None] = mapped_column(Text)
+
+
+class RobotCopy(Base):
+    """What a robot's agent last reported holding of a run (one row per run; gone once the robot
+    deleted its copy): how much, how much of it the depot lacks, and until when it keeps it."""
+
+    __tablename__ = "robot_copies"
+
+    run_id: Mapped[str] = mapped_column(String(ID_LENGTH), primary_key=True)
+    robot_id: Mapped[str] = mapped_column(String(ID_LENGTH))
+    reported_at: Mapped[dt.datetime] = mapped_column(DateTime(timezone=True))
+    chunks: Mapped[int] = mapped_column(BigInteger, default=0)
+    bytes: Mapped[int] = mapped_column(BigInteger, default=0)
+    local_only_chunks: Mapped[int] = mapped_column(BigInteger, default=0)  # held by the robot, not the depot
+    local_only_bytes: Mapped[int] = mapped_column(BigInteger, default=0)
+    local_only_entities: Mapped[str] = mapped_column(Text, default="[]")  # JSON list of entity paths
+    keeps_until: Mapped[dt.datetime | None] = mapped_column(DateTime(timezone=True))  # when the robot deletes it

@@ -1,4 +1,4 @@
-"""The closed sets of states a run can be in, defined once.
+"""The closed sets of states a run (and a pull of one) can be in, defined once.
 
 They are `StrEnum`s: each member is its string, so the catalog columns (plain strings), the JSON
 answers, the CLI's choices and `run.json` hold the same values as before there were enums, and a
@@ -36,3 +36,14 @@ class RestoreState(StrEnum):
 # `run_lifecycle.archive_mode` of a recording copied to the cold store; any other mode is the S3
 # storage class it was moved to in place (an open set, so not an enum).
 ARCHIVED_IN_STORE = "store"
+
+
+class PullState(StrEnum):
+    """How far a robot's agent has got with a pull (`pulls.state`): pending until it starts sending,
+    then done or failed; cancelled by whoever asked, while pending or sending."""
+
+    PENDING = "pending"
+    SENDING = "sending"
+    DONE = "done"
+    FAILED = "failed"
+    CANCELLED = "cancelled"

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import datetime as dt
 import getpass
 import json
 import re
@@ -190,6 +191,67 @@ class FleetClient:
     def revoke_token(self, token_id: str) -> dict[str, Any]:
         """Revoke a token (`DELETE /v1/tokens/ID`, admin); answers its record."""
         return self._request("DELETE", f"/v1/tokens/{token_id}")
+
+    # --- robots' own tiers: what a robot's agent asks, and pulls from robots ----------------------
+
+    def held(self, run_id: str, chunk_ids: list[str]) -> dict[str, Any]:
+        """Which of a run's chunks the depot holds (`POST /v1/runs/RUN/held`; 1 to 100000 ids of 32
+        lowercase hex digits): `{run, robot, tier, status, accepts_data, missing, unsealed, sealed}`."""
+        return self._request("POST", f"/v1/runs/{run_id}/held", json={"chunk_ids": chunk_ids})
+
+    def request_pull(
+        self,
+        run_id: str,
+        *,
+        include: list[str] | None = None,
+        exclude: list[str] | None = None,
+        timeline: str | None = None,
+        start: str | None = None,
+        end: str | None = None,
+    ) -> dict[str, Any]:
+        """Ask the run's robot to send (part of) it (`POST /v1/runs/RUN/pull`, write); the pull
+        queued, or the pending or sending one that asks the same."""
+        body = {"include": include or [], "exclude": exclude or [], "timeline": timeline, "start": start, "end": end}
+        pull: dict[str, Any] = self._request("POST", f"/v1/runs/{run_id}/pull", json=body)["pull"]
+        return pull
+
+    def pulls(self, state: str | None = None, robot: str | None = None, limit: int = 100) -> list[dict[str, Any]]:
+        """Pulls by state and robot, oldest first (`GET /v1/pulls`; a robot's token: its own robot's)."""
+        params = {k: v for k, v in {"state": state, "robot": robot, "limit": limit}.items() if v is not None}
+        found: list[dict[str, Any]] = self._request("GET", "/v1/pulls", params=params)["pulls"]
+        return found
+
+    def run_pulls(self, run_id: str) -> list[dict[str, Any]]:
+        """A run's pulls, newest first (`GET /v1/runs/RUN/pulls`)."""
+        found: list[dict[str, Any]] = self._request("GET", f"/v1/runs/{run_id}/pulls")["pulls"]
+        return found
+
+    def pull_progress(
+        self, pull_id: str, *, state: str, chunks_sent: int, bytes_sent: int, error: str | None = None
+    ) -> dict[str, Any]:
+        """Report how far the agent got (`POST /v1/pulls/PULL/progress`; state sending, done or
+        failed); the pull as it is now. A done, failed or cancelled pull raises ServiceError (409)."""
+        body = {"state": state, "chunks_sent": chunks_sent, "bytes_sent": bytes_sent, "error": error}
+        pull: dict[str, Any] = self._request("POST", f"/v1/pulls/{pull_id}/progress", json=body)["pull"]
+        return pull
+
+    def cancel_pull(self, pull_id: str) -> dict[str, Any]:
+        """Cancel a pending or sending pull (`POST /v1/pulls/PULL/cancel`, write); the pull."""
+        pull: dict[str, Any] = self._request("POST", f"/v1/pulls/{pull_id}/cancel")["pull"]
+        return pull
+
+    def report_robot_copy(self, run_id: str, **fields: Any) -> dict[str, Any]:
+        """What the robot holds of a run (`PUT /v1/runs/RUN/robot-copy`): chunks, bytes,
+        local_only_chunks, local_only_bytes, local_only_entities, keeps_until (a datetime or
+        ISO-8601); the copy as stored. 404 (retry later) while the catalog lacks the run."""
+        body = {k: v.isoformat() if isinstance(v, dt.datetime) else v for k, v in fields.items()}
+        copy: dict[str, Any] = self._request("PUT", f"/v1/runs/{run_id}/robot-copy", json=body)["robot_copy"]
+        return copy
+
+    def forget_robot_copy(self, run_id: str) -> dict[str, Any]:
+        """The robot deleted its copy of a run (`DELETE /v1/runs/RUN/robot-copy`): `{run, removed,
+        robot_copy: None}`."""
+        return self._request("DELETE", f"/v1/runs/{run_id}/robot-copy")
 
     def _events(self, method: str, url: str, **kwargs: Any) -> Iterator[dict[str, Any]]:
         try:

@@ -8,7 +8,7 @@
     ingest                    streams and uploads into the hot tier; owns the live runs
     sealed                    the sealed-run format (recording, chunk index, run.json) and its tiers
     analytics                 extraction at promotion, SQL over what was extracted
-    retention | runs          promotion, archive, expiry | serving runs (neither imports the other)
+    retention | runs | edge   promotion, archive, expiry | serving runs | robots' own tiers (none imports another)
     api | redap               the REST app and the gRPC port's front | the Rerun catalog server
     server, then cli          the wiring; the command line
 
@@ -45,6 +45,7 @@ LAYERS: dict[str, int] = {
     "services.analytics": 6,
     "services.retention": 7,
     "services.runs": 7,
+    "services.edge": 7,
     "services.api": 8,
     "services.redap": 8,
     "services.agent": 8,

@@ -10,6 +10,7 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse, Response
 from fastapi_offline import FastAPIOffline
 
+from core.clock import utcnow
 from core.errors import ErrorCode, FleetError, http_status
 from services import __version__
 from services.analytics import rest as analytics_rest
@@ -23,6 +24,8 @@ from services.auth.depends import require
 from services.auth.ratelimit import RateLimits
 from services.auth.scopes import Principal, Scope
 from services.auth.tokens import Auth
+from services.edge import rest as edge_rest
+from services.edge.context import Edge
 from services.ingest import rest as ingest_rest
 from services.ingest.service import IngestService
 from services.retention import rest as retention_rest
@@ -64,6 +67,10 @@ def create_app(
         app.state.catalog = ingest.catalog
         app.include_router(ingest_rest.router)
         app.include_router(runs_rest.router)
+    if ingest is not None and ingest.catalog is not None:
+        warm = retention.tiers.warm if retention is not None else None
+        app.state.edge = Edge(ingest.catalog, ingest, warm, retention.clock if retention is not None else utcnow)
+        app.include_router(edge_rest.router)
 
     @app.exception_handler(RequestValidationError)
     async def _bad_parameter(_: Request, exc: RequestValidationError) -> JSONResponse:

@@ -1,4 +1,5 @@
-"""`fleet runs ls|show`, `fleet download`, `fleet view`: finding runs and opening them (over REST)."""
+"""`fleet runs ls|show` (and `pull|pulls`, from `pulls.py`), `fleet download`, `fleet view`: finding
+runs and opening them (over REST)."""
 
 from __future__ import annotations
 
@@ -21,6 +22,7 @@ from rich.table import Table
 from core.states import RestoreState, RunStatus, Tier
 from services.cli.client import Duration, api_option, client
 from services.cli.output import stdout_console, transfer_progress, when
+from services.cli.pulls import print_robot_side, runs_pull, runs_pulls
 
 
 def _entity_options(func: Any) -> Any:
@@ -59,6 +61,10 @@ def _recording_params(
 @click.group()
 def runs() -> None:
     """Find runs."""
+
+
+runs.add_command(runs_pull)
+runs.add_command(runs_pulls)
 
 
 @runs.command("ls")
@@ -140,6 +146,7 @@ def runs_show(api_url: str, run_id: str, as_json: bool) -> None:
             t["name"], t["type"], _timeline_value(t["type"], t["min"]), _timeline_value(t["type"], t["max"])
         )
     console.print(timelines)
+    print_robot_side(console, run)
 
 
 def _timeline_value(timeline_type: str, value: int | None) -> str:

@@ -22,6 +22,7 @@ from core.errors import BadParameterError
 from services.hot.read import HotReader, HotRecording, follow_sizes
 from services.rrd.chunk import ChunkMeta, chunk_meta
 from services.rrd.encoder import RrdEncoder
+from services.rrd.entity_patterns import check_entity_patterns
 from services.rrd.frames import DEFAULT_VERSION
 from services.rrd.manifest import is_property_entity
 from services.rrd.messages import (
@@ -41,10 +42,6 @@ PASS_THROUGH_BYTES = 256 * 1024  # a piece this large is sent as it is rather th
 ON_LOOP_BYTES = 16 * 1024
 
 
-MAX_PATTERNS = 256  # include and exclude patterns each: matching stays cheap, whatever a client sends
-MAX_PATTERN_LENGTH = 1024
-
-
 @dataclass(frozen=True)
 class EntityFilter:
     """Rerun's entity path patterns: `/world/**` is the subtree (with `/world`), anything else the
@@ -57,23 +54,8 @@ class EntityFilter:
     _verdicts: dict[str, bool] = field(default_factory=dict, init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
-        for name, patterns in (("include", self.include), ("exclude", self.exclude)):
-            if len(patterns) > MAX_PATTERNS:
-                raise BadParameterError(
-                    name,
-                    f"{len(patterns)} patterns: at most {MAX_PATTERNS}; use a subtree "
-                    "pattern like /a/** to cover many entities",
-                )
-            for pattern in patterns:
-                if len(pattern) > MAX_PATTERN_LENGTH:
-                    raise BadParameterError(
-                        name, f"a pattern of {len(pattern)} characters: at most {MAX_PATTERN_LENGTH}"
-                    )
-                if not pattern.startswith("/") or "**" in pattern[:-2]:
-                    raise BadParameterError(
-                        name,
-                        f"{pattern!r} is not an entity path pattern: use /a/b (that entity) or /a/** (the subtree)",
-                    )
+        check_entity_patterns("include", self.include)
+        check_entity_patterns("exclude", self.exclude)
 
     def __call__(self, path: str) -> bool:
         verdict = self._verdicts.get(path)

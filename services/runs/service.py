@@ -13,6 +13,7 @@ import sqlalchemy as sa
 from sqlalchemy.dialects.postgresql import JSONB
 from sqlalchemy.orm import Session, sessionmaker
 
+from catalog import edge as edge_queries
 from catalog import queries
 from catalog.db import session_scope
 from catalog.models import Robot, Run, RunEntity
@@ -255,8 +256,9 @@ def run_summary(run: Run) -> dict[str, Any]:
 
 
 def run_answer(catalog: sessionmaker[Session], run_id: str, policies: Policies | None) -> dict[str, Any]:
-    """`GET /v1/runs/{run}`: one run with its entities, timelines, policy and lifecycle (`policies`:
-    None where this node runs no retention)."""
+    """`GET /v1/runs/{run}`: one run with its entities, timelines, policy, lifecycle (`policies`:
+    None where this node runs no retention), what its robot reports holding of it and its latest
+    pulls."""
     with session_scope(catalog) as session:
         found = queries.require_run(session, run_id)
         return {
@@ -278,6 +280,7 @@ def run_answer(catalog: sessionmaker[Session], run_id: str, policies: Policies |
                 for t in queries.run_timelines(session, run_id)
             ],
             **_lifecycle(session, found, policies),
+            **edge_queries.run_edge(session, run_id),  # the robot's own copy, and the latest pulls
         }
 
 

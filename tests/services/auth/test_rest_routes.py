@@ -40,7 +40,11 @@ class Guarded:
 
     @property
     def url(self) -> str:
-        return self.path.replace("{run_id}", RUN).replace("{token_id}", "no-such-token")
+        return (
+            self.path.replace("{run_id}", RUN)
+            .replace("{token_id}", "no-such-token")
+            .replace("{pull_id}", "no-such-pull")
+        )
 
     def __str__(self) -> str:
         return f"{self.method} {self.path}"
@@ -69,6 +73,19 @@ TABLE = [
     Guarded("GET", "/v1/runs/{run_id}/recording.rrd", (READ,)),
     Guarded("POST", "/v1/runs/{run_id}/links", (READ,)),
     Guarded("GET", "/metrics", (READ,)),
+    Guarded("POST", "/v1/runs/{run_id}/held", (INGEST, READ), {"json": {"chunk_ids": ["0" * 32]}}),
+    Guarded("POST", "/v1/runs/{run_id}/pull", (WRITE,), {"json": {}}),
+    Guarded("GET", "/v1/runs/{run_id}/pulls", (READ,)),
+    Guarded("GET", "/v1/pulls", (INGEST, READ)),
+    Guarded(
+        "POST",
+        "/v1/pulls/{pull_id}/progress",
+        (INGEST, WRITE),
+        {"json": {"state": "sending", "chunks_sent": 0, "bytes_sent": 0}},
+    ),
+    Guarded("POST", "/v1/pulls/{pull_id}/cancel", (WRITE,)),
+    Guarded("PUT", "/v1/runs/{run_id}/robot-copy", (INGEST, ADMIN), {"json": {"chunks": 0, "bytes": 0}}),
+    Guarded("DELETE", "/v1/runs/{run_id}/robot-copy", (INGEST, ADMIN)),
 ]
 
 

@@ -282,7 +282,7 @@ def test_entity_filters_keep_the_recordings_properties_unless_excluded(
 
 
 def test_entity_patterns_are_bounded(server: LiveServer, recordings: dict[str, Recording]):
-    from services.runs.download import MAX_PATTERN_LENGTH, MAX_PATTERNS
+    from services.rrd.entity_patterns import MAX_PATTERN_LENGTH, MAX_PATTERNS
 
     run_id = recordings["points"].recordings[0]["recording_id"]
     url = f"{server.url}/v1/runs/{run_id}/recording.rrd"
