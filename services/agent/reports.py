@@ -39,7 +39,7 @@ class Reports:
             if task is not None and not task.done():
                 continue
             if self.agent.spool.run(spec.run_id) is None:
-                if pull.get("robot") not in self.robots():
+                if pull.get("robot_id") not in self.robots():
                     continue  # a depot without auth lists every robot's pulls: this one is another's
                 await self._progress(spec, "failed", error=f"the robot no longer holds run {spec.run_id}")
                 continue
@@ -112,7 +112,7 @@ class Reports:
                 await link.call(
                     link.api.report_robot_copy,
                     run.run_id,
-                    chunks=run.summary.chunks if run.summary else 0,
+                    chunks=max(run.summary.chunks if run.summary else 0, state.local_only_chunks),
                     bytes=run.hot.size,
                     local_only_chunks=state.local_only_chunks,
                     local_only_bytes=state.local_only_bytes,
@@ -120,7 +120,7 @@ class Reports:
                     keeps_until=(run.last_data_at + retain).isoformat(),
                 )
             except DepotRefused as exc:  # not in the catalog yet (the depot saves runs every few seconds)
-                log.debug("robot copy of %s not reported yet: %s", run.run_id, exc)
+                log.info("robot copy of %s not reported yet: %s", run.run_id, exc)
                 continue
             self.reported[run.run_id] = figures
 

@@ -10,8 +10,10 @@ python robot.py file COPY_PATH RUN_ID FRAMES                   only a FileSink: 
 
 from __future__ import annotations
 
+import os
 import sys
 
+os.environ.setdefault("RERUN_FLUSH_NUM_ROWS", "1")  # a chunk per entity and frame, as a robot logging at rate
 import numpy as np
 import rerun as rr
 
@@ -22,7 +24,8 @@ def log_frame(rec: rr.RecordingStream, i: int) -> None:
     rec.set_time("sim", duration=i * 0.1)
     rec.log("/world/robot", rr.Transform3D(translation=[i * 0.1, 0.0, 0.0]))
     rec.log("/world/robot/lidar", rr.Points3D(np.random.default_rng(i).random((400, 3), dtype=np.float32)))
-    rec.log("/world/robot/camera", rr.Image(np.full((96, 160, 3), i % 255, dtype=np.uint8)))
+    noise = np.random.default_rng(1000 + i).integers(0, 255, (96, 160, 3), dtype=np.uint8)  # as a camera: no LZ4 gain
+    rec.log("/world/robot/camera", rr.Image(noise))
     rec.log("/metrics/battery", rr.Scalars([100.0 - i * 0.1]))
     rec.log("/logs/robot", rr.TextLog(f"frame {i}", level=rr.TextLogLevel.INFO))
 

@@ -51,7 +51,8 @@ def agent(tmp_path: Path, link: Link) -> Iterator[AgentProcess]:
 def resent_bytes(depot: LiveServer, agent: AgentProcess) -> int:
     """Chunk bytes that crossed the link twice: the agent's re-sends of what the depot lacked after a
     break, and what the depot received but already held."""
-    return int(agent.status()["counters"].get("bytes_resent", 0)) + int(depot.metric("fleet_ingest_bytes_duplicate"))
+    resent = int(agent.status()["counters"].get("bytes_resent", 0))
+    return resent + int(depot.metric("fleet_ingest_bytes_duplicate_total"))
 
 
 def depot_equals_copy(depot: LiveServer, run_id: str, copy: Path, rerun_bin: str, tmp_path: Path) -> None:
@@ -136,7 +137,7 @@ def test_an_agent_killed_mid_run_loses_nothing(depot: LiveServer, link: Link, tm
         robot.expect("DONE")
         robot.finish()
         depot_equals_copy(depot, "run-agent-kill", copy, rerun_bin, tmp_path)
-        assert int(depot.metric("fleet_ingest_bytes_duplicate")) <= 0.05 * copy.stat().st_size
+        assert int(depot.metric("fleet_ingest_bytes_duplicate_total")) <= 0.05 * copy.stat().st_size
     finally:
         agent.stop()
 
