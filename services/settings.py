@@ -231,6 +231,9 @@ class Settings(BaseSettings):
     agent_check_s: float = Field(
         30.0, gt=0, description="how often the agent asks the depot which of the chunks it sent it holds"
     )
+    agent_stall_s: float = Field(
+        30.0, gt=0, description="a link that takes no data for this long is dropped and connected anew"
+    )
     agent_pull_poll_s: float = Field(5.0, gt=0, description="how often the agent asks the depot for pulls")
     agent_durability: Durability = Field(
         Durability.INTERVAL, description="spool fsync: always | interval (group_commit_ms) | off"

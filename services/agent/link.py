@@ -97,14 +97,10 @@ class DepotLink:
         self, depot_url: str, api_url: str, token: str | None, *, max_message_size: int, keepalive_s: float = 5.0
     ) -> None:
         target, secure = grpc_target(depot_url)
-        options = channel_options(max_message_size, keepalive_s)
-        self.target = target
-        self.channel = (
-            grpc.aio.secure_channel(target, grpc.ssl_channel_credentials(), options=options)
-            if secure
-            else grpc.aio.insecure_channel(target, options=options)
-        )
-        self._write = self.channel.stream_unary(WRITE_METHOD, request_serializer=None, response_deserializer=None)
+        self.target, self._secure = target, secure
+        self._options = channel_options(max_message_size, keepalive_s)
+        self.generation = 0  # counts channels: a stalled one is replaced once, by whoever notices first
+        self._open_channel()
         self._metadata = (("authorization", f"Bearer {token}"),) if token else ()
         self.api = FleetClient(api_url, timeout=30.0, token=token, user="fleet-agent")
         self.up = False
@@ -112,12 +108,31 @@ class DepotLink:
         self.error = "not connected yet"
         self.refused: str | None = None  # the depot's last refusal, until a call succeeds
 
+    def _open_channel(self) -> None:
+        self.channel = (
+            grpc.aio.secure_channel(self.target, grpc.ssl_channel_credentials(), options=self._options)
+            if self._secure
+            else grpc.aio.insecure_channel(self.target, options=self._options)
+        )
+        self._write = self.channel.stream_unary(WRITE_METHOD, request_serializer=None, response_deserializer=None)
+
     async def close(self) -> None:
         await self.channel.close()
         self.api.close()
 
-    def open_stream(self) -> grpc.aio.StreamUnaryCall[Any, Any]:
-        return self._write(metadata=self._metadata, wait_for_ready=False)
+    def open_stream(self) -> tuple[grpc.aio.StreamUnaryCall[Any, Any], int]:
+        """A new stream, and the generation of the channel it runs on."""
+        return self._write(metadata=self._metadata, wait_for_ready=False), self.generation
+
+    async def replace_channel(self, generation: int) -> None:
+        """The channel of `generation` took no data for too long (a silent link whose TCP connection
+        still stands, which keepalives cannot see past a full send buffer): drop it, connect anew."""
+        if generation != self.generation:
+            return  # another stream noticed first
+        self.generation += 1
+        old = self.channel
+        self._open_channel()
+        await old.close(grace=None)
 
     def mark_up(self) -> None:
         if not self.up:

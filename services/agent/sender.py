@@ -91,6 +91,7 @@ class Forwarding:
         state: AgentState,
         forwards: Callable[[str], bool],
         check_s: float,
+        stall_s: float,
     ) -> None:
         self.spool = spool
         self.link = link
@@ -98,6 +99,7 @@ class Forwarding:
         self.state = state
         self.forwards = forwards  # entity path -> sent live (else kept on the robot until pulled)
         self.check_s = check_s
+        self.stall_s = stall_s  # a write that waits longer: the link is silent, connect anew
         self.counters = {"messages_sent": 0, "bytes_sent": 0, "bytes_resent": 0, "chunks_resent": 0}
 
 
@@ -197,12 +199,12 @@ class RunSender:
         if not self._has_work():
             await self._idle()
             return
-        call = self.ctx.link.open_stream()
+        call, generation = self.ctx.link.open_stream()
         self.streaming = True
         try:
             for request in await asyncio.to_thread(self._read, self.store_infos):
-                await self._write(call, request, Priority.LIVE)
-            await self._pump(call)
+                await self._write(call, generation, request, Priority.LIVE)
+            await self._pump(call, generation)
             await call.done_writing()
             await call
             self.ctx.link.mark_up()
@@ -330,7 +332,7 @@ class RunSender:
             for waiter in waiters:
                 waiter.cancel()
 
-    async def _pump(self, call: Any) -> None:
+    async def _pump(self, call: Any, generation: int) -> None:
         """Send lane by lane, highest priority first, until all is sent and the run stays quiet."""
         while True:
             lane, entries = await asyncio.to_thread(self._next_batch)
@@ -352,7 +354,7 @@ class RunSender:
             self.last_append = time.monotonic()
             requests = await asyncio.to_thread(self._read, entries)
             for entry, request in zip(entries, requests, strict=True):
-                await self._write(call, request, lane.priority)
+                await self._write(call, generation, request, lane.priority)
                 if lane.on_sent is not None:
                     lane.on_sent(entry)
             await self._maybe_check()
@@ -388,10 +390,13 @@ class RunSender:
         self.lanes = [lane for lane in self.lanes if lane.priority == Priority.LIVE or not lane.exhausted(size)]
         return None, []
 
-    async def _write(self, call: Any, request: bytes, priority: Priority) -> None:
+    async def _write(self, call: Any, generation: int, request: bytes, priority: Priority) -> None:
         await self.ctx.bucket.acquire(len(request), priority)
         try:
-            await call.write(request)
+            await asyncio.wait_for(call.write(request), self.ctx.stall_s)
+        except TimeoutError:
+            await self.ctx.link.replace_channel(generation)
+            raise LinkDown(f"the depot took no data for {self.ctx.stall_s:g} s: the link is silent") from None
         except Exception as exc:
             raise stream_failure(exc) from exc
         self.ctx.counters["messages_sent"] += 1

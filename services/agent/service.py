@@ -68,6 +68,7 @@ class Agent:
             self.state,
             EntityFilter(settings.agent_live_include, settings.agent_live_exclude),
             settings.agent_check_s,
+            settings.agent_stall_s,
         )
         self.senders: dict[str, asyncio.Task[None]] = {}
         self.runners: dict[str, RunSender] = {}

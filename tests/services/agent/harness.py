@@ -40,9 +40,11 @@ class Link:
         self.grpc = TcpProxy("127.0.0.1", depot.grpc_port)
         self.rest = TcpProxy("127.0.0.1", depot.http_port)
 
-    def cut(self) -> None:
-        self.grpc.set_mode(REFUSE)
-        self.rest.set_mode(REFUSE)
+    def cut(self, mode: str = REFUSE) -> None:
+        """REFUSE: connections reset and refused (a router that says so); HANG: bytes stop going
+        through and nothing answers (a radio out of range), which only keepalives notice."""
+        self.grpc.set_mode(mode)
+        self.rest.set_mode(mode)
 
     def restore(self) -> None:
         self.grpc.set_mode(FORWARD)

@@ -21,6 +21,7 @@ from tests.services.agent.harness import (
     wait_for,
 )
 from tests.services.ingest.live_server import LiveServer
+from tests.tcp_proxy import HANG, REFUSE
 
 pytestmark = [pytest.mark.sdk, pytest.mark.slow]
 
@@ -43,7 +44,7 @@ def link(depot: LiveServer) -> Iterator[Link]:
 
 @pytest.fixture
 def agent(tmp_path: Path, link: Link) -> Iterator[AgentProcess]:
-    process = AgentProcess(tmp_path / "spool", link).start()
+    process = AgentProcess(tmp_path / "spool", link, stall_s="5").start()
     yield process
     process.stop()
 
@@ -72,19 +73,22 @@ def depot_equals_copy(depot: LiveServer, run_id: str, copy: Path, rerun_bin: str
     wait_for(lambda: run_status(depot, run_id) == "closed", 60, f"the depot to close {run_id}")
 
 
+@pytest.mark.parametrize("how", [REFUSE, HANG])
 def test_a_cut_link_loses_nothing_and_resends_little(
-    depot: LiveServer, link: Link, agent: AgentProcess, tmp_path: Path, rerun_bin: str
+    depot: LiveServer, link: Link, agent: AgentProcess, tmp_path: Path, rerun_bin: str, how: str
 ):
     copy = tmp_path / "copy.rrd"
     robot = Robot("steps", agent.url, str(copy), "run-cut", "3", str(FRAMES))
     robot.expect("STEP 1")
     wait_for(lambda: depot_chunks(depot, "run-cut") > 0, 60, "the depot to hold the run's first chunks")
-    link.cut()
+    link.cut(how)
     at_cut = agent.spool_bytes("run-cut")
     robot.go_on()
     robot.expect("STEP 2")  # logged while the link is down: the SDK never noticed
     wait_for(lambda: agent.spool_bytes("run-cut") - at_cut > 1_000_000, 30, "the gap to reach the spool")
     gap = agent.spool_bytes("run-cut") - at_cut
+    if how == HANG:  # a silent link: only the agent's keepalive pings find it dead
+        wait_for(lambda: agent.status()["link"].get("up") is False, 60, "the agent to find the silent link dead")
     link.restore()
     robot.go_on()
     robot.expect("STEP 3")
@@ -92,7 +96,9 @@ def test_a_cut_link_loses_nothing_and_resends_little(
     robot.expect("DONE")
     robot.finish()
     depot_equals_copy(depot, "run-cut", copy, rerun_bin, tmp_path)
-    assert resent_bytes(depot, agent) <= 0.05 * gap, (resent_bytes(depot, agent), gap)
+    resent = resent_bytes(depot, agent)
+    print(f"link {how}: gap {gap} bytes, re-sent {resent} bytes")
+    assert resent <= 0.05 * gap, (resent, gap)
 
 
 def test_a_depot_killed_mid_run_loses_nothing(depot: LiveServer, agent: AgentProcess, tmp_path: Path, rerun_bin: str):
