@@ -177,7 +177,9 @@ class RunSender:
                 self.lanes.clear()
                 self.settled = False
                 await self.backoff.wait(refused=True)
-            except Exception:  # a bug, or the spool's disk failing: said, and tried again later
+            except asyncio.CancelledError:
+                raise
+            except BaseException:  # a bug, or the spool's disk failing: said, and tried again later
                 log.exception("forwarding run %s failed; retrying", self.run_id)
                 self.lanes.clear()
                 self.settled = False
@@ -385,8 +387,12 @@ class RunSender:
             if batch:
                 return lane, batch
         for lane in self.lanes:
-            if lane.job is not None and lane.exhausted(size) and lane.job.written_at_check is None:
+            if not lane.exhausted(size):
+                continue
+            if lane.job is not None and lane.job.written_at_check is None:
                 lane.job.written_at_check = self.checks
+            if lane.priority == Priority.BACKFILL and lane.tail is not None and lane.end is not None:
+                self.sent_until = max(self.sent_until, lane.end)  # the gap is sent: live goes on from its end
         self.lanes = [lane for lane in self.lanes if lane.priority == Priority.LIVE or not lane.exhausted(size)]
         return None, []
 

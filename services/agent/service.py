@@ -99,6 +99,7 @@ class Agent:
             state = RunState(run_id)
             self.state.save_run(state)
         new = RunSender(self.forwarding, run_id, state, fresh=fresh)
+        log.info("forwarding run %s (%s)", run_id, "new" if fresh else f"from byte {state.checked_until}")
         if sender is not None:
             new.pulls = sender.pulls  # pulls given to a sender that stopped
         self.runners[run_id] = new

@@ -55,6 +55,7 @@ def status_report(spool: Path) -> dict[str, Any]:
         "heartbeat_age_s": round(time.time() - heartbeat, 1) if heartbeat else None,
         "link": facts.get("link", ({}, 0.0))[0],
         "counters": facts.get("counters", ({}, 0.0))[0],
+        "retention": facts.get("retention", ({}, 0.0))[0],
         "backlog_bytes": backlog,
         "spool_bytes": sum(r["local_bytes"] for r in runs),
         "runs": runs,
