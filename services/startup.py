@@ -56,15 +56,13 @@ def _family(host: str) -> socket.AddressFamily:
 def _refusal(exc: OSError, host: str, port: int, what: str, setting: str) -> ConflictError:
     addr = f"[{host}]:{port}" if ":" in host else f"{host}:{port}"
     if exc.errno == errno.EADDRINUSE:
-        problem = "is already in use (another `fleet serve`, or another program)"
+        problem = "is already in use (another `fleet serve` or `fleet agent`, or another program)"
     elif exc.errno == errno.EACCES:
         problem = "needs privileges this process lacks (ports below 1024)"
     else:
         problem = f"cannot be used here ({exc.strerror or exc})"
-    return ConflictError(
-        f"the {what} address {addr} {problem}: set another with --{setting.replace('_', '-')} "
-        f"or FLEET_{setting.upper()}"
-    )
+    flag = setting.removeprefix("agent_").replace("_", "-")  # the agent's flags drop the prefix (--listen)
+    return ConflictError(f"the {what} address {addr} {problem}: set another with --{flag} or FLEET_{setting.upper()}")
 
 
 def split_addr(addr: str) -> tuple[str, int]:

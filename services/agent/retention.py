@@ -61,7 +61,7 @@ def enforce(
                 break
             deletion = _delete(spool, state, run, saved[run.run_id], "size")
             deleted.append(deletion)
-            total -= deletion.bytes
+            total -= max(deletion.bytes, 0)  # -1: kept (something feeds it again)
     deleted = [d for d in deleted if d.bytes >= 0]
     unconfirmed = sum(run.hot.size for run in spool.runs() if not _confirmed(saved.get(run.run_id)))
     over_by = max(total - max_bytes, 0) if max_bytes else 0

@@ -9,11 +9,14 @@ from __future__ import annotations
 import contextlib
 import json
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import click
 
 from services.cli.serve import SettingsCommand, agent_setting
+
+if TYPE_CHECKING:
+    from services.settings import Settings
 
 
 class AgentCommand(click.Group, SettingsCommand):
@@ -40,16 +43,31 @@ def agent(ctx: click.Context, /, **flags: object) -> None:
     from services.startup import hold_data_dir
 
     settings = load_settings(**flags)
-    logging.basicConfig(level=logging.INFO, format="%(levelname)s:     %(name)s: %(message)s")
-    if settings.agent_token is None:
-        click.echo("fleet agent: no token (FLEET_TOKEN): a depot with auth on refuses the robot's runs", err=True)
-    click.echo(
-        f"fleet agent: spool {settings.agent_spool.resolve()}, SDK to rerun+http://{settings.agent_listen}/proxy, "
-        f"depot {settings.agent_depot}"
-    )
     held = hold_data_dir(settings.agent_spool, what="spool", command="fleet agent", fix="--spool or FLEET_AGENT_SPOOL")
     with held, contextlib.suppress(KeyboardInterrupt):  # Ctrl-C: the spool is safe, the agent stops
+        _check_ports(settings)  # a refusal is the only line said, before anything starts
+        logging.basicConfig(level=logging.INFO, format="%(levelname)s:     %(name)s: %(message)s")
+        if settings.agent_token is None:
+            click.echo("fleet agent: no token (FLEET_TOKEN): a depot with auth on refuses the robot's runs", err=True)
+        click.echo(
+            f"fleet agent: spool {settings.agent_spool.resolve()}, SDK to rerun+http://{settings.agent_listen}/proxy, "
+            f"depot {settings.agent_depot}"
+        )
         asyncio.run(run_agent(settings))
+
+
+def _check_ports(settings: Settings) -> None:
+    """Both addresses are HOST:PORT and free (InvalidArgumentError or ConflictError naming the setting)."""
+    from core.errors import InvalidArgumentError
+    from services.startup import listen, split_addr
+
+    for setting, what in (("agent_listen", "agent's SDK"), ("agent_status_addr", "agent's status")):
+        try:
+            host, port = split_addr(getattr(settings, setting))
+        except ValueError as exc:
+            flag = setting.removeprefix("agent_").replace("_", "-")
+            raise InvalidArgumentError(f"{setting}: {exc}: set it with --{flag} or FLEET_{setting.upper()}") from None
+        listen(host, port, what, setting).close()
 
 
 @agent.command()
@@ -66,8 +84,8 @@ def status(ctx: click.Context, spool: Path | None, as_json: bool) -> None:
     report = status_report(settings.agent_spool)
     if as_json:
         click.echo(json.dumps(report, indent=2))
-        return
-    _print(report)
+    else:
+        _print(report)
     if "error" in report:
         raise SystemExit(1)
 
@@ -77,7 +95,12 @@ def _print(report: dict[str, Any]) -> None:
         click.echo(f"Error: {report['error']}", err=True)
         return
     link = report["link"]
-    state = "running" if report["running"] else f"not running (last seen {report['heartbeat_age_s']} s ago)"
+    if report["running"]:
+        state = "running"
+    elif report["heartbeat_age_s"] is None:
+        state = "not running (never seen running on this spool)"
+    else:
+        state = f"not running (last seen {report['heartbeat_age_s']} s ago)"
     linked = "up" if link.get("up") else f"down ({link.get('error') or 'not connected'})"
     click.echo(f"agent: {state}; spool {Path(report['spool'])}: {report['spool_bytes']} bytes")
     click.echo(f"depot link: {linked}" + (f"; refused: {link['refused']}" if link.get("refused") else ""))

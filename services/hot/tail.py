@@ -76,6 +76,11 @@ class HotIndexTail:
                 log.warning("chunk index of %s is damaged (%s): reading on from the run file", self.run_file, exc)
                 self._index_usable = False
                 return
+            if entry is not None and entry.end <= self.covered:
+                # read from the run file while the index lagged behind it (ingest writes a message,
+                # then its record): skipped, so the index serves what follows
+                self._index_pos = base + end
+                continue
             if entry is not None and (entry.offset != self.covered or entry.end > size):
                 if entry.offset != self.covered:
                     self._index_usable = False  # not the next frame: the index no longer follows the file
