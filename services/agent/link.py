@@ -26,6 +26,7 @@ from sdk_client.rest import FleetClient, ServiceError
 log = logging.getLogger("fleet.agent")
 
 WRITE_METHOD = "/rerun.sdk_comms.v1alpha1.MessageProxyService/WriteMessages"
+PROBE_METHOD = "/rerun.cloud.v1alpha1.RerunCloudService/Version"  # open, small: does the link carry data?
 HELD_BATCH = 20_000  # chunk ids per question to the depot
 BACKOFF_FIRST_S = 0.25
 BACKOFF_MAX_S = 10.0
@@ -115,6 +116,7 @@ class DepotLink:
             else grpc.aio.insecure_channel(self.target, options=self._options)
         )
         self._write = self.channel.stream_unary(WRITE_METHOD, request_serializer=None, response_deserializer=None)
+        self._probe = self.channel.unary_unary(PROBE_METHOD, request_serializer=None, response_deserializer=None)
 
     async def close(self) -> None:
         await self.channel.close()
@@ -123,6 +125,28 @@ class DepotLink:
     def open_stream(self) -> tuple[grpc.aio.StreamUnaryCall[Any, Any], int]:
         """A new stream, and the generation of the channel it runs on."""
         return self._write(metadata=self._metadata, wait_for_ready=False), self.generation
+
+    async def probe(self, timeout_s: float) -> bool:
+        """Ask the depot's version on the streams' channel: an answer (any answer) within
+        `timeout_s` says the link carries data. None in time on an open connection means a silent
+        link, which data written into buffers would not reveal: the channel is replaced, so the
+        streams on it fail and their senders connect anew and settle what was in flight."""
+        generation = self.generation
+        try:
+            await self._probe(b"", timeout=timeout_s, metadata=self._metadata)
+        except asyncio.CancelledError:
+            if cancelled():
+                raise
+            return False  # its channel was replaced meanwhile
+        except grpc.aio.AioRpcError as exc:
+            if exc.code() == grpc.StatusCode.DEADLINE_EXCEEDED:
+                self.mark_down(f"the depot did not answer within {timeout_s:g} s: the link is silent")
+                await self.replace_channel(generation)
+                return False
+            if exc.code() == grpc.StatusCode.UNAVAILABLE:
+                self.mark_down(f"UNAVAILABLE: {exc.details()}")
+                return False
+        return True
 
     async def replace_channel(self, generation: int) -> None:
         """The channel of `generation` took no data for too long (a silent link whose TCP connection
@@ -176,6 +200,13 @@ class DepotLink:
 
     async def call(self, fn: Any, *args: Any, **kwargs: Any) -> Any:
         return await self._call(fn, *args, **kwargs)
+
+
+def cancelled() -> bool:
+    """Whether the running task itself is being cancelled, rather than a gRPC call it awaits (a
+    call on a channel that was closed ends with CancelledError too)."""
+    task = asyncio.current_task()
+    return task is not None and task.cancelling() > 0
 
 
 def stream_failure(exc: BaseException) -> Exception:

@@ -27,7 +27,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from services.agent.bandwidth import Priority, TokenBucket
-from services.agent.link import Backoff, DepotLink, DepotRefused, LinkDown, stream_failure
+from services.agent.link import Backoff, DepotLink, DepotRefused, LinkDown, cancelled, stream_failure
 from services.agent.spool import Spool
 from services.agent.state import AgentState, RunState
 from services.hot.index import HotEntry
@@ -178,8 +178,13 @@ class RunSender:
                 self.settled = False
                 await self.backoff.wait(refused=True)
             except asyncio.CancelledError:
-                raise
-            except BaseException:  # a bug, or the spool's disk failing: said, and tried again later
+                if cancelled():
+                    raise
+                self.ctx.link.mark_down("a call to the depot was dropped")  # its channel was replaced
+                self.lanes.clear()
+                self.settled = False
+                await self.backoff.wait()
+            except Exception:  # a bug, or the spool's disk failing: said, and tried again later
                 log.exception("forwarding run %s failed; retrying", self.run_id)
                 self.lanes.clear()
                 self.settled = False
@@ -213,6 +218,11 @@ class RunSender:
         except (LinkDown, DepotRefused):
             call.cancel()
             raise
+        except asyncio.CancelledError:
+            call.cancel()
+            if cancelled():
+                raise
+            raise LinkDown("the connection to the depot was dropped (silent link)") from None
         except Exception as exc:  # grpc errors of the stream: refused or broken
             call.cancel()
             raise stream_failure(exc) from exc
@@ -403,6 +413,10 @@ class RunSender:
         except TimeoutError:
             await self.ctx.link.replace_channel(generation)
             raise LinkDown(f"the depot took no data for {self.ctx.stall_s:g} s: the link is silent") from None
+        except asyncio.CancelledError:
+            if cancelled():
+                raise
+            raise LinkDown("the connection to the depot was dropped (silent link)") from None
         except Exception as exc:
             raise stream_failure(exc) from exc
         self.ctx.counters["messages_sent"] += 1
@@ -447,10 +461,11 @@ class RunSender:
         self.last_check = time.monotonic()
         self.checks += 1
         await self._verify_pulls()
-        mark, self.check_mark = self.check_mark, self.sent_until
+        # what was written before this check (up to the first message a backfill has yet to send):
+        # asked about at the next one, when it has surely reached the depot
         pending = self._backfill_pending()
-        if mark is not None and pending is not None:
-            mark = min(mark, pending)
+        written = self.sent_until if pending is None else min(self.sent_until, pending)
+        mark, self.check_mark = self.check_mark, written
         if mark is not None and mark > self.state.checked_until:
             entries = await asyncio.to_thread(self._entries, self.state.checked_until, mark)
             missing = await self._missing(entries)

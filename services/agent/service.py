@@ -128,6 +128,17 @@ class Agent:
         self._tasks.add(task)
         task.add_done_callback(self._tasks.discard)
 
+    async def _watch_link(self) -> None:
+        """Probe the depot every half `agent_stall_s`: a silent link is found even when nothing waits
+        on it (data written into buffers that never drain)."""
+        stall_s = self.settings.agent_stall_s
+        while True:
+            try:
+                await self.link.probe(stall_s)
+            except Exception:  # never the end of the watch
+                log.exception("probing the depot failed")
+            await asyncio.sleep(stall_s / 2)
+
     async def _report_loop(self) -> None:
         """Poll for pulls and report robot copies; a depot that does not answer is asked again later."""
         reported = 0.0
@@ -139,16 +150,21 @@ class Agent:
                     await self.reports.report_copies()
             except (LinkDown, DepotRefused) as exc:
                 log.debug("pulls and reports wait for the depot: %s", exc)
+            except Exception:  # never the end of the loop: said, and tried again
+                log.exception("pulls and reports failed")
             await asyncio.sleep(self.settings.agent_pull_poll_s)
 
     async def _discover_loop(self) -> None:
         beat = kept = 0.0
         while True:
-            self.spool.ingest.close_idle()
-            self.discover()
-            if time.monotonic() - kept > RETENTION_S:
-                kept = time.monotonic()
-                self.keep_last_day()
+            try:
+                self.spool.ingest.close_idle()
+                self.discover()
+                if time.monotonic() - kept > RETENTION_S:
+                    kept = time.monotonic()
+                    self.keep_last_day()
+            except Exception:  # never the end of the loop: said, and tried again
+                log.exception("looking after the spool failed")
             if time.monotonic() - beat > HEARTBEAT_S:
                 beat = time.monotonic()
                 progress = {
@@ -229,6 +245,7 @@ class Agent:
         tasks = [
             asyncio.create_task(self._discover_loop(), name="discover"),
             asyncio.create_task(self._report_loop(), name="pulls and reports"),
+            asyncio.create_task(self._watch_link(), name="link watch"),
         ]
         watcher = self._watcher()
         if watcher is not None:
