@@ -197,7 +197,7 @@ class Settings(BaseSettings):
         Path("./fleet-agent"), description="the agent's spool on the robot's disk: its runs and its state"
     )
     agent_listen: str = Field("127.0.0.1:9876", description="where the robot's SDK streams (GrpcSink URL .../proxy)")
-    agent_status_addr: str = Field("127.0.0.1:9877", description="the agent's /status, /metrics and /healthz")
+    agent_status_addr: str = Field("127.0.0.1:9877", description="where the agent serves /metrics (Prometheus)")
     agent_depot: str = Field(
         "rerun+http://127.0.0.1:51234", description="the depot's gRPC address (rerun+http[s]://HOST:PORT)"
     )

@@ -53,13 +53,32 @@ def settings_options(selected: Callable[[str], bool] = serve_setting) -> list[cl
 def _option(name: str, field: FieldInfo, env_prefix: str) -> click.Option:
     flag = "--" + name.removeprefix(AGENT).replace("_", "-")
     variables = " or ".join(v for v in (f"{env_prefix}{name.upper()}", ENVVARS.get(name)) if v)
-    help_text = f"{variables}: {field.description}{_shown_default(field)}"
     kind = _without_none(field.annotation)
+    repeatable = " (repeatable)" if get_origin(kind) is list else ""
+    help_text = f"{variables}: {field.description}{repeatable}{_shown_default(field)}"
     if kind is bool:
         return click.Option([f"{flag}/--no-{flag[2:]}", name], default=None, help=help_text)
+    if get_origin(kind) is list:  # repeatable, and each value may itself be a comma-separated or JSON list
+        return click.Option(
+            [flag, name],
+            type=_click_type(name, kind),
+            multiple=True,
+            default=None,
+            callback=_list_value,
+            help=help_text,
+            envvar=ENVVARS.get(name),
+        )
     return click.Option(
         [flag, name], type=_click_type(name, kind), default=None, help=help_text, envvar=ENVVARS.get(name)
     )
+
+
+def _list_value(ctx: click.Context, param: click.Parameter, value: tuple[str, ...] | None) -> Any:
+    """None when the flag is left out (the environment, the TOML file or the default apply); one
+    value as given (the setting reads a comma-separated or JSON list); several as the list."""
+    if not value:
+        return None
+    return value[0] if len(value) == 1 else list(value)
 
 
 def _without_none(annotation: Any) -> Any:

@@ -208,3 +208,16 @@ def test_a_bad_address_is_one_clear_error(tmp_path: Path, monkeypatch: pytest.Mo
     result = CliRunner().invoke(agent, ["--spool", str(tmp_path / "spool"), "--listen", "nonsense"])
     assert isinstance(result.exception, InvalidArgumentError), result.output
     assert "HOST:PORT" in str(result.exception) and "--listen" in str(result.exception)
+
+
+def test_a_list_flag_is_repeatable_and_takes_a_comma_separated_list():
+    from services.cli.agent import agent
+    from services.settings import load_settings
+
+    def parsed(*args: str) -> list[str]:
+        flags = agent.make_context("agent", list(args)).params
+        return load_settings(**flags).agent_live_include
+
+    assert parsed("--live-include", "/metrics/**", "--live-include", "/logs/**") == ["/metrics/**", "/logs/**"]
+    assert parsed("--live-include", "/metrics/**,/logs/**") == ["/metrics/**", "/logs/**"]
+    assert parsed() == ["/**"]  # left out: the default, not an empty list
