@@ -26,6 +26,8 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
+import grpc
+
 from services.agent.bandwidth import Priority, TokenBucket
 from services.agent.link import Backoff, DepotLink, DepotRefused, LinkDown, cancelled, stream_failure
 from services.agent.spool import Spool
@@ -418,7 +420,7 @@ class RunSender:
                 raise
             raise LinkDown("the connection to the depot was dropped (silent link)") from None
         except Exception as exc:
-            raise stream_failure(exc) from exc
+            raise stream_failure(await _outcome(call, exc)) from exc
         self.ctx.counters["messages_sent"] += 1
         self.ctx.counters["bytes_sent"] += len(request)
 
@@ -498,3 +500,16 @@ class RunSender:
             self.state.confirmed = True
             log.info("run %s: the depot holds it sealed (%s); the robot may delete its copy", self.run_id, held.tier)
         self.ctx.state.save_run(self.state)
+
+
+async def _outcome(call: Any, failed: Exception) -> BaseException:
+    """Why a write failed: a stream the depot ended (a refusal) says so in its own status, which the
+    failed write does not carry."""
+    try:
+        await asyncio.wait_for(call, 2.0)
+    except grpc.aio.AioRpcError as ended:
+        status: BaseException = ended
+        return status
+    except Exception:  # no status in time: the write's own error is all there is
+        return failed
+    return failed
