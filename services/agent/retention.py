@@ -4,6 +4,7 @@
 A run the depot has not confirmed is never deleted: when the spool is over its size and nothing
 more can go, the agent says so loudly (a warning each time, and `fleet agent status`) and keeps
 accepting data until the disk's hard limit (`agent_min_free_bytes`), where new data is refused.
+The disk nearly full (free space under twice `agent_min_free_bytes`) is pressure too.
 A confirmed run may still hold chunks the live rules kept on the robot (never pulled): those go
 with it at its age, or under pressure after every run without such chunks, and the log names them.
 """
@@ -12,6 +13,8 @@ from __future__ import annotations
 
 import datetime as dt
 import logging
+import shutil
+from collections.abc import Callable
 from dataclasses import dataclass
 
 from core.clock import utcnow
@@ -35,13 +38,22 @@ class RetentionReport:
     deleted: list[Deletion]
     spool_bytes: int
     unconfirmed_bytes: int
-    over_by: int  # bytes over agent_max_bytes that only unconfirmed runs hold (0: within the cap)
+    over_by: int  # bytes still to free that only unconfirmed runs hold (0: no pressure left)
 
 
 def enforce(
-    spool: Spool, state: AgentState, *, retain: dt.timedelta, max_bytes: int, now: dt.datetime | None = None
+    spool: Spool,
+    state: AgentState,
+    *,
+    retain: dt.timedelta,
+    max_bytes: int,
+    now: dt.datetime | None = None,
+    free_target: int = 0,
+    disk_free: Callable[[], int] | None = None,
 ) -> RetentionReport:
-    """Delete what may go (re-runnable: each call looks at the spool as it is)."""
+    """Delete what may go (re-runnable: each call looks at the spool as it is). Under pressure
+    (the spool over `max_bytes`, or the disk's free space under `free_target`), confirmed runs go
+    oldest first until it is relieved."""
     now = now or utcnow()
     saved = state.runs()
     runs = [run for run in spool.runs() if not spool.is_open(run)]
@@ -51,28 +63,32 @@ def enforce(
     ]
     gone = {d.run_id for d in deleted}
     total = spool.size()
-    if max_bytes and total > max_bytes:
-        # runs the depot holds whole first, then those that take robot-only chunks with them
-        for run in sorted(
-            (run for run in confirmed if run.run_id not in gone),
-            key=lambda run: (saved[run.run_id].local_only_bytes > 0, run.last_data_at),
-        ):
-            if total <= max_bytes:
-                break
-            deletion = _delete(spool, state, run, saved[run.run_id], "size")
-            deleted.append(deletion)
-            total -= max(deletion.bytes, 0)  # -1: kept (something feeds it again)
+    free = (disk_free or (lambda: shutil.disk_usage(spool.root).free))() if free_target else 0
+    need = max(total - max_bytes if max_bytes else 0, free_target - free if free_target else 0)
+    # runs the depot holds whole first, then those that take robot-only chunks with them
+    for run in sorted(
+        (run for run in confirmed if run.run_id not in gone),
+        key=lambda run: (saved[run.run_id].local_only_bytes > 0, run.last_data_at),
+    ):
+        if need <= 0:
+            break
+        deletion = _delete(spool, state, run, saved[run.run_id], "size" if total > max_bytes > 0 else "disk")
+        deleted.append(deletion)
+        total -= max(deletion.bytes, 0)  # -1: kept (something feeds it again)
+        need -= max(deletion.bytes, 0)
     deleted = [d for d in deleted if d.bytes >= 0]
     unconfirmed = sum(run.hot.size for run in spool.runs() if not _confirmed(saved.get(run.run_id)))
-    over_by = max(total - max_bytes, 0) if max_bytes else 0
+    over_by = max(need, 0)
     if over_by:
         log.warning(
-            "spool %s is %d bytes over its cap (agent_max_bytes %d) and the depot has confirmed none of the "
-            "%d bytes left: nothing is deleted until it does; new data is refused only when the disk's free "
-            "space falls below agent_min_free_bytes",
+            "spool %s needs %d bytes freed (agent_max_bytes %d, disk free %s, kept free: %d) and the depot has "
+            "confirmed none of the %d bytes left: nothing is deleted until it does; new data is refused only "
+            "when the disk's free space falls below agent_min_free_bytes",
             spool.root,
             over_by,
             max_bytes,
+            free if free_target else "unchecked",
+            free_target,
             unconfirmed,
         )
     return RetentionReport(deleted, total, unconfirmed, over_by)

@@ -116,6 +116,7 @@ class Agent:
             self.state,
             retain=dt.timedelta(hours=self.settings.agent_retain_hours),
             max_bytes=self.settings.agent_max_bytes,
+            free_target=2 * self.settings.agent_min_free_bytes,  # "nearly full": twice the hard limit
         )
         for deletion in self.retention.deleted:
             self.runners.pop(deletion.run_id, None)

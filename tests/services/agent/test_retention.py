@@ -145,7 +145,7 @@ def test_over_the_cap_with_only_unconfirmed_runs_left_is_reported(
     assert on_disk(spool) == {"run-unconfirmed"}
     assert report.spool_bytes == report.unconfirmed_bytes == unconfirmed
     assert report.over_by == unconfirmed - cap
-    assert f"{unconfirmed - cap} bytes over its cap" in caplog.text and "agent_max_bytes" in caplog.text
+    assert f"needs {unconfirmed - cap} bytes freed" in caplog.text and "agent_max_bytes" in caplog.text
 
 
 def test_running_again_is_harmless(spool: Spool, state: AgentState):
@@ -189,3 +189,25 @@ def test_a_run_that_cannot_be_removed_is_not_counted_as_deleted(
     assert on_disk(spool) == {"run-a"} and "run-a" in state.runs()
     assert report.spool_bytes == spool.size()
     assert report.over_by == spool.size() - 1
+
+
+def test_a_nearly_full_disk_frees_confirmed_runs_oldest_first_and_never_the_rest(spool: Spool, state: AgentState):
+    sizes = {run_id: add_run(spool, run_id, dt.timedelta(minutes=m)) for run_id, m in (("old", 30), ("new", 10))}
+    add_run(spool, "unsent", dt.timedelta(minutes=50))
+    confirm(state, "old")
+    confirm(state, "new")
+    free = 1000
+
+    def disk_free() -> int:
+        return free
+
+    # a little short of the target: the oldest confirmed run is enough
+    report = enforce(
+        spool, state, retain=DAY, max_bytes=0, now=NOW, free_target=free + sizes["old"] - 1, disk_free=disk_free
+    )
+    assert [d.run_id for d in report.deleted] == ["old"] and report.deleted[0].why == "disk"
+    assert on_disk(spool) == {"new", "unsent"} and report.over_by == 0
+    # far short: every confirmed run goes, the unconfirmed one stays and the shortfall is said
+    report = enforce(spool, state, retain=DAY, max_bytes=0, now=NOW, free_target=10**12, disk_free=disk_free)
+    assert [d.run_id for d in report.deleted] == ["new"]
+    assert on_disk(spool) == {"unsent"} and report.over_by == 10**12 - free - sizes["new"]
