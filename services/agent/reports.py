@@ -8,9 +8,9 @@ import datetime as dt
 import logging
 from typing import TYPE_CHECKING, Any
 
+from services.agent.lanes import PullJob
 from services.agent.link import DepotRefused, LinkDown
 from services.agent.pulls import PullRefused, PullSpec, select_pull
-from services.agent.sender import PullJob
 
 if TYPE_CHECKING:
     from services.agent.service import Agent

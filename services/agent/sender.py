@@ -23,12 +23,12 @@ import os
 import time
 from collections import deque
 from collections.abc import Callable
-from dataclasses import dataclass, field
 from typing import Any
 
 import grpc
 
 from services.agent.bandwidth import Priority, TokenBucket
+from services.agent.lanes import Lane, PullJob
 from services.agent.link import Backoff, DepotLink, DepotRefused, LinkDown, cancelled, stream_failure
 from services.agent.spool import Spool
 from services.agent.state import AgentState, RunState
@@ -44,42 +44,6 @@ BACKFILL_SPLIT_BYTES = 1 << 20  # a gap larger than this at reconnect is sent be
 LINGER_S = 5.0  # a closed run's stream stays open this long for more (a watched file still growing)
 BATCH_BYTES = 1 << 20  # read from the spool file at once
 SEALED = "warm"
-
-
-@dataclass
-class PullJob:
-    """Chunks a pull asks for: sent behind live data and backfill, then asked about at the next
-    check (a cut may have lost some: those are sent again), then done."""
-
-    pull_id: str
-    entries: list[HotEntry]
-    chunks_sent: int = 0
-    bytes_sent: int = 0
-    written_at_check: int | None = None  # the check count when its last chunk was written
-    done: asyncio.Event = field(default_factory=asyncio.Event)
-    error: str | None = None
-
-    def count(self, entry: HotEntry) -> None:
-        self.chunks_sent += 1
-        self.bytes_sent += entry.length
-
-
-@dataclass
-class Lane:
-    """Messages waiting to be sent at one priority: a tail of the run file, or a given list."""
-
-    priority: Priority
-    tail: HotIndexTail | None = None
-    end: int | None = None  # a tail's last offset (a backfill); None: follows the file (live)
-    entries: deque[HotEntry] = field(default_factory=deque)
-    on_sent: Callable[[HotEntry], None] | None = None
-    job: PullJob | None = None
-
-    def exhausted(self, size: int) -> bool:
-        """Nothing left to send of a file of `size` bytes."""
-        if self.entries:
-            return False
-        return self.tail is None or self.tail.position >= (size if self.end is None else min(self.end, size))
 
 
 class Forwarding:

@@ -21,7 +21,7 @@ from typing import Any
 import grpc
 
 from services.agent.bandwidth import RateSchedule, TokenBucket
-from services.agent.files import FileProgress, FileWatcher
+from services.agent.files import FileProgress
 from services.agent.link import DepotLink, DepotRefused, LinkDown, default_api_url
 from services.agent.metrics import serve_metrics
 from services.agent.reports import REPORT_S, Reports
@@ -29,6 +29,7 @@ from services.agent.retention import RetentionReport, enforce
 from services.agent.sender import Forwarding, RunSender
 from services.agent.spool import Spool, store_infos
 from services.agent.state import AgentState, RunState
+from services.agent.watch import FileWatcher
 from services.ingest import grpc_handler
 from services.rrd.messages import Event, StreamStart
 from services.runs.download import EntityFilter

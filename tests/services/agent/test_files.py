@@ -17,7 +17,8 @@ from pathlib import Path
 
 import pytest
 
-from services.agent.files import FileProgress, FileTail, FileWatcher, Phase, TailRead, is_recording_name
+from services.agent.files import FileProgress, FileTail, Phase, TailRead
+from services.agent.watch import FileWatcher, is_recording_name
 from services.rrd import iter_events
 from services.rrd.errors import TruncatedError
 from services.rrd.frames import FOOTER_ENTRY_SIZE, FOOTER_FIXED_SIZE, MESSAGE_HEADER_SIZE, STREAM_HEADER_SIZE
