@@ -162,3 +162,20 @@ def download(depot: LiveServer, run_id: str, to: Path) -> Path:
             for piece in r.iter_bytes():
                 fh.write(piece)
     return to
+
+
+def depot_equals_copy(depot: LiveServer, run_id: str, copy: Path, rerun_bin: str, tmp_path: Path) -> None:
+    served = tmp_path / f"{run_id}-served.rrd"
+
+    def same() -> bool:
+        if depot_chunks(depot, run_id) == 0:
+            return False
+        download(depot, run_id, served)
+        return same_recording(rerun_bin, copy, served)[0]
+
+    try:
+        wait_for(same, 90, f"the depot's {run_id} to equal the robot's copy")
+    except AssertionError:
+        raise AssertionError(same_recording(rerun_bin, copy, served)[1]) from None
+    # the agent ends its stream once the robot's has ended: then the depot has counted what it got
+    wait_for(lambda: run_status(depot, run_id) == "closed", 60, f"the depot to close {run_id}")

@@ -15,9 +15,7 @@ from tests.services.agent.harness import (
     Link,
     Robot,
     depot_chunks,
-    download,
-    run_status,
-    same_recording,
+    depot_equals_copy,
     wait_for,
 )
 from tests.services.ingest.live_server import LiveServer
@@ -26,20 +24,6 @@ from tests.tcp_proxy import HANG, REFUSE
 pytestmark = [pytest.mark.sdk, pytest.mark.slow]
 
 FRAMES = 25  # per step: about 1.5 MB
-
-
-@pytest.fixture
-def depot(tmp_path: Path) -> Iterator[LiveServer]:
-    server = LiveServer(tmp_path / "depot").start()
-    yield server
-    server.stop()
-
-
-@pytest.fixture
-def link(depot: LiveServer) -> Iterator[Link]:
-    proxies = Link(depot)
-    yield proxies
-    proxies.close()
 
 
 @pytest.fixture
@@ -54,23 +38,6 @@ def resent_bytes(depot: LiveServer, agent: AgentProcess) -> int:
     break, and what the depot received but already held."""
     resent = int(agent.status()["counters"].get("bytes_resent", 0))
     return resent + int(depot.metric("fleet_ingest_bytes_duplicate_total"))
-
-
-def depot_equals_copy(depot: LiveServer, run_id: str, copy: Path, rerun_bin: str, tmp_path: Path) -> None:
-    served = tmp_path / f"{run_id}-served.rrd"
-
-    def same() -> bool:
-        if depot_chunks(depot, run_id) == 0:
-            return False
-        download(depot, run_id, served)
-        return same_recording(rerun_bin, copy, served)[0]
-
-    try:
-        wait_for(same, 90, f"the depot's {run_id} to equal the robot's copy")
-    except AssertionError:
-        raise AssertionError(same_recording(rerun_bin, copy, served)[1]) from None
-    # the agent ends its stream once the robot's has ended: then the depot has counted what it got
-    wait_for(lambda: run_status(depot, run_id) == "closed", 60, f"the depot to close {run_id}")
 
 
 @pytest.mark.parametrize("how", [REFUSE, HANG])

@@ -4,7 +4,6 @@ before it, so the scene at its start is complete), each once."""
 
 from __future__ import annotations
 
-from collections.abc import Iterator
 from pathlib import Path
 
 import httpx
@@ -21,20 +20,6 @@ from tests.services.ingest.live_server import LiveServer
 pytestmark = [pytest.mark.sdk, pytest.mark.slow]
 
 LIVE = ["/metrics/**", "/logs/**"]
-
-
-@pytest.fixture
-def depot(tmp_path: Path) -> Iterator[LiveServer]:
-    server = LiveServer(tmp_path / "depot").start()
-    yield server
-    server.stop()
-
-
-@pytest.fixture
-def link(depot: LiveServer) -> Iterator[Link]:
-    proxies = Link(depot)
-    yield proxies
-    proxies.close()
 
 
 def recording_chunks(path: Path) -> dict[bytes, tuple[str, ChunkMeta]]:
