@@ -59,14 +59,20 @@ def agent(ctx: click.Context, /, **flags: object) -> None:
 def _check_ports(settings: Settings) -> None:
     """Both addresses are HOST:PORT and free (InvalidArgumentError or ConflictError naming the setting)."""
     from core.errors import InvalidArgumentError
-    from services.startup import listen, split_addr
+    from services.startup import is_loopback, listen, split_addr
 
     for setting, what in (("agent_listen", "agent's SDK"), ("agent_status_addr", "agent's status")):
+        flag = setting.removeprefix("agent_").replace("_", "-")
         try:
             host, port = split_addr(getattr(settings, setting))
         except ValueError as exc:
-            flag = setting.removeprefix("agent_").replace("_", "-")
             raise InvalidArgumentError(f"{setting}: {exc}: set it with --{flag} or FLEET_{setting.upper()}") from None
+        if not is_loopback(host) and not settings.insecure:
+            raise InvalidArgumentError(
+                f"{setting} {host}:{port} is not a loopback address: the agent takes data with no token and sends "
+                f"it on with the robot's, so anyone who reaches it could write the robot's runs; listen on "
+                f"127.0.0.1 (--{flag}), or give --insecure if the network it listens on is the robot's own"
+            )
         listen(host, port, what, setting).close()
 
 

@@ -20,7 +20,7 @@ if TYPE_CHECKING:
 
 AGENT = "agent_"  # the settings of `fleet agent` (its flags drop the prefix: --spool, --listen, ...)
 # Settings the agent shares with the depot's ingest (the spool is its hot tier).
-AGENT_SHARED = ("max_message_size", "group_commit_ms", "close_after_s", "secret_fields", "default_robot")
+AGENT_SHARED = ("max_message_size", "group_commit_ms", "close_after_s", "secret_fields", "default_robot", "insecure")
 # Settings that are no option of their command, and why (shown after the options).
 NOT_OPTIONS = {
     "retention_policies": "a list of tables: environment or TOML only",

@@ -80,6 +80,7 @@ def test_every_agent_setting_is_an_option_without_the_prefix():
         "close_after_s",
         "secret_fields",
         "default_robot",
+        "insecure",
     }
     assert not {n for n in options if not agent_setting(n)}, "fleet agent has only the agent's options"
     assert "agent_bandwidth_rules" not in options and "agent_bandwidth_rules" in NOT_OPTIONS
@@ -221,3 +222,14 @@ def test_a_list_flag_is_repeatable_and_takes_a_comma_separated_list():
     assert parsed("--live-include", "/metrics/**", "--live-include", "/logs/**") == ["/metrics/**", "/logs/**"]
     assert parsed("--live-include", "/metrics/**,/logs/**") == ["/metrics/**", "/logs/**"]
     assert parsed() == ["/**"]  # left out: the default, not an empty list
+
+
+def test_a_listen_address_off_the_robot_is_refused_unless_insecure(tmp_path: Path):
+    from services.cli.agent import _check_ports
+    from services.settings import load_settings
+
+    with pytest.raises(InvalidArgumentError, match=r"not a loopback address.*--insecure"):
+        _check_ports(load_settings(agent_spool=tmp_path, agent_listen="0.0.0.0:0", agent_status_addr="127.0.0.1:0"))
+    _check_ports(
+        load_settings(agent_spool=tmp_path, agent_listen="0.0.0.0:0", agent_status_addr="127.0.0.1:0", insecure=True)
+    )
