@@ -248,7 +248,11 @@ def test_two_processes_run_the_retention_job_one_at_a_time(
 
     nodes = {r.node.rsplit(":", 1)[1] for r in rows}  # hostname:pid
     assert nodes == pids, f"retention ran on {nodes}, the services are {pids}"
-    assert _overlapping(rows) == [], "two retention jobs ran at the same time"
+    overlaps = [
+        [(r.node, _aware(r.started_at).isoformat(), r.finished_at and _aware(r.finished_at).isoformat()) for r in pair]
+        for pair in _overlapping(rows)
+    ]
+    assert overlaps == [], "two retention jobs ran at the same time"
     assert not [
         r
         for r in rows
