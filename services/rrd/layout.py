@@ -236,7 +236,8 @@ class LayoutCache:
         self._max_size = max_size
 
     def get(self, schema_message: bytes, chunk_id_text: bytes, offset: int) -> ChunkLayout:
-        key = schema_message.replace(chunk_id_text, b"") if chunk_id_text else schema_message
+        key = _without_volatile_values(schema_message) if _VOLATILE_KEY in schema_message else schema_message
+        key = key.replace(chunk_id_text, b"") if chunk_id_text else key
         layout = self._layouts.get(key)
         if layout is None:
             try:
@@ -250,6 +251,63 @@ class LayoutCache:
                 self._layouts.clear()
             self._layouts[key] = layout
         return layout
+
+
+# Schema metadata whose value differs from chunk to chunk of one schema, like the chunk id: the SDK
+# stamps every chunk it sends over gRPC (not those it writes to a file) with when it encoded and sent
+# it (`rerun:timestamp_sdk_ipc_encoded`, `rerun:timestamp_sdk_grpc_sink`: "SECONDS.NANOSECONDS").
+_VOLATILE_KEY = b"rerun:timestamp_"
+
+
+def _without_volatile_values(schema_message: bytes) -> bytes:
+    """The schema message with the values of volatile metadata entries cut out (a cache key: one
+    layout per schema, not per chunk). Reads the flatbuffers: Message 2 header (Schema); Schema
+    2 custom_metadata, a vector of KeyValue (0 key, 1 value). Unreadable: the message as it is."""
+    try:
+        spans = sorted(_volatile_spans(schema_message))
+    except (struct.error, IndexError, UnicodeDecodeError):
+        return schema_message
+    out, at = [], 0
+    for start, end in spans:
+        out.append(schema_message[at:start])
+        at = end
+    out.append(schema_message[at:])
+    return b"".join(out)
+
+
+def _volatile_spans(msg: bytes) -> list[tuple[int, int]]:
+    schema = _table_field(msg, _U32.unpack_from(msg, 0)[0], 2)
+    vector = _table_field(msg, schema, 2) if schema is not None else None
+    if vector is None:
+        return []
+    spans = []
+    for i in range(_U32.unpack_from(msg, vector)[0]):
+        slot = vector + 4 + 4 * i
+        pair = slot + _U32.unpack_from(msg, slot)[0]
+        key, value = _table_field(msg, pair, 0), _table_field(msg, pair, 1)
+        if key is not None and value is not None and _string(msg, key).startswith(_VOLATILE_KEY):
+            spans.append((value + 4, value + 4 + _U32.unpack_from(msg, value)[0]))
+    return spans
+
+
+def _table_field(msg: bytes, table: int, slot: int) -> int | None:
+    """Where the object an offset field of a flatbuffers table points to starts, or None if unset."""
+    vtable = table - _I32.unpack_from(msg, table)[0]
+    if _U16.unpack_from(msg, vtable)[0] < 6 + 2 * slot:
+        return None
+    field_offset = _U16.unpack_from(msg, vtable + 4 + 2 * slot)[0]
+    if not field_offset:
+        return None
+    at: int = table + field_offset
+    target: int = at + _U32.unpack_from(msg, at)[0]
+    return target
+
+
+def _string(msg: bytes, at: int) -> bytes:
+    length = _U32.unpack_from(msg, at)[0]
+    if at + 4 + length > len(msg):
+        raise IndexError("string past the end of the message")
+    return msg[at + 4 : at + 4 + length]
 
 
 def split_ipc(data: bytes) -> tuple[bytes, int] | None:
