@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import threading
 import time
-from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -55,20 +54,6 @@ class ByteSampler:
         last = next(s for s in self.samples if s[1] >= high)
         seconds = last[0] - first[0]
         return ((last[1] - first[1]) / seconds if seconds > 0 else float("inf")), seconds
-
-
-@pytest.fixture
-def depot(tmp_path: Path) -> Iterator[LiveServer]:
-    server = LiveServer(tmp_path / "depot").start()
-    yield server
-    server.stop()
-
-
-@pytest.fixture
-def link(depot: LiveServer) -> Iterator[Link]:
-    proxies = Link(depot)
-    yield proxies
-    proxies.close()
 
 
 def test_the_link_carries_the_cap_while_a_backlog_drains(depot: LiveServer, link: Link, tmp_path: Path, rerun_bin: str):
