@@ -175,7 +175,7 @@ class DepotLink:
         answer = Held(None, None, True)
         for start in range(0, max(len(chunk_ids), 1), HELD_BATCH):
             batch = [c.hex() for c in chunk_ids[start : start + HELD_BATCH]]
-            body = await self._call(self.api.held, run_id, batch)
+            body = await self.call(self.api.held, run_id, batch)
             answer = Held(
                 body.get("tier"),
                 body.get("status"),
@@ -185,7 +185,7 @@ class DepotLink:
             )
         return answer
 
-    async def _call(self, fn: Any, *args: Any, **kwargs: Any) -> Any:
+    async def call(self, fn: Any, *args: Any, **kwargs: Any) -> Any:
         """A REST call off the event loop, its failures as LinkDown or DepotRefused."""
         try:
             result = await asyncio.to_thread(fn, *args, **kwargs)
@@ -197,9 +197,6 @@ class DepotLink:
             raise LinkDown(f"depot API unreachable ({type(exc).__name__}: {exc})") from exc
         self.mark_up()
         return result
-
-    async def call(self, fn: Any, *args: Any, **kwargs: Any) -> Any:
-        return await self._call(fn, *args, **kwargs)
 
 
 def cancelled() -> bool:

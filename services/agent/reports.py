@@ -101,7 +101,7 @@ class Reports:
         retain = dt.timedelta(hours=agent.settings.agent_retain_hours)
         for run in agent.spool.runs():
             sender = agent.runners.get(run.run_id)
-            state = sender.state if sender is not None else agent.state.runs().get(run.run_id)
+            state = agent.run_states.get(run.run_id)
             if state is None:
                 continue
             figures = (run.hot.size, state.local_only_chunks, state.local_only_bytes)

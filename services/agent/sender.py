@@ -253,10 +253,8 @@ class RunSender:
                 Lane(Priority.BACKFILL, HotIndexTail(path, self.sent_until), end=size, on_sent=self._count_backfill)
             )
             self.lanes.append(Lane(Priority.LIVE, HotIndexTail(path, size), on_sent=self._advance))
-            self._gap_start, self._gap_end = self.sent_until, size
         else:
             self.lanes.append(Lane(Priority.LIVE, HotIndexTail(path, self.sent_until), on_sent=self._advance))
-            self._gap_start = self._gap_end = size
 
     def add_pull(self, job: PullJob) -> None:
         self.pulls.append(job)

@@ -73,6 +73,9 @@ class Agent:
         )
         self.senders: dict[str, asyncio.Task[None]] = {}
         self.runners: dict[str, RunSender] = {}
+        # where each run's forwarding stands: read once, then kept here (senders change these objects
+        # and save them); the SQLite copy is for the next start and `fleet agent status`
+        self.run_states: dict[str, RunState] = self.state.runs()
         self.started_at = time.time()
         self.retention: RetentionReport | None = None
         self.reports = Reports(self)
@@ -82,22 +85,21 @@ class Agent:
 
     def discover(self) -> None:
         """Start a sender for every spooled run that is not confirmed and has none."""
-        known = self.state.runs()
         for run in self.spool.runs():
-            state = known.get(run.run_id)
+            state = self.run_states.get(run.run_id)
             if state is None or not state.confirmed:
-                self.sender_for(run.run_id, state)
+                self.sender_for(run.run_id)
 
-    def sender_for(self, run_id: str, state: RunState | None = None) -> RunSender:
+    def sender_for(self, run_id: str) -> RunSender:
         """The run's sender, started if it is not running (a pull may need one for a confirmed run)."""
         sender = self.runners.get(run_id)
         task = self.senders.get(run_id)
         if sender is not None and task is not None and not task.done():
             return sender
-        state = state or (sender.state if sender is not None else self.state.runs().get(run_id))
+        state = self.run_states.get(run_id)
         fresh = state is None
         if state is None:
-            state = RunState(run_id)
+            state = self.run_states[run_id] = RunState(run_id)
             self.state.save_run(state)
         new = RunSender(self.forwarding, run_id, state, fresh=fresh)
         log.info("forwarding run %s (%s)", run_id, "new" if fresh else f"from byte {state.checked_until}")
@@ -122,6 +124,7 @@ class Agent:
         for deletion in self.retention.deleted:
             self.runners.pop(deletion.run_id, None)
             self.senders.pop(deletion.run_id, None)
+            self.run_states.pop(deletion.run_id, None)
             self._background(self.reports.forget_copy(deletion.run_id))
         return self.retention
 

@@ -4,15 +4,12 @@ one line naming who holds what and the setting to change."""
 
 from __future__ import annotations
 
-import enum
 import os
 import socket
 import subprocess
 import sys
 from collections.abc import Iterator
 from pathlib import Path
-from types import UnionType
-from typing import get_args
 
 import click
 import pytest
@@ -22,21 +19,10 @@ from core.errors import ConflictError, InvalidArgumentError
 from services.cli.agent import agent
 from services.cli.serve import AGENT_SHARED, NOT_OPTIONS, agent_setting, serve
 from services.settings import Settings, load_settings
+from tests.services.cli.test_serve import _scalar
 from tests.subprocess_server import ServerProcess, free_port
 
 FLEET = str(Path(sys.executable).with_name("fleet"))
-
-
-def _scalar(annotation: object) -> bool:
-    """str, int, float, bool, a path or an enum (or one of them or None)."""
-    kinds = (
-        [a for a in get_args(annotation) if a is not type(None)] if isinstance(annotation, UnionType) else [annotation]
-    )
-    return (
-        len(kinds) == 1
-        and isinstance(kinds[0], type)
-        and issubclass(kinds[0], str | int | float | bool | Path | enum.Enum)
-    )
 
 
 def _options(command: click.Command) -> dict[str, click.Option]:
