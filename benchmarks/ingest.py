@@ -1,8 +1,9 @@
 """Benchmark: gRPC ingest of real Rerun recordings by R robots at once, ours next to `rerun --serve-grpc`.
 
-    /work/venv/bin/python benchmarks/ingest.py [--robots 8] [--procs 2] [--repeat 2] [--workload big,small]
-                                               [--servers ours,rerun] [--client aio|thread] [--memory-passes 3]
-                                               [--big-mb 220] [--small-chunks 50000] [--json]
+    .venv/bin/python benchmarks/ingest.py [--robots 8] [--procs 2] [--repeat 2] [--workload big,small]
+                                          [--servers ours,rerun] [--client aio|thread] [--memory-passes 3]
+                                          [--workers N] [--catalog duckdb|postgres] [--server-cpus LIST]
+                                          [--load-cpus LIST] [--big-mb 220] [--small-chunks 50000] [--json]
 
 1. The recordings are those of ``benchmarks/codec.py`` (``benchmarks/data/big.rrd``: 93 chunks of
    2.4-2.6 MB, point clouds and images; ``small.rrd``: 50,001 one-row chunks of scalars), generated
@@ -38,6 +39,33 @@
    times in a row (as new recordings each time): bounded memory means the same peak RSS for 3x the
    bytes. Printed in MB of RSS per GB ingested (bounded: < 50 both ways): its peak against the 1-pass
    runs' peaks, and the highest RSS of its last third against its first third.
+
+6. Workers (``--workers N``): ours is started as ``fleet serve --workers N`` (N processes sharing the
+   ports: the parent binds them, its worker children accept on them). More than one worker needs a
+   shared catalog, so for N > 1 (or ``--catalog postgres``) each start of ours gets a new empty
+   database on the local Postgres (``tests/postgres.py``'s ``temporary_database``, migrated with
+   ``fleet db upgrade``, dropped after the run): ``FLEET_CATALOG_URL=postgresql+psycopg://postgres@
+   127.0.0.1:5432/NAME``. The server's CPU is then summed over the parent and all its descendants
+   (walked through /proc/PID/task/*/children; a breakdown per process is in ``--json``), its RSS too
+   (peak RSS: the sum of each process's VmHWM, an upper bound). Postgres's own CPU is not counted
+   (nor rerun's memory-only storage: it has no catalog). Reported per run besides chunks/s and MB/s:
+   the server's CPU in µs per chunk (all its processes: what one chunk costs, whichever worker took
+   it) and the load generator's share of the cores (its CPU seconds / wall / cores).
+
+   To show 1..16 workers on a larger machine, give the load its own cores, so that it does not
+   compete with the workers, and enough of them: on 1-row chunks the grpc.aio load processes spend
+   about 60-90 µs of CPU per message against the server's 150-250, so a worker that saturates its core
+   needs about half a core of load; use ``--procs`` ≈ N/2 + 1 on as many cores, and at least 4 robots
+   per worker (the kernel hands each connection to one worker, so fewer streams leave workers idle).
+   For example, on a 32-core machine::
+
+       for n in 1 2 4 8 16; do .venv/bin/python benchmarks/ingest.py --workload small --servers ours \
+           --memory-passes 0 --workers $n --catalog postgres --robots $((4 * n)) --procs $((n / 2 + 1)) \
+           --server-cpus 0-$((n - 1)) --load-cpus 16-$((16 + n / 2)); done
+
+   ``--server-cpus`` and ``--load-cpus`` pin the server (all its processes) and the load processes
+   to those CPUs (sched_setaffinity; default: not pinned). A load share near 1.0 of its cores means
+   the load, not the server, set the pace: give it more.
 
 MB = 10**6 bytes; bytes = sum of the inner messages sent (protobuf LogMsg contents, as in an RRD file).
 ``ours/rerun`` = our MB/s / rerun's MB/s on the same workload (best run of each); targets: >= 1.0x on
@@ -290,6 +318,76 @@ def proc_cpu_s(pid: int) -> float:
     return sum(proc_times(pid))
 
 
+def proc_name(pid: int) -> str:
+    """What the process is, from its command line: the server itself, a worker, a helper."""
+    try:
+        with open(f"/proc/{pid}/cmdline", "rb") as fh:
+            argv = fh.read().decode(errors="replace").split("\0")
+    except OSError:
+        return "?"
+    line = " ".join(argv)
+    if "resource_tracker" in line:
+        return "multiprocessing resource tracker"
+    if "multiprocessing" in line:
+        return "worker"
+    return " ".join(Path(argv[0]).name.split() + argv[1:3]).strip()
+
+
+def proc_tree(pid: int) -> list[int]:
+    """`pid` and all its descendants (each thread's /proc/PID/task/TID/children)."""
+    found, todo = [], [pid]
+    while todo:
+        current = todo.pop()
+        found.append(current)
+        try:
+            for task in os.listdir(f"/proc/{current}/task"):
+                with open(f"/proc/{current}/task/{task}/children") as fh:
+                    todo += [int(child) for child in fh.read().split()]
+        except OSError:
+            continue  # gone meanwhile
+    return found
+
+
+def tree_times(pid: int) -> dict[int, tuple[float, float]]:
+    """(user, system) CPU seconds of `pid` and of each of its descendants, by process."""
+    times = {}
+    for member in proc_tree(pid):
+        with contextlib.suppress(OSError, IndexError, ValueError):
+            times[member] = proc_times(member)
+    return times
+
+
+def tree_cpu_s(pid: int) -> float:
+    return sum(u + s for u, s in tree_times(pid).values())
+
+
+def tree_status_kb(pid: int, key: str) -> int:
+    """The sum of a /proc/PID/status value (VmRSS, VmHWM) over `pid` and its descendants."""
+    total = 0
+    for member in proc_tree(pid):
+        with contextlib.suppress(OSError, RuntimeError):
+            total += proc_status_kb(member, key)
+    return total
+
+
+def cpu_list(text: str | None) -> set[int] | None:
+    """`0-3,8` -> {0, 1, 2, 3, 8}."""
+    if not text:
+        return None
+    cpus: set[int] = set()
+    for part in text.split(","):
+        low, _, high = part.partition("-")
+        cpus.update(range(int(low), int(high or low) + 1))
+    return cpus
+
+
+def pinned(cpus: set[int] | None) -> Any:
+    """A `preexec_fn` that pins the child (and what it starts) to `cpus`; None when not pinned."""
+    if cpus is None:
+        return None
+    return lambda: os.sched_setaffinity(0, cpus)
+
+
 def http_get(port: int, path: str, timeout: float = 10) -> tuple[int, str]:
     import httpx
 
@@ -302,8 +400,9 @@ class Server:
 
     name = ""
 
-    def __init__(self, workdir: Path) -> None:
+    def __init__(self, workdir: Path, cpus: set[int] | None = None) -> None:
         self.workdir = workdir
+        self.cpus = cpus  # pinned to these CPUs (None: not pinned)
         self.grpc_port = free_port()
         self.proc: subprocess.Popen[bytes] | None = None
         self.log_path = workdir / f"{self.name}.log"
@@ -326,7 +425,13 @@ class Server:
         argv, env = self.argv_env()
         with open(self.log_path, "wb") as out:
             self.proc = subprocess.Popen(
-                argv, env=env, stdin=subprocess.DEVNULL, stdout=out, stderr=subprocess.STDOUT, cwd=self.workdir
+                argv,
+                env=env,
+                stdin=subprocess.DEVNULL,
+                stdout=out,
+                stderr=subprocess.STDOUT,
+                cwd=self.workdir,
+                preexec_fn=pinned(self.cpus),
             )
         deadline = time.monotonic() + timeout
         while time.monotonic() < deadline:
@@ -345,16 +450,17 @@ class Server:
             return ""
 
     def rss_mb(self) -> float:
-        return proc_status_kb(self.pid, "VmRSS") * 1024 / MB
+        return tree_status_kb(self.pid, "VmRSS") * 1024 / MB
 
     def peak_rss_mb(self) -> float:
-        return proc_status_kb(self.pid, "VmHWM") * 1024 / MB
+        """VmHWM: the process's peak; with worker processes the sum of theirs (an upper bound)."""
+        return tree_status_kb(self.pid, "VmHWM") * 1024 / MB
 
     def start_polling(self) -> None:
         def poll() -> None:
             while not self._stop_polling.is_set():
                 with contextlib.suppress(OSError, RuntimeError):
-                    self.samples.append((time.time(), proc_status_kb(self.pid, "VmRSS")))
+                    self.samples.append((time.time(), tree_status_kb(self.pid, "VmRSS")))
                 self._stop_polling.wait(RSS_POLL_S)
 
         self._poller = threading.Thread(target=poll, name=f"rss-{self.name}", daemon=True)
@@ -370,7 +476,7 @@ class Server:
         if self.proc is not None and self.proc.poll() is None:
             self.proc.terminate()
             try:
-                self.proc.wait(timeout=30)
+                self.proc.wait(timeout=60)
             except subprocess.TimeoutExpired:
                 self.proc.kill()
                 self.proc.wait()
@@ -379,12 +485,18 @@ class Server:
 class FleetServer(Server):
     name = "ours"
 
-    def __init__(self, workdir: Path) -> None:
-        super().__init__(workdir)
+    def __init__(
+        self, workdir: Path, cpus: set[int] | None = None, workers: int | None = None, catalog: str = "duckdb"
+    ) -> None:
+        super().__init__(workdir, cpus)
         self.http_port = free_port()
         self.data_dir = workdir / "fleet-data"
+        self.workers = workers  # `fleet serve --workers N` (None: the option left out)
+        self.catalog = catalog  # duckdb (embedded) or postgres (a new database for this server)
+        self.catalog_url: str | None = None
+        self._database = contextlib.ExitStack()
 
-    def argv_env(self) -> tuple[list[str], dict[str, str]]:
+    def env(self) -> dict[str, str]:
         env = {
             **os.environ,
             "FLEET_DATA_DIR": str(self.data_dir),
@@ -392,12 +504,40 @@ class FleetServer(Server):
             "FLEET_DURABILITY": "interval",
             "FLEET_HTTP_ADDR": f"127.0.0.1:{self.http_port}",
             "FLEET_GRPC_ADDR": f"127.0.0.1:{self.grpc_port}",
+            "FLEET_PEER_ADDR": "127.0.0.1:0",  # workers' peer ports: any free one
         }
+        if self.catalog_url is not None:
+            env["FLEET_CATALOG_URL"] = self.catalog_url
+        return env
+
+    def fleet(self, *args: str) -> list[str]:
         fleet = Path(sys.executable).with_name("fleet")
         if fleet.is_file():
-            return [str(fleet), "serve"], env
+            return [str(fleet), *args]
         code = f"import sys; sys.path.insert(0, {str(ROOT)!r}); from services.cli.main import main; main()"
-        return [sys.executable, "-c", code, "serve"], env
+        return [sys.executable, "-c", code, *args]
+
+    def argv_env(self) -> tuple[list[str], dict[str, str]]:
+        workers = [] if self.workers is None else ["--workers", str(self.workers)]
+        return self.fleet("serve", *workers), self.env()
+
+    def start(self, timeout: float = 120) -> None:
+        if self.catalog == "postgres":
+            from tests.postgres import temporary_database
+
+            self.catalog_url = self._database.enter_context(temporary_database("ingest_bench"))
+            checked(run_process(self.fleet("db", "upgrade"), env=self.env()), "fleet db upgrade")
+        super().start(timeout)
+
+    def stop(self) -> None:
+        try:
+            super().stop()
+        finally:
+            self._database.close()  # the run's database is dropped
+
+    def hot_files(self) -> list[Path]:
+        """The run files of its hot tier (one per worker with --workers)."""
+        return [*self.data_dir.glob("hot/*/run.rrd"), *self.data_dir.glob("workers/*/hot/*/run.rrd")]
 
     def ready(self) -> bool:
         import httpx
@@ -422,8 +562,8 @@ class FleetServer(Server):
 class RerunServer(Server):
     name = "rerun"
 
-    def __init__(self, workdir: Path, binary: str, memory_limit: str) -> None:
-        super().__init__(workdir)
+    def __init__(self, workdir: Path, binary: str, memory_limit: str, cpus: set[int] | None = None) -> None:
+        super().__init__(workdir, cpus)
         self.binary = binary
         self.memory_limit = memory_limit
 
@@ -470,6 +610,8 @@ class Run:
     robot_walls_s: list[float]
     passes: int = 1  # times each robot sent the recording (as new recordings)
     check: str = ""
+    load_cores: int = 1  # the cores the load processes could run on
+    server_procs: dict[str, float] = field(default_factory=dict)  # CPU seconds by process (pid: its name)
     extra: dict[str, Any] = field(default_factory=dict)
 
     @property
@@ -479,6 +621,16 @@ class Run:
     @property
     def chunks_s(self) -> float:
         return self.chunks / self.wall_s
+
+    @property
+    def cpu_us_per_chunk(self) -> float:
+        """Server CPU (all its processes) per chunk: what a chunk costs, whichever worker took it."""
+        return self.server_cpu_s / self.chunks * 1e6
+
+    @property
+    def load_share(self) -> float:
+        """The load processes' CPU over the wall time, as a share of the cores they could use."""
+        return self.load_cpu_s / self.wall_s / self.load_cores
 
 
 def read_line(proc: subprocess.Popen[str], prefix: str, what: str, log_path: Path) -> dict[str, Any]:
@@ -494,13 +646,13 @@ def read_line(proc: subprocess.Popen[str], prefix: str, what: str, log_path: Pat
 
 
 def wait_idle(pid: int, quiet_s: float = 0.5, threshold_s: float = 0.05, limit_s: float = 60) -> tuple[float, float]:
-    """Wait until the process uses less than `threshold_s` CPU in `quiet_s`; returns (seconds until
-    then, excluding the quiet window that proved it, CPU seconds used meanwhile)."""
-    start, cpu0 = time.perf_counter(), proc_cpu_s(pid)
+    """Wait until the process (and its descendants) use less than `threshold_s` CPU in `quiet_s`;
+    returns (seconds until then, excluding the quiet window that proved it, CPU seconds used meanwhile)."""
+    start, cpu0 = time.perf_counter(), tree_cpu_s(pid)
     busy_until, last = start, cpu0
     while time.perf_counter() - start < limit_s:
         time.sleep(quiet_s)
-        now = proc_cpu_s(pid)
+        now = tree_cpu_s(pid)
         if now - last < threshold_s:
             break
         busy_until, last = time.perf_counter(), now
@@ -535,6 +687,7 @@ def run_once(
     client: str,
     passes: int = 1,
     check_rerun: bool = False,
+    load_cpus: set[int] | None = None,
 ) -> Run:
     """One timed run: `server` started, the load processes prepared, "go", all calls answered."""
     groups = [list(range(robots))[i::procs] for i in range(procs)]
@@ -557,12 +710,21 @@ def run_once(
                 target,
                 ",".join(map(str, group)),
             ]
-            loaders.append(subprocess.Popen(argv, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=err, text=True))
+            loaders.append(
+                subprocess.Popen(
+                    argv,
+                    stdin=subprocess.PIPE,
+                    stdout=subprocess.PIPE,
+                    stderr=err,
+                    text=True,
+                    preexec_fn=pinned(load_cpus),
+                )
+            )
         load_logs = [server.workdir / f"load-{i}.log" for i in range(len(loaders))]
         ready = [read_line(p, "READY", f"load process {i}", load_logs[i]) for i, p in enumerate(loaders)]
         time.sleep(0.5)  # let the preparation's page cache and allocator churn settle
         rss_start = server.rss_mb()
-        times0 = proc_times(server.pid)
+        times0 = tree_times(server.pid)
         server.start_polling()
         t_go = time.time()
         for p in loaders:
@@ -571,7 +733,7 @@ def run_once(
             p.stdin.flush()
         done = [read_line(p, "DONE", f"load process {i}", load_logs[i]) for i, p in enumerate(loaders)]
         t_end = max(r["end"] for d in done for r in d["robots"].values())
-        times1 = proc_times(server.pid)
+        times1 = tree_times(server.pid)
         drain_s, drain_cpu = wait_idle(server.pid)
         server.stop_polling()
         for p in loaders:
@@ -588,8 +750,8 @@ def run_once(
             bytes=sum(r["bytes"] for r in results),
             chunks=sum(r["chunks"] for r in results),
             messages=sum(r["messages"] for r in results),
-            server_cpu_s=sum(times1) - sum(times0),
-            server_sys_s=times1[1] - times0[1],
+            server_cpu_s=sum(u + s - sum(times0.get(p, (0.0, 0.0))) for p, (u, s) in times1.items()),
+            server_sys_s=sum(s - times0.get(p, (0.0, 0.0))[1] for p, (_, s) in times1.items()),
             load_cpu_s=sum(d["cpu_s"] for d in done),
             peak_rss_mb=server.peak_rss_mb(),
             rss_start_mb=rss_start,
@@ -601,6 +763,10 @@ def run_once(
             prepare_s=max(r["prepare_s"] for r in ready),
             robot_walls_s=sorted(round(r["end"] - t_go, 3) for r in results),
             passes=passes,
+            load_cores=len(load_cpus) if load_cpus else os.cpu_count() or 1,
+            server_procs={
+                f"{p} {proc_name(p)}": round(u + s - sum(times0.get(p, (0.0, 0.0))), 2) for p, (u, s) in times1.items()
+            },
         )
         if isinstance(server, FleetServer):
             run.check, run.extra = check_ours(server, run, robots * passes * expect_chunks)
@@ -694,13 +860,9 @@ def check_ours(server: FleetServer, run: Run, expected: int) -> tuple[str, dict[
         metrics = server.metrics()
     new = int(metrics.get("fleet_ingest_chunks_new_total", -1))
     dup = int(metrics.get("fleet_ingest_chunks_duplicate_total", -1))
-    hot = server.data_dir / "hot"
-    hot_bytes = sum(p.stat().st_size for p in hot.glob("*/run.rrd")) if hot.is_dir() else 0
-    extra = {
-        "metrics": metrics,
-        "hot_runs": len(list(hot.glob("*/run.rrd"))) if hot.is_dir() else 0,
-        "hot_bytes": hot_bytes,
-    }
+    files = server.hot_files()
+    hot_bytes = sum(p.stat().st_size for p in files)
+    extra = {"metrics": metrics, "hot_runs": len(files), "hot_bytes": hot_bytes}
     if new != expected or dup != 0:
         return f"MISMATCH: {new} new + {dup} duplicate chunks, expected {expected} new", extra
     return f"ok: {new:,} new chunks in /metrics, {extra['hot_runs']} hot runs, {hot_bytes / MB:,.1f} MB on disk", extra
@@ -773,7 +935,13 @@ def print_report(report: dict[str, Any]) -> None:
         f"rerun: {env['rerun_binary']} ({env['rerun_version']}), --serve-grpc "
         f"--server-memory-limit {env['rerun_memory_limit']} (memory only, drops nothing here)"
     )
-    print(f"ours: fleet serve, FLEET_DURABILITY=interval (group commit), hot tier in {env['tmp']}")
+    workers = "" if env["workers"] is None else f" --workers {env['workers']}"
+    print(
+        f"ours: fleet serve{workers}, {env['catalog']} catalog, FLEET_DURABILITY=interval (group commit), "
+        f"hot tier in {env['tmp']}"
+    )
+    if env["server_cpus"] or env["load_cpus"]:
+        print(f"pinned: servers to CPUs {env['server_cpus'] or 'any'}, load processes to {env['load_cpus'] or 'any'}")
     per_robot = "task on a grpc.aio event loop" if env["client"] == "aio" else "thread (blocking gRPC API)"
     print(
         f"load: {env['robots']} robots (distinct recording ids) from {env['procs']} processes, one gRPC channel "
@@ -798,7 +966,9 @@ def print_report(report: dict[str, Any]) -> None:
                 f"{r['chunks'] / r['wall_s']:,.0f}",
                 f"{r['peak_rss_mb']:,.0f}",
                 f"{r['server_cpu_s']:.1f} ({r['server_sys_s']:.1f})",
+                f"{r['cpu_us_per_chunk']:,.0f}",
                 f"{r['load_cpu_s']:.1f}",
+                f"{r['load_share']:.2f}",
                 f"{r['drain_s']:.1f}",
             ]
         )
@@ -814,17 +984,21 @@ def print_report(report: dict[str, Any]) -> None:
                 "chunks/s",
                 "peak RSS MB",
                 "server CPU s (sys)",
+                "CPU us/chunk",
                 "load CPU s",
+                "load share",
                 "drain s",
             ],
             rows,
-            "llrrrrrrrrr",
+            "llrrrrrrrrrrr",
         )
     )
     print()
     print(
-        "wall s: from 'go' to the last call answered; peak RSS: the server's VmHWM; server CPU s: during the "
-        "wall time; load CPU s: all load processes; drain s: server CPU still busy after the last answer"
+        "wall s: from 'go' to the last call answered; peak RSS: the server's VmHWM (summed over its processes); "
+        "server CPU s: during the wall time, all its processes; CPU us/chunk: that per chunk; load CPU s: all "
+        "load processes; load share: their CPU / wall / the cores they may use; drain s: server CPU still busy "
+        "after the last answer"
     )
     print()
     rows = []
@@ -959,6 +1133,21 @@ def main(argv: list[str] | None = None) -> None:
         help="then one more run of ours on big chunks with each robot sending the recording this "
         "many times (as new recordings): memory must not grow with the bytes (default 3; 0: skip)",
     )
+    parser.add_argument(
+        "--workers",
+        type=int,
+        default=None,
+        help="start ours as fleet serve --workers N (default: the option left out, one process on DuckDB)",
+    )
+    parser.add_argument(
+        "--catalog",
+        choices=["duckdb", "postgres"],
+        default=None,
+        help="ours's catalog: the embedded DuckDB, or a new database on the local Postgres per start "
+        "(default: duckdb, postgres with --workers above 1)",
+    )
+    parser.add_argument("--server-cpus", help="pin the servers (all their processes) to these CPUs, e.g. 0-3")
+    parser.add_argument("--load-cpus", help="pin the load processes to these CPUs, e.g. 4-5")
     parser.add_argument("--tmp", type=Path, default=None, help="where our server's data dirs go (default: $TMPDIR)")
     parser.add_argument("--json", action="store_true", help="print the results as JSON on stdout instead of tables")
     args = parser.parse_args(argv)
@@ -970,6 +1159,15 @@ def main(argv: list[str] | None = None) -> None:
         parser.error("--workload takes big, small or big,small")
     if min(args.robots, args.procs, args.repeat, args.small_chunks, args.small_entities) < 1 or args.big_mb <= 0:
         parser.error("--robots, --procs, --repeat, --small-chunks, --small-entities and --big-mb must be positive")
+    if args.workers is not None and args.workers < 1:
+        parser.error("--workers must be positive")
+    catalog = args.catalog or ("postgres" if (args.workers or 1) > 1 else "duckdb")
+    if catalog == "duckdb" and (args.workers or 1) > 1:
+        parser.error("--workers above 1 needs --catalog postgres (the embedded DuckDB catalog has one writer)")
+    server_cpus, load_cpus = cpu_list(args.server_cpus), cpu_list(args.load_cpus)
+
+    def ours(workdir: Path) -> FleetServer:
+        return FleetServer(workdir, server_cpus, args.workers, catalog)
 
     load = os.getloadavg()[0]
     if load > 0.5 * (os.cpu_count() or 1):
@@ -1001,9 +1199,9 @@ def main(argv: list[str] | None = None) -> None:
                     workdir = tmp_root / f"{w}-{name}-{i}"
                     workdir.mkdir()
                     server: Server = (
-                        FleetServer(workdir)
+                        ours(workdir)
                         if name == "ours"
-                        else RerunServer(workdir, rerun_bin, args.rerun_memory_limit)
+                        else RerunServer(workdir, rerun_bin, args.rerun_memory_limit, server_cpus)
                     )
                     log(f"{w} #{i + 1}: {name} ...")
                     run = run_once(
@@ -1015,12 +1213,17 @@ def main(argv: list[str] | None = None) -> None:
                         int(infos[w]["chunks"]),
                         args.client,
                         check_rerun=i == 0 and not args.no_read_back,
+                        load_cpus=load_cpus,
                     )
                     log(
                         f"  {run.wall_s:.2f} s, {run.mb_s:,.1f} MB/s, {run.chunks_s:,.0f} chunks/s, peak RSS "
-                        f"{run.peak_rss_mb:,.0f} MB, server CPU {run.server_cpu_s:.1f} s, "
-                        f"load CPU {run.load_cpu_s:.1f} s, drain {run.drain_s:.1f} s; {run.check}"
+                        f"{run.peak_rss_mb:,.0f} MB, server CPU {run.server_cpu_s:.1f} s "
+                        f"({run.cpu_us_per_chunk:,.0f} us/chunk), load CPU {run.load_cpu_s:.1f} s "
+                        f"({run.load_share:.2f} of its cores), drain {run.drain_s:.1f} s; {run.check}"
                     )
+                    busy = {name: cpu for name, cpu in run.server_procs.items() if cpu >= 0.05}
+                    if len(busy) > 1:
+                        log("  server CPU by process: " + ", ".join(f"{c:.1f} s {name}" for name, c in busy.items()))
                     runs.append(run)
                     shutil.rmtree(workdir, ignore_errors=True)
         if args.memory_passes > 1 and "big" in workloads and "ours" in servers:
@@ -1028,7 +1231,7 @@ def main(argv: list[str] | None = None) -> None:
             workdir.mkdir()
             log(f"memory: ours, big, each robot sending the recording {args.memory_passes} times ...")
             run = run_once(
-                FleetServer(workdir),
+                ours(workdir),
                 "big",
                 data_dir / "big.rrd",
                 args.robots,
@@ -1036,6 +1239,7 @@ def main(argv: list[str] | None = None) -> None:
                 int(infos["big"]["chunks"]),
                 args.client,
                 args.memory_passes,
+                load_cpus=load_cpus,
             )
             log(f"  {run.wall_s:.2f} s, {run.mb_s:,.1f} MB/s, peak RSS {run.peak_rss_mb:,.0f} MB; {run.check}")
             runs.append(run)
@@ -1053,6 +1257,10 @@ def main(argv: list[str] | None = None) -> None:
             "procs": args.procs,
             "client": args.client,
             "repeat": args.repeat,
+            "workers": args.workers,
+            "catalog": catalog,
+            "server_cpus": args.server_cpus,
+            "load_cpus": args.load_cpus,
             "rerun_binary": rerun_bin,
             "rerun_version": version,
             "rerun_memory_limit": args.rerun_memory_limit,
@@ -1060,7 +1268,12 @@ def main(argv: list[str] | None = None) -> None:
             "grpcio": importlib.metadata.version("grpcio"),
             "tmp": str(tmp_root.parent),
         },
-        "runs": [{k: v for k, v in asdict(r).items() if k != "extra"} | {"extra": r.extra} for r in runs],
+        "runs": [
+            {k: v for k, v in asdict(r).items() if k != "extra"}
+            | {"cpu_us_per_chunk": round(r.cpu_us_per_chunk, 1), "load_share": round(r.load_share, 3)}
+            | {"extra": r.extra}
+            for r in runs
+        ],
         "summary": summarize(runs, workloads),
         "memory": memory_verdict(runs),
     }

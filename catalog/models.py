@@ -216,3 +216,28 @@ class RobotCopy(Base):
     local_only_bytes: Mapped[int] = mapped_column(BigInteger, default=0)
     local_only_entities: Mapped[str] = mapped_column(Text, default="[]")  # JSON list of entity paths
     keeps_until: Mapped[dt.datetime | None] = mapped_column(DateTime(timezone=True))  # when the robot deletes it
+
+
+class DepotNode(Base):
+    """One depot process on the catalog (`fleet serve`, or one of its workers): where other nodes
+    reach it, and when it last said it is alive. Its runs are its own while the heartbeat is fresh."""
+
+    __tablename__ = "depot_nodes"
+
+    id: Mapped[str] = mapped_column(String(256), primary_key=True)  # FLEET_NODE_ID (with -wI for workers)
+    peer_addr: Mapped[str] = mapped_column(String(256))  # HOST:PORT of its peer port
+    version: Mapped[str] = mapped_column(String(64))
+    started_at: Mapped[dt.datetime] = mapped_column(DateTime(timezone=True))
+    heartbeat_at: Mapped[dt.datetime] = mapped_column(DateTime(timezone=True))  # the catalog's clock
+
+
+class RunOwner(Base):
+    """Which node owns a run's hot data: the one that files its chunks, serves it while hot and seals
+    it. `epoch` grows at every change of owner, so a node that lost the run cannot seal it."""
+
+    __tablename__ = "run_owners"
+
+    run_id: Mapped[str] = mapped_column(String(ID_LENGTH), primary_key=True)
+    node_id: Mapped[str] = mapped_column(String(256))
+    epoch: Mapped[int] = mapped_column(BigInteger)
+    since: Mapped[dt.datetime] = mapped_column(DateTime(timezone=True))

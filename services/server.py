@@ -14,13 +14,18 @@ import uvicorn
 from sqlalchemy.orm import sessionmaker
 
 from catalog.db import create_engine
+from core.errors import ConflictError
 from services import __version__
 from services.analytics.service import Analytics
 from services.analytics.sql import Limits
+from services.api import peer
 from services.api.app import create_app
 from services.api.grpc_front import Front
 from services.auth.bootstrap import ensure_admin_token, open_auth
 from services.auth.links import MaskLinkSignatures
+from services.auth.tokens import IssuedToken
+from services.cluster.ownership import Ownership
+from services.cluster.relay import Channels, peer_channel_options
 from services.hot.reserve import DiskReserve
 from services.hot.store import HotStore
 from services.ingest import grpc_handler
@@ -34,13 +39,43 @@ from services.retention.service import Retention
 from services.runtime import tune_allocator
 from services.sealed.tiers import open_tiers, sealed_lookup
 from services.settings import Settings
-from services.startup import listen_grpc, listen_http, private_socket_path, release_private_socket, split_addr
+from services.startup import (
+    listen_grpc,
+    listen_http,
+    listen_unix,
+    private_socket_path,
+    release_private_socket,
+    split_addr,
+    worker_socket_path,
+)
 
 log = logging.getLogger("fleet")
 
 
-def build(settings: Settings) -> tuple[IngestService, Retention, Analytics]:
-    """The ingest, retention and analytics sides of one node, sharing the catalog and the stores."""
+def shared_catalog(settings: Settings) -> bool:
+    """A catalog many depot processes share (Postgres): runs then have owners. The embedded DuckDB
+    catalog has a single writer process, which files every run itself."""
+    return not settings.catalog_url.startswith("duckdb:")
+
+
+def node_id(settings: Settings) -> str:
+    """FLEET_NODE_ID, else this host's name and the REST port: unique among the processes of one
+    host (no two share a port) and the same after a restart, so a node finds its runs again."""
+    return settings.node_id or f"{socket.gethostname()}-{split_addr(settings.http_addr)[1]}"
+
+
+def advertised(settings: Settings, port: int) -> str:
+    """The peer address other nodes are told: FLEET_PEER_ADVERTISE, else the bind host (this host's
+    name when that is a wildcard), with the port bound."""
+    host = settings.peer_advertise or split_addr(settings.peer_addr)[0]
+    if host in ("0.0.0.0", "::", ""):
+        host = socket.gethostname()
+    return f"[{host}]:{port}" if ":" in host else f"{host}:{port}"
+
+
+def build(settings: Settings, peer_addr: str | None = None) -> tuple[IngestService, Retention, Analytics]:
+    """The ingest, retention and analytics sides of one node, sharing the catalog and the stores;
+    `peer_addr`: where this node's peer port is reached, when many nodes share the catalog."""
     hot = HotStore(
         settings.hot_dir,
         durability=settings.durability,
@@ -50,6 +85,7 @@ def build(settings: Settings) -> tuple[IngestService, Retention, Analytics]:
     catalog = sessionmaker(create_engine(settings.catalog_url))
     tiers = open_tiers(settings)
     replay = ReplayHub(settings.replay_bytes) if settings.replay_bytes else None
+    ownership = Ownership(catalog, node_id(settings), peer_addr, settings.lease_s, __version__) if peer_addr else None
     ingest = IngestService(
         hot,
         catalog,
@@ -59,6 +95,8 @@ def build(settings: Settings) -> tuple[IngestService, Retention, Analytics]:
         replay=replay,
         sealed_lookup=sealed_lookup(catalog, tiers),
         secret_fields=SecretFields(settings.secret_fields),
+        ownership=ownership,
+        channels=Channels(peer_channel_options(settings.max_message_size)) if ownership else None,
     )
     retention = Retention(
         catalog,
@@ -110,7 +148,28 @@ async def _housekeeping(ingest: IngestService, reserve: DiskReserve, every: floa
             await asyncio.to_thread(reserve.ensure)
 
 
-def _claim_ports(settings: Settings) -> tuple[socket.socket, socket.socket]:
+def announce_admin(admin: IssuedToken | None, data_dir: Path) -> None:
+    """A first start's admin token, shown this once (kept in the data dir for CLI commands on this
+    machine)."""
+    if admin is not None:
+        print(
+            f"fleet: first start: an admin token was made (shown once, also in {data_dir / 'admin.token'}):\n"
+            f"{admin.token}",
+            flush=True,
+        )
+
+
+async def _heartbeat(ownership: Ownership) -> None:
+    """Tell the catalog this node is alive, three times per lease: its runs stay its own."""
+    while True:
+        await asyncio.sleep(ownership.lease_s / 3)
+        try:
+            await asyncio.to_thread(ownership.heartbeat)
+        except Exception as exc:
+            log.warning("heartbeat not written (%s); this node's runs pass to others after FLEET_LEASE_S", exc)
+
+
+def claim_ports(settings: Settings) -> tuple[socket.socket, socket.socket]:
     """Both ports, before any recovery work: a refused start is one line, quick, and changes nothing."""
     grpc_socket = listen_grpc(*split_addr(settings.grpc_addr))
     try:
@@ -121,28 +180,44 @@ def _claim_ports(settings: Settings) -> tuple[socket.socket, socket.socket]:
     return grpc_socket, http_socket
 
 
-def _grpc_server(settings: Settings) -> tuple[grpc.aio.Server, str]:
-    """The gRPC server, on a private Unix socket behind the public port's front."""
+def _grpc_server(settings: Settings) -> tuple[grpc.aio.Server, str, str | None]:
+    """The gRPC server, on a private Unix socket behind the public port's front, and on the peer
+    port when many nodes share the catalog (returns where other nodes reach that)."""
     path = str(private_socket_path(settings.data_dir))
-    server = grpc.aio.server(options=grpc_handler.server_options(settings.max_message_size))
+    # No SO_REUSEPORT: a second process binding the same peer port must fail, not share it.
+    options = [*grpc_handler.server_options(settings.max_message_size), ("grpc.so_reuseport", 0)]
+    server = grpc.aio.server(options=options)
     server.add_insecure_port(f"unix:{path}")
-    return server, path
+    if not shared_catalog(settings):
+        return server, path, None
+    host, port = split_addr(settings.peer_addr)
+    try:
+        bound = server.add_insecure_port(f"[{host}]:{port}" if ":" in host else f"{host}:{port}")
+    except RuntimeError:
+        raise ConflictError(
+            f"the peer address {settings.peer_addr} cannot be used (in use?): set another with --peer-addr "
+            "or FLEET_PEER_ADDR"
+        ) from None
+    return server, path, advertised(settings, bound)
 
 
-async def serve(settings: Settings) -> None:
-    """Run the node until stopped; the caller holds the data dir (`startup.hold_data_dir`)."""
+async def serve(
+    settings: Settings, sockets: tuple[socket.socket, socket.socket] | None = None, siblings: list[Path] | None = None
+) -> None:
+    """Run the node until stopped; the caller holds the data dir (`startup.hold_data_dir`).
+    `sockets`: the gRPC and REST ports, bound already and shared with other workers of this host
+    (`services.workers`, which also made the first admin token); `siblings`: those workers' private
+    REST sockets (for /metrics of the whole host)."""
     tune_allocator()
-    grpc_socket, http_socket = _claim_ports(settings)
-    grpc_server, grpc_path = _grpc_server(settings)
-    ingest, retention, analytics = build(settings)
-    auth = open_auth(settings, ingest.catalog)
-    admin = await asyncio.to_thread(ensure_admin_token, auth, settings.data_dir)
-    if admin is not None:  # shown this once; kept in the data dir for CLI commands on this machine
-        print(
-            f"fleet: first start: an admin token was made (shown once, also in {settings.data_dir / 'admin.token'}):\n"
-            f"{admin.token}",
-            flush=True,
-        )
+    grpc_socket, http_socket = sockets or claim_ports(settings)
+    grpc_server, grpc_path, peer_addr = _grpc_server(settings)
+    ingest, retention, analytics = build(settings, peer_addr)
+    auth = retention.auth = open_auth(settings, ingest.catalog)
+    if ingest.ownership is not None:
+        await asyncio.to_thread(ingest.ownership.start)
+        log.info("node %s on a shared catalog, peer port %s", ingest.ownership.node_id, peer_addr)
+    if sockets is None:  # workers: the first admin token was made before they started
+        announce_admin(await asyncio.to_thread(ensure_admin_token, auth, settings.data_dir), settings.data_dir)
     recovered = ingest.recover()
     if recovered:
         log.info("recovered %d hot runs", len(recovered))
@@ -158,6 +233,14 @@ async def serve(settings: Settings) -> None:
         redap_handler.CatalogServer(Depot(retention.catalog, retention.tiers.warm, ingest, settings.public_url), auth),
     )
     app = create_app(settings, ingest, retention, analytics, auth)
+    if ingest.ownership is not None:  # other nodes read the hot runs this one owns
+        peer.add_to_server(
+            grpc_server, peer.PeerService(auth, ingest, retention.catalog, retention.tiers.warm, app.state.edge)
+        )
+    http_sockets = [http_socket]
+    if sockets is not None:  # a worker: its own REST socket too, where its siblings ask for its figures
+        http_sockets.append(listen_unix(worker_socket_path(settings.data_dir)))
+        app.state.sibling_sockets = siblings or []
     http = uvicorn.Server(uvicorn.Config(app, log_level="info", lifespan="off"))
     logging.getLogger("uvicorn.access").addFilter(MaskLinkSignatures())  # a link's signature opens it
     await grpc_server.start()
@@ -166,19 +249,29 @@ async def serve(settings: Settings) -> None:
     reserve = DiskReserve(settings.data_dir, settings.reserve_bytes)
     await asyncio.to_thread(reserve.ensure)
     housekeeping = asyncio.create_task(_housekeeping(ingest, reserve, settings.catalog_flush_s))
+    heartbeat = asyncio.create_task(_heartbeat(ingest.ownership)) if ingest.ownership is not None else None
     scheduler = (
-        start_scheduler(retention, settings.promote_interval_s, settings.retention_interval_s)
+        start_scheduler(
+            retention,
+            settings.promote_interval_s,
+            settings.retention_interval_s,
+            settings.lease_s if ingest.ownership is not None else None,
+        )
         if settings.scheduler
         else None
     )
     try:
-        await http.serve(sockets=[http_socket])
+        await http.serve(sockets=http_sockets)
     finally:
         if scheduler is not None:
             scheduler.shutdown(wait=True)
-        housekeeping.cancel()
-        with contextlib.suppress(asyncio.CancelledError):
-            await housekeeping
+        for task in (housekeeping, heartbeat):
+            if task is not None:
+                task.cancel()
+                with contextlib.suppress(asyncio.CancelledError):
+                    await task
+        if ingest.channels is not None:
+            await ingest.channels.close()
         await front.stop()
         await grpc_server.stop(grace=5)
         release_private_socket(Path(grpc_path), settings.data_dir)

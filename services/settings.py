@@ -192,6 +192,32 @@ class Settings(BaseSettings):
         "unknown-robot", pattern=r"^[A-Za-z0-9._-]{1,128}$", description="robot id of runs that name none"
     )
 
+    # many depot processes on one Postgres catalog and one bucket (docs/scale-out.md)
+    workers: int = Field(
+        0,
+        ge=0,
+        description="processes serving the two ports of this host (0: one per core with a Postgres catalog; "
+        "the embedded DuckDB catalog has a single writer, so one)",
+    )
+    node_id: str = Field(
+        "",
+        pattern=r"^[A-Za-z0-9._-]{0,200}$",
+        description="this node's name in the catalog, unique among the depot's processes (default: the host "
+        "name and the REST port, HOST-8080; workers are NAME-w0, NAME-w1, ...)",
+    )
+    peer_addr: str = Field(
+        "127.0.0.1:0",
+        description="where other depot processes hand this node chunks of the runs it owns (gRPC); on several "
+        "hosts an address they reach, such as 0.0.0.0:51235 (workers take PORT+i; 0: any free port)",
+    )
+    peer_advertise: str = Field(
+        "",
+        description="the host other nodes reach the peer port by (default: its bind host, or this host's name "
+        "when that is 0.0.0.0)",
+    )
+    lease_s: float = Field(
+        10.0, gt=0, description="a node that stops heart-beating this long loses its hot runs to the other nodes"
+    )
     # `fleet agent`, on the robot (DESIGN.md: each also a flag)
     agent_spool: Path = Field(
         Path("./fleet-agent"), description="the agent's spool on the robot's disk: its runs and its state"

@@ -129,3 +129,24 @@ def is_loopback(host: str) -> bool:
         return ipaddress.ip_address(host).is_loopback
     except ValueError:
         return False
+
+
+WORKER_SOCKET = "http.sock"
+
+
+def worker_socket_path(data_dir: Path) -> Path:
+    """A worker's own REST socket (`fleet serve --workers N`), in its data dir's private folder."""
+    return data_dir.resolve() / "private" / WORKER_SOCKET
+
+
+def listen_unix(path: Path) -> socket.socket:
+    """A listening Unix socket at `path` (a stale one left by a process that died is replaced), in a
+    folder only this user can enter."""
+    path.parent.mkdir(mode=0o700, parents=True, exist_ok=True)
+    path.parent.chmod(0o700)
+    path.unlink(missing_ok=True)
+    sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    sock.bind(str(path))
+    sock.listen(128)
+    sock.setblocking(False)
+    return sock

@@ -22,6 +22,9 @@ from tests.services.rrd.recordings import SCENES, Recording, cut_mid_arrow, gene
 # the test turns it on: the suites about auth (tests/services/auth, and the end-to-end ones they
 # hold) pass auth="on" themselves, and everything else tests what it is about without tokens.
 os.environ["FLEET_AUTH"] = "off"
+# One process per `fleet serve` (a depot on Postgres would start one worker per core): tests that
+# kill or measure a depot mean that one process; tests of workers ask for them.
+os.environ["FLEET_WORKERS"] = "1"
 
 
 def find_rerun() -> str | None:

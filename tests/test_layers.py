@@ -40,6 +40,7 @@ LAYERS: dict[str, int] = {
     "migrations": 3,
     "services.auth": 3,
     "services.hot": 3,
+    "services.cluster": 3,
     "services.ingest": 4,
     "services.sealed": 5,
     "services.analytics": 6,
@@ -50,7 +51,8 @@ LAYERS: dict[str, int] = {
     "services.redap": 8,
     "services.agent": 8,
     "services.server": 9,
-    "services.cli": 10,
+    "services.workers": 10,
+    "services.cli": 11,
 }
 # Besides the layers: what may a unit import from our packages at all.
 ONLY = {"sdk_client": {"core"}, "catalog": {"core"}}

@@ -57,6 +57,7 @@ class Held:
     accepts_data: bool
     missing: set[bytes] = field(default_factory=set)
     unsealed: set[bytes] = field(default_factory=set)
+    holder: str | None = None  # the depot process holding its unsealed chunks (None: none does)
 
 
 def grpc_target(url: str) -> tuple[str, bool]:
@@ -182,6 +183,7 @@ class DepotLink:
                 bool(body.get("accepts_data", True)),
                 answer.missing | {bytes.fromhex(c) for c in body.get("missing", [])},
                 answer.unsealed | {bytes.fromhex(c) for c in body.get("unsealed", [])},
+                body.get("holder") or answer.holder,
             )
         return answer
 

@@ -91,6 +91,8 @@ class RunSender:
         self.last_append = time.monotonic()
         self.pulls: list[PullJob] = []
         self.local_only_entities: set[str] = set()  # entities the live rules kept on the robot
+        self.holder: str | None = None  # the depot process last said to hold the run's unsealed chunks
+        self.handed = False  # that changed: what it was said to hold is asked about again
 
     # --- the run as the spool holds it ------------------------------------------------------------
 
@@ -225,6 +227,7 @@ class RunSender:
             log.info("run %s: re-sending %d chunks the depot lacks", self.run_id, len(missing))
         else:
             self._checked(end)
+        await self._recheck_if_handed()
 
     def _entries(self, start: int, end: int) -> list[HotEntry]:
         tail = HotIndexTail(self._run().hot.path, start)
@@ -240,9 +243,36 @@ class RunSender:
             return []
         held = await self.ctx.link.held(self.run_id, [e.meta.chunk_id for e in chunks if e.meta is not None])
         self.state.depot_tier = held.tier
+        self._note_holder(held.holder)
         if not held.accepts_data:
             return []  # cold or deleted at the depot: nothing more can go
         return [e for e in chunks if e.meta is not None and e.meta.chunk_id in held.missing]
+
+    def _note_holder(self, holder: str | None) -> None:
+        if holder is None:
+            return
+        if self.holder is not None and holder != self.holder:
+            log.info("run %s: held by another depot process now (%s): asking again what it holds", self.run_id, holder)
+            self.handed = True
+        self.holder = holder
+
+    async def _recheck_if_handed(self) -> None:
+        """The run's unsealed chunks changed hands (the node that held them died and another took the
+        run over, or the depot restarted): chunks the old holder was said to hold may be gone. Ask
+        about everything not known sealed, and send what is missing before the run is sealed without it."""
+        if not self.handed:
+            return
+        self.handed = False
+        start, end = self.state.confirmed_until, self.state.checked_until
+        if end <= start:
+            return
+        entries = await asyncio.to_thread(self._entries, start, end)
+        missing = await self._missing(entries)
+        if missing:
+            self.lanes.append(Lane(Priority.BACKFILL, entries=deque(missing), on_sent=self._count_resent))
+            self.state.checked_until = missing[0].offset
+            self.ctx.state.save_run(self.state)
+            log.info("run %s: re-sending %d chunks its new holder lacks", self.run_id, len(missing))
 
     def _plan_lanes(self) -> None:
         """Live data from the file's end; a large gap behind it as backfill."""
@@ -437,6 +467,7 @@ class RunSender:
                 self.lanes.append(Lane(Priority.BACKFILL, entries=deque(missing), on_sent=self._count_resent))
                 mark = missing[0].offset
             self._checked(mark)
+        await self._recheck_if_handed()
         await self._maybe_confirm()
 
     async def _maybe_confirm(self) -> None:

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import asyncio
+import os
+from pathlib import Path
 from typing import Annotated
 
 import sqlalchemy as sa
@@ -16,7 +19,8 @@ from services import __version__
 from services.analytics import rest as analytics_rest
 from services.analytics.service import Analytics
 from services.api import metrics as prometheus
-from services.api import readiness
+from services.api import nodes as nodes_rest
+from services.api import readiness, worker_metrics
 from services.api.cors import Cors
 from services.auth import rest as auth_rest
 from services.auth.bootstrap import open_auth
@@ -51,6 +55,7 @@ def create_app(
     # only the configured origins may send a token.
     app.add_middleware(Cors, origins=settings.cors_origins)
     app.state.settings = settings
+    app.state.sibling_sockets = []  # other workers of this host (`fleet serve --workers N`), set by the server
     catalog = next((side.catalog for side in (ingest, retention, analytics) if side is not None), None)
     app.state.auth = auth = auth or open_auth(settings, catalog)
     app.state.rate_limits = RateLimits({"sql": settings.sql_rate, "download": settings.download_rate})
@@ -67,6 +72,7 @@ def create_app(
         app.state.catalog = ingest.catalog
         app.include_router(ingest_rest.router)
         app.include_router(runs_rest.router)
+        app.include_router(nodes_rest.router)
     if ingest is not None and ingest.catalog is not None:
         warm = retention.tiers.warm if retention is not None else None
         app.state.edge = Edge(ingest.catalog, ingest, warm, retention.clock if retention is not None else utcnow)
@@ -106,9 +112,16 @@ def create_app(
     app.add_middleware(prometheus.RequestMetrics, registry=registry)
 
     @app.get("/metrics", response_class=Response, responses={200: {"content": {prometheus.CONTENT_TYPE: {}}}})
-    def metrics(_: Annotated[Principal, Depends(require(Scope.READ))]) -> Response:
-        """Prometheus text exposition (HELP and TYPE for every metric)."""
-        return Response(prometheus.exposition(registry), media_type=prometheus.CONTENT_TYPE)
+    async def metrics(_: Annotated[Principal, Depends(require(Scope.READ))], local: bool = False) -> Response:
+        """Prometheus text exposition (HELP and TYPE for every metric). With several workers on the
+        host (`fleet serve --workers N`), their figures added up; `local=true`: this worker's only."""
+        own = await asyncio.to_thread(prometheus.exposition, registry)
+        siblings: list[Path] = app.state.sibling_sockets
+        if local or not siblings:
+            return Response(own, media_type=prometheus.CONTENT_TYPE)
+        token = app.state.auth.peer_token(f"metrics-{os.getpid()}", None)
+        texts = [own.decode(), *await worker_metrics.sibling_expositions(siblings, token)]
+        return Response(worker_metrics.merge_expositions(texts), media_type=prometheus.CONTENT_TYPE)
 
     checks: list[readiness.Check] = []
     if ingest is not None:

@@ -16,7 +16,7 @@ import threading
 import time
 import uuid
 from collections import Counter
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 
 import jwt
@@ -35,6 +35,8 @@ log = logging.getLogger(__name__)
 
 ISSUER = "fleet-telemetry"
 AUDIENCE = "redap"  # what Rerun's clients expect of a catalog server's token
+PEER_AUDIENCE = "fleet-peer"  # a node's own short-lived token, handing chunks to another node
+PEER_TOKEN_TTL = dt.timedelta(minutes=5)
 NO_EXPIRY = dt.timedelta(days=365 * 100)
 _ALGORITHM = "HS256"
 MAX_NAME = 256
@@ -115,6 +117,12 @@ class Auth:
                 MISSING,
             )
         claims = self.claims(token)
+        if claims.get("aud") == PEER_AUDIENCE:  # signed by a node with the depot's key: no catalog record
+            robot = claims.get("robot")
+            scopes = frozenset(
+                Scope(s) for s in str(claims.get("scope", "")).split() if s in Scope.__members__.values()
+            )
+            return Principal(str(claims["sub"]), scopes, str(robot) if robot else None)
         record = self._record(str(claims["jti"]))
         if record is None:
             raise UnauthenticatedError(
@@ -170,7 +178,7 @@ class Auth:
                 token,
                 key.secret,
                 algorithms=[_ALGORITHM],
-                audience=AUDIENCE,
+                audience=[AUDIENCE, PEER_AUDIENCE],
                 issuer=ISSUER,
                 # `iat` is not checked against this node's clock: a token made a moment ago on a
                 # node whose clock is a little ahead is not "from the future" here. `exp` is.
@@ -197,6 +205,27 @@ class Auth:
         return record
 
     # --- issuing, listing, revoking -----------------------------------------------------------
+
+    def peer_token(self, node_id: str, robot: str | None, scopes: Iterable[Scope] = (Scope.WRITE,)) -> str | None:
+        """A short-lived token of this node for another node of the depot: to hand it a hot copy of
+        `robot`'s run (write scope, bound to that robot if known), or to ask it, for a caller this
+        node has checked, what that caller may ask (the caller's scopes and robot). None with auth
+        off. Kept nowhere."""
+        if not self.enabled or self.keys is None:
+            return None
+        now = self.clock()
+        claims: dict[str, object] = {
+            "iss": ISSUER,
+            "aud": PEER_AUDIENCE,
+            "sub": f"node:{node_id}",
+            "jti": uuid.uuid4().hex,
+            "iat": int(now.timestamp()),
+            "exp": int((now + PEER_TOKEN_TTL).timestamp()),
+            "scope": " ".join(sorted(s.value for s in scopes)),
+        }
+        if robot is not None:
+            claims["robot"] = robot
+        return jwt.encode(claims, self.keys.current.secret, _ALGORITHM, {"kid": self.keys.current.id})
 
     def issue(
         self,

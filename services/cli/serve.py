@@ -160,6 +160,7 @@ def serve(**flags: object) -> None:
     from services.server import serve as run_server
     from services.settings import load_settings
     from services.startup import hold_data_dir, split_addr
+    from services.workers import run_workers, worker_count
 
     settings = load_settings(**flags)
     limits.configure(settings.max_chunk_bytes, settings.decompress_budget_bytes)  # process-wide, like the memory
@@ -170,6 +171,7 @@ def serve(**flags: object) -> None:
         except ValueError as exc:
             raise click.BadParameter(str(exc)) from exc
     auth_off = check_auth_bind(settings, hosts)  # auth off on a public address: refused, one line
+    workers = worker_count(settings)  # more than one needs a Postgres catalog: refused, one line
     with hold_data_dir(settings.data_dir):  # one `fleet serve` per data dir, for the process's life
         release_reserve_if_full(settings)  # a full disk must not keep the catalog from opening
         # This engine (and its pooled connection) lives as long as the service: an embedded catalog's
@@ -189,6 +191,10 @@ def serve(**flags: object) -> None:
                 f"Rerun gRPC on rerun+http://{settings.grpc_addr}/proxy, durability {settings.durability}"
             )
             click.echo(f"fleet: {auth_off}" if auth_off else "fleet: auth on: every request needs a token")
-            asyncio.run(run_server(settings))
+            if workers > 1:
+                click.echo(f"fleet: {workers} worker processes share both ports (--workers)")
+                run_workers(settings, workers)
+            else:
+                asyncio.run(run_server(settings))
         finally:
             engine.dispose()

@@ -111,6 +111,9 @@ def held_answer(edge: Edge, principal: Principal, run_id: str, chunk_ids: Sequen
         "missing": missing,
         "unsealed": unsealed,
         "sealed": len(sealed),
+        # the process holding the unsealed chunks: when it changes (another node took the run over,
+        # or the depot restarted), chunks it was said to hold are asked about again
+        "holder": edge.ingest.incarnation if hot is not None and edge.ingest is not None else None,
     }
 
 

@@ -1,10 +1,12 @@
 """REST: what a robot's agent asks of the depot (`held`, its pulls, its copies) and what engineers
 ask of robots (pulls). Handlers parse, call one function of the edge package, and leave errors to
 the app's one mapping. Plain `def` handlers: FastAPI runs them on worker threads, so reading a
-sealed run's chunk index never blocks the event loop."""
+sealed run's chunk index never blocks the event loop (`held`, which may ask the node that owns the
+run, is async and does its own work on a worker thread)."""
 
 from __future__ import annotations
 
+import asyncio
 import datetime as dt
 from typing import Annotated, Any
 
@@ -15,8 +17,10 @@ from catalog.edge import PullAsk
 from core.states import PullState
 from services.auth.depends import actor, require
 from services.auth.scopes import Principal, Scope
+from services.cluster import peer
 from services.edge import copies, held, pulls
 from services.edge.context import Edge
+from services.ingest.routing import asking_for, owner_elsewhere
 
 router = APIRouter()
 Count = Annotated[int, Field(ge=0, le=2**63 - 1)]  # what a catalog BIGINT holds
@@ -33,17 +37,24 @@ class HeldBody(BaseModel):
 
 
 @router.post("/v1/runs/{run_id}/held", summary="Which of these chunks of a run the depot holds, and how safely")
-def held_chunks(
+async def held_chunks(
     request: Request,
     run_id: str,
     body: HeldBody,
     principal: Annotated[Principal, Depends(require(Scope.INGEST, Scope.READ))],
 ) -> dict[str, Any]:
-    """Each chunk id is in `missing` (held nowhere), in `unsealed` (only in this node's hot tier)
-    or counted in `sealed` (in the warm tier). A cold or deleted run takes no data: `accepts_data`
-    false, nothing missing. A robot's ingest token asks about its own robot's runs, or runs the
-    depot does not know."""
-    return held.held_answer(_edge(request), principal, run_id, body.chunk_ids)
+    """Each chunk id is in `missing` (held nowhere), in `unsealed` (only in the hot tier of the
+    node that owns the run) or counted in `sealed` (in the warm tier). A cold or deleted run takes
+    no data: `accepts_data` false, nothing missing. A robot's ingest token asks about its own
+    robot's runs, or runs the depot does not know."""
+    edge = _edge(request)
+    owner = await owner_elsewhere(edge.ingest, run_id) if edge.ingest is not None else None
+    if owner is not None and edge.ingest is not None:  # hot on another node of the depot: asked there
+        assert edge.ingest.channels is not None  # a node with owners has channels to them
+        asked = {"run_id": run_id, "chunk_ids": body.chunk_ids}
+        metadata = asking_for(edge.ingest, request.app.state.auth, principal)
+        return await peer.held(edge.ingest.channels, owner, asked, metadata)
+    return await asyncio.to_thread(held.held_answer, edge, principal, run_id, body.chunk_ids)
 
 
 class PullBody(BaseModel):

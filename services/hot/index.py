@@ -106,6 +106,33 @@ def _frame(payload: bytes) -> bytes:
     return _RECORD.pack(len(payload), zlib.crc32(payload)) + payload
 
 
+class _KnownLayout:
+    """A layout written to an index file: its id there, its timelines' positions, and the struct of
+    its common chunk record (every timeline, every component `_SAME`)."""
+
+    __slots__ = ("id", "layout", "plain", "positions")
+
+    def __init__(self, layout: ChunkLayout, layout_id: int) -> None:
+        self.layout = layout  # kept alive, so its identity (the key) is never reused
+        self.id = layout_id
+        self.positions = {ix.name: i for i, ix in enumerate(layout.indexes)}
+        count = len(layout.indexes)
+        self.plain = struct.Struct(_CHUNK.format + _RANGE.format[1:] * count + f"{len(layout.data)}x")
+
+
+def _all_same(components: tuple[ComponentMeta, ...], rows: int, full: dict[str, TimeRange]) -> bool:
+    """Whether every component holds a value in every row (its ranges are the chunk's)."""
+    shared = None
+    for component in components:
+        if component.num_rows != rows:
+            return False
+        if component.ranges is not shared:  # chunk metadata shares one ranges dict between them
+            if component.ranges != full:
+                return False
+            shared = component.ranges
+    return True
+
+
 # --- writing ------------------------------------------------------------------------------------
 
 
@@ -123,9 +150,8 @@ class HotIndexWriter:
         self.covered = covered  # bytes of the run file the records describe
         self.stopped = False
         self._next_layout = next_layout
-        # Layouts written to this file, by the identity of the (cached, shared) layout object, kept
-        # alive here so that identity is never reused: (layout, its id, timeline positions by name).
-        self._layouts: dict[int, tuple[ChunkLayout, int, dict[str, int]]] = {}
+        # Layouts written to this file, by the identity of the (cached, shared) layout object.
+        self._layouts: dict[int, _KnownLayout] = {}
 
     @classmethod
     def create(cls, directory: Path, covered: int = STREAM_HEADER_SIZE) -> HotIndexWriter:
@@ -160,27 +186,32 @@ class HotIndexWriter:
         layout = meta.layout
         known = self._layouts.get(id(layout))
         if known is None:
-            known = (layout, self._next_layout, {ix.name: i for i, ix in enumerate(layout.indexes)})
+            known = _KnownLayout(layout, self._next_layout)
             self._next_layout += 1
             self._layouts[id(layout)] = known
-            records.append(_frame(_LAYOUT.pack(b"L", known[1]) + layout.schema.serialize().to_pybytes()))
-        _, layout_id, positions = known
+            records.append(_frame(_LAYOUT.pack(b"L", known.id) + layout.schema.serialize().to_pybytes()))
         rows = meta.num_rows
         timelines = meta.timelines
+        full = {t.name: t.range for t in timelines}
+        if len(timelines) == len(layout.indexes) and _all_same(meta.components, rows, full):
+            # The common record: every timeline, every component non-null in every row. One pack.
+            values: list[object] = [b"C", store_kind, known.id, offset, length, rows, meta.uncompressed_size]
+            values += [meta.chunk_id, len(timelines)]
+            for i, t in enumerate(timelines):
+                values += [i, t.range.min, t.range.max]
+            records.append(_frame(known.plain.pack(*values)))
+            return records
+        positions = known.positions
         parts = [
             _CHUNK.pack(
-                b"C", store_kind, layout_id, offset, length, rows, meta.uncompressed_size, meta.chunk_id, len(timelines)
+                b"C", store_kind, known.id, offset, length, rows, meta.uncompressed_size, meta.chunk_id, len(timelines)
             )
         ]
         parts += [_RANGE.pack(positions[t.name], t.range.min, t.range.max) for t in timelines]
-        full: dict[str, TimeRange] | None = None
         for component in meta.components:
-            if component.num_rows == rows:
-                if full is None:
-                    full = {t.name: t.range for t in timelines}
-                if component.ranges == full:
-                    parts.append(_SAME)
-                    continue
+            if component.num_rows == rows and component.ranges == full:
+                parts.append(_SAME)
+                continue
             parts.append(_EXPLICIT.pack(1, component.num_rows, len(component.ranges)))
             parts += [_RANGE.pack(positions[name], r.min, r.max) for name, r in component.ranges.items()]
         records.append(_frame(b"".join(parts)))

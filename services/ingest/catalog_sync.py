@@ -31,13 +31,16 @@ class CatalogSync:
         self._writes = threading.Lock()  # one catalog writer at a time for ingest's own records
         self.dropped: set[str] = set()  # hot runs dropped by ingest, removed from the catalog at the next save
 
-    def take(self, runs: dict[str, IngestRun], default_robot: str) -> list[RunRecord]:
+    def take(self, runs: dict[str, IngestRun], default_robot: str, *, owned_only: bool = False) -> list[RunRecord]:
         """Snapshots of the runs that changed since the last flush (cheap: taken on the ingest
         thread, then saved with `save`, which may run on another thread). A run whose record the
-        catalog refused waits for its retry time alone."""
+        catalog refused waits for its retry time alone. `owned_only`: many nodes share the catalog,
+        and a run's row is written by its owner only (a copy to hand over waits, dirty)."""
         records = []
         now = self.clock()
         for run in list(runs.values()):
+            if owned_only and run.lease is None:
+                continue
             if run.dirty and (run.catalog_retry_at is None or run.catalog_retry_at <= now):
                 run.dirty = False
                 records.append(run.record(default_robot))

@@ -17,6 +17,7 @@ from typing import Any
 from catalog.queries import EntityRecord, RunRecord, TimelineRecord
 from core.ids import PATH_BYTES, check_id, check_name
 from core.states import RunStatus, Tier
+from services.cluster.ownership import Lease
 from services.hot.store import HotRun
 from services.ingest.identity import (
     DEFAULT_SECRETS,
@@ -200,6 +201,7 @@ class IngestRun(RunFacts):
         self.sealed = False  # handed to the warm tier: new data for this run starts a new hot run
         self.sealed_into: SealedInfo | None = None  # where promotion put it (for data that follows)
         self.sealed_as: SealedInfo | None = None  # this hot run adds chunks to a run already sealed
+        self.lease: Lease | None = None  # this node owns the run (None: filed here, to hand over)
         self.catalog_failures = 0  # consecutive failed catalog writes of this run (one bad run waits alone)
         self.catalog_retry_at: dt.datetime | None = None
 

@@ -6,6 +6,7 @@ are taken as sent, never re-encoded), hands it to the ingest service and maps er
 
 from __future__ import annotations
 
+import json
 import logging
 from collections.abc import AsyncIterator
 from typing import NoReturn
@@ -15,10 +16,12 @@ import grpc
 from core.errors import FleetError
 from services.auth.scopes import Scope
 from services.auth.tokens import Auth
+from services.cluster.relay import ERROR_CODE, RELAYED_BY, REPORT, SOURCE_KIND, metadata_value, request_of
 from services.ingest.replay import read_response
+from services.ingest.routing import open_relay, relay_held
 from services.ingest.service import IngestService
 from services.ingest.source import Source
-from services.ingest.stream_auth import WRITERS, CallAuth
+from services.ingest.stream_auth import WRITERS, CallAuth, Metadata
 from services.rrd import errors as rrd_errors
 from services.rrd import protowire
 from services.rrd.decoder import decode_message
@@ -30,10 +33,17 @@ log = logging.getLogger(__name__)
 
 SERVICE_NAME = "rerun.sdk_comms.v1alpha1.MessageProxyService"
 _LOG_MSG_FIELD = 1  # WriteMessagesRequest.log_msg; inside, oneof fields 1-3 = message kinds 1-3
+_LOG_MSG_TAGS = frozenset({(1 << 3) | 2, (2 << 3) | 2, (3 << 3) | 2})  # those fields, length-delimited
 
 
 def unwrap(request: bytes, offset: int) -> tuple[int, memoryview]:
     """(message kind, inner message bytes) of a serialized WriteMessagesRequest."""
+    if len(request) > 4 and request[0] == 0x0A:  # as the SDK writes it: log_msg, one message in it
+        length, start = protowire.varint(request, 1, offset)
+        if start + length == len(request) and request[start] in _LOG_MSG_TAGS:
+            inner, at = protowire.varint(request, start + 1, offset)
+            if at + inner == len(request):
+                return request[start] >> 3, memoryview(request)[at:]
     found = protowire.last_field(request, _LOG_MSG_FIELD, offset)
     if found is None:
         raise rrd_errors.ProtobufError("WriteMessagesRequest without log_msg", offset)
@@ -61,39 +71,73 @@ class MessageProxy:
         self, requests: AsyncIterator[bytes], context: grpc.aio.ServicerContext
     ) -> sdk_comms_pb2.WriteMessagesResponse:
         metadata = context.invocation_metadata()
+        relayed_by = metadata_value(metadata, RELAYED_BY)  # another node of the depot passes this on
         by_property = self.calls.needs_property_token(metadata)
         try:
             principal = None if by_property else await self.calls.principal(metadata, *WRITERS)
             # A stream still waiting for its token counts among FLEET_MAX_STREAMS: that bounds what
             # such streams hold in memory.
-            source = self.service.open_source(live=True, robot=principal.robot if principal else None)
+            source = self.service.open_source(
+                live=metadata_value(metadata, SOURCE_KIND) != "upload", robot=principal.robot if principal else None
+            )
         except FleetError as exc:
-            await refuse(context, exc)
+            await refuse(context, exc, relayed_by)
+        source.relayed_by = relayed_by
         received = 0  # bytes of requests so far: where errors are placed
         try:
             if by_property:
                 admitted = await self.calls.await_property_token(requests, decode_request)
                 source.robot = admitted.principal.robot  # bound before anything of the stream is filed
-                for event in admitted.held:
-                    await self._file(source, event)
+                for i, event in enumerate(admitted.held):
+                    if isinstance(event, StoreInfoMessage):
+                        await self.service.prepare(source, event)
+                        if source.relay_to is not None and await self._relay(
+                            source, metadata, admitted.held[i:], context
+                        ):
+                            return sdk_comms_pb2.WriteMessagesResponse()
+                    self.service.accept(source, event)
                 received = admitted.received
-            async for request in requests:  # the hot path: nothing here but decoding and filing
+            read = context.read  # the hot path: nothing here but decoding and filing
+            # read() rather than `async for`: the request iterator is an async generator around it,
+            # a tenth of what a message costs gRPC
+            while (request := await read()) is not grpc.aio.EOF:
                 event = decode_request(request, received)  # a view: no copy
-                # filed inline rather than by `_file`: no coroutine per message on the hot path
+                # filed inline: no coroutine per message on the hot path
                 if isinstance(event, StoreInfoMessage):  # the only message `prepare` looks at
                     await self.service.prepare(source, event)
+                    if source.relay_to is not None and await self._relay(source, metadata, [event], context):
+                        return sdk_comms_pb2.WriteMessagesResponse()
                 self.service.accept(source, event)
                 received += len(request)
         except FleetError as exc:
-            await refuse(context, exc)
+            await refuse(context, exc, relayed_by)
         finally:
-            self.service.close_source(source)
+            report = self.service.close_source(source)
+        if relayed_by is not None:
+            context.set_trailing_metadata(((REPORT, json.dumps(report.to_dict())),))
         return sdk_comms_pb2.WriteMessagesResponse()
 
-    async def _file(self, source: Source, event: Event) -> None:
-        if isinstance(event, StoreInfoMessage):
-            await self.service.prepare(source, event)
-        self.service.accept(source, event)
+    async def _relay(
+        self, source: Source, metadata: Metadata, pending: list[Event], context: grpc.aio.ServicerContext
+    ) -> bool:
+        """Send the rest of the source to its run's owner: what it held back, `pending`, then every
+        request as it comes. False if this node took the run over meanwhile (it files it itself)."""
+        relay = await open_relay(self.service, source, metadata)
+        if relay is None:
+            return False
+        try:
+            await relay_held(relay, source)
+            for event in pending:
+                request = request_of(event)
+                if request is not None:
+                    await relay.send(request)
+            while (request := await context.read()) is not grpc.aio.EOF:
+                await relay.send(request)
+            await relay.finish()
+        except BaseException:
+            relay.cancel()
+            raise
+        return True
 
     async def read_messages(self, request: bytes, context: grpc.aio.ServicerContext) -> AsyncIterator[bytes]:
         """What `rerun --connect rerun+http://HOST:51234/proxy` calls: recent history, then live."""
@@ -128,8 +172,10 @@ def decode_request(request: bytes, offset: int) -> Event:
     return decode_message(kind, raw, offset)
 
 
-async def refuse(context: grpc.aio.ServicerContext, exc: FleetError) -> NoReturn:
-    log.warning("stream from %s refused: %s", client_of(context), exc)
+async def refuse(context: grpc.aio.ServicerContext, exc: FleetError, relayed_by: str | None = None) -> NoReturn:
+    log.warning("stream from %s refused: %s", client_of(context) if relayed_by is None else f"node {relayed_by}", exc)
+    if relayed_by is not None:  # the relaying node passes the refusal on with its code
+        context.set_trailing_metadata(((ERROR_CODE, exc.code.name),))
     await context.abort(grpc.StatusCode[exc.grpc_status()], str(exc))
     raise AssertionError("not reached: abort raises")
 

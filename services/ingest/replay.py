@@ -15,29 +15,17 @@ import collections
 import logging
 from dataclasses import dataclass
 
+from services.rrd.protowire import log_msg_envelope
+
 log = logging.getLogger(__name__)
 
 READER_QUEUE = 4096
 Message = tuple[int, bytes | bytearray | memoryview]  # (kind, the message's protobuf bytes)
 
 
-def _varint(value: int) -> bytes:
-    out = bytearray()
-    while True:
-        byte = value & 0x7F
-        value >>= 7
-        if value:
-            out.append(byte | 0x80)
-        else:
-            out.append(byte)
-            return bytes(out)
-
-
 def read_response(kind: int, raw: bytes | bytearray | memoryview) -> bytes:
-    """A serialized `ReadMessagesResponse { LogMsg log_msg = 1 }` around a message's own bytes
-    (LogMsg's oneof field numbers are the message kinds 1-3): nothing is re-encoded."""
-    inner = bytes([(kind << 3) | 2]) + _varint(len(raw)) + bytes(raw)
-    return bytes([(1 << 3) | 2]) + _varint(len(inner)) + inner
+    """A serialized `ReadMessagesResponse` around a message's own bytes (see `log_msg_envelope`)."""
+    return log_msg_envelope(kind, raw)
 
 
 @dataclass(slots=True)

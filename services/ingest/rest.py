@@ -1,7 +1,9 @@
-"""REST: `POST /v1/uploads`, an `.rrd` body streamed into the ingest service."""
+"""REST: `POST /v1/uploads`, an `.rrd` body streamed into the ingest service (or, if another node
+of the depot owns its run, relayed to that node as it arrives)."""
 
 from __future__ import annotations
 
+from collections.abc import AsyncIterator
 from typing import Annotated, Any
 
 from fastapi import APIRouter, Depends, Request
@@ -10,8 +12,12 @@ from fastapi.responses import JSONResponse
 from core.errors import FleetError
 from services.auth.depends import require
 from services.auth.scopes import Principal, Scope
+from services.cluster.relay import request_of
+from services.ingest.routing import open_relay, relay_held
 from services.ingest.service import IngestService
+from services.ingest.source import Source
 from services.rrd.decoder import RrdDecoder
+from services.rrd.messages import Event
 
 router = APIRouter()
 
@@ -21,6 +27,7 @@ router = APIRouter()
     summary="Upload an .rrd file (idempotent: chunks already held are skipped)",
     responses={
         400: {"description": "the body is not valid RRD from the byte named on"},
+        503: {"description": "the node that owns the run does not answer yet: send again in a few seconds"},
         507: {"description": "the hot tier is full"},
     },
 )
@@ -34,16 +41,48 @@ async def upload(request: Request, principal: Annotated[Principal, Depends(requi
     settings = request.app.state.settings
     decoder = RrdDecoder(max_message_size=settings.max_message_size, max_chunk_bytes=settings.max_chunk_bytes)
     source = service.open_source(live=False, robot=principal.robot)
-    try:
+
+    async def events() -> AsyncIterator[Event]:
         async for piece in request.stream():
             for event in decoder.feed(piece):
-                await service.prepare(source, event)
-                service.accept(source, event)
+                yield event
         for event in decoder.finish():
+            yield event
+
+    try:
+        body = events()
+        async for event in body:
             await service.prepare(source, event)
+            if source.relay_to is not None:
+                answer = await _relayed(service, source, request, event, body)
+                if answer is not None:
+                    service.close_source(source)
+                    return answer
             service.accept(source, event)
     except FleetError as exc:
         report = await service.finish_upload(source)
-        body = {**exc.to_dict(), "offset": getattr(exc, "offset", None), "accepted": report.to_dict()}
-        return JSONResponse(body, status_code=exc.http_status())
+        body_json = {**exc.to_dict(), "offset": getattr(exc, "offset", None), "accepted": report.to_dict()}
+        return JSONResponse(body_json, status_code=exc.http_status(), headers=exc.headers())
     return (await service.finish_upload(source)).to_dict()
+
+
+async def _relayed(
+    service: IngestService, source: Source, request: Request, first: Event, rest: AsyncIterator[Event]
+) -> dict[str, Any] | None:
+    """The rest of the upload sent to the node that owns its run, and that node's answer; None if
+    this node took the run over meanwhile (it files the upload itself)."""
+    auth = request.headers.get("authorization")
+    relay = await open_relay(service, source, [("authorization", auth)] if auth else [])
+    if relay is None:
+        return None
+    try:
+        await relay_held(relay, source)
+        if (message := request_of(first)) is not None:
+            await relay.send(message)
+        async for event in rest:
+            if (message := request_of(event)) is not None:
+                await relay.send(message)
+        return await relay.finish()
+    except BaseException:
+        relay.cancel()
+        raise

@@ -19,7 +19,8 @@ from __future__ import annotations
 import asyncio
 import datetime as dt
 import logging
-from collections import OrderedDict
+import uuid
+from collections import Counter, OrderedDict
 from collections.abc import Callable
 
 from sqlalchemy.orm import Session, sessionmaker
@@ -29,6 +30,8 @@ from core.clock import utcnow
 from core.errors import ConflictError, InvalidArgumentError, PermissionDeniedError, ResourceExhaustedError
 from core.ids import UnsafeIdError, check_id, check_name
 from core.states import RunStatus, Tier
+from services.cluster.ownership import Ownership
+from services.cluster.relay import Channels
 from services.hot.read import HotRecording
 from services.hot.store import HotStore
 from services.ingest.catalog_sync import CatalogSync
@@ -41,9 +44,11 @@ from services.ingest.identity import (
     read_property_chunk,
 )
 from services.ingest.replay import ReplayHub
+from services.ingest.routing import route
 from services.ingest.source import IngestReport, Source
 from services.rrd.chunk import ChunkMeta, chunk_meta
 from services.rrd.frames import DEFAULT_VERSION, MessageKind
+from services.rrd.layout import ChunkLayout
 from services.rrd.manifest import is_property_entity
 from services.rrd.messages import (
     ArrowMessage,
@@ -73,6 +78,7 @@ __all__ = [
 log = logging.getLogger(__name__)
 
 _HELD_LIMIT = 64 * 1024 * 1024
+_NAMED_LAYOUTS = 4096
 _RECENTLY_SEALED = 1024
 SealedLookup = Callable[[str], SealedInfo | None]
 
@@ -91,8 +97,16 @@ class IngestService:
         sealed_lookup: SealedLookup | None = None,
         lookup_timeout_s: float = 2.0,
         secret_fields: SecretFields | None = None,
+        ownership: Ownership | None = None,
+        channels: Channels | None = None,
     ) -> None:
         self.hot = hot
+        # Many nodes on one catalog: who owns which run (None: this node files everything it gets).
+        self.ownership = ownership
+        self.channels = channels  # to the peer ports of runs' owners
+        self.open_claims: Counter[str] = Counter()  # runs routed here by sources still open
+        # This process's hot tier, as the agents' `held` checks name it: a new one after a restart.
+        self.incarnation = f"{ownership.node_id if ownership else 'depot'}/{uuid.uuid4().hex[:12]}"
         self.secret_fields = secret_fields or SecretFields()  # property fields stripped (FLEET_SECRET_FIELDS)
         self.sealed_lookup = sealed_lookup  # asked (off the event loop) when a run id is not hot here
         self.lookup_timeout_s = lookup_timeout_s
@@ -108,6 +122,7 @@ class IngestService:
         self.live_streams = 0
         self.totals = {"chunks_new": 0, "chunks_duplicate": 0, "bytes_new": 0, "bytes_duplicate": 0, "messages": 0}
         self._catalog_sync = CatalogSync(catalog, self.clock)
+        self._named: dict[int, ChunkLayout] = {}  # layouts whose entity and timeline names were checked
 
     # --- the hot runs as other services see them (read-only: only ingest changes `runs`) ------
 
@@ -168,6 +183,10 @@ class IngestService:
             self.totals[key] += getattr(source.report, key)
         if source.held:
             log.info("dropped %d held messages of runs that received no new chunk", len(source.held))
+        for run_id in source.routed:
+            self.open_claims[run_id] -= 1
+            if self.open_claims[run_id] <= 0:
+                del self.open_claims[run_id]
         runs = [self.runs[r] for r in source.attached if r in self.runs]
         self.hot.sync_if_always([r.hot for r in runs])
         now = self.clock()
@@ -196,19 +215,20 @@ class IngestService:
         """Before `accept`: for a recording not hot here, ask (on a worker thread, within
         `lookup_timeout_s`) whether it was sealed before, so late data is filed beside it and chunks
         it already holds are skipped. No answer in time: filed as new, sorted out at promotion."""
-        if self.sealed_lookup is None or not isinstance(event, StoreInfoMessage):
+        if not isinstance(event, StoreInfoMessage) or event.store_id.kind != StoreKind.RECORDING:
             return
-        store = event.store_id
-        run_id = store.recording_id
-        if store.kind != StoreKind.RECORDING or run_id in source.sealed or run_id in self.runs:
-            return
+        run_id = event.store_id.recording_id
         try:
             check_id("recording id", run_id)
+        except UnsafeIdError:
+            return  # `accept` refuses the id with the reason
+        await route(self, source, run_id)
+        if self.sealed_lookup is None or source.relay_to is not None or run_id in source.sealed or run_id in self.runs:
+            return
+        try:
             source.sealed[run_id] = await asyncio.wait_for(
                 asyncio.to_thread(self.sealed_lookup, run_id), self.lookup_timeout_s
             )
-        except UnsafeIdError:
-            return  # `accept` refuses the id with the reason
         except Exception as exc:  # catalog or store down or slow: the data still goes in
             self._lookup_failed(source, run_id, exc)
 
@@ -269,11 +289,16 @@ class IngestService:
             source.report.bytes_duplicate += len(msg.raw)
             return
         meta = chunk_meta(msg)
-        if self._holds(source, run, run_id, meta.chunk_id):
+        if meta.chunk_id != msg.chunk_id and self._holds(source, run, run_id, meta.chunk_id):
             source.report.chunks_duplicate += 1
             source.report.bytes_duplicate += len(msg.raw)
             return
-        check_chunk_names(meta)
+        if self._named.get(id(meta.layout)) is not meta.layout:  # the names are the layout's
+            check_chunk_names(meta)
+            if len(meta.timelines) == len(meta.layout.indexes):  # all of them were checked
+                if len(self._named) >= _NAMED_LAYOUTS:
+                    self._named.clear()
+                self._named[id(meta.layout)] = meta.layout
         check_chunk(msg, meta)  # what Rerun refuses, and full validation of chunks whose values are read
         prop = None
         if msg.store_id.kind == StoreKind.RECORDING and is_property_entity(meta.entity_path):
@@ -404,6 +429,7 @@ class IngestService:
         run = self.runs[run_id] = IngestRun(hot, self.clock(), self.secret_fields)
         run.robot_id = source.robot or run.robot_id  # the token's robot, until a property names the same one
         run.sealed_as = sealed  # chunks sent after it was sealed: sealed in with the rest later
+        run.lease = source.leases.get(run_id)
         source.created.add(run_id)
         self._attach(source, run)
         for key, store_info in source.store_infos.items():
@@ -519,7 +545,7 @@ class IngestService:
 
     def take_dirty_records(self) -> list[RunRecord]:
         """Snapshots of the runs that changed since the last flush (`CatalogSync.take`)."""
-        return self._catalog_sync.take(self.runs, self.default_robot)
+        return self._catalog_sync.take(self.runs, self.default_robot, owned_only=self.ownership is not None)
 
     def save_records(self, records: list[RunRecord]) -> None:
         """Write them to the catalog (`CatalogSync.save`); may run on another thread."""

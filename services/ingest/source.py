@@ -5,6 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any
 
+from services.cluster.ownership import Lease, Owner
 from services.ingest.facts import SealedInfo
 from services.rrd.frames import RerunVersion
 from services.rrd.messages import Event, StoreInfoMessage, StoreKind
@@ -52,3 +53,9 @@ class Source:
     attached: set[str] = field(default_factory=set)  # hot runs this source counts in their sources
     created: set[str] = field(default_factory=set)  # hot runs this source started
     report: IngestReport = field(default_factory=IngestReport)
+    # Ownership (services/ingest/routing.py): runs routed so far, those this node owns, and the
+    # owner this source is relayed to; `relayed_by`: the node that relayed this source here.
+    routed: set[str] = field(default_factory=set)
+    leases: dict[str, Lease] = field(default_factory=dict)
+    relay_to: Owner | None = None
+    relayed_by: str | None = None

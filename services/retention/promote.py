@@ -86,6 +86,8 @@ def due_for_promotion(
     for run in ingest.closed_runs():
         if backoff.waiting(run.run_id, now) is not None:
             continue
+        if ingest.ownership is not None and run.lease is None:
+            continue  # another node owns it, or the catalog has not said: the ownership pass settles it
         idle = now - run.last_data_at
         if idle >= promote_after:
             out.append(Candidate(run, f"closed and idle for {_human(idle)} (promote after {_human(promote_after)})"))
@@ -200,6 +202,8 @@ def _drop_hot_copy(run: IngestRun, ingest: IngestService, size: int, why: str) -
         ingest.forget(run)
         aside = ingest.hot.set_aside(run.hot)
     shutil.rmtree(aside, ignore_errors=True)
+    if ingest.ownership is not None and run.lease is not None:
+        ingest.ownership.release(run.lease)
     log.info("hot copy of run %s removed: %s", run.run_id, why)
 
 
@@ -264,6 +268,7 @@ def _seal_and_switch(
             raise ConflictError(f"run {run.run_id} received data while being sealed: promoted later")
         detail = f"{sealed.recording_size} bytes, {len(sealed.chunk_ids)} chunks to {tiers.warm.url}/{prefix}/"
         with session_scope(catalog, write=True) as session:  # (4)
+            _give_up_lease(session, run, ingest)
             stale = queries.analytics_keys(session, run.run_id) - {o.key for o in objects}
             queries.record_promotion(session, record, prefix, objects, now, detail)
             write_run_json(session, tiers.warm, run.run_id)  # with the pin as the catalog has it now
@@ -276,6 +281,18 @@ def _seal_and_switch(
     shutil.rmtree(aside, ignore_errors=True)  # (5)
     log.info("promoted run %s: %s", run.run_id, detail)
     return record
+
+
+def _give_up_lease(session: Session, run: IngestRun, ingest: IngestService) -> None:
+    """Many nodes on one catalog: only the run's owner seals it, and gives the run up in the same
+    transaction (a node that lost the run meanwhile hands its hot copy over instead)."""
+    ownership = ingest.ownership
+    if ownership is None:
+        return
+    if run.lease is None or not ownership.holds(session, run.lease):
+        run.lease = None
+        raise ConflictError(f"run {run.run_id} is owned by another node now: its hot copy here is handed over to it")
+    ownership.release_in(session, run.lease)
 
 
 def _sealed_record(run: IngestRun, sealed: SealedRun, default_robot: str) -> RunRecord:

@@ -4,6 +4,9 @@
   one promotion at a time per process).
 - `retention`: archive, restores and deletion over the whole catalog: one process at a time
   across every service process on the catalog (a Postgres advisory lock), others skip that turn.
+- `ownership`: with many nodes on one catalog, this node's hot runs matched with their leases, and
+  copies of runs other nodes own handed to them (`handoff.py`); not recorded in `job_runs` (it runs
+  every few seconds).
 Each job run is recorded in the catalog (`job_runs`): where, when, and how it went.
 """
 
@@ -22,6 +25,7 @@ from apscheduler.schedulers.background import BackgroundScheduler
 
 from catalog import queries
 from catalog.db import session_scope
+from services.retention.handoff import ownership_pass
 from services.retention.locks import job_lock
 from services.retention.promote import PROMOTING
 from services.retention.service import ARCHIVE, DELETE, PROMOTE, RESTORE, Outcome, Retention, plan, run_plan
@@ -114,13 +118,23 @@ class Job:
     interval_s: float
 
 
-def jobs(promote_interval_s: float, retention_interval_s: float) -> list[Job]:
-    return [Job("promote", promote_job, promote_interval_s), Job("retention", retention_job, retention_interval_s)]
+def ownership_job(ctx: Retention) -> None:
+    if ctx.ingest is not None:
+        ownership_pass(ctx.ingest, ctx.auth)
 
 
-def start_scheduler(ctx: Retention, promote_interval_s: float, retention_interval_s: float) -> BackgroundScheduler:
+def jobs(promote_interval_s: float, retention_interval_s: float, lease_s: float | None = None) -> list[Job]:
+    found = [Job("promote", promote_job, promote_interval_s), Job("retention", retention_job, retention_interval_s)]
+    if lease_s is not None:  # many nodes on one catalog
+        found.append(Job("ownership", ownership_job, max(0.5, lease_s / 2)))
+    return found
+
+
+def start_scheduler(
+    ctx: Retention, promote_interval_s: float, retention_interval_s: float, lease_s: float | None = None
+) -> BackgroundScheduler:
     scheduler = BackgroundScheduler(timezone="UTC")
-    for job in jobs(promote_interval_s, retention_interval_s):
+    for job in jobs(promote_interval_s, retention_interval_s, lease_s):
         scheduler.add_job(
             _guarded(job, ctx),
             "interval",

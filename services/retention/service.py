@@ -21,6 +21,7 @@ from catalog.db import session_scope
 from core.clock import aware, iso_utc, utcnow
 from core.errors import ConflictError
 from core.states import ARCHIVED_IN_STORE, RestoreState, RunStatus, Tier
+from services.auth.tokens import Auth
 from services.ingest.service import IngestService
 from services.policies import Policies
 from services.retention import archive, promote
@@ -48,6 +49,7 @@ class Retention:
     free_bytes: Callable[[], int] | None = None  # of the hot disk (default: asked of the file system)
     reserve_bytes: int = 0  # promotion never takes the hot disk below this much free
     promote_backoff: promote.PromoteBackoff = field(default_factory=promote.PromoteBackoff)  # failed promotions
+    auth: Auth | None = None  # signs this node's hand-overs to other nodes (many nodes on one catalog)
 
     def hot_free_bytes(self) -> int:
         if self.free_bytes is not None:

@@ -2,6 +2,8 @@
 
 The payload is decompressed (LZ4 block) and read as an Arrow IPC stream zero-copy; only the
 schema, the row count, the index (timeline) columns and the data columns' validity are looked at.
+A large chunk whose values the server does not read has only the first bytes of its payload
+decompressed, those that hold all of that (`PREFIX_FROM_BYTES`, `lz4_prefix`).
 """
 
 from __future__ import annotations
@@ -13,16 +15,16 @@ import lz4.block
 import numpy as np
 import pyarrow as pa
 
-from services.rrd import errors, limits
+from services.rrd import errors, limits, lz4_prefix
+from services.rrd.batch_plan import BatchPlan, ListCheck, batch_plan
 from services.rrd.layout import (
     ENTITY_PATH_KEY,
-    BatchHeader,
     ChunkLayout,
     DataColumn,
     LayoutCache,
-    read_batch_header,
     split_ipc,
 )
+from services.rrd.lz4_prefix import PrefixTooShort
 from services.rrd.messages import ArrowMessage, Compression, chunk_id_str, tuid_proto
 from services.rrd.pb import log_msg_pb2
 
@@ -91,11 +93,7 @@ class ChunkMeta:
         return self.layout.component_names
 
 
-def decompress_payload(msg: ArrowMessage) -> bytes:
-    """The Arrow IPC bytes of `msg`; raises DecompressionError if LZ4 does not give
-    exactly `uncompressed_size` bytes."""
-    if msg.compression != Compression.LZ4:
-        return bytes(msg.payload)
+def _check_declared_size(msg: ArrowMessage) -> None:
     if msg.uncompressed_size > limits.max_chunk_bytes():
         raise errors.MessageTooLargeError(
             f"chunk declares {msg.uncompressed_size} bytes uncompressed, over the limit of "
@@ -108,6 +106,14 @@ def decompress_payload(msg: ArrowMessage) -> bytes:
             f"LZ4 block of {len(msg.payload)} bytes cannot decompress to the declared {msg.uncompressed_size} bytes",
             msg.offset,
         )
+
+
+def decompress_payload(msg: ArrowMessage) -> bytes:
+    """The Arrow IPC bytes of `msg`; raises DecompressionError if LZ4 does not give
+    exactly `uncompressed_size` bytes."""
+    if msg.compression != Compression.LZ4:
+        return bytes(msg.payload)
+    _check_declared_size(msg)
     try:
         data: bytes = lz4.block.decompress(msg.payload, uncompressed_size=msg.uncompressed_size)
     except (lz4.block.LZ4BlockError, ValueError, MemoryError, OverflowError) as exc:
@@ -121,6 +127,18 @@ def decompress_payload(msg: ArrowMessage) -> bytes:
             f"LZ4 block decompressed to {len(data)} bytes, declared {msg.uncompressed_size}", msg.offset
         )
     return data
+
+
+def _decompress_prefix(msg: ArrowMessage, size: int) -> bytes:
+    _check_declared_size(msg)
+    try:
+        return lz4_prefix.decompress_prefix(msg.payload, size)
+    except ValueError as exc:
+        raise errors.DecompressionError(
+            f"LZ4 block of {len(msg.payload)} bytes does not decompress to the declared "
+            f"{msg.uncompressed_size} bytes ({exc})",
+            msg.offset,
+        ) from exc
 
 
 def read_chunk(msg: ArrowMessage) -> pa.RecordBatch:
@@ -151,6 +169,15 @@ def parse_chunk_id(text: str) -> bytes:
 
 
 _LAYOUTS = LayoutCache()
+# A chunk this large (decompressed) has its metadata read from the first bytes of its payload
+# (`lz4_prefix`), unless the server reads its values: its schema, record batch header, row ids and
+# index columns come before its data columns. How many bytes is guessed from the chunk before (a
+# stream repeats a few schemas); a chunk that needs more says how much (PrefixTooShort). Its data
+# columns are not decompressed: like those of any chunk whose values the server does not read, they
+# are the viewer's to read.
+PREFIX_FROM_BYTES = 256 * 1024
+_PREFIX_MARGIN = 1024
+_prefix_guess = 4 * 1024
 
 
 def decompressed_size(msg: ArrowMessage) -> int:
@@ -160,44 +187,62 @@ def decompressed_size(msg: ArrowMessage) -> int:
 def chunk_meta(msg: ArrowMessage) -> ChunkMeta:
     """Metadata of the chunk in `msg`; raises a codec error if it is not a valid chunk. In worker
     threads, a large chunk's decompressed bytes are counted against the process's budget."""
+    global _prefix_guess
     size = decompressed_size(msg)
-    budget = limits.budget_for(size)
-    taken = budget.acquire(size) if budget is not None else 0
-    try:
-        data = decompress_payload(msg)
+    partial = msg.compression == Compression.LZ4 and size >= PREFIX_FROM_BYTES and lz4_prefix.available
+    want = min(size, _prefix_guess) if partial else size
+    while True:
+        budget = limits.budget_for(want)
+        taken = budget.acquire(want) if budget is not None else 0
         try:
-            return _chunk_meta(msg, data)
-        except (UnicodeDecodeError, pa.ArrowInvalid, ValueError) as exc:
-            raise errors.NotAChunkError(f"chunk metadata is unreadable ({exc})", msg.offset) from exc
-    finally:
-        if budget is not None:
-            budget.release(taken)
+            data = _decompress_prefix(msg, want) if want < size else decompress_payload(msg)
+            try:
+                meta, needed = _chunk_meta(msg, data, size)
+                if partial:
+                    _prefix_guess = needed + _PREFIX_MARGIN
+                return meta
+            except PrefixTooShort as short:
+                want = min(size, max(short.end, 2 * want))
+            except (UnicodeDecodeError, pa.ArrowInvalid, ValueError) as exc:
+                raise errors.NotAChunkError(f"chunk metadata is unreadable ({exc})", msg.offset) from exc
+        finally:
+            if budget is not None:
+                budget.release(taken)
 
 
-def _chunk_meta(msg: ArrowMessage, data: bytes) -> ChunkMeta:
-    split = split_ipc(data)
+def _chunk_meta(msg: ArrowMessage, data: bytes, size: int) -> tuple[ChunkMeta, int]:
+    """The chunk's metadata and how many of the payload's first bytes it took. `data`: the payload
+    decompressed, or its first bytes (PrefixTooShort when more are needed)."""
+    split = split_ipc(data, size)
     if split is None:
+        _whole(data, size)
         _read_batch(msg, data)  # raises the precise error
         raise errors.NotAChunkError("payload is not an Arrow IPC stream", msg.offset)
     schema_message, batch_pos = split
     id_text = chunk_id_str(msg.chunk_id).encode() if msg.chunk_id else b""
     layout = _LAYOUTS.get(schema_message, id_text, msg.offset)
-    header = read_batch_header(data, batch_pos, layout) if layout.direct else None
-    values = _direct_values(data, layout, header) if header is not None else None
+    if layout.reads_values:
+        _whole(data, size)  # its values are read: all of it must decompress (and is checked later)
+    plan = batch_plan(data, batch_pos, layout, size) if layout.direct else None
     problem = layout.problem
-    if values is not None:
-        assert header is not None
-        num_rows, ranges = values
+    if plan is not None:
+        needed = size if layout.reads_values else batch_pos + plan.reach
+        if needed > len(data):
+            raise PrefixTooShort(needed)
+        num_rows = plan.rows
+        ranges = _read_ranges(data, batch_pos, plan) if plan.reads else {}
         components = tuple(
             [
                 ComponentMeta(c.column, c.component, c.archetype, c.component_type, num_rows, ranges, c.field)
                 for c in layout.data
             ]
         )
-        if problem is None and any(layout.pick_required_null_counts(header.nodes)):
-            problem = _null_problem(layout, [header.nodes[2 * layout.top_nodes[i] + 1] for i in layout.required])
-        checked = layout.direct_lists is not None and _lists_valid(data, layout.direct_lists, header)
+        if problem is None and any(plan.null_counts):
+            problem = _null_problem(layout, list(plan.null_counts))
+        checked = plan.lists is not None and _lists_valid(data, batch_pos, plan.lists)
     else:
+        _whole(data, size)
+        needed = size
         checked = False
         batch = _read_batch(msg, data)
         num_rows, ranges, components = _arrow_values(batch, layout, msg.offset)
@@ -218,7 +263,7 @@ def _chunk_meta(msg: ArrowMessage, data: bytes) -> ChunkMeta:
             chunk_id = parse_chunk_id((md.get(CHUNK_ID_KEY) or md[LEGACY_CHUNK_ID_KEY]).decode())
         except (KeyError, ValueError, UnicodeDecodeError) as exc:
             raise errors.NotAChunkError(f"chunk has no valid rerun:id ({exc})", msg.offset) from exc
-    return ChunkMeta(
+    meta = ChunkMeta(
         chunk_id,
         layout.entity_path,
         not layout.indexes,
@@ -232,28 +277,30 @@ def _chunk_meta(msg: ArrowMessage, data: bytes) -> ChunkMeta:
         problem,
         checked,
     )
+    return meta, needed
 
 
-def _lists_valid(data: bytes, columns: tuple[DataColumn, ...], header: BatchHeader) -> bool:
-    """Whether each list<float64> column is valid Arrow, read from the record batch header and its
-    offsets: what pyarrow's full validation checks of such a column (buffer sizes, offsets from a
-    non-negative start, never decreasing, within the values), at a fraction of the cost. False
-    (not known) sends the chunk to pyarrow's full validation."""
-    nodes, buffers, body = header.nodes, header.buffers, header.body
-    for c in columns:
-        rows, nulls, values, value_nulls = nodes[2 * c.node : 2 * c.node + 4]
-        # Buffers: list validity, list offsets, values validity, values (each (offset, length)).
-        _, validity, at, offsets_size, _, value_validity, _, values_size = buffers[2 * c.buffer : 2 * c.buffer + 8]
-        if not (0 <= nulls <= rows and 0 <= value_nulls <= values):
-            return False
-        if (nulls and validity < (rows + 7) // 8) or (value_nulls and value_validity < (values + 7) // 8):
-            return False
-        if values_size < 8 * values or (rows and offsets_size < 4 * (rows + 1)):
-            return False
-        if rows:
-            offsets = np.frombuffer(data, dtype="<i4", count=rows + 1, offset=body + at)
-            if offsets[0] < 0 or offsets[-1] > values or (rows > 1 and bool((offsets[1:] < offsets[:-1]).any())):
+def _whole(data: bytes, size: int) -> None:
+    """What follows needs the whole payload."""
+    if len(data) < size:
+        raise PrefixTooShort(size)
+
+
+def _lists_valid(data: bytes, pos: int, checks: tuple[ListCheck, ...]) -> bool:
+    """Whether each list<float64> column's offsets are valid Arrow, the rest of what pyarrow's full
+    validation checks of such a column having been read from its header (`batch_plan`): from a
+    non-negative start, never decreasing, within the values. False (not known) sends the chunk to
+    pyarrow's full validation."""
+    for check in checks:
+        at = pos + check.offsets
+        if check.rows == 1:
+            first, last = _TWO_I32.unpack_from(data, at)
+            if first < 0 or last < first or last > check.values:
                 return False
+            continue
+        offsets = np.frombuffer(data, dtype="<i4", count=check.rows + 1, offset=at)
+        if offsets[0] < 0 or offsets[-1] > check.values or bool((offsets[1:] < offsets[:-1]).any()):
+            return False
     return True
 
 
@@ -265,31 +312,22 @@ def _null_problem(layout: ChunkLayout, null_counts: list[int]) -> str | None:
 
 
 _INT64 = struct.Struct("<q")
+_TWO_I32 = struct.Struct("<ii")
 
 
-def _direct_values(data: bytes, layout: ChunkLayout, header: BatchHeader) -> tuple[int, dict[str, TimeRange]] | None:
-    """Row count and timeline ranges read straight from the record batch, when no column has
-    nulls that matter (else None: the pyarrow path handles them)."""
-    rows = header.length
-    nodes = header.nodes
-    if layout.pick_top_lengths(nodes).count(rows) != len(layout.top_nodes) or any(layout.pick_null_counts(nodes)):
-        return None
-    ranges: dict[str, TimeRange] = {}
-    if rows == 0:
-        return rows, ranges
-    index_buffers = layout.pick_index_buffers(header.buffers)
-    for i, ix in enumerate(layout.indexes):
-        offset, size = index_buffers[2 * i], index_buffers[2 * i + 1]
-        if size < 8 * rows:
-            return None
-        start = header.body + offset
-        if ix.is_sorted:
-            lo, hi = _INT64.unpack_from(data, start)[0], _INT64.unpack_from(data, start + 8 * (rows - 1))[0]
+def _read_ranges(data: bytes, pos: int, plan: BatchPlan) -> dict[str, TimeRange]:
+    """Each timeline's range in the chunk whose record batch starts at `pos`."""
+    ranges = {}
+    for read in plan.reads:
+        at = pos + read.first
+        if read.is_sorted:
+            lo = _INT64.unpack_from(data, at)[0]
+            hi = _INT64.unpack_from(data, at + 8 * (read.count - 1))[0] if read.count > 1 else lo
         else:
-            values = np.frombuffer(data, dtype="<i8", count=rows, offset=start)
+            values = np.frombuffer(data, dtype="<i8", count=read.count, offset=at)
             lo, hi = int(values.min()), int(values.max())
-        ranges[ix.name] = TimeRange(lo, hi)
-    return rows, ranges
+        ranges[read.name] = TimeRange(lo, hi)
+    return ranges
 
 
 def _arrow_values(

@@ -15,11 +15,16 @@ import operator
 import struct
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import pyarrow as pa
 
 from services.rrd import conformance, errors, migrations
+from services.rrd.lz4_prefix import PrefixTooShort
 from services.rrd.migrations import migrate_field_metadata, migrate_schema_metadata, sorbet_version
+
+if TYPE_CHECKING:
+    from services.rrd.batch_plan import BatchPlan
 
 ENTITY_PATH_KEY = migrations.ENTITY_PATH  # the keys migrations write, read here
 ARCHETYPE_KEY = migrations.ARCHETYPE
@@ -98,6 +103,9 @@ class ChunkLayout:
     # The columns read are all list<float64> (Scalars): their offsets can be checked without pyarrow.
     direct_lists: tuple[DataColumn, ...] | None
     batch_templates: list[BatchTemplate] = field(default_factory=list)  # filled by the first batch read
+    # What each distinct record batch header of this layout says (`batch_plan`): a stream's
+    # one-row chunks of one entity have byte-identical headers (None: read with pyarrow).
+    batch_plans: dict[bytes, BatchPlan | None] = field(default_factory=dict)
 
 
 def _counts(t: pa.DataType) -> tuple[int, int] | None:
@@ -310,13 +318,17 @@ def _string(msg: bytes, at: int) -> bytes:
     return msg[at + 4 : at + 4 + length]
 
 
-def split_ipc(data: bytes) -> tuple[bytes, int] | None:
-    """(schema message flatbuffer, position of the next message) of an IPC stream, or None."""
+def split_ipc(data: bytes, total: int | None = None) -> tuple[bytes, int] | None:
+    """(schema message flatbuffer, position of the next message) of an IPC stream, or None.
+    `data` may be the first bytes of a payload of `total` bytes (PrefixTooShort if the schema
+    message does not end within them)."""
     if len(data) < 8 or data[:4] != _CONTINUATION:
         return None
     (size,) = struct.unpack_from("<i", data, 4)
-    if size <= 0 or 8 + size > len(data):
+    if size <= 0 or 8 + size > (len(data) if total is None else total):
         return None
+    if 8 + size > len(data):
+        raise PrefixTooShort(8 + size)
     return data[8 : 8 + size], 8 + size
 
 
@@ -326,6 +338,7 @@ class BatchHeader:
     nodes: tuple[int, ...]  # flat (length, null_count) pairs
     buffers: tuple[int, ...]  # flat (offset, length) pairs
     body: int  # position of the body in the data
+    end: int = 0  # position of the end of the body
 
 
 _I32 = struct.Struct("<i")
@@ -334,15 +347,16 @@ _U16 = struct.Struct("<H")
 _I64 = struct.Struct("<q")
 
 
-def read_batch_header(data: bytes, pos: int, layout: ChunkLayout) -> BatchHeader | None:
-    """The record batch header at `pos`, if it is a plain one matching `layout`; else None."""
+def read_batch_header(data: bytes, pos: int, layout: ChunkLayout, total: int | None = None) -> BatchHeader | None:
+    """The record batch header at `pos`, if it is a plain one matching `layout`; else None.
+    `data` may be the first bytes of a payload of `total` bytes, as long as they hold the header."""
     templates = layout.batch_templates
     if templates:
-        header = templates[0].match(data, pos)
+        header = templates[0].match(data, pos, total)
         if header is not None:
             return header
     try:
-        parsed = _parse_batch_header(data, pos, layout)
+        parsed = _parse_batch_header(data, pos, layout, total)
     except (struct.error, IndexError):
         return None
     if parsed is None:
@@ -354,17 +368,17 @@ def read_batch_header(data: bytes, pos: int, layout: ChunkLayout) -> BatchHeader
 
 
 def _checked_header(
-    data: bytes, length: int, body_length: int, nodes: tuple[int, ...], buffers: tuple[int, ...], body: int
+    total: int, length: int, body_length: int, nodes: tuple[int, ...], buffers: tuple[int, ...], body: int
 ) -> BatchHeader | None:
-    if length < 0 or body_length < 0 or body + body_length > len(data):
+    if length < 0 or body_length < 0 or body + body_length > total:
         return None
     if buffers and (min(buffers) < 0 or max(map(operator.add, buffers[::2], buffers[1::2])) > body_length):
         return None
-    return BatchHeader(length, nodes, buffers, body)
+    return BatchHeader(length, nodes, buffers, body, body + body_length)
 
 
 def _parse_batch_header(
-    data: bytes, pos: int, layout: ChunkLayout
+    data: bytes, pos: int, layout: ChunkLayout, total: int | None = None
 ) -> tuple[BatchHeader | None, BatchTemplate | None] | None:
     """Reads the IPC flatbuffers (Message: 1 header_type, 2 header, 3 bodyLength; RecordBatch:
     0 length, 1 nodes, 2 buffers, 3 compression) and notes where the values sit, as a template."""
@@ -373,8 +387,11 @@ def _parse_batch_header(
     size = _I32.unpack_from(data, pos + 4)[0]
     base = pos + 8
     body = base + size
-    if size <= 0 or body > len(data):
+    total = len(data) if total is None else total
+    if size <= 0 or body > total:
         return None
+    if body > len(data):
+        raise PrefixTooShort(body)
     message = base + _U32.unpack_from(data, base)[0]
     vtable = message - _I32.unpack_from(data, message)[0]
     if _U16.unpack_from(data, vtable)[0] < 12:
@@ -399,7 +416,7 @@ def _parse_batch_header(
     buffers = _struct_vector(data, batch, o_buffers, layout.num_buffers)
     if nodes is None or buffers is None:
         return None
-    header = _checked_header(data, length, body_length, nodes[0], buffers[0], body)
+    header = _checked_header(total, length, body_length, nodes[0], buffers[0], body)
     values = [
         (batch + o_length - base, 8),
         (message + o_body - base, 8),
@@ -463,15 +480,20 @@ class BatchTemplate:
             struct.Struct(f"<{2 * layout.num_buffers}q"),
         )
 
-    def match(self, data: bytes, pos: int) -> BatchHeader | None:
+    def match(self, data: bytes, pos: int, total: int | None = None) -> BatchHeader | None:
         base = pos + 8
         if data[pos:base] != self.prefix:
             return None
+        total = len(data) if total is None else total
+        if base + self.size > len(data):
+            if base + self.size > total:
+                return None
+            raise PrefixTooShort(base + self.size)
         for start, end, expected in self.gaps:
             if data[base + start : base + end] != expected:
                 return None
         return _checked_header(
-            data,
+            total,
             _I64.unpack_from(data, base + self.at_length)[0],
             _I64.unpack_from(data, base + self.at_body_length)[0],
             self.nodes_format.unpack_from(data, base + self.at_nodes),

@@ -57,3 +57,23 @@ def last_field(raw: Buffer, number: int, offset: int = 0) -> tuple[int, int, int
         if field == number:
             found = (tag_start, start, end)
     return found
+
+
+def encode_varint(value: int) -> bytes:
+    out = bytearray()
+    while True:
+        byte = value & 0x7F
+        value >>= 7
+        if value:
+            out.append(byte | 0x80)
+        else:
+            out.append(byte)
+            return bytes(out)
+
+
+def log_msg_envelope(kind: int, raw: Buffer) -> bytes:
+    """`{ LogMsg log_msg = 1 }` around a message's own bytes: both a serialized WriteMessagesRequest
+    and a ReadMessagesResponse (LogMsg's oneof field numbers are the message kinds 1-3). Nothing is
+    re-encoded."""
+    inner = bytes([(kind << 3) | 2]) + encode_varint(len(raw)) + bytes(raw)
+    return bytes([(1 << 3) | 2]) + encode_varint(len(inner)) + inner

@@ -9,6 +9,7 @@ from typing import Any
 
 from services.rrd import errors
 from services.rrd.chunk import ChunkMeta, chunk_meta
+from services.rrd.layout import ChunkLayout
 from services.rrd.messages import (
     ArrowMessage,
     BlueprintActivationMessage,
@@ -52,6 +53,8 @@ class StoreSummary:
     blueprint_activations: int = 0
     entities: dict[str, EntitySummary] = field(default_factory=dict)
     timelines: dict[str, TimelineSummary] = field(default_factory=dict)
+    # The layout of each entity's last chunk: another chunk of it brings no archetype or component.
+    _last_layouts: dict[str, ChunkLayout] = field(default_factory=dict, repr=False, compare=False)
 
     def add_chunk(self, meta: ChunkMeta) -> None:
         # Runs once per chunk: plain lookups, no objects built for what is already known.
@@ -65,8 +68,10 @@ class StoreSummary:
         entity.static_chunks += meta.is_static
         entity.rows += meta.num_rows
         entity.bytes += meta.byte_size
-        entity.archetypes |= meta.archetypes
-        entity.components |= meta.component_names
+        if self._last_layouts.get(meta.entity_path) is not meta.layout:
+            entity.archetypes |= meta.archetypes
+            entity.components |= meta.component_names
+            self._last_layouts[meta.entity_path] = meta.layout
         for tl in meta.timelines:
             known = self.timelines.get(tl.name)
             if known is None:

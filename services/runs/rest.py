@@ -4,6 +4,9 @@ Handlers parse the request and call one service function; errors are mapped once
 
 from __future__ import annotations
 
+import asyncio
+import dataclasses
+from collections.abc import AsyncIterator
 from typing import Annotated, Any
 
 from fastapi import APIRouter, Depends, Query, Request
@@ -11,6 +14,8 @@ from fastapi.responses import StreamingResponse
 
 from services.auth.depends import recording_reader, require
 from services.auth.scopes import Principal, Scope
+from services.cluster import peer
+from services.ingest.routing import asking_for, owner_elsewhere
 from services.runs import links, service
 from services.runs.recording import RecordingQuery, open_recording
 from services.runs.service import RunFilter, parse_properties, parse_time
@@ -70,10 +75,10 @@ def run(request: Request, run_id: str, _: Reader) -> dict[str, Any]:
     response_class=StreamingResponse,
     responses={200: {"content": {"application/octet-stream": {}}}},
 )
-def recording(
+async def recording(
     request: Request,
     run_id: str,
-    _: Annotated[Principal, Depends(recording_reader)],
+    principal: Annotated[Principal, Depends(recording_reader)],
     include: Annotated[
         list[str] | None, Query(description="entity patterns to keep: /a/b or /a/** (repeatable)")
     ] = None,
@@ -109,18 +114,39 @@ def recording(
     Static data is always kept unless its entity is excluded; payloads are copied untouched. Needs a
     `read` token, or a signed link (`POST /v1/runs/RUN/links`) for clients that send no header."""
     tiers = getattr(request.app.state, "tiers", None)  # none on a node without retention: hot runs only
-    found = open_recording(
-        request.app.state.ingest,
-        request.app.state.catalog,
-        tiers.warm if tiers else None,
-        run_id,
-        RecordingQuery(include or [], exclude or [], blueprint, timeline, start, end, latest_at, follow, exact),
+    ingest = request.app.state.ingest
+    query = RecordingQuery(include or [], exclude or [], blueprint, timeline, start, end, latest_at, follow, exact)
+    owner = await owner_elsewhere(ingest, run_id)
+    if owner is not None:  # hot on another node of the depot: streamed from there
+        asked = {"run_id": run_id, **dataclasses.asdict(query)}
+        body = await first_piece(
+            peer.read_hot(ingest.channels, owner, asked, asking_for(ingest, request.app.state.auth, principal))
+        )
+        disposition = f'attachment; filename="{run_id}.rrd"'
+        return StreamingResponse(
+            body, media_type="application/octet-stream", headers={"Content-Disposition": disposition}
+        )
+    found = await asyncio.to_thread(
+        open_recording, ingest, request.app.state.catalog, tiers.warm if tiers else None, run_id, query
     )
     return StreamingResponse(
         found.body,
         media_type="application/octet-stream",
         headers={"Content-Disposition": f'attachment; filename="{found.filename}"', "ETag": found.etag},
     )
+
+
+async def first_piece(pieces: AsyncIterator[bytes]) -> AsyncIterator[bytes]:
+    """`pieces` with its first one already read: a refusal (the run not found, a bad parameter)
+    becomes the answer's status rather than a cut-off stream."""
+    first = await anext(pieces, b"")
+
+    async def rest() -> AsyncIterator[bytes]:
+        yield first
+        async for piece in pieces:
+            yield piece
+
+    return rest()
 
 
 @router.post(

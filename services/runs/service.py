@@ -14,7 +14,7 @@ from sqlalchemy.dialects.postgresql import JSONB
 from sqlalchemy.orm import Session, sessionmaker
 
 from catalog import edge as edge_queries
-from catalog import queries
+from catalog import nodes, queries
 from catalog.db import session_scope
 from catalog.models import Robot, Run, RunEntity
 from core.clock import iso_utc
@@ -281,6 +281,7 @@ def run_answer(catalog: sessionmaker[Session], run_id: str, policies: Policies |
             ],
             **_lifecycle(session, found, policies),
             **edge_queries.run_edge(session, run_id),  # the robot's own copy, and the latest pulls
+            "owner": nodes.owner_of(session, [run_id]).get(run_id),  # the node filing it while hot (many nodes)
         }
 
 

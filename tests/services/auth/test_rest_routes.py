@@ -68,6 +68,7 @@ TABLE = [
     Guarded("POST", "/v1/catalog/rebuild", (ADMIN,)),
     Guarded("POST", "/v1/uploads", (INGEST, WRITE)),
     Guarded("GET", "/v1/robots", (READ,)),
+    Guarded("GET", "/v1/nodes", (READ,)),
     Guarded("GET", "/v1/runs", (READ,)),
     Guarded("GET", "/v1/runs/{run_id}", (READ,)),
     Guarded("GET", "/v1/runs/{run_id}/recording.rrd", (READ,)),

@@ -84,6 +84,7 @@ def test_a_run_the_depot_does_not_know_has_every_chunk_missing(edge: Edge):
             "missing": ids,
             "unsealed": [],
             "sealed": 0,
+            "holder": None,  # no depot process holds any of it
         }
 
 

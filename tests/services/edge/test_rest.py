@@ -53,6 +53,9 @@ def test_a_robot_asks_what_the_depot_holds_of_its_run(depot: Depot, sdk_runs: Sd
     assert robot.held(RUN, ids)["missing"] == ids  # not sent yet: all missing
     robot.upload(sdk_runs.first)
     hot = robot.held(RUN, [*ids, "0" * 32])
+    holder = hot.pop("holder")
+    assert holder.startswith("depot/")  # this depot process: agents ask again if that changes
+    assert robot.held(RUN, ids[:1])["holder"] == holder
     assert hot == {
         "run": RUN,
         "robot": ROBOT,
@@ -68,6 +71,7 @@ def test_a_robot_asks_what_the_depot_holds_of_its_run(depot: Depot, sdk_runs: Sd
     sdk(depot, depot.token("write")).promote(RUN)
     sealed = robot.held(RUN, ids)
     assert (sealed["tier"], sealed["missing"], sealed["unsealed"], sealed["sealed"]) == ("warm", [], [], len(ids))
+    assert sealed["holder"] is None
 
 
 def test_held_refuses_what_is_no_chunk_id(depot: Depot):

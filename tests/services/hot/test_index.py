@@ -5,15 +5,19 @@ rebuilt to match what the run file still holds."""
 from __future__ import annotations
 
 import os
+import struct
+import zlib
 from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
 
-from services.hot.index import INDEX_FILE, MAGIC, read_hot_index
+from services.hot.index import INDEX_FILE, MAGIC, HotIndexWriter, read_hot_index
 from services.hot.store import HotRun, HotStore
+from services.rrd import iter_events
+from services.rrd.chunk import ChunkMeta, chunk_meta
 from services.rrd.frames import DEFAULT_VERSION, MessageKind
-from services.rrd.messages import StoreId, StoreKind
+from services.rrd.messages import ArrowMessage, StoreId, StoreKind
 from services.settings import Durability
 from tests.services.hot.indexing import append_recording, entry_keys, expected_entries, manifest_of
 from tests.services.rrd.recordings import Recording
@@ -218,3 +222,41 @@ def test_a_message_appended_without_index_details(store: HotStore):
     run.append(MessageKind.ARROW_MSG, b"x" * 100)  # a chunk whose metadata nobody gave
     assert run.index is not None and run.index.stopped
     assert run.size > 12
+
+
+def _documented_record(meta: ChunkMeta, store_kind: int, layout_id: int, offset: int, length: int) -> bytes:
+    """A chunk's record as the format in services/hot/index.py describes it, built field by field."""
+    names = [ix.name for ix in meta.layout.indexes]
+    out = struct.pack("<cBIqqqq", b"C", store_kind, layout_id, offset, length, meta.num_rows, meta.uncompressed_size)
+    out += meta.chunk_id + struct.pack("<H", len(meta.timelines))
+    full = {t.name: t.range for t in meta.timelines}
+    for t in meta.timelines:
+        out += struct.pack("<Hqq", names.index(t.name), t.range.min, t.range.max)
+    for c in meta.components:
+        if c.num_rows == meta.num_rows and c.ranges == full:
+            out += b"\0"
+        else:
+            out += struct.pack("<BqH", 1, c.num_rows, len(c.ranges))
+            for name, r in c.ranges.items():
+                out += struct.pack("<Hqq", names.index(name), r.min, r.max)
+    return struct.pack("<II", len(out), zlib.crc32(out)) + out
+
+
+@pytest.mark.parametrize("scene", ["scalars", "optimized", "points"])
+def test_chunk_records_are_the_documented_bytes(tmp_path: Path, recordings: dict[str, Recording], scene: str):
+    """The common record is packed in one go (every timeline, every component in every row); it and
+    the explicit one are the bytes the format describes."""
+    writer = HotIndexWriter.create(tmp_path)
+    layouts: dict[int, int] = {}
+    explicit = 0
+    for event in iter_events(recordings[scene].path):
+        if not isinstance(event, ArrowMessage):
+            continue
+        meta = chunk_meta(event)
+        records = writer._chunk_records(event.store_id.kind, event.offset, 100, meta)
+        layout_id = layouts.setdefault(id(meta.layout), len(layouts))
+        assert records[-1] == _documented_record(meta, event.store_id.kind, layout_id, event.offset, 100)
+        explicit += any(c.num_rows != meta.num_rows for c in meta.components)
+    writer.close()
+    if scene == "optimized":
+        assert explicit, "no record with a component of its own: the explicit form went untested"

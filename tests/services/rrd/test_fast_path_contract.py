@@ -26,7 +26,7 @@ import pyarrow.compute as pc
 import pytest
 
 from services.ingest.grpc_handler import unwrap
-from services.rrd import ArrowMessage, decoder, errors, iter_events, protowire
+from services.rrd import ArrowMessage, chunk, decoder, errors, iter_events, lz4_prefix, protowire
 from services.rrd.chunk import chunk_meta, decompress_payload, read_chunk
 from services.rrd.footer import read_footer
 from services.rrd.frames import MessageKind
@@ -52,10 +52,19 @@ NODES_AND_BUFFERS = (
 )
 SORTED_INDEX = (
     "an index column marked rerun:is_sorted=true is sorted ascending, so its first and last values "
-    "are its range (chunk._direct_values)"
+    "are its range (chunk._read_ranges)"
 )
 LIST_F64_BUFFERS = (
-    "a list<float64> column's buffers are validity, int32 offsets, values validity, float64 values (chunk._lists_valid)"
+    "a list<float64> column's buffers are validity, int32 offsets, values validity, float64 values "
+    "(batch_plan._list_checks, chunk._lists_valid)"
+)
+METADATA_FIRST = (
+    "a chunk's IPC payload holds its schema, record batch header, row ids and index columns before "
+    "its data columns, so a large chunk's metadata is read from its first bytes (chunk.chunk_meta)"
+)
+LZ4_PREFIX = (
+    "liblz4's LZ4_decompress_safe_partial is reachable in python-lz4's extension and gives the first "
+    "bytes of what lz4.block gives (lz4_prefix)"
 )
 SCHEMA_KEY = (
     "a chunk's schema message holds its chunk id only as the text chunk_<hex> (rerun:id), so the "
@@ -332,3 +341,64 @@ def test_footer_read_from_the_end_is_the_one_scanned(footer_file: Recording):
     assert footer == ends[0].footer, broken(
         STREAM_FOOTER, f"{footer_file.name}.rrd", "read_footer gives None" if footer is None else "another footer"
     )
+
+
+def _summary(meta: chunk.ChunkMeta) -> tuple[object, ...]:
+    return (
+        meta.chunk_id,
+        meta.entity_path,
+        meta.num_rows,
+        [(t.name, t.type, t.range, t.is_sorted) for t in meta.timelines],
+        [(c.column, c.num_rows, c.ranges) for c in meta.components],
+        meta.uncompressed_size,
+        meta.problem,
+        meta.values_checked,
+    )
+
+
+def test_chunk_metadata_precedes_the_data_columns(whole: Recording):
+    """Read from only the bytes it says it needs, a chunk's metadata is the one read from the whole
+    payload, and those bytes end before its first data column's values (where the data lies)."""
+    large = 0
+    for msg, data, where in _chunks(whole):
+        full, needed = chunk._chunk_meta(msg, data, len(data))
+        if needed == len(data):
+            continue  # read whole: its values are read, or pyarrow reads it (nulls in a column)
+        prefix, again = chunk._chunk_meta(msg, data[:needed], len(data))
+        assert _summary(prefix) == _summary(full) and again == needed, broken(METADATA_FIRST, where, "another result")
+        header = _header(data, full.layout, where)
+        data_starts = [
+            header.body + header.buffers[2 * b]
+            for c in full.layout.data
+            for b in range(c.buffer, c.buffer + 2)
+            if header.buffers[2 * b + 1]
+        ]
+        if data_starts:
+            assert needed <= min(data_starts), broken(
+                METADATA_FIRST, where, f"{needed} bytes needed, data from byte {min(data_starts)}"
+            )
+        large += len(data) >= chunk.PREFIX_FROM_BYTES
+    if whole.name == "large":
+        assert large, "no chunk of the large recording is large enough for the prefix path"
+
+
+def test_lz4_prefix_is_lz4s(recordings: dict[str, Recording]):
+    assert lz4_prefix.available, broken(LZ4_PREFIX, "lz4.block._block", "LZ4_decompress_safe_partial not found")
+    for msg, data, where in _chunks(recordings["large"]):
+        for size in sorted({1, min(4096, len(data)), len(data) // 2 or 1, len(data)}):
+            assert lz4_prefix.decompress_prefix(msg.payload, size) == data[:size], broken(LZ4_PREFIX, where, size)
+        with pytest.raises(ValueError):
+            lz4_prefix.decompress_prefix(msg.payload, len(data) + 1)  # the block holds no more
+
+
+def test_large_chunks_read_through_the_prefix(whole: Recording, monkeypatch: pytest.MonkeyPatch):
+    """Every chunk's metadata through the prefix path (on real recordings the guess is sometimes too
+    short: then more is decompressed) is the one read from the whole payload."""
+    chunks = list(_chunks(whole))
+    expected = [_summary(chunk_meta(msg)) for msg, _, _ in chunks]
+    monkeypatch.setattr(chunk, "PREFIX_FROM_BYTES", 0)
+    monkeypatch.setattr(chunk, "_prefix_guess", 64)
+    for (msg, _, where), want in zip(chunks, expected, strict=True):
+        with assuming(METADATA_FIRST, where):
+            got = _summary(chunk_meta(msg))
+        assert got == want, broken(METADATA_FIRST, where, "another result through the prefix")

@@ -1,0 +1,105 @@
+"""The ownership pass (many depot nodes on one catalog), every few seconds on every node.
+
+- Runs hot here: a lease the catalog no longer shows (another node took the run over while this
+  one did not heart-beat) is dropped; a lease the catalog shows but this node did not know of (it
+  restarted, or claimed the run when the catalog answered again) is taken up.
+- Closed hot runs this node holds without a lease (filed while the catalog did not answer, or
+  taken over from it) are claimed if nobody else owns them, else handed to their owner over its
+  peer port, whole, and removed here once the owner has filed them (it skips chunks it holds).
+- Leases of runs this node no longer holds hot and no open source is filing are given up.
+Each step is safe to repeat: a hand-over that breaks is sent again whole at the next pass.
+"""
+
+from __future__ import annotations
+
+import logging
+import shutil
+from dataclasses import dataclass, field
+
+from core.errors import ConflictError
+from core.states import RunStatus
+from services.auth.tokens import Auth
+from services.cluster.ownership import Lease, Ownership
+from services.cluster.relay import RELAYED_BY, SOURCE_KIND, hand_over
+from services.hot.read import read_events
+from services.ingest.service import IngestRun, IngestService
+
+log = logging.getLogger(__name__)
+
+HAND_OVER_TIMEOUT_S = 600.0
+
+
+@dataclass
+class PassReport:
+    adopted: list[str] = field(default_factory=list)
+    lost: list[str] = field(default_factory=list)
+    claimed: list[str] = field(default_factory=list)
+    handed_over: list[str] = field(default_factory=list)
+    released: list[str] = field(default_factory=list)
+    failed: dict[str, str] = field(default_factory=dict)
+
+
+def ownership_pass(ingest: IngestService, auth: Auth | None) -> PassReport:
+    ownership = ingest.ownership
+    report = PassReport()
+    if ownership is None:
+        return report
+    leases = ownership.leases()
+    _match_leases(ingest, leases, report)
+    for run in ingest.closed_runs():
+        if run.lease is None:
+            try:
+                _settle(run, ingest, ownership, auth, report)
+            except Exception as exc:  # the next pass tries again
+                report.failed[run.run_id] = f"{type(exc).__name__}: {exc}"
+                log.warning("run %s not handed to its owner yet: %s", run.run_id, report.failed[run.run_id])
+    for run_id, epoch in leases.items():
+        idle = ingest.hot_run(run_id) is None and ingest.open_claims.get(run_id, 0) <= 0
+        if idle and ownership.release(Lease(run_id, epoch), idle=True):
+            report.released.append(run_id)
+    return report
+
+
+def _match_leases(ingest: IngestService, leases: dict[str, int], report: PassReport) -> None:
+    for run in ingest.hot_runs():
+        epoch = leases.get(run.run_id)
+        if run.lease is not None and epoch != run.lease.epoch:
+            log.warning("run %s was taken over by another node: its hot copy here goes to that node", run.run_id)
+            run.lease = None
+            report.lost.append(run.run_id)
+        elif run.lease is None and epoch is not None:
+            run.lease, run.dirty = Lease(run.run_id, epoch), True
+            report.adopted.append(run.run_id)
+
+
+def _settle(run: IngestRun, ingest: IngestService, ownership: Ownership, auth: Auth | None, report: PassReport) -> None:
+    got = ownership.claim(run.run_id)
+    if isinstance(got, Lease):
+        run.lease, run.dirty = got, True  # its owner now: its catalog row is written, and it is promoted
+        report.claimed.append(run.run_id)
+        return
+    size = run.hot.size
+    token = auth.peer_token(ownership.node_id, run.robot_id or run.hot.robot) if auth is not None else None
+    metadata = [(RELAYED_BY, ownership.node_id), (SOURCE_KIND, "upload")]
+    if token is not None:
+        metadata.append(("authorization", f"Bearer {token}"))
+    answer = hand_over(got, read_events(run.hot.path, size), metadata, HAND_OVER_TIMEOUT_S)
+    _drop_copy(run, ingest, size)
+    report.handed_over.append(run.run_id)
+    log.info(
+        "hot copy of run %s handed to node %s, which owns it (%s new chunks, %s it held) and removed here",
+        run.run_id,
+        got.node_id,
+        answer.get("chunks_new", "?"),
+        answer.get("chunks_duplicate", "?"),
+    )
+
+
+def _drop_copy(run: IngestRun, ingest: IngestService, size: int) -> None:
+    with run.sealing:
+        if run.hot.size != size or run.status == RunStatus.LIVE or run.live_sources:
+            raise ConflictError(f"run {run.run_id} received data while being handed over: handed over again")
+        run.sealed = True  # nothing more is written to this copy
+        ingest.forget(run)
+        aside = ingest.hot.set_aside(run.hot)
+    shutil.rmtree(aside, ignore_errors=True)
