@@ -157,6 +157,8 @@ def same_recording(rerun_bin: str, a: Path, b: Path) -> tuple[bool, str]:
 
 def download(depot: LiveServer, run_id: str, to: Path) -> Path:
     with httpx.stream("GET", f"{depot.url}/v1/runs/{run_id}/recording.rrd", headers=depot.headers, timeout=60) as r:
+        if r.is_error:
+            r.read()  # the refusal's reason, for whoever reports it
         r.raise_for_status()
         with open(to, "wb") as fh:
             for piece in r.iter_bytes():

@@ -312,7 +312,14 @@ def chunks_in(path: Path) -> list[bytes]:
 def served_equals_copy(node: Node, run_id: str, copy: Path, rerun_bin: str, tmp_path: Path) -> tuple[bool, str]:
     """The run as the node serves it equals the robot's FileSink copy (`rerun rrd compare
     --unordered`), the fleet property set apart on both sides: the depot keeps it without its token."""
-    served = download(node.server, run_id, tmp_path / f"{run_id}-{node.name}-served.rrd")
+    try:
+        served = download(node.server, run_id, tmp_path / f"{run_id}-{node.name}-served.rrd")
+    except httpx.HTTPStatusError as exc:  # a problem found (with the answer's reason), not the end of the test
+        token_file = node.server.data_dir / "admin.token"
+        raise AssertionError(
+            f"GET /v1/runs/{run_id}/recording.rrd on {node.name} answered {exc.response.status_code}: "
+            f"{exc.response.text[:500]} (admin token file there: {token_file.is_file()})"
+        ) from None
     sides = []
     for path in (copy, served):
         out = path.with_name(f"{path.stem}-no-fleet.rrd")
