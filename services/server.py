@@ -26,6 +26,7 @@ from services.auth.links import MaskLinkSignatures
 from services.auth.tokens import IssuedToken
 from services.cluster.ownership import Ownership
 from services.cluster.relay import Channels, peer_channel_options
+from services.console import app as console
 from services.hot.reserve import DiskReserve
 from services.hot.store import HotStore
 from services.ingest import grpc_handler
@@ -233,6 +234,7 @@ async def serve(
         redap_handler.CatalogServer(Depot(retention.catalog, retention.tiers.warm, ingest, settings.public_url), auth),
     )
     app = create_app(settings, ingest, retention, analytics, auth)
+    console.install(app)
     if ingest.ownership is not None:  # other nodes read the hot runs this one owns
         peer.add_to_server(
             grpc_server, peer.PeerService(auth, ingest, retention.catalog, retention.tiers.warm, app.state.edge)

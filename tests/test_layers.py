@@ -50,6 +50,7 @@ LAYERS: dict[str, int] = {
     "services.api": 8,
     "services.redap": 8,
     "services.agent": 8,
+    "services.console": 8,
     "services.server": 9,
     "services.workers": 10,
     "services.cli": 11,

@@ -193,6 +193,11 @@ class Auth:
             ) from None
         return claims
 
+    def standing(self, token_id: str) -> TokenRecord | None:
+        """A token's catalog record (revoked or not), asked of the catalog at most every `cache_s`;
+        None if the catalog does not list it. Call off the event loop."""
+        return self._record(token_id)
+
     def _record(self, token_id: str) -> TokenRecord | None:
         now = time.monotonic()
         known = self._known.get(token_id)

@@ -1,0 +1,25 @@
+"""The console added to the depot's app: its pages, its static files, and `/` pointing to it."""
+
+from __future__ import annotations
+
+from fastapi import FastAPI
+from fastapi.responses import RedirectResponse
+from fastapi.staticfiles import StaticFiles
+
+from services.console import login, overview, run, runs, sql
+from services.console.web import PREFIX, static_dir
+
+
+def install(app: FastAPI) -> None:
+    for module in (login, overview, runs, run, sql):
+        app.include_router(module.router)
+    app.mount(f"{PREFIX}/static", StaticFiles(directory=static_dir()), name="console-static")
+
+    @app.get("/", include_in_schema=False)
+    async def home() -> RedirectResponse:
+        """A browser opening the depot's address lands on the console."""
+        return RedirectResponse(f"{PREFIX}/", status_code=307)
+
+    @app.get(PREFIX, include_in_schema=False)
+    async def console_root() -> RedirectResponse:
+        return RedirectResponse(f"{PREFIX}/", status_code=307)

@@ -1,0 +1,7 @@
+"""The console's overview page(s)."""
+
+from __future__ import annotations
+
+from services.console.web import console_router
+
+router = console_router()
