@@ -18,6 +18,8 @@ import click
 if TYPE_CHECKING:
     from pydantic.fields import FieldInfo
 
+    from services.settings import Settings
+
 AGENT = "agent_"  # the settings of `fleet agent` (its flags drop the prefix: --spool, --listen, ...)
 # Settings the agent shares with the depot's ingest (the spool is its hot tier).
 AGENT_SHARED = ("max_message_size", "group_commit_ms", "close_after_s", "secret_fields", "default_robot", "insecure")
@@ -191,6 +193,8 @@ def serve(**flags: object) -> None:
                 f"Rerun gRPC on rerun+http://{settings.grpc_addr}/proxy, durability {settings.durability}"
             )
             click.echo(f"fleet: {auth_off}" if auth_off else "fleet: auth on: every request needs a token")
+            login = "" if auth_off else " (log in with a token: the admin token is in DATA_DIR/admin.token)"
+            click.echo(f"fleet: web console on {console_address(settings)}{login}")
             if workers > 1:
                 click.echo(f"fleet: {workers} worker processes share both ports (--workers)")
                 run_workers(settings, workers)
@@ -198,3 +202,17 @@ def serve(**flags: object) -> None:
                 asyncio.run(run_server(settings))
         finally:
             engine.dispose()
+
+
+def console_address(settings: Settings) -> str:
+    """Where a browser on this machine (or, with `public_url`, anywhere) opens the web console."""
+    from services.startup import split_addr
+
+    if settings.public_url:
+        return settings.public_url.rstrip("/") + "/console/"
+    host, port = split_addr(settings.http_addr)
+    if host in ("0.0.0.0", "::", ""):
+        host = "localhost"
+    elif ":" in host:
+        host = f"[{host}]"
+    return f"http://{host}:{port}/console/"

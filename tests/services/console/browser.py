@@ -32,7 +32,7 @@ def chromium_paths() -> tuple[str, str]:
     browser = shutil.which("chromium") or "/usr/bin/chromium"
     driver = shutil.which("chromedriver") or "/usr/bin/chromedriver"
     if not (Path(browser).exists() and Path(driver).exists()):
-        pytest.fail("the console's browser tests need Chromium: apt-get install chromium chromium-driver (.ci/run does)")
+        pytest.fail("the browser tests need Chromium: apt-get install chromium chromium-driver (.ci/run does)")
     return browser, driver
 
 
