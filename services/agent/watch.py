@@ -14,6 +14,7 @@ import threading
 import time
 from collections.abc import Awaitable, Callable, Iterable, Sequence
 from pathlib import Path
+from typing import Any, cast
 
 import watchfiles
 
@@ -205,7 +206,10 @@ class FileWatcher:
     async def _watch(self, roots: tuple[str, ...], stop: threading.Event) -> None:
         """Wake the import loop when the file system reports a change under `roots`."""
         try:
-            async for changes in watchfiles.awatch(*roots, watch_filter=None, stop_event=stop, step=50):
+            # A threading.Event (set from the agent's other threads): awatch only polls is_set(),
+            # which it has, though its signature names the async libraries' events.
+            stop_event = cast(Any, stop)
+            async for changes in watchfiles.awatch(*roots, watch_filter=None, stop_event=stop_event, step=50):
                 for change, path in changes:
                     if self._wanted(path, roots):
                         self._changed.add(path)

@@ -104,6 +104,7 @@ def chrome_session(tmp_path_factory: pytest.TempPathFactory) -> Iterator[webdriv
 @pytest.fixture
 def chrome(chrome_session: webdriver.Chrome, console_depot: ConsoleDepot) -> webdriver.Chrome:
     """The session's browser, logged out: no cookie of the depot left from an earlier test."""
-    chrome_session.get(f"{console_depot.url}/healthz")
+    # The browser deletes only the cookies the open page sees: the console's live under /console.
+    chrome_session.get(f"{console_depot.url}/console/static/console.css")
     chrome_session.delete_all_cookies()
     return chrome_session
