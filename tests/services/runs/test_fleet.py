@@ -81,7 +81,12 @@ def test_robots_with_last_runs_and_counts(fleet_rows: Session):
     assert robots["robot-a"]["last_run"]["id"] == "a-2" and robots["robot-a"]["last_run"]["status"] == "live"
     # b-1 and b-2 started at the same time: the larger id wins, as in GET /v1/runs's newest-first order
     assert robots["robot-b"]["runs"] == 2 and robots["robot-b"]["last_run"]["id"] == "b-2"
-    assert robots["robot-idle"] == {"id": "robot-idle", "runs": 0, "last_seen_at": "2026-11-20T12:00:00Z", "last_run": None}
+    assert robots["robot-idle"] == {
+        "id": "robot-idle",
+        "runs": 0,
+        "last_seen_at": "2026-11-20T12:00:00Z",
+        "last_run": None,
+    }
 
 
 def test_runs_per_day(fleet_rows: Session):
@@ -111,11 +116,11 @@ def test_tier_and_object_totals(fleet_rows: Session):
 
 def test_jobs_failures_and_events(fleet_rows: Session):
     for i, outcome in enumerate(("ok", "failed", "ok", "running")):
-        job_id = queries.start_job(fleet_rows, "retention" if i % 2 else "promote", "node-1", NOW + dt.timedelta(minutes=i))
+        job_id = queries.start_job(
+            fleet_rows, "retention" if i % 2 else "promote", "node-1", NOW + dt.timedelta(minutes=i)
+        )
         if outcome != "running":
-            queries.finish_job(
-                fleet_rows, job_id, NOW + dt.timedelta(minutes=i, seconds=30), outcome, f"{outcome} {i}"
-            )
+            queries.finish_job(fleet_rows, job_id, NOW + dt.timedelta(minutes=i, seconds=30), outcome, f"{outcome} {i}")
     for i, action in enumerate(("promote", "archive", "delete")):
         queries.add_event(fleet_rows, "a-1", action, NOW + dt.timedelta(hours=i), "retention", "default", action)
     fleet_rows.flush()
