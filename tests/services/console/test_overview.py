@@ -4,17 +4,25 @@ and hot runs, retention events."""
 
 from __future__ import annotations
 
+import datetime as dt
+import re
 from typing import Any
 
 import pytest
 from selenium import webdriver
 from selenium.webdriver.common.by import By
+from sqlalchemy.orm import sessionmaker
 
+from catalog import queries
+from catalog.db import create_engine, session_scope
+from catalog.queries import RunRecord
+from services import __version__
+from services.auth.scopes import local_principal
+from services.console.web import PREFIX, templates
+from services.runs import fleet
 from tests.services.console.browser import find, log_in, screenshot, text_of, wait_for
 from tests.services.console.conftest import ConsoleDepot
 from tests.services.console.test_login import logged_out
-
-pytestmark = [pytest.mark.browser, pytest.mark.slow]
 
 
 @pytest.fixture
@@ -45,6 +53,8 @@ def overview(chrome: webdriver.Chrome, console_depot: ConsoleDepot) -> webdriver
     return chrome
 
 
+@pytest.mark.browser
+@pytest.mark.slow
 def test_robots_and_their_last_runs(overview: webdriver.Chrome, console_depot: ConsoleDepot):
     for robot in ("robot-a", "robot-b"):
         newest = all_runs(console_depot, robot=robot)[0]  # newest first, as the overview takes it
@@ -65,6 +75,8 @@ def test_robots_and_their_last_runs(overview: webdriver.Chrome, console_depot: C
     }
 
 
+@pytest.mark.browser
+@pytest.mark.slow
 def test_data_by_tier_matches_the_runs_api(overview: webdriver.Chrome, console_depot: ConsoleDepot):
     for tier in ("hot", "warm", "cold"):
         runs = all_runs(console_depot, tier=tier)
@@ -84,6 +96,8 @@ def test_data_by_tier_matches_the_runs_api(overview: webdriver.Chrome, console_d
     assert "free" in text_of(overview, "#storage")
 
 
+@pytest.mark.browser
+@pytest.mark.slow
 def test_hot_runs_and_retention_events(overview: webdriver.Chrome, console_depot: ConsoleDepot):
     hot = console_depot.runs["hot"]
     row = find(overview, f"#live tr[data-run='{hot}']")
@@ -96,3 +110,54 @@ def test_hot_runs_and_retention_events(overview: webdriver.Chrome, console_depot
     rows = overview.find_elements(By.CSS_SELECTOR, "#events tbody tr")
     assert console_depot.runs["sealed-b"] in promoted or len(rows) == 10  # the latest ten: newer events may push it out
     screenshot(overview, "overview")
+
+
+def test_failed_jobs_are_highlighted(fresh_catalog_url: str):
+    """The page as the template renders it from `fleet.overview` (no browser): a failed job run is
+    flagged in the jobs table and named in an alert above it."""
+    engine = create_engine(fresh_catalog_url)
+    try:
+        catalog = sessionmaker(engine)
+        now = dt.datetime(2026, 11, 20, 12, tzinfo=dt.UTC)
+        with session_scope(catalog, write=True) as session:
+            queries.save_run(session, _record("r-1", now), now)
+            ok = queries.start_job(session, "promote", "node-1", now)
+            queries.finish_job(session, ok, now + dt.timedelta(seconds=2), "ok", "1 done, 0 failed")
+            bad = queries.start_job(session, "retention", "node-1", now + dt.timedelta(minutes=1))
+            queries.finish_job(session, bad, now + dt.timedelta(minutes=1), "failed", "OSError: the cold store refused")
+        answer = fleet.overview(catalog, None, now=now)
+    finally:
+        engine.dispose()
+    page = templates.get_template("overview.html").render(
+        path=f"{PREFIX}/",
+        principal=local_principal(),
+        can={},
+        csrf="x",
+        auth_on=False,
+        version=__version__,
+        prefix=PREFIX,
+        fleet=answer,
+    )
+    assert re.search(rf'<tr data-job="{bad}"[^>]*class="failed"', page)
+    assert re.search(rf'<tr data-job="{ok}"[^>]*>', page) and page.count('class="failed"') == 1
+    assert 'id="failures"' in page and "OSError: the cold store refused" in page
+    assert "This node ingests nothing" in page and 'href="/console/runs/r-1"' in page
+
+
+def _record(run_id: str, now: dt.datetime) -> RunRecord:
+    return RunRecord(
+        id=run_id,
+        robot_id="robot-a",
+        application_id="nav",
+        date=now.date(),
+        status="closed",
+        tier="warm",
+        started_at=now,
+        ended_at=now,
+        last_data_at=now,
+        sdk_version="0.41.0",
+        chunks=1,
+        rows=1,
+        bytes=10,
+        properties={},
+    )
