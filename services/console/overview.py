@@ -1,7 +1,20 @@
-"""The console's overview page(s)."""
+"""The console's overview page: the fleet at a glance (`GET /console/`)."""
 
 from __future__ import annotations
 
-from services.console.web import console_router
+from fastapi import Request
+from fastapi.responses import HTMLResponse
+
+from services.console.web import Viewer, console_router, render
+from services.runs import fleet
 
 router = console_router()
+
+
+@router.get("/")
+def overview(request: Request, principal: Viewer) -> HTMLResponse:
+    """Robots and their last runs, runs per robot per day, data by tier, hot disk and object-store
+    usage, recent retention jobs and events, and the runs live now."""
+    state = request.app.state
+    answer = fleet.overview(state.catalog, getattr(state, "ingest", None))
+    return render(request, "overview.html", principal, fleet=answer)

@@ -1,0 +1,286 @@
+"""The fleet at a glance, as plain values: robots and their last runs, runs per robot per day, data
+by tier, object-store and hot-disk usage, recent retention jobs and events, and the runs live now.
+
+What the catalog says is read in one session; what only this node knows (its hot disk, the hot runs
+it is writing, fresher than their catalog rows) comes from ingest's read-only view."""
+
+from __future__ import annotations
+
+import datetime as dt
+import shutil
+from pathlib import Path
+from typing import Any
+
+import sqlalchemy as sa
+from sqlalchemy.orm import Session, sessionmaker
+
+from catalog.db import session_scope
+from catalog.models import JobRun, RetentionEvent, Robot, Run, RunObject
+from core.clock import aware, iso_utc, utcnow
+from core.states import RunStatus, Tier
+from services.ingest.service import IngestRun, IngestService
+
+DAYS = 14  # runs per robot per day: this many days, today included
+RECENT = 10  # retention jobs and events shown
+FAILURES = 5  # failed jobs shown even when older than the recent ones
+LIVE_LIMIT = 50  # live runs listed
+TIERS = (Tier.HOT, Tier.WARM, Tier.COLD)
+
+
+def _started() -> sa.ColumnElement[dt.datetime]:
+    return sa.func.coalesce(Run.started_at, Run.created_at)
+
+
+def robots(session: Session) -> list[dict[str, Any]]:
+    """Every robot with its run count (deleted runs not counted) and its last run (by start)."""
+    started = _started()
+    ranked = (
+        sa.select(
+            Run.id.label("run_id"),
+            sa.func.row_number().over(partition_by=Run.robot_id, order_by=(started.desc(), Run.id.desc())).label("n"),
+        )
+        .where(Run.tier != Tier.DELETED)
+        .subquery()
+    )
+    last: dict[str, Run] = {
+        run.robot_id: run
+        for run in session.scalars(sa.select(Run).join(ranked, ranked.c.run_id == Run.id).where(ranked.c.n == 1))
+    }
+    counts: dict[str, int] = {
+        robot_id: int(n)
+        for robot_id, n in session.execute(
+            sa.select(Run.robot_id, sa.func.count()).where(Run.tier != Tier.DELETED).group_by(Run.robot_id)
+        ).all()
+    }
+    seen: dict[str, Robot | None] = {robot.id: robot for robot in session.scalars(sa.select(Robot))}
+    for robot_id in counts:
+        seen.setdefault(robot_id, None)
+    out = []
+    for robot_id in sorted(seen):
+        robot = seen[robot_id]
+        run = last.get(robot_id)
+        out.append(
+            {
+                "id": robot_id,
+                "runs": counts.get(robot_id, 0),
+                "last_seen_at": iso_utc(robot.last_seen_at) if robot is not None else None,
+                "last_run": _run_brief(run) if run is not None else None,
+            }
+        )
+    return out
+
+
+def _run_brief(run: Run) -> dict[str, Any]:
+    return {
+        "id": run.id,
+        "robot_id": run.robot_id,
+        "application_id": run.application_id,
+        "status": run.status,
+        "tier": run.tier,
+        "started_at": iso_utc(run.started_at),
+        "ended_at": iso_utc(run.ended_at),
+        "last_data_at": iso_utc(run.last_data_at),
+        "bytes": int(run.bytes or 0),
+        "chunks": int(run.chunks or 0),
+    }
+
+
+def runs_per_day(session: Session, today: dt.date, days: int = DAYS) -> dict[str, Any]:
+    """How many runs each robot started on each of the last `days` days (UTC dates, oldest first;
+    deleted runs not counted)."""
+    first = today - dt.timedelta(days=days - 1)
+    dates = [first + dt.timedelta(days=i) for i in range(days)]
+    rows = session.execute(
+        sa.select(Run.robot_id, Run.date, sa.func.count())
+        .where(Run.date >= first, Run.date <= today, Run.tier != Tier.DELETED)
+        .group_by(Run.robot_id, Run.date)
+    ).all()
+    counts: dict[str, list[int]] = {}
+    for robot_id, day, n in rows:
+        day = day.date() if isinstance(day, dt.datetime) else day
+        counts.setdefault(robot_id, [0] * days)[(day - first).days] = int(n)
+    totals = [sum(c[i] for c in counts.values()) for i in range(days)]
+    return {
+        "days": [d.isoformat() for d in dates],
+        "robots": [{"id": r, "counts": counts[r], "total": sum(counts[r])} for r in sorted(counts)],
+        "totals": totals,
+        "max": max((n for c in counts.values() for n in c), default=0),
+    }
+
+
+def tier_totals(session: Session) -> list[dict[str, Any]]:
+    """Runs and their recordings' bytes in each tier (as the runs' catalog rows say), deleted runs
+    as a count of tombstones."""
+    found = {
+        tier: (int(n), int(size or 0))
+        for tier, n, size in session.execute(
+            sa.select(Run.tier, sa.func.count(), sa.func.sum(Run.bytes)).group_by(Run.tier)
+        ).all()
+    }
+    out = [{"tier": str(t), "runs": found.get(t, (0, 0))[0], "bytes": found.get(t, (0, 0))[1]} for t in TIERS]
+    out.append({"tier": str(Tier.DELETED), "runs": found.get(Tier.DELETED, (0, 0))[0], "bytes": None})
+    return out
+
+
+def object_totals(session: Session) -> list[dict[str, Any]]:
+    """What the object stores hold by the catalog's records: objects and bytes in the warm and the
+    cold tier (recordings, chunk indexes, run.json, analytics tables)."""
+    found = {
+        tier: (int(n), int(size or 0))
+        for tier, n, size in session.execute(
+            sa.select(RunObject.tier, sa.func.count(), sa.func.sum(RunObject.size)).group_by(RunObject.tier)
+        ).all()
+    }
+    return [
+        {"tier": str(t), "objects": found.get(t, (0, 0))[0], "bytes": found.get(t, (0, 0))[1]}
+        for t in (Tier.WARM, Tier.COLD)
+    ]
+
+
+def _job(job: JobRun) -> dict[str, Any]:
+    finished = job.finished_at
+    took = (aware(finished) - aware(job.started_at)).total_seconds() if finished is not None else None
+    return {
+        "id": job.id,
+        "job": job.job,
+        "node": job.node,
+        "started_at": iso_utc(job.started_at),
+        "finished_at": iso_utc(finished),
+        "seconds": took,
+        "outcome": job.outcome,
+        "failed": job.outcome == "failed",
+        "detail": job.detail,
+    }
+
+
+def recent_jobs(session: Session, limit: int = RECENT) -> list[dict[str, Any]]:
+    """The latest scheduled job runs (promote, retention), newest first."""
+    query = sa.select(JobRun).order_by(JobRun.started_at.desc(), JobRun.id.desc()).limit(limit)
+    return [_job(job) for job in session.scalars(query)]
+
+
+def failed_jobs(session: Session, limit: int = FAILURES) -> list[dict[str, Any]]:
+    """The latest job runs that failed (the catalog keeps a month of them), newest first."""
+    query = (
+        sa.select(JobRun)
+        .where(JobRun.outcome == "failed")
+        .order_by(JobRun.started_at.desc(), JobRun.id.desc())
+        .limit(limit)
+    )
+    return [_job(job) for job in session.scalars(query)]
+
+
+def recent_events(session: Session, limit: int = RECENT) -> list[dict[str, Any]]:
+    """What retention (or a person) did to runs lately: promote, archive, restore, pin, delete..."""
+    query = sa.select(RetentionEvent).order_by(RetentionEvent.occurred_at.desc(), RetentionEvent.id.desc()).limit(limit)
+    return [
+        {
+            "run_id": e.run_id,
+            "action": e.action,
+            "at": iso_utc(e.occurred_at),
+            "actor": e.actor,
+            "policy": e.policy,
+            "detail": e.detail,
+        }
+        for e in session.scalars(query)
+    ]
+
+
+def live_in_catalog(session: Session, limit: int = LIVE_LIMIT) -> list[dict[str, Any]]:
+    """Runs a stream still feeds, on any node (their catalog rows), latest data first."""
+    query = (
+        sa.select(Run)
+        .where(Run.status == RunStatus.LIVE, Run.tier != Tier.DELETED)
+        .order_by(Run.last_data_at.desc(), Run.id)
+        .limit(limit)
+    )
+    return [{**_run_brief(run), "here": False} for run in session.scalars(query)]
+
+
+def _hot_brief(run: IngestRun, default_robot: str) -> dict[str, Any]:
+    start_ns = run.start_time_ns or run.first_log_time_ns
+    started = dt.datetime.fromtimestamp(start_ns / 1e9, dt.UTC) if start_ns else None
+    return {
+        "id": run.run_id,
+        "robot_id": run.robot_id or default_robot,
+        "application_id": run.application_id,
+        "status": str(run.status),
+        "tier": str(Tier.HOT),
+        "started_at": iso_utc(started),
+        "ended_at": iso_utc(run.ended_at),
+        "last_data_at": iso_utc(run.last_data_at),
+        "bytes": run.recording_bytes(),
+        "chunks": run.summary.chunks if run.summary is not None else 0,
+        "here": True,
+    }
+
+
+def hot_here(ingest: IngestService | None) -> list[dict[str, Any]]:
+    """The hot runs this node holds (being written, or closed and waiting to be sealed), newest
+    data first, as ingest knows them now."""
+    if ingest is None:
+        return []
+    runs = [_hot_brief(run, ingest.default_robot) for run in ingest.hot_runs()]
+    return sorted(runs, key=lambda r: (r["last_data_at"] or "", r["id"]), reverse=True)
+
+
+def live_now(catalog_live: list[dict[str, Any]], hot: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """Runs live now (any node), and this node's hot runs (what it knows of them is fresher than
+    their rows), newest data first."""
+    merged = {run["id"]: run for run in catalog_live}
+    merged.update({run["id"]: run for run in hot})
+    return sorted(merged.values(), key=lambda r: (r["last_data_at"] or "", r["id"]), reverse=True)[:LIVE_LIMIT]
+
+
+def disk_usage(root: Path, reserve: int = 0) -> dict[str, Any]:
+    """The file system holding `root`: its size, used and free bytes, and the reserve the hot tier
+    keeps free (ingest refuses data below it)."""
+    usage = shutil.disk_usage(root)
+    return {
+        "path": str(root),
+        "total": usage.total,
+        "used": usage.used,
+        "free": usage.free,
+        "used_fraction": usage.used / usage.total if usage.total else 0.0,
+        "reserve": reserve,
+    }
+
+
+def hot_disk(ingest: IngestService | None, hot: list[dict[str, Any]]) -> dict[str, Any] | None:
+    """This node's hot disk, with the hot runs on it; None on a node that ingests nothing."""
+    if ingest is None:
+        return None
+    try:
+        usage = disk_usage(ingest.hot.root, ingest.hot.min_free_bytes)
+    except OSError as exc:  # the disk went away: shown as such, the rest of the overview still answers
+        return {"path": str(ingest.hot.root), "problem": f"cannot read the hot tier's disk: {exc.strerror or exc}"}
+    return {
+        **usage,
+        "runs": len(hot),
+        "live": sum(r["status"] == RunStatus.LIVE for r in hot),
+        "run_bytes": sum(int(r["bytes"]) for r in hot),
+        "problem": None,
+    }
+
+
+def overview(
+    catalog: sessionmaker[Session], ingest: IngestService | None, *, now: dt.datetime | None = None
+) -> dict[str, Any]:
+    """The fleet overview: everything the console's first page shows, as plain values."""
+    now = now or utcnow()
+    with session_scope(catalog) as session:
+        answer: dict[str, Any] = {
+            "robots": robots(session),
+            "per_day": runs_per_day(session, now.astimezone(dt.UTC).date()),
+            "tiers": tier_totals(session),
+            "objects": object_totals(session),
+            "jobs": recent_jobs(session),
+            "failures": failed_jobs(session),
+            "events": recent_events(session),
+        }
+        catalog_live = live_in_catalog(session)
+    hot = hot_here(ingest)
+    answer["live"] = live_now(catalog_live, hot)
+    answer["hot_disk"] = hot_disk(ingest, hot)
+    answer["generated_at"] = iso_utc(now)
+    return answer
