@@ -13,19 +13,6 @@ from tests.services.console.conftest import ConsoleDepot
 pytestmark = [pytest.mark.browser, pytest.mark.slow]
 
 
-def logged_out(chrome: webdriver.Chrome, url: str) -> webdriver.Chrome:
-    """The browser with no cookie of the console: a page under /console/ is opened first, as a
-    browser deletes only the cookies the page it shows can see (the console's have path /console)."""
-    chrome.get(f"{url}/console/static/console.css")
-    chrome.delete_all_cookies()
-    return chrome
-
-
-@pytest.fixture
-def chrome(chrome: webdriver.Chrome, console_depot: ConsoleDepot) -> webdriver.Chrome:
-    return logged_out(chrome, console_depot.url)
-
-
 def submit_token(chrome: webdriver.Chrome, url: str, token: str) -> None:
     """Paste a token at the login page and submit it, wherever that leads."""
     chrome.get(f"{url}/console/login")

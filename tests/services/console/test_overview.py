@@ -22,12 +22,6 @@ from services.console.web import PREFIX, templates
 from services.runs import fleet
 from tests.services.console.browser import find, log_in, screenshot, text_of, wait_for
 from tests.services.console.conftest import ConsoleDepot
-from tests.services.console.test_login import logged_out
-
-
-@pytest.fixture
-def chrome(chrome: webdriver.Chrome, console_depot: ConsoleDepot) -> webdriver.Chrome:
-    return logged_out(chrome, console_depot.url)
 
 
 def all_runs(depot: ConsoleDepot, **params: str) -> list[dict[str, Any]]:

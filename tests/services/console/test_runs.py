@@ -14,14 +14,8 @@ from selenium.webdriver.support.ui import Select
 from services.console.web import SESSION_COOKIE
 from tests.services.console.browser import find, log_in, screenshot, text_of, wait_for
 from tests.services.console.conftest import ConsoleDepot
-from tests.services.console.test_login import logged_out
 
 pytestmark = [pytest.mark.browser, pytest.mark.slow]
-
-
-@pytest.fixture
-def chrome(chrome: webdriver.Chrome, console_depot: ConsoleDepot) -> webdriver.Chrome:
-    return logged_out(chrome, console_depot.url)
 
 
 def rows(chrome: webdriver.Chrome) -> list[dict[str, str]]:
