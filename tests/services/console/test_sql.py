@@ -83,7 +83,9 @@ def test_sql_page_answers_as_a_table_a_chart_and_downloads(chrome: webdriver.Chr
     depot = console_depot
     _logged_out(chrome, depot)
     log_in(chrome, depot.url, depot.tokens["read"], then="/console/sql")
-    assert "battery" in find(chrome, "textarea[name=q]").get_attribute("value").lower()  # the example to start from
+    assert (
+        "battery" in str(find(chrome, "textarea[name=q]").get_attribute("value")).lower()
+    )  # the example to start from
     tables = text_of(chrome, "#sql-tables")
     assert all(name in tables for name in ("runs", "robots", "scalars", "text_logs"))
 
