@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import datetime as dt
 
-from sqlalchemy import BigInteger, Boolean, Date, DateTime, MetaData, String, Text
+from sqlalchemy import BigInteger, Boolean, Date, DateTime, Index, MetaData, String, Text
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column
 
 from core.ids import ID_LENGTH
@@ -241,3 +241,21 @@ class RunOwner(Base):
     node_id: Mapped[str] = mapped_column(String(256))
     epoch: Mapped[int] = mapped_column(BigInteger)
     since: Mapped[dt.datetime] = mapped_column(DateTime(timezone=True))
+
+
+class SavedQuery(Base):
+    """A SQL query saved to be drawn on the console's dashboards (as a line chart, bars or a table),
+    computed again at every look so it follows the runs sealed since. Names are unique: the catalog
+    checks before adding, and Postgres also holds a unique index (the embedded catalog keeps primary
+    keys only, see migration 0003)."""
+
+    __tablename__ = "saved_queries"
+    __table_args__ = (Index("ix_saved_queries_name", "name", unique=True),)
+
+    id: Mapped[str] = mapped_column(String(32), primary_key=True)  # q- and 12 hex digits
+    name: Mapped[str] = mapped_column(String(256))
+    sql: Mapped[str] = mapped_column(Text)
+    chart: Mapped[str] = mapped_column(String(16))  # line | bar | table
+    created_by: Mapped[str] = mapped_column(String(256))  # the token's subject, never the token
+    created_at: Mapped[dt.datetime] = mapped_column(DateTime(timezone=True))
+    updated_at: Mapped[dt.datetime] = mapped_column(DateTime(timezone=True))
