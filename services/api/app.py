@@ -16,6 +16,7 @@ from fastapi_offline import FastAPIOffline
 from core.clock import utcnow
 from core.errors import ErrorCode, FleetError, http_status
 from services import __version__
+from services.analytics import queries_rest
 from services.analytics import rest as analytics_rest
 from services.analytics.service import Analytics
 from services.api import metrics as prometheus
@@ -65,6 +66,7 @@ def create_app(
     app.state.analytics = analytics
     if analytics is not None:
         app.include_router(analytics_rest.router)
+        app.include_router(queries_rest.router)
     if retention is not None:
         app.state.tiers = retention.tiers
         app.include_router(retention_rest.router)

@@ -32,14 +32,6 @@ BATTERY_PER_ROBOT = """SELECT robot_id, sum(drain) AS drain_volts FROM (
 FRAMES = 60  # what each run of the console depot logs (tests/services/console/conftest.py)
 
 
-def _logged_out(chrome: webdriver.Chrome, depot: ConsoleDepot) -> None:
-    """No session left from an earlier test: the console's cookies (path /console) are deleted from a
-    console page that renders (deleting them from another path, as the `chrome` fixture does, leaves
-    them)."""
-    chrome.get(f"{depot.url}/console/sql")
-    chrome.delete_all_cookies()
-
-
 def _session(chrome: webdriver.Chrome) -> httpx.Client:
     """An HTTP client holding the browser's cookies: what the browser would send."""
     cookies = "; ".join(f"{c['name']}={c['value']}" for c in chrome.get_cookies())
@@ -81,7 +73,6 @@ def _bars(chrome: webdriver.Chrome, css: str) -> dict[str, float]:
 
 def test_sql_page_answers_as_a_table_a_chart_and_downloads(chrome: webdriver.Chrome, console_depot: ConsoleDepot):
     depot = console_depot
-    _logged_out(chrome, depot)
     log_in(chrome, depot.url, depot.tokens["read"], then="/console/sql")
     assert (
         "battery" in str(find(chrome, "textarea[name=q]").get_attribute("value")).lower()
@@ -146,7 +137,6 @@ def test_sql_page_answers_as_a_table_a_chart_and_downloads(chrome: webdriver.Chr
 
 def test_saved_query_is_a_dashboard_chart_that_follows_new_runs(chrome: webdriver.Chrome, console_depot: ConsoleDepot):
     depot = console_depot
-    _logged_out(chrome, depot)
     log_in(chrome, depot.url, depot.tokens["write"], then="/console/sql")
     _run_query(chrome, BATTERY_PER_ROBOT)
     before_sql = {robot: float(v) for robot, v in _rows(chrome)}
