@@ -10,15 +10,13 @@ from sqlalchemy.orm import Session
 
 from catalog.models import SavedQuery
 from core.clock import aware, iso_utc
-from core.errors import ErrorCode, FleetError, NotFoundError
+from core.errors import AlreadyExistsError, NotFoundError
 
 CHARTS = ("line", "bar", "table")
 
 
-class NameTakenError(FleetError):
+class NameTakenError(AlreadyExistsError):
     """Another saved query has this name (names are unique: they are the dashboards' titles)."""
-
-    code = ErrorCode.ALREADY_EXISTS
 
 
 @dataclass(frozen=True)

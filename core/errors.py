@@ -104,6 +104,10 @@ class ConflictError(FleetError):
     code = ErrorCode.CONFLICT
 
 
+class AlreadyExistsError(FleetError):
+    code = ErrorCode.ALREADY_EXISTS
+
+
 class GoneError(FleetError):
     code = ErrorCode.GONE
 
