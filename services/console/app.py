@@ -6,12 +6,12 @@ from fastapi import FastAPI
 from fastapi.responses import RedirectResponse
 from fastapi.staticfiles import StaticFiles
 
-from services.console import login, overview, run, runs, sql
+from services.console import login, overview, run, runs, sql, viewer
 from services.console.web import PREFIX, static_dir
 
 
 def install(app: FastAPI) -> None:
-    for module in (login, overview, runs, run, sql):
+    for module in (login, overview, runs, run, viewer, sql):
         app.include_router(module.router)
     app.mount(f"{PREFIX}/static", StaticFiles(directory=static_dir()), name="console-static")
 
