@@ -95,6 +95,13 @@ def log_in(chrome: webdriver.Chrome, base_url: str, token: str, then: str = "/co
     wait_for(lambda: chrome.current_url.split("?")[0].endswith(then), 30, f"the console to land on {then}")
 
 
+def forget_session(chrome: webdriver.Chrome, base_url: str) -> None:
+    """No cookie of the console left: they are deleted from a page under /console (their path),
+    the only place the browser sees them; a static file, which never redirects."""
+    chrome.get(f"{base_url}/console/static/console.css")
+    chrome.delete_all_cookies()
+
+
 def log_out(chrome: webdriver.Chrome) -> None:
     find(chrome, "form[action='/console/logout'] button").click()
     wait_for(lambda: "/console/login" in chrome.current_url, 30, "the login page after logging out")

@@ -15,7 +15,7 @@ import pytest
 from selenium import webdriver
 
 from tests.services.analytics.conftest import log_with_sdk
-from tests.services.console.browser import start_chrome
+from tests.services.console.browser import forget_session, start_chrome
 from tests.services.ingest.live_server import LiveServer
 
 # Two robots, each run with a battery that drains (scalars), text logs, points and a recording
@@ -104,7 +104,5 @@ def chrome_session(tmp_path_factory: pytest.TempPathFactory) -> Iterator[webdriv
 @pytest.fixture
 def chrome(chrome_session: webdriver.Chrome, console_depot: ConsoleDepot) -> webdriver.Chrome:
     """The session's browser, logged out: no cookie of the depot left from an earlier test."""
-    # The browser deletes only the cookies the open page sees: the console's live under /console.
-    chrome_session.get(f"{console_depot.url}/console/static/console.css")
-    chrome_session.delete_all_cookies()
+    forget_session(chrome_session, console_depot.url)
     return chrome_session

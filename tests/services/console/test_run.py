@@ -20,7 +20,7 @@ from services.policies import Policies, Policy
 from services.rrd import ArrowMessage, StoreKind, iter_events
 from services.rrd.chunk import chunk_meta
 from services.runs.run_views import next_step
-from tests.services.console.browser import find, log_in, screenshot, text_of, wait_for
+from tests.services.console.browser import find, forget_session, log_in, screenshot, text_of, wait_for
 from tests.services.console.conftest import ConsoleDepot
 
 FRAMES = 60  # frames each run of the console's depot logs (conftest.SCRIPT)
@@ -30,15 +30,8 @@ def page_of(run_id: str) -> str:
     return f"/console/runs/{run_id}"
 
 
-def logged_out(chrome: webdriver.Chrome, depot: ConsoleDepot) -> None:
-    """No session left from an earlier test: the console's cookies (path /console) are deleted
-    from a file under /console, where the browser sees them (and that never redirects)."""
-    chrome.get(f"{depot.url}/console/static/console.css")
-    chrome.delete_all_cookies()
-
-
 def open_run(chrome: webdriver.Chrome, depot: ConsoleDepot, scope: str, run_id: str) -> None:
-    logged_out(chrome, depot)
+    forget_session(chrome, depot.url)
     log_in(chrome, depot.url, depot.tokens[scope], then=page_of(run_id))
     try:
         wait_for(lambda: find(chrome, "#entities"), 30, "the run's page")
@@ -115,7 +108,7 @@ def test_hot_run_page_plots_from_the_run_itself(chrome: webdriver.Chrome, consol
 @pytest.mark.browser
 @pytest.mark.slow
 def test_unknown_run_is_a_404_page(chrome: webdriver.Chrome, console_depot: ConsoleDepot) -> None:
-    logged_out(chrome, console_depot)
+    forget_session(chrome, console_depot.url)
     log_in(chrome, console_depot.url, console_depot.tokens["read"])
     chrome.get(f"{console_depot.url}{page_of('no-such-run')}")
     assert "no-such-run" in text_of(chrome, "main") and "404" in text_of(chrome, "main")

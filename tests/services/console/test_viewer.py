@@ -11,7 +11,7 @@ import pytest
 from selenium import webdriver
 
 from services.console.viewer import VIEWER_CSP, viewer_assets
-from tests.services.console.browser import find, log_in, screenshot, text_of, wait_for
+from tests.services.console.browser import find, forget_session, log_in, screenshot, text_of, wait_for
 from tests.services.console.conftest import ConsoleDepot
 from tests.viewer import assert_not_blank, image_stats
 
@@ -19,8 +19,7 @@ pytestmark = [pytest.mark.browser, pytest.mark.slow]
 
 
 def logged_in(chrome: webdriver.Chrome, depot: ConsoleDepot, then: str) -> None:
-    chrome.get(f"{depot.url}/console/static/console.css")  # the console's cookies are seen under /console
-    chrome.delete_all_cookies()
+    forget_session(chrome, depot.url)
     log_in(chrome, depot.url, depot.tokens["read"], then=then)
 
 
