@@ -16,9 +16,9 @@ import grpc
 from core.errors import FleetError
 from services.auth.scopes import Scope
 from services.auth.tokens import Auth
-from services.cluster.relay import ERROR_CODE, RELAYED_BY, REPORT, SOURCE_KIND, metadata_value, request_of
+from services.cluster.relay import ERROR_CODE, RELAYED_BY, REPORT, SOURCE_KIND, metadata_value
 from services.ingest.replay import read_response
-from services.ingest.routing import open_relay, relay_held
+from services.ingest.routing import relay_source
 from services.ingest.service import IngestService
 from services.ingest.source import Source
 from services.ingest.stream_auth import WRITERS, CallAuth, Metadata
@@ -122,22 +122,7 @@ class MessageProxy:
     ) -> bool:
         """Send the rest of the source to its run's owner: what it held back, `pending`, then every
         request as it comes. False if this node took the run over meanwhile (it files it itself)."""
-        relay = await open_relay(self.service, source, metadata)
-        if relay is None:
-            return False
-        try:
-            await relay_held(relay, source)
-            for event in pending:
-                request = request_of(event)
-                if request is not None:
-                    await relay.send(request)
-            while (request := await context.read()) is not grpc.aio.EOF:
-                await relay.send(request)
-            await relay.finish()
-        except BaseException:
-            relay.cancel()
-            raise
-        return True
+        return await relay_source(self.service, source, metadata, pending, _rest_of(context)) is not None
 
     async def read_messages(self, request: bytes, context: grpc.aio.ServicerContext) -> AsyncIterator[bytes]:
         """What `rerun --connect rerun+http://HOST:51234/proxy` calls: recent history, then live."""
@@ -256,3 +241,9 @@ def add_to_server(server: grpc.aio.Server, proxy: MessageProxy) -> None:
     )
     server.add_generic_rpc_handlers((handler,))
     add_legacy_refusal(server)
+
+
+async def _rest_of(context: grpc.aio.ServicerContext) -> AsyncIterator[bytes]:
+    """The requests of a call still to come, as they come."""
+    while (request := await context.read()) is not grpc.aio.EOF:
+        yield request

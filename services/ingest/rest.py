@@ -13,7 +13,7 @@ from core.errors import FleetError
 from services.auth.depends import require
 from services.auth.scopes import Principal, Scope
 from services.cluster.relay import request_of
-from services.ingest.routing import open_relay, relay_held
+from services.ingest.routing import relay_source
 from services.ingest.service import IngestService
 from services.ingest.source import Source
 from services.rrd.decoder import RrdDecoder
@@ -72,17 +72,10 @@ async def _relayed(
     """The rest of the upload sent to the node that owns its run, and that node's answer; None if
     this node took the run over meanwhile (it files the upload itself)."""
     auth = request.headers.get("authorization")
-    relay = await open_relay(service, source, [("authorization", auth)] if auth else [])
-    if relay is None:
-        return None
-    try:
-        await relay_held(relay, source)
-        if (message := request_of(first)) is not None:
-            await relay.send(message)
+
+    async def requests() -> AsyncIterator[bytes]:
         async for event in rest:
             if (message := request_of(event)) is not None:
-                await relay.send(message)
-        return await relay.finish()
-    except BaseException:
-        relay.cancel()
-        raise
+                yield message
+
+    return await relay_source(service, source, [("authorization", auth)] if auth else [], [first], requests())

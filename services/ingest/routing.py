@@ -12,7 +12,8 @@ from __future__ import annotations
 
 import asyncio
 import logging
-from typing import TYPE_CHECKING
+from collections.abc import AsyncIterator, Iterable
+from typing import TYPE_CHECKING, Any
 
 from core.errors import UnavailableError
 from services.auth.scopes import Principal
@@ -21,6 +22,7 @@ from services.cluster.ownership import Lease, Owner
 from services.cluster.relay import RELAYED_BY, SOURCE_KIND, PeerUnavailable, Relay, request_of
 from services.ingest.source import Source
 from services.ingest.stream_auth import Metadata
+from services.rrd.messages import Event
 
 if TYPE_CHECKING:
     from services.ingest.service import IngestService
@@ -89,6 +91,28 @@ async def open_relay(service: IngestService, source: Source, metadata: Metadata)
             source.leases[owner.run_id], source.relay_to = got, None
             return None
         owner = source.relay_to = got
+
+
+async def relay_source(
+    service: IngestService, source: Source, metadata: Metadata, first: Iterable[Event], more: AsyncIterator[bytes]
+) -> dict[str, Any] | None:
+    """Send the rest of a source to its run's owner: what it held back, the events `first`, then
+    every request `more` brings; the owner's answer (what it filed). None if this node took the run
+    over meanwhile: then it files the source itself. A stream and an upload alike."""
+    relay = await open_relay(service, source, metadata)
+    if relay is None:
+        return None
+    try:
+        await relay_held(relay, source)
+        for event in first:
+            if (request := request_of(event)) is not None:
+                await relay.send(request)
+        async for request in more:
+            await relay.send(request)
+        return await relay.finish()
+    except BaseException:
+        relay.cancel()
+        raise
 
 
 async def relay_held(relay: Relay, source: Source) -> None:
