@@ -9,10 +9,12 @@ from fastapi.staticfiles import StaticFiles
 from services.console import login, overview, run, runs, sql, viewer
 from services.console.web import PREFIX, static_dir
 
+ROUTERS = tuple(module.router for module in (login, overview, runs, run, viewer, sql))
+
 
 def install(app: FastAPI) -> None:
-    for module in (login, overview, runs, run, viewer, sql):
-        app.include_router(module.router)
+    for router in ROUTERS:
+        app.include_router(router)
     app.mount(f"{PREFIX}/static", StaticFiles(directory=static_dir()), name="console-static")
 
     @app.get("/", include_in_schema=False)

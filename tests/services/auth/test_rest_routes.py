@@ -44,6 +44,7 @@ class Guarded:
             self.path.replace("{run_id}", RUN)
             .replace("{token_id}", "no-such-token")
             .replace("{pull_id}", "no-such-pull")
+            .replace("{query_id}", "no-such-query")
         )
 
     def __str__(self) -> str:
@@ -57,6 +58,10 @@ TABLE = [
     Guarded("DELETE", "/v1/tokens/{token_id}", (ADMIN,)),
     Guarded("POST", "/v1/sql", (READ,), {"json": {"query": "SELECT 1 AS one"}}),
     Guarded("POST", "/v1/runs/{run_id}/analytics", (WRITE,)),
+    Guarded("GET", "/v1/queries", (READ,)),
+    Guarded("POST", "/v1/queries", (WRITE,), {"json": {"name": "from the table", "sql": "SELECT 1 AS one"}}),
+    Guarded("GET", "/v1/queries/{query_id}", (READ,)),
+    Guarded("DELETE", "/v1/queries/{query_id}", (WRITE,)),
     Guarded("GET", "/v1/retention", (READ,)),
     Guarded("GET", "/v1/retention/plan", (READ,)),
     Guarded("POST", "/v1/retention/run", (ADMIN,)),

@@ -11,7 +11,7 @@ from fastapi.testclient import TestClient
 
 from services.auth.sessions import csrf_value
 from services.cli.serve import console_address
-from services.console.app import install
+from services.console.app import ROUTERS, install
 from services.console.login import safe_next
 from services.console.web import CSP, CSRF_COOKIE, SESSION_COOKIE
 from services.settings import load_settings
@@ -151,3 +151,25 @@ def test_the_console_address_printed_at_start() -> None:
     assert console_address(load_settings(http_addr="127.0.0.1:9000")) == "http://127.0.0.1:9000/console/"
     assert console_address(load_settings(http_addr="[::1]:8080")) == "http://[::1]:8080/console/"
     assert console_address(load_settings(public_url="https://depot.example/")) == "https://depot.example/console/"
+
+
+OPEN = {("GET", "/console/login"), ("POST", "/console/login")}
+
+
+def test_every_console_route_needs_a_session(console: Depot) -> None:
+    """Without a session a console page sends the browser to log in and an action is refused: none
+    answers with content (the routes listed in OPEN are the login's own)."""
+    checked = 0
+    for route in (r for router in ROUTERS for r in router.routes):
+        path = getattr(route, "path", "")
+        url = re.sub(r"\{[^}]+\}", "x", path)
+        for method in sorted(getattr(route, "methods", None) or ()):
+            if (method, path) in OPEN or method == "HEAD":
+                continue
+            answer = console.client.request(method, url, follow_redirects=False)
+            refused = answer.status_code == 403 or (
+                answer.status_code == 303 and answer.headers["location"].startswith("/console/login")
+            )
+            assert refused, f"{method} {path} answered {answer.status_code} without a session"
+            checked += 1
+    assert checked >= 15, checked
