@@ -19,6 +19,7 @@ from catalog.models import JobRun, RetentionEvent, Robot, Run, RunObject
 from core.clock import aware, iso_utc, utcnow
 from core.states import RunStatus, Tier
 from services.ingest.service import IngestRun, IngestService
+from services.runs.service import run_summary
 
 DAYS = 14  # runs per robot per day: this many days, today included
 RECENT = 10  # retention jobs and events shown
@@ -64,25 +65,10 @@ def robots(session: Session) -> list[dict[str, Any]]:
                 "id": robot_id,
                 "runs": counts.get(robot_id, 0),
                 "last_seen_at": iso_utc(robot.last_seen_at) if robot is not None else None,
-                "last_run": _run_brief(run) if run is not None else None,
+                "last_run": run_summary(run) if run is not None else None,
             }
         )
     return out
-
-
-def _run_brief(run: Run) -> dict[str, Any]:
-    return {
-        "id": run.id,
-        "robot_id": run.robot_id,
-        "application_id": run.application_id,
-        "status": run.status,
-        "tier": run.tier,
-        "started_at": iso_utc(run.started_at),
-        "ended_at": iso_utc(run.ended_at),
-        "last_data_at": iso_utc(run.last_data_at),
-        "bytes": int(run.bytes or 0),
-        "chunks": int(run.chunks or 0),
-    }
 
 
 def runs_per_day(session: Session, today: dt.date, days: int = DAYS) -> dict[str, Any]:
@@ -194,7 +180,7 @@ def live_in_catalog(session: Session, limit: int = LIVE_LIMIT) -> list[dict[str,
         .order_by(Run.last_data_at.desc(), Run.id)
         .limit(limit)
     )
-    return [{**_run_brief(run), "here": False} for run in session.scalars(query)]
+    return [{**run_summary(run), "here": False} for run in session.scalars(query)]
 
 
 def _hot_brief(run: IngestRun, default_robot: str) -> dict[str, Any]:
