@@ -11,15 +11,17 @@ from __future__ import annotations
 import io
 import logging
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 import pyarrow as pa
 import pyarrow.compute as pc
 import pyarrow.parquet as pq
 
-from services.rrd.chunk import ChunkMeta
+from services.hot.read import read_events
+from services.rrd.chunk import ChunkMeta, chunk_meta
 from services.rrd.errors import InvalidChunkError
-from services.rrd.messages import ArrowMessage
+from services.rrd.messages import ArrowMessage, StoreKind
 from services.rrd.validate import validated_batch
 
 log = logging.getLogger(__name__)
@@ -147,6 +149,15 @@ class Extractor:
         return {
             name: pa.concat_tables(parts, promote_options="permissive") for name, parts in self.batches.items() if parts
         }
+
+
+def extract_file(run_id: str, path: Path, size: int) -> Extractor:
+    """The analytics rows of a hot run's file, its first `size` bytes (the recording's chunks)."""
+    extractor = Extractor(run_id)
+    for event in read_events(path, size):
+        if isinstance(event, ArrowMessage) and event.store_id.kind == StoreKind.RECORDING:
+            extractor.add(event, chunk_meta(event))
+    return extractor
 
 
 def to_parquet(table: pa.Table) -> bytes:

@@ -14,10 +14,8 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from catalog import queries
 from catalog.db import session_scope
-from services.analytics.extract import LOG_TIME, Extractor
-from services.hot.read import HotRuns, read_events
-from services.rrd.chunk import chunk_meta
-from services.rrd.messages import ArrowMessage, StoreKind
+from services.analytics.extract import LOG_TIME, extract_file
+from services.hot.read import HotRuns
 from services.storage.objectstore import ObjectStore
 
 MAX_POINTS = 2000  # per line: more are thinned evenly (the first and last kept)
@@ -93,11 +91,7 @@ def hot_views(hot_runs: HotRuns, run_id: str, timelines: dict[str, str], x: str 
     if hot.size > MAX_TABLE_BYTES:
         views.note = f"the hot run is {hot.size} bytes: promote it, then its page plots from its analytics tables"
         return views
-    extractor = Extractor(run_id)
-    for event in read_events(hot.path, hot.size):
-        if isinstance(event, ArrowMessage) and event.store_id.kind == StoreKind.RECORDING:
-            extractor.add(event, chunk_meta(event))
-    tables = extractor.tables()
+    tables = extract_file(run_id, hot.path, hot.size).tables()
     return _views(views, tables.get("scalars"), tables.get("text_logs"), {**hot.timeline_types, **timelines}, x)
 
 

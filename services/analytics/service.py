@@ -26,13 +26,10 @@ from catalog.models import Robot, Run, RunEntity, RunObject, RunTimeline
 from core.errors import InvalidArgumentError
 from core.states import Tier
 from services.analytics import sql
-from services.analytics.extract import TABLES, Extractor
+from services.analytics.extract import TABLES, extract_file
 from services.analytics.pool import Prepared, SqlPool
 from services.analytics.store import write_analytics
-from services.hot.read import read_events
 from services.ingest.service import IngestService
-from services.rrd.chunk import chunk_meta
-from services.rrd.messages import ArrowMessage, StoreKind
 from services.storage.objectstore import ObjectStore
 
 FORMATS = {
@@ -239,10 +236,7 @@ def extract_hot_run(ctx: Analytics, ingest: IngestService, run_id: str) -> list[
     run = ingest.hot_run(run_id)
     if run is None:
         raise queries.run_not_found(run_id)
-    extractor = Extractor(run_id)
-    for event in read_events(run.hot.path, run.hot.size):
-        if isinstance(event, ArrowMessage) and event.store_id.kind == StoreKind.RECORDING:
-            extractor.add(event, chunk_meta(event))
+    extractor = extract_file(run_id, run.hot.path, run.hot.size)
     record = run.record(ingest.default_robot)
     objects = write_analytics(ctx.warm, extractor, record.robot_id, record.date.isoformat())
     with session_scope(ctx.catalog, write=True) as session:  # the catalog lists each run's one copy
