@@ -4,6 +4,7 @@ principal that reads) and, for actions, `Form` (a form post whose CSRF value was
 
 from __future__ import annotations
 
+import asyncio
 import secrets
 from collections.abc import Callable, Coroutine
 from importlib import resources
@@ -63,8 +64,8 @@ class ConsoleRoute(APIRoute):
             except LoginNeeded:
                 back = request.url.path + (f"?{request.url.query}" if request.url.query else "")
                 response = RedirectResponse(f"{PREFIX}/login?next={quote(back)}", status_code=303)
-            except FleetError as exc:
-                response = error_page(request, exc)
+            except FleetError as exc:  # its page asks the catalog who is logged in: off the event loop
+                response = await asyncio.to_thread(error_page, request, exc)
             secure_headers(response)
             return response
 
