@@ -21,6 +21,7 @@ from services.analytics.sql import Limits
 from services.api import peer
 from services.api.app import create_app
 from services.api.grpc_front import Front
+from services.api.h2_writes import WriteServer
 from services.auth.bootstrap import ensure_admin_token, open_auth
 from services.auth.links import MaskLinkSignatures
 from services.auth.tokens import IssuedToken
@@ -223,12 +224,10 @@ async def serve(
     if recovered:
         log.info("recovered %d hot runs", len(recovered))
     ingest.hot.start()
-    grpc_handler.add_to_server(
-        grpc_server,
-        grpc_handler.MessageProxy(
-            ingest, auth, token_wait_s=settings.auth_wait_s, token_buffer_bytes=settings.auth_buffer_bytes
-        ),
+    proxy = grpc_handler.MessageProxy(
+        ingest, auth, token_wait_s=settings.auth_wait_s, token_buffer_bytes=settings.auth_buffer_bytes
     )
+    grpc_handler.add_to_server(grpc_server, proxy)
     redap_handler.add_to_server(
         grpc_server,
         redap_handler.CatalogServer(Depot(retention.catalog, retention.tiers.warm, ingest, settings.public_url), auth),
@@ -246,7 +245,8 @@ async def serve(
     http = uvicorn.Server(uvicorn.Config(app, log_level="info", lifespan="off"))
     logging.getLogger("uvicorn.access").addFilter(MaskLinkSignatures())  # a link's signature opens it
     await grpc_server.start()
-    front = Front(grpc_socket, grpc_path, f"fleet-telemetry {__version__}")
+    writes = WriteServer(proxy.write_messages, settings.max_message_size)
+    front = Front(grpc_socket, grpc_path, f"fleet-telemetry {__version__}", writes)
     front.start()
     reserve = DiskReserve(settings.data_dir, settings.reserve_bytes)
     await asyncio.to_thread(reserve.ensure)

@@ -10,6 +10,10 @@ It exists for what gRPC's own transport cannot do on that port:
   SDK to install. On such connections (and only those) the front re-encodes every request's
   headers with the scheme made `http`.
 
+- serve WriteMessages itself (`h2_writes`): a connection whose first request is WriteMessages (the
+  SDK's GrpcSink) is served in this process, at a fraction of what gRPC's Python server costs per
+  message.
+
 Every other connection is read up to the end of its first request's headers and then passed on
 byte for byte both ways, with back-pressure: the front adds one local hop, not a protocol stack.
 """
@@ -28,6 +32,8 @@ from dataclasses import dataclass, field
 
 from hpack import Decoder, Encoder, HeaderTuple
 from hpack.exceptions import HPACKError
+
+from services.api.h2_writes import WRITE_PATH, WriteServer
 
 log = logging.getLogger("fleet.grpc")
 
@@ -84,6 +90,7 @@ class ClientStream:
         self.decoder.max_allowed_table_size = 65536
         self.encoder: Encoder | None = None  # set once rewriting
         self.passthrough = False
+        self.first_path = b""  # the first request's :path, once known
         self._buf = bytearray()
         self._pos = 0
         self._block: _HeaderBlock | None = None
@@ -113,6 +120,7 @@ class ClientStream:
                 if done is None:
                     continue
                 if self.encoder is None:  # the first request: decide
+                    self.first_path = next((v for k, v in done[1] if k == b":path"), b"")
                     if not self._needs_rewrite(done[1]):
                         self.passthrough = True
                         return None
@@ -278,9 +286,15 @@ class _Connection:
     sockets are closed by whoever finishes last, and never while `run` may still wait on them."""
 
     def __init__(
-        self, loop: asyncio.AbstractEventLoop, client: socket.socket, upstream_path: str, version: str
+        self,
+        loop: asyncio.AbstractEventLoop,
+        client: socket.socket,
+        upstream_path: str,
+        version: str,
+        writes: WriteServer | None,
     ) -> None:
-        self._loop, self._client, self._upstream_path, self._version = loop, client, upstream_path, version
+        self._loop, self._upstream_path, self._version, self._writes = loop, upstream_path, version, writes
+        self._client: socket.socket | None = client
         self._upstream: socket.socket | None = None
         self._splices: list[_Splice] = []
         self._task: asyncio.Task[None] | None = None
@@ -305,10 +319,10 @@ class _Connection:
                 self._close()
 
     async def _recv(self) -> bytes:
-        return await self._loop.sock_recv(self._client, READ_BYTES)
+        return await self._loop.sock_recv(self._require_client(), READ_BYTES)
 
     async def _serve(self) -> bool:
-        """True once the rest of the connection is in the splices' hands."""
+        """True once the rest of the connection is in other hands (the splices, or the writes)."""
         sniffed = b""
         async with asyncio.timeout(SNIFF_TIMEOUT_S):
             while len(sniffed) < len(PREFACE) and PREFACE.startswith(sniffed[: len(PREFACE)]):
@@ -318,19 +332,30 @@ class _Connection:
                     if len(sniffed) > HTTP1_LIMIT:
                         raise ProtocolError("neither HTTP/2 nor an HTTP/1 request")
                     sniffed += await self._recv_some()
-                await self._loop.sock_sendall(self._client, http1_answer(sniffed, self._version))
+                await self._loop.sock_sendall(self._require_client(), http1_answer(sniffed, self._version))
                 return False
+            # The gRPC server's own opening frames go to the client now: clients wait for the
+            # server's SETTINGS before they send a request, and the request decides who serves.
             upstream = self._upstream = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
             upstream.setblocking(False)
             await self._loop.sock_connect(upstream, self._upstream_path)
-            self._splices.append(_Splice(self._loop, upstream, self._client, self._one_way_done))
             await self._loop.sock_sendall(upstream, PREFACE)
+            await self._loop.sock_sendall(self._require_client(), await self._server_preface(upstream))
             stream, data = ClientStream(), sniffed[len(PREFACE) :]
             while (out := stream.feed(data)) == b"":
                 data = await self._recv_some()
+        if out is None and self._writes is not None and stream.first_path == WRITE_PATH:
+            # Served here: the gRPC server's connection is closed unused. The write server opens
+            # with SETTINGS of its own, which replace the ones the client has (HTTP/2 allows both).
+            upstream.close()
+            self._upstream = None
+            client, self._client = self._require_client(), None  # the write server's from now on
+            await self._writes.take(client, stream.held)
+            return True
+        self._splices.append(_Splice(self._loop, upstream, self._require_client(), self._one_way_done))
         if out is None:  # plain: what was held back, then the kernel moves the rest
             await self._loop.sock_sendall(upstream, stream.held)
-            self._splices.append(_Splice(self._loop, self._client, upstream, self._one_way_done))
+            self._splices.append(_Splice(self._loop, self._require_client(), upstream, self._one_way_done))
             return True
         await self._loop.sock_sendall(upstream, out)
         while data := await self._recv():  # rewriting, for as long as the client sends
@@ -339,6 +364,24 @@ class _Connection:
                 await self._loop.sock_sendall(upstream, out)
         upstream.shutdown(socket.SHUT_WR)
         return True  # the server's answers still flow until it closes
+
+    async def _server_preface(self, upstream: socket.socket) -> bytes:
+        """The gRPC server's first frames (its SETTINGS, perhaps a WINDOW_UPDATE), whole frames only."""
+        data = b""
+        while True:
+            more = await self._loop.sock_recv(upstream, READ_BYTES)
+            if not more:
+                raise ProtocolError("the gRPC server closed the connection at its start")
+            data += more
+            pos = 0
+            while len(data) - pos >= _FRAME_HEAD:
+                pos += _FRAME_HEAD + int.from_bytes(data[pos : pos + 3], "big")
+            if pos == len(data) and data:
+                return data
+
+    def _require_client(self) -> socket.socket:
+        assert self._client is not None
+        return self._client
 
     async def _recv_some(self) -> bytes:
         data = await self._recv()
@@ -372,10 +415,13 @@ class _Connection:
 
 class Front:
     """Serves the public gRPC port on `sock` (a listening socket): accepts connections and serves
-    each in its own task, passing HTTP/2 on to the gRPC server at the Unix socket `upstream_path`."""
+    each in its own task, passing HTTP/2 on to the gRPC server at the Unix socket `upstream_path`,
+    except connections that start with WriteMessages, which `writes` serves (if given)."""
 
-    def __init__(self, sock: socket.socket, upstream_path: str, version: str) -> None:
-        self._sock, self._upstream_path, self._version = sock, upstream_path, version
+    def __init__(
+        self, sock: socket.socket, upstream_path: str, version: str, writes: WriteServer | None = None
+    ) -> None:
+        self._sock, self._upstream_path, self._version, self._writes = sock, upstream_path, version, writes
         self._connections: set[asyncio.Task[None]] = set()
         self._accepting: asyncio.Task[None] | None = None
 
@@ -394,7 +440,7 @@ class Front:
                 continue
             client.setblocking(False)
             client.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-            task = _Connection(loop, client, self._upstream_path, self._version).start()
+            task = _Connection(loop, client, self._upstream_path, self._version, self._writes).start()
             self._connections.add(task)
             task.add_done_callback(self._connections.discard)
 
@@ -405,3 +451,5 @@ class Front:
             with contextlib.suppress(asyncio.CancelledError):
                 await self._accepting
         self._sock.close()
+        if self._writes is not None:
+            await self._writes.stop()

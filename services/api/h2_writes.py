@@ -1,0 +1,657 @@
+"""`MessageProxyService/WriteMessages` served on the public gRPC port by the front itself.
+
+The front (`grpc_front`) reads each connection's first request. When it is WriteMessages (what the
+Rerun SDK's GrpcSink opens first, and keeps for a whole run) the connection is served here instead
+of being passed to the gRPC server: HTTP/2 frames are read straight from the socket, the gRPC
+messages are cut out of DATA frames, and each stream is handed to the same handler gRPC would call
+(`MessageProxy.write_messages`), through a `WriteCall` that has the few methods of a gRPC servicer
+context it uses. Why: gRPC's Python server spends 50-60 us of CPU per message before the handler
+sees it, more than filing a one-row chunk costs; here a message costs a few microseconds, and a
+large one is read from the socket straight into its own buffer (BENCHMARKS.md, "Writes served by
+the front").
+
+What is served here is narrow on purpose: client-streaming WriteMessages, without message
+compression. Any other request on such a connection is refused as HTTP/2 says a server refuses what
+it did not process (GOAWAY naming the last stream it will serve, then REFUSED_STREAM): the client
+sends it again on a new connection, which the front passes to the gRPC server.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import collections
+import logging
+import socket
+import struct
+from collections.abc import AsyncIterator, Awaitable, Callable
+from typing import Any, NoReturn
+
+import grpc
+from hpack import Decoder, Encoder
+from hpack.exceptions import HPACKError
+
+log = logging.getLogger("fleet.grpc")
+
+WRITE_PATH = b"/rerun.sdk_comms.v1alpha1.MessageProxyService/WriteMessages"
+
+_DATA, _HEADERS, _RST_STREAM, _SETTINGS, _PUSH_PROMISE, _PING, _GOAWAY, _WINDOW_UPDATE, _CONTINUATION = (
+    0x0,
+    0x1,
+    0x3,
+    0x4,
+    0x5,
+    0x6,
+    0x7,
+    0x8,
+    0x9,
+)
+_END_STREAM, _ACK, _END_HEADERS, _PADDED, _PRIORITY = 0x1, 0x1, 0x4, 0x8, 0x20
+_NO_ERROR, _PROTOCOL_ERROR, _FLOW_CONTROL_ERROR, _FRAME_SIZE_ERROR, _REFUSED_STREAM, _CANCEL = 0, 1, 3, 6, 7, 8
+_HEAD = struct.Struct(">I")  # a frame header is a 24-bit length, type, flags, then this (the stream id)
+
+# What this end announces. Large frames and windows: a 2.5 MB chunk arrives in a few frames and
+# never waits for a window update; what a connection may hold unread is bounded below.
+MAX_FRAME = 1 << 20
+STREAM_WINDOW = 8 << 20
+CONNECTION_WINDOW = 16 << 20
+MAX_STREAMS = 100
+MAX_HEADER_BLOCK = 1 << 20
+READ_BUFFER = 1 << 20
+# Messages of this size or more are read from the socket straight into a buffer of their own.
+DIRECT_BYTES = 64 << 10
+# Reading stops while a connection's streams hold this much that their handlers have not taken.
+QUEUE_LIMIT = 32 << 20
+KEEPALIVE_S = 10.0  # a silent connection is pinged after this long,
+KEEPALIVE_TIMEOUT_S = 20.0  # and closed if the ping is not answered within this
+
+
+class Aborted(Exception):
+    """A stream ends with this gRPC status (the handler's `abort`, or what the transport found)."""
+
+    def __init__(self, code: grpc.StatusCode, details: str) -> None:
+        super().__init__(details)
+        self.code, self.details = code, details
+
+
+class ConnectionError_(Exception):
+    """The client broke HTTP/2: the connection ends with GOAWAY and this error code."""
+
+    def __init__(self, code: int, reason: str) -> None:
+        super().__init__(reason)
+        self.code = code
+
+
+def frame(kind: int, flags: int, stream: int, payload: bytes = b"") -> bytes:
+    return len(payload).to_bytes(3, "big") + bytes((kind, flags)) + _HEAD.pack(stream) + payload
+
+
+def grpc_message(details: str) -> str:
+    """A status message as gRPC carries it in a trailer: percent-encoded UTF-8."""
+    return "".join(
+        chr(b) if 0x20 <= b <= 0x7E and b != 0x25 else f"%{b:02X}" for b in details.encode("utf-8", "replace")
+    )
+
+
+WriteHandler = Callable[[AsyncIterator[bytes], "WriteCall"], Awaitable[Any]]
+
+
+class WriteCall:
+    """One WriteMessages stream as its handler sees it: the methods of `grpc.aio.ServicerContext`
+    that `MessageProxy.write_messages` uses, and the requests in the order they came."""
+
+    def __init__(self, connection: WriteConnection, stream_id: int, metadata: tuple[tuple[str, Any], ...]) -> None:
+        self._connection, self.stream_id, self._metadata = connection, stream_id, metadata
+        self._queue: collections.deque[bytes | memoryview] = collections.deque()
+        self._waiter: asyncio.Future[None] | None = None
+        self._failure: Aborted | None = None
+        self.ended = False  # the client sent the end of its requests
+        self.dropping = False  # what more the client sends is dropped (the stream failed or was answered)
+        self.trailing: tuple[tuple[str, str], ...] = ()
+        # the message being put together: its header (5 bytes), then its body
+        self.header = bytearray()
+        self.body: bytearray | None = None
+        self.filled = 0
+
+    def invocation_metadata(self) -> tuple[tuple[str, Any], ...]:
+        return self._metadata
+
+    def set_trailing_metadata(self, metadata: tuple[tuple[str, str], ...]) -> None:
+        self.trailing = metadata
+
+    async def abort(self, code: grpc.StatusCode, details: str = "") -> NoReturn:
+        raise Aborted(code, details)
+
+    async def read(self) -> Any:
+        """The next request's bytes, or `grpc.aio.EOF` after the last."""
+        while not self._queue:
+            if self._failure is not None:
+                raise self._failure
+            if self.ended:
+                return grpc.aio.EOF
+            self._waiter = asyncio.get_running_loop().create_future()
+            try:
+                await self._waiter
+            finally:
+                self._waiter = None
+        request = self._queue.popleft()
+        self._connection.taken(len(request))
+        return request
+
+    async def requests(self) -> AsyncIterator[bytes]:
+        while (request := await self.read()) is not grpc.aio.EOF:
+            yield request
+
+    # --- fed by the connection -------------------------------------------------------------
+
+    def deliver(self, request: bytes | memoryview) -> None:
+        self._queue.append(request)
+        self._wake()
+
+    def end(self) -> None:
+        if self.dropping:
+            return
+        if self.body is not None or self.header:
+            self.fail(Aborted(grpc.StatusCode.INTERNAL, "the stream ended in the middle of a message"))
+        self.ended = True
+        self._wake()
+
+    def fail(self, failure: Aborted) -> None:
+        if self._failure is None:
+            self._failure = failure
+        self._wake()
+
+    def _wake(self) -> None:
+        if self._waiter is not None and not self._waiter.done():
+            self._waiter.set_result(None)
+
+
+class WriteConnection(asyncio.BufferedProtocol):
+    """One client connection whose first request was WriteMessages, after the HTTP/2 preface.
+
+    Frames are parsed from one buffer the socket is read into; while a large message's body is
+    being received, the socket is read straight into that message's buffer instead (`get_buffer`)."""
+
+    def __init__(self, handler: WriteHandler, max_message: int, on_close: Callable[[WriteConnection], None]) -> None:
+        self._handler, self._max_message, self._on_close = handler, max_message, on_close
+        self._buf = bytearray(READ_BUFFER)
+        self._end = 0  # bytes in `_buf`
+        self._pos = 0  # parsed up to here
+        self._transport: asyncio.Transport | None = None
+        self._decoder = Decoder()
+        self._decoder.max_allowed_table_size = 65536
+        self._encoder = Encoder()
+        self._calls: dict[int, WriteCall] = {}
+        self._tasks: dict[int, asyncio.Task[None]] = {}
+        self._last_stream = 0  # the highest stream id the client opened
+        self._going_away: int | None = None  # the last stream served, once GOAWAY was sent
+        self._header_block: tuple[int, int, bytearray] | None = None  # stream, flags, fragment so far
+        # the DATA frame being read: its stream (None: one no longer served), what is left of its
+        # data and of its padding
+        self._data_call: WriteCall | None = None
+        self._data_left = 0
+        self._pad_left = 0
+        self._data_end_stream = False
+        self._direct: memoryview | None = None  # where the socket is read into for a large body
+        self._credit_connection = 0  # bytes received and not yet given back as window
+        self._credit: dict[int, int] = {}
+        self._queued = 0  # bytes delivered to handlers and not yet taken
+        self._paused = False
+        self._last_heard = 0.0
+        self._ping_sent: float | None = None
+        self._keepalive: asyncio.TimerHandle | None = None
+        self.closed = False
+
+    # --- asyncio -----------------------------------------------------------------------------
+
+    def connection_made(self, transport: asyncio.BaseTransport) -> None:
+        assert isinstance(transport, asyncio.Transport)
+        self._transport = transport
+        settings = struct.pack(">HIHIHIHI", 0x3, MAX_STREAMS, 0x4, STREAM_WINDOW, 0x5, MAX_FRAME, 0x6, MAX_HEADER_BLOCK)
+        transport.write(
+            frame(_SETTINGS, 0, 0, settings) + frame(_WINDOW_UPDATE, 0, 0, _HEAD.pack(CONNECTION_WINDOW - 65535))
+        )
+        loop = asyncio.get_running_loop()
+        self._last_heard = loop.time()
+        self._keepalive = loop.call_later(KEEPALIVE_S / 2, self._check_alive)
+
+    def feed(self, data: bytes) -> None:
+        """What the front read of the connection after the preface, before handing it here."""
+        while data and not self.closed:
+            with self.get_buffer(len(data)) as view:
+                n = min(len(view), len(data))
+                view[:n] = data[:n]
+            self.buffer_updated(n)
+            data = data[n:]
+
+    def get_buffer(self, sizehint: int) -> memoryview:
+        if self._direct is not None:
+            return self._direct
+        if self._pos:  # keep what is not parsed yet at the start
+            rest = self._end - self._pos
+            self._buf[:rest] = self._buf[self._pos : self._end]
+            self._pos, self._end = 0, rest
+        if len(self._buf) - self._end < max(sizehint, 65536):
+            self._buf.extend(bytes(max(sizehint, len(self._buf))))
+        return memoryview(self._buf)[self._end :]
+
+    def buffer_updated(self, nbytes: int) -> None:
+        self._last_heard = asyncio.get_running_loop().time()
+        try:
+            if self._direct is not None:
+                self._direct_filled(nbytes)
+            else:
+                self._end += nbytes
+            self._parse()
+            self._give_credit()
+        except ConnectionError_ as exc:
+            self._fail_connection(exc.code, str(exc))
+
+    def eof_received(self) -> bool:
+        return False  # the transport closes; streams still open are cancelled
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        self.closed = True
+        if self._keepalive is not None:
+            self._keepalive.cancel()
+        for task in self._tasks.values():
+            task.cancel()  # a stream cut short: its handler's `finally` closes its source
+        self._on_close(self)
+
+    def close(self) -> None:
+        """The front is stopping: tell the client, and end every stream."""
+        if self._transport is not None and not self.closed:
+            self._transport.write(frame(_GOAWAY, 0, 0, _HEAD.pack(self._last_stream) + _HEAD.pack(_NO_ERROR)))
+            self._transport.close()
+
+    async def wait_closed(self) -> None:
+        if self._tasks:
+            await asyncio.gather(*self._tasks.values(), return_exceptions=True)
+
+    # --- frames ------------------------------------------------------------------------------
+
+    def _parse(self) -> None:
+        buf = self._buf
+        while True:
+            if self._data_left or self._pad_left:
+                if not self._data_payload():
+                    return
+                continue
+            if self._end - self._pos < 9:
+                return
+            pos = self._pos
+            length = int.from_bytes(buf[pos : pos + 3], "big")
+            kind, flags = buf[pos + 3], buf[pos + 4]
+            stream = _HEAD.unpack_from(buf, pos + 5)[0] & 0x7FFFFFFF
+            if length > MAX_FRAME:
+                raise ConnectionError_(_FRAME_SIZE_ERROR, f"a frame of {length} bytes, over {MAX_FRAME}")
+            if kind == _DATA:
+                if flags & _PADDED:
+                    if self._end - pos < 10:
+                        return
+                    pad = buf[pos + 9]
+                    if pad >= length:
+                        raise ConnectionError_(_PROTOCOL_ERROR, "DATA padding longer than the frame")
+                    self._pos = pos + 10
+                    self._start_data(stream, length, length - 1 - pad, pad, flags)
+                else:
+                    self._pos = pos + 9
+                    self._start_data(stream, length, length, 0, flags)
+                continue
+            if self._end - pos < 9 + length:
+                return
+            self._pos = pos + 9 + length
+            payload = bytes(buf[pos + 9 : pos + 9 + length])
+            self._control(kind, flags, stream, payload)
+
+    def _start_data(self, stream: int, length: int, data: int, pad: int, flags: int) -> None:
+        if self._header_block is not None:
+            raise ConnectionError_(_PROTOCOL_ERROR, "a header block was interrupted by DATA")
+        if stream == 0 or stream > self._last_stream:
+            raise ConnectionError_(_PROTOCOL_ERROR, "DATA on a stream that was not opened")
+        self._credit_connection += length
+        call = self._calls.get(stream)
+        if call is not None and not call.ended and not call.dropping:
+            self._credit[stream] = self._credit.get(stream, 0) + length
+        else:
+            call = None  # ended or answered: the data is dropped (its window still counts)
+        self._data_call, self._data_left, self._pad_left = call, data, pad
+        self._data_end_stream = bool(flags & _END_STREAM)
+        if not data and not pad:
+            self._data_done()
+
+    def _data_payload(self) -> bool:
+        """Consume what is buffered of the DATA frame being read; False when more must be read."""
+        available = self._end - self._pos
+        if not available:
+            return False
+        if self._data_left:
+            take = min(available, self._data_left)
+            start = self._pos
+            self._pos += take
+            self._data_left -= take
+            call = self._data_call
+            if call is not None:
+                with memoryview(self._buf) as whole, whole[start : start + take] as data:
+                    self._messages(call, data)
+                if self._data_call is not None:
+                    self._go_direct(call)
+            if self._data_left:
+                return False
+        take = min(self._end - self._pos, self._pad_left)
+        self._pos += take
+        self._pad_left -= take
+        if self._pad_left:
+            return False
+        self._data_done()
+        return True
+
+    def _data_done(self) -> None:
+        call = self._data_call
+        self._data_call = None
+        if call is not None and self._data_end_stream:
+            call.end()
+
+    def _messages(self, call: WriteCall, data: memoryview) -> None:
+        """Cut gRPC messages (a flag byte, a 4-byte length, the message) out of a stream's data."""
+        pos, size = 0, len(data)
+        while pos < size:
+            if call.body is not None:  # inside a message
+                take = min(size - pos, len(call.body) - call.filled)
+                call.body[call.filled : call.filled + take] = data[pos : pos + take]
+                call.filled += take
+                pos += take
+                if call.filled == len(call.body):
+                    self._deliver(call, memoryview(call.body).toreadonly())
+                    call.body = None
+                continue
+            if not call.header and size - pos >= 5:  # the header here whole: the common case
+                flag, length = data[pos], int.from_bytes(data[pos + 1 : pos + 5], "big")
+                pos += 5
+            else:
+                take = min(size - pos, 5 - len(call.header))
+                call.header += data[pos : pos + take]
+                pos += take
+                if len(call.header) < 5:
+                    return
+                flag, length = call.header[0], int.from_bytes(call.header[1:5], "big")
+                call.header.clear()
+            if not self._message_allowed(call, flag, length):
+                return
+            if size - pos >= length and length < DIRECT_BYTES:
+                self._deliver(call, data[pos : pos + length].tobytes())
+                pos += length
+            else:
+                call.body, call.filled = bytearray(length), 0
+                if not length:
+                    self._deliver(call, b"")
+                    call.body = None
+
+    def _message_allowed(self, call: WriteCall, flag: int, length: int) -> bool:
+        if flag:
+            failure = Aborted(
+                grpc.StatusCode.UNIMPLEMENTED, "compressed gRPC messages are not accepted: send them uncompressed"
+            )
+        elif length > self._max_message:
+            failure = Aborted(
+                grpc.StatusCode.RESOURCE_EXHAUSTED,
+                f"a message of {length} bytes is over this depot's limit of {self._max_message} "
+                "(FLEET_MAX_MESSAGE_SIZE)",
+            )
+        else:
+            return True
+        call.fail(failure)
+        self._data_call = None  # the rest of the stream is dropped
+        call.dropping = True
+        return False
+
+    def _go_direct(self, call: WriteCall) -> None:
+        """While a large body is being received and nothing else is buffered, read the socket
+        straight into it (up to the end of the DATA frame and of the body)."""
+        body = call.body
+        if body is None or self._pos != self._end or self._pad_left or not self._data_left:
+            return
+        want = min(self._data_left, len(body) - call.filled)
+        if want >= DIRECT_BYTES // 4:
+            with memoryview(body) as whole:
+                self._direct = whole[call.filled : call.filled + want]
+
+    def _direct_filled(self, nbytes: int) -> None:
+        call = self._data_call
+        assert call is not None and call.body is not None and self._direct is not None
+        self._direct.release()
+        self._direct = None
+        call.filled += nbytes
+        self._data_left -= nbytes
+        if call.filled == len(call.body):
+            self._deliver(call, memoryview(call.body).toreadonly())
+            call.body = None
+        if not self._data_left and not self._pad_left:
+            self._data_done()
+        else:
+            self._go_direct(call)
+
+    def _deliver(self, call: WriteCall, request: bytes | memoryview) -> None:
+        call.deliver(request)
+        self._queued += len(request)
+        if self._queued > QUEUE_LIMIT and not self._paused and self._transport is not None:
+            self._paused = True
+            self._transport.pause_reading()
+
+    def taken(self, nbytes: int) -> None:
+        """A handler took a request: the connection may read again once its streams hold less."""
+        self._queued -= nbytes
+        if self._paused and self._queued <= QUEUE_LIMIT // 2 and self._transport is not None:
+            self._paused = False
+            self._transport.resume_reading()
+
+    def _give_credit(self) -> None:
+        """Give back as window what was received, once a quarter of a window has come in."""
+        out = []
+        if self._credit_connection >= CONNECTION_WINDOW // 4:
+            out.append(frame(_WINDOW_UPDATE, 0, 0, _HEAD.pack(self._credit_connection)))
+            self._credit_connection = 0
+        for stream, credit in list(self._credit.items()):
+            if credit >= STREAM_WINDOW // 4:
+                out.append(frame(_WINDOW_UPDATE, 0, stream, _HEAD.pack(credit)))
+                self._credit[stream] = 0
+        if out and self._transport is not None:
+            self._transport.write(b"".join(out))
+
+    def _control(self, kind: int, flags: int, stream: int, payload: bytes) -> None:
+        if self._header_block is not None and kind != _CONTINUATION:
+            raise ConnectionError_(_PROTOCOL_ERROR, "a header block was interrupted by another frame")
+        if kind in (_HEADERS, _CONTINUATION):
+            self._header_frame(kind, flags, stream, payload)
+        elif kind == _SETTINGS:
+            self._settings(flags, payload)
+        elif kind == _PING:
+            if len(payload) != 8:
+                raise ConnectionError_(_FRAME_SIZE_ERROR, "a PING of other than 8 bytes")
+            if flags & _ACK:
+                self._ping_sent = None
+            else:
+                self._write(frame(_PING, _ACK, 0, payload))
+        elif kind == _RST_STREAM:
+            call = self._calls.pop(stream, None)
+            if call is not None:
+                call.fail(Aborted(grpc.StatusCode.CANCELLED, "the client cancelled the call"))
+                if (task := self._tasks.get(stream)) is not None:
+                    task.cancel()
+            self._credit.pop(stream, None)
+        elif kind == _GOAWAY:
+            self._going_away = self._going_away if self._going_away is not None else self._last_stream
+        elif kind == _PUSH_PROMISE:
+            raise ConnectionError_(_PROTOCOL_ERROR, "a client may not push")
+        # WINDOW_UPDATE: what this end sends on a stream (its answer) is far below any window.
+        # PRIORITY and frame types this end does not know are ignored, as HTTP/2 says.
+
+    def _settings(self, flags: int, payload: bytes) -> None:
+        if flags & _ACK:
+            return
+        if len(payload) % 6:
+            raise ConnectionError_(_FRAME_SIZE_ERROR, "SETTINGS of a length not a multiple of 6")
+        for key, value in struct.iter_unpack(">HI", payload):
+            if key == 0x1:  # SETTINGS_HEADER_TABLE_SIZE: what this end's encoder may use
+                self._encoder.header_table_size = min(value, 4096)
+            elif key == 0x4 and value > 0x7FFFFFFF:
+                raise ConnectionError_(_FLOW_CONTROL_ERROR, "an initial window over 2^31-1")
+        self._write(frame(_SETTINGS, _ACK, 0))
+
+    def _header_frame(self, kind: int, flags: int, stream: int, payload: bytes) -> None:
+        if kind == _HEADERS:
+            pos, pad = 0, 0
+            if flags & _PADDED:
+                pad, pos = payload[0], 1
+            if flags & _PRIORITY:
+                pos += 5
+            if pos + pad > len(payload):
+                raise ConnectionError_(_PROTOCOL_ERROR, "HEADERS padding is longer than the frame")
+            self._header_block = (stream, flags, bytearray(payload[pos : len(payload) - pad]))
+        else:
+            if self._header_block is None or self._header_block[0] != stream:
+                raise ConnectionError_(_PROTOCOL_ERROR, "CONTINUATION without its HEADERS")
+            self._header_block[2].extend(payload)
+        if len(self._header_block[2]) > MAX_HEADER_BLOCK:
+            raise ConnectionError_(_PROTOCOL_ERROR, "a header block over 1 MiB")
+        if not flags & _END_HEADERS:
+            return
+        stream, first_flags, fragment = self._header_block
+        self._header_block = None
+        try:
+            headers = [(bytes(k), bytes(v)) for k, v in self._decoder.decode(bytes(fragment), raw=True)]
+        except HPACKError as exc:
+            raise ConnectionError_(0x9, f"undecodable headers ({exc})") from None  # COMPRESSION_ERROR
+        if stream in self._calls:  # trailers from the client: only their end counts
+            if first_flags & _END_STREAM:
+                self._calls[stream].end()
+            return
+        if stream <= self._last_stream:
+            return  # the end of a stream already answered or refused
+        self._open(stream, first_flags, headers)
+
+    def _open(self, stream: int, flags: int, headers: list[tuple[bytes, bytes]]) -> None:
+        if stream % 2 == 0 or stream <= self._last_stream:
+            raise ConnectionError_(_PROTOCOL_ERROR, f"stream {stream} opened out of order")
+        self._last_stream = stream
+        path = next((value for name, value in headers if name == b":path"), b"")
+        if self._going_away is not None or path != WRITE_PATH:
+            self._refuse(stream, path)
+            return
+        if len(self._calls) >= MAX_STREAMS:
+            self._write(frame(_RST_STREAM, 0, stream, _HEAD.pack(_REFUSED_STREAM)))
+            return
+        metadata = tuple(
+            (name.decode("latin-1"), value if name.endswith(b"-bin") else value.decode("latin-1"))
+            for name, value in headers
+            if not name.startswith(b":") and name not in (b"te", b"content-type", b"grpc-accept-encoding")
+        )
+        call = self._calls[stream] = WriteCall(self, stream, metadata)
+        if flags & _END_STREAM:
+            call.end()
+        task = self._tasks[stream] = asyncio.get_running_loop().create_task(self._serve(call))
+        task.add_done_callback(lambda _: self._tasks.pop(stream, None))
+
+    def _refuse(self, stream: int, path: bytes) -> None:
+        """A request other than WriteMessages: the client is to send it on a new connection."""
+        if self._going_away is None:
+            self._going_away = stream - 2 if stream > 1 else 0
+            log.debug("gRPC port: %r on a write connection: the client is sent to a new connection", path)
+            self._write(frame(_GOAWAY, 0, 0, _HEAD.pack(self._going_away) + _HEAD.pack(_NO_ERROR)))
+        self._write(frame(_RST_STREAM, 0, stream, _HEAD.pack(_REFUSED_STREAM)))
+        self._close_if_done()
+
+    async def _serve(self, call: WriteCall) -> None:
+        status, details, body = grpc.StatusCode.OK, "", None
+        try:
+            response = await self._handler(call.requests(), call)
+            body = response.SerializeToString() if hasattr(response, "SerializeToString") else bytes(response)
+        except Aborted as exc:
+            status, details = exc.code, exc.details
+        except asyncio.CancelledError:
+            self._calls.pop(call.stream_id, None)
+            return  # the client went away or cancelled: nobody to answer
+        except Exception:
+            log.exception("WriteMessages failed")
+            status, details = grpc.StatusCode.INTERNAL, "the depot failed on this stream; see its log"
+        self._answer(call, status, details, body)
+
+    def _answer(self, call: WriteCall, status: grpc.StatusCode, details: str, body: bytes | None) -> None:
+        if self.closed or self._calls.pop(call.stream_id, None) is None:
+            return
+        self._credit.pop(call.stream_id, None)
+        stream = call.stream_id
+        trailers = [(b"grpc-status", str(status.value[0]).encode())]
+        if details:
+            trailers.append((b"grpc-message", grpc_message(details).encode()))
+        trailers += [(k.encode(), v.encode() if isinstance(v, str) else v) for k, v in call.trailing]
+        head = [(b":status", b"200"), (b"content-type", b"application/grpc")]
+        if body is None:  # trailers only
+            out = frame(_HEADERS, _END_HEADERS | _END_STREAM, stream, self._encoder.encode(head + trailers))
+        else:
+            out = (
+                frame(_HEADERS, _END_HEADERS, stream, self._encoder.encode(head))
+                + frame(_DATA, 0, stream, b"\0" + len(body).to_bytes(4, "big") + body)
+                + frame(_HEADERS, _END_HEADERS | _END_STREAM, stream, self._encoder.encode(trailers))
+            )
+        if not call.ended:  # answered before the client finished: it is to stop sending
+            out += frame(_RST_STREAM, 0, stream, _HEAD.pack(_NO_ERROR))
+        call.dropping = True
+        self._write(out)
+        self._close_if_done()
+
+    def _close_if_done(self) -> None:
+        if self._going_away is not None and not self._calls and self._transport is not None:
+            self._transport.close()
+
+    def _write(self, data: bytes) -> None:
+        if self._transport is not None and not self.closed:
+            self._transport.write(data)
+
+    def _fail_connection(self, code: int, reason: str) -> None:
+        log.info("gRPC port: connection closed: %s", reason)
+        for call in self._calls.values():
+            call.fail(Aborted(grpc.StatusCode.INTERNAL, f"the connection broke HTTP/2: {reason}"))
+        if self._transport is not None and not self.closed:
+            self._transport.write(
+                frame(_GOAWAY, 0, 0, _HEAD.pack(self._last_stream) + _HEAD.pack(code) + reason.encode()[:200])
+            )
+            self._transport.close()
+        self.closed = True
+
+    def _check_alive(self) -> None:
+        """Keepalive: ping a connection that went silent; close one that does not answer."""
+        if self.closed or self._transport is None:
+            return
+        loop = asyncio.get_running_loop()
+        now = loop.time()
+        if self._ping_sent is not None and now - self._ping_sent > KEEPALIVE_TIMEOUT_S:
+            log.info("gRPC port: a write connection did not answer a ping for %g s: closed", KEEPALIVE_TIMEOUT_S)
+            self._transport.abort()
+            return
+        if self._ping_sent is None and now - self._last_heard > KEEPALIVE_S:
+            self._ping_sent = now
+            self._write(frame(_PING, 0, 0, b"fleet-ka"))
+        self._keepalive = loop.call_later(KEEPALIVE_S / 2, self._check_alive)
+
+
+class WriteServer:
+    """The write connections the front has handed over, and the handler their streams go to."""
+
+    def __init__(self, handler: WriteHandler, max_message: int) -> None:
+        self.handler, self.max_message = handler, max_message
+        self.connections: set[WriteConnection] = set()
+
+    async def take(self, sock: socket.socket, held: bytes) -> None:
+        """Serve a client connection here from now on; `held`: what was read of it after the
+        preface (its first request's headers among it)."""
+        connection = WriteConnection(self.handler, self.max_message, self.connections.discard)
+        self.connections.add(connection)
+        await asyncio.get_running_loop().connect_accepted_socket(lambda: connection, sock=sock)
+        connection.feed(held)
+
+    async def stop(self) -> None:
+        """Tell every client this node is going away and end its streams (their sources closed)."""
+        connections = list(self.connections)
+        for connection in connections:
+            connection.close()
+        await asyncio.gather(*(c.wait_closed() for c in connections), return_exceptions=True)
