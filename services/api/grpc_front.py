@@ -26,14 +26,13 @@ import fcntl
 import logging
 import os
 import socket
-import struct
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
 from hpack import Decoder, Encoder, HeaderTuple
 from hpack.exceptions import HPACKError
 
-from services.api.h2_writes import WRITE_PATH, WriteServer
+from services.api.h2_writes import WRITE_PATH, WriteServer, frame
 
 log = logging.getLogger("fleet.grpc")
 
@@ -55,10 +54,6 @@ _SPLICE_FLAGS = os.SPLICE_F_MOVE | os.SPLICE_F_NONBLOCK
 
 class ProtocolError(Exception):
     """The client's bytes are not HTTP/2 the front can follow; the connection is closed."""
-
-
-def _frame(kind: int, flags: int, stream: int, payload: bytes) -> bytes:
-    return struct.pack(">I", len(payload))[1:] + bytes((kind, flags)) + struct.pack(">I", stream) + payload
 
 
 def _plain_scheme(value: bytes) -> bytes:
@@ -180,11 +175,9 @@ class ClientStream:
         ]
         flags = (block.flags & _END_STREAM) | (_PRIORITY if block.priority else 0)
         last = len(pieces) - 1
-        frames = [
-            _frame(_HEADERS, flags | (_END_HEADERS if last == 0 else 0), block.stream, block.priority + pieces[0])
-        ]
+        frames = [frame(_HEADERS, flags | (_END_HEADERS if last == 0 else 0), block.stream, block.priority + pieces[0])]
         frames += [
-            _frame(_CONTINUATION, _END_HEADERS if i == last else 0, block.stream, piece)
+            frame(_CONTINUATION, _END_HEADERS if i == last else 0, block.stream, piece)
             for i, piece in enumerate(pieces[1:], 1)
         ]
         return b"".join(frames)
