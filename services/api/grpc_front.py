@@ -27,19 +27,29 @@ import logging
 import os
 import socket
 from collections.abc import Callable
-from dataclasses import dataclass, field
 
-from hpack import Decoder, Encoder, HeaderTuple
-from hpack.exceptions import HPACKError
+from hpack import Encoder, HeaderTuple
 
-from services.api.h2_writes import WRITE_PATH, WriteServer, frame
+from services.api.h2 import (
+    CONTINUATION,
+    END_HEADERS,
+    END_STREAM,
+    FRAME_HEAD,
+    HEADERS,
+    PREFACE,
+    PRIORITY,
+    HeaderBlock,
+    HeaderBlocks,
+    ProtocolError,
+    frame,
+    frame_head,
+)
+from services.api.h2_writes import WRITE_PATH, WriteServer
 
 log = logging.getLogger("fleet.grpc")
 
-PREFACE = b"PRI * HTTP/2.0\r\n\r\nSM\r\n\r\n"
-_FRAME_HEAD = 9
-_HEADERS, _CONTINUATION = 0x1, 0x9
-_END_STREAM, _END_HEADERS, _PADDED, _PRIORITY = 0x1, 0x4, 0x8, 0x20
+__all__ = ["PREFACE", "ClientStream", "Front", "ProtocolError", "http1_answer"]
+
 # Every HTTP/2 peer accepts frames of this size (the default SETTINGS_MAX_FRAME_SIZE).
 _MAX_FRAME = 16384
 _GOOD_SCHEMES = (b"http", b"https")
@@ -52,23 +62,8 @@ PIPE_BYTES = 1 << 20
 _SPLICE_FLAGS = os.SPLICE_F_MOVE | os.SPLICE_F_NONBLOCK
 
 
-class ProtocolError(Exception):
-    """The client's bytes are not HTTP/2 the front can follow; the connection is closed."""
-
-
 def _plain_scheme(value: bytes) -> bytes:
     return b"https" if value.endswith(b"https") else b"http"
-
-
-@dataclass
-class _HeaderBlock:
-    """One request's header block, which HTTP/2 may split over a HEADERS frame and CONTINUATIONs."""
-
-    stream: int
-    flags: int
-    priority: bytes
-    start: int  # where its HEADERS frame began in the inspected bytes
-    fragment: bytearray = field(default_factory=bytearray)
 
 
 class ClientStream:
@@ -77,18 +72,16 @@ class ClientStream:
     Inspecting, it reads frames without changing anything until the first header block is complete.
     If that request's scheme is plain it says so (`feed` returns None and `passthrough` is set): the
     caller then forwards what it was given, and everything after, unchanged. Otherwise it rewrites
-    from then on: every header block decoded (the client's compression table lives in `decoder`)
+    from then on: every header block decoded (the client's compression table lives in `blocks`)
     and encoded again with the scheme fixed; all other frames unchanged."""
 
     def __init__(self) -> None:
-        self.decoder = Decoder()
-        self.decoder.max_allowed_table_size = 65536
+        self.blocks = HeaderBlocks(SNIFF_LIMIT)
         self.encoder: Encoder | None = None  # set once rewriting
         self.passthrough = False
         self.first_path = b""  # the first request's :path, once known
         self._buf = bytearray()
         self._pos = 0
-        self._block: _HeaderBlock | None = None
 
     @property
     def held(self) -> bytes:
@@ -100,29 +93,26 @@ class ClientStream:
         connection needs no rewriting: then the caller sends every byte it was given, as given."""
         self._buf += data
         out = bytearray()
-        while len(self._buf) - self._pos >= _FRAME_HEAD:
-            head = self._buf[self._pos : self._pos + _FRAME_HEAD]
-            length = int.from_bytes(head[:3], "big")
-            end = self._pos + _FRAME_HEAD + length
+        while len(self._buf) - self._pos >= FRAME_HEAD:
+            length, kind, flags, stream = frame_head(self._buf, self._pos)
+            end = self._pos + FRAME_HEAD + length
             if end > len(self._buf):
                 break
-            kind, flags = head[3], head[4]
-            stream = int.from_bytes(head[5:9], "big") & 0x7FFFFFFF
-            payload = bytes(self._buf[self._pos + _FRAME_HEAD : end])
+            payload = bytes(self._buf[self._pos + FRAME_HEAD : end])
             start, self._pos = self._pos, end
-            if kind in (_HEADERS, _CONTINUATION):
-                done = self._header_frame(kind, flags, stream, payload, start)
-                if done is None:
+            if kind in (HEADERS, CONTINUATION):
+                block = self.blocks.add(kind, flags, stream, payload, start)
+                if block is None:
                     continue
                 if self.encoder is None:  # the first request: decide
-                    self.first_path = next((v for k, v in done[1] if k == b":path"), b"")
-                    if not self._needs_rewrite(done[1]):
+                    self.first_path = next((v for k, v in block.headers if k == b":path"), b"")
+                    if not self._needs_rewrite(block.headers):
                         self.passthrough = True
                         return None
                     self.encoder = Encoder()
-                    out += self._buf[: done[0].start]
-                out += self._encode(done[0], done[1])
-            elif self._block is not None:
+                    out += self._buf[: block.start]
+                out += self._encode(block)
+            elif self.blocks.pending:
                 raise ProtocolError("a header block was interrupted by another frame")
             elif self.encoder is not None:
                 out += self._buf[start:end]
@@ -133,51 +123,23 @@ class ClientStream:
             raise ProtocolError("no request headers within the first MiB")
         return bytes(out)
 
-    def _header_frame(
-        self, kind: int, flags: int, stream: int, payload: bytes, start: int
-    ) -> tuple[_HeaderBlock, list[HeaderTuple]] | None:
-        if kind == _HEADERS:
-            if self._block is not None:
-                raise ProtocolError("a header block was interrupted by another frame")
-            pos, pad = 0, 0
-            if flags & _PADDED:
-                pad, pos = payload[0], 1
-            priority = payload[pos : pos + 5] if flags & _PRIORITY else b""
-            pos += len(priority)
-            if pos + pad > len(payload):
-                raise ProtocolError("HEADERS padding is longer than the frame")
-            self._block = _HeaderBlock(stream, flags, priority, start)
-            self._block.fragment += payload[pos : len(payload) - pad]
-        else:
-            if self._block is None or self._block.stream != stream:
-                raise ProtocolError("CONTINUATION without its HEADERS")
-            self._block.fragment += payload
-        if not flags & _END_HEADERS:
-            return None
-        block, self._block = self._block, None
-        try:
-            headers = self.decoder.decode(bytes(block.fragment), raw=True)
-        except HPACKError as exc:
-            raise ProtocolError(f"undecodable request headers ({exc})") from None
-        return block, list(headers)
-
     @staticmethod
     def _needs_rewrite(headers: list[HeaderTuple]) -> bool:
         return any(name == b":scheme" and value not in _GOOD_SCHEMES for name, value in headers)
 
-    def _encode(self, block: _HeaderBlock, headers: list[HeaderTuple]) -> bytes:
+    def _encode(self, block: HeaderBlock) -> bytes:
         assert self.encoder is not None
-        fixed = [type(h)(h[0], _plain_scheme(h[1])) if h[0] == b":scheme" else h for h in headers]
+        fixed = [type(h)(h[0], _plain_scheme(h[1])) if h[0] == b":scheme" else h for h in block.headers]
         encoded = self.encoder.encode(fixed, huffman=True)
         first_room = _MAX_FRAME - len(block.priority)
         pieces = [encoded[:first_room]] + [
             encoded[i : i + _MAX_FRAME] for i in range(first_room, len(encoded), _MAX_FRAME)
         ]
-        flags = (block.flags & _END_STREAM) | (_PRIORITY if block.priority else 0)
+        flags = (block.flags & END_STREAM) | (PRIORITY if block.priority else 0)
         last = len(pieces) - 1
-        frames = [frame(_HEADERS, flags | (_END_HEADERS if last == 0 else 0), block.stream, block.priority + pieces[0])]
+        frames = [frame(HEADERS, flags | (END_HEADERS if last == 0 else 0), block.stream, block.priority + pieces[0])]
         frames += [
-            frame(_CONTINUATION, _END_HEADERS if i == last else 0, block.stream, piece)
+            frame(CONTINUATION, END_HEADERS if i == last else 0, block.stream, piece)
             for i, piece in enumerate(pieces[1:], 1)
         ]
         return b"".join(frames)
@@ -367,8 +329,8 @@ class _Connection:
                 raise ProtocolError("the gRPC server closed the connection at its start")
             data += more
             pos = 0
-            while len(data) - pos >= _FRAME_HEAD:
-                pos += _FRAME_HEAD + int.from_bytes(data[pos : pos + 3], "big")
+            while len(data) - pos >= FRAME_HEAD:
+                pos += FRAME_HEAD + int.from_bytes(data[pos : pos + 3], "big")
             if pos == len(data) and data:
                 return data
 

@@ -19,35 +19,21 @@ sends it again on a new connection, which the front passes to the gRPC server.
 from __future__ import annotations
 
 import asyncio
-import collections
 import logging
 import socket
 import struct
-from collections.abc import AsyncIterator, Awaitable, Callable
-from typing import Any, NoReturn
+from collections.abc import Callable
 
 import grpc
-from hpack import Decoder, Encoder
-from hpack.exceptions import HPACKError
+from hpack import Encoder
+
+from services.api import h2
+from services.api.h2 import HeaderBlock, HeaderBlocks, ProtocolError, frame, goaway, rst_stream, window_update
+from services.api.write_call import Aborted, WriteCall, WriteHandler, grpc_message
 
 log = logging.getLogger("fleet.grpc")
 
 WRITE_PATH = b"/rerun.sdk_comms.v1alpha1.MessageProxyService/WriteMessages"
-
-_DATA, _HEADERS, _RST_STREAM, _SETTINGS, _PUSH_PROMISE, _PING, _GOAWAY, _WINDOW_UPDATE, _CONTINUATION = (
-    0x0,
-    0x1,
-    0x3,
-    0x4,
-    0x5,
-    0x6,
-    0x7,
-    0x8,
-    0x9,
-)
-_END_STREAM, _ACK, _END_HEADERS, _PADDED, _PRIORITY = 0x1, 0x1, 0x4, 0x8, 0x20
-_NO_ERROR, _PROTOCOL_ERROR, _FLOW_CONTROL_ERROR, _FRAME_SIZE_ERROR, _REFUSED_STREAM, _CANCEL = 0, 1, 3, 6, 7, 8
-_HEAD = struct.Struct(">I")  # a frame header is a 24-bit length, type, flags, then this (the stream id)
 
 # What this end announces. Large frames and windows: a 2.5 MB chunk arrives in a few frames and
 # never waits for a window update; what a connection may hold unread is bounded below.
@@ -63,106 +49,7 @@ DIRECT_BYTES = 64 << 10
 QUEUE_LIMIT = 32 << 20
 KEEPALIVE_S = 10.0  # a silent connection is pinged after this long,
 KEEPALIVE_TIMEOUT_S = 20.0  # and closed if the ping is not answered within this
-
-
-class Aborted(Exception):
-    """A stream ends with this gRPC status (the handler's `abort`, or what the transport found)."""
-
-    def __init__(self, code: grpc.StatusCode, details: str) -> None:
-        super().__init__(details)
-        self.code, self.details = code, details
-
-
-class ConnectionError_(Exception):
-    """The client broke HTTP/2: the connection ends with GOAWAY and this error code."""
-
-    def __init__(self, code: int, reason: str) -> None:
-        super().__init__(reason)
-        self.code = code
-
-
-def frame(kind: int, flags: int, stream: int, payload: bytes = b"") -> bytes:
-    return len(payload).to_bytes(3, "big") + bytes((kind, flags)) + _HEAD.pack(stream) + payload
-
-
-def grpc_message(details: str) -> str:
-    """A status message as gRPC carries it in a trailer: percent-encoded UTF-8."""
-    return "".join(
-        chr(b) if 0x20 <= b <= 0x7E and b != 0x25 else f"%{b:02X}" for b in details.encode("utf-8", "replace")
-    )
-
-
-WriteHandler = Callable[[AsyncIterator[bytes], "WriteCall"], Awaitable[Any]]
-
-
-class WriteCall:
-    """One WriteMessages stream as its handler sees it: the methods of `grpc.aio.ServicerContext`
-    that `MessageProxy.write_messages` uses, and the requests in the order they came."""
-
-    def __init__(self, connection: WriteConnection, stream_id: int, metadata: tuple[tuple[str, Any], ...]) -> None:
-        self._connection, self.stream_id, self._metadata = connection, stream_id, metadata
-        self._queue: collections.deque[bytes | memoryview] = collections.deque()
-        self._waiter: asyncio.Future[None] | None = None
-        self._failure: Aborted | None = None
-        self.ended = False  # the client sent the end of its requests
-        self.dropping = False  # what more the client sends is dropped (the stream failed or was answered)
-        self.trailing: tuple[tuple[str, str], ...] = ()
-        # the message being put together: its header (5 bytes), then its body
-        self.header = bytearray()
-        self.body: bytearray | None = None
-        self.filled = 0
-
-    def invocation_metadata(self) -> tuple[tuple[str, Any], ...]:
-        return self._metadata
-
-    def set_trailing_metadata(self, metadata: tuple[tuple[str, str], ...]) -> None:
-        self.trailing = metadata
-
-    async def abort(self, code: grpc.StatusCode, details: str = "") -> NoReturn:
-        raise Aborted(code, details)
-
-    async def read(self) -> Any:
-        """The next request's bytes, or `grpc.aio.EOF` after the last."""
-        while not self._queue:
-            if self._failure is not None:
-                raise self._failure
-            if self.ended:
-                return grpc.aio.EOF
-            self._waiter = asyncio.get_running_loop().create_future()
-            try:
-                await self._waiter
-            finally:
-                self._waiter = None
-        request = self._queue.popleft()
-        self._connection.taken(len(request))
-        return request
-
-    async def requests(self) -> AsyncIterator[bytes]:
-        while (request := await self.read()) is not grpc.aio.EOF:
-            yield request
-
-    # --- fed by the connection -------------------------------------------------------------
-
-    def deliver(self, request: bytes | memoryview) -> None:
-        self._queue.append(request)
-        self._wake()
-
-    def end(self) -> None:
-        if self.dropping:
-            return
-        if self.body is not None or self.header:
-            self.fail(Aborted(grpc.StatusCode.INTERNAL, "the stream ended in the middle of a message"))
-        self.ended = True
-        self._wake()
-
-    def fail(self, failure: Aborted) -> None:
-        if self._failure is None:
-            self._failure = failure
-        self._wake()
-
-    def _wake(self) -> None:
-        if self._waiter is not None and not self._waiter.done():
-            self._waiter.set_result(None)
+_HIDDEN_METADATA = (b"te", b"content-type", b"grpc-accept-encoding")
 
 
 class WriteConnection(asyncio.BufferedProtocol):
@@ -177,15 +64,13 @@ class WriteConnection(asyncio.BufferedProtocol):
         self._end = 0  # bytes in `_buf`
         self._pos = 0  # parsed up to here
         self._transport: asyncio.Transport | None = None
-        self._decoder = Decoder()
-        self._decoder.max_allowed_table_size = 65536
+        self._blocks = HeaderBlocks(MAX_HEADER_BLOCK)
         self._encoder = Encoder()
         self._calls: dict[int, WriteCall] = {}
         self._tasks: dict[int, asyncio.Task[None]] = {}
         self._last_stream = 0  # the highest stream id the client opened
-        self._going_away: int | None = None  # the last stream served, once GOAWAY was sent
-        self._header_block: tuple[int, int, bytearray] | None = None  # stream, flags, fragment so far
-        # the DATA frame being read: its stream (None: one no longer served), what is left of its
+        self._going_away: int | None = None  # the last stream served, once h2.GOAWAY was sent
+        # the h2.DATA frame being read: its stream (None: one no longer served), what is left of its
         # data and of its padding
         self._data_call: WriteCall | None = None
         self._data_left = 0
@@ -206,10 +91,18 @@ class WriteConnection(asyncio.BufferedProtocol):
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
         assert isinstance(transport, asyncio.Transport)
         self._transport = transport
-        settings = struct.pack(">HIHIHIHI", 0x3, MAX_STREAMS, 0x4, STREAM_WINDOW, 0x5, MAX_FRAME, 0x6, MAX_HEADER_BLOCK)
-        transport.write(
-            frame(_SETTINGS, 0, 0, settings) + frame(_WINDOW_UPDATE, 0, 0, _HEAD.pack(CONNECTION_WINDOW - 65535))
+        settings = struct.pack(
+            ">HIHIHIHI",
+            h2.SETTINGS_MAX_CONCURRENT_STREAMS,
+            MAX_STREAMS,
+            h2.SETTINGS_INITIAL_WINDOW_SIZE,
+            STREAM_WINDOW,
+            h2.SETTINGS_MAX_FRAME_SIZE,
+            MAX_FRAME,
+            h2.SETTINGS_MAX_HEADER_LIST_SIZE,
+            MAX_HEADER_BLOCK,
         )
+        transport.write(frame(h2.SETTINGS, 0, 0, settings) + window_update(0, CONNECTION_WINDOW - 65535))
         loop = asyncio.get_running_loop()
         self._last_heard = loop.time()
         self._keepalive = loop.call_later(KEEPALIVE_S / 2, self._check_alive)
@@ -243,7 +136,7 @@ class WriteConnection(asyncio.BufferedProtocol):
                 self._end += nbytes
             self._parse()
             self._give_credit()
-        except ConnectionError_ as exc:
+        except ProtocolError as exc:
             self._fail_connection(exc.code, str(exc))
 
     def eof_received(self) -> bool:
@@ -260,7 +153,7 @@ class WriteConnection(asyncio.BufferedProtocol):
     def close(self) -> None:
         """The front is stopping: tell the client, and end every stream."""
         if self._transport is not None and not self.closed:
-            self._transport.write(frame(_GOAWAY, 0, 0, _HEAD.pack(self._last_stream) + _HEAD.pack(_NO_ERROR)))
+            self._transport.write(goaway(self._last_stream, h2.NO_ERROR))
             self._transport.close()
 
     async def wait_closed(self) -> None:
@@ -276,38 +169,37 @@ class WriteConnection(asyncio.BufferedProtocol):
                 if not self._data_payload():
                     return
                 continue
-            if self._end - self._pos < 9:
+            if self._end - self._pos < h2.FRAME_HEAD:
                 return
             pos = self._pos
-            length = int.from_bytes(buf[pos : pos + 3], "big")
-            kind, flags = buf[pos + 3], buf[pos + 4]
-            stream = _HEAD.unpack_from(buf, pos + 5)[0] & 0x7FFFFFFF
+            length, kind, flags, stream = h2.frame_head(buf, pos)
             if length > MAX_FRAME:
-                raise ConnectionError_(_FRAME_SIZE_ERROR, f"a frame of {length} bytes, over {MAX_FRAME}")
-            if kind == _DATA:
-                if flags & _PADDED:
-                    if self._end - pos < 10:
+                raise ProtocolError(f"a frame of {length} bytes, over {MAX_FRAME}", h2.FRAME_SIZE_ERROR)
+            if kind == h2.DATA:
+                if flags & h2.PADDED:
+                    if self._end - pos < h2.FRAME_HEAD + 1:
                         return
-                    pad = buf[pos + 9]
+                    pad = buf[pos + h2.FRAME_HEAD]
                     if pad >= length:
-                        raise ConnectionError_(_PROTOCOL_ERROR, "DATA padding longer than the frame")
-                    self._pos = pos + 10
+                        raise ProtocolError("DATA padding longer than the frame")
+                    self._pos = pos + h2.FRAME_HEAD + 1
                     self._start_data(stream, length, length - 1 - pad, pad, flags)
                 else:
-                    self._pos = pos + 9
+                    self._pos = pos + h2.FRAME_HEAD
                     self._start_data(stream, length, length, 0, flags)
                 continue
-            if self._end - pos < 9 + length:
+            end = pos + h2.FRAME_HEAD + length
+            if self._end < end:
                 return
-            self._pos = pos + 9 + length
-            payload = bytes(buf[pos + 9 : pos + 9 + length])
+            self._pos = end
+            payload = bytes(buf[pos + h2.FRAME_HEAD : end])
             self._control(kind, flags, stream, payload)
 
     def _start_data(self, stream: int, length: int, data: int, pad: int, flags: int) -> None:
-        if self._header_block is not None:
-            raise ConnectionError_(_PROTOCOL_ERROR, "a header block was interrupted by DATA")
+        if self._blocks.pending:
+            raise ProtocolError("a header block was interrupted by h2.DATA")
         if stream == 0 or stream > self._last_stream:
-            raise ConnectionError_(_PROTOCOL_ERROR, "DATA on a stream that was not opened")
+            raise ProtocolError("DATA on a stream that was not opened")
         self._credit_connection += length
         call = self._calls.get(stream)
         if call is not None and not call.ended and not call.dropping:
@@ -315,12 +207,12 @@ class WriteConnection(asyncio.BufferedProtocol):
         else:
             call = None  # ended or answered: the data is dropped (its window still counts)
         self._data_call, self._data_left, self._pad_left = call, data, pad
-        self._data_end_stream = bool(flags & _END_STREAM)
+        self._data_end_stream = bool(flags & h2.END_STREAM)
         if not data and not pad:
             self._data_done()
 
     def _data_payload(self) -> bool:
-        """Consume what is buffered of the DATA frame being read; False when more must be read."""
+        """Consume what is buffered of the h2.DATA frame being read; False when more must be read."""
         available = self._end - self._pos
         if not available:
             return False
@@ -406,7 +298,7 @@ class WriteConnection(asyncio.BufferedProtocol):
 
     def _go_direct(self, call: WriteCall) -> None:
         """While a large body is being received and nothing else is buffered, read the socket
-        straight into it (up to the end of the DATA frame and of the body)."""
+        straight into it (up to the end of the h2.DATA frame and of the body)."""
         body = call.body
         if body is None or self._pos != self._end or self._pad_left or not self._data_left:
             return
@@ -448,105 +340,86 @@ class WriteConnection(asyncio.BufferedProtocol):
         """Give back as window what was received, once a quarter of a window has come in."""
         out = []
         if self._credit_connection >= CONNECTION_WINDOW // 4:
-            out.append(frame(_WINDOW_UPDATE, 0, 0, _HEAD.pack(self._credit_connection)))
+            out.append(window_update(0, self._credit_connection))
             self._credit_connection = 0
         for stream, credit in list(self._credit.items()):
             if credit >= STREAM_WINDOW // 4:
-                out.append(frame(_WINDOW_UPDATE, 0, stream, _HEAD.pack(credit)))
+                out.append(window_update(stream, credit))
                 self._credit[stream] = 0
         if out and self._transport is not None:
             self._transport.write(b"".join(out))
 
     def _control(self, kind: int, flags: int, stream: int, payload: bytes) -> None:
-        if self._header_block is not None and kind != _CONTINUATION:
-            raise ConnectionError_(_PROTOCOL_ERROR, "a header block was interrupted by another frame")
-        if kind in (_HEADERS, _CONTINUATION):
+        if self._blocks.pending and kind != h2.CONTINUATION:
+            raise ProtocolError("a header block was interrupted by another frame")
+        if kind in (h2.HEADERS, h2.CONTINUATION):
             self._header_frame(kind, flags, stream, payload)
-        elif kind == _SETTINGS:
+        elif kind == h2.SETTINGS:
             self._settings(flags, payload)
-        elif kind == _PING:
+        elif kind == h2.PING:
             if len(payload) != 8:
-                raise ConnectionError_(_FRAME_SIZE_ERROR, "a PING of other than 8 bytes")
-            if flags & _ACK:
+                raise ProtocolError("a h2.PING of other than 8 bytes", h2.FRAME_SIZE_ERROR)
+            if flags & h2.ACK:
                 self._ping_sent = None
             else:
-                self._write(frame(_PING, _ACK, 0, payload))
-        elif kind == _RST_STREAM:
+                self._write(frame(h2.PING, h2.ACK, 0, payload))
+        elif kind == h2.RST_STREAM:
             call = self._calls.pop(stream, None)
             if call is not None:
                 call.fail(Aborted(grpc.StatusCode.CANCELLED, "the client cancelled the call"))
                 if (task := self._tasks.get(stream)) is not None:
                     task.cancel()
             self._credit.pop(stream, None)
-        elif kind == _GOAWAY:
+        elif kind == h2.GOAWAY:
             self._going_away = self._going_away if self._going_away is not None else self._last_stream
-        elif kind == _PUSH_PROMISE:
-            raise ConnectionError_(_PROTOCOL_ERROR, "a client may not push")
-        # WINDOW_UPDATE: what this end sends on a stream (its answer) is far below any window.
+        elif kind == h2.PUSH_PROMISE:
+            raise ProtocolError("a client may not push")
+        # h2.WINDOW_UPDATE: what this end sends on a stream (its answer) is far below any window.
         # PRIORITY and frame types this end does not know are ignored, as HTTP/2 says.
 
     def _settings(self, flags: int, payload: bytes) -> None:
-        if flags & _ACK:
+        if flags & h2.ACK:
             return
         if len(payload) % 6:
-            raise ConnectionError_(_FRAME_SIZE_ERROR, "SETTINGS of a length not a multiple of 6")
+            raise ProtocolError("SETTINGS of a length not a multiple of 6", h2.FRAME_SIZE_ERROR)
         for key, value in struct.iter_unpack(">HI", payload):
-            if key == 0x1:  # SETTINGS_HEADER_TABLE_SIZE: what this end's encoder may use
+            if key == h2.SETTINGS_HEADER_TABLE_SIZE:  # what this end's encoder may use
                 self._encoder.header_table_size = min(value, 4096)
-            elif key == 0x4 and value > 0x7FFFFFFF:
-                raise ConnectionError_(_FLOW_CONTROL_ERROR, "an initial window over 2^31-1")
-        self._write(frame(_SETTINGS, _ACK, 0))
+            elif key == h2.SETTINGS_INITIAL_WINDOW_SIZE and value > 0x7FFFFFFF:
+                raise ProtocolError("an initial window over 2^31-1", h2.FLOW_CONTROL_ERROR)
+        self._write(frame(h2.SETTINGS, h2.ACK, 0))
 
     def _header_frame(self, kind: int, flags: int, stream: int, payload: bytes) -> None:
-        if kind == _HEADERS:
-            pos, pad = 0, 0
-            if flags & _PADDED:
-                pad, pos = payload[0], 1
-            if flags & _PRIORITY:
-                pos += 5
-            if pos + pad > len(payload):
-                raise ConnectionError_(_PROTOCOL_ERROR, "HEADERS padding is longer than the frame")
-            self._header_block = (stream, flags, bytearray(payload[pos : len(payload) - pad]))
-        else:
-            if self._header_block is None or self._header_block[0] != stream:
-                raise ConnectionError_(_PROTOCOL_ERROR, "CONTINUATION without its HEADERS")
-            self._header_block[2].extend(payload)
-        if len(self._header_block[2]) > MAX_HEADER_BLOCK:
-            raise ConnectionError_(_PROTOCOL_ERROR, "a header block over 1 MiB")
-        if not flags & _END_HEADERS:
+        block = self._blocks.add(kind, flags, stream, payload)
+        if block is None:
             return
-        stream, first_flags, fragment = self._header_block
-        self._header_block = None
-        try:
-            headers = [(bytes(k), bytes(v)) for k, v in self._decoder.decode(bytes(fragment), raw=True)]
-        except HPACKError as exc:
-            raise ConnectionError_(0x9, f"undecodable headers ({exc})") from None  # COMPRESSION_ERROR
         if stream in self._calls:  # trailers from the client: only their end counts
-            if first_flags & _END_STREAM:
+            if block.flags & h2.END_STREAM:
                 self._calls[stream].end()
             return
         if stream <= self._last_stream:
             return  # the end of a stream already answered or refused
-        self._open(stream, first_flags, headers)
+        self._open(block)
 
-    def _open(self, stream: int, flags: int, headers: list[tuple[bytes, bytes]]) -> None:
+    def _open(self, block: HeaderBlock) -> None:
+        stream, headers = block.stream, block.headers
         if stream % 2 == 0 or stream <= self._last_stream:
-            raise ConnectionError_(_PROTOCOL_ERROR, f"stream {stream} opened out of order")
+            raise ProtocolError(f"stream {stream} opened out of order")
         self._last_stream = stream
         path = next((value for name, value in headers if name == b":path"), b"")
         if self._going_away is not None or path != WRITE_PATH:
             self._refuse(stream, path)
             return
         if len(self._calls) >= MAX_STREAMS:
-            self._write(frame(_RST_STREAM, 0, stream, _HEAD.pack(_REFUSED_STREAM)))
+            self._write(rst_stream(stream, h2.REFUSED_STREAM))
             return
         metadata = tuple(
             (name.decode("latin-1"), value if name.endswith(b"-bin") else value.decode("latin-1"))
             for name, value in headers
-            if not name.startswith(b":") and name not in (b"te", b"content-type", b"grpc-accept-encoding")
+            if not name.startswith(b":") and name not in _HIDDEN_METADATA
         )
-        call = self._calls[stream] = WriteCall(self, stream, metadata)
-        if flags & _END_STREAM:
+        call = self._calls[stream] = WriteCall(stream, metadata, self.taken)
+        if block.flags & h2.END_STREAM:
             call.end()
         task = self._tasks[stream] = asyncio.get_running_loop().create_task(self._serve(call))
         task.add_done_callback(lambda _: self._tasks.pop(stream, None))
@@ -556,8 +429,8 @@ class WriteConnection(asyncio.BufferedProtocol):
         if self._going_away is None:
             self._going_away = stream - 2 if stream > 1 else 0
             log.debug("gRPC port: %r on a write connection: the client is sent to a new connection", path)
-            self._write(frame(_GOAWAY, 0, 0, _HEAD.pack(self._going_away) + _HEAD.pack(_NO_ERROR)))
-        self._write(frame(_RST_STREAM, 0, stream, _HEAD.pack(_REFUSED_STREAM)))
+            self._write(goaway(self._going_away, h2.NO_ERROR))
+        self._write(rst_stream(stream, h2.REFUSED_STREAM))
         self._close_if_done()
 
     async def _serve(self, call: WriteCall) -> None:
@@ -586,15 +459,15 @@ class WriteConnection(asyncio.BufferedProtocol):
         trailers += [(k.encode(), v.encode() if isinstance(v, str) else v) for k, v in call.trailing]
         head = [(b":status", b"200"), (b"content-type", b"application/grpc")]
         if body is None:  # trailers only
-            out = frame(_HEADERS, _END_HEADERS | _END_STREAM, stream, self._encoder.encode(head + trailers))
+            out = frame(h2.HEADERS, h2.END_HEADERS | h2.END_STREAM, stream, self._encoder.encode(head + trailers))
         else:
             out = (
-                frame(_HEADERS, _END_HEADERS, stream, self._encoder.encode(head))
-                + frame(_DATA, 0, stream, b"\0" + len(body).to_bytes(4, "big") + body)
-                + frame(_HEADERS, _END_HEADERS | _END_STREAM, stream, self._encoder.encode(trailers))
+                frame(h2.HEADERS, h2.END_HEADERS, stream, self._encoder.encode(head))
+                + frame(h2.DATA, 0, stream, b"\0" + len(body).to_bytes(4, "big") + body)
+                + frame(h2.HEADERS, h2.END_HEADERS | h2.END_STREAM, stream, self._encoder.encode(trailers))
             )
         if not call.ended:  # answered before the client finished: it is to stop sending
-            out += frame(_RST_STREAM, 0, stream, _HEAD.pack(_NO_ERROR))
+            out += rst_stream(stream, h2.NO_ERROR)
         call.dropping = True
         self._write(out)
         self._close_if_done()
@@ -612,9 +485,7 @@ class WriteConnection(asyncio.BufferedProtocol):
         for call in self._calls.values():
             call.fail(Aborted(grpc.StatusCode.INTERNAL, f"the connection broke HTTP/2: {reason}"))
         if self._transport is not None and not self.closed:
-            self._transport.write(
-                frame(_GOAWAY, 0, 0, _HEAD.pack(self._last_stream) + _HEAD.pack(code) + reason.encode()[:200])
-            )
+            self._transport.write(goaway(self._last_stream, code, reason.encode()[:200]))
             self._transport.close()
         self.closed = True
 
@@ -630,7 +501,7 @@ class WriteConnection(asyncio.BufferedProtocol):
             return
         if self._ping_sent is None and now - self._last_heard > KEEPALIVE_S:
             self._ping_sent = now
-            self._write(frame(_PING, 0, 0, b"fleet-ka"))
+            self._write(frame(h2.PING, 0, 0, b"fleet-ka"))
         self._keepalive = loop.call_later(KEEPALIVE_S / 2, self._check_alive)
 
 

@@ -15,7 +15,7 @@ from hpack import Decoder, Encoder
 
 from services import __version__
 from services.api.grpc_front import PREFACE, ClientStream, ProtocolError, http1_answer
-from services.api.h2_writes import frame as _frame
+from services.api.h2 import frame as _frame
 from services.ingest.grpc_handler import LEGACY_REFUSAL
 from tests.services.ingest.live_server import LiveServer
 
