@@ -32,17 +32,14 @@ from hpack import Encoder, HeaderTuple
 
 from services.api.h2 import (
     CONTINUATION,
-    END_HEADERS,
-    END_STREAM,
     FRAME_HEAD,
     HEADERS,
     PREFACE,
-    PRIORITY,
     HeaderBlock,
     HeaderBlocks,
     ProtocolError,
-    frame,
     frame_head,
+    header_frames,
 )
 from services.api.h2_writes import WRITE_PATH, WriteServer
 
@@ -50,8 +47,6 @@ log = logging.getLogger("fleet.grpc")
 
 __all__ = ["PREFACE", "ClientStream", "Front", "ProtocolError", "http1_answer"]
 
-# Every HTTP/2 peer accepts frames of this size (the default SETTINGS_MAX_FRAME_SIZE).
-_MAX_FRAME = 16384
 _GOOD_SCHEMES = (b"http", b"https")
 # What a connection may send before the front knows what it is, and how long it may take.
 SNIFF_LIMIT = 1 << 20
@@ -130,19 +125,7 @@ class ClientStream:
     def _encode(self, block: HeaderBlock) -> bytes:
         assert self.encoder is not None
         fixed = [type(h)(h[0], _plain_scheme(h[1])) if h[0] == b":scheme" else h for h in block.headers]
-        encoded = self.encoder.encode(fixed, huffman=True)
-        first_room = _MAX_FRAME - len(block.priority)
-        pieces = [encoded[:first_room]] + [
-            encoded[i : i + _MAX_FRAME] for i in range(first_room, len(encoded), _MAX_FRAME)
-        ]
-        flags = (block.flags & END_STREAM) | (PRIORITY if block.priority else 0)
-        last = len(pieces) - 1
-        frames = [frame(HEADERS, flags | (END_HEADERS if last == 0 else 0), block.stream, block.priority + pieces[0])]
-        frames += [
-            frame(CONTINUATION, END_HEADERS if i == last else 0, block.stream, piece)
-            for i, piece in enumerate(pieces[1:], 1)
-        ]
-        return b"".join(frames)
+        return header_frames(block.stream, self.encoder.encode(fixed, huffman=True), block.flags, block.priority)
 
 
 def http1_answer(request: bytes, version: str) -> bytes:

@@ -6,6 +6,8 @@ headers some clients get wrong), `h2_writes` serves whole WriteMessages connecti
 
 from __future__ import annotations
 
+import base64
+import binascii
 import struct
 from dataclasses import dataclass, field
 
@@ -43,6 +45,8 @@ NO_ERROR, PROTOCOL_ERROR, FLOW_CONTROL_ERROR, FRAME_SIZE_ERROR, REFUSED_STREAM, 
 # Settings.
 SETTINGS_HEADER_TABLE_SIZE, SETTINGS_MAX_CONCURRENT_STREAMS, SETTINGS_INITIAL_WINDOW_SIZE = 0x1, 0x3, 0x4
 SETTINGS_MAX_FRAME_SIZE, SETTINGS_MAX_HEADER_LIST_SIZE = 0x5, 0x6
+# Every HTTP/2 peer accepts frames of this size (the default SETTINGS_MAX_FRAME_SIZE).
+MIN_MAX_FRAME = 16384
 # The largest header table a client may make this end keep per connection.
 DECODER_TABLE_LIMIT = 65536
 
@@ -69,6 +73,39 @@ def rst_stream(stream: int, code: int) -> bytes:
 
 def window_update(stream: int, increment: int) -> bytes:
     return frame(WINDOW_UPDATE, 0, stream, STREAM_ID.pack(increment))
+
+
+def header_frames(stream: int, block: bytes, flags: int, priority: bytes = b"") -> bytes:
+    """A header block as a HEADERS frame and CONTINUATIONs of at most MIN_MAX_FRAME bytes each;
+    `flags`: END_STREAM or not (END_HEADERS and PRIORITY are set here)."""
+    first_room = MIN_MAX_FRAME - len(priority)
+    pieces = [block[:first_room]] + [block[i : i + MIN_MAX_FRAME] for i in range(first_room, len(block), MIN_MAX_FRAME)]
+    flags = (flags & END_STREAM) | (PRIORITY if priority else 0)
+    last = len(pieces) - 1
+    out = [frame(HEADERS, flags | (END_HEADERS if last == 0 else 0), stream, priority + pieces[0])]
+    out += [frame(CONTINUATION, END_HEADERS if i == last else 0, stream, p) for i, p in enumerate(pieces[1:], 1)]
+    return b"".join(out)
+
+
+def data_frames(stream: int, data: bytes) -> bytes:
+    """`data` as DATA frames of at most MIN_MAX_FRAME bytes (the stream stays open)."""
+    return b"".join(frame(DATA, 0, stream, data[i : i + MIN_MAX_FRAME]) for i in range(0, len(data), MIN_MAX_FRAME))
+
+
+def binary_value(value: bytes) -> bytes:
+    """A `-bin` metadata value as gRPC sends it (base64, padding optional), decoded."""
+    try:
+        return base64.b64decode(value + b"=" * (-len(value) % 4))
+    except binascii.Error:
+        return value  # not base64: as it came (a handler names what it cannot read)
+
+
+def metadata_value(name: str, value: str | bytes) -> bytes:
+    """A metadata value as gRPC sends it: `-bin` values base64-encoded, others as ASCII."""
+    if name.endswith("-bin"):
+        raw = value.encode() if isinstance(value, str) else value
+        return base64.b64encode(raw).rstrip(b"=")
+    return value.encode() if isinstance(value, str) else value
 
 
 def frame_head(data: bytes | bytearray, pos: int) -> tuple[int, int, int, int]:

@@ -28,7 +28,7 @@ import grpc
 from hpack import Encoder
 
 from services.api import h2
-from services.api.h2 import HeaderBlock, HeaderBlocks, ProtocolError, frame, goaway, rst_stream, window_update
+from services.api.h2 import HeaderBlock, HeaderBlocks, ProtocolError, frame
 from services.api.write_call import Aborted, WriteCall, WriteHandler, grpc_message
 
 log = logging.getLogger("fleet.grpc")
@@ -69,8 +69,8 @@ class WriteConnection(asyncio.BufferedProtocol):
         self._calls: dict[int, WriteCall] = {}
         self._tasks: dict[int, asyncio.Task[None]] = {}
         self._last_stream = 0  # the highest stream id the client opened
-        self._going_away: int | None = None  # the last stream served, once h2.GOAWAY was sent
-        # the h2.DATA frame being read: its stream (None: one no longer served), what is left of its
+        self._going_away: int | None = None  # the last stream served, once GOAWAY was sent
+        # the DATA frame being read: its stream (None: one no longer served), what is left of its
         # data and of its padding
         self._data_call: WriteCall | None = None
         self._data_left = 0
@@ -102,7 +102,7 @@ class WriteConnection(asyncio.BufferedProtocol):
             h2.SETTINGS_MAX_HEADER_LIST_SIZE,
             MAX_HEADER_BLOCK,
         )
-        transport.write(frame(h2.SETTINGS, 0, 0, settings) + window_update(0, CONNECTION_WINDOW - 65535))
+        transport.write(frame(h2.SETTINGS, 0, 0, settings) + h2.window_update(0, CONNECTION_WINDOW - 65535))
         loop = asyncio.get_running_loop()
         self._last_heard = loop.time()
         self._keepalive = loop.call_later(KEEPALIVE_S / 2, self._check_alive)
@@ -153,7 +153,7 @@ class WriteConnection(asyncio.BufferedProtocol):
     def close(self) -> None:
         """The front is stopping: tell the client, and end every stream."""
         if self._transport is not None and not self.closed:
-            self._transport.write(goaway(self._last_stream, h2.NO_ERROR))
+            self._transport.write(h2.goaway(self._last_stream, h2.NO_ERROR))
             self._transport.close()
 
     async def wait_closed(self) -> None:
@@ -197,7 +197,7 @@ class WriteConnection(asyncio.BufferedProtocol):
 
     def _start_data(self, stream: int, length: int, data: int, pad: int, flags: int) -> None:
         if self._blocks.pending:
-            raise ProtocolError("a header block was interrupted by h2.DATA")
+            raise ProtocolError("a header block was interrupted by DATA")
         if stream == 0 or stream > self._last_stream:
             raise ProtocolError("DATA on a stream that was not opened")
         self._credit_connection += length
@@ -212,7 +212,7 @@ class WriteConnection(asyncio.BufferedProtocol):
             self._data_done()
 
     def _data_payload(self) -> bool:
-        """Consume what is buffered of the h2.DATA frame being read; False when more must be read."""
+        """Consume what is buffered of the DATA frame being read; False when more must be read."""
         available = self._end - self._pos
         if not available:
             return False
@@ -222,7 +222,9 @@ class WriteConnection(asyncio.BufferedProtocol):
             self._pos += take
             self._data_left -= take
             call = self._data_call
-            if call is not None:
+            if call is not None and call.dropping:  # done with since the frame began
+                self._data_call = call = None
+            if call is not None:  # (None: a stream no longer served, whose data is dropped)
                 with memoryview(self._buf) as whole, whole[start : start + take] as data:
                     self._messages(call, data)
                 if self._data_call is not None:
@@ -298,7 +300,7 @@ class WriteConnection(asyncio.BufferedProtocol):
 
     def _go_direct(self, call: WriteCall) -> None:
         """While a large body is being received and nothing else is buffered, read the socket
-        straight into it (up to the end of the h2.DATA frame and of the body)."""
+        straight into it (up to the end of the DATA frame and of the body)."""
         body = call.body
         if body is None or self._pos != self._end or self._pad_left or not self._data_left:
             return
@@ -309,11 +311,17 @@ class WriteConnection(asyncio.BufferedProtocol):
 
     def _direct_filled(self, nbytes: int) -> None:
         call = self._data_call
-        assert call is not None and call.body is not None and self._direct is not None
+        assert call is not None and self._direct is not None
         self._direct.release()
         self._direct = None
-        call.filled += nbytes
         self._data_left -= nbytes
+        if call.dropping:  # done with while its body was being read: the rest is dropped
+            self._data_call = None
+            if not self._data_left and not self._pad_left:
+                self._data_done()
+            return
+        assert call.body is not None
+        call.filled += nbytes
         if call.filled == len(call.body):
             self._deliver(call, memoryview(call.body).toreadonly())
             call.body = None
@@ -340,11 +348,11 @@ class WriteConnection(asyncio.BufferedProtocol):
         """Give back as window what was received, once a quarter of a window has come in."""
         out = []
         if self._credit_connection >= CONNECTION_WINDOW // 4:
-            out.append(window_update(0, self._credit_connection))
+            out.append(h2.window_update(0, self._credit_connection))
             self._credit_connection = 0
         for stream, credit in list(self._credit.items()):
             if credit >= STREAM_WINDOW // 4:
-                out.append(window_update(stream, credit))
+                out.append(h2.window_update(stream, credit))
                 self._credit[stream] = 0
         if out and self._transport is not None:
             self._transport.write(b"".join(out))
@@ -358,23 +366,24 @@ class WriteConnection(asyncio.BufferedProtocol):
             self._settings(flags, payload)
         elif kind == h2.PING:
             if len(payload) != 8:
-                raise ProtocolError("a h2.PING of other than 8 bytes", h2.FRAME_SIZE_ERROR)
+                raise ProtocolError("a PING of other than 8 bytes", h2.FRAME_SIZE_ERROR)
             if flags & h2.ACK:
                 self._ping_sent = None
             else:
                 self._write(frame(h2.PING, h2.ACK, 0, payload))
         elif kind == h2.RST_STREAM:
-            call = self._calls.pop(stream, None)
+            call = self._calls.get(stream)
             if call is not None:
+                self._finish(call)
                 call.fail(Aborted(grpc.StatusCode.CANCELLED, "the client cancelled the call"))
                 if (task := self._tasks.get(stream)) is not None:
                     task.cancel()
-            self._credit.pop(stream, None)
         elif kind == h2.GOAWAY:
             self._going_away = self._going_away if self._going_away is not None else self._last_stream
         elif kind == h2.PUSH_PROMISE:
             raise ProtocolError("a client may not push")
-        # h2.WINDOW_UPDATE: what this end sends on a stream (its answer) is far below any window.
+        # WINDOW_UPDATE: what this end sends on a stream (its answer, a few hundred bytes) is far below
+        # any window.
         # PRIORITY and frame types this end does not know are ignored, as HTTP/2 says.
 
     def _settings(self, flags: int, payload: bytes) -> None:
@@ -411,10 +420,10 @@ class WriteConnection(asyncio.BufferedProtocol):
             self._refuse(stream, path)
             return
         if len(self._calls) >= MAX_STREAMS:
-            self._write(rst_stream(stream, h2.REFUSED_STREAM))
+            self._write(h2.rst_stream(stream, h2.REFUSED_STREAM))
             return
         metadata = tuple(
-            (name.decode("latin-1"), value if name.endswith(b"-bin") else value.decode("latin-1"))
+            (name.decode("latin-1"), h2.binary_value(value) if name.endswith(b"-bin") else value.decode("latin-1"))
             for name, value in headers
             if not name.startswith(b":") and name not in _HIDDEN_METADATA
         )
@@ -429,8 +438,8 @@ class WriteConnection(asyncio.BufferedProtocol):
         if self._going_away is None:
             self._going_away = stream - 2 if stream > 1 else 0
             log.debug("gRPC port: %r on a write connection: the client is sent to a new connection", path)
-            self._write(goaway(self._going_away, h2.NO_ERROR))
-        self._write(rst_stream(stream, h2.REFUSED_STREAM))
+            self._write(h2.goaway(self._going_away, h2.NO_ERROR))
+        self._write(h2.rst_stream(stream, h2.REFUSED_STREAM))
         self._close_if_done()
 
     async def _serve(self, call: WriteCall) -> None:
@@ -441,34 +450,44 @@ class WriteConnection(asyncio.BufferedProtocol):
         except Aborted as exc:
             status, details = exc.code, exc.details
         except asyncio.CancelledError:
-            self._calls.pop(call.stream_id, None)
+            self._finish(call)
             return  # the client went away or cancelled: nobody to answer
         except Exception:
             log.exception("WriteMessages failed")
             status, details = grpc.StatusCode.INTERNAL, "the depot failed on this stream; see its log"
         self._answer(call, status, details, body)
 
-    def _answer(self, call: WriteCall, status: grpc.StatusCode, details: str, body: bytes | None) -> None:
-        if self.closed or self._calls.pop(call.stream_id, None) is None:
-            return
+    def _finish(self, call: WriteCall) -> bool:
+        """The stream is done with (answered, reset or cut short): what more the client sends on it
+        is dropped, and what its handler left unread no longer holds the connection's reading back.
+        False if it was done with already."""
+        if self._calls.pop(call.stream_id, None) is None:
+            return False
         self._credit.pop(call.stream_id, None)
+        self.taken(call.discard())
+        return True
+
+    def _answer(self, call: WriteCall, status: grpc.StatusCode, details: str, body: bytes | None) -> None:
+        if not self._finish(call) or self.closed:
+            return
         stream = call.stream_id
         trailers = [(b"grpc-status", str(status.value[0]).encode())]
         if details:
             trailers.append((b"grpc-message", grpc_message(details).encode()))
-        trailers += [(k.encode(), v.encode() if isinstance(v, str) else v) for k, v in call.trailing]
+        trailers += [(k.encode(), h2.metadata_value(k, v)) for k, v in call.trailing]
         head = [(b":status", b"200"), (b"content-type", b"application/grpc")]
+        # Frames of at most 16 KiB (what every client accepts). The answer is an empty
+        # WriteMessagesResponse and a status: far below any flow-control window.
         if body is None:  # trailers only
-            out = frame(h2.HEADERS, h2.END_HEADERS | h2.END_STREAM, stream, self._encoder.encode(head + trailers))
+            out = h2.header_frames(stream, self._encoder.encode(head + trailers), h2.END_STREAM)
         else:
             out = (
-                frame(h2.HEADERS, h2.END_HEADERS, stream, self._encoder.encode(head))
-                + frame(h2.DATA, 0, stream, b"\0" + len(body).to_bytes(4, "big") + body)
-                + frame(h2.HEADERS, h2.END_HEADERS | h2.END_STREAM, stream, self._encoder.encode(trailers))
+                h2.header_frames(stream, self._encoder.encode(head), 0)
+                + h2.data_frames(stream, b"\0" + len(body).to_bytes(4, "big") + body)
+                + h2.header_frames(stream, self._encoder.encode(trailers), h2.END_STREAM)
             )
         if not call.ended:  # answered before the client finished: it is to stop sending
-            out += rst_stream(stream, h2.NO_ERROR)
-        call.dropping = True
+            out += h2.rst_stream(stream, h2.NO_ERROR)
         self._write(out)
         self._close_if_done()
 
@@ -485,7 +504,7 @@ class WriteConnection(asyncio.BufferedProtocol):
         for call in self._calls.values():
             call.fail(Aborted(grpc.StatusCode.INTERNAL, f"the connection broke HTTP/2: {reason}"))
         if self._transport is not None and not self.closed:
-            self._transport.write(goaway(self._last_stream, code, reason.encode()[:200]))
+            self._transport.write(h2.goaway(self._last_stream, code, reason.encode()[:200]))
             self._transport.close()
         self.closed = True
 

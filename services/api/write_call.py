@@ -91,6 +91,16 @@ class WriteCall:
         self.ended = True
         self._wake()
 
+    def discard(self) -> int:
+        """The stream is done with: drop what the handler has not taken, and all that may come
+        after; how many bytes were dropped."""
+        self.dropping = True
+        self.body = None
+        self.header.clear()
+        dropped = sum(len(request) for request in self._queue)
+        self._queue.clear()
+        return dropped
+
     def fail(self, failure: Aborted) -> None:
         if self._failure is None:
             self._failure = failure
