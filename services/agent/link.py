@@ -159,11 +159,15 @@ class DepotLink:
         self._open_channel()
         await old.close(grace=None)
 
-    def mark_up(self) -> None:
+    def mark_up(self, streamed: bool = False) -> None:
+        """The depot answered. Only a stream it took (`streamed`) ends a refusal: a REST call that
+        succeeds says nothing of whether it takes the robot's runs now."""
         if not self.up:
             log.info("depot link up (%s)", self.target)
             self.up, self.since = True, time.time()
-        self.error, self.refused = "", None
+        self.error = ""
+        if streamed:
+            self.refused = None
 
     def mark_down(self, why: str) -> None:
         if self.up:

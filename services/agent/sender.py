@@ -182,7 +182,7 @@ class RunSender:
             await self._pump(call, generation)
             await call.done_writing()
             await call
-            self.ctx.link.mark_up()
+            self.ctx.link.mark_up(streamed=True)
         except (LinkDown, DepotRefused):
             call.cancel()
             raise

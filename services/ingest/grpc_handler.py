@@ -110,6 +110,7 @@ class MessageProxy:
                 self.service.accept(source, event)
                 received += len(request)
         except FleetError as exc:
+            await self.service.remove_dropped()  # a run the refusal dropped is gone once it is answered
             await refuse(context, exc, relayed_by)
         finally:
             report = self.service.close_source(source)

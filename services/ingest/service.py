@@ -211,6 +211,17 @@ class IngestService:
             report.catalog = "pending"
         return report
 
+    async def remove_dropped(self, timeout_s: float = 10.0) -> None:
+        """Runs dropped by a refusal leave the catalog now (off the event loop), so that once the
+        refusal is answered no one finds them; a catalog that is slow or down leaves it to the next
+        flush."""
+        if not self._catalog_sync.dropped:
+            return
+        try:
+            await asyncio.wait_for(asyncio.to_thread(self._catalog_sync.save, [], self.runs), timeout_s)
+        except Exception as exc:  # retried by the housekeeping
+            log.warning("dropped runs not yet removed from the catalog (%s); the next flush does it", exc)
+
     async def prepare(self, source: Source, event: Event) -> None:
         """Before `accept`: for a recording not hot here, ask (on a worker thread, within
         `lookup_timeout_s`) whether it was sealed before, so late data is filed beside it and chunks
