@@ -93,7 +93,10 @@ def data_frames(stream: int, data: bytes) -> bytes:
 
 
 def binary_value(value: bytes) -> bytes:
-    """A `-bin` metadata value as gRPC sends it (base64, padding optional), decoded."""
+    """A `-bin` metadata value as gRPC sends it, decoded: base64 (padding optional), or raw after
+    a 0 byte (C-core's "true binary", which the gRPC server's SETTINGS allow its clients)."""
+    if value[:1] == b"\0":
+        return value[1:]
     try:
         return base64.b64decode(value + b"=" * (-len(value) % 4))
     except binascii.Error:
@@ -134,6 +137,7 @@ class HeaderBlocks:
     def __init__(self, limit: int) -> None:
         self.decoder = Decoder()
         self.decoder.max_allowed_table_size = DECODER_TABLE_LIMIT
+        self.decoder.max_header_list_size = limit  # as announced (SETTINGS_MAX_HEADER_LIST_SIZE)
         self._limit = limit
         self._block: HeaderBlock | None = None
 

@@ -77,10 +77,12 @@ class WriteConnection(asyncio.BufferedProtocol):
         self._pad_left = 0
         self._data_end_stream = False
         self._direct: memoryview | None = None  # where the socket is read into for a large body
+        self._allocated = 0  # bytes of the bodies being received, allocated ahead of their bytes
         self._credit_connection = 0  # bytes received and not yet given back as window
         self._credit: dict[int, int] = {}
         self._queued = 0  # bytes delivered to handlers and not yet taken
-        self._paused = False
+        self._paused = False  # reading stopped: the streams hold QUEUE_LIMIT unread
+        self._write_paused = False  # reading stopped: the client does not read what this end sends
         self._last_heard = 0.0
         self._ping_sent: float | None = None
         self._keepalive: asyncio.TimerHandle | None = None
@@ -151,10 +153,18 @@ class WriteConnection(asyncio.BufferedProtocol):
         self._on_close(self)
 
     def close(self) -> None:
-        """The front is stopping: tell the client, and end every stream."""
+        """The front is stopping: tell the client, and end every stream (its handler cancelled
+        now, not once the client has read the GOAWAY)."""
+        for task in self._tasks.values():
+            task.cancel()
         if self._transport is not None and not self.closed:
             self._transport.write(h2.goaway(self._last_stream, h2.NO_ERROR))
             self._transport.close()
+
+    def abort(self) -> None:
+        """Close at once, whatever is still to be sent."""
+        if self._transport is not None and not self.closed:
+            self._transport.abort()
 
     async def wait_closed(self) -> None:
         if self._tasks:
@@ -250,13 +260,12 @@ class WriteConnection(asyncio.BufferedProtocol):
         pos, size = 0, len(data)
         while pos < size:
             if call.body is not None:  # inside a message
-                take = min(size - pos, len(call.body) - call.filled)
-                call.body[call.filled : call.filled + take] = data[pos : pos + take]
+                take = min(size - pos, call.length - call.filled)
+                body = self._body_room(call, take)
+                body[call.filled : call.filled + take] = data[pos : pos + take]
                 call.filled += take
                 pos += take
-                if call.filled == len(call.body):
-                    self._deliver(call, memoryview(call.body).toreadonly())
-                    call.body = None
+                self._body_check(call)
                 continue
             if not call.header and size - pos >= 5:  # the header here whole: the common case
                 flag, length = data[pos], int.from_bytes(data[pos + 1 : pos + 5], "big")
@@ -274,11 +283,34 @@ class WriteConnection(asyncio.BufferedProtocol):
             if size - pos >= length and length < DIRECT_BYTES:
                 self._deliver(call, data[pos : pos + length].tobytes())
                 pos += length
+            elif not length:
+                self._deliver(call, b"")
             else:
-                call.body, call.filled = bytearray(length), 0
-                if not length:
-                    self._deliver(call, b"")
-                    call.body = None
+                # What is allocated ahead of a body's bytes is bounded per connection by what the
+                # client may have in flight (the connection's window), not by the length its 5-byte
+                # prefix declares; a body beyond that grows as its bytes come.
+                ahead = min(length, max(DIRECT_BYTES, CONNECTION_WINDOW - self._allocated))
+                call.body, call.length, call.filled = bytearray(ahead), length, 0
+                self._allocated += ahead
+
+    def _body_room(self, call: WriteCall, coming: int) -> bytearray:
+        """The body being received, grown (doubling, up to its length) to hold `coming` more bytes."""
+        body = call.body
+        assert body is not None
+        need = call.filled + coming
+        if len(body) < need:
+            grow = min(call.length, max(need, 2 * len(body))) - len(body)
+            body.extend(bytes(grow))
+            self._allocated += grow
+        return body
+
+    def _body_check(self, call: WriteCall) -> None:
+        """Deliver the body being received once it is whole."""
+        body = call.body
+        if body is not None and call.filled == call.length:
+            self._allocated -= len(body)
+            call.body = None
+            self._deliver(call, memoryview(body).toreadonly())
 
     def _message_allowed(self, call: WriteCall, flag: int, length: int) -> bool:
         if flag:
@@ -301,11 +333,11 @@ class WriteConnection(asyncio.BufferedProtocol):
     def _go_direct(self, call: WriteCall) -> None:
         """While a large body is being received and nothing else is buffered, read the socket
         straight into it (up to the end of the DATA frame and of the body)."""
-        body = call.body
-        if body is None or self._pos != self._end or self._pad_left or not self._data_left:
+        if call.body is None or self._pos != self._end or self._pad_left or not self._data_left:
             return
-        want = min(self._data_left, len(body) - call.filled)
+        want = min(self._data_left, call.length - call.filled)
         if want >= DIRECT_BYTES // 4:
+            body = self._body_room(call, want)
             with memoryview(body) as whole:
                 self._direct = whole[call.filled : call.filled + want]
 
@@ -320,11 +352,8 @@ class WriteConnection(asyncio.BufferedProtocol):
             if not self._data_left and not self._pad_left:
                 self._data_done()
             return
-        assert call.body is not None
         call.filled += nbytes
-        if call.filled == len(call.body):
-            self._deliver(call, memoryview(call.body).toreadonly())
-            call.body = None
+        self._body_check(call)
         if not self._data_left and not self._pad_left:
             self._data_done()
         else:
@@ -333,16 +362,44 @@ class WriteConnection(asyncio.BufferedProtocol):
     def _deliver(self, call: WriteCall, request: bytes | memoryview) -> None:
         call.deliver(request)
         self._queued += len(request)
-        if self._queued > QUEUE_LIMIT and not self._paused and self._transport is not None:
+        # A stream's window comes back as its handler takes what it was sent: a stream whose
+        # handler is slow stops at its own window, and the connection's other streams flow.
+        self._credit[call.stream_id] = self._credit.get(call.stream_id, 0) - len(request)
+        if self._queued > QUEUE_LIMIT and not self._paused:
             self._paused = True
-            self._transport.pause_reading()
+            self._reading()
 
-    def taken(self, nbytes: int) -> None:
-        """A handler took a request: the connection may read again once its streams hold less."""
+    def taken(self, stream: int, nbytes: int) -> None:
+        """A handler took a request (or a stream ended with this much untaken)."""
         self._queued -= nbytes
-        if self._paused and self._queued <= QUEUE_LIMIT // 2 and self._transport is not None:
+        if stream in self._credit:
+            self._credit[stream] += nbytes
+            if self._credit[stream] >= STREAM_WINDOW // 4:
+                self._give_credit()
+        if self._paused and self._queued <= QUEUE_LIMIT // 2:
             self._paused = False
+            self._reading()
+
+    def _reading(self) -> None:
+        """Read from the socket unless the streams hold too much or the client reads nothing."""
+        if self._transport is None or self.closed:
+            return
+        if self._paused or self._write_paused:
+            self._transport.pause_reading()
+        else:
             self._transport.resume_reading()
+            # what came while paused (a ping's answer among it) is read now: silence starts over
+            self._last_heard, self._ping_sent = asyncio.get_running_loop().time(), None
+
+    def pause_writing(self) -> None:
+        # The client does not read: what it sends is not read either, so that answers to its
+        # PINGs and SETTINGS do not pile up here.
+        self._write_paused = True
+        self._reading()
+
+    def resume_writing(self) -> None:
+        self._write_paused = False
+        self._reading()
 
     def _give_credit(self) -> None:
         """Give back as window what was received, once a quarter of a window has come in."""
@@ -464,7 +521,9 @@ class WriteConnection(asyncio.BufferedProtocol):
         if self._calls.pop(call.stream_id, None) is None:
             return False
         self._credit.pop(call.stream_id, None)
-        self.taken(call.discard())
+        if call.body is not None:
+            self._allocated -= len(call.body)
+        self.taken(call.stream_id, call.discard())
         return True
 
     def _answer(self, call: WriteCall, status: grpc.StatusCode, details: str, body: bytes | None) -> None:
@@ -514,7 +573,8 @@ class WriteConnection(asyncio.BufferedProtocol):
             return
         loop = asyncio.get_running_loop()
         now = loop.time()
-        if self._ping_sent is not None and now - self._ping_sent > KEEPALIVE_TIMEOUT_S:
+        # While reading is paused for its handlers' sake, the answer waits unread in the socket.
+        if self._ping_sent is not None and now - self._ping_sent > KEEPALIVE_TIMEOUT_S and not self._paused:
             log.info("gRPC port: a write connection did not answer a ping for %g s: closed", KEEPALIVE_TIMEOUT_S)
             self._transport.abort()
             return
@@ -530,10 +590,14 @@ class WriteServer:
     def __init__(self, handler: WriteHandler, max_message: int) -> None:
         self.handler, self.max_message = handler, max_message
         self.connections: set[WriteConnection] = set()
+        self.stopped = False
 
     async def take(self, sock: socket.socket, held: bytes) -> None:
         """Serve a client connection here from now on; `held`: what was read of it after the
         preface (its first request's headers among it)."""
+        if self.stopped:  # handed over as the node stops: the client connects again elsewhere
+            sock.close()
+            return
         connection = WriteConnection(self.handler, self.max_message, self.connections.discard)
         self.connections.add(connection)
         await asyncio.get_running_loop().connect_accepted_socket(lambda: connection, sock=sock)
@@ -542,6 +606,9 @@ class WriteServer:
     async def stop(self) -> None:
         """Tell every client this node is going away and end its streams (their sources closed)."""
         connections = list(self.connections)
+        self.stopped = True
         for connection in connections:
             connection.close()
         await asyncio.gather(*(c.wait_closed() for c in connections), return_exceptions=True)
+        for connection in connections:
+            connection.abort()  # a client that reads nothing would hold its connection open

@@ -32,7 +32,9 @@ def grpc_message(details: str) -> str:
 class WriteCall:
     """The requests of one stream, fed by its connection, and what the handler says of its answer."""
 
-    def __init__(self, stream_id: int, metadata: tuple[tuple[str, Any], ...], taken: Callable[[int], None]) -> None:
+    def __init__(
+        self, stream_id: int, metadata: tuple[tuple[str, Any], ...], taken: Callable[[int, int], None]
+    ) -> None:
         self.stream_id, self._metadata = stream_id, metadata
         self._taken = taken  # told how many bytes the handler took, for the connection's back-pressure
         self._queue: collections.deque[bytes | memoryview] = collections.deque()
@@ -44,6 +46,7 @@ class WriteCall:
         # the message being put together: its 5-byte prefix (while split over frames), then its body
         self.header = bytearray()
         self.body: bytearray | None = None
+        self.length = 0  # the body's, as its prefix declares
         self.filled = 0
 
     # --- what the handler calls (grpc.aio.ServicerContext's names) --------------------------
@@ -70,7 +73,7 @@ class WriteCall:
             finally:
                 self._waiter = None
         request = self._queue.popleft()
-        self._taken(len(request))
+        self._taken(self.stream_id, len(request))
         return request
 
     async def requests(self) -> AsyncIterator[bytes]:

@@ -128,9 +128,9 @@ class Relay:
         method = channel.stream_unary(WRITE_METHOD, request_serializer=None, response_deserializer=None)
         return cls(owner, method(metadata=tuple(metadata)))
 
-    async def send(self, request: bytes) -> None:
-        try:
-            await self._call.write(request)
+    async def send(self, request: bytes | memoryview) -> None:
+        try:  # grpc.aio writes bytes only (the front hands large requests over as views)
+            await self._call.write(request if isinstance(request, bytes) else bytes(request))
         except grpc.aio.AioRpcError as exc:
             raise refusal_of(exc, self.owner) from None
         except asyncio.InvalidStateError:  # the call already ended: its status says why
