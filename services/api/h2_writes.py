@@ -29,7 +29,7 @@ from hpack import Encoder
 
 from services.api import h2
 from services.api.h2 import HeaderBlock, HeaderBlocks, ProtocolError, frame
-from services.api.write_call import Aborted, WriteCall, WriteHandler, grpc_message
+from services.api.write_call import Aborted, BodyBudget, WriteCall, WriteHandler, grpc_message
 
 log = logging.getLogger("fleet.grpc")
 
@@ -59,7 +59,7 @@ class WriteConnection(asyncio.BufferedProtocol):
     being received, the socket is read straight into that message's buffer instead (`get_buffer`)."""
 
     def __init__(self, handler: WriteHandler, max_message: int, on_close: Callable[[WriteConnection], None]) -> None:
-        self._handler, self._max_message, self._on_close = handler, max_message, on_close
+        self._handler, self._on_close = handler, on_close
         self._buf = bytearray(READ_BUFFER)
         self._end = 0  # bytes in `_buf`
         self._pos = 0  # parsed up to here
@@ -77,7 +77,9 @@ class WriteConnection(asyncio.BufferedProtocol):
         self._pad_left = 0
         self._data_end_stream = False
         self._direct: memoryview | None = None  # where the socket is read into for a large body
-        self._allocated = 0  # bytes of the bodies being received, allocated ahead of their bytes
+        # What is allocated ahead of a body's bytes is bounded per connection by what the client
+        # may have in flight (the connection's window), not by the lengths their prefixes declare.
+        self._budget = BodyBudget(CONNECTION_WINDOW, DIRECT_BYTES, max_message)
         self._credit_connection = 0  # bytes received and not yet given back as window
         self._credit: dict[int, int] = {}
         self._queued = 0  # bytes delivered to handlers and not yet taken
@@ -236,8 +238,10 @@ class WriteConnection(asyncio.BufferedProtocol):
                 self._data_call = call = None
             if call is not None:  # (None: a stream no longer served, whose data is dropped)
                 with memoryview(self._buf) as whole, whole[start : start + take] as data:
-                    self._messages(call, data)
-                if self._data_call is not None:
+                    call.cut(data)
+                if call.dropping:  # it failed (a message it cannot take): the rest is dropped
+                    self._data_call = None
+                else:
                     self._go_direct(call)
             if self._data_left:
                 return False
@@ -255,81 +259,6 @@ class WriteConnection(asyncio.BufferedProtocol):
         if call is not None and self._data_end_stream:
             call.end()
 
-    def _messages(self, call: WriteCall, data: memoryview) -> None:
-        """Cut gRPC messages (a flag byte, a 4-byte length, the message) out of a stream's data."""
-        pos, size = 0, len(data)
-        while pos < size:
-            if call.body is not None:  # inside a message
-                take = min(size - pos, call.length - call.filled)
-                body = self._body_room(call, take)
-                body[call.filled : call.filled + take] = data[pos : pos + take]
-                call.filled += take
-                pos += take
-                self._body_check(call)
-                continue
-            if not call.header and size - pos >= 5:  # the header here whole: the common case
-                flag, length = data[pos], int.from_bytes(data[pos + 1 : pos + 5], "big")
-                pos += 5
-            else:
-                take = min(size - pos, 5 - len(call.header))
-                call.header += data[pos : pos + take]
-                pos += take
-                if len(call.header) < 5:
-                    return
-                flag, length = call.header[0], int.from_bytes(call.header[1:5], "big")
-                call.header.clear()
-            if not self._message_allowed(call, flag, length):
-                return
-            if size - pos >= length and length < DIRECT_BYTES:
-                self._deliver(call, data[pos : pos + length].tobytes())
-                pos += length
-            elif not length:
-                self._deliver(call, b"")
-            else:
-                # What is allocated ahead of a body's bytes is bounded per connection by what the
-                # client may have in flight (the connection's window), not by the length its 5-byte
-                # prefix declares; a body beyond that grows as its bytes come.
-                ahead = min(length, max(DIRECT_BYTES, CONNECTION_WINDOW - self._allocated))
-                call.body, call.length, call.filled = bytearray(ahead), length, 0
-                self._allocated += ahead
-
-    def _body_room(self, call: WriteCall, coming: int) -> bytearray:
-        """The body being received, grown (doubling, up to its length) to hold `coming` more bytes."""
-        body = call.body
-        assert body is not None
-        need = call.filled + coming
-        if len(body) < need:
-            grow = min(call.length, max(need, 2 * len(body))) - len(body)
-            body.extend(bytes(grow))
-            self._allocated += grow
-        return body
-
-    def _body_check(self, call: WriteCall) -> None:
-        """Deliver the body being received once it is whole."""
-        body = call.body
-        if body is not None and call.filled == call.length:
-            self._allocated -= len(body)
-            call.body = None
-            self._deliver(call, memoryview(body).toreadonly())
-
-    def _message_allowed(self, call: WriteCall, flag: int, length: int) -> bool:
-        if flag:
-            failure = Aborted(
-                grpc.StatusCode.UNIMPLEMENTED, "compressed gRPC messages are not accepted: send them uncompressed"
-            )
-        elif length > self._max_message:
-            failure = Aborted(
-                grpc.StatusCode.RESOURCE_EXHAUSTED,
-                f"a message of {length} bytes is over this depot's limit of {self._max_message} "
-                "(FLEET_MAX_MESSAGE_SIZE)",
-            )
-        else:
-            return True
-        call.fail(failure)
-        self._data_call = None  # the rest of the stream is dropped
-        call.dropping = True
-        return False
-
     def _go_direct(self, call: WriteCall) -> None:
         """While a large body is being received and nothing else is buffered, read the socket
         straight into it (up to the end of the DATA frame and of the body)."""
@@ -337,7 +266,7 @@ class WriteConnection(asyncio.BufferedProtocol):
             return
         want = min(self._data_left, call.length - call.filled)
         if want >= DIRECT_BYTES // 4:
-            body = self._body_room(call, want)
+            body = call.room(want)
             with memoryview(body) as whole:
                 self._direct = whole[call.filled : call.filled + want]
 
@@ -353,18 +282,19 @@ class WriteConnection(asyncio.BufferedProtocol):
                 self._data_done()
             return
         call.filled += nbytes
-        self._body_check(call)
+        call.complete()
         if not self._data_left and not self._pad_left:
             self._data_done()
         else:
             self._go_direct(call)
 
-    def _deliver(self, call: WriteCall, request: bytes | memoryview) -> None:
-        call.deliver(request)
-        self._queued += len(request)
+    def delivered(self, stream: int, nbytes: int) -> None:
+        """A stream's handler was given a request: it holds the connection's reading back until taken."""
+        self._queued += nbytes
         # A stream's window comes back as its handler takes what it was sent: a stream whose
         # handler is slow stops at its own window, and the connection's other streams flow.
-        self._credit[call.stream_id] = self._credit.get(call.stream_id, 0) - len(request)
+        if stream in self._calls:
+            self._credit[stream] = self._credit.get(stream, 0) - nbytes
         if self._queued > QUEUE_LIMIT and not self._paused:
             self._paused = True
             self._reading()
@@ -484,7 +414,7 @@ class WriteConnection(asyncio.BufferedProtocol):
             for name, value in headers
             if not name.startswith(b":") and name not in _HIDDEN_METADATA
         )
-        call = self._calls[stream] = WriteCall(stream, metadata, self.taken)
+        call = self._calls[stream] = WriteCall(stream, metadata, self, self._budget)
         if block.flags & h2.END_STREAM:
             call.end()
         task = self._tasks[stream] = asyncio.get_running_loop().create_task(self._serve(call))
@@ -521,8 +451,6 @@ class WriteConnection(asyncio.BufferedProtocol):
         if self._calls.pop(call.stream_id, None) is None:
             return False
         self._credit.pop(call.stream_id, None)
-        if call.body is not None:
-            self._allocated -= len(call.body)
         self.taken(call.stream_id, call.discard())
         return True
 

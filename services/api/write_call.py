@@ -9,7 +9,7 @@ from __future__ import annotations
 import asyncio
 import collections
 from collections.abc import AsyncIterator, Awaitable, Callable
-from typing import Any, NoReturn
+from typing import Any, NoReturn, Protocol
 
 import grpc
 
@@ -29,14 +29,35 @@ def grpc_message(details: str) -> str:
     )
 
 
+class Accounting(Protocol):
+    """The connection's side of what its streams' handlers were given and took (back-pressure)."""
+
+    def delivered(self, stream: int, nbytes: int) -> None: ...
+
+    def taken(self, stream: int, nbytes: int) -> None: ...
+
+
+class BodyBudget:
+    """What the bodies being received on one connection have allocated ahead of their bytes: at
+    most `limit` in all (at least `minimum` a body), beyond which a body grows as its bytes come; and
+    the largest message taken."""
+
+    def __init__(self, limit: int, minimum: int, max_message: int) -> None:
+        self.limit, self.minimum, self.max_message = limit, minimum, max_message
+        self.used = 0
+
+    def ahead(self, length: int) -> int:
+        return min(length, max(self.minimum, self.limit - self.used))
+
+
 class WriteCall:
     """The requests of one stream, fed by its connection, and what the handler says of its answer."""
 
     def __init__(
-        self, stream_id: int, metadata: tuple[tuple[str, Any], ...], taken: Callable[[int, int], None]
+        self, stream_id: int, metadata: tuple[tuple[str, Any], ...], accounting: Accounting, budget: BodyBudget
     ) -> None:
         self.stream_id, self._metadata = stream_id, metadata
-        self._taken = taken  # told how many bytes the handler took, for the connection's back-pressure
+        self._accounting, self._budget = accounting, budget
         self._queue: collections.deque[bytes | memoryview] = collections.deque()
         self._waiter: asyncio.Future[None] | None = None
         self._failure: Aborted | None = None
@@ -73,7 +94,7 @@ class WriteCall:
             finally:
                 self._waiter = None
         request = self._queue.popleft()
-        self._taken(self.stream_id, len(request))
+        self._accounting.taken(self.stream_id, len(request))
         return request
 
     async def requests(self) -> AsyncIterator[bytes]:
@@ -84,7 +105,80 @@ class WriteCall:
 
     def deliver(self, request: bytes | memoryview) -> None:
         self._queue.append(request)
+        self._accounting.delivered(self.stream_id, len(request))
         self._wake()
+
+    def cut(self, data: memoryview) -> None:
+        """Cut gRPC messages (a flag byte, a 4-byte length, the message) out of the stream's data:
+        small ones whole as bytes, larger ones put together in a buffer of their own (which the
+        connection may also read the socket straight into: `room`, `complete`)."""
+        pos, size = 0, len(data)
+        while pos < size and not self.dropping:
+            if self.body is not None:  # inside a message
+                take = min(size - pos, self.length - self.filled)
+                self.room(take)[self.filled : self.filled + take] = data[pos : pos + take]
+                self.filled += take
+                pos += take
+                self.complete()
+                continue
+            if not self.header and size - pos >= 5:  # the prefix here whole: the common case
+                flag, length = data[pos], int.from_bytes(data[pos + 1 : pos + 5], "big")
+                pos += 5
+            else:
+                take = min(size - pos, 5 - len(self.header))
+                self.header += data[pos : pos + take]
+                pos += take
+                if len(self.header) < 5:
+                    return
+                flag, length = self.header[0], int.from_bytes(self.header[1:5], "big")
+                self.header.clear()
+            if not self._allowed(flag, length):
+                return
+            if size - pos >= length and length < self._budget.minimum:
+                self.deliver(data[pos : pos + length].tobytes())
+                pos += length
+            elif not length:
+                self.deliver(b"")
+            else:
+                ahead = self._budget.ahead(length)
+                self.body, self.length, self.filled = bytearray(ahead), length, 0
+                self._budget.used += ahead
+
+    def room(self, coming: int) -> bytearray:
+        """The body being received, grown (doubling, up to its length) to hold `coming` more bytes."""
+        body = self.body
+        assert body is not None
+        need = self.filled + coming
+        if len(body) < need:
+            grow = min(self.length, max(need, 2 * len(body))) - len(body)
+            body.extend(bytes(grow))
+            self._budget.used += grow
+        return body
+
+    def complete(self) -> None:
+        """Deliver the body being received once it is whole."""
+        body = self.body
+        if body is not None and self.filled == self.length:
+            self._budget.used -= len(body)
+            self.body = None
+            self.deliver(memoryview(body).toreadonly())
+
+    def _allowed(self, flag: int, length: int) -> bool:
+        if flag:
+            failure = Aborted(
+                grpc.StatusCode.UNIMPLEMENTED, "compressed gRPC messages are not accepted: send them uncompressed"
+            )
+        elif length > self._budget.max_message:
+            failure = Aborted(
+                grpc.StatusCode.RESOURCE_EXHAUSTED,
+                f"a message of {length} bytes is over this depot's limit of {self._budget.max_message} "
+                "(FLEET_MAX_MESSAGE_SIZE)",
+            )
+        else:
+            return True
+        self.fail(failure)
+        self.dropping = True  # the rest of the stream is dropped
+        return False
 
     def end(self) -> None:
         if self.dropping:
@@ -98,6 +192,8 @@ class WriteCall:
         """The stream is done with: drop what the handler has not taken, and all that may come
         after; how many bytes were dropped."""
         self.dropping = True
+        if self.body is not None:
+            self._budget.used -= len(self.body)
         self.body = None
         self.header.clear()
         dropped = sum(len(request) for request in self._queue)
