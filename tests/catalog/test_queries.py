@@ -147,3 +147,23 @@ def test_ensure_dataset_restores_a_given_entry_id_but_never_replaces_one(session
     queries.save_run(session, _record(), NOW + dt.timedelta(days=2))  # its first run, after a rebuild made it
     session.flush()
     assert queries.dataset_entry_id(session, "nav") == kept
+
+
+def test_entities_and_timelines_keep_every_value_on_both_catalogs(session: Session):
+    # On DuckDB these rows go in as one Arrow table (`insert_rows`), elsewhere by executemany: the
+    # same values must come back either way, at the edges of their types.
+    big = 2**63 - 1
+    entities = [EntityRecord(f"/wörld/点/{i}", big - i, i, big, 0, ['a"b', "c'd"], ["é:comp"]) for i in range(300)] + [
+        EntityRecord("/empty", 0, 0, 0, 0, [], [])
+    ]
+    timelines = [TimelineRecord("neg", "duration", -(2**63), big), TimelineRecord("t ö", "timestamp", 0, 0)]
+    queries.save_run(session, _record(entities=entities, timelines=timelines), NOW)
+    session.flush()
+    got = {e.path: e for e in queries.run_entities(session, "run-1")}
+    assert len(got) == 301
+    first = got["/wörld/点/0"]
+    assert (first.chunks, first.static_chunks, first.rows, first.bytes) == (big, 0, big, 0)
+    assert json.loads(first.archetypes) == ['a"b', "c'd"] and json.loads(first.components) == ["é:comp"]
+    assert got["/wörld/点/299"].chunks == big - 299 and json.loads(got["/empty"].archetypes) == []
+    back = {t.name: (t.type, t.min, t.max) for t in queries.run_timelines(session, "run-1")}
+    assert back == {"neg": ("duration", -(2**63), big), "t ö": ("timestamp", 0, 0)}
