@@ -152,14 +152,18 @@ def insert_rows(session: Session, model: type[Base], rows: list[dict[str, Any]])
     if session.get_bind().dialect.name != "duckdb" or None in types.values():
         session.execute(sa.insert(table), rows)
         return
-    columns = {name: [row[name] for row in rows] for name in names}
-    arrow = pa.table({name: pa.array(values, type=types[name]) for name, values in columns.items()})
-    raw = session.connection().connection.driver_connection
+    try:
+        arrow = pa.table({name: pa.array([row[name] for row in rows], type=types[name]) for name in names})
+    except (pa.ArrowException, OverflowError, TypeError, ValueError):  # let the database name the problem
+        session.execute(sa.insert(table), rows)
+        return
+    connection = session.connection()
+    raw = connection.connection.driver_connection
     assert raw is not None
     listed = ", ".join(f'"{name}"' for name in names)
     raw.register(_ARROW_VIEW, arrow)
-    try:
-        raw.execute(f'INSERT INTO "{table.name}" ({listed}) SELECT {listed} FROM {_ARROW_VIEW}')
+    try:  # through SQLAlchemy: its errors, as every other statement's (a full disk is OperationalError)
+        connection.exec_driver_sql(f'INSERT INTO "{table.name}" ({listed}) SELECT {listed} FROM {_ARROW_VIEW}')
     finally:
         raw.unregister(_ARROW_VIEW)
 

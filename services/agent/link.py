@@ -108,7 +108,7 @@ class DepotLink:
         self.up = False
         self.since = time.time()
         self.error = "not connected yet"
-        self.refused: str | None = None  # the depot's last refusal, until a call succeeds
+        self.refusals: dict[str, str] = {}  # run -> the depot's refusal, until that run's stream is taken
 
     def _open_channel(self) -> None:
         self.channel = (
@@ -159,15 +159,17 @@ class DepotLink:
         self._open_channel()
         await old.close(grace=None)
 
-    def mark_up(self, streamed: bool = False) -> None:
-        """The depot answered. Only a stream it took (`streamed`) ends a refusal: a REST call that
-        succeeds says nothing of whether it takes the robot's runs now."""
+    def mark_up(self) -> None:
+        """The depot answered (a refusal of a run stands until that run's stream is taken)."""
         if not self.up:
             log.info("depot link up (%s)", self.target)
             self.up, self.since = True, time.time()
         self.error = ""
-        if streamed:
-            self.refused = None
+
+    @property
+    def refused(self) -> str | None:
+        """The runs the depot refuses now, with why (None: none)."""
+        return "; ".join(f"run {run}: {why}" for run, why in sorted(self.refusals.items())) or None
 
     def mark_down(self, why: str) -> None:
         if self.up:

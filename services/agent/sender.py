@@ -130,6 +130,12 @@ class RunSender:
 
     async def run(self) -> None:
         """Forward until the run is confirmed (sealed at the depot) or removed from the spool."""
+        try:
+            await self._forward()
+        finally:
+            self.ctx.link.refusals.pop(self.run_id, None)  # nothing of it is sent any more
+
+    async def _forward(self) -> None:
         while self._run() is not None and (not self.state.confirmed or self.pulls):
             try:
                 await self._session()
@@ -140,7 +146,7 @@ class RunSender:
                 self.settled = False
                 await self.backoff.wait()
             except DepotRefused as exc:
-                self.ctx.link.refused = str(exc)
+                self.ctx.link.refusals[self.run_id] = str(exc)
                 log.error("depot refused run %s: %s (retrying in a minute)", self.run_id, exc)
                 self.lanes.clear()
                 self.settled = False
@@ -182,7 +188,8 @@ class RunSender:
             await self._pump(call, generation)
             await call.done_writing()
             await call
-            self.ctx.link.mark_up(streamed=True)
+            self.ctx.link.mark_up()
+            self.ctx.link.refusals.pop(self.run_id, None)  # the depot took this run's stream
         except (LinkDown, DepotRefused):
             call.cancel()
             raise

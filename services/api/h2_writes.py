@@ -341,8 +341,8 @@ class WriteConnection(asyncio.BufferedProtocol):
             if credit >= STREAM_WINDOW // 4:
                 out.append(h2.window_update(stream, credit))
                 self._credit[stream] = 0
-        if out and self._transport is not None:
-            self._transport.write(b"".join(out))
+        if out:
+            self._write(b"".join(out))
 
     def _control(self, kind: int, flags: int, stream: int, payload: bytes) -> None:
         if self._blocks.pending and kind != h2.CONTINUATION:

@@ -56,11 +56,15 @@ class CatalogSync:
         its own, so one bad run never holds back the others (it is retried with backoff)."""
         if self.catalog is None:
             return
-        if self.dropped:
-            self._remove_dropped()
-        if not records:
-            return
         with self._writes:
+            if self.dropped:
+                # A snapshot taken before a run was dropped must not write it back after its removal.
+                kept = [record for record in records if record.id not in self.dropped]
+                self.mark_dirty([record for record in records if record.id in self.dropped], runs)
+                records = kept
+                self._remove_dropped()
+            if not records:
+                return
             try:
                 self._save(records)
             except CATALOG_DOWN:
@@ -83,13 +87,13 @@ class CatalogSync:
                 queries.save_run(session, record, now)
 
     def _remove_dropped(self) -> None:
+        """(With `_writes` held.)"""
         assert self.catalog is not None
-        with self._writes:
-            gone = set(self.dropped)
-            with session_scope(self.catalog, write=True) as session:
-                for run_id in gone:
-                    queries.remove_hot_run(session, run_id)
-            self.dropped -= gone
+        gone = set(self.dropped)
+        with session_scope(self.catalog, write=True) as session:
+            for run_id in gone:
+                queries.remove_hot_run(session, run_id)
+        self.dropped -= gone
 
     def _save_one(self, record: RunRecord, runs: dict[str, IngestRun]) -> None:
         run = runs.get(record.id)

@@ -6,6 +6,8 @@ import datetime as dt
 import json
 import re
 
+import pytest
+import sqlalchemy as sa
 from sqlalchemy.orm import Session
 
 from catalog import queries
@@ -167,3 +169,11 @@ def test_entities_and_timelines_keep_every_value_on_both_catalogs(session: Sessi
     assert got["/wörld/点/299"].chunks == big - 299 and json.loads(got["/empty"].archetypes) == []
     back = {t.name: (t.type, t.min, t.max) for t in queries.run_timelines(session, "run-1")}
     assert back == {"neg": ("duration", -(2**63), big), "t ö": ("timestamp", 0, 0)}
+
+
+def test_a_row_the_catalog_refuses_is_its_error_on_both_catalogs(session: Session):
+    # Two entities with one path break the primary key: SQLAlchemy's IntegrityError either way (on
+    # DuckDB the rows go in as an Arrow table, through the session's connection all the same).
+    twice = [EntityRecord("/same", 1, 0, 1, 1, [], []), EntityRecord("/same", 2, 0, 2, 2, [], [])]
+    with pytest.raises(sa.exc.IntegrityError):
+        queries.save_run(session, _record(entities=twice), NOW)
