@@ -45,8 +45,6 @@ from services.api.h2_writes import WRITE_PATH, WriteServer
 
 log = logging.getLogger("fleet.grpc")
 
-__all__ = ["PREFACE", "ClientStream", "Front", "ProtocolError", "http1_answer"]
-
 _GOOD_SCHEMES = (b"http", b"https")
 # What a connection may send before the front knows what it is, and how long it may take.
 SNIFF_LIMIT = 1 << 20
@@ -313,7 +311,7 @@ class _Connection:
             data += more
             pos = 0
             while len(data) - pos >= FRAME_HEAD:
-                pos += FRAME_HEAD + int.from_bytes(data[pos : pos + 3], "big")
+                pos += FRAME_HEAD + frame_head(data, pos)[0]
             if pos == len(data) and data:
                 return data
 

@@ -14,7 +14,8 @@ import pytest
 from hpack import Decoder, Encoder
 
 from services import __version__
-from services.api.grpc_front import PREFACE, ClientStream, ProtocolError, http1_answer
+from services.api.grpc_front import ClientStream, http1_answer
+from services.api.h2 import PREFACE, ProtocolError
 from services.api.h2 import frame as _frame
 from services.ingest.grpc_handler import LEGACY_REFUSAL
 from tests.services.ingest.live_server import LiveServer
