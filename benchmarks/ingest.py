@@ -118,6 +118,20 @@ CLK_TCK = os.sysconf("SC_CLK_TCK")
 # --- load processes (`ingest.py _load ...`) --------------------------------------------------------
 
 
+SMALL_CHUNKS = 50_000
+SMALL_ENTITIES = 100
+
+
+def ensure_small(data_dir: Path, chunks: int = SMALL_CHUNKS, entities: int = SMALL_ENTITIES) -> dict[str, Any]:
+    """`small.rrd` in `data_dir` (one-row chunks of scalars), generated unless present as asked."""
+    return ensure_recording(
+        data_dir,
+        "small.rrd",
+        {"kind": "small", "chunks": chunks, "entities": entities},
+        ["gen-small", str(chunks), str(entities)],
+    )
+
+
 def _renamed(store_id: Any, suffix: str, base: str) -> None:
     """Give a RECORDING store id (kind 1) the robot's recording id; blueprint ids are left alone."""
     if store_id.kind == 1:
@@ -1102,8 +1116,12 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--repeat", type=int, default=2, help="runs per server and workload, best counts (default 2)")
     parser.add_argument("--workload", default="big,small", help="comma-separated: big, small (default both)")
     parser.add_argument("--big-mb", type=float, default=220, help="minimum size of big.rrd in MB (default 220)")
-    parser.add_argument("--small-chunks", type=int, default=50_000, help="1-row chunks in small.rrd (default 50000)")
-    parser.add_argument("--small-entities", type=int, default=100, help="entities of small.rrd (default 100)")
+    parser.add_argument(
+        "--small-chunks", type=int, default=SMALL_CHUNKS, help="1-row chunks in small.rrd (default %(default)s)"
+    )
+    parser.add_argument(
+        "--small-entities", type=int, default=SMALL_ENTITIES, help="entities of small.rrd (default %(default)s)"
+    )
     parser.add_argument(
         "--servers", default="ours,rerun", help="comma-separated: ours, rerun (default both; the ratios need both)"
     )
@@ -1179,12 +1197,7 @@ def main(argv: list[str] | None = None) -> None:
             data_dir, "big.rrd", {"kind": "big", "big_mb": args.big_mb}, ["gen-big", str(args.big_mb)]
         )
     if "small" in workloads:
-        infos["small"] = ensure_recording(
-            data_dir,
-            "small.rrd",
-            {"kind": "small", "chunks": args.small_chunks, "entities": args.small_entities},
-            ["gen-small", str(args.small_chunks), str(args.small_entities)],
-        )
+        infos["small"] = ensure_small(data_dir, args.small_chunks, args.small_entities)
     rerun_bin, _ = find_rerun_binary(args.rerun)
     version = checked(run_process([rerun_bin, "--version"]), "rerun --version").stdout.split("(")[0].strip()
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import ctypes
 import ctypes.util
+import gc
 import logging
 import sys
 
@@ -34,3 +35,12 @@ def tune_allocator() -> bool:
     if not ok:
         log.info("allocator tuning not applied")
     return ok
+
+
+def freeze_startup_objects() -> int:
+    """Leave the objects made at start-up (modules, the app, its caches: some 100,000, as long-lived
+    as the process) out of every later garbage collection; returns how many. A full collection then
+    walks only what the service made since, instead of all of them again every few thousand chunks."""
+    gc.collect()
+    gc.freeze()
+    return gc.get_freeze_count()

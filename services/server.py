@@ -38,7 +38,7 @@ from services.redap import grpc_handler as redap_handler
 from services.redap.depot import Depot
 from services.retention.schedule import start_scheduler
 from services.retention.service import Retention
-from services.runtime import tune_allocator
+from services.runtime import freeze_startup_objects, tune_allocator
 from services.sealed.tiers import open_tiers, sealed_lookup
 from services.settings import Settings
 from services.startup import (
@@ -262,6 +262,7 @@ async def serve(
         if settings.scheduler
         else None
     )
+    freeze_startup_objects()
     try:
         await http.serve(sockets=http_sockets)
     finally:

@@ -77,6 +77,7 @@ class WriteConnection(asyncio.BufferedProtocol):
         self._pad_left = 0
         self._data_end_stream = False
         self._direct: memoryview | None = None  # where the socket is read into for a large body
+        self._large = False  # the last message was large (or is being read straight into its buffer)
         # What is allocated ahead of a body's bytes is bounded per connection by what the client
         # may have in flight (the connection's window), not by the lengths their prefixes declare.
         self._budget = BodyBudget(CONNECTION_WINDOW, DIRECT_BYTES, max_message)
@@ -129,7 +130,19 @@ class WriteConnection(asyncio.BufferedProtocol):
             self._pos, self._end = 0, rest
         if len(self._buf) - self._end < max(sizehint, 65536):
             self._buf.extend(bytes(max(sizehint, len(self._buf))))
-        return memoryview(self._buf)[self._end :]
+        return memoryview(self._buf)[self._end : self._end + self._read_size()]
+
+    def _read_size(self) -> int:
+        """How much to read into the buffer: all that comes, except while large messages come and
+        nothing is buffered: then only the next frame's head or message's prefix, so that the body
+        behind it is read straight into its own buffer (`_go_direct`), not copied there from this one."""
+        if self._large and self._pos == self._end:
+            if not self._data_left and not self._pad_left:
+                return h2.FRAME_HEAD
+            call = self._data_call
+            if self._data_left and call is not None and call.body is None:
+                return min(self._data_left, 5 - len(call.header))
+        return len(self._buf)
 
     def buffer_updated(self, nbytes: int) -> None:
         self._last_heard = asyncio.get_running_loop().time()
@@ -188,6 +201,8 @@ class WriteConnection(asyncio.BufferedProtocol):
             if length > MAX_FRAME:
                 raise ProtocolError(f"a frame of {length} bytes, over {MAX_FRAME}", h2.FRAME_SIZE_ERROR)
             if kind == h2.DATA:
+                if not flags & h2.PADDED and self._whole_message(pos, length, flags, stream):
+                    continue
                 if flags & h2.PADDED:
                     if self._end - pos < h2.FRAME_HEAD + 1:
                         return
@@ -206,6 +221,28 @@ class WriteConnection(asyncio.BufferedProtocol):
             self._pos = end
             payload = bytes(buf[pos + h2.FRAME_HEAD : end])
             self._control(kind, flags, stream, payload)
+
+    def _whole_message(self, pos: int, length: int, flags: int, stream: int) -> bool:
+        """Take a DATA frame that is buffered whole and holds one whole small message of a stream
+        between messages (what a client streaming one-row chunks sends) at once, without cutting;
+        False: it is read the general way."""
+        end = pos + h2.FRAME_HEAD + length
+        if self._end < end or length < 5 or self._blocks.pending:
+            return False
+        call = self._calls.get(stream)
+        if call is None or call.ended or call.dropping or call.body is not None or call.header:
+            return False
+        buf, at = self._buf, pos + h2.FRAME_HEAD
+        size = int.from_bytes(buf[at + 1 : at + 5], "big")
+        if buf[at] or size != length - 5 or size >= DIRECT_BYTES or size > self._budget.max_message:
+            return False
+        self._pos = end
+        self._credit_connection += length
+        self._credit[stream] = self._credit.get(stream, 0) + length
+        call.deliver(bytes(buf[at + 5 : end]))
+        if flags & h2.END_STREAM:
+            call.end()
+        return True
 
     def _start_data(self, stream: int, length: int, data: int, pad: int, flags: int) -> None:
         if self._blocks.pending:
@@ -227,6 +264,9 @@ class WriteConnection(asyncio.BufferedProtocol):
         """Consume what is buffered of the DATA frame being read; False when more must be read."""
         available = self._end - self._pos
         if not available:
+            call = self._data_call
+            if call is not None and self._data_left and not call.dropping:
+                self._go_direct(call)  # a frame's head read alone: its data can go straight in
             return False
         if self._data_left:
             take = min(available, self._data_left)
@@ -266,9 +306,8 @@ class WriteConnection(asyncio.BufferedProtocol):
             return
         want = min(self._data_left, call.length - call.filled)
         if want >= DIRECT_BYTES // 4:
-            body = call.room(want)
-            with memoryview(body) as whole:
-                self._direct = whole[call.filled : call.filled + want]
+            self._direct = call.room(want).data[call.filled : call.filled + want]
+            self._large = True
 
     def _direct_filled(self, nbytes: int) -> None:
         call = self._data_call
@@ -291,6 +330,7 @@ class WriteConnection(asyncio.BufferedProtocol):
     def delivered(self, stream: int, nbytes: int) -> None:
         """A stream's handler was given a request: it holds the connection's reading back until taken."""
         self._queued += nbytes
+        self._large = nbytes >= DIRECT_BYTES
         # A stream's window comes back as its handler takes what it was sent: a stream whose
         # handler is slow stops at its own window, and the connection's other streams flow.
         if stream in self._calls:

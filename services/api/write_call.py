@@ -12,6 +12,16 @@ from collections.abc import AsyncIterator, Awaitable, Callable
 from typing import Any, NoReturn, Protocol
 
 import grpc
+import numpy as np
+import numpy.typing as npt
+
+Body = npt.NDArray[np.uint8]
+
+
+def new_body(size: int) -> Body:
+    """A message body's buffer, not zero-filled (its bytes are all written before it is read):
+    a multi-MB message is then written once, by the socket, not also by a memset."""
+    return np.empty(size, dtype=np.uint8)
 
 
 class Aborted(Exception):
@@ -66,7 +76,7 @@ class WriteCall:
         self.trailing: tuple[tuple[str, str], ...] = ()
         # the message being put together: its 5-byte prefix (while split over frames), then its body
         self.header = bytearray()
-        self.body: bytearray | None = None
+        self.body: Body | None = None
         self.length = 0  # the body's, as its prefix declares
         self.filled = 0
 
@@ -141,18 +151,19 @@ class WriteCall:
                 self.deliver(b"")
             else:
                 ahead = self._budget.ahead(length)
-                self.body, self.length, self.filled = bytearray(ahead), length, 0
+                self.body, self.length, self.filled = new_body(ahead), length, 0
                 self._budget.used += ahead
 
-    def room(self, coming: int) -> bytearray:
+    def room(self, coming: int) -> Body:
         """The body being received, grown (doubling, up to its length) to hold `coming` more bytes."""
         body = self.body
         assert body is not None
         need = self.filled + coming
         if len(body) < need:
-            grow = min(self.length, max(need, 2 * len(body))) - len(body)
-            body.extend(bytes(grow))
-            self._budget.used += grow
+            grown = new_body(min(self.length, max(need, 2 * len(body))))
+            grown[: self.filled] = body[: self.filled]
+            self._budget.used += len(grown) - len(body)
+            self.body = body = grown
         return body
 
     def complete(self) -> None:
@@ -161,7 +172,7 @@ class WriteCall:
         if body is not None and self.filled == self.length:
             self._budget.used -= len(body)
             self.body = None
-            self.deliver(memoryview(body).toreadonly())
+            self.deliver(body.data.toreadonly())
 
     def _allowed(self, flag: int, length: int) -> bool:
         if flag:

@@ -120,19 +120,6 @@ class _KnownLayout:
         self.plain = struct.Struct(_CHUNK.format + _RANGE.format[1:] * count + f"{len(layout.data)}x")
 
 
-def _all_same(components: tuple[ComponentMeta, ...], rows: int, full: dict[str, TimeRange]) -> bool:
-    """Whether every component holds a value in every row (its ranges are the chunk's)."""
-    shared = None
-    for component in components:
-        if component.num_rows != rows:
-            return False
-        if component.ranges is not shared:  # chunk metadata shares one ranges dict between them
-            if component.ranges != full:
-                return False
-            shared = component.ranges
-    return True
-
-
 # --- writing ------------------------------------------------------------------------------------
 
 
@@ -192,8 +179,7 @@ class HotIndexWriter:
             records.append(_frame(_LAYOUT.pack(b"L", known.id) + layout.schema.serialize().to_pybytes()))
         rows = meta.num_rows
         timelines = meta.timelines
-        full = {t.name: t.range for t in timelines}
-        if len(timelines) == len(layout.indexes) and _all_same(meta.components, rows, full):
+        if meta.uniform and len(timelines) == len(layout.indexes):
             # The common record: every timeline, every component non-null in every row. One pack.
             values: list[object] = [b"C", store_kind, known.id, offset, length, rows, meta.uncompressed_size]
             values += [meta.chunk_id, len(timelines)]
@@ -208,6 +194,7 @@ class HotIndexWriter:
             )
         ]
         parts += [_RANGE.pack(positions[t.name], t.range.min, t.range.max) for t in timelines]
+        full = {t.name: t.range for t in timelines}
         for component in meta.components:
             if component.num_rows == rows and component.ranges == full:
                 parts.append(_SAME)

@@ -38,6 +38,12 @@ log = logging.getLogger(__name__)
 RUN_FILE = "run.rrd"
 ROBOT_FILE = "robot"  # the robot of a run whose token named it (a robot's ingest token)
 _RECHECK_BYTES = 8 * 1024 * 1024
+# What the page cache keeps of a run file once its bytes are on disk: its last CACHED_TAIL bytes, where
+# followers read. The rest is dropped after each sync (POSIX_FADV_DONTNEED): promotion reads the file
+# once, so caching it all only takes memory (a container's page cache counts against its memory
+# limit), and the pages dropped are the ones the kernel hands out for the next writes, which costs
+# less than taking new ones (writes into the page cache measured 1.5 -> 2.4 GB/s here).
+CACHED_TAIL = 8 * 1024 * 1024
 
 
 class Changes:
@@ -116,6 +122,7 @@ class HotRun:
         self.index = index  # the chunk index beside the file (None: not kept)
         self.dirty = False
         self.closed = False
+        self.uncached = 0  # the page cache was told to drop the bytes before this offset
         self.changes = Changes()  # followers wait on it: the file grew, or the run ended
 
     @property
@@ -185,7 +192,19 @@ class HotRun:
     def sync(self) -> None:
         if self.dirty:
             self.dirty = False
+            synced = self.size  # read before the fsync: every byte below it is on disk after it
             os.fsync(self._fd)
+            self._uncache(synced - CACHED_TAIL)
+
+    def _uncache(self, end: int) -> None:
+        """Drop the run file's cached pages below `end` (on disk already), a CACHED_TAIL at a time."""
+        if end - self.uncached < CACHED_TAIL:
+            return
+        try:
+            os.posix_fadvise(self._fd, self.uncached, end - self.uncached, os.POSIX_FADV_DONTNEED)
+        except OSError:  # closed meanwhile, or a file system that cannot: the pages stay cached
+            return
+        self.uncached = end
 
     def close(self) -> None:
         if not self.closed:

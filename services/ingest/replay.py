@@ -13,7 +13,6 @@ from __future__ import annotations
 import asyncio
 import collections
 import logging
-from dataclasses import dataclass
 
 from services.rrd.protowire import log_msg_envelope
 
@@ -28,10 +27,7 @@ def read_response(kind: int, raw: bytes | bytearray | memoryview) -> bytes:
     return log_msg_envelope(kind, raw)
 
 
-@dataclass(slots=True)
-class _Entry:
-    run_id: str
-    message: Message
+_Entry = tuple[str, Message]  # (run id, message): a plain tuple, the cheapest thing to make per chunk
 
 
 class ReplayHub:
@@ -64,12 +60,15 @@ class ReplayHub:
         if persistent:
             self._persistent.setdefault(run_id, []).append(response)
         elif static:
-            self._static.append(_Entry(run_id, response))
+            self._static.append((run_id, response))
         else:
-            self._temporal.append(_Entry(run_id, response))
+            self._temporal.append((run_id, response))
         self._run_bytes[run_id] = self._run_bytes.get(run_id, 0) + len(raw)
         self._size += len(raw)
-        self._shrink()
+        if self._size > self.budget:
+            self._shrink()
+        if not self._readers:
+            return
         for queue in list(self._readers):
             try:
                 queue.put_nowait(response)
@@ -85,24 +84,24 @@ class ReplayHub:
             return
         self._size -= held
         self._persistent.pop(run_id, None)
-        self._stale += sum(1 for entry in self._static if entry.run_id == run_id)
-        self._stale += sum(1 for entry in self._temporal if entry.run_id == run_id)
+        self._stale += sum(1 for entry in self._static if entry[0] == run_id)
+        self._stale += sum(1 for entry in self._temporal if entry[0] == run_id)
         if self._stale > len(self._static) + len(self._temporal) - self._stale:
             self._compact()
 
     def _shrink(self) -> None:
         """Past the budget the oldest temporal chunks go first, then the oldest static ones."""
         while self._size > self.budget and (self._temporal or self._static):
-            entry = self._temporal.popleft() if self._temporal else self._static.popleft()
-            if entry.run_id not in self._run_bytes:
+            run_id, (_, raw) = self._temporal.popleft() if self._temporal else self._static.popleft()
+            if run_id not in self._run_bytes:
                 self._stale -= 1
                 continue
-            self._size -= len(entry.message[1])
-            self._run_bytes[entry.run_id] -= len(entry.message[1])
+            self._size -= len(raw)
+            self._run_bytes[run_id] -= len(raw)
 
     def _compact(self) -> None:
-        self._static = collections.deque(e for e in self._static if e.run_id in self._run_bytes)
-        self._temporal = collections.deque(e for e in self._temporal if e.run_id in self._run_bytes)
+        self._static = collections.deque(e for e in self._static if e[0] in self._run_bytes)
+        self._temporal = collections.deque(e for e in self._temporal if e[0] in self._run_bytes)
         self._stale = 0
 
     def subscribe(self) -> tuple[list[Message], asyncio.Queue[Message | None]]:
@@ -112,8 +111,8 @@ class ReplayHub:
         self._readers.add(queue)
         live = self._run_bytes
         history = [m for messages in self._persistent.values() for m in messages]
-        history += [e.message for e in self._static if e.run_id in live]
-        history += [e.message for e in self._temporal if e.run_id in live]
+        history += [message for run_id, message in self._static if run_id in live]
+        history += [message for run_id, message in self._temporal if run_id in live]
         return history, queue
 
     def unsubscribe(self, queue: asyncio.Queue[Message | None]) -> None:

@@ -51,6 +51,9 @@ class BatchPlan:
     lists: tuple[ListCheck, ...] | None  # None: the Scalars columns are left to pyarrow's full validation
     null_counts: tuple[int, ...]  # of the columns declared non-nullable
     reach: int  # bytes from the record batch message's start that the reads of a chunk need
+    # A one-row chunk's index values, all read by one unpack from `reads[0].first` (None: read one
+    # by one); they are each timeline's min and max.
+    one_row: struct.Struct | None = None
 
 
 def batch_plan(data: bytes, pos: int, layout: ChunkLayout, total: int) -> BatchPlan | None:
@@ -102,7 +105,20 @@ def _plan(data: bytes, pos: int, layout: ChunkLayout, header: BatchHeader) -> Ba
         + [c.offsets + 4 * (c.rows + 1) for c in lists or ()]
     )
     required = tuple(nodes[2 * layout.top_nodes[i] + 1] for i in layout.required)
-    return BatchPlan(header.end - pos, rows, tuple(reads), lists, required, reach)
+    return BatchPlan(header.end - pos, rows, tuple(reads), lists, required, reach, _one_row(reads))
+
+
+def _one_row(reads: list[IndexRead]) -> struct.Struct | None:
+    """One struct for a one-row chunk's index values, when they come in the reads' order."""
+    if not reads or any(r.count != 1 for r in reads):
+        return None
+    fmt, at = "<", reads[0].first
+    for read in reads:
+        if read.first < at:
+            return None
+        fmt += f"{read.first - at}xq"
+        at = read.first + 8
+    return struct.Struct(fmt)
 
 
 def _list_checks(layout: ChunkLayout, header: BatchHeader, body: int) -> tuple[ListCheck, ...] | None:

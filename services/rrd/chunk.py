@@ -71,13 +71,34 @@ class ChunkMeta:
     is_static: bool
     num_rows: int
     timelines: tuple[TimelineMeta, ...]
-    components: tuple[ComponentMeta, ...]
+    # Each data column's; None while not asked for, when the chunk is `uniform`: they are then the
+    # chunk's rows and ranges, and most chunks are never asked.
+    listed_components: tuple[ComponentMeta, ...] | None
     byte_size: int  # the ArrowMsg protobuf, as stored
     uncompressed_size: int  # the Arrow IPC payload once decompressed
     row_id_field: pa.Field | None
     layout: ChunkLayout
     problem: str | None = None  # why Rerun would refuse this chunk, from its schema and row counts
     values_checked: bool = False  # the values the server reads were checked without pyarrow (Scalars)
+    # Per timeline, over all its rows, when every component holds a value in every row (else None).
+    ranges: dict[str, TimeRange] | None = None
+
+    @property
+    def uniform(self) -> bool:
+        """Every component holds a value in every row: each component's rows and ranges are the chunk's."""
+        return self.ranges is not None
+
+    @property
+    def components(self) -> tuple[ComponentMeta, ...]:
+        if self.listed_components is None:
+            rows, ranges = self.num_rows, self.ranges or {}
+            self.listed_components = tuple(
+                [
+                    ComponentMeta(c.column, c.component, c.archetype, c.component_type, rows, ranges, c.field)
+                    for c in self.layout.data
+                ]
+            )
+        return self.listed_components
 
     @property
     def reads_values(self) -> bool:
@@ -231,12 +252,7 @@ def _chunk_meta(msg: ArrowMessage, data: bytes, size: int) -> tuple[ChunkMeta, i
             raise PrefixTooShort(needed)
         num_rows = plan.rows
         ranges = _read_ranges(data, batch_pos, plan) if plan.reads else {}
-        components = tuple(
-            [
-                ComponentMeta(c.column, c.component, c.archetype, c.component_type, num_rows, ranges, c.field)
-                for c in layout.data
-            ]
-        )
+        components = None  # a plan is made only for chunks without nulls: every component is in every row
         if problem is None and any(plan.null_counts):
             problem = _null_problem(layout, list(plan.null_counts))
         checked = plan.lists is not None and _lists_valid(data, batch_pos, plan.lists)
@@ -276,6 +292,7 @@ def _chunk_meta(msg: ArrowMessage, data: bytes, size: int) -> tuple[ChunkMeta, i
         layout,
         problem,
         checked,
+        ranges if components is None else None,
     )
     return meta, needed
 
@@ -317,6 +334,9 @@ _TWO_I32 = struct.Struct("<ii")
 
 def _read_ranges(data: bytes, pos: int, plan: BatchPlan) -> dict[str, TimeRange]:
     """Each timeline's range in the chunk whose record batch starts at `pos`."""
+    if plan.one_row is not None:
+        firsts = plan.one_row.unpack_from(data, pos + plan.reads[0].first)
+        return {read.name: TimeRange(v, v) for read, v in zip(plan.reads, firsts, strict=True)}
     ranges = {}
     for read in plan.reads:
         at = pos + read.first

@@ -17,7 +17,7 @@ import pytest
 from hpack import Encoder
 
 from services.api.grpc_front import Front
-from services.api.h2_writes import DIRECT_BYTES, MAX_FRAME, WRITE_PATH, WriteServer
+from services.api.h2_writes import DIRECT_BYTES, MAX_FRAME, WRITE_PATH, WriteConnection, WriteServer
 from services.cluster.ownership import Owner
 from services.cluster.relay import WRITE_METHOD, Relay
 from tests.services.api.h2_client import (
@@ -71,6 +71,54 @@ async def test_messages_arrive_byte_exact_and_in_order_however_they_are_framed(v
         assert await client.answered(1) == 0 and b"grpc-message" not in client.trailers(1)
         assert handler.received["s1"] == bodies
         assert client.answer(1) == message(REPLY) and handler.ended["s1"] == "returned"
+
+
+@asynchronous
+async def test_messages_each_in_a_frame_of_its_own_arrive_in_order_between_split_ones():
+    split = bytes(range(256)) * 40
+    bodies = [b"", b"one", split, b"two" * 100, bytes(DIRECT_BYTES - 1), b"last"]
+    handler = Handler()
+    async with connected(handler, via_socket=True) as (_, client):
+        for body in bodies[:2]:
+            await client.data(1, message(body))
+        whole = message(bodies[2])
+        await client.data(1, whole[:3])  # a message cut in its prefix, then in its body
+        await client.data(1, whole[3:100])
+        await client.data(1, whole[100:])
+        for i, body in enumerate(bodies[3:]):
+            await client.data(1, message(body), end=i == len(bodies) - 4)  # the last frame ends the stream
+        assert await client.answered(1) == 0
+        assert handler.received["s1"] == bodies
+
+
+@asynchronous
+async def test_large_messages_after_the_first_are_read_from_the_socket_straight_into_their_buffers(
+    monkeypatch: pytest.MonkeyPatch,
+):
+    read = {"direct": 0, "buffered": 0}
+    original = WriteConnection.buffer_updated
+
+    def counting(self: WriteConnection, nbytes: int) -> None:
+        read["buffered" if self._direct is None else "direct"] += nbytes
+        original(self, nbytes)
+
+    monkeypatch.setattr(WriteConnection, "buffer_updated", counting)
+    pattern = bytes(range(251)) * (2 * MAX_FRAME // 251)
+    large = [pattern[k : k + 3 * MAX_FRAME // 2] for k in (1, 2, 3)]  # each over more than one frame
+    bodies = [b"first", *large, b"small", b"end"]
+    stream = b"".join(message(body) for body in bodies)
+    handler = Handler()
+    async with connected(handler, via_socket=True) as (_, client):
+        for at in range(0, len(stream), MAX_FRAME):
+            await client.data(1, stream[at : at + MAX_FRAME], end=at + MAX_FRAME >= len(stream))
+        assert await client.answered(1) == 0
+        assert handler.received["s1"] == bodies
+    # Only the first large body (read before the connection knows large ones come) and frame heads,
+    # prefixes and small messages go through the connection's buffer: the large bodies after it are
+    # read straight into their own.
+    direct_at_least = len(large[1]) + len(large[2])
+    assert read["direct"] >= direct_at_least
+    assert read["buffered"] <= len(large[0]) + DIRECT_BYTES
 
 
 @asynchronous
