@@ -13,6 +13,7 @@ from pathlib import Path
 from typing import Any
 
 import httpx
+from prometheus_client.parser import text_string_to_metric_families
 
 from services.agent.status import status_report
 from tests.services.ingest.live_server import FLEET, LiveServer
@@ -62,11 +63,12 @@ class AgentProcess:
         self.spool = spool
         self.port = free_port()
         self.log = spool.parent / f"{spool.name}-agent.log"
+        self.status_port = free_port()
         env = {
             **os.environ,
             "FLEET_AGENT_SPOOL": str(spool),
             "FLEET_AGENT_LISTEN": f"127.0.0.1:{self.port}",
-            "FLEET_AGENT_STATUS_ADDR": f"127.0.0.1:{free_port()}",
+            "FLEET_AGENT_STATUS_ADDR": f"127.0.0.1:{self.status_port}",
             "FLEET_AGENT_DEPOT": f"rerun+http://127.0.0.1:{link.grpc.port}",
             "FLEET_AGENT_API_URL": f"http://127.0.0.1:{link.rest.port}",
             "FLEET_AGENT_CHECK_S": "1",
@@ -92,6 +94,15 @@ class AgentProcess:
 
     def status(self) -> dict[str, Any]:
         return status_report(self.spool)
+
+    def metric(self, name: str) -> float:
+        """A counter or gauge as the running agent has it now (the status file lags by a heartbeat),
+        summed over its labels."""
+        text = httpx.get(f"http://127.0.0.1:{self.status_port}/metrics", timeout=10).text
+        for family in text_string_to_metric_families(text):
+            if family.name == name:
+                return sum(sample.value for sample in family.samples if sample.name in (name, f"{name}_total"))
+        raise AssertionError(f"the agent has no metric {name}")
 
     def spool_bytes(self, run_id: str) -> int:
         path = self.spool / "runs" / run_id / "run.rrd"

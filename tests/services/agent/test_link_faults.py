@@ -1,7 +1,8 @@
 """The agent and the depot as real processes, a robot on the real SDK streaming to the agent, and
 the link between agent and depot through proxies the test cuts and restores: whatever happens to the
 link, the depot or the agent, the depot's run ends equal to the robot's own FileSink copy, with no
-one uploading anything, and what is sent again stays within 5% of the gap."""
+one uploading anything, and what is sent again is what the broken link swallowed, plus at most 5% of
+the gap."""
 
 from __future__ import annotations
 
@@ -37,8 +38,8 @@ def agent(tmp_path: Path, link: Link) -> Iterator[AgentProcess]:
 def resent_bytes(depot: LiveServer, agent: AgentProcess) -> int:
     """Chunk bytes that crossed the link twice: the agent's re-sends of what the depot lacked after a
     break, and what the depot received but already held."""
-    resent = int(agent.status()["counters"].get("bytes_resent", 0))
-    return resent + int(depot.metric("fleet_ingest_bytes_duplicate_total"))
+    resent = agent.metric("fleet_agent_resent_bytes")
+    return int(resent + depot.metric("fleet_ingest_bytes_duplicate_total"))
 
 
 def caught_up(depot: LiveServer, agent: AgentProcess, run_id: str) -> bool:
@@ -61,6 +62,7 @@ def test_a_cut_link_loses_nothing_and_resends_little(
     robot = Robot("steps", agent.url, str(copy), "run-cut", "3", str(FRAMES))
     robot.expect("STEP 1")
     wait_for(lambda: caught_up(depot, agent, "run-cut"), 60, "the depot to hold the run's first chunks")
+    sent_at_cut = agent.metric("fleet_agent_sent_bytes")
     link.cut(how)
     if how == REFUSE:
         # The open stream is cut at once, but what the agent wrote into it before it heard (a loaded
@@ -73,6 +75,10 @@ def test_a_cut_link_loses_nothing_and_resends_little(
     gap = agent.spool_bytes("run-cut") - at_cut
     if how == HANG:  # a silent link: only the agent's keepalive pings find it dead
         wait_for(lambda: agent.status()["link"].get("up") is False, 60, "the agent to find the silent link dead")
+    # What the agent handed the link after the cut went nowhere: a refused stream's last writes, or
+    # what a silent link's socket buffers took before the agent found it dead (from nothing to a few
+    # hundred KB, as the kernel sized them). That is re-sent by necessity; the gap itself is not.
+    swallowed = agent.metric("fleet_agent_sent_bytes") - sent_at_cut
     link.restore()
     robot.go_on()
     robot.expect("STEP 3")
@@ -81,8 +87,8 @@ def test_a_cut_link_loses_nothing_and_resends_little(
     robot.finish()
     depot_equals_copy(depot, "run-cut", copy, rerun_bin, tmp_path)
     resent = resent_bytes(depot, agent)
-    print(f"link {how}: gap {gap} bytes, re-sent {resent} bytes")
-    assert resent <= 0.05 * gap, (resent, gap)
+    print(f"link {how}: gap {gap} bytes, swallowed {swallowed:.0f} bytes, re-sent {resent} bytes")
+    assert resent <= swallowed + 0.05 * gap, (resent, swallowed, gap)
 
 
 def test_a_depot_killed_mid_run_loses_nothing(depot: LiveServer, agent: AgentProcess, tmp_path: Path, rerun_bin: str):
@@ -90,11 +96,13 @@ def test_a_depot_killed_mid_run_loses_nothing(depot: LiveServer, agent: AgentPro
     robot = Robot("steps", agent.url, str(copy), "run-depot-kill", "3", str(FRAMES))
     robot.expect("STEP 1")
     wait_for(lambda: caught_up(depot, agent, "run-depot-kill"), 60, "the depot to hold the run's first chunks")
+    sent_at_kill = agent.metric("fleet_agent_sent_bytes")
     depot.kill()
     at_kill = agent.spool_bytes("run-depot-kill")
     robot.go_on()
     robot.expect("STEP 2")
     gap = agent.spool_bytes("run-depot-kill") - at_kill
+    swallowed = agent.metric("fleet_agent_sent_bytes") - sent_at_kill  # written before the agent heard
     depot.start()
     robot.go_on()
     robot.expect("STEP 3")
@@ -103,7 +111,8 @@ def test_a_depot_killed_mid_run_loses_nothing(depot: LiveServer, agent: AgentPro
     robot.finish()
     depot_equals_copy(depot, "run-depot-kill", copy, rerun_bin, tmp_path)
     assert gap > 0
-    assert resent_bytes(depot, agent) <= 0.05 * gap, (resent_bytes(depot, agent), gap)
+    resent = resent_bytes(depot, agent)
+    assert resent <= swallowed + 0.05 * gap, (resent, swallowed, gap)
 
 
 def test_an_agent_killed_mid_run_loses_nothing(depot: LiveServer, link: Link, tmp_path: Path, rerun_bin: str):
