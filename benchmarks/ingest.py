@@ -3,7 +3,8 @@
     .venv/bin/python benchmarks/ingest.py [--robots 8] [--procs 2] [--repeat 2] [--workload big,small]
                                           [--servers ours,rerun] [--client aio|thread] [--memory-passes 3]
                                           [--workers N] [--catalog duckdb|postgres] [--server-cpus LIST]
-                                          [--load-cpus LIST] [--big-mb 220] [--small-chunks 50000] [--json]
+                                          [--load-cpus LIST] [--big-mb 220] [--small-chunks 50000] [--stamped]
+                                          [--json]
 
 1. The recordings are those of ``benchmarks/codec.py`` (``benchmarks/data/big.rrd``: 93 chunks of
    2.4-2.6 MB, point clouds and images; ``small.rrd``: 50,001 one-row chunks of scalars), generated
@@ -21,7 +22,9 @@
 3. ``--procs`` load processes (children of this script) replay the recording's messages as R robots
    (``--robots``), R/P each: robot k sends every SetStoreInfo / ArrowMsg / BlueprintActivationCommand
    of the file in order, with the recording id of RECORDING stores changed to ``<id>-r<k>`` (chunk
-   payloads untouched), each robot on its own gRPC channel (own TCP connection), as one
+   payloads untouched; with ``--stamped``, each chunk re-encoded with the two times rerun-sdk stamps
+   on every chunk it streams over gRPC, as a live robot's stream has them and a file lacks them),
+   each robot on its own gRPC channel (own TCP connection), as one
    client-streaming ``MessageProxyService/WriteMessages`` call of pre-serialized
    ``WriteMessagesRequest``s: by default a grpc.aio task per robot (``--client thread``: the blocking
    API, a thread per robot, which costs the load processes about twice the CPU per message).
@@ -138,13 +141,32 @@ def _renamed(store_id: Any, suffix: str, base: str) -> None:
         store_id.recording_id = base + suffix
 
 
+def stamped_chunk(msg: Any) -> bytes:
+    """The ArrowMsg `msg` (an ArrowMessage) re-encoded with its chunk's schema stamped as rerun-sdk
+    stamps each chunk it streams over gRPC: when it was encoded and when it was sent
+    ("SECONDS.NANOSECONDS"). A recording saved to a file lacks them; the depot must key its
+    layouts without them."""
+    from services.rrd.chunk import read_chunk, with_batch
+
+    batch = read_chunk(msg)
+    now = time.time_ns()
+    sent = now + 41_000
+    stamps = {
+        b"rerun:timestamp_sdk_ipc_encoded": f"{now // 10**9}.{now % 10**9:09d}".encode(),
+        b"rerun:timestamp_sdk_grpc_sink": f"{sent // 10**9}.{sent % 10**9:09d}".encode(),
+    }
+    batch = batch.replace_schema_metadata({**(batch.schema.metadata or {}), **stamps})
+    return bytes(with_batch(msg, batch).raw)
+
+
 def prepare_requests(
-    path: str, robots: list[int], passes: int = 1
+    path: str, robots: list[int], passes: int = 1, stamped: bool = False
 ) -> tuple[dict[int, list[bytes]], dict[int, dict[str, int]]]:
     """For each robot: every message of the recording as a serialized WriteMessagesRequest with the
     robot's own recording id, and what that amounts to (messages, chunks, inner message bytes).
     With `passes` > 1 the robot sends the recording that many times in a row, each time as a new
-    recording (`<id>-r<k>`, then `<id>-r<k>-p1`, ...): more bytes through the same streams."""
+    recording (`<id>-r<k>`, then `<id>-r<k>-p1`, ...): more bytes through the same streams. With
+    `stamped`, chunks carry the stamps of a live SDK stream (`stamped_chunk`)."""
     from services.rrd.decoder import iter_events
     from services.rrd.messages import ArrowMessage, BlueprintActivationMessage, StoreInfoMessage
     from services.rrd.pb import log_msg_pb2, sdk_comms_pb2
@@ -159,7 +181,8 @@ def prepare_requests(
             inner, field_name = log_msg_pb2.SetStoreInfo.FromString(bytes(event.raw)), "set_store_info"
             store_id = inner.info.store_id
         elif isinstance(event, ArrowMessage):
-            inner, field_name = log_msg_pb2.ArrowMsg.FromString(bytes(event.raw)), "arrow_msg"
+            raw = stamped_chunk(event) if stamped else bytes(event.raw)
+            inner, field_name = log_msg_pb2.ArrowMsg.FromString(raw), "arrow_msg"
             store_id = inner.store_id
         elif isinstance(event, BlueprintActivationMessage):
             inner = log_msg_pb2.BlueprintActivationCommand.FromString(bytes(event.raw))
@@ -181,13 +204,13 @@ def prepare_requests(
 
 
 def load_main(args: list[str]) -> None:
-    """`_load CLIENT PASSES PATH HOST:PORT K1,K2,...`: prepare, print READY, wait for a line on stdin, send, print
-    DONE. CLIENT is `aio` (grpc.aio, one task per robot on one event loop) or `thread` (the blocking API,
-    one thread per robot)."""
+    """`_load CLIENT PASSES PATH HOST:PORT K1,K2,... [stamped]`: prepare, print READY, wait for a line on
+    stdin, send, print DONE. CLIENT is `aio` (grpc.aio, one task per robot on one event loop) or `thread`
+    (the blocking API, one thread per robot); `stamped`: chunks stamped as a live SDK stream's."""
     client, passes, path, target = args[0], int(args[1]), args[2], args[3]
     robots = [int(k) for k in args[4].split(",")]
     t0 = time.perf_counter()
-    requests, counts = prepare_requests(path, robots, passes)
+    requests, counts = prepare_requests(path, robots, passes, stamped=args[5:6] == ["stamped"])
     prepare_s = time.perf_counter() - t0
     options = [
         ("grpc.max_send_message_length", MAX_SEND),
@@ -702,6 +725,7 @@ def run_once(
     passes: int = 1,
     check_rerun: bool = False,
     load_cpus: set[int] | None = None,
+    stamped: bool = False,
 ) -> Run:
     """One timed run: `server` started, the load processes prepared, "go", all calls answered."""
     groups = [list(range(robots))[i::procs] for i in range(procs)]
@@ -723,6 +747,7 @@ def run_once(
                 str(path),
                 target,
                 ",".join(map(str, group)),
+                *(["stamped"] if stamped else []),
             ]
             loaders.append(
                 subprocess.Popen(
@@ -960,6 +985,7 @@ def print_report(report: dict[str, Any]) -> None:
     print(
         f"load: {env['robots']} robots (distinct recording ids) from {env['procs']} processes, one gRPC channel "
         f"(TCP connection), one WriteMessages call and one {per_robot} per robot; best of {env['repeat']}"
+        + ("; chunks stamped as a live SDK stream's" if env.get("stamped") else "")
     )
     print(
         f"python {env['python']}, grpcio {env['grpcio']}, {env['cpus']} CPUs shared by server and load "
@@ -1167,6 +1193,11 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--server-cpus", help="pin the servers (all their processes) to these CPUs, e.g. 0-3")
     parser.add_argument("--load-cpus", help="pin the load processes to these CPUs, e.g. 4-5")
     parser.add_argument("--tmp", type=Path, default=None, help="where our server's data dirs go (default: $TMPDIR)")
+    parser.add_argument(
+        "--stamped",
+        action="store_true",
+        help="chunks stamped as rerun-sdk stamps those it streams (a file's lack the stamps): what robots send",
+    )
     parser.add_argument("--json", action="store_true", help="print the results as JSON on stdout instead of tables")
     args = parser.parse_args(argv)
     workloads = [w.strip() for w in args.workload.split(",") if w.strip()]
@@ -1227,6 +1258,7 @@ def main(argv: list[str] | None = None) -> None:
                         args.client,
                         check_rerun=i == 0 and not args.no_read_back,
                         load_cpus=load_cpus,
+                        stamped=args.stamped,
                     )
                     log(
                         f"  {run.wall_s:.2f} s, {run.mb_s:,.1f} MB/s, {run.chunks_s:,.0f} chunks/s, peak RSS "
@@ -1269,6 +1301,7 @@ def main(argv: list[str] | None = None) -> None:
             "robots": args.robots,
             "procs": args.procs,
             "client": args.client,
+            "stamped": args.stamped,
             "repeat": args.repeat,
             "workers": args.workers,
             "catalog": catalog,

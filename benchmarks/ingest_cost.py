@@ -1,12 +1,15 @@
 """Benchmark: what filing one one-row chunk costs in process, in CPU instructions (repeatable on a
 shared machine, where timings move by a fifth from one hour to the next) or in CPU time.
 
-    .venv/bin/python benchmarks/ingest_cost.py [--messages 5000] [--cpu] [--json]
+    .venv/bin/python benchmarks/ingest_cost.py [--messages 5000] [--cpu] [--stamped] [--json]
 
 The requests are those `benchmarks/ingest.py` sends for one robot of ``small.rrd`` (one-row chunks of
 scalars, made with the real SDK by that script's helpers if missing). Each is decoded as the gRPC
 handler does (`decode_request`) and filed by `IngestService.accept` into a hot tier in a temporary
 folder, with the replay of live streams on, as in `fleet serve`; no catalog, no transport.
+``--stamped``: each chunk re-encoded with the two times rerun-sdk stamps on every chunk it streams
+over gRPC (`rerun:timestamp_sdk_ipc_encoded`, `rerun:timestamp_sdk_grpc_sink`), which a recording
+saved to a file, like small.rrd, lacks: what a live robot's stream costs.
 
 Instructions (the default; needs valgrind): the script runs itself twice under `valgrind
 --tool=callgrind`, once filing 2,000 messages (layouts and caches warm) and once 2,000 + N, at the
@@ -36,9 +39,9 @@ from benchmarks.ingest import ensure_small, prepare_requests  # noqa: E402 - aft
 WARM = 2000
 
 
-def requests(count: int) -> list[bytes]:
+def requests(count: int, stamped: bool = False) -> list[bytes]:
     ensure_small(ROOT / "benchmarks" / "data")  # the one benchmarks/ingest.py sends by default
-    prepared, _ = prepare_requests(str(ROOT / "benchmarks" / "data" / "small.rrd"), [0])
+    prepared, _ = prepare_requests(str(ROOT / "benchmarks" / "data" / "small.rrd"), [0], stamped=stamped)
     return prepared[0][:count]
 
 
@@ -110,6 +113,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--messages", type=int, default=5000, help="messages counted, after 2,000 (default 5000)")
     parser.add_argument("--cpu", action="store_true", help="CPU time instead of instructions (no valgrind needed)")
+    parser.add_argument("--stamped", action="store_true", help="chunks stamped as a live SDK stream's are")
     parser.add_argument("--json", action="store_true")
     parser.add_argument("--child", nargs=2, help=argparse.SUPPRESS)  # under valgrind: FILE COUNT
     args = parser.parse_args()
@@ -117,12 +121,12 @@ def main() -> None:
         count = int(args.child[1])
         file_messages(load(Path(args.child[0]), count), count)
         return
-    batch = requests(WARM + args.messages)
+    batch = requests(WARM + args.messages, args.stamped)
     if len(batch) < WARM + args.messages:
         sys.exit(f"small.rrd holds {len(batch)} messages: ask for at most {len(batch) - WARM} (--messages)")
     if args.cpu:
         figure = min(file_messages(batch, WARM) for _ in range(3)) / args.messages * 1e6
-        result = {"messages": args.messages, "cpu_us_per_message": round(figure, 1)}
+        result = {"messages": args.messages, "stamped": args.stamped, "cpu_us_per_message": round(figure, 1)}
         text = f"{figure:.1f} us of CPU per one-row chunk (best of 3, {args.messages} messages)"
     else:
         if shutil.which("valgrind") is None:
@@ -133,7 +137,7 @@ def main() -> None:
             with ThreadPoolExecutor(2) as pool:
                 base, total = pool.map(lambda n: instructions(saved, n), [WARM, WARM + args.messages])
         figure = (total - base) / args.messages
-        result = {"messages": args.messages, "instructions_per_message": round(figure)}
+        result = {"messages": args.messages, "stamped": args.stamped, "instructions_per_message": round(figure)}
         text = f"{figure:,.0f} instructions per one-row chunk ({args.messages} messages, callgrind)"
     print(json.dumps(result) if args.json else text)
 

@@ -237,14 +237,26 @@ def _picker(positions: list[int]) -> Callable[[tuple[int, ...]], tuple[int, ...]
 
 
 class LayoutCache:
-    """Layouts by schema message (chunk id blanked); bounded, cleared when full."""
+    """Layouts by schema message (chunk id and volatile values blanked); bounded, cleared when full."""
 
     def __init__(self, max_size: int = _MAX_LAYOUTS) -> None:
         self._layouts: dict[bytes, ChunkLayout] = {}
         self._max_size = max_size
+        # Where the volatile values sat in schema messages of each length seen lately. A message cut
+        # where another's were, whose key is then a known layout's, equals that message outside
+        # those spans: its flatbuffers (all outside them) are the same, so its values sit there too.
+        # Reading them from the flatbuffers costs several times the cut.
+        self._cuts: dict[int, list[Spans]] = {}
 
     def get(self, schema_message: bytes, chunk_id_text: bytes, offset: int) -> ChunkLayout:
-        key = _without_volatile_values(schema_message) if _VOLATILE_KEY in schema_message else schema_message
+        volatile = _VOLATILE_KEY in schema_message
+        if volatile:
+            for spans in self._cuts.get(len(schema_message), ()):
+                key = _cut(schema_message, spans)
+                found = self._layouts.get(key.replace(chunk_id_text, b"") if chunk_id_text else key)
+                if found is not None:
+                    return found
+        key = self._cut_volatile(schema_message) if volatile else schema_message
         key = key.replace(chunk_id_text, b"") if chunk_id_text else key
         layout = self._layouts.get(key)
         if layout is None:
@@ -260,26 +272,51 @@ class LayoutCache:
             self._layouts[key] = layout
         return layout
 
+    def _cut_volatile(self, schema_message: bytes) -> bytes:
+        spans = volatile_spans(schema_message)
+        if spans:
+            if len(self._cuts) >= self._max_size:
+                self._cuts.clear()
+            known = self._cuts.setdefault(len(schema_message), [])
+            if spans not in known:
+                known.insert(0, spans)
+                del known[_CUTS_PER_LENGTH:]
+        return _cut(schema_message, spans)
+
 
 # Schema metadata whose value differs from chunk to chunk of one schema, like the chunk id: the SDK
 # stamps every chunk it sends over gRPC (not those it writes to a file) with when it encoded and sent
 # it (`rerun:timestamp_sdk_ipc_encoded`, `rerun:timestamp_sdk_grpc_sink`: "SECONDS.NANOSECONDS").
 _VOLATILE_KEY = b"rerun:timestamp_"
+_CUTS_PER_LENGTH = 4
+
+Spans = tuple[tuple[int, int], ...]
 
 
 def _without_volatile_values(schema_message: bytes) -> bytes:
     """The schema message with the values of volatile metadata entries cut out (a cache key: one
-    layout per schema, not per chunk). Reads the flatbuffers: Message 2 header (Schema); Schema
-    2 custom_metadata, a vector of KeyValue (0 key, 1 value). Unreadable: the message as it is."""
+    layout per schema, not per chunk)."""
+    return _cut(schema_message, volatile_spans(schema_message))
+
+
+def volatile_spans(schema_message: bytes) -> Spans:
+    """Where the values of volatile metadata entries sit, in order. Reads the flatbuffers: Message 2
+    header (Schema); Schema 2 custom_metadata, a vector of KeyValue (0 key, 1 value). Unreadable:
+    none."""
     try:
-        spans = sorted(_volatile_spans(schema_message))
+        return tuple(sorted(_volatile_spans(schema_message)))
     except (struct.error, IndexError, UnicodeDecodeError):
-        return schema_message
+        return ()
+
+
+def _cut(message: bytes, spans: Spans) -> bytes:
+    if not spans:
+        return message
     out, at = [], 0
     for start, end in spans:
-        out.append(schema_message[at:start])
+        out.append(message[at:start])
         at = end
-    out.append(schema_message[at:])
+    out.append(message[at:])
     return b"".join(out)
 
 

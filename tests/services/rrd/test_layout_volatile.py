@@ -6,8 +6,10 @@ them, a streamed run cached and indexed one layout per chunk: memory grew with e
 from __future__ import annotations
 
 import pyarrow as pa
+import pytest
 
-from services.rrd.layout import LayoutCache, _without_volatile_values, split_ipc
+from services.rrd import layout
+from services.rrd.layout import LayoutCache, _without_volatile_values, split_ipc, volatile_spans
 
 STAMP = "rerun:timestamp_sdk_ipc_encoded"
 SENT = "rerun:timestamp_sdk_grpc_sink"
@@ -67,3 +69,38 @@ def test_chunks_of_one_schema_with_their_own_ids_and_stamps_share_one_layout():
         for cid, stamp in zip(ids, stamps, strict=True)
     }
     assert len(layouts) == 1
+
+
+def test_a_schema_read_once_is_then_found_by_cutting_where_its_values_were(monkeypatch: pytest.MonkeyPatch):
+    """Reading the flatbuffers for the volatile values costs several times cutting them out where a
+    message of the same length had them: after the first chunk of a schema, its chunks are cut."""
+    cache = LayoutCache()
+    reads: list[bytes] = []
+    real = layout.volatile_spans
+
+    def counted(message: bytes) -> layout.Spans:
+        reads.append(message)
+        return real(message)
+
+    monkeypatch.setattr(layout, "volatile_spans", counted)
+    first = cache.get(schema_message("1795409270.262298820", chunk_id=f"chunk_{0:032X}"), f"chunk_{0:032X}".encode(), 0)
+    for i in range(1, 50):
+        cid = f"chunk_{i:032X}"
+        assert cache.get(schema_message(f"17954093{i:02d}.{i:09d}", chunk_id=cid), cid.encode(), 0) is first
+    assert len(reads) == 1
+
+
+def test_schemas_of_one_length_whose_values_sit_elsewhere_keep_their_own_layouts():
+    """A cut where another message had its values finds a layout only if the message equals that
+    one outside them: a schema of the same length with its values elsewhere is read in full."""
+    cache = LayoutCache()
+    # The same length (strings are padded to 4 bytes), the stamps one byte apart in length.
+    longer_stamp = schema_message("1795409270.111111", "/robot/x")
+    longer_path = schema_message("1795409270.11111", "/robot/xx")
+    assert len(longer_stamp) == len(longer_path)
+    assert volatile_spans(longer_stamp) != volatile_spans(longer_path)
+    for _ in range(2):  # each learned, then each found again with the other's spans also known
+        assert cache.get(longer_stamp, b"", 0).entity_path == "/robot/x"
+        assert cache.get(longer_path, b"", 0).entity_path == "/robot/xx"
+        assert cache.get(schema_message("1795409271.000001", "/robot/x"), b"", 0).entity_path == "/robot/x"
+        assert cache.get(schema_message("1795409271.00001", "/robot/xx"), b"", 0).entity_path == "/robot/xx"
