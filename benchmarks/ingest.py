@@ -148,12 +148,14 @@ def stamped_chunk(msg: Any) -> bytes:
     layouts without them."""
     from services.rrd.chunk import read_chunk, with_batch
 
+    def stamp(ns: int) -> bytes:
+        return f"{ns // 10**9}.{ns % 10**9:09d}".encode()
+
     batch = read_chunk(msg)
-    now = time.time_ns()
-    sent = now + 41_000
-    stamps = {
-        b"rerun:timestamp_sdk_ipc_encoded": f"{now // 10**9}.{now % 10**9:09d}".encode(),
-        b"rerun:timestamp_sdk_grpc_sink": f"{sent // 10**9}.{sent % 10**9:09d}".encode(),
+    encoded = time.time_ns()
+    stamps = {  # sent a few tens of microseconds after it was encoded, as the SDK's gRPC sink does
+        b"rerun:timestamp_sdk_ipc_encoded": stamp(encoded),
+        b"rerun:timestamp_sdk_grpc_sink": stamp(encoded + 41_000),
     }
     batch = batch.replace_schema_metadata({**(batch.schema.metadata or {}), **stamps})
     return bytes(with_batch(msg, batch).raw)

@@ -40,8 +40,9 @@ WARM = 2000
 
 
 def requests(count: int, stamped: bool = False) -> list[bytes]:
-    ensure_small(ROOT / "benchmarks" / "data")  # the one benchmarks/ingest.py sends by default
-    prepared, _ = prepare_requests(str(ROOT / "benchmarks" / "data" / "small.rrd"), [0], stamped=stamped)
+    data_dir = ROOT / "benchmarks" / "data"
+    ensure_small(data_dir)  # the one benchmarks/ingest.py sends by default
+    prepared, _ = prepare_requests(str(data_dir / "small.rrd"), [0], stamped=stamped)
     return prepared[0][:count]
 
 

@@ -252,12 +252,10 @@ class LayoutCache:
         volatile = _VOLATILE_KEY in schema_message
         if volatile:
             for spans in self._cuts.get(len(schema_message), ()):
-                key = _cut(schema_message, spans)
-                found = self._layouts.get(key.replace(chunk_id_text, b"") if chunk_id_text else key)
+                found = self._layouts.get(_without_id(_cut(schema_message, spans), chunk_id_text))
                 if found is not None:
                     return found
-        key = self._cut_volatile(schema_message) if volatile else schema_message
-        key = key.replace(chunk_id_text, b"") if chunk_id_text else key
+        key = _without_id(self._cut_volatile(schema_message) if volatile else schema_message, chunk_id_text)
         layout = self._layouts.get(key)
         if layout is None:
             try:
@@ -293,10 +291,8 @@ _CUTS_PER_LENGTH = 4
 Spans = tuple[tuple[int, int], ...]
 
 
-def _without_volatile_values(schema_message: bytes) -> bytes:
-    """The schema message with the values of volatile metadata entries cut out (a cache key: one
-    layout per schema, not per chunk)."""
-    return _cut(schema_message, volatile_spans(schema_message))
+def _without_id(key: bytes, chunk_id_text: bytes) -> bytes:
+    return key.replace(chunk_id_text, b"") if chunk_id_text else key
 
 
 def volatile_spans(schema_message: bytes) -> Spans:
@@ -310,6 +306,7 @@ def volatile_spans(schema_message: bytes) -> Spans:
 
 
 def _cut(message: bytes, spans: Spans) -> bytes:
+    """`message` without the bytes of `spans` (a cache key: one layout per schema, not per chunk)."""
     if not spans:
         return message
     out, at = [], 0
