@@ -6,7 +6,8 @@ shared machine, where timings move by a fifth from one hour to the next) or in C
 The requests are those `benchmarks/ingest.py` sends for one robot of ``small.rrd`` (one-row chunks of
 scalars, made with the real SDK by that script's helpers if missing). Each is decoded as the gRPC
 handler does (`decode_request`) and filed by `IngestService.accept` into a hot tier in a temporary
-folder, with the replay of live streams on, as in `fleet serve`; no catalog, no transport.
+folder, with the replay of live streams on and the start-up objects frozen out of garbage
+collection, as in `fleet serve`; no catalog, no transport.
 ``--stamped``: each chunk re-encoded with the two times rerun-sdk stamps on every chunk it streams
 over gRPC (`rerun:timestamp_sdk_ipc_encoded`, `rerun:timestamp_sdk_grpc_sink`), which a recording
 saved to a file, like small.rrd, lacks: what a live robot's stream costs.
@@ -52,6 +53,7 @@ def file_messages(batch: list[bytes], warm: int) -> float:
     from services.ingest.grpc_handler import decode_request
     from services.ingest.replay import ReplayHub
     from services.ingest.service import IngestService
+    from services.runtime import freeze_startup_objects
     from services.settings import Durability
 
     tmp = Path(tempfile.mkdtemp(prefix="ingest-cost-"))
@@ -66,6 +68,7 @@ def file_messages(batch: list[bytes], warm: int) -> float:
             replay=ReplayHub(64 << 20),
         )
         source = service.open_source(live=True)
+        freeze_startup_objects()  # as `fleet serve` does once started: collections walk what filing makes
         offset, started = 0, 0.0
         for i, request in enumerate(batch):
             if i == warm:

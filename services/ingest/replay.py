@@ -19,6 +19,13 @@ from services.rrd.protowire import log_msg_envelope
 log = logging.getLogger(__name__)
 
 READER_QUEUE = 4096
+# Messages up to this size are kept as a copy of their own bytes rather than a view of the request.
+# A view is two objects the garbage collector tracks for as long as the history holds it, and a
+# full collection walks them all: with 64 MiB of one-row chunks, some 200,000 objects and 20-40 ms
+# a collection. A copy is one untracked object, and its tuples (the kind made a plain int: an enum
+# member is tracked) are untracked by the first collections that see them. Large messages are few,
+# and stay views: copying them would cost more than walking them.
+COPY_BELOW = 64 * 1024
 Message = tuple[int, bytes | bytearray | memoryview]  # (kind, the message's protobuf bytes)
 
 
@@ -55,8 +62,8 @@ class ReplayHub:
     def publish(
         self, run_id: str, kind: int, raw: bytes | bytearray | memoryview, *, persistent: bool, static: bool
     ) -> None:
-        # Kept as the message's own bytes (a view of the request, no copy); wrapped when sent.
-        response: Message = (kind, raw)
+        # Kept as the message's own bytes; wrapped when sent.
+        response: Message = (int(kind), bytes(raw) if len(raw) < COPY_BELOW else raw)
         if persistent:
             self._persistent.setdefault(run_id, []).append(response)
         elif static:

@@ -5,12 +5,14 @@ real Rerun CLI as a reader."""
 from __future__ import annotations
 
 import asyncio
+import gc
 import subprocess
 from pathlib import Path
 
 import pytest
 
-from services.ingest.replay import ReplayHub, read_response
+from services.ingest.replay import COPY_BELOW, ReplayHub, read_response
+from services.rrd.frames import MessageKind
 from services.rrd.pb import log_msg_pb2, sdk_comms_pb2
 from tests.services.ingest.live_server import LiveServer, start_robot
 from tests.subprocess_server import free_port
@@ -21,6 +23,27 @@ def test_responses_wrap_the_message_bytes():
     response = sdk_comms_pb2.ReadMessagesResponse.FromString(read_response(2, raw))
     assert response.log_msg.WhichOneof("msg") == "arrow_msg"
     assert response.log_msg.arrow_msg.SerializeToString() == raw
+
+
+def test_held_small_messages_cost_the_garbage_collector_nothing():
+    """The history of one-row chunks is tens of thousands of entries: none may stay among the
+    objects every full collection walks."""
+    hub = ReplayHub(budget_bytes=64 << 20)
+    request = bytearray(b"\x0a" + bytes(1200))  # as the front hands over a request
+    for i in range(1000):
+        hub.publish(f"run-{i % 4}", MessageKind.ARROW_MSG, memoryview(request)[1:], persistent=False, static=False)
+    gc.collect()
+    gc.collect()  # a tuple is left alone once what it holds is: the outer ones at the second pass
+    entries = list(hub._temporal)
+    assert len(entries) == 1000
+    assert not any(gc.is_tracked(entry) for entry in entries)
+    assert all(type(raw) is bytes and raw == bytes(1200) for _, (_, raw) in entries)
+    request[1:] = b"\xff" * 1200  # the request's buffer reused: the history keeps what was sent
+    history, _ = hub.subscribe()
+    assert all(raw == bytes(1200) for _, raw in history)
+    large = memoryview(bytes(COPY_BELOW))
+    hub.publish("run-0", MessageKind.ARROW_MSG, large, persistent=False, static=False)
+    assert hub._temporal[-1][1][1] is large  # a large message stays a view: no copy
 
 
 def test_budget_drops_oldest_temporal_then_static_never_persistent():
