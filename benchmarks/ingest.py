@@ -970,6 +970,18 @@ def memory_verdict(runs: list[Run]) -> dict[str, Any] | None:
     }
 
 
+def compiled_status() -> str:
+    """How many of the ingest path's modules the `fleet` beside this interpreter loads compiled (an
+    install made with FLEET_COMPILE=1: all of them)."""
+    python = Path(sys.executable)
+    code = "from services.compiled import MODULES, compiled_modules; print(len(compiled_modules()), len(MODULES))"
+    out = subprocess.run([str(python), "-c", code], capture_output=True, text=True, cwd=python.parent)
+    if out.returncode != 0:
+        return "unknown"
+    done, total = out.stdout.split()
+    return f"{done} of {total} modules compiled" + (" (FLEET_COMPILE=1)" if done == total else "")
+
+
 def print_report(report: dict[str, Any]) -> None:
     env = report["environment"]
     print(
@@ -979,7 +991,7 @@ def print_report(report: dict[str, Any]) -> None:
     workers = "" if env["workers"] is None else f" --workers {env['workers']}"
     print(
         f"ours: fleet serve{workers}, {env['catalog']} catalog, FLEET_DURABILITY=interval (group commit), "
-        f"hot tier in {env['tmp']}"
+        f"hot tier in {env['tmp']}; ingest path: {env['compiled']}"
     )
     if env["server_cpus"] or env["load_cpus"]:
         print(f"pinned: servers to CPUs {env['server_cpus'] or 'any'}, load processes to {env['load_cpus'] or 'any'}")
@@ -1307,6 +1319,7 @@ def main(argv: list[str] | None = None) -> None:
             "repeat": args.repeat,
             "workers": args.workers,
             "catalog": catalog,
+            "compiled": compiled_status(),
             "server_cpus": args.server_cpus,
             "load_cpus": args.load_cpus,
             "rerun_binary": rerun_bin,

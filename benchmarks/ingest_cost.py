@@ -5,7 +5,7 @@ shared machine, where timings move by a fifth from one hour to the next) or in C
 
 The requests are those `benchmarks/ingest.py` sends for one robot of ``small.rrd`` (one-row chunks of
 scalars, made with the real SDK by that script's helpers if missing). Each is decoded as the gRPC
-handler does (`decode_request`) and filed by `IngestService.accept` into a hot tier in a temporary
+handler does (`requests.decode_request`) and filed by `IngestService.accept` into a hot tier in a temporary
 folder, with the replay of live streams on and the start-up objects frozen out of garbage
 collection, as in `fleet serve`; no catalog, no transport.
 ``--stamped``: each chunk re-encoded with the two times rerun-sdk stamps on every chunk it streams
@@ -15,7 +15,9 @@ saved to a file, like small.rrd, lacks: what a live robot's stream costs.
 Instructions (the default; needs valgrind): the script runs itself twice under `valgrind
 --tool=callgrind`, once filing 2,000 messages (layouts and caches warm) and once 2,000 + N, at the
 same time on two cores; the difference over N is the figure. CPU (``--cpu``): the CPU seconds of
-filing N messages after 2,000 in this process, per message (best of 3).
+filing N messages after 2,000 in this process, per message (best of 3). The figure says how many of
+the ingest path's modules ran compiled (FLEET_COMPILE=1; for a tree built in place, run the script
+from that tree).
 """
 
 from __future__ import annotations
@@ -50,8 +52,8 @@ def requests(count: int, stamped: bool = False) -> list[bytes]:
 def file_messages(batch: list[bytes], warm: int) -> float:
     """File `batch`; the CPU seconds of all but its first `warm` messages."""
     from services.hot.store import HotStore
-    from services.ingest.grpc_handler import decode_request
     from services.ingest.replay import ReplayHub
+    from services.ingest.requests import decode_request
     from services.ingest.service import IngestService
     from services.runtime import freeze_startup_objects
     from services.settings import Durability
@@ -128,10 +130,13 @@ def main() -> None:
     batch = requests(WARM + args.messages, args.stamped)
     if len(batch) < WARM + args.messages:
         sys.exit(f"small.rrd holds {len(batch)} messages: ask for at most {len(batch) - WARM} (--messages)")
+    from services.compiled import MODULES, compiled_modules
+
+    compiled = f"{len(compiled_modules())} of {len(MODULES)} modules compiled"
     if args.cpu:
         figure = min(file_messages(batch, WARM) for _ in range(3)) / args.messages * 1e6
         result = {"messages": args.messages, "stamped": args.stamped, "cpu_us_per_message": round(figure, 1)}
-        text = f"{figure:.1f} us of CPU per one-row chunk (best of 3, {args.messages} messages)"
+        text = f"{figure:.1f} us of CPU per one-row chunk (best of 3, {args.messages} messages; {compiled})"
     else:
         if shutil.which("valgrind") is None:
             sys.exit("valgrind is not installed: apt-get install valgrind, or use --cpu")
@@ -142,7 +147,8 @@ def main() -> None:
                 base, total = pool.map(lambda n: instructions(saved, n), [WARM, WARM + args.messages])
         figure = (total - base) / args.messages
         result = {"messages": args.messages, "stamped": args.stamped, "instructions_per_message": round(figure)}
-        text = f"{figure:,.0f} instructions per one-row chunk ({args.messages} messages, callgrind)"
+        text = f"{figure:,.0f} instructions per one-row chunk ({args.messages} messages, callgrind; {compiled})"
+    result["compiled_modules"] = len(compiled_modules())
     print(json.dumps(result) if args.json else text)
 
 

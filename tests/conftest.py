@@ -15,6 +15,7 @@ import sqlalchemy as sa
 from sqlalchemy.orm import Session
 
 from catalog.db import create_engine, upgrade
+from services.compiled import compiled_modules
 from tests.postgres import database_name, temporary_database
 from tests.services.rrd.recordings import SCENES, Recording, cut_mid_arrow, generate_scenes, rerun_rrd
 
@@ -25,6 +26,17 @@ os.environ["FLEET_AUTH"] = "off"
 # One process per `fleet serve` (a depot on Postgres would start one worker per core): tests that
 # kill or measure a depot mean that one process; tests of workers ask for them.
 os.environ["FLEET_WORKERS"] = "1"
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """Against a compiled build (FLEET_COMPILE=1), tests that patch a function inside a compiled
+    module are skipped: calls within that module go straight to the compiled function."""
+    compiled = set(compiled_modules())
+    for item in items:
+        marker = item.get_closest_marker("interpreted")
+        patched = compiled & set(marker.args) if marker is not None else set()
+        if patched:
+            item.add_marker(pytest.mark.skip(reason=f"patches inside {', '.join(sorted(patched))}, compiled here"))
 
 
 def find_rerun() -> str | None:

@@ -73,7 +73,7 @@ class WriteCall:
         self._failure: Aborted | None = None
         self.ended = False  # the client sent the end of its requests
         self.dropping = False  # what more the client sends is dropped (the stream failed or was answered)
-        self.trailing: tuple[tuple[str, str], ...] = ()
+        self.trailing: tuple[tuple[str, str | bytes], ...] = ()  # a `-bin` key's value may be bytes
         # the message being put together: its 5-byte prefix (while split over frames), then its body
         self.header = bytearray()
         self.body: Body | None = None
@@ -85,7 +85,7 @@ class WriteCall:
     def invocation_metadata(self) -> tuple[tuple[str, Any], ...]:
         return self._metadata
 
-    def set_trailing_metadata(self, metadata: tuple[tuple[str, str], ...]) -> None:
+    def set_trailing_metadata(self, metadata: tuple[tuple[str, str | bytes], ...]) -> None:
         self.trailing = metadata
 
     async def abort(self, code: grpc.StatusCode, details: str = "") -> NoReturn:

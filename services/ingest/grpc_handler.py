@@ -1,7 +1,8 @@
 """gRPC `rerun.sdk_comms.v1alpha1.MessageProxyService.WriteMessages`: what the SDK's GrpcSink calls.
 
-The handler only checks who calls (`stream_auth`), unwraps each request (the inner message bytes
-are taken as sent, never re-encoded), hands it to the ingest service and maps errors to a gRPC status.
+The handler only checks who calls (`stream_auth`), unwraps each request (`requests`: the inner message
+bytes are taken as sent, never re-encoded), hands it to the ingest service and maps errors to a gRPC
+status.
 """
 
 from __future__ import annotations
@@ -18,13 +19,11 @@ from services.auth.scopes import Scope
 from services.auth.tokens import Auth
 from services.cluster.relay import ERROR_CODE, RELAYED_BY, REPORT, SOURCE_KIND, metadata_value
 from services.ingest.replay import read_response
+from services.ingest.requests import decode_request
 from services.ingest.routing import relay_source
 from services.ingest.service import IngestService
 from services.ingest.source import Source
 from services.ingest.stream_auth import WRITERS, CallAuth, Metadata
-from services.rrd import errors as rrd_errors
-from services.rrd import protowire
-from services.rrd.decoder import decode_message
 from services.rrd.frames import UPGRADE_HINT
 from services.rrd.messages import Event, StoreInfoMessage
 from services.rrd.pb import sdk_comms_pb2
@@ -32,26 +31,6 @@ from services.rrd.pb import sdk_comms_pb2
 log = logging.getLogger(__name__)
 
 SERVICE_NAME = "rerun.sdk_comms.v1alpha1.MessageProxyService"
-_LOG_MSG_FIELD = 1  # WriteMessagesRequest.log_msg; inside, oneof fields 1-3 = message kinds 1-3
-_LOG_MSG_TAGS = frozenset({(1 << 3) | 2, (2 << 3) | 2, (3 << 3) | 2})  # those fields, length-delimited
-
-
-def unwrap(request: bytes, offset: int) -> tuple[int, memoryview]:
-    """(message kind, inner message bytes) of a serialized WriteMessagesRequest."""
-    if len(request) > 4 and request[0] == 0x0A:  # as the SDK writes it: log_msg, one message in it
-        length, start = protowire.varint(request, 1, offset)
-        if start + length == len(request) and request[start] in _LOG_MSG_TAGS:
-            inner, at = protowire.varint(request, start + 1, offset)
-            if at + inner == len(request):
-                return request[start] >> 3, memoryview(request)[at:]
-    found = protowire.last_field(request, _LOG_MSG_FIELD, offset)
-    if found is None:
-        raise rrd_errors.ProtobufError("WriteMessagesRequest without log_msg", offset)
-    log_msg = memoryview(request)[found[1] : found[2]]
-    for number, _, start, end in protowire.fields(log_msg, offset):
-        if number in (1, 2, 3):
-            return number, log_msg[start:end]
-    raise rrd_errors.ProtobufError("LogMsg holds no message", offset)
 
 
 class MessageProxy:
@@ -150,12 +129,6 @@ class MessageProxy:
                 yield read_response(*live)
         finally:
             hub.unsubscribe(queue)
-
-
-def decode_request(request: bytes, offset: int) -> Event:
-    """The message of a serialized WriteMessagesRequest at `offset` in its stream."""
-    kind, raw = unwrap(request, offset)
-    return decode_message(kind, raw, offset)
 
 
 async def refuse(context: grpc.aio.ServicerContext, exc: FleetError, relayed_by: str | None = None) -> NoReturn:

@@ -31,6 +31,7 @@ OTHER_VARIABLES = {
     "FLEET_TOKEN": "services/cli/client.py",
     "FLEET_API_URL": "services/cli/client.py",
     "FLEET_CONFIG": "services/settings.py",
+    "FLEET_COMPILE": "setup.py",
 }
 
 FLEET_NAME = re.compile(r"\bFLEET_[A-Z0-9_]*[A-Z0-9]\b")

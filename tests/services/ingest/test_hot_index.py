@@ -101,6 +101,7 @@ feeding.upload(service, iter_events({path!r}))
 """
 
 
+@pytest.mark.interpreted("services.hot.index")
 def test_a_process_killed_mid_write_leaves_an_index_recovery_repairs(
     make_service: Factory, recordings: dict[str, Recording], tmp_path: Path
 ):

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import pytest
 
-from services.ingest.grpc_handler import unwrap
+from services.ingest.requests import unwrap
 from services.rrd import errors
 from services.rrd.pb import common_pb2, log_msg_pb2, sdk_comms_pb2
 

@@ -25,7 +25,7 @@ import pyarrow as pa
 import pyarrow.compute as pc
 import pytest
 
-from services.ingest.grpc_handler import unwrap
+from services.ingest.requests import unwrap
 from services.rrd import ArrowMessage, chunk, decoder, errors, iter_events, lz4_prefix, protowire
 from services.rrd.chunk import chunk_meta, decompress_payload, read_chunk
 from services.rrd.footer import read_footer
@@ -76,7 +76,7 @@ ARROW_MSG_AROUND_PAYLOAD = (
 )
 GRPC_UNWRAP = (
     "a WriteMessagesRequest holds its LogMsg in field 1, and LogMsg's oneof fields 1-3 are message "
-    "kinds 1-3 (ingest.grpc_handler.unwrap)"
+    "kinds 1-3 (ingest.requests.unwrap)"
 )
 STREAM_FOOTER = (
     "a single-stream file ends with the stream footer (u64 start, u64 length, u32 xxh32, "

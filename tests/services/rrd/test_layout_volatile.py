@@ -76,6 +76,7 @@ def test_chunks_of_one_schema_with_their_own_ids_and_stamps_share_one_layout():
     assert len(layouts) == 1
 
 
+@pytest.mark.interpreted("services.rrd.layout")
 def test_a_schema_read_once_is_then_found_by_cutting_where_its_values_were(monkeypatch: pytest.MonkeyPatch):
     """Reading the flatbuffers for the volatile values costs several times cutting them out where a
     message of the same length had them: after the first chunk of a schema, its chunks are cut."""

@@ -168,6 +168,7 @@ def test_an_unfiltered_hot_download_is_the_run_file_then_a_footer(
 
 
 @pytest.mark.parametrize("name", ["points-0", "large-0", "blueprint-0", "merged-1", LEGACY])
+@pytest.mark.interpreted("services.rrd.chunk")
 def test_unfiltered_and_entity_filtered_hot_downloads_decompress_no_chunk(
     hot_runs: dict[str, HotRecording], name: str, monkeypatch: pytest.MonkeyPatch
 ):
