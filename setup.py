@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import os
 import runpy
+import sys
 from typing import Any
 
 from setuptools import setup
@@ -15,12 +16,19 @@ from setuptools import setup
 def ext_modules() -> list[Any]:
     if os.environ.get("FLEET_COMPILE", "") != "1":
         return []
+    if "editable_wheel" in sys.argv:  # how setuptools builds `pip install -e`
+        raise SystemExit(
+            "FLEET_COMPILE=1 with an editable install would put compiled modules beside their sources, "
+            "and they would shadow every later edit: install with `pip install .`, or leave FLEET_COMPILE unset"
+        )
     from mypyc.build import mypycify
 
     modules = runpy.run_path(os.path.join("services", "compiled.py"))["MODULES"]
     # pip builds in an environment of its own, without the dependencies: what they export is typed
-    # Any here (CI's mypy --strict checks the real types; compiled code checks them as it runs).
+    # Any here, wherever the build runs, so every build compiles the same code (CI's mypy --strict
+    # checks the real types; compiled code checks ours as it runs).
     lenient = [
+        "--no-site-packages",
         "--ignore-missing-imports",
         "--allow-subclassing-any",
         "--allow-untyped-decorators",

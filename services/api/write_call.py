@@ -9,13 +9,13 @@ from __future__ import annotations
 import asyncio
 import collections
 from collections.abc import AsyncIterator, Awaitable, Callable
-from typing import Any, NoReturn, Protocol
+from typing import Any, NoReturn, Protocol, TypeAlias
 
 import grpc
 import numpy as np
 import numpy.typing as npt
 
-Body = npt.NDArray[np.uint8]
+Body: TypeAlias = npt.NDArray[np.uint8]
 
 
 def new_body(size: int) -> Body:

@@ -27,7 +27,9 @@ def test_every_listed_module_is_a_module_of_the_package():
         assert importlib.import_module(name).__name__ == name
 
 
-def _ext_modules(monkeypatch: pytest.MonkeyPatch, compile_flag: str | None) -> tuple[Any, list[list[str]]]:
+def _ext_modules(
+    monkeypatch: pytest.MonkeyPatch, compile_flag: str | None, argv: tuple[str, ...] = ("setup.py", "bdist_wheel")
+) -> tuple[Any, list[list[str]]]:
     calls: list[list[str]] = []
 
     def mypycify(paths: list[str], **_: Any) -> list[str]:
@@ -42,6 +44,7 @@ def _ext_modules(monkeypatch: pytest.MonkeyPatch, compile_flag: str | None) -> t
     else:
         monkeypatch.setenv("FLEET_COMPILE", compile_flag)
     monkeypatch.chdir(ROOT)
+    monkeypatch.setattr(sys, "argv", list(argv))
     setup = runpy.run_path(str(ROOT / "setup.py"), run_name="setup_under_test")
     return setup["ext_modules"](), calls
 
@@ -57,6 +60,14 @@ def test_setup_compiles_the_listed_modules(monkeypatch: pytest.MonkeyPatch):
     assert extensions == ["extension"]
     (paths,) = calls
     assert [p for p in paths if not p.startswith("--")] == list(MODULES)
+    assert "--no-site-packages" in paths  # the same code compiled wherever the build runs
+
+
+def test_setup_refuses_to_compile_an_editable_install(monkeypatch: pytest.MonkeyPatch):
+    with pytest.raises(SystemExit, match="editable install"):
+        _ext_modules(monkeypatch, "1", ("setup.py", "editable_wheel", "--dist-dir", "x"))
+    extensions, _ = _ext_modules(monkeypatch, None, ("setup.py", "editable_wheel"))
+    assert extensions == []  # the plain editable install of the quick start
 
 
 @pytest.mark.skipif(os.environ.get("FLEET_EXPECT_COMPILED") != "1", reason="not a build made to be compiled")
