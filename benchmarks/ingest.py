@@ -974,12 +974,9 @@ def compiled_status() -> str:
     """How many of the ingest path's modules the `fleet` beside this interpreter loads compiled (an
     install made with FLEET_COMPILE=1: all of them)."""
     python = Path(sys.executable)
-    code = "from services.compiled import MODULES, compiled_modules; print(len(compiled_modules()), len(MODULES))"
+    code = "from services.compiled import compiled_summary; print(compiled_summary())"
     out = subprocess.run([str(python), "-c", code], capture_output=True, text=True, cwd=python.parent)
-    if out.returncode != 0:
-        return "unknown"
-    done, total = out.stdout.split()
-    return f"{done} of {total} modules compiled" + (" (FLEET_COMPILE=1)" if done == total else "")
+    return out.stdout.strip() if out.returncode == 0 else "unknown"
 
 
 def print_report(report: dict[str, Any]) -> None:

@@ -130,9 +130,9 @@ def main() -> None:
     batch = requests(WARM + args.messages, args.stamped)
     if len(batch) < WARM + args.messages:
         sys.exit(f"small.rrd holds {len(batch)} messages: ask for at most {len(batch) - WARM} (--messages)")
-    from services.compiled import MODULES, compiled_modules
+    from services.compiled import compiled_modules, compiled_summary
 
-    compiled = f"{len(compiled_modules())} of {len(MODULES)} modules compiled"
+    compiled = compiled_summary()
     if args.cpu:
         figure = min(file_messages(batch, WARM) for _ in range(3)) / args.messages * 1e6
         result = {"messages": args.messages, "stamped": args.stamped, "cpu_us_per_message": round(figure, 1)}

@@ -27,7 +27,7 @@ from services.auth.links import MaskLinkSignatures
 from services.auth.tokens import IssuedToken
 from services.cluster.ownership import Ownership
 from services.cluster.relay import Channels, peer_channel_options
-from services.compiled import MODULES, compiled_modules
+from services.compiled import compiled_summary
 from services.console import app as console
 from services.hot.reserve import DiskReserve
 from services.hot.store import HotStore
@@ -221,8 +221,7 @@ async def serve(
         log.info("node %s on a shared catalog, peer port %s", ingest.ownership.node_id, peer_addr)
     if sockets is None:  # workers: the first admin token was made before they started
         announce_admin(await asyncio.to_thread(ensure_admin_token, auth, settings.data_dir), settings.data_dir)
-    compiled = compiled_modules()
-    log.info("ingest path: %d of %d modules compiled (FLEET_COMPILE=1 at install)", len(compiled), len(MODULES))
+    log.info("ingest path: %s", compiled_summary())
     recovered = ingest.recover()
     if recovered:
         log.info("recovered %d hot runs", len(recovered))

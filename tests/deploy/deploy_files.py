@@ -8,6 +8,7 @@ import re
 import shutil
 import subprocess
 import sys
+import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -20,6 +21,15 @@ ROOT = Path(__file__).resolve().parents[2]
 DEPLOY = ROOT / "deploy"
 K8S = DEPLOY / "k8s"
 DOCS = ROOT / "docs" / "deploy.md"
+
+
+def build_sources() -> tuple[list[str], list[str]]:
+    """What pip builds the package from: its package folders (pyproject's `packages.find`), and the
+    files beside them (pyproject.toml, setup.py, the readme it names)."""
+    project = tomllib.loads((ROOT / "pyproject.toml").read_text())
+    packages = [p.rstrip("*") for p in project["tool"]["setuptools"]["packages"]["find"]["include"]]
+    return packages, ["pyproject.toml", "setup.py", project["project"]["readme"]]
+
 
 # Settings of the multi-node depot (run ownership leases, worker processes, the peer port): the
 # deployment files name them before `Settings` has them; once it does, the check below still holds.

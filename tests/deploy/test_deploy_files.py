@@ -9,7 +9,6 @@ import os
 import re
 import shutil
 import stat
-import tomllib
 from pathlib import Path
 from typing import Any
 
@@ -22,6 +21,7 @@ from tests.deploy.deploy_files import (
     DOCS,
     OTHER_VARIABLES,
     ROOT,
+    build_sources,
     compose_validators,
     deploy_files,
     fleet_names,
@@ -186,9 +186,8 @@ def test_the_image_installs_the_compiled_package_as_a_non_root_user() -> None:
     assert users and users[-1].split(":")[0] not in ("root", "0")
     sources = [ln for ln in lines if ln.startswith("COPY ") and not ln.startswith("COPY --from")]
     copied = {ln.split()[1] for ln in sources} | {name for ln in sources for name in ln.split()[1:-1]}
-    project = tomllib.loads((ROOT / "pyproject.toml").read_text())
-    packages = {p.rstrip("*") for p in project["tool"]["setuptools"]["packages"]["find"]["include"]}
-    needed = packages | {"pyproject.toml", "setup.py", project["project"]["readme"]}
+    packages, beside = build_sources()
+    needed = {*packages, *beside}
     assert needed <= copied, f"the image lacks {sorted(needed - copied)}: pip install . would miss them"
     for source in copied:
         assert (ROOT / source).exists(), source

@@ -7,18 +7,15 @@ import os
 import shutil
 import subprocess
 import sys
-import tomllib
 import zipfile
 from pathlib import Path
 
 import pytest
 
-ROOT = Path(__file__).resolve().parents[2]
+from tests.deploy.deploy_files import ROOT, build_sources
 
 
-def tracked_package_files() -> list[str]:
-    project = tomllib.loads((ROOT / "pyproject.toml").read_text())
-    packages = [p.rstrip("*") for p in project["tool"]["setuptools"]["packages"]["find"]["include"]]
+def tracked_package_files(packages: list[str]) -> list[str]:
     listed = subprocess.run(["git", "ls-files", *packages], cwd=ROOT, capture_output=True, text=True, check=True)
     return [name for name in listed.stdout.splitlines() if not name.endswith("/.gitignore")]
 
@@ -28,8 +25,9 @@ def test_the_wheel_holds_every_file_of_the_packages(tmp_path: Path):
     if shutil.which("git") is None or not (ROOT / ".git").exists():
         pytest.skip("not a git checkout: the package's files are what git tracks")
     source, wheels = tmp_path / "src", tmp_path / "wheels"
-    files = tracked_package_files()
-    for name in [*files, "pyproject.toml", "setup.py", "README.md"]:  # a clean tree: no earlier build/
+    packages, beside = build_sources()
+    files = tracked_package_files(packages)
+    for name in [*files, *beside]:  # a clean tree: no earlier build/
         (source / name).parent.mkdir(parents=True, exist_ok=True)
         shutil.copy2(ROOT / name, source / name)
     env = {k: v for k, v in os.environ.items() if k != "FLEET_COMPILE"}  # the plain build
