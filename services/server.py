@@ -204,6 +204,21 @@ def _grpc_server(settings: Settings) -> tuple[grpc.aio.Server, str, str | None]:
     return server, path, advertised(settings, bound)
 
 
+def add_services(
+    server: grpc.aio.Server,
+    proxy: grpc_handler.MessageProxy,
+    catalog_server: redap_handler.CatalogServer,
+    peers: peer.PeerService | None,
+) -> None:
+    """Every gRPC service a node answers, on its private socket (behind the public port's front) and
+    its peer port. tests/services/test_client_inputs.py lists their methods through this: each
+    must be in its table of client inputs, with its hostile requests."""
+    grpc_handler.add_to_server(server, proxy)
+    redap_handler.add_to_server(server, catalog_server)
+    if peers is not None:
+        peer.add_to_server(server, peers)
+
+
 async def serve(
     settings: Settings, sockets: tuple[socket.socket, socket.socket] | None = None, siblings: list[Path] | None = None
 ) -> None:
@@ -229,17 +244,17 @@ async def serve(
     proxy = grpc_handler.MessageProxy(
         ingest, auth, token_wait_s=settings.auth_wait_s, token_buffer_bytes=settings.auth_buffer_bytes
     )
-    grpc_handler.add_to_server(grpc_server, proxy)
-    redap_handler.add_to_server(
-        grpc_server,
-        redap_handler.CatalogServer(Depot(retention.catalog, retention.tiers.warm, ingest, settings.public_url), auth),
-    )
     app = create_app(settings, ingest, retention, analytics, auth)
     console.install(app)
-    if ingest.ownership is not None:  # other nodes read the hot runs this one owns
-        peer.add_to_server(
-            grpc_server, peer.PeerService(auth, ingest, retention.catalog, retention.tiers.warm, app.state.edge)
-        )
+    catalog_server = redap_handler.CatalogServer(
+        Depot(retention.catalog, retention.tiers.warm, ingest, settings.public_url), auth
+    )
+    peers = (  # other nodes read the hot runs this one owns
+        peer.PeerService(auth, ingest, retention.catalog, retention.tiers.warm, app.state.edge)
+        if ingest.ownership is not None
+        else None
+    )
+    add_services(grpc_server, proxy, catalog_server, peers)
     http_sockets = [http_socket]
     if sockets is not None:  # a worker: its own REST socket too, where its siblings ask for its figures
         http_sockets.append(listen_unix(worker_socket_path(settings.data_dir)))

@@ -36,6 +36,7 @@ import services
 from core.errors import (
     ErrorCode,
     FleetError,
+    InternalError,
     InvalidSqlError,
     QueryOutOfMemoryError,
     QueryTimeoutError,
@@ -44,6 +45,8 @@ from core.errors import (
 )
 from services.analytics import worker
 from services.analytics.sql import Limits, SqlBusyError, out_of_memory
+from services.rrd import untrusted
+from services.rrd.errors import RrdError
 from services.storage.objectstore import StorageError
 
 log = logging.getLogger(__name__)
@@ -117,7 +120,10 @@ class SqlPool:
                 talk.send(worker.ipc_bytes(table))
             talk.receive_json()
             answer = talk.receive(self.limits.memory_bytes)
-            return pa.ipc.open_stream(answer).read_all()
+            try:  # the sandbox's answer: as untrusted as the SQL that made it, so validated in full
+                return untrusted.read_table(answer)
+            except RrdError as exc:
+                raise InternalError(f"the SQL worker answered with no valid table ({exc.detail})") from exc
         finally:
             _stop(proc)
             self.start()  # the next one starts now, not during the query: its imports would slow it

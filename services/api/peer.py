@@ -9,9 +9,10 @@ import asyncio
 import dataclasses
 import json
 from collections.abc import AsyncIterator, Iterator
-from typing import Any, NoReturn
+from typing import Any, NoReturn, TypeVar
 
 import grpc
+from pydantic import TypeAdapter, ValidationError
 from sqlalchemy.orm import Session, sessionmaker
 
 from core.errors import FleetError, InvalidArgumentError
@@ -47,8 +48,8 @@ class PeerService:
         try:
             await self._principal(context, Scope.READ)
             asked = _json(request)
-            run_id = str(asked.pop("run_id", ""))
-            query = RecordingQuery(**{k: v for k, v in asked.items() if k in _QUERY_FIELDS})
+            run_id = _text(asked, "run_id")
+            query = _typed(_QUERY, {k: v for k, v in asked.items() if k in _QUERY_FIELDS}, "query")
             found = await asyncio.to_thread(open_recording, self.ingest, self.catalog, self.warm, run_id, query)
             if isinstance(found.body, Iterator):
                 pieces = iter(found.body)
@@ -65,12 +66,32 @@ class PeerService:
         try:
             principal = await self._principal(context, *Scope)
             asked = _json(request)
-            answer = await asyncio.to_thread(
-                held.held_answer, self.edge, principal, str(asked.get("run_id", "")), list(asked.get("chunk_ids", []))
-            )
+            chunk_ids = _typed(_CHUNK_IDS, asked.get("chunk_ids", []), "chunk_ids")
+            answer = await asyncio.to_thread(held.held_answer, self.edge, principal, _text(asked, "run_id"), chunk_ids)
         except FleetError as exc:
             await _refuse(context, exc)
         return json.dumps(answer).encode()
+
+
+_QUERY: TypeAdapter[RecordingQuery] = TypeAdapter(RecordingQuery)
+_CHUNK_IDS: TypeAdapter[list[str]] = TypeAdapter(list[str])
+T = TypeVar("T")
+
+
+def _typed(adapter: TypeAdapter[T], value: object, name: str) -> T:
+    """`value` (from JSON) as the type the adapter stands for, its JSON types as they are (no coercion)."""
+    try:
+        return adapter.validate_json(json.dumps(value), strict=True)
+    except ValidationError as exc:
+        where = ".".join([name, *(str(p) for p in exc.errors()[0]["loc"])])
+        raise InvalidArgumentError(f"a peer request's {where} is of the wrong type: {exc.errors()[0]['msg']}") from None
+
+
+def _text(asked: dict[str, Any], key: str) -> str:
+    value = asked.get(key, "")
+    if not isinstance(value, str):
+        raise InvalidArgumentError(f"a peer request's {key} must be a string")
+    return value
 
 
 def _json(request: bytes) -> dict[str, Any]:
@@ -90,15 +111,11 @@ async def _refuse(context: grpc.aio.ServicerContext, exc: FleetError) -> NoRetur
 
 
 def add_to_server(server: grpc.aio.Server, service: PeerService) -> None:
-    handler = grpc.method_handlers_generic_handler(
-        SERVICE,
-        {
-            "ReadHot": grpc.unary_stream_rpc_method_handler(
-                service.read_hot, request_deserializer=None, response_serializer=None
-            ),
-            "Held": grpc.unary_unary_rpc_method_handler(
-                service.held, request_deserializer=None, response_serializer=None
-            ),
-        },
-    )
-    server.add_generic_rpc_handlers((handler,))
+    handlers = {
+        "ReadHot": grpc.unary_stream_rpc_method_handler(
+            service.read_hot, request_deserializer=None, response_serializer=None
+        ),
+        "Held": grpc.unary_unary_rpc_method_handler(service.held, request_deserializer=None, response_serializer=None),
+    }
+    server.add_generic_rpc_handlers((grpc.method_handlers_generic_handler(SERVICE, handlers),))
+    server.add_registered_method_handlers(SERVICE, handlers)

@@ -184,36 +184,29 @@ async def refuse_legacy_read(request: bytes, context: grpc.aio.ServicerContext) 
 
 def add_legacy_refusal(server: grpc.aio.Server) -> None:
     """Answer rerun-sdk 0.22's calls with a clear refusal naming the oldest supported SDK."""
-    server.add_generic_rpc_handlers(
-        (
-            grpc.method_handlers_generic_handler(
-                LEGACY_SERVICE_NAME,
-                {
-                    "WriteMessages": grpc.stream_unary_rpc_method_handler(refuse_legacy_write),
-                    "ReadMessages": grpc.unary_stream_rpc_method_handler(refuse_legacy_read),
-                },
-            ),
-        )
-    )
+    handlers = {
+        "WriteMessages": grpc.stream_unary_rpc_method_handler(refuse_legacy_write),
+        "ReadMessages": grpc.unary_stream_rpc_method_handler(refuse_legacy_read),
+    }
+    server.add_generic_rpc_handlers((grpc.method_handlers_generic_handler(LEGACY_SERVICE_NAME, handlers),))
+    server.add_registered_method_handlers(LEGACY_SERVICE_NAME, handlers)
 
 
 def add_to_server(server: grpc.aio.Server, proxy: MessageProxy) -> None:
-    handler = grpc.method_handlers_generic_handler(
-        SERVICE_NAME,
-        {
-            "WriteMessages": grpc.stream_unary_rpc_method_handler(
-                proxy.write_messages,
-                request_deserializer=None,  # raw bytes: the inner messages are kept exactly as sent
-                response_serializer=sdk_comms_pb2.WriteMessagesResponse.SerializeToString,
-            ),
-            "ReadMessages": grpc.unary_stream_rpc_method_handler(
-                proxy.read_messages,
-                request_deserializer=None,
-                response_serializer=None,  # responses are built around the stored message bytes
-            ),
-        },
-    )
-    server.add_generic_rpc_handlers((handler,))
+    handlers = {
+        "WriteMessages": grpc.stream_unary_rpc_method_handler(
+            proxy.write_messages,
+            request_deserializer=None,  # raw bytes: the inner messages are kept exactly as sent
+            response_serializer=sdk_comms_pb2.WriteMessagesResponse.SerializeToString,
+        ),
+        "ReadMessages": grpc.unary_stream_rpc_method_handler(
+            proxy.read_messages,
+            request_deserializer=None,
+            response_serializer=None,  # responses are built around the stored message bytes
+        ),
+    }
+    server.add_generic_rpc_handlers((grpc.method_handlers_generic_handler(SERVICE_NAME, handlers),))
+    server.add_registered_method_handlers(SERVICE_NAME, handlers)
     add_legacy_refusal(server)
 
 

@@ -22,6 +22,8 @@ import struct
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 
+import pyarrow as pa
+
 from core.errors import InvalidArgumentError, NotFoundError
 from services.auth.scopes import Principal
 from services.redap.dataframe import read_dataframe_part
@@ -29,6 +31,7 @@ from services.redap.depot import Depot
 from services.redap.pb import cloud_pb2
 from services.redap.recordings import RunRecording, open_recording
 from services.rrd import errors as rrd_errors
+from services.rrd import limits
 from services.rrd.frames import MESSAGE_HEADER_SIZE, MessageKind, decode_message_header
 from services.rrd.protowire import fields
 
@@ -131,16 +134,22 @@ def fetch_chunks(depot: Depot, principal: Principal, request: cloud_pb2.FetchChu
 def requested_chunks(request: cloud_pb2.FetchChunksRequest) -> list[ChunkLocation]:
     """The chunks a request names (its `chunk_key` column, over all parts), each once."""
     wanted: dict[tuple[str, int, int], ChunkLocation] = {}
-    for part in request.chunk_infos:
-        table = read_dataframe_part(part)
-        if "chunk_key" not in table.column_names:
-            raise InvalidArgumentError("FetchChunks needs a chunk_key column, as GetRrdManifest and FindChunks give")
-        for key in table.column("chunk_key").to_pylist():
-            if not isinstance(key, bytes):
-                raise InvalidArgumentError("a chunk_key is null or not binary: send the keys as they were given")
-            location = parse_chunk_key(key)
-            wanted.setdefault((location.run_id, location.offset, location.length), location)
+    for i, part in enumerate(request.chunk_infos):
+        with limits.holding(part.uncompressed_size):
+            for key in _chunk_keys(read_dataframe_part(part, f"chunk_infos[{i}]")):
+                location = parse_chunk_key(key)
+                wanted.setdefault((location.run_id, location.offset, location.length), location)
     return list(wanted.values())
+
+
+def _chunk_keys(table: pa.Table) -> list[bytes]:
+    if "chunk_key" not in table.column_names:
+        raise InvalidArgumentError("FetchChunks needs a chunk_key column, as GetRrdManifest and FindChunks give")
+    column = table.column("chunk_key")
+    if not (pa.types.is_binary(column.type) or pa.types.is_large_binary(column.type)) or column.null_count:
+        raise InvalidArgumentError("a chunk_key is null or not binary: send the keys as they were given")
+    keys: list[bytes] = column.to_pylist()
+    return keys
 
 
 @dataclass

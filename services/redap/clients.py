@@ -8,13 +8,14 @@ import re
 from collections.abc import Iterable
 from typing import Any
 
-from core.errors import ConflictError
+from core.errors import ConflictError, InvalidArgumentError
 
 CLIENT_VERSION_HEADER = "x-rerun-client-version"
 # The tested range (inclusive), as (major, minor): see tests/services/redap and docs/catalog-server.md.
 OLDEST = (0, 36)
 NEWEST = (0, 41)
 _VERSION = re.compile(r"^(?P<client>[\w.-]+)/(?P<major>\d+)\.(?P<minor>\d+)")
+_MAX_DIGITS = 9  # a version number no release has; Python refuses to read an int of over 4,300 digits
 
 
 def check_client(metadata: Iterable[tuple[str, Any]] | None) -> None:
@@ -26,6 +27,8 @@ def check_client(metadata: Iterable[tuple[str, Any]] | None) -> None:
         found = _VERSION.match(value.decode() if isinstance(value, bytes) else str(value))
         if found is None:
             return
+        if max(len(found["major"]), len(found["minor"])) > _MAX_DIGITS:
+            raise InvalidArgumentError(f"the {CLIENT_VERSION_HEADER} header is malformed: send the client's own")
         version = (int(found["major"]), int(found["minor"]))
         if not OLDEST <= version <= NEWEST:
             raise ConflictError(

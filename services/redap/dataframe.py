@@ -6,6 +6,8 @@ from __future__ import annotations
 import pyarrow as pa
 
 from core.errors import InvalidArgumentError
+from services.rrd import untrusted
+from services.rrd.errors import RrdError
 from services.rrd.pb import common_pb2
 
 
@@ -22,17 +24,21 @@ def dataframe_part(table: pa.Table | pa.RecordBatch) -> common_pb2.DataframePart
     )
 
 
-def read_dataframe_part(part: common_pb2.DataframePart) -> pa.Table:
-    """A client's table (FetchChunks' chunk list); LZ4 parts too, as Rerun's own clients may send."""
-    payload = part.payload
-    if part.compression == common_pb2.COMPRESSION_LZ4:
-        import lz4.block
+_COMPRESSIONS = (common_pb2.COMPRESSION_UNSPECIFIED, common_pb2.COMPRESSION_NONE, common_pb2.COMPRESSION_LZ4)
 
-        payload = lz4.block.decompress(payload, uncompressed_size=part.uncompressed_size)
+
+def read_dataframe_part(part: common_pb2.DataframePart, name: str = "a dataframe part") -> pa.Table:
+    """A client's table (FetchChunks' chunk list), LZ4 parts too, as Rerun's own clients may send:
+    size-checked before it is decompressed and fully validated before any value is read (`untrusted`).
+    `name`: which part, for errors."""
+    if part.compression not in _COMPRESSIONS:
+        raise InvalidArgumentError(f"{name}: unknown compression {part.compression}: send it uncompressed or LZ4")
     try:
-        return pa.ipc.open_stream(payload).read_all()
-    except pa.ArrowInvalid as exc:
-        raise InvalidArgumentError(f"a dataframe part is not an Arrow IPC stream: {exc}") from exc
+        return untrusted.payload_table(
+            part.compression == common_pb2.COMPRESSION_LZ4, part.payload, part.uncompressed_size
+        )
+    except RrdError as exc:
+        raise type(exc)(f"{name}: {exc.detail}", exc.offset) from exc
 
 
 def schema_proto(schema: pa.Schema) -> common_pb2.Schema:

@@ -11,7 +11,7 @@ from collections.abc import AsyncIterator, Callable, Iterable, Iterator
 from typing import Any, NoReturn, TypeVar
 
 import grpc
-from google.protobuf.message import Message
+from google.protobuf.message import DecodeError, Message
 
 from core.errors import FleetError, InvalidArgumentError
 from services.auth.metadata import call_principal
@@ -65,6 +65,14 @@ async def _abort(context: grpc.aio.ServicerContext, exc: FleetError) -> NoReturn
     raise AssertionError("not reached: abort raises")
 
 
+async def _internal(context: grpc.aio.ServicerContext) -> NoReturn:
+    """A failure no error of ours describes (a fault of the depot): logged whole, answered INTERNAL
+    rather than gRPC's UNKNOWN with the exception's text."""
+    log.exception("catalog service call failed")
+    await context.abort(grpc.StatusCode.INTERNAL, "internal error of the depot (its log has the details)")
+    raise AssertionError("not reached: abort raises")
+
+
 class CatalogServer(cloud_pb2_grpc.RerunCloudServiceServicer):
     """One method per RPC. Streaming RPCs are async generators themselves (`async for ... yield`
     over `_stream`): grpc.aio takes a plain method that returns an async generator for a
@@ -76,8 +84,26 @@ class CatalogServer(cloud_pb2_grpc.RerunCloudServiceServicer):
 
     async def _caller(self, context: grpc.aio.ServicerContext, *scopes: Scope) -> Principal:
         metadata = context.invocation_metadata()
+        principal = await call_principal(self.auth, metadata, *scopes)
         check_client(metadata)
-        return await call_principal(self.auth, metadata, *scopes)
+        return principal
+
+    async def parsed(
+        self, raw: bytes, parse: Callable[[bytes], Message], context: grpc.aio.ServicerContext, *, open_call: bool
+    ) -> Message:
+        """A call's request, parsed only once its token is known to be valid (`open_call`: a call
+        anyone may make); INVALID_ARGUMENT if it is not the request protobuf."""
+        try:
+            if not open_call:
+                await call_principal(self.auth, context.invocation_metadata(), *Scope)
+            try:
+                return parse(raw)
+            except (DecodeError, ValueError, TypeError) as exc:
+                raise InvalidArgumentError(
+                    f"the request is not a valid {_request_name(parse)} protobuf ({exc}): send it as Rerun's clients do"
+                ) from None
+        except FleetError as exc:
+            await _abort(context, exc)
 
     async def _unary(
         self,
@@ -95,6 +121,10 @@ class CatalogServer(cloud_pb2_grpc.RerunCloudServiceServicer):
             return await asyncio.to_thread(answer, self.depot, principal, *named, *args)
         except FleetError as exc:
             await _abort(context, exc)
+        except grpc.aio.AbortError:
+            raise
+        except Exception:
+            await _internal(context)
 
     async def _stream(
         self,
@@ -114,6 +144,10 @@ class CatalogServer(cloud_pb2_grpc.RerunCloudServiceServicer):
                 yield response
         except FleetError as exc:
             await _abort(context, exc)
+        except grpc.aio.AbortError:
+            raise
+        except Exception:
+            await _internal(context)
 
     # --- the server and its catalog -------------------------------------------------------
 
@@ -197,6 +231,10 @@ class CatalogServer(cloud_pb2_grpc.RerunCloudServiceServicer):
                     await asyncio.wait([ahead])
         except FleetError as exc:
             await _abort(context, exc)
+        except grpc.aio.AbortError:
+            raise
+        except Exception:
+            await _internal(context)
 
     # --- querying from the SDK -------------------------------------------------------------
 
@@ -234,16 +272,64 @@ class _Handlers:
         self.handlers.update(handlers)
 
 
-def add_to_server(server: grpc.aio.Server, catalog_server: CatalogServer) -> None:
-    """The generated handlers, but FetchChunks answers bytes it built itself (the stored chunk
-    messages, never parsed and serialized again)."""
+OPEN_CALLS = frozenset({"Version"})  # answered without a token, as Rerun's own servers answer them
+
+
+def _request_name(parse: Callable[[bytes], Message]) -> str:
+    owner = getattr(parse, "__self__", None)
+    return getattr(owner, "__name__", "request")
+
+
+def _unimplemented(name: str) -> grpc.RpcMethodHandler:
+    """An RPC of the service this depot does not serve: refused before its request is read."""
+
+    async def refuse(request: Any, context: grpc.aio.ServicerContext) -> NoReturn:
+        await context.abort(grpc.StatusCode.UNIMPLEMENTED, f"this depot does not serve {name}")
+        raise AssertionError("not reached: abort raises")
+
+    return grpc.unary_unary_rpc_method_handler(refuse, request_deserializer=None, response_serializer=None)
+
+
+def _parsed_after_auth(name: str, handler: grpc.RpcMethodHandler, server: CatalogServer) -> grpc.RpcMethodHandler:
+    """`handler`, its request parsed by `server.parsed` (token first, then the protobuf) instead of
+    by gRPC, which answers a request that does not parse with UNKNOWN, before any token is read."""
+    parse = handler.request_deserializer
+    open_call = name in OPEN_CALLS
+    if handler.unary_unary is not None:
+        unary = handler.unary_unary
+
+        async def unary_call(raw: bytes, context: grpc.aio.ServicerContext) -> Any:
+            return await unary(await server.parsed(raw, parse, context, open_call=open_call), context)
+
+        return grpc.unary_unary_rpc_method_handler(unary_call, None, handler.response_serializer)
+    streaming = handler.unary_stream
+
+    async def stream_call(raw: bytes, context: grpc.aio.ServicerContext) -> AsyncIterator[Any]:
+        async for response in streaming(await server.parsed(raw, parse, context, open_call=open_call), context):
+            yield response
+
+    return grpc.unary_stream_rpc_method_handler(stream_call, None, handler.response_serializer)
+
+
+def served_handlers(catalog_server: CatalogServer) -> dict[str, grpc.RpcMethodHandler]:
+    """Every RPC of the service, by name: those `CatalogServer` answers, each request parsed after
+    its token is checked; the others refused as unimplemented without reading them. FetchChunks
+    answers bytes it built itself (the stored chunk messages, never parsed and serialized again)."""
     taken = _Handlers()
     cloud_pb2_grpc.add_RerunCloudServiceServicer_to_server(catalog_server, taken)  # type: ignore[no-untyped-call]
-    handlers = dict(taken.handlers)
-    handlers["FetchChunks"] = grpc.unary_stream_rpc_method_handler(
+    generated = dict(taken.handlers)
+    generated["FetchChunks"] = grpc.unary_stream_rpc_method_handler(
         catalog_server.FetchChunks,
         request_deserializer=cloud_pb2.FetchChunksRequest.FromString,
         response_serializer=None,
     )
+    return {
+        name: _parsed_after_auth(name, handler, catalog_server) if name in vars(CatalogServer) else _unimplemented(name)
+        for name, handler in generated.items()
+    }
+
+
+def add_to_server(server: grpc.aio.Server, catalog_server: CatalogServer) -> None:
+    handlers = served_handlers(catalog_server)
     server.add_generic_rpc_handlers((grpc.method_handlers_generic_handler(SERVICE_NAME, handlers),))
     server.add_registered_method_handlers(SERVICE_NAME, handlers)

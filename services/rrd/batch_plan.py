@@ -19,6 +19,7 @@ from dataclasses import dataclass
 
 from services.rrd.layout import BatchHeader, ChunkLayout, read_batch_header
 from services.rrd.lz4_prefix import PrefixTooShort
+from services.rrd.value_checks import OffsetsCheck, value_checks
 
 _MAX_PLANS = 256  # per layout: large chunks rarely share a header; cleared when full
 _I32 = struct.Struct("<i")
@@ -34,21 +35,13 @@ class IndexRead:
 
 
 @dataclass(frozen=True, slots=True)
-class ListCheck:
-    """The offsets of a list<float64> column (Scalars) to check per chunk: from a non-negative start,
-    never decreasing, within the `values` its child holds."""
-
-    offsets: int  # where its int32 offsets sit
-    rows: int
-    values: int
-
-
-@dataclass(frozen=True, slots=True)
 class BatchPlan:
     length: int  # bytes from the record batch message's start to its body's end
     rows: int
     reads: tuple[IndexRead, ...]  # none when the chunk has no rows
-    lists: tuple[ListCheck, ...] | None  # None: the Scalars columns are left to pyarrow's full validation
+    # What full validation checks in the body of each chunk with this header (`value_checks`); None:
+    # the header alone shows a problem, or holds types not walked there: pyarrow decides.
+    checks: tuple[OffsetsCheck, ...] | None
     null_counts: tuple[int, ...]  # of the columns declared non-nullable
     reach: int  # bytes from the record batch message's start that the reads of a chunk need
     # A one-row chunk's index values, all read by one unpack from `reads[0].first` (None: read one
@@ -98,14 +91,10 @@ def _plan(data: bytes, pos: int, layout: ChunkLayout, header: BatchHeader) -> Ba
             if size < 8 * rows:
                 return None
             reads.append(IndexRead(ix.name, body + offset, rows, ix.is_sorted))
-    lists = _list_checks(layout, header, body)
-    reach = max(
-        [header.body - pos]
-        + [r.first + 8 * r.count for r in reads]
-        + [c.offsets + 4 * (c.rows + 1) for c in lists or ()]
-    )
+    checks = value_checks(layout.schema, rows, nodes, header.buffers, body)
+    reach = max([header.body - pos] + [r.first + 8 * r.count for r in reads])
     required = tuple(nodes[2 * layout.top_nodes[i] + 1] for i in layout.required)
-    return BatchPlan(header.end - pos, rows, tuple(reads), lists, required, reach, _one_row(reads))
+    return BatchPlan(header.end - pos, rows, tuple(reads), checks, required, reach, _one_row(reads))
 
 
 def _one_row(reads: list[IndexRead]) -> struct.Struct | None:
@@ -119,25 +108,3 @@ def _one_row(reads: list[IndexRead]) -> struct.Struct | None:
         fmt += f"{read.first - at}xq"
         at = read.first + 8
     return struct.Struct(fmt)
-
-
-def _list_checks(layout: ChunkLayout, header: BatchHeader, body: int) -> tuple[ListCheck, ...] | None:
-    """What pyarrow's full validation checks of a list<float64> column, from the header (buffer
-    sizes against lengths and null counts); the offsets themselves are checked per chunk."""
-    if layout.direct_lists is None:
-        return None
-    nodes, buffers = header.nodes, header.buffers
-    checks = []
-    for c in layout.direct_lists:
-        rows, nulls, values, value_nulls = nodes[2 * c.node : 2 * c.node + 4]
-        # Buffers: list validity, list offsets, values validity, values (each (offset, length)).
-        _, validity, at, offsets_size, _, value_validity, _, values_size = buffers[2 * c.buffer : 2 * c.buffer + 8]
-        if not (0 <= nulls <= rows and 0 <= value_nulls <= values):
-            return None
-        if (nulls and validity < (rows + 7) // 8) or (value_nulls and value_validity < (values + 7) // 8):
-            return None
-        if values_size < 8 * values or (rows and offsets_size < 4 * (rows + 1)):
-            return None
-        if rows:
-            checks.append(ListCheck(body + at, rows, values))
-    return tuple(checks)

@@ -15,8 +15,8 @@ import lz4.block
 import numpy as np
 import pyarrow as pa
 
-from services.rrd import errors, limits, lz4_prefix
-from services.rrd.batch_plan import BatchPlan, ListCheck, batch_plan
+from services.rrd import errors, limits, lz4_prefix, untrusted
+from services.rrd.batch_plan import BatchPlan, batch_plan
 from services.rrd.layout import (
     ENTITY_PATH_KEY,
     ChunkLayout,
@@ -27,11 +27,11 @@ from services.rrd.layout import (
 from services.rrd.lz4_prefix import PrefixTooShort
 from services.rrd.messages import ArrowMessage, Compression, chunk_id_str, tuid_proto
 from services.rrd.pb import log_msg_pb2
+from services.rrd.value_checks import values_valid
 
 CHUNK_ID_KEY = b"rerun:id"
 LEGACY_CHUNK_ID_KEY = b"rerun.id"  # SDK 0.23 and older
 LEGACY_ENTITY_PATH_KEY = b"rerun.entity_path"
-_LZ4_MAX_RATIO = 255
 
 
 @dataclass(slots=True)
@@ -78,8 +78,13 @@ class ChunkMeta:
     uncompressed_size: int  # the Arrow IPC payload once decompressed
     row_id_field: pa.Field | None
     layout: ChunkLayout
-    problem: str | None = None  # why Rerun would refuse this chunk, from its schema and row counts
-    values_checked: bool = False  # the values the server reads were checked without pyarrow (Scalars)
+    # Why Rerun would refuse this chunk: from its schema and row counts, or its values when they were
+    # checked (a chunk read with pyarrow).
+    problem: str | None = None
+    # Every value passed what full Arrow validation checks (offsets, UTF-8): from the record batch's
+    # body (`value_checks`) or by pyarrow. False: not known (a large chunk read from its first bytes,
+    # or a check that failed and leaves the verdict to pyarrow, in `validate.check_chunk`).
+    values_checked: bool = False
     # Per timeline, over all its rows, when every component holds a value in every row (else None).
     ranges: dict[str, TimeRange] | None = None
 
@@ -114,44 +119,16 @@ class ChunkMeta:
         return self.layout.component_names
 
 
-def _check_declared_size(msg: ArrowMessage) -> None:
-    if msg.uncompressed_size > limits.max_chunk_bytes():
-        raise errors.MessageTooLargeError(
-            f"chunk declares {msg.uncompressed_size} bytes uncompressed, over the limit of "
-            f"{limits.max_chunk_bytes()} (raise FLEET_MAX_CHUNK_BYTES if chunks this large are expected)",
-            msg.offset,
-        )
-    if msg.uncompressed_size > _LZ4_MAX_RATIO * len(msg.payload) + 64:
-        # Refuse before allocating: no LZ4 block expands more than ~255x.
-        raise errors.DecompressionError(
-            f"LZ4 block of {len(msg.payload)} bytes cannot decompress to the declared {msg.uncompressed_size} bytes",
-            msg.offset,
-        )
-
-
 def decompress_payload(msg: ArrowMessage) -> bytes:
     """The Arrow IPC bytes of `msg`; raises DecompressionError if LZ4 does not give
     exactly `uncompressed_size` bytes."""
     if msg.compression != Compression.LZ4:
         return bytes(msg.payload)
-    _check_declared_size(msg)
-    try:
-        data: bytes = lz4.block.decompress(msg.payload, uncompressed_size=msg.uncompressed_size)
-    except (lz4.block.LZ4BlockError, ValueError, MemoryError, OverflowError) as exc:
-        raise errors.DecompressionError(
-            f"LZ4 block of {len(msg.payload)} bytes does not decompress to the declared "
-            f"{msg.uncompressed_size} bytes ({exc})",
-            msg.offset,
-        ) from exc
-    if len(data) != msg.uncompressed_size:
-        raise errors.DecompressionError(
-            f"LZ4 block decompressed to {len(data)} bytes, declared {msg.uncompressed_size}", msg.offset
-        )
-    return data
+    return untrusted.decompress(msg.payload, msg.uncompressed_size, msg.offset)
 
 
 def _decompress_prefix(msg: ArrowMessage, size: int) -> bytes:
-    _check_declared_size(msg)
+    untrusted.check_declared_size(msg.uncompressed_size, len(msg.payload), msg.offset)
     try:
         return lz4_prefix.decompress_prefix(msg.payload, size)
     except ValueError as exc:
@@ -162,9 +139,10 @@ def _decompress_prefix(msg: ArrowMessage, size: int) -> bytes:
         ) from exc
 
 
-def read_chunk(msg: ArrowMessage) -> pa.RecordBatch:
-    """The chunk as an Arrow record batch (zero-copy over the decompressed payload)."""
-    batch = _read_batch(msg, decompress_payload(msg))
+def read_chunk(msg: ArrowMessage, data: bytes | None = None) -> pa.RecordBatch:
+    """The chunk as an Arrow record batch (zero-copy over the decompressed payload; `data`: that
+    payload, decompressed already)."""
+    batch = _read_batch(msg, decompress_payload(msg) if data is None else data)
     md = batch.schema.metadata or {}
     if ENTITY_PATH_KEY not in md and LEGACY_ENTITY_PATH_KEY not in md:
         raise errors.NotAChunkError("Arrow schema has no rerun:entity_path metadata", msg.offset)
@@ -176,10 +154,16 @@ def _read_batch(msg: ArrowMessage, data: bytes) -> pa.RecordBatch:
         # Message by message rather than `open_stream`: a third less overhead for small chunks.
         reader = pa.BufferReader(pa.py_buffer(data))
         schema = pa.ipc.read_schema(pa.ipc.read_message(reader))
-        batch = pa.ipc.read_record_batch(pa.ipc.read_message(reader), schema)
+        message = pa.ipc.read_message(reader)
+        if untrusted.body_compressed(message):  # pyarrow would allocate whatever its buffers declare
+            raise errors.NotAChunkError(
+                "its record batch compresses its buffers (IPC body compression), which Rerun never writes",
+                msg.offset,
+            )
+        batch = pa.ipc.read_record_batch(message, schema)
         # Cheap structural check (buffer sizes against lengths), so no later read goes out of bounds.
         batch.validate()
-    except (pa.ArrowInvalid, pa.ArrowNotImplementedError, StopIteration, EOFError, OSError, TypeError) as exc:
+    except (pa.ArrowException, StopIteration, EOFError, OSError, TypeError, ValueError, KeyError) as exc:
         raise errors.NotAChunkError(f"payload is not an Arrow IPC record batch ({exc})", msg.offset) from exc
     return batch
 
@@ -255,15 +239,18 @@ def _chunk_meta(msg: ArrowMessage, data: bytes, size: int) -> tuple[ChunkMeta, i
         components = None  # a plan is made only for chunks without nulls: every component is in every row
         if problem is None and any(plan.null_counts):
             problem = _null_problem(layout, list(plan.null_counts))
-        checked = plan.lists is not None and _lists_valid(data, batch_pos, plan.lists)
+        checked = plan.checks is not None and len(data) == size and values_valid(data, batch_pos, plan.checks)
     else:
         _whole(data, size)
         needed = size
-        checked = False
         batch = _read_batch(msg, data)
         num_rows, ranges, components = _arrow_values(batch, layout, msg.offset)
         if problem is None:
             problem = _null_problem(layout, [batch.column(i).null_count for i in layout.required])
+        # Read with pyarrow anyway (an unusual type or header): its full validation costs little more.
+        invalid = _invalid_values(batch)
+        checked = invalid is None
+        problem = problem or invalid
     timelines = tuple(
         [
             TimelineMeta(ix.name, ix.type, ranges[ix.name], ix.is_sorted, ix.field)
@@ -303,22 +290,13 @@ def _whole(data: bytes, size: int) -> None:
         raise PrefixTooShort(size)
 
 
-def _lists_valid(data: bytes, pos: int, checks: tuple[ListCheck, ...]) -> bool:
-    """Whether each list<float64> column's offsets are valid Arrow, the rest of what pyarrow's full
-    validation checks of such a column having been read from its header (`batch_plan`): from a
-    non-negative start, never decreasing, within the values. False (not known) sends the chunk to
-    pyarrow's full validation."""
-    for check in checks:
-        at = pos + check.offsets
-        if check.rows == 1:
-            first, last = _TWO_I32.unpack_from(data, at)
-            if first < 0 or last < first or last > check.values:
-                return False
-            continue
-        offsets = np.frombuffer(data, dtype="<i4", count=check.rows + 1, offset=at)
-        if offsets[0] < 0 or offsets[-1] > check.values or bool((offsets[1:] < offsets[:-1]).any()):
-            return False
-    return True
+def _invalid_values(batch: pa.RecordBatch) -> str | None:
+    """Why pyarrow's full validation refuses the batch's values (None: it does not)."""
+    try:
+        batch.validate(full=True)
+    except (pa.ArrowInvalid, pa.ArrowNotImplementedError) as exc:
+        return f"its Arrow data is inconsistent ({exc})"
+    return None
 
 
 def _null_problem(layout: ChunkLayout, null_counts: list[int]) -> str | None:
@@ -329,7 +307,6 @@ def _null_problem(layout: ChunkLayout, null_counts: list[int]) -> str | None:
 
 
 _INT64 = struct.Struct("<q")
-_TWO_I32 = struct.Struct("<ii")
 
 
 def _read_ranges(data: bytes, pos: int, plan: BatchPlan) -> dict[str, TimeRange]:

@@ -67,6 +67,12 @@ class NotAChunkError(RrdError):
     problem = "Arrow payload is not a Rerun chunk"
 
 
+class NotArrowError(RrdError):
+    """Arrow IPC data (a table a client sent) that is not a valid Arrow IPC stream."""
+
+    problem = "invalid Arrow IPC data"
+
+
 class InvalidChunkError(RrdError):
     """A chunk that Rerun itself would refuse (`rerun rrd verify`), or whose values cannot be read safely."""
 

@@ -100,8 +100,6 @@ class ChunkLayout:
     required: tuple[int, ...]  # positions of the columns declared non-nullable
     problem: str | None  # why Rerun would refuse every chunk of this schema (None: nothing found)
     reads_values: bool  # the server reads the values of some component of these chunks
-    # The columns read are all list<float64> (Scalars): their offsets can be checked without pyarrow.
-    direct_lists: tuple[DataColumn, ...] | None
     batch_templates: list[BatchTemplate] = field(default_factory=list)  # filled by the first batch read
     # What each distinct record batch header of this layout says (`batch_plan`): a stream's
     # one-row chunks of one entity have byte-identical headers (None: read with pyarrow).
@@ -215,15 +213,7 @@ def build_layout(schema: pa.Schema, offset: int) -> ChunkLayout:
         required,
         conformance.schema_problem(schema, row_id_field, [(c.column, c.component, c.field.type) for c in data]),
         conformance.reads_values(component_names),
-        _direct_lists(direct, data),
     )
-
-
-def _direct_lists(direct: bool, data: list[DataColumn]) -> tuple[DataColumn, ...] | None:
-    read = [c for c in data if c.component in conformance.READ_COMPONENTS]
-    if not direct or not read or not all(conformance.same_type(c.field.type, conformance.LIST_F64) for c in read):
-        return None
-    return tuple(read)
 
 
 def _picker(positions: list[int]) -> Callable[[tuple[int, ...]], tuple[int, ...]]:

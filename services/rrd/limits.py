@@ -95,3 +95,14 @@ def budget_for(size: int) -> ByteBudget | None:
     if size < UNCOUNTED_BYTES or on_event_loop():
         return None
     return LIMITS.budget
+
+
+@contextmanager
+def holding(size: int) -> Iterator[None]:
+    """Hold `size` decompressed bytes of the budget meanwhile, where `budget_for` says to."""
+    budget = budget_for(size)
+    if budget is None:
+        yield
+        return
+    with budget.hold(size):
+        yield

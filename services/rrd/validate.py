@@ -1,23 +1,26 @@
-"""Validation of a chunk before anything reads its values.
+"""Validation of a chunk before it is accepted, and before anything reads its values.
 
-`chunk_meta` reads only the schema and the record batch header; a chunk's values are read by the
-server in three places: recording properties (ingest), analytics extraction (Scalars, TextLog,
-Transform3D) and exact trimming of downloads. pyarrow's cheap `validate()` only compares buffer
-sizes with lengths: bad list offsets, a string that is not UTF-8 or a child array shorter than its
-offsets say pass it, and reading such values goes out of bounds (a crash of the whole process). So
-every chunk whose values are read is first validated fully (`validate(full=True)`: offsets
-monotonic and within the child, fixed-size list and struct children lengths, UTF-8) and checked
-against what Rerun itself requires (see services/rrd/conformance.py).
+Every chunk a client sends is checked in full at ingest (`check_chunk`): what Rerun itself
+requires of its schema (services/rrd/conformance.py), and every value as full Arrow validation
+checks it (offsets monotonic and within their child or data, fixed-size list and struct children
+long enough, UTF-8), so that every accepted chunk is one Rerun accepts and serves back whole.
+pyarrow's cheap `validate()` only compares buffer sizes with lengths: bad offsets or a string that
+is not UTF-8 pass it, and reading such values goes out of bounds (a crash of the whole process).
+A chunk's values are read by the server in three places: recording properties (ingest), analytics
+extraction (Scalars, TextLog, Transform3D) and exact trimming of downloads; each reads them through
+`validated_batch`, which validates in full again (stored chunks may predate these checks).
 """
 
 from __future__ import annotations
 
 import pyarrow as pa
 
-from services.rrd import conformance, errors
-from services.rrd.chunk import ChunkMeta, read_chunk
-from services.rrd.layout import ENTITY_PATH_KEY
+from services.rrd import conformance, errors, limits
+from services.rrd.batch_plan import batch_plan
+from services.rrd.chunk import ChunkMeta, decompress_payload, decompressed_size, read_chunk
+from services.rrd.layout import ENTITY_PATH_KEY, split_ipc
 from services.rrd.messages import ArrowMessage, chunk_id_str
+from services.rrd.value_checks import values_valid
 
 _FIX = "the chunk is malformed (Rerun refuses it too, see `rerun rrd verify`); log it again with the Rerun SDK"
 
@@ -33,21 +36,40 @@ def invalid(msg: ArrowMessage, entity_path: str | None, problem: str) -> errors.
 
 
 def check_chunk(msg: ArrowMessage, meta: ChunkMeta) -> None:
-    """At ingest: refuse a chunk Rerun would refuse (from its schema and header: cheap), and fully
-    validate a chunk whose values the server will read (analytics components): with pyarrow, unless
-    `chunk_meta` could check them from the batch header (Scalars, the common case)."""
+    """At ingest, for every chunk: refuse one Rerun would refuse, from its schema (once per schema)
+    and its values, fully validated. `chunk_meta` checked most chunks' values already (from the
+    record batch's body, or with pyarrow); a large chunk whose metadata came from the first bytes of
+    its payload is decompressed whole here (the whole LZ4 block must be sound) and checked the same
+    way; where those checks cannot tell, pyarrow's full validation decides."""
     if meta.problem is not None:
         raise invalid(msg, meta.entity_path, meta.problem)
-    if meta.reads_values and not meta.values_checked:
-        validated_batch(msg, meta)
+    if meta.values_checked:
+        return
+    with limits.holding(decompressed_size(msg)):
+        try:
+            data = decompress_payload(msg)
+        except errors.RrdError as exc:
+            raise invalid(msg, meta.entity_path, exc.detail) from exc
+        if not _valid_from_body(data, meta):
+            validated_batch(msg, meta, data)
 
 
-def validated_batch(msg: ArrowMessage, meta: ChunkMeta | None = None) -> pa.RecordBatch:
+def _valid_from_body(data: bytes, meta: ChunkMeta) -> bool:
+    """Whether the whole chunk passes the checks its record batch header allows (`value_checks`)."""
+    split = split_ipc(data) if meta.layout.direct else None
+    if split is None:
+        return False
+    plan = batch_plan(data, split[1], meta.layout, len(data))
+    return plan is not None and plan.checks is not None and values_valid(data, split[1], plan.checks)
+
+
+def validated_batch(msg: ArrowMessage, meta: ChunkMeta | None = None, data: bytes | None = None) -> pa.RecordBatch:
     """The chunk as a record batch, once it is known that every value in it can be read safely;
-    else InvalidChunkError naming the chunk, its entity and its byte offset."""
+    else InvalidChunkError naming the chunk, its entity and its byte offset. `data`: its payload
+    decompressed already."""
     entity_path = meta.entity_path if meta is not None else None
     try:
-        batch = read_chunk(msg)
+        batch = read_chunk(msg, data)
     except errors.RrdError as exc:
         raise invalid(msg, entity_path, exc.detail) from exc
     if entity_path is None:

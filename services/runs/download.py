@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import datetime as dt
 import io
+import logging
 import re
 from collections.abc import AsyncIterator, Iterable, Iterator, Mapping
 from contextlib import aclosing
@@ -23,6 +24,7 @@ from services.hot.read import HotReader, HotRecording, follow_sizes
 from services.rrd.chunk import ChunkMeta, chunk_meta
 from services.rrd.encoder import RrdEncoder
 from services.rrd.entity_patterns import check_entity_patterns
+from services.rrd.errors import RrdError
 from services.rrd.frames import DEFAULT_VERSION
 from services.rrd.manifest import is_property_entity
 from services.rrd.messages import (
@@ -34,6 +36,8 @@ from services.rrd.messages import (
     StreamStart,
 )
 from services.runs.trim import trim
+
+log = logging.getLogger(__name__)
 
 FLUSH_BYTES = 1024 * 1024
 PASS_THROUGH_BYTES = 256 * 1024  # a piece this large is sent as it is rather than joined with others
@@ -295,7 +299,11 @@ class RunEncoder:
         if not isinstance(event, ArrowMessage):
             encoder.write(event)
             return
-        meta = self.metas.get(event.offset) or chunk_meta(event)
+        try:
+            meta = self.metas.get(event.offset) or chunk_meta(event)
+        except RrdError as exc:  # stored before ingest refused such chunks: the download goes on without it
+            log.warning("a stored chunk is left out of a download, as it cannot be read: %s", exc)
+            return
         if store.kind == StoreKind.RECORDING and not self.entities(meta.entity_path):
             return
         if self.keep is not None and meta.chunk_id not in self.keep:
@@ -303,7 +311,11 @@ class RunEncoder:
         window = self.window
         if window is not None and window.exact and store.kind == StoreKind.RECORDING and not meta.is_static:
             lo, hi = window.bounds
-            cut = trim(event, meta, window.timeline, lo, hi, self.picks.get(meta.chunk_id, ()))
+            try:
+                cut = trim(event, meta, window.timeline, lo, hi, self.picks.get(meta.chunk_id, ()))
+            except RrdError as exc:  # a chunk stored before ingest refused it: sent as stored, never a cut stream
+                log.warning("a stored chunk is sent whole in an exact download, as it cannot be read: %s", exc)
+                cut = (event, meta)
             if cut is None:
                 return
             event, meta = cut

@@ -816,6 +816,7 @@ ALL_ERRORS = [
     errors.ProtobufError,
     errors.DecompressionError,
     errors.NotAChunkError,
+    errors.NotArrowError,
     errors.InvalidChunkError,
     errors.FooterError,
 ]

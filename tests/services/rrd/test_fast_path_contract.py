@@ -9,7 +9,7 @@ changes the layout says which fast path to revisit.
 
 Pinned elsewhere: rows, timeline and component ranges from the batch header against pyarrow
 (test_layout.py), large payloads kept as views (test_layout.py), the Scalars offsets check against
-full validation on damaged chunks (test_validate.py), chunk ids against the Arrow metadata
+full validation on damaged chunks (test_validate.py, test_value_checks.py), chunk ids against the Arrow metadata
 (test_chunk.py), the footer summary against a scan (test_summary.py).
 """
 
@@ -27,12 +27,14 @@ import pytest
 
 from services.ingest.requests import unwrap
 from services.rrd import ArrowMessage, chunk, decoder, errors, iter_events, lz4_prefix, protowire
+from services.rrd.batch_plan import batch_plan
 from services.rrd.chunk import chunk_meta, decompress_payload, read_chunk
 from services.rrd.footer import read_footer
 from services.rrd.frames import MessageKind
 from services.rrd.layout import BatchHeader, ChunkLayout, _parse_batch_header, read_batch_header, split_ipc
 from services.rrd.messages import EndMessage, Message, StreamFooter, chunk_id_str
 from services.rrd.pb import log_msg_pb2, sdk_comms_pb2
+from services.rrd.value_checks import values_valid
 from tests.services.rrd.recordings import Recording
 
 pytestmark = pytest.mark.sdk
@@ -54,9 +56,10 @@ SORTED_INDEX = (
     "an index column marked rerun:is_sorted=true is sorted ascending, so its first and last values "
     "are its range (chunk._read_ranges)"
 )
-LIST_F64_BUFFERS = (
-    "a list<float64> column's buffers are validity, int32 offsets, values validity, float64 values "
-    "(batch_plan._list_checks, chunk._lists_valid)"
+OFFSETS_BUFFERS = (
+    "an array's buffers are its validity bitmap then, for a list or map its offsets (its child follows), "
+    "for a binary or string its offsets then its bytes, in the order of its field nodes "
+    "(value_checks.value_checks, values_valid)"
 )
 METADATA_FIRST = (
     "a chunk's IPC payload holds its schema, record batch header, row ids and index columns before "
@@ -234,26 +237,52 @@ def test_sorted_index_columns_are_sorted(whole: Recording):
                 )
 
 
-def test_scalars_offsets_checked_by_hand_are_arrows(recordings: dict[str, Recording]):
+def _offsets_arrays(array: pa.Array) -> Iterator[tuple[pa.Array, int, int]]:
+    """Each array with offsets under `array`, depth first, with its last offset's limit (its child's
+    length, or its bytes' size) and where its bytes start (-1: not a string)."""
+    for a in _arrays(array):
+        kind = a.type
+        if pa.types.is_list(kind) or pa.types.is_large_list(kind) or pa.types.is_map(kind):
+            yield a, len(a.values), -1
+        elif pa.types.is_string(kind) or pa.types.is_large_string(kind):
+            yield a, a.buffers()[2].size, a.buffers()[2].address
+        elif pa.types.is_binary(kind) or pa.types.is_large_binary(kind):
+            yield a, a.buffers()[2].size, -1
+
+
+_NO_OFFSETS: set[str] = set()  # recordings with no array of offsets (none so far)
+
+
+def test_offsets_checked_by_hand_are_arrows(whole: Recording):
+    """The offsets value_checks reads from a record batch's body, and what it checks them against,
+    are pyarrow's, for every array with offsets of every chunk of every recording."""
     checked = 0
-    for msg, data, where in _chunks(recordings["scalars"]):
-        meta = chunk_meta(msg)
-        if not meta.values_checked:
-            continue
-        checked += 1
-        batch = read_chunk(msg)
-        batch.validate(full=True)
-        header = _header(data, meta.layout, where)
-        assert meta.layout.direct_lists is not None
-        for c in meta.layout.direct_lists:
-            column = batch.column(c.position)
-            at, size = header.buffers[2 * (c.buffer + 1) : 2 * (c.buffer + 1) + 2]
-            offsets = np.frombuffer(data, dtype="<i4", count=size // 4, offset=header.body + at)[: len(column) + 1]
-            assert offsets.tolist() == column.offsets.to_pylist(), broken(LIST_F64_BUFFERS, where, c.column)
-            values_at = header.buffers[2 * (c.buffer + 3)]
-            values = np.frombuffer(data, dtype="<f8", count=len(column.values), offset=header.body + values_at)
-            assert values.tolist() == column.values.to_pylist(), broken(LIST_F64_BUFFERS, where, c.column)
-    assert checked, "no Scalars chunk took the fast path: the check above never ran"
+    for rec in [whole]:
+        for msg, data, where in _chunks(rec):
+            meta = chunk_meta(msg)
+            split = split_ipc(data)
+            assert split is not None
+            plan = batch_plan(data, split[1], meta.layout, len(data)) if meta.layout.direct else None
+            if plan is None or plan.checks is None:
+                continue
+            buffer, schema_message, _, batch_message = _ipc_messages(data)
+            batch = pa.ipc.read_record_batch(batch_message, pa.ipc.read_schema(schema_message))
+            batch.validate(full=True)
+            arrays = [found for column in batch.columns for found in _offsets_arrays(column) if len(found[0])]
+            assert len(arrays) == len(plan.checks), broken(OFFSETS_BUFFERS, where, f"{len(plan.checks)} checks")
+            for check, (array, limit, text_at) in zip(plan.checks, arrays, strict=True):
+                dtype = "<i8" if check.wide else "<i4"
+                offsets = np.frombuffer(data, dtype=dtype, count=check.count, offset=split[1] + check.at)
+                width = 8 if check.wide else 4
+                want = np.frombuffer(array.buffers()[1], dtype=dtype, count=len(array) + 1, offset=width * array.offset)
+                assert offsets.tolist() == want.tolist(), broken(OFFSETS_BUFFERS, where, array.type)
+                assert check.limit == limit, broken(OFFSETS_BUFFERS, where, f"{array.type}: limit {check.limit}")
+                if text_at >= 0:
+                    got = buffer.address + split[1] + check.text_at
+                    assert got == text_at, broken(OFFSETS_BUFFERS, where, f"{array.type}: bytes")
+            assert values_valid(data, split[1], plan.checks), broken(OFFSETS_BUFFERS, where, "a valid chunk failed")
+            checked += len(arrays)
+    assert checked or whole.name in _NO_OFFSETS, f"no chunk of {whole.name} had its offsets checked by hand"
 
 
 def test_schema_messages_differ_only_in_the_chunk_id(whole: Recording):
@@ -352,7 +381,6 @@ def _summary(meta: chunk.ChunkMeta) -> tuple[object, ...]:
         [(c.column, c.num_rows, c.ranges) for c in meta.components],
         meta.uncompressed_size,
         meta.problem,
-        meta.values_checked,
     )
 
 
@@ -366,6 +394,7 @@ def test_chunk_metadata_precedes_the_data_columns(whole: Recording):
             continue  # read whole: its values are read, or pyarrow reads it (nulls in a column)
         prefix, again = chunk._chunk_meta(msg, data[:needed], len(data))
         assert _summary(prefix) == _summary(full) and again == needed, broken(METADATA_FIRST, where, "another result")
+        assert not prefix.values_checked  # its values are checked at ingest from the whole payload (check_chunk)
         header = _header(data, full.layout, where)
         data_starts = [
             header.body + header.buffers[2 * b]

@@ -89,18 +89,26 @@ def test_a_block_shorter_than_its_metadata_is_refused(image: bytes) -> None:
     check_error(info.value, errors.DecompressionError, LAST_OFFSET)
 
 
-def test_past_its_metadata_a_large_chunk_is_the_viewers(image: bytes) -> None:
-    """The deliberate trade: a large chunk whose values the server does not read is not
-    decompressed past its metadata, so a block cut after it is taken (as a chunk whose data columns
-    hold garbage always was); whoever reads the whole payload finds the damage."""
+def test_past_its_metadata_a_large_chunk_is_still_checked_whole(image: bytes) -> None:
+    """A large chunk's metadata is read from the first bytes of its payload, but ingest's check
+    decompresses it whole: a block cut after its metadata (which Rerun cannot read) is refused."""
     payload = lz4.block.compress(image, store_size=False)
     msg = one_arrow(arrow_body(image, payload=payload[: len(payload) // 2]))
     meta = chunk_meta(msg)
-    check_chunk(msg, meta)
-    assert meta.num_rows == 2
+    assert meta.num_rows == 2 and not meta.values_checked
+    with pytest.raises(errors.RrdError) as info:
+        check_chunk(msg, meta)
+    assert isinstance(info.value, errors.InvalidChunkError) and "does not decompress" in str(info.value)
     with pytest.raises(errors.RrdError) as info:
         read_chunk(msg)
     check_error(info.value, errors.DecompressionError, LAST_OFFSET)
+
+
+def test_a_large_chunk_is_checked_from_its_body(image: bytes) -> None:
+    msg = one_arrow(arrow_body(image))
+    meta = chunk_meta(msg)
+    assert not meta.values_checked
+    check_chunk(msg, meta)  # decompressed whole, and valid
 
 
 def test_a_large_chunk_whose_values_are_read_is_decompressed_whole() -> None:
