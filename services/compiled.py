@@ -18,6 +18,7 @@ MODULES = (
     "services/rrd/chunk.py",
     "services/rrd/summary.py",
     "services/rrd/validate.py",
+    "services/rrd/value_checks.py",
     "services/hot/index.py",
     "services/hot/store.py",
     "services/ingest/facts.py",

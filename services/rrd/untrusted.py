@@ -24,10 +24,13 @@ and tests/services/test_client_inputs.py sends hostile inputs to every RPC that 
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+from contextlib import ExitStack, contextmanager
+
 import lz4.block
 import pyarrow as pa
 
-from services.rrd import errors, limits
+from services.rrd import errors, limits, lz4_prefix
 
 LZ4_MAX_RATIO = 255  # no LZ4 block expands more than ~255x (plus a few bytes)
 _RECORD_BATCH, _DICTIONARY_BATCH = 3, 4  # flatbuffers MessageHeader union tags
@@ -61,6 +64,27 @@ def decompress(block: bytes | bytearray | memoryview, declared: int, offset: int
     if len(data) != declared:
         raise errors.DecompressionError(f"LZ4 block decompressed to {len(data)} bytes, declared {declared}", offset)
     return data
+
+
+@contextmanager
+def decompressed_view(
+    block: bytes | bytearray | memoryview, declared: int, offset: int = 0
+) -> Iterator[bytes | memoryview]:
+    """What `decompress` gives, for a reader that checks the bytes and drops them: a view of a buffer
+    reused by this thread (no allocation per block), valid inside the block only."""
+    check_declared_size(declared, len(block), offset)
+    if not lz4_prefix.available or declared == 0:
+        yield decompress(block, declared, offset)
+        return
+    with ExitStack() as stack:
+        try:
+            data = stack.enter_context(lz4_prefix.decompress_into(block, declared))
+        except ValueError as exc:
+            raise errors.DecompressionError(
+                f"LZ4 block of {len(block)} bytes does not decompress to the declared {declared} bytes ({exc})",
+                offset,
+            ) from exc
+        yield data
 
 
 def body_compressed(message: pa.ipc.Message) -> bool:
@@ -114,7 +138,7 @@ def read_table(data: bytes | pa.Buffer, offset: int = 0) -> pa.Table:
                 )
         table = pa.ipc.open_stream(buffer).read_all()
         table.validate(full=True)
-    except (pa.ArrowException, ValueError) as exc:
+    except (pa.ArrowException, OSError, EOFError, ValueError) as exc:  # pyarrow's IO errors are OSErrors
         raise errors.NotArrowError(f"not a valid Arrow IPC stream ({exc})", offset) from exc
     return table
 

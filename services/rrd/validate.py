@@ -13,13 +13,16 @@ extraction (Scalars, TextLog, Transform3D) and exact trimming of downloads; each
 
 from __future__ import annotations
 
+from contextlib import AbstractContextManager, nullcontext
+
 import pyarrow as pa
 
-from services.rrd import conformance, errors, limits
+from services.rrd import conformance, errors, limits, untrusted
 from services.rrd.batch_plan import batch_plan
-from services.rrd.chunk import ChunkMeta, decompress_payload, decompressed_size, read_chunk
+from services.rrd.chunk import ChunkMeta, decompressed_size, read_chunk
 from services.rrd.layout import ENTITY_PATH_KEY, split_ipc
-from services.rrd.messages import ArrowMessage, chunk_id_str
+from services.rrd.lz4_prefix import PrefixTooShort
+from services.rrd.messages import ArrowMessage, Compression, chunk_id_str
 from services.rrd.value_checks import values_valid
 
 _FIX = "the chunk is malformed (Rerun refuses it too, see `rerun rrd verify`); log it again with the Rerun SDK"
@@ -47,20 +50,41 @@ def check_chunk(msg: ArrowMessage, meta: ChunkMeta) -> None:
         return
     with limits.holding(decompressed_size(msg)):
         try:
-            data = decompress_payload(msg)
+            with _payload(msg) as data:
+                if _valid_from_body(data, meta):
+                    return
+                whole = bytes(data)  # for pyarrow, which says why (rare: a damaged chunk)
         except errors.RrdError as exc:
             raise invalid(msg, meta.entity_path, exc.detail) from exc
-        if not _valid_from_body(data, meta):
-            validated_batch(msg, meta, data)
+        validated_batch(msg, meta, whole)
 
 
-def _valid_from_body(data: bytes, meta: ChunkMeta) -> bool:
+def _payload(msg: ArrowMessage) -> AbstractContextManager[bytes | memoryview]:
+    if msg.compression != Compression.LZ4:
+        return nullcontext(msg.payload)
+    return untrusted.decompressed_view(msg.payload, msg.uncompressed_size, msg.offset)
+
+
+def _valid_from_body(data: bytes | memoryview, meta: ChunkMeta) -> bool:
     """Whether the whole chunk passes the checks its record batch header allows (`value_checks`)."""
-    split = split_ipc(data) if meta.layout.direct else None
-    if split is None:
+    if not meta.layout.direct:
         return False
-    plan = batch_plan(data, split[1], meta.layout, len(data))
+    size = len(data)
+    head = min(size, _HEAD_BYTES)
+    while True:  # the schema and record batch header, as bytes; the values are read from `data`
+        prefix = bytes(data[:head])
+        try:
+            split = split_ipc(prefix, size)
+            if split is None:
+                return False
+            plan = batch_plan(prefix, split[1], meta.layout, size)
+            break
+        except PrefixTooShort as short:
+            head = min(size, max(short.end, 2 * head))
     return plan is not None and plan.checks is not None and values_valid(data, split[1], plan.checks)
+
+
+_HEAD_BYTES = 64 * 1024  # enough for a chunk's schema and record batch header, but for huge schemas
 
 
 def validated_batch(msg: ArrowMessage, meta: ChunkMeta | None = None, data: bytes | None = None) -> pa.RecordBatch:
