@@ -4,13 +4,16 @@ Found by building malformed chunks and running `rerun rrd verify` (0.41) on them
 docs/rrd-codec.md, "Chunks Rerun refuses"): Rerun refuses a chunk without a `rerun:id`, without a
 `rerun.controls.RowId` column of FixedSizeBinary(16), with an index column that is not
 int64/timestamp/duration (already refused by the layout), and a component column whose Arrow type
-is not its component's. The types are checked here for the components whose values this server
-reads (analytics extraction); other components are passed through as they came.
+is not its component's: for the components whose values this server reads (analytics extraction),
+the exact list Rerun writes; for every component type Rerun knows (known_components.py), values of
+that type, in a list or not. Columns of component types Rerun does not know are its to read.
 """
 
 from __future__ import annotations
 
 import pyarrow as pa
+
+from services.rrd import known_components
 
 CHUNK_ID_KEY = b"rerun:id"
 LEGACY_CHUNK_ID_KEY = b"rerun.id"  # SDK 0.23 and older (newer Rerun migrates it)
@@ -55,18 +58,27 @@ def same_type(got: pa.DataType, expected: pa.DataType) -> bool:
     return all(same_type(got.field(i).type, expected.field(i).type) for i in range(got.num_fields))
 
 
-def component_type_problem(component: str, column: str, arrow_type: pa.DataType) -> str | None:
+def component_type_problem(
+    component: str, column: str, arrow_type: pa.DataType, component_type: str | None = None
+) -> str | None:
+    """Why Rerun would refuse this column's type: a component the depot reads must be the list Rerun
+    writes; a component type Rerun knows (known_components) must hold values of its type, in a list
+    (int32 offsets) or not (Rerun reads any other column as the values themselves)."""
     expected = READ_COMPONENTS.get(component)
-    if expected is None or same_type(arrow_type, expected):
-        return None
-    return f"column {column!r} ({component}) is {arrow_type}, Rerun expects {expected}"
+    if expected is not None and not same_type(arrow_type, expected):
+        return f"column {column!r} ({component}) is {arrow_type}, Rerun expects {expected}"
+    value = known_components.expected_type(component_type)
+    element = arrow_type.value_type if pa.types.is_list(arrow_type) else arrow_type
+    if value is not None and not same_type(element, value):
+        return f"column {column!r} ({component_type}) holds {element}, Rerun expects {value} (in a list)"
+    return None
 
 
 def schema_problem(
-    schema: pa.Schema, row_id_field: pa.Field | None, data: list[tuple[str, str, pa.DataType]]
+    schema: pa.Schema, row_id_field: pa.Field | None, data: list[tuple[str, str, pa.DataType, str | None]]
 ) -> str | None:
     """Why Rerun would refuse chunks of this schema (None: it would not, as far as checked here).
-    `data`: (column, component, type) of each data column."""
+    `data`: (column, component, type, component type) of each data column."""
     metadata = schema.metadata or {}
     if CHUNK_ID_KEY not in metadata and LEGACY_CHUNK_ID_KEY not in metadata:
         return "the Arrow schema has no rerun:id (chunk id) metadata"
@@ -74,8 +86,8 @@ def schema_problem(
         return "no rerun.controls.RowId column"
     if row_id_field.type != ROW_ID_TYPE:
         return f"the RowId column is {row_id_field.type}, Rerun expects fixed_size_binary[16]"
-    for column, component, arrow_type in data:
-        problem = component_type_problem(component, column, arrow_type)
+    for column, component, arrow_type, component_type in data:
+        problem = component_type_problem(component, column, arrow_type, component_type)
         if problem is not None:
             return problem
     return None

@@ -211,7 +211,9 @@ def build_layout(schema: pa.Schema, offset: int) -> ChunkLayout:
         _picker([i for ix in indexes for i in (2 * ix.data_buffer, 2 * ix.data_buffer + 1)]),
         _picker([2 * top_nodes[i] + 1 for i in required]) if direct else _picker([]),
         required,
-        conformance.schema_problem(schema, row_id_field, [(c.column, c.component, c.field.type) for c in data]),
+        conformance.schema_problem(
+            schema, row_id_field, [(c.column, c.component, c.field.type, c.component_type) for c in data]
+        ),
         conformance.reads_values(component_names),
     )
 

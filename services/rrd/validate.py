@@ -118,7 +118,8 @@ def _batch_problem(batch: pa.RecordBatch) -> str | None:
     for i, fld in enumerate(batch.schema):
         metadata = fld.metadata or {}
         component = metadata.get(b"rerun:component", fld.name.encode()).decode()
-        problem = conformance.component_type_problem(component, fld.name, fld.type)
+        component_type = metadata.get(b"rerun:component_type", b"").decode() or None
+        problem = conformance.component_type_problem(component, fld.name, fld.type, component_type)
         if problem is not None:
             return problem
         if not fld.nullable and batch.column(i).null_count:

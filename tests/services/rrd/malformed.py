@@ -44,11 +44,13 @@ for frame in range(4):
     rec.log("robot/speed", rr.Scalars([frame * 0.5, frame]))
     rec.log("log", rr.TextLog(f"step {frame}", level="INFO"))
     rec.log("tf", rr.Transform3D(translation=[frame, 0, 0], quaternion=[0, 0, 0, 1]))
+    rec.log("points", rr.Points3D([[frame, 0, 0], [0, frame, 0], [0, 0, frame]], colors=[0xFF0000FF]))
 rec.flush()
 """
 
 SCALARS, TEXT, LEVEL = "Scalars:scalars", "TextLog:text", "TextLog:level"
 TRANSLATION, QUATERNION = "Transform3D:translation", "Transform3D:quaternion"
+POSITIONS, COLORS = "Points3D:positions", "Points3D:colors"  # components the depot never reads
 
 
 def record_seed(path: Path, recording_id: str = "seed") -> Path:
@@ -241,6 +243,24 @@ MALFORMED: dict[str, tuple[str, Builder]] = {
     "quaternion_width_3": (
         "/tf",
         lambda b: ipc_of(with_column(b, QUATERNION, _nested([[1.0, 2.0, 3.0]] * 4, pa.list_(pa.float32(), 3)))),
+    ),
+    # Components the depot never reads: only full validation and Rerun's own component types see them
+    # (round two's finding: 24 of 24 such chunks with broken offsets were filed and served).
+    "points_offsets_past_values": ("/points", lambda b: patched(b, i32(0, 3, 6, 9, 12), i32(0, 1 << 30, 6, 9, 12))),
+    "points_offsets_decreasing": ("/points", lambda b: patched(b, i32(0, 3, 6, 9, 12), i32(0, 7, 6, 9, 12))),
+    "points_positions_float64": (
+        "/points",
+        lambda b: ipc_of(with_column(b, POSITIONS, b.column(POSITIONS).cast(pa.list_(pa.list_(pa.float64(), 3))))),
+    ),
+    "points_positions_large_list": (
+        "/points",
+        lambda b: ipc_of(
+            with_column(b, POSITIONS, b.column(POSITIONS).cast(pa.large_list(b.column(POSITIONS).type.value_type)))
+        ),
+    ),
+    "points_colors_int32": (
+        "/points",
+        lambda b: ipc_of(with_column(b, COLORS, b.column(COLORS).cast(pa.list_(pa.int32()), safe=False))),
     ),
     # Finding 2: a small property chunk whose list offsets point far outside its values.
     "property_offsets_past_values": ("/__properties/fleet", lambda b: _property_offsets(b)),
