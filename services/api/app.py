@@ -24,6 +24,7 @@ from services.api import metrics as prometheus
 from services.api import nodes as nodes_rest
 from services.api import readiness, worker_metrics
 from services.api.cors import Cors
+from services.api.redirects import SameOriginRedirects
 from services.auth import rest as auth_rest
 from services.auth.bootstrap import open_auth
 from services.auth.depends import require
@@ -68,6 +69,7 @@ def create_app(
     # Browser viewers (app.rerun.io, a local web viewer) fetch recordings cross-origin by signed link;
     # only the configured origins may send a token.
     app.add_middleware(Cors, origins=settings.cors_origins)
+    app.add_middleware(SameOriginRedirects)  # never a Location built from a client's Host header
     app.state.settings = settings
     app.state.sibling_sockets = []  # other workers of this host (`fleet serve --workers N`), set by the server
     catalog = next((side.catalog for side in (ingest, retention, analytics) if side is not None), None)

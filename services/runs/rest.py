@@ -173,5 +173,5 @@ def recording_link(
         run_id,
         params,
         links.lifetime(expires_in, settings.link_ttl_s),
-        settings.public_url or str(request.base_url),
+        links.request_base(request),
     )
