@@ -76,7 +76,8 @@ def session_principal(auth: Auth, cookie: str | None) -> Principal | None:
         return None
     if record.expires_at is not None and record.expires_at <= auth.clock():
         return None
-    return Principal(record.subject, frozenset(Scope(s) for s in record.scopes), record.robot_id, record.id)
+    scopes = frozenset(Scope(s) for s in record.scopes)
+    return Principal(record.subject, scopes, record.robot_id, record.id, record.expires_at)
 
 
 def close_session(auth: Auth, cookie: str | None) -> None:

@@ -7,6 +7,7 @@ status.
 
 from __future__ import annotations
 
+import asyncio
 import json
 import logging
 from collections.abc import AsyncIterator
@@ -15,7 +16,9 @@ from typing import NoReturn
 import grpc
 
 from core.errors import FleetError
+from services.auth.metadata import GRPC
 from services.auth.scopes import Scope
+from services.auth.standing import GrantWatch
 from services.auth.tokens import Auth
 from services.cluster.relay import ERROR_CODE, RELAYED_BY, REPORT, SOURCE_KIND, metadata_value
 from services.ingest.replay import read_response
@@ -105,21 +108,28 @@ class MessageProxy:
         return await relay_source(self.service, source, metadata, pending, _rest_of(context)) is not None
 
     async def read_messages(self, request: bytes, context: grpc.aio.ServicerContext) -> AsyncIterator[bytes]:
-        """What `rerun --connect rerun+http://HOST:51234/proxy` calls: recent history, then live."""
+        """What `rerun --connect rerun+http://HOST:51234/proxy` calls: recent history, then live, for
+        as long as the caller's token holds (checked again as it reads: `services.auth.standing`)."""
         try:
-            await self.calls.principal(context.invocation_metadata(), Scope.READ)
+            principal = await self.calls.principal(context.invocation_metadata(), Scope.READ)
         except FleetError as exc:
             await context.abort(grpc.StatusCode[exc.grpc_status()], str(exc))
         hub = self.service.replay
         if hub is None:
             await context.abort(grpc.StatusCode.UNAVAILABLE, "this node keeps no replay (FLEET_REPLAY_BYTES=0)")
             return
+        watch = GrantWatch(self.auth, principal, GRPC)
         history, queue = hub.subscribe()
         try:
             for kind, raw in history:
                 yield read_response(kind, raw)
             while True:
-                live = await queue.get()
+                try:
+                    live = await asyncio.wait_for(queue.get(), watch.wait_s())
+                except TimeoutError:  # nothing came: time to look at the token again
+                    await end_if_ended(watch, context)
+                    continue
+                await end_if_ended(watch, context)
                 if live is None:
                     await context.abort(
                         grpc.StatusCode.RESOURCE_EXHAUSTED,
@@ -129,6 +139,13 @@ class MessageProxy:
                 yield read_response(*live)
         finally:
             hub.unsubscribe(queue)
+
+
+async def end_if_ended(watch: GrantWatch, context: grpc.aio.ServicerContext) -> None:
+    """End the call (UNAUTHENTICATED, saying why) if what let it in has ended since."""
+    ended = await watch.ended()
+    if ended is not None:
+        await context.abort(grpc.StatusCode[ended.grpc_status()], str(ended))
 
 
 async def refuse(context: grpc.aio.ServicerContext, exc: FleetError, relayed_by: str | None = None) -> NoReturn:
