@@ -21,7 +21,7 @@ from services.auth.scopes import Scope
 from services.auth.standing import GrantWatch
 from services.auth.tokens import Auth
 from services.cluster.relay import ERROR_CODE, RELAYED_BY, REPORT, SOURCE_KIND, metadata_value
-from services.ingest.replay import read_response
+from services.ingest.replay import Message, read_response
 from services.ingest.requests import decode_request
 from services.ingest.routing import relay_source
 from services.ingest.service import IngestService
@@ -124,12 +124,7 @@ class MessageProxy:
             for kind, raw in history:
                 yield read_response(kind, raw)
             while True:
-                try:
-                    live = await asyncio.wait_for(queue.get(), watch.wait_s())
-                except TimeoutError:  # nothing came: time to look at the token again
-                    await end_if_ended(watch, context)
-                    continue
-                await end_if_ended(watch, context)
+                live = await next_live(queue, watch, context)
                 if live is None:
                     await context.abort(
                         grpc.StatusCode.RESOURCE_EXHAUSTED,
@@ -139,6 +134,24 @@ class MessageProxy:
                 yield read_response(*live)
         finally:
             hub.unsubscribe(queue)
+
+
+async def next_live(
+    queue: asyncio.Queue[Message | None], watch: GrantWatch, context: grpc.aio.ServicerContext
+) -> Message | None:
+    """A reader's next live message (None: it fell behind), its grant checked while it waits and
+    before it is given the message (`watch`)."""
+    while True:
+        try:
+            live = queue.get_nowait()  # a busy reader takes what is queued without a timer
+        except asyncio.QueueEmpty:
+            try:
+                live = await asyncio.wait_for(queue.get(), watch.wait_s())
+            except TimeoutError:  # nothing came: time to look at the token again
+                await end_if_ended(watch, context)
+                continue
+        await end_if_ended(watch, context)
+        return live
 
 
 async def end_if_ended(watch: GrantWatch, context: grpc.aio.ServicerContext) -> None:
