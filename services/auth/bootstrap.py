@@ -52,8 +52,8 @@ def open_auth(settings: Settings, catalog: sessionmaker[Session] | None) -> Auth
 
 def ensure_admin_token(auth: Auth, data_dir: Path) -> IssuedToken | None:
     """On first start (no DATA_DIR/admin.token yet): an admin token, written there (0600) and
-    returned to be announced (`announce_admin`). A token there that this depot no longer accepts is left alone (it
-    may have been revoked on purpose) and reported."""
+    returned to be announced (`announce_admin`). A token there that this depot no longer accepts is
+    left alone (it may have been revoked on purpose) and reported."""
     if not auth.enabled:
         return None
     path = data_dir / ADMIN_TOKEN_FILE
