@@ -164,6 +164,18 @@ class ApiToken(Base):
     revoked_by: Mapped[str | None] = mapped_column(String(256))
 
 
+class EndedSession(Base):
+    """A console session ended before its time (its user logged out): its cookie, still signed and
+    unexpired, is refused from then on. Kept until the cookie would have expired anyway."""
+
+    __tablename__ = "ended_sessions"
+
+    id: Mapped[str] = mapped_column(String(32), primary_key=True)  # the session cookie's `jti`
+    token_id: Mapped[str] = mapped_column(String(32))  # the token it was opened with
+    ended_at: Mapped[dt.datetime] = mapped_column(DateTime(timezone=True))
+    expires_at: Mapped[dt.datetime] = mapped_column(DateTime(timezone=True))  # the cookie's own `exp`
+
+
 class Dataset(Base):
     """A dataset of Rerun's catalog protocol: the runs of one application id, which share their
     entity layout. Its entry id is a TUID (32 hex digits) that Rerun's clients keep in URLs, so it

@@ -8,7 +8,7 @@ from __future__ import annotations
 import hashlib
 import re
 
-from core.errors import InvalidArgumentError
+from core.errors import BadParameterError, InvalidArgumentError
 
 ID_LENGTH = 128
 SAFE_ID = re.compile(rf"[A-Za-z0-9._-]{{1,{ID_LENGTH}}}")
@@ -28,6 +28,20 @@ def check_id(kind: str, value: str) -> str:
         raise UnsafeIdError(
             f"{kind} {value!r} cannot be used in object keys: use 1 to 128 characters from "
             "A-Z a-z 0-9 . _ - (for a recording id: rr.init(..., recording_id=...))"
+        )
+    return value
+
+
+def check_path_id(name: str, value: str) -> str:
+    """`value` of the URL path parameter `name` (a run id, a token id, ...), if it can be an id of
+    the depot; else a 422 naming the parameter. Every id a path names is of this form, so anything
+    else (a NUL, which Postgres cannot even compare, a space, 200 characters) names nothing."""
+    if not SAFE_ID.fullmatch(value):
+        shown = value if len(value) <= 80 else value[:80] + "..."
+        raise BadParameterError(
+            name,
+            f"{shown!r} is not an id of this depot: ids are 1 to {ID_LENGTH} characters from A-Z a-z 0-9 . _ - "
+            "(check the URL)",
         )
     return value
 

@@ -22,9 +22,8 @@ from services.api import peer
 from services.api.app import create_app
 from services.api.grpc_front import Front
 from services.api.h2_writes import WriteServer
-from services.auth.bootstrap import ensure_admin_token, open_auth
+from services.auth.bootstrap import announce_admin, ensure_admin_token, open_auth
 from services.auth.links import MaskLinkSignatures
-from services.auth.tokens import IssuedToken
 from services.cluster.ownership import Ownership
 from services.cluster.relay import Channels, peer_channel_options
 from services.compiled import compiled_summary
@@ -149,17 +148,6 @@ async def _housekeeping(ingest: IngestService, reserve: DiskReserve, every: floa
             )
         if not reserve.held:
             await asyncio.to_thread(reserve.ensure)
-
-
-def announce_admin(admin: IssuedToken | None, data_dir: Path) -> None:
-    """A first start's admin token, shown this once (kept in the data dir for CLI commands on this
-    machine)."""
-    if admin is not None:
-        print(
-            f"fleet: first start: an admin token was made (shown once, also in {data_dir / 'admin.token'}):\n"
-            f"{admin.token}",
-            flush=True,
-        )
 
 
 async def _heartbeat(ownership: Ownership) -> None:

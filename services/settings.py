@@ -167,7 +167,9 @@ class Settings(BaseSettings):
         "and SDK send a token only to these (default: localhost, 127.0.0.1 and this machine's names)",
     )
     public_url: str = Field(
-        "", description="base URL of the REST API in signed links (default: the address the request came to)"
+        "",
+        description="base URL of the REST API in signed links (default: the address the request came to if its "
+        "host is one of public_hosts, else the bind address)",
     )
     link_ttl_s: float = Field(
         24 * 3600.0, gt=0, le=7 * 24 * 3600.0, description="signed download links last this long unless asked"

@@ -30,9 +30,9 @@ from sqlalchemy.orm import sessionmaker
 
 from catalog.db import create_engine
 from core.errors import InvalidArgumentError
-from services.auth.bootstrap import ensure_admin_token, open_auth
+from services.auth.bootstrap import announce_admin, ensure_admin_token, open_auth
 from services.auth.keys import load_signing_keys
-from services.server import announce_admin, claim_ports, node_id, shared_catalog
+from services.server import claim_ports, node_id, shared_catalog
 from services.settings import Settings
 from services.startup import split_addr, worker_socket_path
 

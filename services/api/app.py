@@ -15,6 +15,7 @@ from fastapi_offline import FastAPIOffline
 
 from core.clock import utcnow
 from core.errors import ErrorCode, FleetError, http_status
+from core.ids import check_path_id
 from services import __version__
 from services.analytics import queries_rest
 from services.analytics import rest as analytics_rest
@@ -23,6 +24,7 @@ from services.api import metrics as prometheus
 from services.api import nodes as nodes_rest
 from services.api import readiness, worker_metrics
 from services.api.cors import Cors
+from services.api.redirects import SameOriginRedirects
 from services.auth import rest as auth_rest
 from services.auth.bootstrap import open_auth
 from services.auth.depends import require
@@ -39,6 +41,13 @@ from services.runs import rest as runs_rest
 from services.settings import Settings
 
 
+def path_ids(request: Request) -> None:
+    """A dependency of every route: each path parameter is an id of the depot (`check_path_id`),
+    else 422 naming it."""
+    for name, value in request.path_params.items():
+        check_path_id(name, str(value))
+
+
 def create_app(
     settings: Settings,
     ingest: IngestService | None = None,
@@ -49,12 +58,18 @@ def create_app(
     # Swagger UI (/docs) and ReDoc (/redoc) with their scripts and styles served from this process
     # (/static-offline-docs/...), never from a CDN: the docs work on a depot with no internet. No
     # validator badge either: Swagger UI would send the spec's URL to validator.swagger.io.
+    # Every route's path parameters are ids, checked here for every route (the console's too,
+    # installed later): none reaches a handler or the catalog unless it can be an id.
     app: FastAPI = FastAPIOffline(
-        title="Fleet telemetry depot", version=__version__, swagger_ui_parameters={"validatorUrl": None}
+        title="Fleet telemetry depot",
+        version=__version__,
+        swagger_ui_parameters={"validatorUrl": None},
+        dependencies=[Depends(path_ids)],
     )
     # Browser viewers (app.rerun.io, a local web viewer) fetch recordings cross-origin by signed link;
     # only the configured origins may send a token.
     app.add_middleware(Cors, origins=settings.cors_origins)
+    app.add_middleware(SameOriginRedirects)  # never a Location built from a client's Host header
     app.state.settings = settings
     app.state.sibling_sockets = []  # other workers of this host (`fleet serve --workers N`), set by the server
     catalog = next((side.catalog for side in (ingest, retention, analytics) if side is not None), None)

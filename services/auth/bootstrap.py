@@ -1,11 +1,14 @@
 """Auth at `fleet serve`'s start: refuse an open depot on a public address, open the token
-service, and on first start make the admin token (printed once, kept in the data dir, 0600)."""
+service, and on first start make the admin token (kept in the data dir, 0600; shown once on an
+interactive terminal, never in a log)."""
 
 from __future__ import annotations
 
 import logging
 import socket
+import sys
 from pathlib import Path
+from typing import TextIO
 
 from sqlalchemy.orm import Session, sessionmaker
 
@@ -49,8 +52,8 @@ def open_auth(settings: Settings, catalog: sessionmaker[Session] | None) -> Auth
 
 def ensure_admin_token(auth: Auth, data_dir: Path) -> IssuedToken | None:
     """On first start (no DATA_DIR/admin.token yet): an admin token, written there (0600) and
-    returned to be printed once. A token there that this depot no longer accepts is left alone (it
-    may have been revoked on purpose) and reported."""
+    returned to be announced (`announce_admin`). A token there that this depot no longer accepts is
+    left alone (it may have been revoked on purpose) and reported."""
     if not auth.enabled:
         return None
     path = data_dir / ADMIN_TOKEN_FILE
@@ -68,3 +71,23 @@ def ensure_admin_token(auth: Auth, data_dir: Path) -> IssuedToken | None:
     )
     write_private(path, issued.token + "\n")
     return issued
+
+
+def announce_admin(admin: IssuedToken | None, data_dir: Path, out: TextIO | None = None) -> None:
+    """Say that a first start made the admin token, and where it is. The token itself is shown only
+    on an interactive terminal, this once: anything else on stdout (systemd's journal, docker logs,
+    a file) is a log that others read and keep, and the token is in the file anyway."""
+    if admin is None:
+        return
+    out = out or sys.stdout
+    path = data_dir / ADMIN_TOKEN_FILE
+    if out.isatty():
+        print(f"fleet: first start: an admin token was made (shown once here, and kept in {path}):", file=out)
+        print(admin.token, file=out, flush=True)
+        return
+    print(
+        f"fleet: first start: an admin token was made and written to {path} (mode 0600; it is never printed "
+        f"in a log): CLI commands on this machine use it, `cat {path}` shows it",
+        file=out,
+        flush=True,
+    )

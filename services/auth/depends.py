@@ -12,7 +12,10 @@ from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from services.auth.links import SIGNATURE
 from services.auth.ratelimit import RateLimits
 from services.auth.scopes import Principal, Scope
+from services.auth.standing import LINK
 from services.auth.tokens import Auth
+
+REST = "rest"  # the surface of requests with a token in their header, as refusals are counted
 
 bearer = HTTPBearer(
     auto_error=False,
@@ -30,8 +33,8 @@ def _checked(
     request: Request, credentials: HTTPAuthorizationCredentials | None, scopes: tuple[Scope, ...]
 ) -> Principal:
     auth = _auth(request)
-    principal = auth.authenticate(credentials.credentials if credentials else None, "rest")
-    return auth.authorize(principal, "rest", *scopes)
+    principal = auth.authenticate(credentials.credentials if credentials else None, REST)
+    return auth.authorize(principal, REST, *scopes)
 
 
 def require(*scopes: Scope) -> Callable[[Request, HTTPAuthorizationCredentials | None], Principal]:
@@ -56,11 +59,14 @@ def limited(kind: str, *scopes: Scope) -> Callable[[Request, HTTPAuthorizationCr
 
 
 def recording_reader(request: Request, run_id: str, credentials: Credentials) -> Principal:
-    """A recording is read with a `read` token, or by a signed link to it (no header needed)."""
+    """A recording is read with a `read` token, or by a signed link to it (no header needed); which
+    of them let the request in is its `surface` (what a stream that outlives it is checked as)."""
     if credentials is None and SIGNATURE in request.query_params:
         principal = _auth(request).link_principal(run_id, list(request.query_params.multi_items()))
+        request.state.surface = LINK
     else:
         principal = _checked(request, credentials, (Scope.READ,))
+        request.state.surface = REST
     rate_limits(request).hit("download", principal)
     return principal
 

@@ -64,6 +64,12 @@ def verify(keys: SigningKeys, run_id: str, params: list[tuple[str, str]], now: d
     return signed_by[0]
 
 
+def expires_at(params: list[tuple[str, str]]) -> dt.datetime:
+    """When a link that `verify` accepted expires."""
+    (expires,) = [v for k, v in params if k == EXPIRES]
+    return dt.datetime.fromtimestamp(int(expires), dt.UTC)
+
+
 _SIGNATURE_IN_URL = re.compile(rf"([?&]{SIGNATURE}=)[^&\s\"]*")
 
 

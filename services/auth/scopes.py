@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import datetime as dt
 import enum
 from dataclasses import dataclass
 
@@ -46,6 +47,9 @@ class Principal:
     scopes: frozenset[Scope]
     robot: str | None = None  # an ingest token's robot: the only robot it writes runs for
     token_id: str | None = None  # None when auth is off
+    # When what it grants ends even if nothing is revoked: its token's expiry, or a signed link's
+    # own (whichever comes first). None: no end of its own.
+    expires_at: dt.datetime | None = None
 
     @property
     def granted(self) -> frozenset[Scope]:

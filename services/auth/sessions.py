@@ -3,8 +3,9 @@
 The cookie is not the token: it is a JWT of its own (audience `fleet-console`, so no API accepts it
 as a bearer token) naming the token's id, valid for `SESSION_TTL` or until the token expires,
 whichever comes first. Each request looks the token up again (cached as API tokens are), so revoking
-the token ends its console sessions too. Actions carry a CSRF value derived from the session with
-the depot's key, checked on every form post.
+the token ends its console sessions too, and looks the session up among those ended by logging out
+(in the catalog, so a logout ends the session on every node at once). Actions carry a CSRF value
+derived from the session with the depot's key, checked on every form post.
 """
 
 from __future__ import annotations
@@ -16,6 +17,8 @@ import uuid
 
 import jwt
 
+from catalog.db import session_scope
+from catalog.sessions import end_session, session_ended
 from core.errors import PermissionDeniedError, UnauthenticatedError
 from services.auth.scopes import Principal, Scope, local_principal
 from services.auth.tokens import INVALID, ISSUER, PEER_AUDIENCE, Auth
@@ -66,14 +69,37 @@ def session_principal(auth: Auth, cookie: str | None) -> Principal | None:
     if not auth.enabled:
         return local_principal()
     claims = _session_claims(auth, cookie)
-    if claims is None:
+    if claims is None or _ended(auth, str(claims["jti"])):
         return None
     record = auth.standing(str(claims["tid"]))
     if record is None or record.revoked_at is not None:
         return None
     if record.expires_at is not None and record.expires_at <= auth.clock():
         return None
-    return Principal(record.subject, frozenset(Scope(s) for s in record.scopes), record.robot_id, record.id)
+    scopes = frozenset(Scope(s) for s in record.scopes)
+    return Principal(record.subject, scopes, record.robot_id, record.id, record.expires_at)
+
+
+def close_session(auth: Auth, cookie: str | None) -> None:
+    """Log out: the session of `cookie` ends on every node, though its cookie is still signed and
+    unexpired (a copy of it, kept or stolen, is refused from now on). Nothing to do for a cookie
+    that is no valid session anyway, or with auth off."""
+    if not auth.enabled or auth.catalog is None:
+        return
+    claims = _session_claims(auth, cookie)
+    if claims is None:
+        return
+    expires_at = dt.datetime.fromtimestamp(int(str(claims["exp"])), dt.UTC)
+    with session_scope(auth.catalog, write=True) as session:
+        end_session(session, str(claims["jti"]), str(claims["tid"]), expires_at, auth.clock())
+
+
+def _ended(auth: Auth, session_id: str) -> bool:
+    """Whether the session was ended by logging out: asked of the catalog on each request (a lookup
+    by primary key), so a logout counts on every node at once."""
+    assert auth.catalog is not None
+    with session_scope(auth.catalog) as session:
+        return session_ended(session, session_id)
 
 
 def csrf_value(auth: Auth, cookie: str | None, fallback: str) -> str:

@@ -135,7 +135,8 @@ class Auth:
                 f"token {record.id} was revoked at {iso_utc(record.revoked_at)}; ask an admin for a new one",
                 REVOKED,
             )
-        return Principal(record.subject, frozenset(Scope(s) for s in record.scopes), record.robot_id, record.id)
+        scopes = frozenset(Scope(s) for s in record.scopes)
+        return Principal(record.subject, scopes, record.robot_id, record.id, record.expires_at)
 
     def link_principal(self, run_id: str, params: list[tuple[str, str]]) -> Principal:
         """Who a signed link stands for: read access to its run with its parameters, as long as the
@@ -153,7 +154,8 @@ class Auth:
         except PermissionDeniedError:
             self.refused("link", FORBIDDEN)
             raise
-        return Principal(f"link from {record.subject}", frozenset({Scope.READ}), None, record.id)
+        ends = min(t for t in (links.expires_at(params), record.expires_at) if t is not None)
+        return Principal(f"link from {record.subject}", frozenset({Scope.READ}), None, record.id, ends)
 
     def sign_link(
         self, principal: Principal, run_id: str, params: list[tuple[str, str]], expires_at: dt.datetime

@@ -10,7 +10,7 @@ from fastapi import Query, Request
 from fastapi.responses import RedirectResponse, Response
 
 from core.errors import FleetError
-from services.auth.sessions import SESSION_TTL, open_session
+from services.auth.sessions import SESSION_TTL, close_session, open_session
 from services.console.web import (
     PREFIX,
     SESSION_COOKIE,
@@ -63,6 +63,9 @@ async def login(request: Request, form: Form) -> Response:
 
 @router.post("/logout")
 def logout(request: Request, _: Form) -> Response:
+    """The session ends on the depot (its cookie, wherever a copy of it is, is refused from now on),
+    and the browser forgets its cookie."""
+    close_session(auth_of(request), request.cookies.get(SESSION_COOKIE))
     response = RedirectResponse(f"{PREFIX}/login", status_code=303)
     response.delete_cookie(SESSION_COOKIE, path=PREFIX, httponly=True, samesite="lax", secure=is_https(request))
     return response

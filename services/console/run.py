@@ -94,8 +94,9 @@ def signed_link(request: Request, principal: Principal, run_id: str, params: lis
 
 
 def public_base(request: Request) -> str:
-    """The depot's address people reach it by: FLEET_PUBLIC_URL if set, else the request's."""
-    return str(request.app.state.settings.public_url or request.base_url)
+    """The depot's address people reach it by, for links that leave the browser (a `rerun`
+    command): never taken from a Host header that is not one of the depot's (`links.public_base`)."""
+    return links.request_base(request)
 
 
 def _warm(request: Request) -> ObjectStore | None:
@@ -320,7 +321,7 @@ def download(
         window_from_query(_timeline_types(answer), *window, latest_at=True)
         params = [("include", p) for p in keep] + [("exclude", p) for p in drop]
         params += [(k, v) for k, v in zip(("timeline", "start", "end"), window, strict=True) if v is not None]
-        url = signed_link(request, principal, run_id, params, str(request.base_url))
+        url = signed_link(request, principal, run_id, params, "")  # the redirect stays on this origin
     except FleetError as exc:
         return run_page(request, principal, run_id, problem=exc, asked=asked)
     return RedirectResponse(url, status_code=303)

@@ -66,9 +66,10 @@ def viewer_page(request: Request, run_id: str, principal: Viewer) -> HTMLRespons
     answer = runs_service.run_answer(request.app.state.catalog, run_id, None)
     if answer["tier"] == Tier.DELETED:
         raise GoneError(f"run {run_id!r} is deleted: there is nothing to open")
-    # The viewer fetches the recording from this page's own origin (the policy's connect-src 'self');
-    # the `rerun` command beside it uses the depot's public address.
-    viewer_url = signed_link(request, principal, run_id, [], str(request.base_url))
+    # The viewer fetches the recording from this page's own origin (the policy's connect-src 'self'):
+    # its link is a path, made absolute by the page's script; the `rerun` command beside it uses the
+    # depot's public address.
+    viewer_url = signed_link(request, principal, run_id, [], "")
     command_url = signed_link(request, principal, run_id, [], public_base(request))
     assets = viewer_assets()
     response = render(

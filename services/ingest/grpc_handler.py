@@ -7,6 +7,7 @@ status.
 
 from __future__ import annotations
 
+import asyncio
 import json
 import logging
 from collections.abc import AsyncIterator
@@ -15,10 +16,12 @@ from typing import NoReturn
 import grpc
 
 from core.errors import FleetError
+from services.auth.metadata import GRPC
 from services.auth.scopes import Scope
+from services.auth.standing import GrantWatch
 from services.auth.tokens import Auth
 from services.cluster.relay import ERROR_CODE, RELAYED_BY, REPORT, SOURCE_KIND, metadata_value
-from services.ingest.replay import read_response
+from services.ingest.replay import Message, read_response
 from services.ingest.requests import decode_request
 from services.ingest.routing import relay_source
 from services.ingest.service import IngestService
@@ -105,21 +108,23 @@ class MessageProxy:
         return await relay_source(self.service, source, metadata, pending, _rest_of(context)) is not None
 
     async def read_messages(self, request: bytes, context: grpc.aio.ServicerContext) -> AsyncIterator[bytes]:
-        """What `rerun --connect rerun+http://HOST:51234/proxy` calls: recent history, then live."""
+        """What `rerun --connect rerun+http://HOST:51234/proxy` calls: recent history, then live, for
+        as long as the caller's token holds (checked again as it reads: `services.auth.standing`)."""
         try:
-            await self.calls.principal(context.invocation_metadata(), Scope.READ)
+            principal = await self.calls.principal(context.invocation_metadata(), Scope.READ)
         except FleetError as exc:
             await context.abort(grpc.StatusCode[exc.grpc_status()], str(exc))
         hub = self.service.replay
         if hub is None:
             await context.abort(grpc.StatusCode.UNAVAILABLE, "this node keeps no replay (FLEET_REPLAY_BYTES=0)")
             return
+        watch = GrantWatch(self.auth, principal, GRPC)
         history, queue = hub.subscribe()
         try:
             for kind, raw in history:
                 yield read_response(kind, raw)
             while True:
-                live = await queue.get()
+                live = await next_live(queue, watch, context)
                 if live is None:
                     await context.abort(
                         grpc.StatusCode.RESOURCE_EXHAUSTED,
@@ -129,6 +134,31 @@ class MessageProxy:
                 yield read_response(*live)
         finally:
             hub.unsubscribe(queue)
+
+
+async def next_live(
+    queue: asyncio.Queue[Message | None], watch: GrantWatch, context: grpc.aio.ServicerContext
+) -> Message | None:
+    """A reader's next live message (None: it fell behind), its grant checked while it waits and
+    before it is given the message (`watch`)."""
+    while True:
+        try:
+            live = queue.get_nowait()  # a busy reader takes what is queued without a timer
+        except asyncio.QueueEmpty:
+            try:
+                live = await asyncio.wait_for(queue.get(), watch.wait_s())
+            except TimeoutError:  # nothing came: time to look at the token again
+                await end_if_ended(watch, context)
+                continue
+        await end_if_ended(watch, context)
+        return live
+
+
+async def end_if_ended(watch: GrantWatch, context: grpc.aio.ServicerContext) -> None:
+    """End the call (UNAUTHENTICATED, saying why) if what let it in has ended since."""
+    ended = await watch.ended()
+    if ended is not None:
+        await context.abort(grpc.StatusCode[ended.grpc_status()], str(ended))
 
 
 async def refuse(context: grpc.aio.ServicerContext, exc: FleetError, relayed_by: str | None = None) -> NoReturn:

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import asyncio
 import dataclasses
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Iterator
 from typing import Annotated, Any
 
 from fastapi import APIRouter, Depends, Query, Request
@@ -14,14 +14,19 @@ from fastapi.responses import StreamingResponse
 
 from services.auth.depends import recording_reader, require
 from services.auth.scopes import Principal, Scope
+from services.auth.standing import GrantWatch, while_granted
 from services.cluster import peer
 from services.ingest.routing import asking_for, owner_elsewhere
+from services.rrd.frames import MessageKind, encode_message_header
 from services.runs import links, service
 from services.runs.recording import RecordingQuery, open_recording
 from services.runs.service import RunFilter, parse_properties, parse_time
 
 router = APIRouter()
 Reader = Annotated[Principal, Depends(require(Scope.READ))]
+# What a followed run's stream ends with when what let it in ends first: an End message (no footer),
+# so the viewer sees a recording that ended, not one cut off.
+END = encode_message_header(MessageKind.END, 0)
 
 
 @router.get("/v1/robots", summary="Robots and how many runs each has")
@@ -124,16 +129,29 @@ async def recording(
         )
         disposition = f'attachment; filename="{run_id}.rrd"'
         return StreamingResponse(
-            body, media_type="application/octet-stream", headers={"Content-Disposition": disposition}
+            until_grant_ends(request, principal, body) if follow else body,
+            media_type="application/octet-stream",
+            headers={"Content-Disposition": disposition},
         )
     found = await asyncio.to_thread(
         open_recording, ingest, request.app.state.catalog, tiers.warm if tiers else None, run_id, query
     )
+    followed = follow and isinstance(found.body, AsyncIterator)  # a hot run: as long as it is live
     return StreamingResponse(
-        found.body,
+        until_grant_ends(request, principal, found.body) if followed else found.body,
         media_type="application/octet-stream",
         headers={"Content-Disposition": f'attachment; filename="{found.filename}"', "ETag": found.etag},
     )
+
+
+def until_grant_ends(
+    request: Request, principal: Principal, body: Iterator[bytes | memoryview] | AsyncIterator[bytes]
+) -> AsyncIterator[bytes]:
+    """A followed run's stream, ended (with an End message) when what let it in does: its token
+    revoked or expired, its signed link expired; checked while it runs (`services.auth.standing`)."""
+    assert isinstance(body, AsyncIterator)
+    watch = GrantWatch(request.app.state.auth, principal, request.state.surface)
+    return while_granted(watch, body, closing=END) if watch.watched else body
 
 
 async def first_piece(pieces: AsyncIterator[bytes]) -> AsyncIterator[bytes]:
@@ -173,5 +191,5 @@ def recording_link(
         run_id,
         params,
         links.lifetime(expires_in, settings.link_ttl_s),
-        settings.public_url or str(request.base_url),
+        links.request_base(request),
     )

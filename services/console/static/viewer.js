@@ -42,7 +42,7 @@ async function start() {
   try {
     const widget = await import(element.dataset.widget);
     const values = {
-      _url: element.dataset.url,
+      _url: new URL(element.dataset.url, document.baseURI).href, // a path on this page's origin
       _width: "auto",
       _height: Math.max(480, element.clientHeight),
       _panel_states: null,

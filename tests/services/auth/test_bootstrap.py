@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import io
 import logging
+import os
 import stat
 from pathlib import Path
 
@@ -11,7 +13,7 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from core.errors import InvalidArgumentError
 from services.auth import ADMIN_TOKEN_FILE
-from services.auth.bootstrap import check_auth_bind, ensure_admin_token, open_auth
+from services.auth.bootstrap import announce_admin, check_auth_bind, ensure_admin_token, open_auth
 from services.auth.scopes import Scope
 from services.auth.tokens import Auth
 from services.settings import load_settings
@@ -83,3 +85,40 @@ def test_a_revoked_admin_token_file_is_left_alone_and_reported(
 def test_auth_off_makes_no_admin_token(tmp_path: Path):
     assert ensure_admin_token(Auth(enabled=False, keys=None, catalog=None), tmp_path) is None
     assert not (tmp_path / ADMIN_TOKEN_FILE).exists()
+
+
+def test_a_first_start_on_a_log_says_where_the_admin_token_is_never_the_token(
+    tmp_path: Path, catalog: sessionmaker[Session]
+):
+    issued = ensure_admin_token(open_auth(load_settings(data_dir=tmp_path, auth="on"), catalog), tmp_path)
+    assert issued is not None
+    log = io.StringIO()  # stdout as systemd, docker or a redirect take it: not a terminal
+    announce_admin(issued, tmp_path, log)
+    said = log.getvalue()
+    assert issued.token not in said and issued.token.rsplit(".", 1)[1] not in said
+    assert str(tmp_path / ADMIN_TOKEN_FILE) in said and "first start" in said and said.count("\n") == 1
+    assert (tmp_path / ADMIN_TOKEN_FILE).read_text() == issued.token + "\n"  # where it is, always
+
+
+def test_a_first_start_on_a_terminal_shows_the_admin_token_once(tmp_path: Path, catalog: sessionmaker[Session]):
+    issued = ensure_admin_token(open_auth(load_settings(data_dir=tmp_path, auth="on"), catalog), tmp_path)
+    assert issued is not None
+    main, side = os.openpty()  # a real terminal device, as an interactive `fleet serve` has
+    try:
+        with open(side, "w", closefd=False) as terminal:
+            assert terminal.isatty()
+            announce_admin(issued, tmp_path, terminal)
+        shown = b""
+        while issued.token.encode() not in shown and len(shown) < 10_000:
+            shown += os.read(main, 4096)  # what the terminal received (blocks only until it is there)
+    finally:
+        os.close(side)
+        os.close(main)
+    text = shown.decode()
+    assert text.count(issued.token) == 1 and "shown once" in text and str(tmp_path / ADMIN_TOKEN_FILE) in text
+
+
+def test_nothing_is_announced_when_no_admin_token_was_made(tmp_path: Path):
+    out = io.StringIO()
+    announce_admin(None, tmp_path, out)
+    assert out.getvalue() == ""

@@ -4,10 +4,13 @@ that does not own the run are answered by its owner, with the caller's own right
 
 from __future__ import annotations
 
+import threading
+import time
 from collections.abc import Iterator
 from pathlib import Path
 
 import httpx
+import jwt
 import pytest
 
 from services.rrd.decoder import iter_events
@@ -76,3 +79,42 @@ def test_a_hot_run_is_read_through_the_node_that_does_not_own_it(nodes: tuple, t
     bad = httpx.get(f"{b.url}/v1/runs/run-r/recording.rrd?timeline=nope&start=1", headers=bearer(reader), timeout=30)
     assert bad.status_code == 422 or bad.status_code == 400, bad.text
     assert "nope" in bad.json()["message"]
+
+    # A live run followed through B (streamed from its owner A) stops when the follower's token is
+    # revoked: B, the node the follower reached, checks it (within its FLEET_AUTH_CACHE_S, 5 s).
+    hang_up = threading.Event()
+    live = requests_of(recording(tmp_path, "run-live", 50))
+
+    def live_stream() -> Iterator[bytes]:  # the run stays live while it is followed
+        yield from live
+        hang_up.wait(120)
+
+    writer = threading.Thread(target=a.write_messages, args=(live_stream(),), kwargs={"token": robot, "timeout": 180})
+    writer.start()
+    try:
+        b.wait_for(
+            lambda: (
+                httpx.get(f"{b.url}/v1/runs/run-live", headers=bearer(reader), timeout=10).json().get("owner") == "a"
+            ),
+            what="the live run's row naming its owner",
+        )
+        follower = token(a, ["read"])
+        ended, first = threading.Event(), threading.Event()
+
+        def follow() -> None:
+            url = f"{b.url}/v1/runs/run-live/recording.rrd?follow=true"
+            with httpx.stream("GET", url, headers=bearer(follower), timeout=120) as response:
+                for _ in response.iter_raw():
+                    first.set()
+            ended.set()
+
+        threading.Thread(target=follow, daemon=True).start()
+        assert first.wait(60), "nothing of the live run arrived through B"
+        follower_id = jwt.decode(follower, options={"verify_signature": False})["jti"]
+        assert httpx.delete(f"{a.url}/v1/tokens/{follower_id}", headers=a.headers, timeout=10).status_code == 200
+        revoked = time.monotonic()
+        assert ended.wait(30), "the follow through B went on after its token was revoked"
+        assert time.monotonic() - revoked < 5.0 + 4.0  # B's cache of the token, a check, some slack
+    finally:
+        hang_up.set()
+        writer.join(60)

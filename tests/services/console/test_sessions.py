@@ -9,7 +9,8 @@ from pathlib import Path
 import pytest
 from fastapi.testclient import TestClient
 
-from services.auth.sessions import csrf_value
+from services.auth.sessions import close_session, csrf_value, session_principal
+from services.auth.tokens import Auth
 from services.cli.serve import console_address
 from services.console.app import ROUTERS, install
 from services.console.login import safe_next
@@ -129,6 +130,36 @@ def test_logging_out_needs_the_csrf_value_and_drops_the_session(console: Depot) 
     answer = client.post("/console/logout", data={"csrf": value}, follow_redirects=False)
     assert answer.status_code == 303 and answer.headers["location"] == "/console/login"
     assert SESSION_COOKIE not in client.cookies
+
+
+def test_a_session_cookie_is_refused_after_logging_out(console: Depot) -> None:
+    token = console.token("read")
+    client = log_in(console.client, token)
+    old = client.cookies[SESSION_COOKIE]  # a copy of the cookie: kept by another tab, a proxy, a thief
+    assert client.get("/console/runs", follow_redirects=False).status_code == 200
+    value = csrf_value(console.auth, old, client.cookies[CSRF_COOKIE])
+    assert client.post("/console/logout", data={"csrf": value}, follow_redirects=False).status_code == 303
+    client.cookies.clear()
+    client.cookies.set(SESSION_COOKIE, old)  # the old cookie, sent again
+    answer = client.get("/console/runs", follow_redirects=False)
+    assert answer.status_code == 303 and answer.headers["location"].startswith("/console/login")
+    # another node of the depot (the same catalog and key) refuses it too, at once
+    other = Auth(enabled=True, keys=console.auth.keys, catalog=console.auth.catalog)
+    assert session_principal(other, old) is None
+    # a new login with the same token is a new session, unaffected
+    client.cookies.clear()
+    again = log_in(client, token)
+    assert again.get("/console/runs", follow_redirects=False).status_code == 200
+
+
+def test_logging_out_without_a_session_or_twice_is_harmless(console: Depot) -> None:
+    client = log_in(console.client, console.token("read"))
+    old = client.cookies[SESSION_COOKIE]
+    close_session(console.auth, old)
+    close_session(console.auth, old)  # ending it again changes nothing
+    close_session(console.auth, None)
+    close_session(console.auth, "not-a-session")
+    assert session_principal(console.auth, old) is None
 
 
 @pytest.mark.parametrize(
