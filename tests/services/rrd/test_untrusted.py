@@ -19,7 +19,7 @@ from tests.services.rrd import hostile
 REPO = Path(__file__).resolve().parents[3]
 
 CASES_SCRIPT = """
-import json, resource
+import json
 from services.redap.pb import cloud_pb2
 from services.redap.chunks import requested_chunks
 from services.rrd.chunk import chunk_meta
@@ -43,7 +43,9 @@ for payload in hostile.hostile_chunks():
         out.append((payload.name, "accepted", ""))
     except RrdError as exc:
         out.append((payload.name, exc.code.name, str(exc)))
-print(json.dumps({"cases": out, "max_rss_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss // 1024}))
+# VmHWM: this process's own peak (ru_maxrss keeps the forking parent's size across exec).
+peak_kib = int(next(l.split()[1] for l in open("/proc/self/status") if l.startswith("VmHWM:")))
+print(json.dumps({"cases": out, "max_rss_mib": peak_kib // 1024}))
 """
 
 
@@ -112,6 +114,7 @@ ALLOWED = {
     "services/rrd/manifest.py": "RRD footers the depot wrote itself (sealed runs)",
     "services/hot/index.py": "the depot's own hot chunk index (chunks.idx), written from validated chunks",
     "services/analytics/worker.py": "the catalog tables the depot sends its SQL worker",
+    "services/rrd/known_components.py": "its own table of Rerun's component types, generated into the module",
 }
 
 

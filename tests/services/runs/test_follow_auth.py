@@ -52,7 +52,7 @@ class Robot:
         self.stop = threading.Event()
         token = depot.token("ingest", robot=f"robot-{run_id}").token
         self.thread = threading.Thread(
-            target=depot.live.write_messages, args=(self._send(),), kwargs={"token": token, "timeout": 300}
+            target=depot.live.write_messages, args=(self._send(),), kwargs={"token": token, "timeout": 900}
         )
         self.thread.start()
 
@@ -62,7 +62,9 @@ class Robot:
             if self.stop.wait(GAP_S):  # the robot's pace
                 return
             yield request
-        self.stop.wait(120)
+        # Held until the test hangs up, however slow a loaded machine makes it (a stream that
+        # ended on its own ends the run, which the tests check is still live).
+        self.stop.wait(600)
 
     def hang_up(self) -> None:
         self.stop.set()
