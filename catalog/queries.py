@@ -26,7 +26,7 @@ from catalog.models import (
 )
 from core.clock import aware
 from core.errors import NotFoundError
-from core.ids import new_entry_id
+from core.ids import is_id, new_entry_id
 from core.states import Tier
 
 
@@ -349,7 +349,7 @@ def recent_jobs(session: Session, limit: int = 20) -> list[JobRun]:
 
 
 def get_run(session: Session, run_id: str) -> Run | None:
-    return session.get(Run, run_id)
+    return session.get(Run, run_id) if is_id(run_id) else None
 
 
 def run_not_found(run_id: str) -> NotFoundError:
@@ -358,7 +358,7 @@ def run_not_found(run_id: str) -> NotFoundError:
 
 def require_run(session: Session, run_id: str) -> Run:
     """The run, or a 404 naming it and how to list runs."""
-    run = session.get(Run, run_id)
+    run = get_run(session, run_id)
     if run is None:
         raise run_not_found(run_id)
     return run

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import hashlib
 import re
+from collections.abc import Iterable
 
 from core.errors import BadParameterError, InvalidArgumentError
 
@@ -30,6 +31,18 @@ def check_id(kind: str, value: str) -> str:
             "A-Z a-z 0-9 . _ - (for a recording id: rr.init(..., recording_id=...))"
         )
     return value
+
+
+def is_id(value: str) -> bool:
+    """Whether `value` can be a run's (or token's, pull's...) id. A string that cannot names nothing
+    the depot holds: lookups answer "not found" for it without asking the catalog, which cannot
+    compare a NUL and need not scan for 5,000 characters."""
+    return SAFE_ID.fullmatch(value) is not None
+
+
+def possible_ids(values: Iterable[str]) -> list[str]:
+    """The `values` that can be ids (see is_id), in order: a filter by ids keeps only these."""
+    return [value for value in values if is_id(value)]
 
 
 def check_path_id(name: str, value: str) -> str:

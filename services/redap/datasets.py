@@ -17,6 +17,7 @@ from catalog import queries
 from catalog.models import Dataset, Run, RunEntity, RunTimeline
 from core.clock import aware
 from core.errors import NotFoundError
+from core.ids import possible_ids
 from core.states import Tier
 from services.redap.tuid import Tuid
 from services.rrd.manifest import PROPERTIES_ENTITY
@@ -106,6 +107,7 @@ def segment_rows(session: Session, name: str, after: str | None, limit: int) -> 
 
 def segment_rows_named(session: Session, name: str, run_ids: list[str]) -> list[SegmentRow]:
     """The segments of dataset `name` among `run_ids` (other datasets' runs, or none, left out)."""
+    run_ids = possible_ids(run_ids)
     return _rows(session, session.execute(_segments(name).where(Run.id.in_(run_ids))).all()) if run_ids else []
 
 

@@ -21,6 +21,7 @@ from sqlalchemy.orm import Session
 
 from catalog.models import Dataset, Run, RunLifecycle, RunObject
 from core.errors import ConflictError, FleetError, GoneError, InternalError, UnavailableError
+from core.ids import possible_ids
 from core.states import Tier
 from services.hot.read import HotRecording
 from services.redap.cache import WeightedLru
@@ -83,7 +84,7 @@ def dataset_sources(
     """The dataset's runs that hold data (by run id; `only` those named), with where each can be read."""
     query = sa.select(Run).where(Run.application_id == dataset.name, Run.tier != Tier.DELETED)
     if only is not None:
-        query = query.where(Run.id.in_(sorted(only)))
+        query = query.where(Run.id.in_(sorted(possible_ids(only))))
     runs = list(session.scalars(query.order_by(Run.id)))
     ids = [run.id for run in runs]
     lives = {life.run_id: life for life in session.scalars(sa.select(RunLifecycle).where(RunLifecycle.run_id.in_(ids)))}

@@ -207,6 +207,68 @@ def test_a_client_version_of_5000_digits_is_invalid(node: Node) -> None:
     assert code == Code.INVALID_ARGUMENT
 
 
+def with_strings(message: Descriptor, value: str, entry: common_pb2.Tuid, depth: int = 0) -> Any:
+    """A request of `message`'s type whose every string field, at any depth, holds `value`, and
+    every entry id names `entry` (so the request reaches the dataset's segments)."""
+    request = message._concrete_class()  # type: ignore[attr-defined]
+    if message.full_name == "rerun.common.v1alpha1.Tuid":
+        request.CopyFrom(entry)
+        return request
+    for field in message.fields:
+        if field.type == field.TYPE_STRING:
+            if field.is_repeated:
+                getattr(request, field.name).extend([value, value])
+            else:
+                setattr(request, field.name, value)
+        elif field.message_type is not None and depth < 4 and not field.message_type.GetOptions().map_entry:
+            inner = with_strings(field.message_type, value, entry, depth + 1)
+            if field.is_repeated:
+                getattr(request, field.name).add().CopyFrom(inner)
+            elif inner.ByteSize():
+                getattr(request, field.name).CopyFrom(inner)
+    return request
+
+
+@pytest.fixture(scope="module")
+def dataset_entry(node: Node) -> common_pb2.Tuid:
+    """The entry id of a dataset holding one run, uploaded for it."""
+    good = hostile.lz4_payload("good", hostile.ipc_stream(hostile.points()))
+    answer = httpx.post(
+        f"{node.live.url}/v1/uploads",
+        content=rrd("strings-run", good),
+        headers={"Authorization": f"Bearer {node.ingest}"},
+        timeout=60,
+    )
+    assert answer.status_code == 200, answer.text
+    with grpc.insecure_channel(f"127.0.0.1:{node.live.grpc_port}") as channel:
+        found = channel.unary_unary(
+            CLOUD_PATH + "FindEntries",
+            request_serializer=cloud_pb2.FindEntriesRequest.SerializeToString,
+            response_deserializer=cloud_pb2.FindEntriesResponse.FromString,
+        )(cloud_pb2.FindEntriesRequest(), metadata=[("authorization", f"Bearer {node.read}")], timeout=30)
+    ids = [entry.id.id for entry in found.entries if entry.name == "hostile"]
+    assert ids, found
+    tuid: common_pb2.Tuid = ids[0]
+    return tuid
+
+
+@pytest.mark.parametrize("method", [m.name for m in CLOUD.methods])
+def test_catalog_service_refuses_strings_the_catalog_cannot_hold(
+    node: Node, dataset_entry: common_pb2.Tuid, method: str
+) -> None:
+    """Ids and names with a NUL (which Postgres cannot even compare) or 5,000 characters name
+    nothing the depot holds: a clear refusal or nothing found, never INTERNAL."""
+    rpc = CLOUD.methods_by_name[method]
+    entry_header = [("x-rerun-entry-id", f"{dataset_entry.time_ns:016X}{dataset_entry.inc:016x}")]
+    for value in ("run\x00id", "x" * 5000, "../../etc"):
+        request = with_strings(rpc.input_type, value, dataset_entry).SerializeToString()
+        code, details = node.call(
+            CLOUD_PATH + method, request, node.read, streaming=rpc.server_streaming, metadata=entry_header
+        )
+        assert code not in (Code.UNKNOWN, Code.INTERNAL, Code.UNAVAILABLE), (method, value[:20], code, details)
+    node.alive()
+
+
 # --- the message proxy, its 0.22 refusal, and the peer service ----------------------------------------
 
 
@@ -318,7 +380,7 @@ def test_handwritten_methods_refuse_hostile_requests(node: Node, path: str) -> N
 
 
 def rrd(run_id: str, payload: hostile.Payload) -> bytes:
-    out = bytearray(b"RRF2\x00\x29\x00\x00\x01\x00\x00\x00")  # 0.41.0, LZ4, protobuf
+    out = bytearray(b"RRF2\x00\x29\x00\x00\x01\x02\x00\x00")  # 0.41.0, LZ4, protobuf
     for kind, raw in ((1, set_store_info(run_id).SerializeToString()), (2, hostile.arrow_msg(run_id, payload))):
         out += struct.pack("<QQ", kind, len(raw)) + raw
     return bytes(out)
