@@ -427,7 +427,8 @@ def test_filters_that_match_no_entity_are_warned_of_hot_and_warm(
     def warned(params: dict[str, Any]) -> list[str]:
         response = client.get(url, params=params)
         assert response.status_code == 200, response.text
-        return json.loads(response.headers.get("fleet-warnings", "[]"))
+        warnings: list[str] = json.loads(response.headers.get("fleet-warnings", "[]"))
+        return warnings
 
     for _ in ("hot", "warm"):
         assert warned(asks) == [
