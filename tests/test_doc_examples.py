@@ -159,9 +159,10 @@ def test_every_example_is_found_and_every_skip_says_why():
 
 
 @pytest.mark.parametrize("block", BLOCKS, ids=[b.id for b in BLOCKS])
-def test_doc_example_runs(block: Block, depot: Depot):
+def test_doc_example_runs(block: Block, request: pytest.FixtureRequest):
     if block.not_run is not None:
         pytest.skip(f"{block.id}: not-run: {block.not_run}")
+    depot: Depot = request.getfixturevalue("depot")  # only for a block that runs: a skip starts no server
     code = _pointed_at(block.code, depot.server)
     argv = ["bash", "-euo", "pipefail", "-c", code] if block.language == "sh" else [sys.executable, "-c", code]
     done = subprocess.run(argv, cwd=depot.cwd, env=depot.env, capture_output=True, text=True, timeout=BLOCK_TIMEOUT_S)
