@@ -95,23 +95,36 @@ class FleetClient:
             query["expires_in"] = expires_in
         return self._request("POST", f"/v1/runs/{run_id}/links", params=query)
 
-    def check_recording(self, run_id: str, **params: Any) -> None:
+    def check_recording(self, run_id: str, **params: Any) -> list[str]:
         """Ask the service whether `recording_url(run_id, **params)` would answer, without taking the
         data: it checks every parameter before the first byte, so its error (a 404, or a 422 naming a
-        bad time or timeline) comes with the response headers, and the body is left unread."""
+        bad time or timeline) comes with the response headers, and the body is left unread. Returns
+        its warnings (filters that match no entity of the run)."""
         try:
             with self._http.stream("GET", self.recording_url(run_id, **params)) as response:
                 _check(response)
+                return recording_warnings(response)
         except httpx.TransportError as exc:
             raise self._unreachable(exc) from exc
 
-    def download(self, run_id: str, out: Path, on_progress: Callable[[int], None] | None = None, **params: Any) -> int:
-        """Stream a run's recording to `out`; returns the bytes written."""
+    def download(
+        self,
+        run_id: str,
+        out: Path,
+        on_progress: Callable[[int], None] | None = None,
+        on_warning: Callable[[str], None] | None = None,
+        **params: Any,
+    ) -> int:
+        """Stream a run's recording to `out`; returns the bytes written. `on_warning` is told of
+        each filter that matches no entity of the run, before the data."""
         url = self.recording_url(run_id, **params)
         written = 0
         try:
             with self._http.stream("GET", url) as response:
                 _check(response)
+                for warning in recording_warnings(response):
+                    if on_warning is not None:
+                        on_warning(warning)
                 with open(out, "wb") as fh:
                     for piece in response.iter_bytes():
                         fh.write(piece)
@@ -291,6 +304,19 @@ def _check(response: httpx.Response) -> None:
     except ValueError:
         body = {"message": response.text[:500]}
     raise ServiceError(str(body.get("message", response.reason_phrase)), response.status_code, body)
+
+
+def recording_warnings(response: httpx.Response) -> list[str]:
+    """What a recording's answer warns of (`Fleet-Warnings`, a JSON list): filters that match no
+    entity of the run, so the file holds more (or less) than the caller meant."""
+    raw = response.headers.get("fleet-warnings")
+    if not raw:
+        return []
+    try:
+        warnings = json.loads(raw)
+    except ValueError:
+        return [raw]
+    return [str(w) for w in warnings] if isinstance(warnings, list) else [str(warnings)]
 
 
 def _checked_token(token: str) -> str:

@@ -17,7 +17,7 @@ from starlette.types import ASGIApp, Receive, Scope, Send
 
 from core.errors import PermissionDeniedError
 
-EXPOSED = ["Content-Disposition", "ETag", "Retry-After", "X-Row-Count"]
+EXPOSED = ["Content-Disposition", "ETag", "Fleet-Warnings", "Retry-After", "X-Row-Count"]
 READS = frozenset({"GET", "HEAD"})
 _ALLOW_ORIGIN = "access-control-allow-origin"
 

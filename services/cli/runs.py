@@ -233,9 +233,13 @@ def download(api_url: str, run_id: str, output: Path | None, **filters: Any) -> 
     ):
         task = progress.add_task(run_id, total=None)
         written = fleet.download(
-            run_id, output, functools.partial(_advance, progress, task), **_recording_params(**filters)
+            run_id, output, functools.partial(_advance, progress, task), _warn, **_recording_params(**filters)
         )
     click.echo(f"{output}: {written:,} bytes")
+
+
+def _warn(warning: str) -> None:
+    click.echo(f"warning: {warning}", err=True)
 
 
 def _advance(progress: Progress, task: TaskID, count: int) -> None:
@@ -267,7 +271,9 @@ def view(
     if follow:
         params["follow"] = "true"
     with client(api_url) as fleet:
-        fleet.check_recording(run_id, **params)  # an unknown run or a bad time: one line now, not an empty viewer
+        # an unknown run or a bad time: one line now, not an empty viewer; a filter matching nothing: a warning
+        for warning in fleet.check_recording(run_id, **params):
+            _warn(warning)
         link = fleet.recording_link(run_id, expires.total_seconds() if expires else None, **params)
         url = link["url"] if link.get("expires_at") else fleet.recording_url(run_id, **params)
     if link.get("expires_at"):

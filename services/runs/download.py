@@ -74,6 +74,20 @@ class EntityFilter:
             return False
         return not self.include or any(_matches(p, path) for p in self.include)
 
+    def unmatched(self, paths: Iterable[str]) -> list[str]:
+        """A warning for each pattern that matches none of `paths` (the run's entities): such a
+        filter does nothing, most often because `/a` was meant as the subtree `/a/**`."""
+        paths = set(paths)
+        warnings = []
+        for kind, patterns in (("include", self.include), ("exclude", self.exclude)):
+            for pattern in patterns:
+                if any(_matches(pattern, path) for path in paths):
+                    continue
+                below = not pattern.endswith("/**") and any(p.startswith(pattern.rstrip("/") + "/") for p in paths)
+                hint = f" (its subtree is {pattern.rstrip('/')}/**)" if below else ""
+                warnings.append(f"{kind} {pattern} matches no entity of the run{hint}")
+        return warnings
+
 
 def _matches(pattern: str, path: str) -> bool:
     if pattern.endswith("/**"):

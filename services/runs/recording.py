@@ -15,9 +15,10 @@ from sqlalchemy.orm import Session, sessionmaker
 from catalog import queries
 from core.clock import utcnow
 from core.errors import BadParameterError
-from services.hot.read import HotRuns
+from services.hot.read import HotRecording, HotRuns
 from services.runs import download, indexed, sealed
-from services.sealed.read import locate_sealed
+from services.sealed.index import CHUNK
+from services.sealed.read import SealedRecording, locate_sealed
 from services.storage.objectstore import ObjectStore
 
 
@@ -41,6 +42,7 @@ class RecordingDownload:
     body: Iterator[bytes | memoryview] | AsyncIterator[bytes]
     etag: str
     filename: str
+    warnings: list[str] = field(default_factory=list)  # filters that match no entity of the run
 
 
 def open_recording(
@@ -54,6 +56,7 @@ def open_recording(
     ingest), any other from the warm store (`warm`: None on a node without the sealed tiers)."""
     entities = download.EntityFilter(query.include, query.exclude)
     hot = hot_runs.hot_recording(run_id) if hot_runs is not None else None
+    found: SealedRecording | None = None
     if hot is not None:
         types, size = hot.timeline_types, hot.size
     else:  # 404 naming the run, 409 for a cold run not restored, 410 for a deleted one
@@ -72,5 +75,16 @@ def open_recording(
     elif hot is not None:
         body = indexed.stream_hot(hot, entities, blueprint=query.blueprint, window=window)
     else:
+        assert found is not None  # not hot: located sealed above
         body = sealed.stream_sealed(found, entities, blueprint=query.blueprint, window=window)
-    return RecordingDownload(body, etag, f"{run_id}.rrd")
+    warnings = entities.unmatched(_entity_paths(hot, found)) if entities.include or entities.exclude else []
+    return RecordingDownload(body, etag, f"{run_id}.rrd", warnings)
+
+
+def _entity_paths(hot: HotRecording | None, found: SealedRecording | None) -> set[str]:
+    """The run's entities as its chunk index has them (hot: read again from the index file beside
+    the run; only when a filter is asked for, to say which patterns match nothing)."""
+    if hot is not None:
+        return {e.meta.entity_path for e in hot.index_entries() if e.meta is not None}
+    assert found is not None
+    return {r.entity_path for r in found.rows if r.kind == CHUNK and r.entity_path}

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import asyncio
 import dataclasses
+import json
 from collections.abc import AsyncIterator, Iterator
 from typing import Annotated, Any
 
@@ -27,6 +28,7 @@ Reader = Annotated[Principal, Depends(require(Scope.READ))]
 # What a followed run's stream ends with when what let it in ends first: an End message (no footer),
 # so the viewer sees a recording that ended, not one cut off.
 END = encode_message_header(MessageKind.END, 0)
+WARNINGS_HEADER = "Fleet-Warnings"
 
 
 @router.get("/v1/robots", summary="Robots and how many runs each has")
@@ -140,8 +142,18 @@ async def recording(
     return StreamingResponse(
         until_grant_ends(request, principal, found.body) if followed else found.body,
         media_type="application/octet-stream",
-        headers={"Content-Disposition": f'attachment; filename="{found.filename}"', "ETag": found.etag},
+        headers={
+            "Content-Disposition": f'attachment; filename="{found.filename}"',
+            "ETag": found.etag,
+            **warnings_header(found.warnings),
+        },
     )
+
+
+def warnings_header(warnings: list[str]) -> dict[str, str]:
+    """`Fleet-Warnings`: a JSON list (ASCII, so any pattern fits a header) of filters that match no
+    entity of the run; the answer is still the run as asked, so a client may show them."""
+    return {WARNINGS_HEADER: json.dumps(warnings)} if warnings else {}
 
 
 def until_grant_ends(

@@ -158,3 +158,16 @@ def test_view_open_runs_the_rerun_of_its_own_venv(
     result = CliRunner().invoke(runs_cli.view, [run_id, "--open", "--api-url", server.url])
     assert result.exit_code == 0, result.output
     assert started == [[str(VENV_RERUN), f"{server.url}/v1/runs/{run_id}/recording.rrd"]]
+
+
+def test_download_and_view_warn_of_a_filter_that_matches_no_entity(
+    server: LiveServer, recordings: dict[str, Recording], tmp_path: Path
+):
+    run_id = recordings["points"].recordings[0]["recording_id"]
+    warning = "warning: exclude /world matches no entity of the run (its subtree is /world/**)"
+    got = fleet(server, "download", run_id, "-o", str(tmp_path / "run.rrd"), "--exclude", "/world")
+    assert got.returncode == 0 and warning in got.stderr, got.stderr
+    got = fleet(server, "view", run_id, "--exclude", "/world")
+    assert got.returncode == 0 and warning in got.stderr and "warning" not in got.stdout, got.stderr
+    got = fleet(server, "download", run_id, "-o", str(tmp_path / "run.rrd"), "--exclude", "/world/**")
+    assert got.returncode == 0 and "warning" not in got.stderr, got.stderr

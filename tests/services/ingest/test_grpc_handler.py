@@ -11,6 +11,8 @@ import pytest
 from services.ingest.grpc_handler import LEGACY_REFUSAL, LEGACY_SERVICE_NAME
 from tests.services.ingest.live_server import LiveServer
 
+pytestmark = pytest.mark.slow  # starts a real `fleet serve`
+
 
 @pytest.fixture(scope="module")
 def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[LiveServer]:

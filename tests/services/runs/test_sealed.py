@@ -8,6 +8,7 @@ chunk by chunk with what the hot download gave for the same request.
 from __future__ import annotations
 
 import io
+import json
 import subprocess
 import sys
 from collections import Counter
@@ -413,3 +414,29 @@ def test_entity_filters_keep_the_recordings_properties_hot_and_warm(
             entities = {e for e, _, _ in _chunks(answer)}
             assert ("/__properties" in entities) == kept and entities - {"/__properties"}, (params, entities)
         assert _ids(warm) == _ids(hot_answer), params
+
+
+def test_filters_that_match_no_entity_are_warned_of_hot_and_warm(
+    tiers: Tiers, make_node: NodeFactory, runs: dict[str, Path]
+):
+    node, run_id = _node(make_node, tiers, runs["wide"])
+    client = TestClient(_app(node))
+    url = f"/v1/runs/{run_id}/recording.rrd"
+    asks = {"include": ["/world/e3", "/nowhere/**"], "exclude": "/world"}  # `/world` is no entity: /world/** was meant
+
+    def warned(params: dict[str, Any]) -> list[str]:
+        response = client.get(url, params=params, headers={"Origin": "http://localhost:9090"})  # a web viewer
+        assert response.status_code == 200, response.text
+        assert "fleet-warnings" in response.headers["access-control-expose-headers"].lower()  # it may read them
+        warnings: list[str] = json.loads(response.headers.get("fleet-warnings", "[]"))
+        return warnings
+
+    for _ in ("hot", "warm"):
+        assert warned(asks) == [
+            "include /nowhere/** matches no entity of the run",
+            "exclude /world matches no entity of the run (its subtree is /world/**)",
+        ]
+        assert warned({"include": "/world/e3", "exclude": "/world/**"}) == []
+        assert warned({}) == []
+        if run_id in node.ingest.runs:
+            _promote(node, run_id)
