@@ -106,6 +106,9 @@ class SqlPool:
             if future.cancel():  # never left the queue
                 raise self._waited_too_long(self.limits.seconds) from None
             return await waiting  # running: its own deadline (the same limit) ends it at once
+        except asyncio.CancelledError:
+            future.cancel()  # the caller went away (shield kept it from doing so): a queued query never runs
+            raise
 
     def _waited_too_long(self, waited_s: float) -> SqlBusyError:
         return SqlBusyError(
