@@ -208,14 +208,19 @@ def add_services(
 
 
 async def serve(
-    settings: Settings, sockets: tuple[socket.socket, socket.socket] | None = None, siblings: list[Path] | None = None
+    settings: Settings,
+    sockets: tuple[socket.socket, socket.socket] | None = None,
+    siblings: list[Path] | None = None,
+    *,
+    ports: tuple[socket.socket, socket.socket] | None = None,
 ) -> None:
     """Run the node until stopped; the caller holds the data dir (`startup.hold_data_dir`).
     `sockets`: the gRPC and REST ports, bound already and shared with other workers of this host
     (`services.workers`, which also made the first admin token); `siblings`: those workers' private
-    REST sockets (for /metrics of the whole host)."""
+    REST sockets (for /metrics of the whole host). `ports`: both ports of a single node, claimed
+    by its caller (`fleet serve` claims them first of all, so a busy one is refused before anything)."""
     tune_allocator()
-    grpc_socket, http_socket = sockets or claim_ports(settings)
+    grpc_socket, http_socket = sockets or ports or claim_ports(settings)
     grpc_server, grpc_path, peer_addr = _grpc_server(settings)
     ingest, retention, analytics = build(settings, peer_addr)
     auth = retention.auth = open_auth(settings, ingest.catalog)

@@ -136,7 +136,9 @@ class Settings(BaseSettings):
     retention_interval_s: float = Field(600.0, gt=0, description="how often archive, restore and expiry jobs run")
     scheduler: bool = Field(True, description="run the retention jobs inside fleet serve")
     sql_max_rows: int = Field(100_000, gt=0, description="most rows a SQL answer may have")
-    sql_timeout_s: float = Field(30.0, gt=0, description="a SQL query running longer is stopped")
+    sql_timeout_s: float = Field(
+        30.0, gt=0, description="a SQL query taking longer from its arrival (queue included) is stopped"
+    )
     sql_memory_limit: str = Field(
         "2GB",
         pattern=r"(?i)^\s*\d+(\.\d+)?\s*([kmgt]i?b|b)?\s*$",

@@ -88,15 +88,18 @@ def run_worker(settings: Settings, sockets: tuple[socket.socket, socket.socket],
 class Supervisor:
     """The parent: starts the workers, starts again one that dies, stops them all when asked."""
 
-    def __init__(self, settings: Settings, count: int) -> None:
+    def __init__(
+        self, settings: Settings, count: int, ports: tuple[socket.socket, socket.socket] | None = None
+    ) -> None:
         self.settings = settings
+        self.ports = ports
         self.count = count
         self.stopping = False
         self.context = multiprocessing.get_context("spawn")  # no fork of a process holding threads
         self.procs: dict[int, BaseProcess] = {}
 
     def run(self) -> None:
-        sockets = claim_ports(self.settings)
+        sockets = self.ports or claim_ports(self.settings)
         key = self._signing_key()
         for sock in sockets:
             sock.setblocking(False)
@@ -161,5 +164,6 @@ class Supervisor:
                 proc.join()
 
 
-def run_workers(settings: Settings, count: int) -> None:
-    Supervisor(settings, count).run()
+def run_workers(settings: Settings, count: int, ports: tuple[socket.socket, socket.socket] | None = None) -> None:
+    """`ports`: the gRPC and REST ports if the caller claimed them already (`fleet serve` does)."""
+    Supervisor(settings, count, ports).run()

@@ -2,10 +2,12 @@
 
 At most `Limits.workers` queries run at once, each in its own thread of a private executor (never
 the threadpool FastAPI's sync handlers share) driving a worker process; up to `Limits.queue` more
-wait; beyond that a query is refused at once (429). Idle workers are started ahead (interpreter and
-DuckDB imported), one per running slot. While a worker runs, its thread watches the clock and the
-worker's resident memory and kills it past either limit: DuckDB's interrupt does not reach parsing
-or planning, and its memory_limit does not cover every allocation.
+wait; beyond that a query is refused at once (429). The time limit counts from a query's arrival,
+its wait in the queue included: one still waiting when its limit falls is refused (429 with
+Retry-After) rather than run late, so no answer comes later than the limit. Idle workers are
+started ahead (interpreter and DuckDB imported), one per running slot. While a worker runs, its
+thread watches the clock and the worker's resident memory and kills it past either limit: DuckDB's
+interrupt does not reach parsing or planning, and its memory_limit does not cover every allocation.
 """
 
 from __future__ import annotations
@@ -15,6 +17,7 @@ import atexit
 import contextlib
 import json
 import logging
+import math
 import os
 import select
 import shutil
@@ -52,6 +55,7 @@ from services.storage.objectstore import StorageError
 log = logging.getLogger(__name__)
 POLL_S = 0.02  # how often a running worker's clock and memory are checked
 START_S = 60.0  # a worker not ready (imports done) this long after it started is broken
+QUEUE_SLACK_S = 1.0  # past the limit, a query not yet started is refused (a running one ends by itself)
 _ERRORS: dict[str, type[FleetError]] = {
     ErrorCode.SQL_NOT_ALLOWED.value: SqlNotAllowedError,
     ErrorCode.INVALID_SQL.value: InvalidSqlError,
@@ -86,9 +90,33 @@ class SqlPool:
     def workdir(self) -> str:
         return self._workdir
 
+    @property
+    def admitted(self) -> int:
+        """Queries running or waiting now."""
+        return self._admitted
+
     async def run(self, request: dict[str, Any], prepare: Callable[[set[str]], Prepared]) -> pa.Table:
-        """The answer to `request` (query, root, s3, hidden), waiting without holding any thread."""
-        return await asyncio.wrap_future(self.submit(request, prepare))
+        """The answer to `request` (query, root, s3, hidden), waiting without holding any thread;
+        refused (429) if it is still queued when its time limit falls."""
+        future = self.submit(request, prepare)
+        waiting = asyncio.wrap_future(future)
+        try:
+            return await asyncio.wait_for(asyncio.shield(waiting), self.limits.seconds + QUEUE_SLACK_S)
+        except TimeoutError:
+            if future.cancel():  # never left the queue
+                raise self._waited_too_long(self.limits.seconds) from None
+            return await waiting  # running: its own deadline (the same limit) ends it at once
+        except asyncio.CancelledError:
+            future.cancel()  # the caller went away (shield kept it from doing so): a queued query never runs
+            raise
+
+    def _waited_too_long(self, waited_s: float) -> SqlBusyError:
+        return SqlBusyError(
+            f"the query waited {waited_s:.1f} s for a SQL worker, its whole time limit (FLEET_SQL_TIMEOUT_S="
+            f"{self.limits.seconds:g}, counted from its arrival), while FLEET_SQL_WORKERS={self.limits.workers} "
+            "queries ran: retry in a few seconds",
+            retry_after_s=math.ceil(min(self.limits.seconds, 30.0)),
+        )
 
     def submit(self, request: dict[str, Any], prepare: Callable[[set[str]], Prepared]) -> Future[pa.Table]:
         with self._lock:
@@ -99,7 +127,8 @@ class SqlPool:
                     f"{self.limits.queue} waiting): retry in a few seconds"
                 )
             self._admitted += 1
-        future = self._executor.submit(self._run, {**request, "limits": asdict(self.limits)}, prepare)
+        arrived = time.monotonic()  # the time limit counts from here: the queue is part of the wait
+        future = self._executor.submit(self._run, {**request, "limits": asdict(self.limits)}, prepare, arrived)
         future.add_done_callback(self._release)  # also when cancelled before it started
         return future
 
@@ -107,11 +136,14 @@ class SqlPool:
         with self._lock:
             self._admitted -= 1
 
-    def _run(self, request: dict[str, Any], prepare: Callable[[set[str]], Prepared]) -> pa.Table:
+    def _run(self, request: dict[str, Any], prepare: Callable[[set[str]], Prepared], arrived: float) -> pa.Table:
+        deadline = arrived + self.limits.seconds
+        if time.monotonic() >= deadline:  # its limit fell while it waited: it never runs
+            raise self._waited_too_long(time.monotonic() - arrived)
         proc = self._take()
         try:
-            _Conversation(proc, time.monotonic() + START_S, self.limits).receive_json()  # ready
-            talk = _Conversation(proc, time.monotonic() + self.limits.seconds, self.limits)
+            _Conversation(proc, min(time.monotonic() + START_S, deadline), self.limits).receive_json()  # ready
+            talk = _Conversation(proc, deadline, self.limits)
             talk.send(json.dumps(request).encode())
             named = talk.receive_json()["tables"]
             prepared = prepare(set(named))

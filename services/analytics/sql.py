@@ -37,10 +37,15 @@ from services.storage.objectstore import StorageError
 
 
 class SqlBusyError(ResourceExhaustedError):
-    """The SQL workers and their queue are full: come back in a moment (most queries take seconds)."""
+    """The SQL workers and their queue are full, or a query waited its whole time limit for a worker:
+    come back in a moment (most queries take seconds)."""
+
+    def __init__(self, message: str, retry_after_s: int = 2) -> None:
+        super().__init__(message)
+        self.retry_after_s = max(1, retry_after_s)
 
     def headers(self) -> dict[str, str]:
-        return {"Retry-After": "2"}
+        return {"Retry-After": str(self.retry_after_s)}
 
 
 CATALOG_VIEWS = ("robots", "runs", "run_entities", "run_timelines")

@@ -8,6 +8,7 @@ in that order (see `load_settings`)."""
 from __future__ import annotations
 
 import enum
+import socket
 import types
 from collections.abc import Callable
 from pathlib import Path
@@ -152,17 +153,12 @@ class SettingsCommand(click.Command):
 def serve(**flags: object) -> None:
     """Run the service. Every flag can also be set as the FLEET_* variable named in its help,
     or in a TOML file named by FLEET_CONFIG."""
-    import asyncio
-    import logging
-
-    from catalog.db import create_engine, is_embedded, prepare_for_service
     from services.auth.bootstrap import check_auth_bind
     from services.rrd import limits
-    from services.server import release_reserve_if_full
-    from services.server import serve as run_server
+    from services.server import claim_ports
     from services.settings import load_settings
-    from services.startup import hold_data_dir, split_addr
-    from services.workers import run_workers, worker_count
+    from services.startup import split_addr
+    from services.workers import worker_count
 
     settings = load_settings(**flags)
     limits.configure(settings.max_chunk_bytes, settings.decompress_budget_bytes)  # process-wide, like the memory
@@ -174,6 +170,27 @@ def serve(**flags: object) -> None:
             raise click.BadParameter(str(exc)) from exc
     auth_off = check_auth_bind(settings, hosts)  # auth off on a public address: refused, one line
     workers = worker_count(settings)  # more than one needs a Postgres catalog: refused, one line
+    # Both ports, then the data dir, before anything is printed or made: a refused start is one line
+    # and leaves no data dir, catalog or start-up lines behind.
+    ports = claim_ports(settings)
+    try:
+        _serve(settings, ports, auth_off, workers)
+    finally:
+        for sock in ports:
+            sock.close()
+
+
+def _serve(settings: Settings, ports: tuple[socket.socket, socket.socket], auth_off: str | None, workers: int) -> None:
+    """`fleet serve` once its ports are bound: the data dir held, the catalog ready, the node run."""
+    import asyncio
+    import logging
+
+    from catalog.db import create_engine, is_embedded, prepare_for_service
+    from services.server import release_reserve_if_full
+    from services.server import serve as run_server
+    from services.startup import hold_data_dir
+    from services.workers import run_workers
+
     with hold_data_dir(settings.data_dir):  # one `fleet serve` per data dir, for the process's life
         release_reserve_if_full(settings)  # a full disk must not keep the catalog from opening
         # This engine (and its pooled connection) lives as long as the service: an embedded catalog's
@@ -197,9 +214,9 @@ def serve(**flags: object) -> None:
             click.echo(f"fleet: web console on {console_address(settings)}{login}")
             if workers > 1:
                 click.echo(f"fleet: {workers} worker processes share both ports (--workers)")
-                run_workers(settings, workers)
+                run_workers(settings, workers, ports)
             else:
-                asyncio.run(run_server(settings))
+                asyncio.run(run_server(settings, ports=ports))
         finally:
             engine.dispose()
 

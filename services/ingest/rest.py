@@ -3,11 +3,13 @@ of the depot owns its run, relayed to that node as it arrives)."""
 
 from __future__ import annotations
 
+import logging
 from collections.abc import AsyncIterator
 from typing import Annotated, Any
 
 from fastapi import APIRouter, Depends, Request
-from fastapi.responses import JSONResponse
+from fastapi.responses import JSONResponse, Response
+from starlette.requests import ClientDisconnect
 
 from core.errors import FleetError
 from services.auth.depends import require
@@ -19,6 +21,7 @@ from services.ingest.source import Source
 from services.rrd.decoder import RrdDecoder
 from services.rrd.messages import Event
 
+log = logging.getLogger(__name__)
 router = APIRouter()
 
 
@@ -35,7 +38,8 @@ async def upload(request: Request, principal: Annotated[Principal, Depends(requi
     """Streams the body (any size, constant memory) into the runs it names. Answers the runs
     touched, chunks new and duplicate, and bytes; `catalog` is "pending" if the catalog could not
     be written in time (the data is kept, and the catalog catches up). If the body turns bad part-way, the chunks
-    before the fault are kept and the answer (4xx) names the byte offset. A robot's ingest token files
+    before the fault are kept and the answer (4xx) names the byte offset; a client gone mid-body
+    likewise keeps the chunks that came whole, and its runs are closed. A robot's ingest token files
     the runs under its robot only; a `write` token uploads for any robot."""
     service: IngestService = request.app.state.ingest
     settings = request.app.state.settings
@@ -63,7 +67,22 @@ async def upload(request: Request, principal: Annotated[Principal, Depends(requi
         report = await service.finish_upload(source)
         body_json = {**exc.to_dict(), "offset": getattr(exc, "offset", None), "accepted": report.to_dict()}
         return JSONResponse(body_json, status_code=exc.http_status(), headers=exc.headers())
+    except ClientDisconnect:
+        return await _client_gone(service, source)
     return (await service.finish_upload(source)).to_dict()
+
+
+async def _client_gone(service: IngestService, source: Source) -> Response:
+    """The client went away mid-body: what came whole is kept (sending the file again completes it,
+    chunks held being skipped) and its runs are closed, as at the end of any upload. One log line,
+    no traceback: a dropped connection is the client's doing, not a fault of the depot."""
+    report = await service.finish_upload(source)
+    log.info(
+        "upload ended by its client mid-body: kept %d new chunks of runs %s; sending it again completes them",
+        report.chunks_new,
+        ", ".join(report.runs) or "(none)",
+    )
+    return Response(status_code=499)  # nobody reads it: nginx's "client closed request"
 
 
 async def _relayed(

@@ -315,8 +315,7 @@ class IngestService:
         if msg.store_id.kind == StoreKind.RECORDING and is_property_entity(meta.entity_path):
             prop = read_property_chunk(msg, meta, self.secret_fields)
             if prop.name == IDENTITY_PROPERTY and ROBOT_FIELD in prop.values:
-                robot = check_id("robot id", str(prop.values[ROBOT_FIELD]))  # refused before anything is written
-                self._check_named_robot(source, run, robot)
+                self._check_named_robot(source, run, str(prop.values[ROBOT_FIELD]))
             msg, meta = prop.message, prop.meta  # without its secret fields, if it had any
         if run is None and (prop is not None or msg.store_id.kind == StoreKind.BLUEPRINT):
             self._hold(source, run_id, msg)  # a run starts with its data, not with properties or a layout
@@ -342,13 +341,14 @@ class IngestService:
         source.report.bytes_new += len(msg.raw)
 
     def _check_named_robot(self, source: Source, run: IngestRun | None, robot: str) -> None:
-        """A `robot_id` property that disagrees with the source's token is refused, and the run this
-        source started for it (filed under the token's robot, as its data came first) is dropped:
-        nothing of a refused run is kept, and its id stays free for its own robot."""
+        """A `robot_id` property that is no safe id, or disagrees with the source's token, is refused
+        before anything of it is written, and the run this source started for it (filed under the
+        token's robot, as its data came first) is dropped: nothing of a refused run is kept, and its
+        id stays free for its own robot."""
         run_id = source.recording_run if run is None else run.run_id
         try:
-            check_robot(source.robot, run_id or "", robot)
-        except PermissionDeniedError:
+            check_robot(source.robot, run_id or "", check_id("robot id", robot))
+        except (PermissionDeniedError, UnsafeIdError):
             if run is not None and run.run_id in source.created and run.sources == 1:
                 self._drop(source, run)
             raise
@@ -366,7 +366,7 @@ class IngestService:
         self._catalog_sync.drop(run.run_id)
         if self.replay is not None:
             self.replay.end_run(run.run_id)
-        log.info("dropped run %s: its robot_id property disagrees with the token that started it", run.run_id)
+        log.info("dropped run %s: its robot_id property was refused", run.run_id)
 
     def _activation(self, source: Source, msg: BlueprintActivationMessage) -> None:
         run_id = self._run_id_of(source, msg.blueprint_id.kind, msg.blueprint_id.recording_id, msg)

@@ -1,5 +1,6 @@
 import enum
 import os
+import socket
 import subprocess
 import sys
 from collections.abc import Iterator
@@ -258,3 +259,20 @@ def test_two_serves_never_share_a_data_dir_even_with_postgres(empty_postgres_url
         assert f"PID {first.proc.pid}" in line and "--data-dir" in line
     finally:
         first.stop()
+
+
+@pytest.mark.parametrize("busy", ["http", "grpc"])
+def test_a_busy_port_is_refused_before_anything_is_printed_or_created(tmp_path: Path, busy: str):
+    """Ports first: one line naming the port and its flag, no start-up lines, no catalog made in a
+    new data dir (it used to print three start-up lines and create catalog.duckdb first)."""
+    with socket.socket() as holder:
+        holder.bind(("127.0.0.1", 0))
+        holder.listen()
+        port = holder.getsockname()[1]
+        http_port, grpc_port = (port, free_port()) if busy == "http" else (free_port(), port)
+        result = _second_serve(tmp_path / "new", http_port, grpc_port)
+    line = _one_line(result)
+    assert f"127.0.0.1:{port}" in line and "already in use" in line and f"--{busy}-addr" in line
+    assert result.stdout == ""
+    assert not (tmp_path / "new" / "catalog.duckdb").exists()
+    assert not (tmp_path / "new").exists() or [p.name for p in (tmp_path / "new").iterdir()] == []
