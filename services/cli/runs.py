@@ -21,7 +21,7 @@ from rich.table import Table
 
 from core.states import RestoreState, RunStatus, Tier
 from services.cli.client import Duration, api_option, client
-from services.cli.output import stdout_console, transfer_progress, when
+from services.cli.output import stdout_console, timeline_value, transfer_progress, when
 from services.cli.pulls import print_robot_side, runs_pull, runs_pulls
 
 
@@ -152,9 +152,7 @@ def runs_show(api_url: str, run_id: str, as_json: bool) -> None:
 def _timeline_value(timeline_type: str, value: int | None) -> str:
     """Timestamps as dates, durations in seconds, sequences as numbers: each in the form that
     `fleet view --start/--end` accepts for that timeline."""
-    from services.rrd.summary import format_time
-
-    return "-" if value is None else format_time(timeline_type, value)
+    return timeline_value(timeline_type, value)
 
 
 @runs.command("pin")
