@@ -209,17 +209,22 @@ class RunSender:
     def _learn_run(self, passed: int) -> list[HotEntry]:
         """The run's store infos (sent first on every stream), and its chunks up to `passed` that the
         live rules now in force would keep on the robot (the lanes count those after it as they pass)."""
-        self.store_infos = []
+        self.store_infos, kept = self._scan(passed)
+        return kept
+
+    def _scan(self, passed: int) -> tuple[list[HotEntry], list[HotEntry]]:
+        """The run's store infos, and its chunks up to `passed` the current live rules keep."""
         tail = HotIndexTail(self._run().hot.path)
         size = self._size()
+        infos: list[HotEntry] = []
         kept: list[HotEntry] = []
         while entries := tail.read(size):
             for entry in entries:
                 if entry.kind == STORE_INFO:
-                    self.store_infos.append(entry)
+                    infos.append(entry)
                 elif entry.end <= passed and not self._forwarded(entry) and entry.meta is not None:
                     kept.append(entry)
-        return kept
+        return infos, kept
 
     async def _learn_local_only(self, kept: list[HotEntry]) -> None:
         """Which chunks are on the robot only: of those the current rules keep, the ones the depot
@@ -332,7 +337,17 @@ class RunSender:
                 self.lanes.append(Lane(Priority.PULL, entries=deque(missing), on_sent=job.count, job=job))
             else:
                 self.pulls.remove(job)
+                await self._relearn_after_pull()
                 job.done.set()
+
+    async def _relearn_after_pull(self) -> None:
+        """A pull put chunks at the depot that were on the robot only: ask again what still is. Not
+        while a backfill is under way (it counts what it passes, and would count those twice);
+        the next start asks anyway."""
+        if self._backfill_pending() is not None:
+            return
+        _, kept = await asyncio.to_thread(self._scan, self.sent_until)
+        await self._learn_local_only(kept)
 
     def _has_work(self) -> bool:
         run = self._run()
