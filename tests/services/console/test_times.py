@@ -43,8 +43,9 @@ def section(page: str, name: str) -> str:
     return page[start : page.index("</section>", start)]
 
 
-def test_run_page_writes_times_as_the_cli_does(console_depot: ConsoleDepot) -> None:
-    depot, run_id = console_depot, console_depot.runs["sealed"]
+@pytest.mark.parametrize("role", ["sealed", "hot"])  # plots and logs from the analytics tables, or the run
+def test_run_page_writes_times_as_the_cli_does(console_depot: ConsoleDepot, role: str) -> None:
+    depot, run_id = console_depot, console_depot.runs[role]
     run = depot.api("GET", f"/v1/runs/{run_id}").json()
     page = page_of(depot, f"/console/runs/{run_id}")
     assert page.status_code == 200, page.text[:500]
