@@ -102,8 +102,8 @@ class Reports:
         for run in agent.spool.runs():
             sender = agent.runners.get(run.run_id)
             state = agent.run_states.get(run.run_id)
-            if state is None:
-                continue
+            if state is None or (sender is not None and not sender.learned):
+                continue  # a starting sender has yet to ask the depot what is on the robot only
             figures = (run.hot.size, state.local_only_chunks, state.local_only_bytes)
             if self.reported.get(run.run_id) == figures:
                 continue

@@ -91,6 +91,7 @@ class RunSender:
         self.last_append = time.monotonic()
         self.pulls: list[PullJob] = []
         self.local_only_entities: set[str] = set()  # entities the live rules kept on the robot
+        self.learned = False  # what is on the robot only was asked of the depot (reported after that)
         self.holder: str | None = None  # the depot process last said to hold the run's unsealed chunks
         self.handed = False  # that changed: what it was said to hold is asked about again
 
@@ -169,7 +170,8 @@ class RunSender:
         if not self.started:
             if not self.fresh:
                 self.sent_until = max(self.sent_until, self._size())  # what the last agent sent is unknown
-            await asyncio.to_thread(self._learn_run, self.sent_until)
+            kept = await asyncio.to_thread(self._learn_run, self.sent_until)
+            await self._learn_local_only(kept)
             self.started = True
         self.lanes = []
         if not self.settled:
@@ -204,20 +206,40 @@ class RunSender:
         finally:
             self.streaming = False
 
-    def _learn_run(self, passed: int) -> None:
-        """The run's store infos (sent first on every stream), and its chunks kept on the robot up to
-        `passed` (the lanes count those after it as they pass them)."""
+    def _learn_run(self, passed: int) -> list[HotEntry]:
+        """The run's store infos (sent first on every stream), and its chunks up to `passed` that the
+        live rules now in force would keep on the robot (the lanes count those after it as they pass)."""
+        self.store_infos, kept = self._scan(passed)
+        return kept
+
+    def _scan(self, passed: int) -> tuple[list[HotEntry], list[HotEntry]]:
+        """The run's store infos, and its chunks up to `passed` the current live rules keep."""
         tail = HotIndexTail(self._run().hot.path)
         size = self._size()
-        local_chunks = local_bytes = 0
+        infos: list[HotEntry] = []
+        kept: list[HotEntry] = []
         while entries := tail.read(size):
             for entry in entries:
                 if entry.kind == STORE_INFO:
-                    self.store_infos.append(entry)
+                    infos.append(entry)
                 elif entry.end <= passed and not self._forwarded(entry) and entry.meta is not None:
-                    local_chunks, local_bytes = local_chunks + 1, local_bytes + entry.length
-                    self.local_only_entities.add(entry.meta.entity_path)
-        self.state.local_only_chunks, self.state.local_only_bytes = local_chunks, local_bytes
+                    kept.append(entry)
+        return infos, kept
+
+    async def _learn_local_only(self, kept: list[HotEntry]) -> None:
+        """Which chunks are on the robot only: of those the current rules keep, the ones the depot
+        says it lacks. The rules may have been narrowed since an earlier agent sent them (a restart
+        with another --live-include): only the depot knows what it holds."""
+        self.local_only_entities = set()
+        local: list[HotEntry] = []
+        if kept:
+            held = await self.ctx.link.held(self.run_id, [e.meta.chunk_id for e in kept if e.meta is not None])
+            local = [e for e in kept if e.meta is not None and e.meta.chunk_id in held.missing]
+        self.state.local_only_chunks = len(local)
+        self.state.local_only_bytes = sum(e.length for e in local)
+        self.local_only_entities = {e.meta.entity_path for e in local if e.meta is not None}
+        self.learned = True
+        self.ctx.state.save_run(self.state)
 
     async def _settle_in_flight(self) -> None:
         """Ask the depot which chunks in [checked_until, sent_until) it lacks; queue those."""
@@ -315,7 +337,17 @@ class RunSender:
                 self.lanes.append(Lane(Priority.PULL, entries=deque(missing), on_sent=job.count, job=job))
             else:
                 self.pulls.remove(job)
+                await self._relearn_after_pull()
                 job.done.set()
+
+    async def _relearn_after_pull(self) -> None:
+        """A pull put chunks at the depot that were on the robot only: ask again what still is. Not
+        while a backfill is under way (it counts what it passes, and would count those twice);
+        the next start asks anyway."""
+        if self._backfill_pending() is not None:
+            return
+        _, kept = await asyncio.to_thread(self._scan, self.sent_until)
+        await self._learn_local_only(kept)
 
     def _has_work(self) -> bool:
         run = self._run()

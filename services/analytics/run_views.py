@@ -57,6 +57,7 @@ class RunViews:
     timelines: list[str] = field(default_factory=list)  # those the plots could use
     logs: list[LogLine] = field(default_factory=list)  # oldest first, the newest last
     log_timeline: str | None = None
+    log_type: str = "sequence"  # of log_timeline: how its values are written
     logs_total: int = 0
     note: str | None = None  # why something is missing
 
@@ -111,6 +112,8 @@ def _views(
         if order is None:
             order = next(iter(_timeline_columns(logs, timelines)), None)
         views.log_timeline = order
+        if order is not None:
+            views.log_type = "timestamp" if order == LOG_TIME else timelines.get(_timeline_of(order), "sequence")
         views.logs = _logs(logs, order)
     return views
 

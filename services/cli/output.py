@@ -1,5 +1,5 @@
 """Consoles for the CLI: tables never cut ids short when the output goes to a pipe or a file; byte
-transfers show one kind of progress bar, on stderr."""
+transfers show one kind of progress bar, on stderr; times written as the console writes them."""
 
 from __future__ import annotations
 
@@ -7,6 +7,10 @@ import sys
 
 from rich.console import Console
 from rich.progress import BarColumn, DownloadColumn, Progress, TransferSpeedColumn
+
+from core.timefmt import property_value, timeline_value, when
+
+__all__ = ["property_value", "stdout_console", "timeline_value", "transfer_progress", "when"]  # times: core.timefmt
 
 PIPE_WIDTH = 200
 
@@ -26,15 +30,3 @@ def transfer_progress(console: Console | None = None, *, disable: bool = False) 
         transient=True,
         disable=disable,
     )
-
-
-def when(iso: str | None) -> str:
-    """A time from the service (ISO-8601 UTC) to the second, as people read it; "-" for none."""
-    import datetime as dt
-
-    if not iso:
-        return "-"
-    try:
-        return dt.datetime.fromisoformat(iso).astimezone(dt.UTC).strftime("%Y-%m-%d %H:%M:%S UTC")
-    except ValueError:
-        return iso

@@ -21,7 +21,7 @@ from rich.table import Table
 
 from core.states import RestoreState, RunStatus, Tier
 from services.cli.client import Duration, api_option, client
-from services.cli.output import stdout_console, transfer_progress, when
+from services.cli.output import property_value, stdout_console, timeline_value, transfer_progress, when
 from services.cli.pulls import print_robot_side, runs_pull, runs_pulls
 
 
@@ -128,8 +128,10 @@ def runs_show(api_url: str, run_id: str, as_json: bool) -> None:
         f"last data {when(run.get('last_data_at'))}",
         markup=False,
     )
-    if run["properties"]:
-        console.print(f"properties: {json.dumps(run['properties'])}", markup=False)
+    for name, fields in sorted(run["properties"].items()):
+        values = fields.items() if isinstance(fields, dict) else [("", fields)]
+        shown = ", ".join(f"{key}={property_value(key, value)}" if key else str(value) for key, value in values)
+        console.print(f"property {name}: {shown}", markup=False)
     entities = Table("entity", "chunks", "rows", "bytes", "archetypes", box=None, padding=(0, 2))
     for e in run["entities"]:
         entities.add_row(
@@ -152,9 +154,7 @@ def runs_show(api_url: str, run_id: str, as_json: bool) -> None:
 def _timeline_value(timeline_type: str, value: int | None) -> str:
     """Timestamps as dates, durations in seconds, sequences as numbers: each in the form that
     `fleet view --start/--end` accepts for that timeline."""
-    from services.rrd.summary import format_time
-
-    return "-" if value is None else format_time(timeline_type, value)
+    return timeline_value(timeline_type, value)
 
 
 @runs.command("pin")

@@ -1,9 +1,11 @@
-"""How the console writes numbers, sizes and times (template filters)."""
+"""How the console writes numbers, sizes and times (template filters); times as the CLI writes
+them (core.timefmt)."""
 
 from __future__ import annotations
 
-import datetime as dt
 from typing import Any
+
+from core.timefmt import duration, property_value, span, timeline_value, when
 
 _UNITS = ("B", "KB", "MB", "GB", "TB", "PB")
 
@@ -25,46 +27,22 @@ def count(value: Any) -> str:
     return "-" if value is None else f"{int(value):,}"
 
 
-def when(value: Any) -> str:
-    """An ISO-8601 time (or datetime) as `2026-11-23 10:41:05 UTC`; as given if it does not parse."""
-    if value is None or value == "":
-        return "-"
-    if isinstance(value, dt.datetime):
-        moment = value
-    else:
-        try:
-            moment = dt.datetime.fromisoformat(str(value).replace("Z", "+00:00"))
-        except ValueError:
-            return str(value)
-    if moment.tzinfo is not None:
-        moment = moment.astimezone(dt.UTC)
-    return moment.strftime("%Y-%m-%d %H:%M:%S") + " UTC"
+def timepoint(value: Any, timeline_type: str | None) -> str:
+    """`{{ value|timepoint(type) }}`: a value on a timeline of that type (core.timefmt)."""
+    return timeline_value(timeline_type, value)
 
 
-def duration(seconds: Any) -> str:
-    """Seconds as `1 h 02 min`, `3 min 05 s` or `12.5 s`."""
-    if seconds is None:
-        return "-"
-    total = float(seconds)
-    if total < 60:
-        return f"{total:.1f} s"
-    minutes, secs = divmod(int(total), 60)
-    hours, minutes = divmod(minutes, 60)
-    if hours:
-        return f"{hours} h {minutes:02d} min"
-    return f"{minutes} min {secs:02d} s"
+def property_field(value: Any, field: str) -> str:
+    """`{{ value|property_field(field) }}`: a recording property's value (start_time as a date)."""
+    return property_value(field, value)
 
 
-def span(start: Any, end: Any) -> str:
-    """The length of a run from its ISO-8601 start and end."""
-    if not start or not end:
-        return "-"
-    try:
-        a = dt.datetime.fromisoformat(str(start).replace("Z", "+00:00"))
-        b = dt.datetime.fromisoformat(str(end).replace("Z", "+00:00"))
-    except ValueError:
-        return "-"
-    return duration((b - a).total_seconds())
-
-
-FILTERS = {"size": size, "count": count, "when": when, "duration": duration, "span": span}
+FILTERS = {
+    "size": size,
+    "count": count,
+    "when": when,
+    "duration": duration,
+    "span": span,
+    "timepoint": timepoint,
+    "property_field": property_field,
+}

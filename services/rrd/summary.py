@@ -2,11 +2,11 @@
 
 from __future__ import annotations
 
-import datetime as dt
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 from typing import Any
 
+from core.timefmt import timeline_value
 from services.rrd import errors
 from services.rrd.chunk import ChunkMeta, chunk_meta
 from services.rrd.layout import ChunkLayout
@@ -171,20 +171,8 @@ def _store_dict(store: StoreSummary) -> dict[str, Any]:
 
 
 def format_time(timeline_type: str, value: int) -> str:
-    """A timeline value as people read it: sequence numbers as is, timestamps in ISO-8601 UTC
-    with nanoseconds, durations in seconds."""
-    if timeline_type == "timestamp":
-        seconds, nanos = divmod(value, 1_000_000_000)
-        try:
-            stamp = dt.datetime.fromtimestamp(seconds, dt.UTC).strftime("%Y-%m-%dT%H:%M:%S")
-        except (OverflowError, OSError, ValueError):
-            return str(value)
-        return f"{stamp}.{nanos:09d}Z"
-    if timeline_type == "duration":
-        sign = "-" if value < 0 else ""
-        seconds, nanos = divmod(abs(value), 1_000_000_000)
-        return f"{sign}{seconds}.{nanos:09d}".rstrip("0").rstrip(".") + "s"
-    return str(value)
+    """A timeline value as people read it (the one formatter: core.timefmt)."""
+    return timeline_value(timeline_type, value)
 
 
 def summarize(events: Iterable[Event], source: str) -> RrdSummary:

@@ -6,6 +6,8 @@ from __future__ import annotations
 
 import ast
 import importlib
+import importlib.util
+import re
 from pathlib import Path
 from typing import Any
 
@@ -14,7 +16,7 @@ import yaml
 from pydantic import ValidationError
 
 from services.settings import load_settings
-from tests.deploy.deploy_files import K8S, PLACEHOLDER, known_names, run, venv_tool, yaml_documents
+from tests.deploy.deploy_files import DEPLOY, K8S, PLACEHOLDER, known_names, run, venv_tool, yaml_documents
 
 # The oldest Kubernetes these manifests are for, and the newest schemas the validator bundles.
 KUBERNETES_VERSIONS = ("1.29.0", None)
@@ -193,3 +195,67 @@ def test_kustomize_renders_them(tmp_path: Path) -> None:
     images = {c["image"] for spec in workloads for c in spec.get("initContainers", []) + spec["containers"]}
     assert images == {"registry.example.com/fleet-telemetry:0.1.0"}
     validate(rendered)
+
+
+def ingress_backends(name: str) -> list[tuple[str, dict[str, Any]]]:
+    """(host, backend service) of each path of the Ingress `name`."""
+    spec = objects()[("Ingress", name)]["spec"]
+    return [(rule["host"], path["backend"]["service"]) for rule in spec["rules"] for path in rule["http"]["paths"]]
+
+
+def service_port(name: str, ref: dict[str, Any]) -> dict[str, Any]:
+    """The port of Service `name` an Ingress backend refers to (by name or number)."""
+    for p in objects()[("Service", name)]["spec"]["ports"]:
+        if ref.get("name") == p["name"] or ref.get("number") == p["port"]:
+            found: dict[str, Any] = p
+            return found
+    raise AssertionError(f"Service {name} has no port {ref}")
+
+
+def test_an_ingress_routes_rest_and_another_grpc_h2c_to_the_service() -> None:
+    found = objects()
+    rest, grpc = found[("Ingress", "fleet")], found[("Ingress", "fleet-grpc")]
+    assert grpc["metadata"]["annotations"]["nginx.ingress.kubernetes.io/backend-protocol"] == "GRPC"
+    assert rest["metadata"]["annotations"].get("nginx.ingress.kubernetes.io/backend-protocol", "HTTP") == "HTTP"
+    values = settings()
+    for name, port_name, addr in (("fleet", "http", "FLEET_HTTP_ADDR"), ("fleet-grpc", "grpc", "FLEET_GRPC_ADDR")):
+        backends = ingress_backends(name)
+        assert backends, name
+        for _, backend in backends:
+            target = service_port(backend["name"], backend["port"])
+            assert target["name"] == port_name and target["port"] == port(values[addr]), (name, target)
+        spec = found[("Ingress", name)]["spec"]
+        assert spec["ingressClassName"] == "nginx"
+        tls_hosts = {h for t in spec["tls"] for h in t["hosts"]}
+        assert {host for host, _ in backends} <= tls_hosts, f"{name}: a host without TLS"
+    assert service_port("fleet", {"name": "grpc"})["appProtocol"] == "kubernetes.io/h2c"
+    # the links the depot hands out name the host the REST Ingress serves
+    public = values["FLEET_PUBLIC_URL"].split("://", 1)[1].split("/", 1)[0]
+    rest_hosts = {host for host, _ in ingress_backends("fleet")}
+    assert public in rest_hosts
+    assert rest_hosts.isdisjoint(host for host, _ in ingress_backends("fleet-grpc"))
+    # robots' streams last as long as their runs: no short proxy timeout cuts them
+    for name in ("fleet", "fleet-grpc"):
+        annotations = found[("Ingress", name)]["metadata"]["annotations"]
+        assert int(annotations["nginx.ingress.kubernetes.io/proxy-read-timeout"]) >= 3600
+        assert annotations["nginx.ingress.kubernetes.io/proxy-body-size"] == "0"
+
+
+def test_a_job_creates_the_buckets_with_the_script_the_image_holds() -> None:
+    (job,) = pod_spec("Job", "fleet-create-buckets")["containers"]
+    copied = re.search(r"^COPY deploy/create_buckets\.py (\S+)$", (DEPLOY / "Dockerfile").read_text(), re.M)
+    assert copied, "the image no longer holds create_buckets.py"
+    assert job["command"][:2] == ["python", copied.group(1)]
+    assert "--versioning" in job["command"]
+    assert job["envFrom"] == depot()["envFrom"]  # the nodes' store, region and credentials
+    # the script makes the buckets the nodes' settings name, and only those
+    values = settings()
+    assert len(_load_script().bucket_names(values["FLEET_WARM_URL"], values["FLEET_COLD_URL"])) == 2
+
+
+def _load_script() -> Any:
+    spec = importlib.util.spec_from_file_location("create_buckets", DEPLOY / "create_buckets.py")
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module

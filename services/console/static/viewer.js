@@ -11,6 +11,22 @@ function say(text) {
   }
 }
 
+// Viewer events that say the run is on screen: it opened the recording, or its time cursor moved
+// on the run's timelines (the first data shown). Anything else leaves the status as it was.
+const SHOWN = new Set(["recording_open", "timeline_change", "time_update"]);
+
+function runShown(message) {
+  let event = message;
+  if (typeof message === "string") {
+    try {
+      event = JSON.parse(message);
+    } catch {
+      return false;
+    }
+  }
+  return Boolean(event && SHOWN.has(event.type));
+}
+
 function model(values) {
   const handlers = {};
   return {
@@ -24,11 +40,18 @@ function model(values) {
     off: (event) => {
       delete handlers[event];
     },
-    // What the viewer tells the notebook ("ready", its events): shown as the page's status.
+    // What the viewer tells the notebook ("ready", then its events as JSON): shown as the page's status.
     send: (message) => {
       if (message === "ready") {
-        say("Viewer ready: loading the run…");
-        element.dataset.state = "ready";
+        if (element.dataset.state !== "loaded") {
+          say("Viewer ready: loading the run…");
+          element.dataset.state = "ready";
+        }
+        return;
+      }
+      if (runShown(message)) {
+        say("Run loaded.");
+        element.dataset.state = "loaded";
       }
     },
     save_changes: () => {},

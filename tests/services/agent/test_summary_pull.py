@@ -79,5 +79,16 @@ def test_summary_live_then_a_pulled_window(depot: LiveServer, link: Link, tmp_pa
         assert set(after) == summary | window
         assert depot.metric("fleet_ingest_chunks_duplicate_total") == 0
         assert depot_chunks(depot, "run-summary") == len(summary | window)
+        # the pulled window is at the depot now: no longer reported as on the robot only
+        left = len(chunks) - len(summary | window)
+        wait_for(
+            lambda: (
+                httpx.get(f"{depot.url}/v1/runs/run-summary", timeout=10).json()["robot_copy"]["local_only_chunks"]
+                == left
+            ),
+            60,
+            f"the agent to report {left} chunks on the robot only after the pull",
+        )
+        assert next(r for r in agent.status()["runs"] if r["run"] == "run-summary")["local_only_chunks"] == left
     finally:
         agent.stop()

@@ -15,6 +15,7 @@ import httpx
 import pytest
 from click.testing import CliRunner
 
+from core.timefmt import timeline_value
 from services.rrd import ArrowMessage, StoreKind, iter_events
 from services.rrd.chunk import chunk_meta
 from tests.services.ingest.live_server import FLEET, LiveServer
@@ -91,6 +92,9 @@ def test_runs_show_prints_times_as_people_read_them(server: LiveServer, recordin
     assert re.fullmatch(rf"{day}T\d\d:\d\d:\d\d\.\d{{9}}Z", rows["log_time"][1]), rows["log_time"]
     started = re.search(r"started (\S+ \S+ UTC)", out)
     assert started is not None and started.group(1).startswith(day), out
+    start_time = run["properties"]["recording"]["RecordingInfo:start_time"]  # epoch ns: a date, as in the console
+    assert f"RecordingInfo:start_time={timeline_value('timestamp', start_time)}" in out, out
+    assert str(start_time) not in out
 
 
 @pytest.mark.parametrize(

@@ -27,7 +27,7 @@ def rendered(chrome: webdriver.Chrome, tmp: Path) -> Path | None:
     """A picture of the viewer once it says it is ready and its canvas shows the run (many colours,
     much off the background: panels, the plot, the points; the loading screen has few), else None."""
     viewer = find(chrome, "#viewer")
-    if viewer.get_attribute("data-state") != "ready":
+    if viewer.get_attribute("data-state") not in ("ready", "loaded"):
         return None
     shot = tmp / "viewer-element.png"
     viewer.screenshot(str(shot))
@@ -47,6 +47,9 @@ def test_viewer_renders_a_sealed_run(chrome: webdriver.Chrome, console_depot: Co
     shot = wait_for(lambda: rendered(chrome, tmp_path), 120, "the web viewer to render the run")
     assert_not_blank(shot, min_colours=500, min_foreground=0.05)
     assert_not_blank(screenshot(chrome, "viewer"))
+    # the page's status follows the viewer: once the run is on screen it no longer says "loading"
+    wait_for(lambda: find(chrome, "#viewer").get_attribute("data-state") == "loaded", 60, "the status to say loaded")
+    assert "loading" not in text_of(chrome, "#viewer-status").lower()
     # Nothing the viewer needs is refused by the page's policy. The one refusal expected is its
     # check for a newer release on api.github.com, kept from calling out by connect-src 'self'.
     refused = [
