@@ -312,12 +312,14 @@ class IngestService:
                 self._named[id(meta.layout)] = meta.layout
         check_chunk(msg, meta)  # what Rerun refuses, and full validation of chunks whose values are read
         prop = None
-        if msg.store_id.kind == StoreKind.RECORDING and is_property_entity(meta.entity_path):
+        if is_property_entity(meta.entity_path):  # of any store kind: a blueprint's are stripped too
             prop = read_property_chunk(msg, meta, self.secret_fields)
-            if prop.name == IDENTITY_PROPERTY and ROBOT_FIELD in prop.values:
+            msg, meta = prop.message, prop.meta  # without its secret fields, if it had any
+            if msg.store_id.kind != StoreKind.RECORDING:
+                prop = None  # a blueprint's properties say nothing of the run
+            elif prop.name == IDENTITY_PROPERTY and ROBOT_FIELD in prop.values:
                 robot = check_id("robot id", str(prop.values[ROBOT_FIELD]))  # refused before anything is written
                 self._check_named_robot(source, run, robot)
-            msg, meta = prop.message, prop.meta  # without its secret fields, if it had any
         if run is None and (prop is not None or msg.store_id.kind == StoreKind.BLUEPRINT):
             self._hold(source, run_id, msg)  # a run starts with its data, not with properties or a layout
             return
