@@ -21,6 +21,7 @@ import pyarrow.parquet as pq
 from services.hot.read import read_events
 from services.rrd.chunk import ChunkMeta, chunk_meta
 from services.rrd.errors import InvalidChunkError
+from services.rrd.fieldmeta import component_name, rerun_key
 from services.rrd.messages import ArrowMessage, StoreKind
 from services.rrd.validate import validated_batch
 
@@ -174,15 +175,14 @@ def partition_key(table: str, robot_id: str, date: str, run_id: str) -> str:
 
 
 def _component(fld: pa.Field) -> str:
-    return str((fld.metadata or {}).get(b"rerun:component", fld.name.encode()).decode())
+    return component_name(fld)
 
 
 def _timelines(batch: pa.RecordBatch) -> dict[str, pa.Array]:
     out = {}
     for i, fld in enumerate(batch.schema):
-        md = fld.metadata or {}
-        if md.get(b"rerun:kind") == b"index":
-            out[md.get(b"rerun:index_name", fld.name.encode()).decode()] = batch.column(i)
+        if rerun_key(fld, "kind") == b"index":
+            out[rerun_key(fld, "index_name", fld.name.encode()).decode()] = batch.column(i)
     return out
 
 

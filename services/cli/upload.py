@@ -19,8 +19,9 @@ from services.cli.output import transfer_progress
 @api_option
 def upload(files: tuple[Path, ...], api_url: str) -> None:
     """Upload .rrd FILES. Chunks the service already holds (received live) are skipped, so
-    uploading the same file again is harmless. With auth on: a `write` token, or a robot's
-    `ingest` token for that robot's runs."""
+    uploading the same file again is harmless; a file that shares no chunk with a run that already
+    has data (rerun-sdk 0.23's second recording beside a live stream) is warned about. With auth
+    on: a `write` token, or a robot's `ingest` token for that robot's runs."""
     from sdk_client.rest import ServiceError
 
     console = Console(stderr=True)
@@ -54,6 +55,8 @@ def upload(files: tuple[Path, ...], api_url: str) -> None:
                 f"{path}: runs {', '.join(report['runs']) or '-'}: {report['chunks_new']} new chunks "
                 f"({report['bytes_new']:,} bytes), {report['chunks_duplicate']} already held"
             )
+            for warning in report.get("warnings", []):
+                progress.console.print(f"Warning: {path}: {warning}", style="yellow", markup=False, soft_wrap=True)
     if failed:
         raise SystemExit(1)
 

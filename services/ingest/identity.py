@@ -16,6 +16,7 @@ import pyarrow as pa
 
 from core.errors import PermissionDeniedError
 from services.rrd.chunk import ChunkMeta, chunk_meta, with_batch
+from services.rrd.fieldmeta import component_name, rerun_key
 from services.rrd.manifest import PROPERTIES_ENTITY, is_property_entity
 from services.rrd.messages import ArrowMessage
 from services.rrd.validate import validated_batch
@@ -143,7 +144,7 @@ def _is_token(fld: pa.Field) -> bool:
 
 
 def _is_data(fld: pa.Field) -> bool:
-    return (fld.metadata or {}).get(b"rerun:kind") in (b"data", b"component")
+    return rerun_key(fld, "kind") in (b"data", b"component")
 
 
 def _is_secret(fld: pa.Field, secret_fields: SecretFields) -> bool:
@@ -151,8 +152,7 @@ def _is_secret(fld: pa.Field, secret_fields: SecretFields) -> bool:
 
 
 def _component(fld: pa.Field) -> str:
-    name: bytes = (fld.metadata or {}).get(b"rerun:component", fld.name.encode())
-    return name.decode()
+    return component_name(fld)
 
 
 def _plain(value: Any) -> Any:

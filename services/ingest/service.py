@@ -183,6 +183,10 @@ class IngestService:
             self.totals[key] += getattr(source.report, key)
         if source.held:
             log.info("dropped %d held messages of runs that received no new chunk", len(source.held))
+        if not source.live:
+            source.report.warnings.extend(source.overlap_warnings())
+            for warning in source.report.warnings:
+                log.warning("upload: %s", warning)
         for run_id in source.routed:
             self.open_claims[run_id] -= 1
             if self.open_claims[run_id] <= 0:
@@ -295,15 +299,16 @@ class IngestService:
         if run_id is None:
             return
         run = self._hot_run(source, run_id)
+        held = self._held_before(source, run, run_id)
         if msg.chunk_id is not None and self._holds(source, run, run_id, msg.chunk_id):
-            source.report.chunks_duplicate += 1
-            source.report.bytes_duplicate += len(msg.raw)
+            self._duplicate(source, run_id, msg, held)
             return
         meta = chunk_meta(msg)
         if meta.chunk_id != msg.chunk_id and self._holds(source, run, run_id, meta.chunk_id):
-            source.report.chunks_duplicate += 1
-            source.report.bytes_duplicate += len(msg.raw)
+            self._duplicate(source, run_id, msg, held)
             return
+        if msg.store_id.kind == StoreKind.RECORDING:
+            source.count_chunk(run_id, held, duplicate=False)
         if self._named.get(id(meta.layout)) is not meta.layout:  # the names are the layout's
             check_chunk_names(meta)
             if len(meta.timelines) == len(meta.layout.indexes):  # all of them were checked
@@ -312,11 +317,13 @@ class IngestService:
                 self._named[id(meta.layout)] = meta.layout
         check_chunk(msg, meta)  # what Rerun refuses, and full validation of chunks whose values are read
         prop = None
-        if msg.store_id.kind == StoreKind.RECORDING and is_property_entity(meta.entity_path):
+        if is_property_entity(meta.entity_path):  # of any store kind: a blueprint's are stripped too
             prop = read_property_chunk(msg, meta, self.secret_fields)
-            if prop.name == IDENTITY_PROPERTY and ROBOT_FIELD in prop.values:
-                self._check_named_robot(source, run, str(prop.values[ROBOT_FIELD]))
             msg, meta = prop.message, prop.meta  # without its secret fields, if it had any
+            if msg.store_id.kind != StoreKind.RECORDING:
+                prop = None  # a blueprint's properties say nothing of the run
+            elif prop.name == IDENTITY_PROPERTY and ROBOT_FIELD in prop.values:
+                self._check_named_robot(source, run, str(prop.values[ROBOT_FIELD]))
         if run is None and (prop is not None or msg.store_id.kind == StoreKind.BLUEPRINT):
             self._hold(source, run_id, msg)  # a run starts with its data, not with properties or a layout
             return
@@ -391,6 +398,23 @@ class IngestService:
             f"a message for recording {recording_id!r} came before its SetStoreInfo "
             f"(at byte {getattr(msg, 'offset', 0)}): send the recording from its start"
         )
+
+    def _duplicate(self, source: Source, run_id: str, msg: ArrowMessage, held: Callable[[], bool]) -> None:
+        source.report.chunks_duplicate += 1
+        source.report.bytes_duplicate += len(msg.raw)
+        if msg.store_id.kind == StoreKind.RECORDING:
+            source.count_chunk(run_id, held, duplicate=True)
+
+    def _held_before(self, source: Source, run: IngestRun | None, run_id: str) -> Callable[[], bool]:
+        """Whether the run had chunks before `source` fed it (asked once, at its first chunk)."""
+
+        def held() -> bool:
+            if run_id in source.created:
+                return False
+            sealed = run.sealed_as if run is not None else self._sealed_info(source, run_id)
+            return bool(run is not None and run.chunk_ids) or bool(sealed is not None and sealed.chunk_ids)
+
+        return held
 
     def _holds(self, source: Source, run: IngestRun | None, run_id: str, chunk_id: bytes) -> bool:
         if run is not None:

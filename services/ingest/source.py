@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -24,6 +25,7 @@ class IngestReport:
     bytes_new: int = 0
     messages: int = 0
     catalog: str = "updated"  # "pending" when the catalog could not be written yet (the data is kept)
+    warnings: list[str] = field(default_factory=list)  # what the uploader should know (kept data is fine)
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -34,7 +36,23 @@ class IngestReport:
             "bytes_new": self.bytes_new,
             "messages": self.messages,
             "catalog": self.catalog,
+            "warnings": self.warnings,
         }
+
+
+@dataclass
+class RunOverlap:
+    """Of one run a source fed: whether the run held chunks before, and how many of the source's
+    recording chunks were new to it or already held."""
+
+    held_before: bool
+    new: int = 0
+    duplicate: int = 0
+
+    def disjoint(self) -> bool:
+        """Chunks added to a run that had data, none in common with it: most likely a second
+        recording of the same run (an SDK 0.23 file saved beside its live stream has other chunk ids)."""
+        return self.held_before and self.new > 0 and self.duplicate == 0
 
 
 @dataclass
@@ -59,3 +77,31 @@ class Source:
     leases: dict[str, Lease] = field(default_factory=dict)
     relay_to: Owner | None = None
     relayed_by: str | None = None
+    overlap: dict[str, RunOverlap] = field(default_factory=dict)  # per run: chunks in common with it
+
+    def count_chunk(self, run_id: str, held_before: Callable[[], bool], *, duplicate: bool) -> None:
+        """Count one recording chunk of `run_id` (`held_before`: asked at the run's first chunk)."""
+        overlap = self.overlap.get(run_id)
+        if overlap is None:
+            overlap = self.overlap[run_id] = RunOverlap(held_before())
+        if duplicate:
+            overlap.duplicate += 1
+        else:
+            overlap.new += 1
+
+    def overlap_warnings(self) -> list[str]:
+        """An upload that doubled a run: it shares no chunk with data the run already held."""
+        out = []
+        for run_id, overlap in self.overlap.items():
+            if not overlap.disjoint():
+                continue
+            info = self.store_infos.get((StoreKind.RECORDING, run_id))
+            version = info.sdk_version if info is not None else None
+            by = f" (written by rerun-sdk {version.major}.{version.minor})" if version is not None else ""
+            out.append(
+                f"run {run_id!r} already held data of this recording id, and none of this file's "
+                f"{overlap.new} chunks{by} were among it: the file is likely a second recording of the "
+                "same run (rerun-sdk 0.23 has no set_sinks, and a file it saves beside a live stream gets "
+                "other chunk ids), so the run now holds that data twice"
+            )
+        return out

@@ -16,6 +16,8 @@ from collections.abc import Iterable
 
 import pyarrow as pa
 
+from services.rrd.fieldmeta import rerun_key
+
 log = logging.getLogger(__name__)
 
 RESERVED_PREFIX = "__"  # entity path parts Rerun keeps to itself, sorted after every other
@@ -113,14 +115,14 @@ def _compare_optional(a: bytes | None, b: bytes | None) -> int:
 
 def _compare_components(f: pa.Field, g: pa.Field) -> int:
     m, n = f.metadata or {}, g.metadata or {}
-    found = compare_entity_paths(m.get(b"rerun:entity_path", b"/").decode(), n.get(b"rerun:entity_path", b"/").decode())
-    for key in (b"rerun:archetype", b"rerun:component", b"rerun:component_type"):
-        found = found or _compare_optional(m.get(key), n.get(key))
+    found = compare_entity_paths(rerun_key(m, "entity_path", b"/").decode(), rerun_key(n, "entity_path", b"/").decode())
+    for key in ("archetype", "component", "component_type"):
+        found = found or _compare_optional(rerun_key(m, key), rerun_key(n, key))
     return found
 
 
 def _kind(field: pa.Field) -> bytes | None:
-    return (field.metadata or {}).get(b"rerun:kind")
+    return rerun_key(field, "kind")
 
 
 def rerun_order(schema: pa.Schema) -> pa.Schema:

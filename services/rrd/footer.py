@@ -16,6 +16,7 @@ from google.protobuf.message import DecodeError
 
 from services.rrd import errors
 from services.rrd.decoder import iter_events
+from services.rrd.fieldmeta import component_name, rerun_key
 from services.rrd.frames import (
     FOOTER_ENTRY_SIZE,
     FOOTER_FIXED_SIZE,
@@ -139,31 +140,31 @@ def _add_manifest(summary: RrdSummary, manifest: log_msg_pb2.RrdManifest) -> Non
 
 def _add_columns(store: StoreSummary, schema: pa.Schema) -> None:
     for fld in schema:
-        md = fld.metadata or {}
-        if md.get(b"rerun:kind") != b"data" or b"rerun:entity_path" not in md:
+        entity_path = rerun_key(fld, "entity_path")
+        if rerun_key(fld, "kind") != b"data" or entity_path is None:
             continue
-        entity = store.entities.get(md[b"rerun:entity_path"].decode())
+        entity = store.entities.get(entity_path.decode())
         if entity is None:
             continue
-        entity.components.add(md.get(b"rerun:component", fld.name.encode()).decode())
-        if b"rerun:archetype" in md:
-            entity.archetypes.add(md[b"rerun:archetype"].decode())
+        entity.components.add(component_name(fld))
+        archetype = rerun_key(fld, "archetype")
+        if archetype is not None:
+            entity.archetypes.add(archetype.decode())
 
 
 def _add_timelines(store: StoreSummary, schema: pa.Schema, table: pa.Table) -> None:
     for fld in schema:
-        md = fld.metadata or {}
-        if md.get(b"rerun:kind") != b"index":
+        if rerun_key(fld, "kind") != b"index":
             continue
-        name = md.get(b"rerun:index_name", fld.name.encode()).decode()
+        name = rerun_key(fld, "index_name", fld.name.encode()).decode()
         type_name = timeline_type(fld.type)
         starts = [
             c
             for c in table.schema
             if c.name.endswith(":start")
             and c.metadata
-            and c.metadata.get(b"rerun:index") == name.encode()
-            and b"rerun:component" not in c.metadata
+            and rerun_key(c, "index") == name.encode()
+            and rerun_key(c, "component") is None
         ]
         if type_name is None or not starts:
             continue

@@ -20,6 +20,7 @@ import pyarrow as pa
 from services.rrd import conformance, errors, limits, untrusted
 from services.rrd.batch_plan import batch_plan
 from services.rrd.chunk import ChunkMeta, decompressed_size, read_chunk
+from services.rrd.fieldmeta import component_name, rerun_key
 from services.rrd.layout import ENTITY_PATH_KEY, split_ipc
 from services.rrd.lz4_prefix import PrefixTooShort
 from services.rrd.messages import ArrowMessage, Compression, chunk_id_str
@@ -117,8 +118,8 @@ def validated_batch(msg: ArrowMessage, meta: ChunkMeta | None = None, data: byte
 def _batch_problem(batch: pa.RecordBatch) -> str | None:
     for i, fld in enumerate(batch.schema):
         metadata = fld.metadata or {}
-        component = metadata.get(b"rerun:component", fld.name.encode()).decode()
-        component_type = metadata.get(b"rerun:component_type", b"").decode() or None
+        component = component_name(fld)
+        component_type = rerun_key(metadata, "component_type", b"").decode() or None
         problem = conformance.component_type_problem(component, fld.name, fld.type, component_type)
         if problem is not None:
             return problem

@@ -16,6 +16,7 @@ import pyarrow as pa
 import pyarrow.compute as pc
 
 from services.rrd.chunk import ChunkMeta, chunk_meta, with_batch
+from services.rrd.fieldmeta import rerun_key
 from services.rrd.messages import ArrowMessage
 from services.rrd.validate import validated_batch
 
@@ -36,8 +37,8 @@ def trim(
         (
             i
             for i, f in enumerate(batch.schema)
-            if (f.metadata or {}).get(b"rerun:index_name", f.name.encode()).decode() == timeline
-            and (f.metadata or {}).get(b"rerun:kind") in (b"index", b"time")
+            if rerun_key(f, "index_name", f.name.encode()).decode() == timeline
+            and rerun_key(f, "kind") in (b"index", b"time")
         ),
         None,
     )

@@ -3,6 +3,9 @@
     python robot.py stream GRPC_URL COPY_PATH RUN_ID   streams a short scene live, keeping a copy
     python robot.py save COPY_PATH RUN_ID              writes the scene to a file only (for upload)
 
+With FLEET_ROBOT and FLEET_TOKEN set, the scene starts with the `fleet` property naming the robot
+and carrying its token (how an unmodified SDK stream proves itself to a depot with auth on).
+
 Uses only API every SDK from 0.22 on has, choosing the sinks the SDK offers: `set_sinks`
 (GrpcSink + FileSink, 0.25 on), else a gRPC stream plus a second stream saved to the copy.
 Every log call is its own chunk (RERUN_FLUSH_NUM_ROWS=1, set by the test), so both copies of a
@@ -11,6 +14,7 @@ two-stream robot hold the same chunks.
 
 from __future__ import annotations
 
+import os
 import sys
 
 import numpy as np
@@ -20,6 +24,9 @@ APPLICATION_ID = "fleet_compat"
 
 
 def log_scene(rec: rr.RecordingStream) -> None:
+    if os.environ.get("FLEET_TOKEN"):  # first: a depot with auth on holds the stream until it comes
+        fleet = rr.AnyValues(robot_id=os.environ["FLEET_ROBOT"], token=os.environ["FLEET_TOKEN"])
+        rec.send_property("fleet", fleet)
     rec.log("/world/map", rr.Points3D([[0.0, 0.0, 0.0], [1.0, 1.0, 0.0]]), static=True)
     for i in range(5):
         rec.set_time("frame", sequence=i)

@@ -2,6 +2,10 @@
 depot serves equals the robot's copy and passes the newest `rerun rrd verify` (footers checked),
 while the run is hot and after it is sealed. rerun-sdk 0.22 is told to upgrade, on both paths.
 
+The depot runs with auth on: each robot has an ingest token of its own, sends it in its `fleet`
+property (the stream's only credential) and uploads with it; the token is in no served byte nor
+in the run's properties, for every SDK (0.23 writes `rerun.component`, not `rerun:component`).
+
 Each SDK runs from its own venv (tests/compat/sdk_venvs.py, cached outside the clone); the pinned
 SDK is this project's own. All robots run at once against one server, then the checks run at
 once, so the matrix costs about as much as its slowest SDK.
@@ -23,7 +27,10 @@ import pytest
 
 from services.ingest.grpc_handler import LEGACY_REFUSAL
 from tests.compat.sdk_venvs import LEGACY, MATRIX, PINNED, sdk_bin
+from tests.compat.stripped import stripped_copy
+from tests.services.ingest.authed import AuthedDepot
 from tests.services.ingest.live_server import LiveServer
+from tests.services.ingest.secrets_scan import places_holding
 
 pytestmark = [pytest.mark.sdk, pytest.mark.slow]
 
@@ -43,6 +50,7 @@ class Robot:
     version: str
     live_copy: Path
     upload_copy: Path
+    token: str = field(default="", repr=False)  # its ingest token, sent in its fleet property
     upload_answer: dict[str, Any] = field(default_factory=dict)
     error: str | None = None  # what went wrong on the robot's side (the matrix goes on for others)
 
@@ -54,6 +62,10 @@ class Robot:
     def upload_run(self) -> str:
         return f"upload-{self.version}"
 
+    @property
+    def robot_id(self) -> str:
+        return f"robot-{self.version.replace('.', '-')}"
+
 
 def _run(cmd: list[str], **kwargs: Any) -> subprocess.CompletedProcess[str]:
     return subprocess.run(cmd, capture_output=True, text=True, timeout=300, check=False, **kwargs)
@@ -61,25 +73,44 @@ def _run(cmd: list[str], **kwargs: Any) -> subprocess.CompletedProcess[str]:
 
 @pytest.fixture(scope="module")
 def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[LiveServer]:
-    live = LiveServer(tmp_path_factory.mktemp("compat") / "data", scheduler="false", promote_after_s="0").start()
+    data = tmp_path_factory.mktemp("compat") / "data"
+    live = LiveServer(data, scheduler="false", promote_after_s="0", auth="on").start()
     yield live
     live.stop()
 
 
 @pytest.fixture(scope="module")
-def robots(server: LiveServer, tmp_path_factory: pytest.TempPathFactory) -> dict[str, Robot]:
-    """Every SDK streams a run and uploads another, all at once."""
+def depot(server: LiveServer) -> AuthedDepot:
+    return AuthedDepot(server)
+
+
+@pytest.fixture(scope="module")
+def reader(depot: AuthedDepot) -> dict[str, str]:
+    """A read token's header: what anyone allowed to look at runs has."""
+    return depot.bearer(depot.token("read").token)
+
+
+@pytest.fixture(scope="module")
+def robots(server: LiveServer, depot: AuthedDepot, tmp_path_factory: pytest.TempPathFactory) -> dict[str, Robot]:
+    """Every SDK streams a run and uploads another, all at once, each with its robot's ingest token."""
     work = tmp_path_factory.mktemp("robots")
 
     def drive(version: str) -> Robot:
         robot = Robot(version, work / f"live-{version}.rrd", work / f"upload-{version}.rrd")
+        robot.token = depot.token("ingest", robot=robot.robot_id).token
+        env = {**ROBOT_ENV, "FLEET_ROBOT": robot.robot_id, "FLEET_TOKEN": robot.token}
         python = sdk_python(version)
-        streamed = _run([python, ROBOT, "stream", server.grpc_url, str(robot.live_copy), robot.live_run], env=ROBOT_ENV)
-        saved = _run([python, ROBOT, "save", str(robot.upload_copy), robot.upload_run], env=ROBOT_ENV)
+        streamed = _run([python, ROBOT, "stream", server.grpc_url, str(robot.live_copy), robot.live_run], env=env)
+        saved = _run([python, ROBOT, "save", str(robot.upload_copy), robot.upload_run], env=env)
         if streamed.returncode != 0 or saved.returncode != 0:
             robot.error = f"the robot failed: {streamed.stderr[-2000:]}{saved.stderr[-2000:]}"
             return robot
-        answer = httpx.post(f"{server.url}/v1/uploads", content=robot.upload_copy.read_bytes(), timeout=120)
+        answer = httpx.post(
+            f"{server.url}/v1/uploads",
+            content=robot.upload_copy.read_bytes(),
+            headers=depot.bearer(robot.token),
+            timeout=120,
+        )
         robot.upload_answer = answer.json()
         if answer.status_code != 200:
             robot.error = f"upload refused: {answer.text}"
@@ -96,7 +127,8 @@ def robots(server: LiveServer, tmp_path_factory: pytest.TempPathFactory) -> dict
 
 
 def _run_json(server: LiveServer, run_id: str) -> dict[str, Any]:
-    answer = httpx.get(f"{server.url}/v1/runs/{run_id}", timeout=10)
+    """The run as GET /v1/runs/RUN shows it to an admin ({} if there is none)."""
+    answer = httpx.get(f"{server.url}/v1/runs/{run_id}", headers=server.headers, timeout=10)
     return answer.json() if answer.status_code == 200 else {}  # type: ignore[no-any-return]
 
 
@@ -114,6 +146,7 @@ def _serve_and_check(
     robots: dict[str, Robot],
     rerun_bin: str,
     out: Path,
+    reader: dict[str, str],
 ) -> dict[tuple[str, str], Served]:
     jobs = [
         (r, run_id, copy)
@@ -126,7 +159,7 @@ def _serve_and_check(
         robot, run_id, copy = job
         path = out / f"{run_id}.rrd"
         with (
-            httpx.stream("GET", f"{server.url}/v1/runs/{run_id}/recording.rrd", timeout=120) as answer,
+            httpx.stream("GET", f"{server.url}/v1/runs/{run_id}/recording.rrd", headers=reader, timeout=120) as answer,
             open(path, "wb") as fh,
         ):
             if answer.status_code != 200:
@@ -135,7 +168,8 @@ def _serve_and_check(
                 for piece in answer.iter_bytes():
                     fh.write(piece)
         verify = _run([rerun_bin, "rrd", "verify", "--check-footers", "true", str(path)])
-        compare = _run([rerun_bin, "rrd", "compare", "--unordered", str(copy), str(path)])
+        expected = stripped_copy(copy, out / f"{run_id}.expected.rrd")  # the depot strips the fleet token
+        compare = _run([rerun_bin, "rrd", "compare", "--unordered", str(expected), str(path)])
         return (robot.version, run_id.split("-")[0]), Served(path, verify, compare)
 
     with ThreadPoolExecutor(max_workers=4) as pool:
@@ -144,9 +178,13 @@ def _serve_and_check(
 
 @pytest.fixture(scope="module")
 def hot(
-    server: LiveServer, robots: dict[str, Robot], rerun_bin: str, tmp_path_factory: pytest.TempPathFactory
+    server: LiveServer,
+    robots: dict[str, Robot],
+    rerun_bin: str,
+    reader: dict[str, str],
+    tmp_path_factory: pytest.TempPathFactory,
 ) -> dict[tuple[str, str], Served]:
-    return _serve_and_check(server, robots, rerun_bin, tmp_path_factory.mktemp("hot"))
+    return _serve_and_check(server, robots, rerun_bin, tmp_path_factory.mktemp("hot"), reader)
 
 
 @pytest.fixture(scope="module")
@@ -155,15 +193,18 @@ def sealed(
     robots: dict[str, Robot],
     hot: dict[tuple[str, str], Served],
     rerun_bin: str,
+    reader: dict[str, str],
     tmp_path_factory: pytest.TempPathFactory,
 ) -> dict[tuple[str, str], Served]:
     """After every run was promoted to the warm tier (sealed: one file with a footer)."""
-    answer = httpx.post(f"{server.url}/v1/retention/run", params={"action": "promote"}, timeout=600)
+    answer = httpx.post(
+        f"{server.url}/v1/retention/run", params={"action": "promote"}, headers=server.headers, timeout=600
+    )
     assert answer.status_code == 200, answer.text
     for robot in robots.values():
         for run_id in (robot.live_run, robot.upload_run):
             assert robot.error is not None or _run_json(server, run_id)["tier"] == "warm", answer.text
-    return _serve_and_check(server, robots, rerun_bin, tmp_path_factory.mktemp("sealed"))
+    return _serve_and_check(server, robots, rerun_bin, tmp_path_factory.mktemp("sealed"), reader)
 
 
 @pytest.mark.parametrize("version", VERSIONS)
@@ -177,6 +218,27 @@ def test_every_sdk_streams_and_uploads(version: str, server: LiveServer, robots:
         assert run["application_id"] == "fleet_compat", run
         assert run["sdk_version"] == version and run["status"] == "closed"
         assert {e["path"] for e in run["entities"]} >= {"/world/robot", "/world/robot/lidar", "/robot/battery"}
+        assert run["robot_id"] == robot.robot_id, run
+
+
+@pytest.mark.parametrize("tier", ["hot", "sealed"])
+@pytest.mark.parametrize("path", ["live", "upload"])
+@pytest.mark.parametrize("version", VERSIONS)
+def test_the_robot_token_is_never_served(
+    version: str, path: str, tier: str, server: LiveServer, reader: dict[str, str], request: pytest.FixtureRequest
+):
+    """The token a robot sent in its fleet property is in neither the download's bytes (compressed
+    or not) nor the run's properties; the rest of the property is kept."""
+    robot: Robot = request.getfixturevalue("robots")[version]
+    assert robot.error is None, robot.error
+    assert places_holding([robot.live_copy], [robot.token], open_catalogs=False)  # the robot did log it
+    served: Served = request.getfixturevalue(tier)[(version, path)]
+    assert places_holding([served.path], [robot.token], open_catalogs=False) == []
+    run_id = robot.live_run if path == "live" else robot.upload_run
+    answer = httpx.get(f"{server.url}/v1/runs/{run_id}", headers=reader, timeout=10)
+    assert answer.status_code == 200 and robot.token not in answer.text
+    assert robot.token.rsplit(".", 1)[1] not in answer.text  # not even its signature
+    assert answer.json()["properties"]["fleet"] == {"robot_id": robot.robot_id}
 
 
 @pytest.mark.parametrize("tier", ["hot", "sealed"])
@@ -217,7 +279,10 @@ def test_sdk_0_22_upload_is_told_to_upgrade(server: LiveServer, tmp_path: Path):
     copy = tmp_path / "legacy.rrd"
     saved = _run([str(sdk_bin(LEGACY, "python")), "-c", LEGACY_SAVE, str(copy)])
     assert saved.returncode == 0, saved.stderr
-    answer = httpx.post(f"{server.url}/v1/uploads", content=copy.read_bytes(), timeout=60)
+    writer = AuthedDepot(server).token("write").token
+    answer = httpx.post(
+        f"{server.url}/v1/uploads", content=copy.read_bytes(), headers=AuthedDepot.bearer(writer), timeout=60
+    )
     assert answer.status_code == 400, answer.text
     assert answer.json()["code"] == "UNSUPPORTED_RRD_VERSION"
     message = answer.json()["message"]
