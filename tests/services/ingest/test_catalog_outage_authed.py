@@ -11,6 +11,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import grpc
+import httpx
 import pytest
 from sqlalchemy.engine import make_url
 
@@ -19,6 +20,7 @@ from tests.postgres import temporary_database
 from tests.services.ingest.authed import AuthedDepot
 from tests.services.ingest.live_server import LiveServer
 from tests.services.ingest.test_sdk_tokens import LAST_FRAME, run_robot
+from tests.services.retention.conftest import log_run
 from tests.tcp_proxy import FORWARD, HANG, REFUSE, TcpProxy, tcp_proxy
 
 pytestmark = [pytest.mark.postgres, pytest.mark.sdk]
@@ -49,6 +51,37 @@ def checked(live: LiveServer, token: str) -> tuple[grpc.StatusCode, float]:
     started = time.monotonic()
     status, _ = live.write_messages([], timeout=30, token=token)
     return status, time.monotonic() - started
+
+
+def uploaded(depot: AuthedDepot, body: bytes, token: str) -> tuple[httpx.Response, float]:
+    started = time.monotonic()
+    answer = httpx.post(f"{depot.live.url}/v1/uploads", content=body, headers=depot.bearer(token), timeout=60)
+    return answer, time.monotonic() - started
+
+
+def test_uploads_go_on_with_auth_on_while_the_catalog_is_down_or_hung(
+    outage: tuple[AuthedDepot, TcpProxy], tmp_path: Path
+):
+    depot, proxy = outage
+    robot = depot.token("ingest", robot="robot-up")
+    unconfirmed = depot.token("ingest", robot="robot-new")
+    bodies = {n: log_run(tmp_path / f"{n}.rrd", n, frames=5, robot="robot-up").read_bytes() for n in ("a", "b", "c")}
+    assert uploaded(depot, bodies["a"], robot.token)[0].json()["catalog"] == "updated"
+
+    proxy.set_mode(REFUSE)
+    answer, _ = uploaded(depot, bodies["b"], robot.token)
+    assert answer.status_code == 200, answer.text  # kept; the catalog learns of it once it answers
+    answer, _ = uploaded(depot, bodies["c"], unconfirmed.token)
+    assert answer.status_code == 503 and answer.json()["code"] == "UNAVAILABLE", answer.text
+
+    proxy.set_mode(HANG)
+    answer, took = uploaded(depot, bodies["c"], robot.token)
+    # the documented deadline: the catalog's part of an upload answer waits 10 s, a token check WAIT_S
+    assert answer.status_code == 200 and took < 10 + WAIT_S + 3, (answer.text, took)
+
+    proxy.set_mode(FORWARD)
+    for run_id in ("b", "c"):
+        assert depot.wait_for_run(run_id)["robot_id"] == "robot-up"
 
 
 def test_sdk_streams_go_on_with_auth_on_while_the_catalog_is_down_or_hung(outage: tuple[AuthedDepot, TcpProxy]):
