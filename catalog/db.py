@@ -8,6 +8,7 @@ to start with one line naming the command.
 from __future__ import annotations
 
 import importlib.util
+import math
 import re
 import sys
 import threading
@@ -34,7 +35,10 @@ class DuckDBImpl(DefaultImpl):
     transactional_ddl = True
 
 
-def create_engine(url: str) -> sa.Engine:
+CONNECT_TIMEOUT_S = 5  # libpq's connect_timeout: a catalog host that does not answer fails this fast
+
+
+def create_engine(url: str, timeout_s: float | None = None) -> sa.Engine:
     """An engine for `duckdb:///PATH` (embedded) or `postgresql+psycopg://...`."""
     if url.startswith("duckdb:///"):
         Path(url.removeprefix("duckdb:///")).parent.mkdir(parents=True, exist_ok=True)
@@ -50,8 +54,20 @@ def create_engine(url: str) -> sa.Engine:
         sa.event.listen(engine, "handle_error", _embedded_catalog_locked)
         return engine
     if url.startswith("postgresql"):
-        return sa.create_engine(url, pool_pre_ping=True)
+        return _postgres_engine(url, timeout_s)
     raise UnavailableError(f"unsupported catalog URL {url!r}: use duckdb:///PATH or postgresql+psycopg://USER@HOST/DB")
+
+
+def _postgres_engine(url: str, timeout_s: float | None) -> sa.Engine:
+    """With `timeout_s` (FLEET_CATALOG_TIMEOUT_S), every call has a deadline: the connect, the wait
+    for a pooled connection, and each statement (Postgres cancels it: an OperationalError, answered
+    UNAVAILABLE). Without (migrations), only the connect has one."""
+    connect_args: dict[str, object] = {"connect_timeout": CONNECT_TIMEOUT_S}
+    if timeout_s is None:
+        return sa.create_engine(url, pool_pre_ping=True, connect_args=connect_args)
+    connect_args["connect_timeout"] = max(1, min(CONNECT_TIMEOUT_S, math.ceil(timeout_s)))
+    connect_args["options"] = f"-c statement_timeout={int(timeout_s * 1000)}"
+    return sa.create_engine(url, pool_pre_ping=True, pool_timeout=timeout_s, connect_args=connect_args)
 
 
 class _NoPandas:

@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import enum
 
+import sqlalchemy.exc as sa_exc
+
 
 class ErrorCode(enum.Enum):
     INVALID_ARGUMENT = "INVALID_ARGUMENT"
@@ -172,6 +174,27 @@ class PermissionDeniedError(FleetError):
 
 class UnavailableError(FleetError):
     code = ErrorCode.UNAVAILABLE
+
+
+# Errors of the catalog database itself (down, restarting, overloaded, past its statement or
+# connect deadline: Postgres' QueryCanceled is an OperationalError), as opposed to a record it
+# refuses. Not the caller's mistake nor a fault of the depot: UNAVAILABLE on every surface.
+CATALOG_DOWN = (sa_exc.OperationalError, sa_exc.InterfaceError, sa_exc.TimeoutError)
+
+
+class CatalogUnavailableError(UnavailableError):
+    def __init__(self, message: str = "the catalog database is unavailable right now: retry in a moment") -> None:
+        super().__init__(message)
+
+
+def as_fleet_error(exc: BaseException) -> FleetError | None:
+    """What a user is told of `exc`: itself if it is one of ours, UNAVAILABLE for a catalog that did
+    not answer, None for anything else (a fault of the depot, answered INTERNAL)."""
+    if isinstance(exc, FleetError):
+        return exc
+    if isinstance(exc, CATALOG_DOWN):
+        return CatalogUnavailableError()
+    return None
 
 
 class UnimplementedError(FleetError):

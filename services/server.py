@@ -84,7 +84,7 @@ def build(settings: Settings, peer_addr: str | None = None) -> tuple[IngestServi
         interval_ms=settings.group_commit_ms,
         min_free_bytes=settings.min_free_bytes,
     )
-    catalog = sessionmaker(create_engine(settings.catalog_url))
+    catalog = sessionmaker(create_engine(settings.catalog_url, settings.catalog_timeout_s))
     tiers = open_tiers(settings)
     replay = ReplayHub(settings.replay_bytes) if settings.replay_bytes else None
     ownership = Ownership(catalog, node_id(settings), peer_addr, settings.lease_s, __version__) if peer_addr else None

@@ -71,6 +71,9 @@ class Settings(BaseSettings):
     catalog_url: str = Field(
         "", description="duckdb:///PATH or postgresql+psycopg://... (default: DuckDB file in the data dir)"
     )
+    catalog_timeout_s: float = Field(
+        10.0, gt=0, description="Postgres catalog: statement timeout and pool wait of every call (connect: 5 s at most)"
+    )
     warm_url: str = Field("", description="file:///PATH or s3://bucket/prefix (default: data dir/warm)")
     cold_url: str = Field("", description="file:///PATH or s3://bucket/prefix (default: data dir/cold)")
     s3_endpoint_url: str | None = Field(None, description="S3-compatible endpoint; credentials from AWS_*")
@@ -184,6 +187,12 @@ class Settings(BaseSettings):
     )
     auth_cache_s: float = Field(
         5.0, ge=0, description="a token's revocation is seen by every node within this many seconds"
+    )
+    auth_stale_s: float = Field(
+        600.0,
+        ge=0,
+        description="while the catalog does not answer, a token it confirmed within this many seconds is "
+        "still accepted (a revocation made meanwhile takes effect within it); others are refused 503",
     )
     cors_origins: Annotated[list[str], NoDecode] = Field(
         default_factory=list,

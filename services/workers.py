@@ -117,7 +117,7 @@ class Supervisor:
     def _signing_key(self) -> SecretStr:
         """The key every worker signs and checks tokens with; the first admin token made once, here."""
         key = SecretStr(load_signing_keys(self.settings).current.secret.decode())
-        engine = create_engine(self.settings.catalog_url)
+        engine = create_engine(self.settings.catalog_url, self.settings.catalog_timeout_s)
         try:
             auth = open_auth(self.settings.model_copy(update={"auth_key": key}), sessionmaker(engine))
             announce_admin(ensure_admin_token(auth, self.settings.data_dir), self.settings.data_dir)

@@ -7,14 +7,13 @@ import os
 from pathlib import Path
 from typing import Annotated
 
-import sqlalchemy as sa
 from fastapi import Depends, FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse, Response
 from fastapi_offline import FastAPIOffline
 
 from core.clock import utcnow
-from core.errors import ErrorCode, FleetError, http_status
+from core.errors import CATALOG_DOWN, CatalogUnavailableError, ErrorCode, FleetError, http_status
 from core.ids import check_path_id
 from services import __version__
 from services.analytics import queries_rest
@@ -107,18 +106,13 @@ def create_app(
     async def _fleet_error(_: Request, exc: FleetError) -> JSONResponse:
         return JSONResponse(exc.to_dict(), status_code=exc.http_status(), headers=exc.headers())
 
-    @app.exception_handler(sa.exc.OperationalError)
-    @app.exception_handler(sa.exc.InterfaceError)
-    @app.exception_handler(sa.exc.TimeoutError)
-    async def _catalog_down(_: Request, exc: Exception) -> JSONResponse:
-        # The database did not answer (down, restarting, overloaded): not the caller's mistake.
-        return JSONResponse(
-            {
-                "code": ErrorCode.UNAVAILABLE.value,
-                "message": "the catalog database is unavailable right now: retry in a moment",
-            },
-            status_code=http_status(ErrorCode.UNAVAILABLE),
-        )
+    for catalog_down in CATALOG_DOWN:
+
+        @app.exception_handler(catalog_down)
+        async def _catalog_down(_: Request, exc: Exception) -> JSONResponse:
+            # The database did not answer (down, restarting, overloaded): not the caller's mistake.
+            error = CatalogUnavailableError()
+            return JSONResponse(error.to_dict(), status_code=error.http_status())
 
     @app.get("/healthz")
     async def healthz() -> dict[str, str]:

@@ -17,7 +17,7 @@ from collections.abc import AsyncGenerator, AsyncIterator
 import sqlalchemy as sa
 
 from core.clock import iso_utc
-from core.errors import UnauthenticatedError
+from core.errors import UnauthenticatedError, UnavailableError
 from services.auth.scopes import Principal
 from services.auth.tokens import EXPIRED, REVOKED, Auth
 
@@ -81,7 +81,7 @@ class GrantWatch:
         self._checked_at = time.monotonic()
         try:
             return await asyncio.to_thread(grant_ended, self.auth, self.principal, self.surface)
-        except sa.exc.SQLAlchemyError as exc:
+        except (sa.exc.SQLAlchemyError, UnavailableError) as exc:
             log.warning("could not check token %s of a stream (%s): it goes on", self.principal.token_id, exc)
             return None
 

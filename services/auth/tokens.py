@@ -13,7 +13,6 @@ import datetime as dt
 import logging
 import socket
 import threading
-import time
 import uuid
 from collections import Counter
 from collections.abc import Callable, Iterable
@@ -30,6 +29,7 @@ from core.ids import check_id
 from services.auth import links
 from services.auth.keys import SigningKeys
 from services.auth.scopes import Principal, Scope, local_principal, parse_scopes
+from services.auth.token_cache import TokenCache
 
 log = logging.getLogger(__name__)
 
@@ -70,6 +70,7 @@ class Auth:
         catalog: sessionmaker[Session] | None,
         public_hosts: list[str] | None = None,
         cache_s: float = 5.0,
+        stale_s: float = 600.0,
         clock: Callable[[], dt.datetime] = utcnow,
     ) -> None:
         if enabled and (keys is None or catalog is None):
@@ -81,7 +82,7 @@ class Auth:
         self.cache_s = cache_s
         self.clock = clock
         self.failures: Counter[tuple[str, str]] = Counter()  # (surface, reason) -> refusals
-        self._known: dict[str, tuple[float, TokenRecord | None]] = {}  # token id -> (checked at, record)
+        self._known = TokenCache(self._catalog_record, fresh_s=cache_s, stale_s=stale_s)
         self._lock = threading.Lock()
 
     # --- checking ---------------------------------------------------------------------------
@@ -196,20 +197,18 @@ class Auth:
         return claims
 
     def standing(self, token_id: str) -> TokenRecord | None:
-        """A token's catalog record (revoked or not), asked of the catalog at most every `cache_s`;
-        None if the catalog does not list it. Call off the event loop."""
+        """A token's catalog record (revoked or not), asked of the catalog at most every `cache_s`
+        (`TokenCache`: within `stale_s` while it does not answer); None if the catalog does not list
+        it. Call off the event loop."""
         return self._record(token_id)
 
     def _record(self, token_id: str) -> TokenRecord | None:
-        now = time.monotonic()
-        known = self._known.get(token_id)
-        if known is not None and now - known[0] < self.cache_s:
-            return known[1]
+        return self._known.get(token_id)
+
+    def _catalog_record(self, token_id: str) -> TokenRecord | None:
         assert self.catalog is not None
         with session_scope(self.catalog) as session:
-            record = token_record(session, token_id)
-        self._known[token_id] = (now, record)
-        return record
+            return token_record(session, token_id)
 
     # --- issuing, listing, revoking -----------------------------------------------------------
 
@@ -303,7 +302,7 @@ class Auth:
             raise InvalidArgumentError("auth is off on this depot (FLEET_AUTH=off): it has no tokens")
         with session_scope(self.catalog, write=True) as session:
             record = revoke_token(session, token_id, self.clock(), actor)
-        self._known.pop(token_id, None)  # this node sees it at once; others within cache_s
+        self._known.forget(token_id)  # this node sees it at once; others within cache_s
         log.info("token %s revoked by %s", token_id, actor)
         return record
 

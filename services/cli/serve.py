@@ -196,7 +196,7 @@ def _serve(settings: Settings, ports: tuple[socket.socket, socket.socket], auth_
         # This engine (and its pooled connection) lives as long as the service: an embedded catalog's
         # file lock is then held from the start, not from the first write an idle service may not make
         # for a while, so `fleet db upgrade` or another `fleet serve` on that file is refused at once.
-        engine = create_engine(settings.catalog_url)
+        engine = create_engine(settings.catalog_url, settings.catalog_timeout_s)
         try:
             done = prepare_for_service(engine)  # a catalog that is behind: one line naming `fleet db upgrade`
             if not is_embedded(engine):

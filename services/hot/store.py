@@ -123,6 +123,10 @@ class HotRun:
         self.dirty = False
         self.closed = False
         self.uncached = 0  # the page cache was told to drop the bytes before this offset
+        # Syncs run on worker threads (durability=always, group commit) while the loop appends: a
+        # caller returns only once the bytes it wrote are on disk, even if another sync cleared
+        # `dirty` first, and the file is never closed under a sync.
+        self._sync_lock = threading.Lock()
         self.changes = Changes()  # followers wait on it: the file grew, or the run ended
 
     @property
@@ -190,11 +194,12 @@ class HotRun:
         return offset
 
     def sync(self) -> None:
-        if self.dirty:
-            self.dirty = False
-            synced = self.size  # read before the fsync: every byte below it is on disk after it
-            os.fsync(self._fd)
-            self._uncache(synced - CACHED_TAIL)
+        with self._sync_lock:
+            if self.dirty and not self.closed:
+                self.dirty = False
+                synced = self.size  # read before the fsync: every byte below it is on disk after it
+                os.fsync(self._fd)
+                self._uncache(synced - CACHED_TAIL)
 
     def _uncache(self, end: int) -> None:
         """Drop the run file's cached pages below `end` (on disk already), a CACHED_TAIL at a time."""
@@ -209,8 +214,9 @@ class HotRun:
     def close(self) -> None:
         if not self.closed:
             self.sync()
-            self.closed = True
-            os.close(self._fd)
+            with self._sync_lock:
+                self.closed = True
+                os.close(self._fd)
             if self.index is not None:
                 self.index.close()
             self.changes.notify()

@@ -9,19 +9,17 @@ import logging
 import threading
 from collections.abc import Callable
 
-import sqlalchemy as sa
 from sqlalchemy.orm import Session, sessionmaker
 
 from catalog import queries
 from catalog.db import session_scope
 from catalog.queries import RunRecord
+from core.errors import CATALOG_DOWN
 from services.ingest.facts import IngestRun
 
 log = logging.getLogger("services.ingest.service")
 
 BACKOFF_MAX = dt.timedelta(minutes=5)
-# Errors of the catalog itself (unreachable, overloaded), as opposed to a record it refuses.
-CATALOG_DOWN = (sa.exc.OperationalError, sa.exc.InterfaceError, sa.exc.TimeoutError)
 
 
 class CatalogSync:

@@ -95,7 +95,7 @@ class MessageProxy:
             await self.service.remove_dropped()  # a run the refusal dropped is gone once it is answered
             await refuse(context, exc, relayed_by)
         finally:
-            report = self.service.close_source(source)
+            report = await self.service.end_source(source)
         if relayed_by is not None:
             context.set_trailing_metadata(((REPORT, json.dumps(report.to_dict())),))
         return sdk_comms_pb2.WriteMessagesResponse()

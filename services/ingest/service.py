@@ -175,8 +175,22 @@ class IngestService:
             self.live_streams += 1
         return Source(live=live, robot=robot)
 
-    def close_source(self, source: Source) -> IngestReport:
-        """End of a stream or upload: its runs are closed unless another stream still feeds them."""
+    async def end_source(self, source: Source) -> IngestReport:
+        """`close_source` for a caller on the event loop: the fsync durability=always asks for runs
+        on a worker thread (a disk that takes a second to sync stalls no other stream). Its runs stay
+        open meanwhile, so nothing seals them under the sync; cancelled, the source still closes."""
+        try:
+            await asyncio.to_thread(self.hot.sync_if_always, [r.hot for r in self._attached_runs(source)])
+        finally:
+            report = self.close_source(source, synced=True)
+        return report
+
+    def _attached_runs(self, source: Source) -> list[IngestRun]:
+        return [self.runs[r] for r in source.attached if r in self.runs]
+
+    def close_source(self, source: Source, *, synced: bool = False) -> IngestReport:
+        """End of a stream or upload: its runs are closed unless another stream still feeds them.
+        Blocks on fsync with durability=always unless `synced` (on the event loop: `end_source`)."""
         if source.live:
             self.live_streams -= 1
         for key in self.totals:
@@ -191,8 +205,9 @@ class IngestService:
             self.open_claims[run_id] -= 1
             if self.open_claims[run_id] <= 0:
                 del self.open_claims[run_id]
-        runs = [self.runs[r] for r in source.attached if r in self.runs]
-        self.hot.sync_if_always([r.hot for r in runs])
+        runs = self._attached_runs(source)
+        if not synced:
+            self.hot.sync_if_always([r.hot for r in runs])
         now = self.clock()
         for run in runs:
             run.sources -= 1
@@ -205,7 +220,7 @@ class IngestService:
     async def finish_upload(self, source: Source, timeout_s: float = 10.0) -> IngestReport:
         """Close an upload and bring the catalog up to date before it is answered; a catalog that is
         down or slow leaves the answer saying so (the data is kept; the catalog catches up later)."""
-        report = self.close_source(source)
+        report = await self.end_source(source)
         records = self.take_dirty_records()
         try:
             await asyncio.wait_for(asyncio.to_thread(self.save_records, records), timeout_s)

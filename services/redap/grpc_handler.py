@@ -7,13 +7,14 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import sys
 from collections.abc import AsyncIterator, Callable, Iterable, Iterator
 from typing import Any, NoReturn, TypeVar
 
 import grpc
 from google.protobuf.message import DecodeError, Message
 
-from core.errors import FleetError, InvalidArgumentError
+from core.errors import FleetError, InvalidArgumentError, as_fleet_error
 from services.auth.metadata import call_principal
 from services.auth.scopes import Principal, Scope
 from services.auth.tokens import Auth
@@ -66,8 +67,13 @@ async def _abort(context: grpc.aio.ServicerContext, exc: FleetError) -> NoReturn
 
 
 async def _internal(context: grpc.aio.ServicerContext) -> NoReturn:
-    """A failure no error of ours describes (a fault of the depot): logged whole, answered INTERNAL
-    rather than gRPC's UNKNOWN with the exception's text."""
+    """A failure no error of ours describes: a catalog that did not answer is UNAVAILABLE (as REST
+    answers 503); any other is a fault of the depot, logged whole, answered INTERNAL rather than
+    gRPC's UNKNOWN with the exception's text."""
+    known = as_fleet_error(sys.exc_info()[1] or Exception())
+    if known is not None:
+        log.warning("catalog service call failed: %s", known)
+        await _abort(context, known)
     log.exception("catalog service call failed")
     await context.abort(grpc.StatusCode.INTERNAL, "internal error of the depot (its log has the details)")
     raise AssertionError("not reached: abort raises")

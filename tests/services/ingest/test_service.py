@@ -6,6 +6,7 @@ import asyncio
 import datetime as dt
 import io
 import json
+import os
 import subprocess
 from typing import Any
 
@@ -175,6 +176,34 @@ def test_durability_always_syncs_before_answering(make_service: Factory, recordi
     service = make_service(durability=Durability.ALWAYS)
     report = upload(service, recordings["points"].path)
     assert service.runs[report.runs[0]].hot.dirty is False
+
+
+@pytest.mark.parametrize("live", [False, True])
+def test_durability_always_fsyncs_off_the_event_loop(
+    make_service: Factory, recordings: dict[str, Recording], monkeypatch: pytest.MonkeyPatch, live: bool
+):
+    """An upload (`finish_upload`) or a stream (`end_source`, what the gRPC handler calls) ending
+    with durability=always: its fsync runs on a worker thread, never blocking the event loop."""
+    service = make_service(durability=Durability.ALWAYS)
+    source = service.open_source(live=live)
+    feeding.feed(service, source, iter_events(recordings["points"].path))
+    on_loop: list[bool] = []
+    real_fsync = os.fsync
+
+    def fsync(fd: int) -> None:
+        try:
+            asyncio.get_running_loop()
+            on_loop.append(True)
+        except RuntimeError:
+            on_loop.append(False)
+        real_fsync(fd)
+
+    monkeypatch.setattr(os, "fsync", fsync)
+    end = service.finish_upload(source) if not live else service.end_source(source)
+    report = asyncio.run(end)
+    assert on_loop and not any(on_loop)
+    assert service.runs[report.runs[0]].hot.dirty is False
+    assert service.live_streams == 0
 
 
 def test_disk_guard_refuses_before_writing(make_service: Factory, recordings: dict[str, Recording]):
