@@ -259,7 +259,7 @@ def restore(request: Request, run_id: str, principal: Viewer, _: Form) -> Respon
 @router.post("/runs/{run_id}/promote")
 def promote(request: Request, run_id: str, principal: Viewer, _: Form) -> Response:
     def work() -> str:
-        retention_service.promote_now(_retention(request), run_id)
+        retention_service.promote_now(_retention(request), run_id, actor(request, principal))
         return "promoted"
 
     return _act(request, principal, run_id, Scope.WRITE, work)
