@@ -225,9 +225,16 @@ class ObjectRecord:
 
 
 def record_promotion(
-    session: Session, record: RunRecord, prefix: str, objects: list[ObjectRecord], now: dt.datetime, detail: str
+    session: Session,
+    record: RunRecord,
+    prefix: str,
+    objects: list[ObjectRecord],
+    now: dt.datetime,
+    detail: str,
+    actor: str = "retention",
 ) -> None:
-    """The catalog side of sealing a run into the warm tier, in the caller's transaction."""
+    """The catalog side of sealing a run into the warm tier, in the caller's transaction; `actor` is
+    who asked (a token's subject for `fleet runs promote`, "retention" for the schedule)."""
     save_run(session, record, now)
     life = session.get(RunLifecycle, record.id)
     if life is None:
@@ -235,7 +242,7 @@ def record_promotion(
     else:  # sealed again with chunks that came later
         life.prefix, life.promoted_at = prefix, now
     replace_objects(session, record.id, objects)
-    add_event(session, record.id, "promote", now, "retention", None, detail)
+    add_event(session, record.id, "promote", now, actor, None, detail)
 
 
 def replace_objects(session: Session, run_id: str, objects: list[ObjectRecord]) -> None:

@@ -38,6 +38,7 @@ from services.redap import grpc_handler as redap_handler
 from services.redap.depot import Depot
 from services.retention.schedule import start_scheduler
 from services.retention.service import Retention
+from services.routine_logs import quiet_routine_requests
 from services.runtime import freeze_startup_objects, tune_allocator
 from services.sealed.tiers import open_tiers, sealed_lookup
 from services.settings import Settings
@@ -254,6 +255,7 @@ async def serve(
         app.state.sibling_sockets = siblings or []
     http = uvicorn.Server(uvicorn.Config(app, log_level="info", lifespan="off"))
     logging.getLogger("uvicorn.access").addFilter(MaskLinkSignatures())  # a link's signature opens it
+    quiet_routine_requests()  # an agent's pull polls and copy reports: DEBUG, not a line every 5 s
     await grpc_server.start()
     writes = WriteServer(proxy.write_messages, settings.max_message_size)
     front = Front(grpc_socket, grpc_path, f"fleet-telemetry {__version__}", writes)

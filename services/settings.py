@@ -274,6 +274,9 @@ class Settings(BaseSettings):
         30.0, gt=0, description="a link that takes no data for this long is dropped and connected anew"
     )
     agent_pull_poll_s: float = Field(5.0, gt=0, description="how often the agent asks the depot for pulls")
+    agent_pull_progress_s: float = Field(
+        1.0, gt=0, description="while a pull is sent, how often its chunks and bytes so far are reported (if changed)"
+    )
     agent_durability: Durability = Field(
         Durability.INTERVAL, description="spool fsync: always | interval (group_commit_ms) | off"
     )

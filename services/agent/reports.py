@@ -4,6 +4,7 @@ of each run (so the run's page says what is on the robot only, pending, or held)
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import datetime as dt
 import logging
 from typing import TYPE_CHECKING, Any
@@ -67,9 +68,33 @@ class Reports:
         await self._progress(spec, "sending")
         self.agent.sender_for(spec.run_id).add_pull(job)
         log.info("pull %s of run %s: %d chunks asked for", spec.pull_id, spec.run_id, len(entries))
-        await job.done.wait()
+        await self._follow(spec, job)
         await self._progress(spec, "done", chunks=job.chunks_sent, nbytes=job.bytes_sent)
         log.info("pull %s done: %d chunks, %d bytes sent", spec.pull_id, job.chunks_sent, job.bytes_sent)
+
+    async def _follow(self, spec: PullSpec, job: PullJob) -> None:
+        """Until the job is done (its chunks sent and the depot's holding them checked, which may take
+        a check interval), report its counters as they grow, so the pull's status says what has
+        arrived rather than "sending, 0 chunks"; at most one report per FLEET_AGENT_PULL_PROGRESS_S."""
+        link = self.agent.link
+        reported = (0, 0)
+        while not job.done.is_set():
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(job.done.wait(), self.agent.settings.agent_pull_progress_s)
+            now = (job.chunks_sent, job.bytes_sent)
+            if job.done.is_set() or now == reported:
+                continue
+            try:
+                await link.call(
+                    link.api.pull_progress, spec.pull_id, state="sending", chunks_sent=now[0], bytes_sent=now[1]
+                )
+            except LinkDown:
+                continue  # told at a later turn, or by the "done" report
+            except DepotRefused as exc:  # cancelled at the depot, say: no more reports until it is done
+                log.warning("the depot refused progress of pull %s (sending): %s", spec.pull_id, exc)
+                await job.done.wait()
+                return
+            reported = now
 
     async def _progress(
         self, spec: PullSpec, state: str, *, chunks: int = 0, nbytes: int = 0, error: str | None = None

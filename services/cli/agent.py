@@ -39,6 +39,7 @@ def agent(ctx: click.Context, /, **flags: object) -> None:
     import logging
 
     from services.agent.service import run_agent
+    from services.routine_logs import quiet_routine_requests
     from services.settings import load_settings
     from services.startup import hold_data_dir
 
@@ -47,6 +48,7 @@ def agent(ctx: click.Context, /, **flags: object) -> None:
     with held, contextlib.suppress(KeyboardInterrupt):  # Ctrl-C: the spool is safe, the agent stops
         _check_ports(settings)  # a refusal is the only line said, before anything starts
         logging.basicConfig(level=logging.INFO, format="%(levelname)s:     %(name)s: %(message)s")
+        quiet_routine_requests()  # its pull polls and copy reports: DEBUG, not a line every 5 s
         if settings.agent_token is None:
             click.echo("fleet agent: no token (FLEET_TOKEN): a depot with auth on refuses the robot's runs", err=True)
         click.echo(

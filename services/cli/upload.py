@@ -5,6 +5,7 @@ from __future__ import annotations
 import functools
 import os
 from pathlib import Path
+from typing import Any
 
 import click
 from rich.console import Console
@@ -38,15 +39,7 @@ def upload(files: tuple[Path, ...], api_url: str) -> None:
                 if exc.status == 401:
                     raise  # no file would go: one line about the token, not one per file
                 failed += 1
-                accepted = exc.body.get("accepted") or {}
-                kept = (
-                    (
-                        f" (what came before it is kept: {accepted.get('chunks_new', 0)} new chunks, "
-                        f"{accepted.get('chunks_duplicate', 0)} already held)"
-                    )
-                    if accepted
-                    else ""
-                )
+                kept = kept_note(exc.body.get("accepted") or {})
                 progress.console.print(f"Error: {path}: {exc}{kept}", style="red", markup=False, soft_wrap=True)
                 continue
             finally:
@@ -59,6 +52,21 @@ def upload(files: tuple[Path, ...], api_url: str) -> None:
                 progress.console.print(f"Warning: {path}: {warning}", style="yellow", markup=False, soft_wrap=True)
     if failed:
         raise SystemExit(1)
+
+
+def kept_note(accepted: dict[str, Any]) -> str:
+    """What a refused upload left on the depot, as the depot reports it: a run refused part-way
+    (another robot's) is dropped whole, so only the runs still named hold what came before."""
+    if not accepted:
+        return ""
+    dropped, runs = accepted.get("dropped") or [], accepted.get("runs") or []
+    parts = [f"run {', '.join(dropped)} dropped whole: nothing of it is kept"] if dropped else []
+    if runs or not dropped:
+        parts.append(
+            f"what came before it is kept: {accepted.get('chunks_new', 0)} new chunks"
+            f"{' in ' + ', '.join(runs) if runs else ''}, {accepted.get('chunks_duplicate', 0)} already held"
+        )
+    return f" ({'; '.join(parts)})"
 
 
 def _advance(progress: Progress, task: TaskID, count: int) -> None:

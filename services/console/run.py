@@ -152,7 +152,8 @@ def run_page(
     """The page; with `problem`, that error shown on it with its status."""
     state = request.app.state
     retention = state.retention
-    answer = runs_service.run_answer(state.catalog, run_id, retention.policies if retention else None)
+    policies = retention.policies if retention else None
+    answer = runs_service.run_answer(state.catalog, run_id, policies, runs_service.hot_lookup(state.ingest))
     deleted = answer["tier"] == Tier.DELETED
     views = _views(request, answer, x)
     cover, cover_problem = runs_views.run_coverage(
@@ -259,7 +260,7 @@ def restore(request: Request, run_id: str, principal: Viewer, _: Form) -> Respon
 @router.post("/runs/{run_id}/promote")
 def promote(request: Request, run_id: str, principal: Viewer, _: Form) -> Response:
     def work() -> str:
-        retention_service.promote_now(_retention(request), run_id)
+        retention_service.promote_now(_retention(request), run_id, actor(request, principal))
         return "promoted"
 
     return _act(request, principal, run_id, Scope.WRITE, work)
@@ -314,7 +315,9 @@ def download(
         for k, v in (("include", include), ("exclude", exclude), ("timeline", timeline), ("start", start), ("end", end))
     }
     try:
-        answer = runs_service.run_answer(request.app.state.catalog, run_id, None)
+        answer = runs_service.run_answer(
+            request.app.state.catalog, run_id, None, runs_service.hot_lookup(request.app.state.ingest)
+        )
         keep, drop = patterns(include), patterns(exclude)
         EntityFilter(keep, drop)  # checked here: a bad pattern is shown on the page, not downloaded as JSON
         window = (_blank(timeline), _blank(start), _blank(end))

@@ -9,6 +9,7 @@ pending or sending pull of the same run already asks for answers that pull, not 
 
 from __future__ import annotations
 
+import logging
 import secrets
 from dataclasses import dataclass
 from typing import Any
@@ -26,6 +27,8 @@ from core.states import PullState, Tier
 from services.auth.scopes import Principal, Scope
 from services.edge.context import Edge, acting_robot, check_robot
 from services.rrd.entity_patterns import check_entity_patterns
+
+log = logging.getLogger("fleet.edge")
 
 MAX_LIMIT = 1000
 MAX_ERROR_CHARS = 2000
@@ -138,6 +141,8 @@ def report_progress(edge: Edge, principal: Principal, pull_id: str, progress: Pr
                 f"pull {pull_id!r} is {pull.state}: it can go to {', '.join(sorted(_MOVES[PullState(pull.state)]))}, "
                 f"not {progress.state} (a pull is sending before it is done)"
             )
+        if progress.state != pull.state:  # the access line of a report is DEBUG (services/routine_logs.py)
+            log.info("pull %s of run %s: %s -> %s", pull_id, pull.run_id, pull.state, progress.state)
         pull.state, pull.updated_at = progress.state, edge.clock()
         pull.chunks_sent, pull.bytes_sent = progress.chunks_sent, progress.bytes_sent
         pull.error = _plain(progress.error)

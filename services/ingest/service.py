@@ -361,6 +361,8 @@ class IngestService:
         )
         source.report.chunks_new += 1
         source.report.bytes_new += len(msg.raw)
+        chunks, size = source.new_of_run.get(run.run_id, (0, 0))
+        source.new_of_run[run.run_id] = (chunks + 1, size + len(msg.raw))
 
     def _check_named_robot(self, source: Source, run: IngestRun | None, robot: str) -> None:
         """A `robot_id` property that is no safe id, or disagrees with the source's token, is refused
@@ -384,6 +386,10 @@ class IngestService:
         del self.runs[run.run_id]
         source.attached.discard(run.run_id)
         source.report.runs = [r for r in source.report.runs if r != run.run_id]
+        source.report.dropped.append(run.run_id)
+        chunks, size = source.new_of_run.pop(run.run_id, (0, 0))  # nothing of it is kept: not counted as kept
+        source.report.chunks_new -= chunks
+        source.report.bytes_new -= size
         self.hot.discard(run.hot)
         self._catalog_sync.drop(run.run_id)
         if self.replay is not None:
@@ -435,7 +441,12 @@ class IngestService:
         if run is not None:
             return run.holds(chunk_id)
         sealed = self._sealed_info(source, run_id)
-        return sealed is not None and chunk_id in sealed.chunk_ids
+        if sealed is None:
+            return False
+        # A robot's token writes its own runs only, even when all it sends is held already: a
+        # 403 rather than "0 new" for another robot's sealed run (a hot one is checked on attach).
+        check_robot(source.robot, run_id, sealed.robot_id)
+        return chunk_id in sealed.chunk_ids
 
     def _sealed_info(self, source: Source, run_id: str) -> SealedInfo | None:
         """What the catalog said when `prepare` asked (its tier is the one that counts: a run sealed

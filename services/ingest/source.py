@@ -19,6 +19,7 @@ class IngestReport:
     """What a source brought: the runs it touched and the chunks that were new or already held."""
 
     runs: list[str] = field(default_factory=list)
+    dropped: list[str] = field(default_factory=list)  # runs refused part-way and dropped whole: not kept
     chunks_new: int = 0
     chunks_duplicate: int = 0
     bytes_duplicate: int = 0
@@ -30,6 +31,7 @@ class IngestReport:
     def to_dict(self) -> dict[str, Any]:
         return {
             "runs": self.runs,
+            "dropped": self.dropped,
             "chunks_new": self.chunks_new,
             "chunks_duplicate": self.chunks_duplicate,
             "bytes_duplicate": self.bytes_duplicate,
@@ -71,6 +73,8 @@ class Source:
     attached: set[str] = field(default_factory=set)  # hot runs this source counts in their sources
     created: set[str] = field(default_factory=set)  # hot runs this source started
     report: IngestReport = field(default_factory=IngestReport)
+    # (chunks, bytes) new per run: taken back out of `report` if the run is dropped
+    new_of_run: dict[str, tuple[int, int]] = field(default_factory=dict)
     # Ownership (services/ingest/routing.py): runs routed so far, those this node owns, and the
     # owner this source is relayed to; `relayed_by`: the node that relayed this source here.
     routed: set[str] = field(default_factory=set)

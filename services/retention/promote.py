@@ -141,12 +141,14 @@ def promote(
     now: dt.datetime,
     reserve_bytes: int = 0,
     backoff: PromoteBackoff | None = None,
+    actor: str = "retention",
 ) -> RunRecord | None:
     """Seal `run` into the warm tier; returns its new catalog record (None when the run held nothing
     that was not sealed already: its hot copy is simply removed). On failure the run stays hot and,
-    given a `backoff`, waits there (1 s, 2 s, 4 s ... up to 5 minutes) before the next attempt."""
+    given a `backoff`, waits there (1 s, 2 s, 4 s ... up to 5 minutes) before the next attempt.
+    `actor` names who asked, for the run's events: "retention" when the schedule did."""
     try:
-        record = _promote(run, ingest, tiers, catalog, now, reserve_bytes)
+        record = _promote(run, ingest, tiers, catalog, now, reserve_bytes, actor)
     except Exception:
         if backoff is not None:
             if run.sealed:  # it left the hot tier (what failed came after the catalog switch)
@@ -166,6 +168,7 @@ def _promote(
     catalog: sessionmaker[Session],
     now: dt.datetime,
     reserve_bytes: int,
+    actor: str,
 ) -> RunRecord | None:
     size = run.hot.size
     sealed_as = _sealed_before(run, ingest)
@@ -174,7 +177,7 @@ def _promote(
         return None
     workdir = run.hot.directory / SEAL_DIR
     try:
-        return _seal_and_switch(run, ingest, tiers, catalog, now, reserve_bytes, size, sealed_as, workdir)
+        return _seal_and_switch(run, ingest, tiers, catalog, now, reserve_bytes, size, sealed_as, workdir, actor)
     finally:
         shutil.rmtree(workdir, ignore_errors=True)  # a failed attempt leaves nothing on the hot disk
 
@@ -236,6 +239,7 @@ def _seal_and_switch(
     size: int,
     sealed_as: SealedInfo | None,
     workdir: Path,
+    actor: str,
 ) -> RunRecord:
     prefix = sealed_as.prefix if sealed_as else None
     base_size = tiers.warm.head(f"{prefix}/{RECORDING}").size if prefix is not None else 0
@@ -270,7 +274,7 @@ def _seal_and_switch(
         with session_scope(catalog, write=True) as session:  # (4)
             _give_up_lease(session, run, ingest)
             stale = queries.analytics_keys(session, run.run_id) - {o.key for o in objects}
-            queries.record_promotion(session, record, prefix, objects, now, detail)
+            queries.record_promotion(session, record, prefix, objects, now, detail, actor)
             write_run_json(session, tiers.warm, run.run_id)  # with the pin as the catalog has it now
         run.sealed_into = SealedInfo(Tier.WARM, prefix, record.robot_id, record.date, frozenset(sealed.chunk_ids))
         run.sealed = True

@@ -95,8 +95,8 @@ def unpin(request: Request, run_id: str, principal: Writer) -> dict[str, Any]:
 
 
 @router.post("/v1/runs/{run_id}/promote", summary="Seal a closed hot run into the warm tier now")
-def promote(request: Request, run_id: str, _: Writer) -> dict[str, Any]:
-    return service.promote_now(_ctx(request), run_id)
+def promote(request: Request, run_id: str, principal: Writer) -> dict[str, Any]:
+    return service.promote_now(_ctx(request), run_id, actor(request, principal))
 
 
 @router.post(

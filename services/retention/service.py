@@ -281,8 +281,8 @@ def upcoming(ctx: Retention) -> list[dict[str, Any]]:
     ]
 
 
-def promote_now(ctx: Retention, run_id: str) -> dict[str, Any]:
-    """Seal a closed hot run now, whatever its idle time (`fleet runs promote`)."""
+def promote_now(ctx: Retention, run_id: str, actor: str = "retention") -> dict[str, Any]:
+    """Seal a closed hot run now, whatever its idle time (`fleet runs promote`), as `actor` asked."""
     run = ctx.ingest.hot_run(run_id) if ctx.ingest is not None else None
     if run is None:
         with session_scope(ctx.catalog) as session:
@@ -298,7 +298,7 @@ def promote_now(ctx: Retention, run_id: str) -> dict[str, Any]:
     assert ctx.ingest is not None
     with promote.PROMOTING:
         record = promote.promote(
-            run, ctx.ingest, ctx.tiers, ctx.catalog, ctx.clock(), ctx.reserve_bytes, ctx.promote_backoff
+            run, ctx.ingest, ctx.tiers, ctx.catalog, ctx.clock(), ctx.reserve_bytes, ctx.promote_backoff, actor
         )
     if record is None:
         return {"run": run_id, "tier": Tier.WARM, "detail": "nothing new: its chunks were all sealed already"}

@@ -73,7 +73,8 @@ def runs(
 @router.get("/v1/runs/{run_id}", summary="One run: metadata, entities, timelines, sizes, tier")
 def run(request: Request, run_id: str, _: Reader) -> dict[str, Any]:
     retention = request.app.state.retention
-    return service.run_answer(request.app.state.catalog, run_id, retention.policies if retention else None)
+    hot = service.hot_lookup(request.app.state.ingest)  # the view the overview lists hot runs from
+    return service.run_answer(request.app.state.catalog, run_id, retention.policies if retention else None, hot)
 
 
 @router.get(

@@ -6,8 +6,9 @@ from __future__ import annotations
 import base64
 import datetime as dt
 import json
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import sqlalchemy as sa
 from sqlalchemy.dialects.postgresql import JSONB
@@ -18,9 +19,15 @@ from catalog import nodes, queries
 from catalog.db import session_scope
 from catalog.models import Robot, Run, RunEntity
 from core.clock import iso_utc
-from core.errors import BadParameterError
+from core.errors import BadParameterError, NotFoundError
 from core.states import RunStatus, Tier
 from services.policies import Policies
+
+if TYPE_CHECKING:
+    from services.ingest.service import IngestService
+
+# A run as ingest knows it now, if it is hot on this node (None: not hot here).
+HotLookup = Callable[[str], "queries.RunRecord | None"]
 
 MAX_LIMIT = 1000
 MAX_ENTITY_FILTERS = 32  # each is a subquery: a bounded number keeps the query plannable
@@ -255,10 +262,80 @@ def run_summary(run: Run) -> dict[str, Any]:
     }
 
 
-def run_answer(catalog: sessionmaker[Session], run_id: str, policies: Policies | None) -> dict[str, Any]:
+def hot_lookup(ingest: IngestService | None) -> HotLookup | None:
+    """The lookup `run_answer` falls back on: this node's hot runs as ingest knows them."""
+    if ingest is None:
+        return None
+
+    def lookup(run_id: str) -> queries.RunRecord | None:
+        run = ingest.hot_run(run_id)
+        return run.record(ingest.default_robot) if run is not None else None
+
+    return lookup
+
+
+def run_answer(
+    catalog: sessionmaker[Session], run_id: str, policies: Policies | None, hot: HotLookup | None = None
+) -> dict[str, Any]:
     """`GET /v1/runs/{run}`: one run with its entities, timelines, policy, lifecycle (`policies`:
     None where this node runs no retention), what its robot reports holding of it and its latest
-    pulls."""
+    pulls. A run hot here that the catalog has no row of yet (a stream just started or ended, the
+    next catalog flush is up to FLEET_CATALOG_FLUSH_S away) is answered from `hot`, ingest's view,
+    as the overview lists it from there: what a list shows, its page opens."""
+    try:
+        return _catalog_answer(catalog, run_id, policies)
+    except NotFoundError:
+        record = hot(run_id) if hot is not None else None
+        if record is None:
+            raise
+        return hot_answer(record, policies)
+
+
+def hot_answer(record: queries.RunRecord, policies: Policies | None) -> dict[str, Any]:
+    """`run_answer` for a hot run the catalog has no row of yet: nothing sealed, no events, no
+    robot copy or pulls (both need the catalog's row)."""
+    policy = policies.for_run(record.robot_id, record.application_id).to_dict() if policies is not None else None
+    return {
+        "id": record.id,
+        "robot_id": record.robot_id,
+        "application_id": record.application_id,
+        "date": record.date.isoformat(),
+        "status": str(record.status),
+        "tier": str(record.tier),
+        "started_at": iso_utc(record.started_at),
+        "ended_at": iso_utc(record.ended_at),
+        "last_data_at": iso_utc(record.last_data_at),
+        "sdk_version": record.sdk_version,
+        "chunks": record.chunks,
+        "rows": record.rows,
+        "bytes": record.bytes,
+        "pinned": False,
+        "pinned_by": None,
+        "properties": record.properties,
+        "entities": [
+            {
+                "path": e.path,
+                "chunks": e.chunks,
+                "static_chunks": e.static_chunks,
+                "rows": e.rows,
+                "bytes": e.bytes,
+                "archetypes": e.archetypes,
+                "components": e.components,
+            }
+            for e in record.entities
+        ],
+        "timelines": [{"name": t.name, "type": t.type, "min": t.min, "max": t.max} for t in record.timelines],
+        "policy": policy,
+        "lifecycle": None,
+        "objects": [],
+        "events": [],
+        "robot_copy": None,
+        "pulls": [],
+        "owner": None,
+    }
+
+
+def _catalog_answer(catalog: sessionmaker[Session], run_id: str, policies: Policies | None) -> dict[str, Any]:
     with session_scope(catalog) as session:
         found = queries.require_run(session, run_id)
         return {

@@ -33,6 +33,7 @@ def test_pins_and_deletes_are_done_by_the_tokens_subject(depot: Depot, scenes: d
     events = client.get(f"/v1/runs/{RUN}", headers=alice).json()["events"]
     actors = {e["action"]: e["actor"] for e in events}
     assert actors["pin"] == "bob" and actors["unpin"] == "bob" and actors["delete"] == "alice", events
+    assert actors["promote"] == "bob", events  # asked for by a person: not done by "retention"
     with session_scope(depot.app.state.catalog) as session:
         stored = [(e.action, e.actor) for e in queries.run_events(session, RUN)]
         tombstone = session.get(RunLifecycle, RUN)

@@ -82,3 +82,28 @@ def test_a_robot_token_reads_nothing_not_even_its_own_runs(depot: Depot, scenes:
         assert answer.status_code == 403, (path, answer.text)
         assert "needs the 'read' scope" in answer.json()["message"]
     assert depot.client.get("/v1/runs/rec-points/recording.rrd", headers=bearer(depot.token("read"))).status_code == 200
+
+
+def test_a_refused_upload_answers_what_was_kept_not_what_was_dropped(depot: Depot, scenes: dict[str, Recording]):
+    robot = bearer(depot.token("ingest", robot=ROBOT_A))
+    answer = depot.client.post("/v1/uploads", content=scenes["properties"].data, headers=robot)
+    assert answer.status_code == 403, answer.text
+    accepted = answer.json()["accepted"]
+    assert accepted["runs"] == [] and accepted["dropped"] == ["rec-properties"], accepted
+    assert (accepted["chunks_new"], accepted["bytes_new"]) == (0, 0), accepted  # the run went whole
+
+
+@pytest.mark.parametrize("sealed", [False, True], ids=["hot", "sealed"])
+def test_another_robots_token_cannot_upload_an_existing_run_again(
+    depot: Depot, scenes: dict[str, Recording], sealed: bool
+):
+    robot_a = bearer(depot.token("ingest", robot=ROBOT_A))
+    own = depot.client.post("/v1/uploads", content=scenes["points"].data, headers=robot_a)
+    assert own.status_code == 200, own.text
+    if sealed:
+        assert depot.client.post("/v1/runs/rec-points/promote", headers=bearer(depot.token("write"))).status_code == 200
+    other = bearer(depot.token("ingest", robot=ROBOT_B))
+    again = depot.client.post("/v1/uploads", content=scenes["points"].data, headers=other)
+    assert again.status_code == 403, again.text  # not 200 "0 new": the run is robot A's
+    assert again.json()["code"] == "PERMISSION_DENIED" and ROBOT_A in again.json()["message"]
+    assert _run(depot, "rec-points")["robot_id"] == ROBOT_A
