@@ -34,6 +34,7 @@ LAYERS: dict[str, int] = {
     "services.policies": 1,
     "services.runtime": 1,
     "services.startup": 1,
+    "services.routine_logs": 1,
     "services.compiled": 1,  # names modules of several layers; imports none of them
     "sdk_client": 2,
     "catalog": 2,
