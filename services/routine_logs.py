@@ -9,23 +9,33 @@ import logging
 
 # Paths of the agent's routine calls, as access lines (depot) and request lines (agent) show them.
 ROUTINE_PATHS = ("/v1/pulls", "/robot-copy")
-# The loggers that write a line per request: uvicorn's access log (depot), httpx (the agent's calls).
-REQUEST_LOGGERS = ("uvicorn.access", "httpx")
+# The loggers that write a line per routine event, and what marks one: uvicorn's access log (depot)
+# and httpx (the agent's calls) a line per request; watchfiles a line per FileSink write the agent
+# wakes up for ("1 change detected").
+ROUTINE: dict[str, tuple[str, ...]] = {
+    "uvicorn.access": ROUTINE_PATHS,
+    "httpx": ROUTINE_PATHS,
+    "watchfiles.main": ("change detected", "changes detected"),
+}
 
 
 class RoutineAtDebug(logging.Filter):
-    """An INFO line of a routine request becomes a DEBUG line: dropped unless its logger logs DEBUG."""
+    """An INFO line of a routine event becomes a DEBUG line: dropped unless its logger logs DEBUG."""
+
+    def __init__(self, marks: tuple[str, ...] = ROUTINE_PATHS) -> None:
+        super().__init__()
+        self.marks = marks
 
     def filter(self, record: logging.LogRecord) -> bool:
-        if record.levelno != logging.INFO or not any(path in record.getMessage() for path in ROUTINE_PATHS):
+        if record.levelno != logging.INFO or not any(mark in record.getMessage() for mark in self.marks):
             return True
         record.levelno, record.levelname = logging.DEBUG, logging.getLevelName(logging.DEBUG)
         return logging.getLogger(record.name).isEnabledFor(logging.DEBUG)
 
 
 def quiet_routine_requests() -> None:
-    """Install the filter on the request loggers (once; the depot and the agent call this at start)."""
-    for name in REQUEST_LOGGERS:
+    """Install the filter on those loggers (once; the depot and the agent call this at start)."""
+    for name, marks in ROUTINE.items():
         logger = logging.getLogger(name)
         if not any(isinstance(f, RoutineAtDebug) for f in logger.filters):
-            logger.addFilter(RoutineAtDebug())
+            logger.addFilter(RoutineAtDebug(marks))

@@ -27,7 +27,7 @@ class Kept(logging.Handler):
 @pytest.fixture
 def kept() -> Iterator[Kept]:
     handler = Kept()
-    loggers = [logging.getLogger(name) for name in ("uvicorn.access", "httpx")]
+    loggers = [logging.getLogger(name) for name in ("uvicorn.access", "httpx", "watchfiles.main")]
     saved = [(lg.level, list(lg.filters)) for lg in loggers]
     for lg in loggers:
         lg.addHandler(handler)
@@ -56,3 +56,13 @@ def test_at_debug_they_are_shown_as_debug(kept: Kept):
     logging.getLogger("httpx").setLevel(logging.DEBUG)
     logging.getLogger("httpx").info(REQUEST, "GET", "http://depot/v1/pulls?state=pending", "HTTP/1.1", 200, "OK")
     assert [level for level, _ in kept.lines] == ["DEBUG"]
+
+
+def test_a_filesink_write_the_agent_wakes_up_for_is_no_info_line(kept: Kept):
+    """watchfiles says "1 change detected" at INFO on every write of a watched recording."""
+    watch = logging.getLogger("watchfiles.main")
+    watch.info("%d change%s detected", 1, "")
+    watch.info("%d change%s detected", 3, "s")
+    assert kept.lines == []
+    watch.warning("rust notify error")
+    assert [level for level, _ in kept.lines] == ["WARNING"]
