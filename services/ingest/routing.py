@@ -141,6 +141,14 @@ async def owner_elsewhere(service: IngestService, run_id: str) -> Owner | None:
     return await asyncio.to_thread(service.ownership.owner_elsewhere, run_id)
 
 
+async def owner_down(service: IngestService, run_id: str) -> Owner | None:
+    """Another node that owns the run and has stopped heart-beating, while this one holds nothing
+    of it hot: what a read of it that found nothing here is waiting for."""
+    if service.ownership is None or service.hot_run(run_id) is not None:
+        return None
+    return await asyncio.to_thread(service.ownership.owner_down, run_id)
+
+
 def asking_for(service: IngestService, auth: Auth, principal: Principal) -> list[tuple[str, str]]:
     """Metadata for asking the owner on behalf of `principal` (checked here): a short-lived token of
     this node with the caller's scopes and robot."""
