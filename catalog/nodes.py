@@ -148,6 +148,18 @@ def live_owner(session: Session, run_id: str, lease: dt.timedelta) -> Claim | No
     return Claim(run_id, owner.id, row.epoch, owner.peer_addr, mine=False)
 
 
+def down_owner(session: Session, run_id: str, lease: dt.timedelta) -> Claim | None:
+    """The run's owner if one owns it and has stopped heart-beating (its hot copy is out of reach
+    until it is back); nothing is changed."""
+    row = session.get(RunOwner, run_id)
+    if row is None:
+        return None
+    owner = session.get(DepotNode, row.node_id)
+    if owner is None or _alive(owner, db_now(session), lease):
+        return None
+    return Claim(run_id, owner.id, row.epoch, owner.peer_addr, mine=False)
+
+
 def nodes(session: Session, lease: dt.timedelta) -> list[NodeRow]:
     """Every node the catalog knows, alive or not, with how many runs each owns."""
     now = db_now(session)

@@ -197,6 +197,24 @@ def as_fleet_error(exc: BaseException) -> FleetError | None:
     return None
 
 
+class OwnerDownError(UnavailableError):
+    """A run whose data is hot on another node of the depot, its owner, which has stopped answering:
+    the run is there, not missing (a 404 would say it does not exist)."""
+
+    def __init__(self, run_id: str, node_id: str, peer_addr: str) -> None:
+        super().__init__(
+            f"run {run_id} is held by node {node_id} ({peer_addr}), which owns it and has stopped answering: "
+            "its data is there; try again once that node is back"
+        )
+        self.node_id, self.peer_addr = node_id, peer_addr
+
+    def to_dict(self) -> dict[str, str]:
+        return {**super().to_dict(), "owner": self.node_id, "owner_addr": self.peer_addr}
+
+    def headers(self) -> dict[str, str]:
+        return {"Retry-After": "30"}
+
+
 class UnimplementedError(FleetError):
     """A call this depot does not answer (a part of a client protocol it leaves out)."""
 

@@ -236,7 +236,11 @@ async def serve(
         log.info("recovered %d hot runs", len(recovered))
     ingest.hot.start()
     proxy = grpc_handler.MessageProxy(
-        ingest, auth, token_wait_s=settings.auth_wait_s, token_buffer_bytes=settings.auth_buffer_bytes
+        ingest,
+        auth,
+        token_wait_s=settings.auth_wait_s,
+        token_buffer_bytes=settings.auth_buffer_bytes,
+        token_buffer_total_bytes=settings.auth_buffer_total_bytes,
     )
     app = create_app(settings, ingest, retention, analytics, auth)
     console.install(app)

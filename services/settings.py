@@ -185,6 +185,12 @@ class Settings(BaseSettings):
     auth_buffer_bytes: int = Field(
         16 << 20, gt=0, description="what such a stream may send before its token, held in memory and then kept"
     )
+    auth_buffer_total_bytes: int = Field(
+        64 << 20,
+        gt=0,
+        description="what all streams still waiting for their token may hold together, per process (beyond it a "
+        "stream is refused, RESOURCE_EXHAUSTED): the bound on that memory whatever FLEET_MAX_STREAMS is",
+    )
     auth_cache_s: float = Field(
         5.0, ge=0, description="a token's revocation is seen by every node within this many seconds"
     )

@@ -85,6 +85,9 @@ class WriteCall:
     def invocation_metadata(self) -> tuple[tuple[str, Any], ...]:
         return self._metadata
 
+    def peer(self) -> str:
+        return "front"  # a client of the public port (never another node: they use the peer port)
+
     def set_trailing_metadata(self, metadata: tuple[tuple[str, str | bytes], ...]) -> None:
         self.trailing = metadata
 

@@ -95,6 +95,14 @@ class Ownership:
             return None
         return Owner(run_id, found.node_id, found.peer_addr)
 
+    def owner_down(self, run_id: str) -> Owner | None:
+        """Another node that owns the run but no longer heart-beats (its hot data is on that node)."""
+        with session_scope(self.catalog) as session:
+            found = nodes.down_owner(session, run_id, self.lease)
+        if found is None or found.node_id == self.node_id:
+            return None
+        return Owner(run_id, found.node_id, found.peer_addr)
+
     def holds(self, session: Session, lease: Lease) -> bool:
         """Within a caller's transaction: whether the lease still stands (locked until it commits)."""
         return nodes.holds(session, lease.run_id, self.node_id, lease.epoch)

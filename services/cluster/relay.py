@@ -25,6 +25,10 @@ from services.rrd.protowire import log_msg_envelope
 WRITE_METHOD = "/rerun.sdk_comms.v1alpha1.MessageProxyService/WriteMessages"
 RELAYED_BY = "fleet-relayed-by"  # metadata: the node that relays (the owner files, never relays again)
 SOURCE_KIND = "fleet-source"  # metadata: "live" (a stream) or "upload"
+# metadata: the relaying node's peer token (signed with the depot's key, naming that node): what
+# makes the two keys above believed. A client may send none of the three (refused).
+PEER_CREDENTIAL = "fleet-peer"
+INTERNAL_KEYS = (RELAYED_BY, SOURCE_KIND, PEER_CREDENTIAL)
 REPORT = "fleet-report"  # trailing metadata: the owner's IngestReport as JSON
 ERROR_CODE = "fleet-error-code"  # trailing metadata of a refusal: its ErrorCode
 CONNECT_TIMEOUT_S = 3.0

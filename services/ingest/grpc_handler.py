@@ -20,7 +20,7 @@ from services.auth.metadata import GRPC
 from services.auth.scopes import Scope
 from services.auth.standing import GrantWatch
 from services.auth.tokens import Auth
-from services.cluster.relay import ERROR_CODE, RELAYED_BY, REPORT, SOURCE_KIND, metadata_value
+from services.cluster.relay import ERROR_CODE, REPORT
 from services.ingest.replay import Message, read_response
 from services.ingest.requests import decode_request
 from services.ingest.routing import relay_source
@@ -44,23 +44,27 @@ class MessageProxy:
         *,
         token_wait_s: float = 10.0,
         token_buffer_bytes: int = 16 << 20,
+        token_buffer_total_bytes: int = 64 << 20,
     ) -> None:
         self.service = service
         self.auth = auth or Auth(enabled=False, keys=None, catalog=None)
-        self.calls = CallAuth(self.auth, wait_s=token_wait_s, buffer_bytes=token_buffer_bytes)
+        self.calls = CallAuth(
+            self.auth, wait_s=token_wait_s, buffer_bytes=token_buffer_bytes, total_bytes=token_buffer_total_bytes
+        )
 
     async def write_messages(
         self, requests: AsyncIterator[bytes], context: grpc.aio.ServicerContext
     ) -> sdk_comms_pb2.WriteMessagesResponse:
         metadata = context.invocation_metadata()
-        relayed_by = metadata_value(metadata, RELAYED_BY)  # another node of the depot passes this on
+        relayed_by = None  # another node of the depot that passes this on
         by_property = self.calls.needs_property_token(metadata)
         try:
+            relayed = self.calls.relayed(metadata, on_peer_port(context))
+            relayed_by = relayed.node if relayed is not None else None
             principal = None if by_property else await self.calls.principal(metadata, *WRITERS)
-            # A stream still waiting for its token counts among FLEET_MAX_STREAMS: that bounds what
-            # such streams hold in memory.
+            # A stream still waiting for its token counts among FLEET_MAX_STREAMS.
             source = self.service.open_source(
-                live=metadata_value(metadata, SOURCE_KIND) != "upload", robot=principal.robot if principal else None
+                live=relayed is None or relayed.live, robot=principal.robot if principal else None
             )
         except FleetError as exc:
             await refuse(context, exc, relayed_by)
@@ -105,7 +109,7 @@ class MessageProxy:
     ) -> bool:
         """Send the rest of the source to its run's owner: what it held back, `pending`, then every
         request as it comes. False if this node took the run over meanwhile (it files it itself)."""
-        return await relay_source(self.service, source, metadata, pending, _rest_of(context)) is not None
+        return await relay_source(self.service, self.auth, source, metadata, pending, _rest_of(context)) is not None
 
     async def read_messages(self, request: bytes, context: grpc.aio.ServicerContext) -> AsyncIterator[bytes]:
         """What `rerun --connect rerun+http://HOST:51234/proxy` calls: recent history, then live, for
@@ -184,6 +188,12 @@ def server_options(max_message_size: int) -> list[tuple[str, int]]:
         # Without this the HTTP/2 window grows with how long a fast stream lasts, and memory with it.
         ("grpc.http2.bdp_probe", 0),
     ]
+
+
+def on_peer_port(context: grpc.aio.ServicerContext) -> bool:
+    """The call came to the peer port (TCP), not through the public port's front: that reaches the
+    gRPC server on its private Unix socket, or serves the call in process (`WriteCall`, peer "front")."""
+    return str(context.peer()).startswith(("ipv4:", "ipv6:"))
 
 
 def client_of(context: grpc.aio.ServicerContext) -> str:

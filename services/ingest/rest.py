@@ -97,4 +97,5 @@ async def _relayed(
             if (message := request_of(event)) is not None:
                 yield message
 
-    return await relay_source(service, source, [("authorization", auth)] if auth else [], [first], requests())
+    metadata = [("authorization", auth)] if auth else []
+    return await relay_source(service, request.app.state.auth, source, metadata, [first], requests())

@@ -19,7 +19,7 @@ from core.errors import UnavailableError
 from services.auth.scopes import Principal
 from services.auth.tokens import Auth
 from services.cluster.ownership import Lease, Owner
-from services.cluster.relay import RELAYED_BY, SOURCE_KIND, PeerUnavailable, Relay, request_of
+from services.cluster.relay import PEER_CREDENTIAL, RELAYED_BY, SOURCE_KIND, PeerUnavailable, Relay, request_of
 from services.ingest.source import Source
 from services.ingest.stream_auth import Metadata
 from services.rrd.messages import Event
@@ -58,14 +58,18 @@ async def route(service: IngestService, source: Source, run_id: str) -> None:
         log.info("run %s is owned by node %s: filed here, handed over when it closes", run_id, got.node_id)
 
 
-def relay_metadata(service: IngestService, source: Source, metadata: Metadata) -> list[tuple[str, str]]:
-    """The caller's own credentials (the owner checks them as this node did), and who relays."""
+def relay_metadata(service: IngestService, auth: Auth, source: Source, metadata: Metadata) -> list[tuple[str, str]]:
+    """The caller's own credentials (the owner checks them as this node did), who relays, and this
+    node's peer token, which makes the owner believe that (it grants nothing: no scope)."""
     assert service.ownership is not None
+    node = service.ownership.node_id
     passed = [(k, str(v)) for k, v in metadata or () if k == "authorization"]
-    return [*passed, (RELAYED_BY, service.ownership.node_id), (SOURCE_KIND, "live" if source.live else "upload")]
+    relayed = [*passed, (RELAYED_BY, node), (SOURCE_KIND, "live" if source.live else "upload")]
+    token = auth.peer_token(node, None, ())
+    return [*relayed, (PEER_CREDENTIAL, token)] if token is not None else relayed
 
 
-async def open_relay(service: IngestService, source: Source, metadata: Metadata) -> Relay | None:
+async def open_relay(service: IngestService, auth: Auth, source: Source, metadata: Metadata) -> Relay | None:
     """A relay to the owner of the source's run; None if this node has since taken the run over (its
     owner stopped answering and its lease ran out: then the source is filed here). UNAVAILABLE if
     the owner neither answers nor lets its lease run out in time."""
@@ -75,7 +79,7 @@ async def open_relay(service: IngestService, source: Source, metadata: Metadata)
     deadline = loop.time() + ownership.lease_s * 2 + 5
     while True:
         try:
-            relay = await Relay.open(service.channels, owner, relay_metadata(service, source, metadata))
+            relay = await Relay.open(service.channels, owner, relay_metadata(service, auth, source, metadata))
         except PeerUnavailable:
             if loop.time() > deadline:
                 raise UnavailableError(
@@ -94,12 +98,17 @@ async def open_relay(service: IngestService, source: Source, metadata: Metadata)
 
 
 async def relay_source(
-    service: IngestService, source: Source, metadata: Metadata, first: Iterable[Event], more: AsyncIterator[bytes]
+    service: IngestService,
+    auth: Auth,
+    source: Source,
+    metadata: Metadata,
+    first: Iterable[Event],
+    more: AsyncIterator[bytes],
 ) -> dict[str, Any] | None:
     """Send the rest of a source to its run's owner: what it held back, the events `first`, then
     every request `more` brings; the owner's answer (what it filed). None if this node took the run
     over meanwhile: then it files the source itself. A stream and an upload alike."""
-    relay = await open_relay(service, source, metadata)
+    relay = await open_relay(service, auth, source, metadata)
     if relay is None:
         return None
     try:
@@ -130,6 +139,14 @@ async def owner_elsewhere(service: IngestService, run_id: str) -> Owner | None:
     if service.ownership is None or service.hot_run(run_id) is not None:
         return None
     return await asyncio.to_thread(service.ownership.owner_elsewhere, run_id)
+
+
+async def owner_down(service: IngestService, run_id: str) -> Owner | None:
+    """Another node that owns the run and has stopped heart-beating, while this one holds nothing
+    of it hot: what a read of it that found nothing here is waiting for."""
+    if service.ownership is None or service.hot_run(run_id) is not None:
+        return None
+    return await asyncio.to_thread(service.ownership.owner_down, run_id)
 
 
 def asking_for(service: IngestService, auth: Auth, principal: Principal) -> list[tuple[str, str]]:

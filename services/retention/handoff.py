@@ -20,7 +20,7 @@ from core.errors import ConflictError
 from core.states import RunStatus
 from services.auth.tokens import Auth
 from services.cluster.ownership import Lease, Ownership
-from services.cluster.relay import RELAYED_BY, SOURCE_KIND, hand_over
+from services.cluster.relay import PEER_CREDENTIAL, RELAYED_BY, SOURCE_KIND, hand_over
 from services.hot.read import read_events
 from services.ingest.service import IngestRun, IngestService
 
@@ -81,8 +81,8 @@ def _settle(run: IngestRun, ingest: IngestService, ownership: Ownership, auth: A
     size = run.hot.size
     token = auth.peer_token(ownership.node_id, run.robot_id or run.hot.robot) if auth is not None else None
     metadata = [(RELAYED_BY, ownership.node_id), (SOURCE_KIND, "upload")]
-    if token is not None:
-        metadata.append(("authorization", f"Bearer {token}"))
+    if token is not None:  # the owner files it as this node's (write scope), and believes who relays it
+        metadata += [("authorization", f"Bearer {token}"), (PEER_CREDENTIAL, token)]
     answer = hand_over(got, read_events(run.hot.path, size), metadata, HAND_OVER_TIMEOUT_S)
     _drop_copy(run, ingest, size)
     report.handed_over.append(run.run_id)

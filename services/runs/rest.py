@@ -13,11 +13,12 @@ from typing import Annotated, Any
 from fastapi import APIRouter, Depends, Query, Request
 from fastapi.responses import StreamingResponse
 
+from core.errors import NotFoundError, OwnerDownError
 from services.auth.depends import recording_reader, require
 from services.auth.scopes import Principal, Scope
 from services.auth.standing import GrantWatch, while_granted
 from services.cluster import peer
-from services.ingest.routing import asking_for, owner_elsewhere
+from services.ingest.routing import asking_for, owner_down, owner_elsewhere
 from services.rrd.frames import MessageKind, encode_message_header
 from services.runs import links, service
 from services.runs.recording import RecordingQuery, open_recording
@@ -81,7 +82,10 @@ def run(request: Request, run_id: str, _: Reader) -> dict[str, Any]:
     "/v1/runs/{run_id}/recording.rrd",
     summary="The run as an .rrd stream the Rerun viewer opens",
     response_class=StreamingResponse,
-    responses={200: {"content": {"application/octet-stream": {}}}},
+    responses={
+        200: {"content": {"application/octet-stream": {}}},
+        503: {"description": "the run is hot on another node, its owner (named), which does not answer"},
+    },
 )
 async def recording(
     request: Request,
@@ -136,9 +140,15 @@ async def recording(
             media_type="application/octet-stream",
             headers={"Content-Disposition": disposition},
         )
-    found = await asyncio.to_thread(
-        open_recording, ingest, request.app.state.catalog, tiers.warm if tiers else None, run_id, query
-    )
+    try:
+        found = await asyncio.to_thread(
+            open_recording, ingest, request.app.state.catalog, tiers.warm if tiers else None, run_id, query
+        )
+    except NotFoundError:  # not here; if its owner is down the run is there, not missing: 503 naming it
+        down = await owner_down(ingest, run_id) if ingest is not None else None
+        if down is None:
+            raise
+        raise OwnerDownError(run_id, down.node_id, down.peer_addr) from None
     followed = follow and isinstance(found.body, AsyncIterator)  # a hot run: as long as it is live
     return StreamingResponse(
         until_grant_ends(request, principal, found.body) if followed else found.body,
