@@ -145,6 +145,9 @@ class RunFacts:
         return self.size
 
     def record(self, default_robot: str) -> RunRecord:
+        """The run's row as the catalog would file it. Also called off the event loop (a run's page
+        before the catalog has its row) while ingest adds to the run: each dict and set is copied
+        by one C-level call (list(), dict(), sorted()), which the GIL keeps whole, before it is walked."""
         summary = self.summary
         started = self.start_time_ns or self.first_log_time_ns
         return RunRecord(
@@ -161,16 +164,16 @@ class RunFacts:
             chunks=summary.chunks if summary else 0,
             rows=summary.rows if summary else 0,
             bytes=self.recording_bytes(),
-            properties=self.properties,
+            properties={name: dict(values) for name, values in list(self.properties.items())},
             entities=[
                 EntityRecord(
                     e.path, e.chunks, e.static_chunks, e.rows, e.bytes, sorted(e.archetypes), sorted(e.components)
                 )
-                for e in summary.entities.values()
+                for e in list(summary.entities.values())
             ]
             if summary
             else [],
-            timelines=[TimelineRecord(t.name, t.type, t.min, t.max) for t in summary.timelines.values()]
+            timelines=[TimelineRecord(t.name, t.type, t.min, t.max) for t in list(summary.timelines.values())]
             if summary
             else [],
         )
