@@ -167,6 +167,11 @@ class FleetClient:
         """Add to the catalog every sealed run the stores hold that it lacks; yields progress events."""
         return self._events("POST", "/v1/catalog/rebuild")
 
+    def scrub_secrets(self, dry_run: bool = False) -> Iterator[dict[str, Any]]:
+        """Seal again without them the warm runs whose properties hold secret-like fields (filed
+        before ingest stripped them everywhere); yields progress events."""
+        return self._events("POST", "/v1/catalog/scrub-secrets" + ("?dry_run=true" if dry_run else ""))
+
     def pin(self, run_id: str, pinned: bool = True) -> dict[str, Any]:
         return self._request("POST" if pinned else "DELETE", f"/v1/runs/{run_id}/pin")
 

@@ -93,6 +93,23 @@ def catalog() -> None:
     """The catalog as a whole."""
 
 
+@catalog.command("scrub-secrets")
+@api_option
+@click.option("--dry-run", is_flag=True, help="only say which runs hold secret-like fields")
+def scrub_secrets(api_url: str, dry_run: bool) -> None:
+    """Find the warm runs whose property chunks hold secret-like fields (FLEET_SECRET_FIELDS, a robot's
+    `fleet` token), filed before ingest stripped them from rerun-sdk 0.23 runs and blueprints, and seal
+    them again without them (same chunk ids, every other chunk as it was). Re-runnable."""
+    with client(api_url) as fleet:
+        end = _follow(fleet.scrub_secrets(dry_run), "scrub-secrets")
+    if end.get("event") == "error":
+        raise click.ClickException(str(end.get("detail")))
+    click.echo(
+        f"{end.get('scrubbed', 0)} runs scrubbed, {end.get('found', 0)} found (dry run), "
+        f"{end.get('clean', 0)} clean, {end.get('skipped', 0)} skipped"
+    )
+
+
 @catalog.command("rebuild")
 @api_option
 def rebuild(api_url: str) -> None:

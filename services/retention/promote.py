@@ -248,7 +248,7 @@ def _seal_and_switch(
     sources: list[Iterator[Event]] = []
     if prefix is not None:  # chunks that came after the run was sealed: sealed in with the rest
         base = workdir / "base.rrd"
-        _download(tiers, f"{prefix}/{RECORDING}", base)
+        download_warm(tiers, f"{prefix}/{RECORDING}", base)
         sources.append(iter(iter_events(base)))
     sources.append(read_events(run.hot.path, size))
     analytics = Extractor(run.run_id)
@@ -321,7 +321,8 @@ def _sealed_record(run: IngestRun, sealed: SealedRun, default_robot: str) -> Run
     )
 
 
-def _download(tiers: Tiers, key: str, path: object) -> None:
+def download_warm(tiers: Tiers, key: str, path: object) -> None:
+    """A warm object copied to a local file, in pieces (a sealed recording may be many GB)."""
     size = tiers.warm.head(key).size
     reader = RangeReader(tiers.warm, key, size)
     with open(str(path), "wb") as out:

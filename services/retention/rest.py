@@ -19,8 +19,10 @@ from fastapi.responses import StreamingResponse
 from core.errors import BadParameterError
 from services.auth.depends import actor, require
 from services.auth.scopes import Principal, Scope
+from services.ingest.identity import SecretFields
 from services.retention import rebuild as rebuild_mod
 from services.retention import schedule, service
+from services.retention import scrub as scrub_mod
 from services.retention.service import ACTIONS, Retention
 
 router = APIRouter()
@@ -111,6 +113,21 @@ def restore(request: Request, run_id: str, principal: Writer) -> dict[str, Any]:
 @router.delete("/v1/runs/{run_id}", summary="Delete a sealed run now (objects first; a tombstone stays)")
 def delete(request: Request, run_id: str, principal: Admin) -> dict[str, Any]:
     return service.delete_now(_ctx(request), run_id, actor(request, principal))
+
+
+@router.post(
+    "/v1/catalog/scrub-secrets",
+    summary="Seal again without them the warm runs whose property chunks hold secret-like fields; NDJSON progress",
+)
+def scrub_secrets(
+    request: Request,
+    principal: Admin,
+    dry_run: Annotated[bool, Query(description="only say which runs hold them")] = False,
+) -> StreamingResponse:
+    ctx = _ctx(request)
+    secrets = ctx.ingest.secret_fields if ctx.ingest is not None else SecretFields()
+    work = functools.partial(scrub_mod.scrub_streamed, ctx, secrets, dry_run, actor(request, principal))
+    return StreamingResponse(_ndjson(work), media_type=NDJSON)
 
 
 @router.post("/v1/catalog/rebuild", summary="Add every sealed run found in the stores that the catalog lacks")

@@ -20,7 +20,6 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-import sqlalchemy as sa
 from apscheduler.schedulers.background import BackgroundScheduler
 
 from catalog import queries
@@ -28,7 +27,17 @@ from catalog.db import session_scope
 from services.retention.handoff import ownership_pass
 from services.retention.locks import job_lock
 from services.retention.promote import PROMOTING
-from services.retention.service import ARCHIVE, DELETE, PROMOTE, RESTORE, Outcome, Retention, plan, run_plan
+from services.retention.service import (
+    ARCHIVE,
+    DELETE,
+    PROMOTE,
+    RESTORE,
+    Outcome,
+    Retention,
+    catalog_engine,
+    plan,
+    run_plan,
+)
 
 log = logging.getLogger(__name__)
 
@@ -37,12 +46,6 @@ Progress = Callable[[Outcome], None] | None
 
 def node_name() -> str:
     return f"{socket.gethostname()}:{os.getpid()}"
-
-
-def _engine(ctx: Retention) -> sa.Engine:
-    bind = ctx.catalog.kw["bind"]
-    assert isinstance(bind, sa.Engine)
-    return bind
 
 
 def promote_job(ctx: Retention, progress: Progress = None, *, wait: bool = False) -> list[Outcome] | None:
@@ -60,7 +63,7 @@ def retention_job(
     ctx: Retention, progress: Progress = None, kinds: tuple[str, ...] = (ARCHIVE, DELETE, RESTORE)
 ) -> list[Outcome] | None:
     """Archive, advance restores and delete what is due; None if another process runs it now."""
-    with job_lock(_engine(ctx), "retention") as got:
+    with job_lock(catalog_engine(ctx), "retention") as got:
         if not got:
             log.info("retention job is running in another process: skipped")
             return None

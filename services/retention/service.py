@@ -14,6 +14,7 @@ from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from typing import Any
 
+import sqlalchemy as sa
 from sqlalchemy.orm import Session, sessionmaker
 
 from catalog import queries
@@ -56,6 +57,13 @@ class Retention:
             return self.free_bytes()
         assert self.ingest is not None
         return shutil.disk_usage(self.ingest.hot.root).free
+
+
+def catalog_engine(ctx: Retention) -> sa.Engine:
+    """The engine under the catalog's sessions: the jobs' locks are held on connections of it."""
+    bind = ctx.catalog.kw["bind"]
+    assert isinstance(bind, sa.Engine)
+    return bind
 
 
 @dataclass(frozen=True)

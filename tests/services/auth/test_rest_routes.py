@@ -71,6 +71,7 @@ TABLE = [
     Guarded("POST", "/v1/runs/{run_id}/restore", (WRITE,)),
     Guarded("DELETE", "/v1/runs/{run_id}", (ADMIN,)),
     Guarded("POST", "/v1/catalog/rebuild", (ADMIN,)),
+    Guarded("POST", "/v1/catalog/scrub-secrets", (ADMIN,), {"params": {"dry_run": "true"}}),
     Guarded("POST", "/v1/uploads", (INGEST, WRITE)),
     Guarded("GET", "/v1/robots", (READ,)),
     Guarded("GET", "/v1/nodes", (READ,)),

@@ -38,8 +38,10 @@ def test_an_upload_to_another_node_is_filed_with_the_runs_owner(cluster: Cluster
     problems = Problems()
     try:
         robot.expect("STEP 1")  # flushed: node A has the first half, the copy holds it too
-        assert wait_until(lambda: (a.run(RUN) or {}).get("chunks", 0) > 0, 30), (
-            f"node-a never showed run {RUN}\n{cluster.diagnosis([RUN])}"
+        # Asked of node-b, which answers from the catalog alone (node-a answers its hot run from
+        # ingest's view before its catalog flush): the run is filed.
+        assert wait_until(lambda: (b.run(RUN) or {}).get("chunks", 0) > 0, 30), (
+            f"the catalog never showed run {RUN}\n{cluster.diagnosis([RUN])}"
         )
         in_copy = len(chunks_in(copy))
         answer = upload(b, copy, token)

@@ -1,0 +1,150 @@
+"""Secrets that slipped into sealed runs before ingest stripped them everywhere (rerun-sdk 0.23's
+`rerun.component` spelling hid a robot's `fleet` token; blueprint stores' properties were kept as
+sent): found in the warm tier and sealed again without them (`fleet catalog scrub-secrets`,
+`POST /v1/catalog/scrub-secrets`).
+
+Each warm run is read whole from the warm store and every property chunk goes through ingest's own
+strip (`read_property_chunk`: the same chunk id, the secret fields left out). A run none of whose
+chunks changes is left alone, so the scrub can be run again and again. A changed run is sealed
+again by the writer promotion uses; its recording and index go back under the same keys, and the
+catalog's sizes and hashes (what readers' caches are keyed by), a `scrub` event naming who asked
+and run.json are written in one transaction. It runs under the retention job's lock, so no
+archive moves a run while it is rewritten. Cold runs are not read: restore them, then scrub.
+"""
+
+from __future__ import annotations
+
+import logging
+import tempfile
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from catalog import queries
+from catalog.db import session_scope
+from catalog.models import Run, RunLifecycle
+from core.errors import ConflictError
+from core.states import Tier
+from services.ingest.identity import SecretFields, read_property_chunk
+from services.retention.locks import job_lock
+from services.retention.promote import download_warm
+from services.retention.service import Retention, catalog_engine
+from services.rrd.chunk import chunk_meta
+from services.rrd.decoder import iter_events
+from services.rrd.manifest import is_property_entity
+from services.rrd.messages import ArrowMessage, Event
+from services.sealed.tiers import write_run_json
+from services.sealed.write import INDEX, RECORDING, seal
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class ScrubStep:
+    run_id: str
+    outcome: str  # clean | found (a dry run) | scrubbed | skipped
+    detail: str
+
+    def to_dict(self) -> dict[str, str]:
+        return {"run": self.run_id, "outcome": self.outcome, "detail": self.detail}
+
+
+def scrub(
+    ctx: Retention,
+    secret_fields: SecretFields,
+    *,
+    dry_run: bool,
+    actor: str,
+    progress: Callable[[ScrubStep], None] | None = None,
+) -> list[ScrubStep]:
+    """Every sealed run checked (warm ones read, cold ones named), one step each."""
+    with job_lock(catalog_engine(ctx), "retention") as got:
+        if not got:
+            raise ConflictError("the retention job is running in another process: scrub when it is done")
+        with session_scope(ctx.catalog) as session:
+            sealed = queries.sealed_runs(session, (Tier.WARM, Tier.COLD))
+            runs = [(run.id, run.tier, life.prefix) for run, life in sealed]
+        steps = []
+        for run_id, tier, prefix in runs:
+            step = _scrub_one(ctx, secret_fields, run_id, tier, prefix, dry_run, actor)
+            steps.append(step)
+            if progress is not None:
+                progress(step)
+        return steps
+
+
+def scrub_streamed(
+    ctx: Retention, secret_fields: SecretFields, dry_run: bool, actor: str, emit: Callable[[dict[str, Any]], None]
+) -> None:
+    """`POST /v1/catalog/scrub-secrets`: one line per sealed run, then the counts."""
+    steps = scrub(
+        ctx, secret_fields, dry_run=dry_run, actor=actor, progress=lambda s: emit({"event": "run", **s.to_dict()})
+    )
+    counts = {k: sum(s.outcome == k for s in steps) for k in ("clean", "found", "scrubbed", "skipped")}
+    emit({"event": "end", "dry_run": dry_run, **counts})
+
+
+def _scrub_one(
+    ctx: Retention,
+    secret_fields: SecretFields,
+    run_id: str,
+    tier: str,
+    prefix: str,
+    dry_run: bool,
+    actor: str,
+) -> ScrubStep:
+    if tier != Tier.WARM:
+        return ScrubStep(run_id, "skipped", f"{tier}: not read; restore it (fleet runs restore), then scrub again")
+    with tempfile.TemporaryDirectory(prefix="fleet-scrub-") as tmp:
+        base = Path(tmp) / "base.rrd"
+        download_warm(ctx.tiers, f"{prefix}/{RECORDING}", base)
+        found = _secret_properties(base, secret_fields)
+        if not found:
+            return ScrubStep(run_id, "clean", "no secret-like property field")
+        what = f"secret-like fields in {len(found)} property chunks ({', '.join(sorted(set(found)))})"
+        if dry_run:
+            return ScrubStep(run_id, "found", what + ": run without --dry-run to seal it again without them")
+        sealed = seal([_stripped(base, secret_fields)], Path(tmp) / RECORDING, run_id, ctx.clock(), None, secret_fields)
+        with session_scope(ctx.catalog, write=True) as session:
+            run = session.get(Run, run_id)
+            life = session.get(RunLifecycle, run_id)
+            if run is None or run.tier != Tier.WARM or life is None or life.prefix != prefix:
+                return ScrubStep(run_id, "skipped", "it changed tier while being read: scrub again")
+            with open(sealed.recording, "rb") as fh:
+                ctx.tiers.warm.put(f"{prefix}/{RECORDING}", fh)
+            ctx.tiers.warm.put(f"{prefix}/{INDEX}", sealed.index)
+            objects = queries.run_objects(session, run_id)
+            objects[RECORDING].size, objects[RECORDING].sha256 = sealed.recording_size, sealed.recording_sha256
+            objects[INDEX].size, objects[INDEX].sha256 = len(sealed.index), sealed.index_sha256
+            run.bytes = sealed.recording_size
+            detail = f"{what} removed; {len(sealed.chunk_ids)} chunks sealed again"
+            queries.add_event(session, run_id, "scrub", ctx.clock(), actor, None, detail)
+            session.flush()
+            write_run_json(session, ctx.tiers.warm, run_id)
+    log.info("scrubbed run %s: %s", run_id, detail)
+    return ScrubStep(run_id, "scrubbed", detail)
+
+
+def _secret_properties(path: Path, secret_fields: SecretFields) -> list[str]:
+    """The names of the property chunks of `path` that hold a secret-like field (one per chunk)."""
+    found = []
+    for event in iter_events(path):
+        if isinstance(event, ArrowMessage):
+            meta = chunk_meta(event)
+            if is_property_entity(meta.entity_path):
+                prop = read_property_chunk(event, meta, secret_fields)
+                if prop.message is not event:
+                    found.append(prop.name or "recording")
+    return found
+
+
+def _stripped(path: Path, secret_fields: SecretFields) -> Iterator[Event]:
+    """The events of `path`, property chunks without their secret fields (same chunk ids)."""
+    for event in iter_events(path):
+        if isinstance(event, ArrowMessage):
+            meta = chunk_meta(event)
+            if is_property_entity(meta.entity_path):
+                yield read_property_chunk(event, meta, secret_fields).message
+                continue
+        yield event
