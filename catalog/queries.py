@@ -322,6 +322,10 @@ def run_objects(session: Session, run_id: str) -> dict[str, RunObject]:
     return {o.name: o for o in session.scalars(sa.select(RunObject).where(RunObject.run_id == run_id))}
 
 
+def run_ids_in_tier(session: Session, tier: str) -> list[str]:
+    return list(session.scalars(sa.select(Run.id).where(Run.tier == tier).order_by(Run.id)))
+
+
 def sealed_runs(session: Session, tiers: tuple[str, ...]) -> list[tuple[Run, RunLifecycle]]:
     """Runs in the given tiers with their lifecycle rows, oldest end first."""
     query = (

@@ -155,12 +155,12 @@ def test_plan_says_when_hot_runs_will_be_promoted_and_promote_seals_one_now(
 
 
 def test_scrub_secrets_finds_nothing_in_runs_filed_today(server: LiveServer, recordings: dict[str, Recording]):
-    """What ingest files now holds no secret-like field: a dry run and a scrub say every warm run is
-    clean and change nothing (the finding and rewriting are tested in tests/services/retention)."""
+    """What ingest files now holds no secret-like field: a dry run and a scrub say every hot and
+    warm run is clean and change nothing (the finding and rewriting are tested in tests/services/retention)."""
     _sealed(server, recordings["properties"])
-    sealed = [r for r in httpx.get(f"{server.url}/v1/runs", timeout=10).json()["runs"] if r["tier"] == "warm"]
+    runs = [r for r in httpx.get(f"{server.url}/v1/runs", timeout=10).json()["runs"] if r["tier"] in ("hot", "warm")]
     for args in (("--dry-run",), ()):
         result = fleet(server, "catalog", "scrub-secrets", *args)
         assert result.returncode == 0, result.stderr
-        assert result.stdout.strip() == f"0 runs scrubbed, 0 found (dry run), {len(sealed)} clean, 0 skipped"
-        assert all(f"ok clean {r['id']}: no secret-like property field" in result.stderr for r in sealed)
+        assert result.stdout.strip() == f"0 runs scrubbed, 0 found (dry run), {len(runs)} clean, 0 skipped"
+        assert all(f"ok clean {r['id']} ({r['tier']}): no secret-like property field" in result.stderr for r in runs)
