@@ -7,9 +7,10 @@ Each warm run is read whole from the warm store and every property chunk goes th
 strip (`read_property_chunk`: the same chunk id, the secret fields left out). A run none of whose
 chunks changes is left alone, so the scrub can be run again and again. A changed run is sealed
 again by the writer promotion uses; its recording and index go back under the same keys, and the
-catalog's sizes and hashes (what readers' caches are keyed by), a `scrub` event naming who asked
-and run.json are written in one transaction. It runs under the retention job's lock, so no
-archive moves a run while it is rewritten. Cold runs are not read: restore them, then scrub.
+catalog's sizes, hashes (what readers' caches are keyed by) and properties (read again without
+the secret fields), a `scrub` event naming who asked and run.json are written in one transaction.
+It runs under the retention job's lock, so no archive moves a run while it is rewritten. Cold runs
+are not read: restore them, then scrub.
 
 This node's hot runs are read from their hot files. A closed one holding such fields is promoted
 now, by promotion itself (`fleet runs promote`: under the run's lock, refused if data arrives), and
@@ -140,6 +141,8 @@ def _scrub_one(
             objects[RECORDING].size, objects[RECORDING].sha256 = sealed.recording_size, sealed.recording_sha256
             objects[INDEX].size, objects[INDEX].sha256 = len(sealed.index), sealed.index_sha256
             run.bytes = sealed.recording_size
+            # read again through the strip: a field made secret after the run was filed leaves its row too
+            run.properties = queries.properties_json(sealed.facts.properties)
             detail = f"{what} removed; {len(sealed.chunk_ids)} chunks sealed again"
             queries.add_event(session, run_id, "scrub", ctx.clock(), actor, None, detail)
             session.flush()
