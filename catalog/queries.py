@@ -104,7 +104,7 @@ def save_run(session: Session, record: RunRecord, now: dt.datetime) -> None:
     run.last_data_at = record.last_data_at
     run.sdk_version = record.sdk_version
     run.chunks, run.rows, run.bytes = record.chunks, record.rows, record.bytes
-    run.properties = json.dumps(record.properties, sort_keys=True, default=str)
+    run.properties = properties_json(record.properties)
     run.updated_at = now
     session.flush()
     session.execute(sa.delete(RunEntity).where(RunEntity.run_id == record.id))
@@ -320,6 +320,15 @@ def lifecycle(session: Session, run_id: str) -> RunLifecycle | None:
 
 def run_objects(session: Session, run_id: str) -> dict[str, RunObject]:
     return {o.name: o for o in session.scalars(sa.select(RunObject).where(RunObject.run_id == run_id))}
+
+
+def properties_json(properties: dict[str, Any]) -> str:
+    """A run's properties as its row holds them."""
+    return json.dumps(properties, sort_keys=True, default=str)
+
+
+def run_ids_in_tier(session: Session, tier: str) -> list[str]:
+    return list(session.scalars(sa.select(Run.id).where(Run.tier == tier).order_by(Run.id)))
 
 
 def sealed_runs(session: Session, tiers: tuple[str, ...]) -> list[tuple[Run, RunLifecycle]]:

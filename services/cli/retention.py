@@ -80,8 +80,10 @@ def _follow(events: Iterator[dict[str, Any]], title: str) -> dict[str, Any]:
                 progress.update(task, advance=1, description=f"{title}: {event.get('run')}")
                 ok = event.get("ok", event.get("outcome") != "skipped")
                 verb = event.get("action", event.get("outcome", ""))
+                where = f" ({event['tier']})" if kind == "run" and event.get("tier") else ""  # scrub-secrets
                 progress.console.print(
-                    f"{'ok ' if ok else 'FAILED '}{verb} {event.get('run')}: {event.get('detail', '')}", markup=False
+                    f"{'ok ' if ok else 'FAILED '}{verb} {event.get('run')}{where}: {event.get('detail', '')}",
+                    markup=False,
                 )
             elif kind in ("busy", "error"):
                 progress.console.print(f"{kind}: {event.get('detail')}", markup=False)
@@ -97,9 +99,10 @@ def catalog() -> None:
 @api_option
 @click.option("--dry-run", is_flag=True, help="only say which runs hold secret-like fields")
 def scrub_secrets(api_url: str, dry_run: bool) -> None:
-    """Find the warm runs whose property chunks hold secret-like fields (FLEET_SECRET_FIELDS, a robot's
-    `fleet` token), filed before ingest stripped them from rerun-sdk 0.23 runs and blueprints, and seal
-    them again without them (same chunk ids, every other chunk as it was). Re-runnable."""
+    """Find the hot and warm runs whose property chunks hold secret-like fields (FLEET_SECRET_FIELDS, a
+    robot's `fleet` token), filed before ingest stripped them from rerun-sdk 0.23 runs and blueprints,
+    and seal them again without them (same chunk ids, every other chunk as it was; a closed hot run is
+    promoted first, a live one left for later). Re-runnable."""
     with client(api_url) as fleet:
         end = _follow(fleet.scrub_secrets(dry_run), "scrub-secrets")
     if end.get("event") == "error":

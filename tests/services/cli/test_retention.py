@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import subprocess
+import sys
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -155,12 +156,72 @@ def test_plan_says_when_hot_runs_will_be_promoted_and_promote_seals_one_now(
 
 
 def test_scrub_secrets_finds_nothing_in_runs_filed_today(server: LiveServer, recordings: dict[str, Recording]):
-    """What ingest files now holds no secret-like field: a dry run and a scrub say every warm run is
-    clean and change nothing (the finding and rewriting are tested in tests/services/retention)."""
+    """What ingest files now holds no secret-like field: a dry run and a scrub say every hot and
+    warm run is clean and change nothing (the finding and rewriting are tested in tests/services/retention)."""
     _sealed(server, recordings["properties"])
-    sealed = [r for r in httpx.get(f"{server.url}/v1/runs", timeout=10).json()["runs"] if r["tier"] == "warm"]
+    runs = [r for r in httpx.get(f"{server.url}/v1/runs", timeout=10).json()["runs"] if r["tier"] in ("hot", "warm")]
     for args in (("--dry-run",), ()):
         result = fleet(server, "catalog", "scrub-secrets", *args)
         assert result.returncode == 0, result.stderr
-        assert result.stdout.strip() == f"0 runs scrubbed, 0 found (dry run), {len(sealed)} clean, 0 skipped"
-        assert all(f"ok clean {r['id']}: no secret-like property field" in result.stderr for r in sealed)
+        assert result.stdout.strip() == f"0 runs scrubbed, 0 found (dry run), {len(runs)} clean, 0 skipped"
+        assert all(f"ok clean {r['id']} ({r['tier']}): no secret-like property field" in result.stderr for r in runs)
+
+
+SITE_KEY = "SITEKEY-SCRUBME-789"
+
+
+def test_scrub_secrets_removes_a_field_made_secret_after_its_runs_were_filed(tmp_path: Path, rerun_bin: str):
+    """Runs filed before a field counted as secret (FLEET_SECRET_FIELDS widened later, as rerun-sdk
+    0.23 tokens were filed before ingest read that SDK's field metadata): the scrub finds the field
+    without printing it, seals the run again without it, and a download no longer holds it, from
+    the recording or the run's properties; `rerun rrd verify` accepts the download; a second scrub
+    finds nothing."""
+    from tests.services.retention.test_scrub import chunk_bodies
+
+    source, run_id = tmp_path / "site.rrd", "scrub-site-run"
+    script = f"""
+import rerun as rr
+rr.init("scrub_site", recording_id={run_id!r}, spawn=False)
+rr.save({str(source)!r})
+rr.send_property("site", rr.AnyValues(site_key={SITE_KEY!r}, site_name="lab"))
+for i in range(3):
+    rr.set_time("frame", sequence=i)
+    rr.log("/world/points", rr.Points3D([[i, 0, 0]]))
+"""
+    subprocess.run([sys.executable, "-c", script], check=True, timeout=120)
+    data = tmp_path / "data"
+    before = LiveServer(data, scheduler="false", promote_after_s="0", secret_fields="password").start()
+    try:
+        assert httpx.post(f"{before.url}/v1/uploads", content=source.read_bytes(), timeout=60).status_code == 200
+        assert fleet(before, "runs", "promote", run_id).returncode == 0
+        assert SITE_KEY in json.dumps(run_json(before, run_id))  # filed as sent
+    finally:
+        before.stop()
+    live = LiveServer(data, scheduler="false", promote_after_s="0", secret_fields="password,site_key").start()
+    try:
+        held = tmp_path / "held.rrd"
+        assert fleet(live, "download", run_id, "-o", str(held)).returncode == 0
+        assert any(SITE_KEY.encode() in body for body in chunk_bodies(held).values())
+
+        dry = fleet(live, "catalog", "scrub-secrets", "--dry-run")
+        assert dry.returncode == 0, dry.stderr
+        assert f"ok found {run_id} (warm): secret-like fields in 1 property chunks (site)" in dry.stderr
+        assert SITE_KEY not in dry.stdout + dry.stderr and dry.stdout.startswith("0 runs scrubbed, 1 found")
+
+        done = fleet(live, "catalog", "scrub-secrets")
+        assert done.returncode == 0, done.stderr
+        assert f"ok scrubbed {run_id} (warm)" in done.stderr and done.stdout.startswith("1 runs scrubbed")
+        got = tmp_path / "got.rrd"
+        assert fleet(live, "download", run_id, "-o", str(got)).returncode == 0
+        bodies, kept = chunk_bodies(got), chunk_bodies(held)
+        assert set(bodies) == set(kept) and not any(SITE_KEY.encode() in body for body in bodies.values())
+        assert sum(bodies[c] != kept[c] for c in kept) == 1 and any(b"lab" in body for body in bodies.values())
+        check = subprocess.run([rerun_bin, "rrd", "verify", str(got)], capture_output=True, text=True)
+        assert check.returncode == 0, check.stderr
+        page = run_json(live, run_id)
+        assert SITE_KEY not in json.dumps(page) and page["properties"]["site"] == {"site_name": "lab"}
+
+        again = fleet(live, "catalog", "scrub-secrets")
+        assert again.returncode == 0 and again.stdout.startswith("0 runs scrubbed, 0 found"), again.stderr
+    finally:
+        live.stop()

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import subprocess
 import sys
+from collections.abc import Callable
 from pathlib import Path
 
 import lz4.block
@@ -24,6 +25,7 @@ from services.rrd.decoder import iter_events
 from services.rrd.messages import ArrowMessage, Compression
 from services.sealed.tiers import Tiers
 from services.sealed.write import RECORDING
+from tests.services.ingest import feeding
 from tests.services.retention.conftest import NodeFactory
 
 pytestmark = pytest.mark.sdk
@@ -54,6 +56,10 @@ def chunk_bodies(path: Path) -> dict[bytes, bytes]:
                 body = lz4.block.decompress(body, uncompressed_size=event.uncompressed_size)
             found[chunk_meta(event).chunk_id] = body
     return found
+
+
+def holds_token(path: Path) -> bool:
+    return any(TOKEN in body for body in chunk_bodies(path).values())
 
 
 def warm_copy(tiers: Tiers, node_catalog: object, tmp_path: Path, name: str) -> Path:
@@ -109,3 +115,65 @@ def test_secrets_filed_before_are_found_then_sealed_away(
 
     again = scrub(node.retention, secrets, dry_run=False, actor="alice")
     assert [(s.run_id, s.outcome) for s in again] == [(RUN, "clean")]
+
+
+LIVE = "scrub-live"
+
+
+def filed_before(node_upload: Callable[[], object], monkeypatch: pytest.MonkeyPatch) -> None:
+    """Run `node_upload` with ingest keeping property chunks as sent (as it did before it stripped them)."""
+    real = ingest_service.read_property_chunk  # type: ignore[attr-defined]
+
+    def as_filed_before(msg: ArrowMessage, meta: object, secret_fields: SecretFields) -> PropertyChunk:
+        read = real(msg, meta, secret_fields)  # type: ignore[arg-type]
+        return PropertyChunk(msg, meta, read.name, read.values)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(ingest_service, "read_property_chunk", as_filed_before)
+    try:
+        node_upload()
+    finally:
+        monkeypatch.undo()
+
+
+@pytest.mark.parametrize("tiers", ["file"], indirect=True)
+def test_hot_runs_closed_are_promoted_without_secrets_live_ones_left(
+    tiers: Tiers, make_node: NodeFactory, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, rerun_bin: str
+) -> None:
+    closed_path, live_path = tmp_path / "closed.rrd", tmp_path / "live.rrd"
+    subprocess.run([sys.executable, "-c", SCRIPT.format(path=str(closed_path))], check=True, timeout=120)
+    live_script = SCRIPT.replace(repr(RUN), repr(LIVE)).format(path=str(live_path))
+    subprocess.run([sys.executable, "-c", live_script], check=True, timeout=120)
+    node = make_node(tiers)
+    stream = node.ingest.open_source(live=True)
+
+    def file_both() -> None:
+        node.upload(closed_path)
+        feeding.feed(node.ingest, stream, iter_events(live_path))  # a stream still open: the run is live
+
+    filed_before(file_both, monkeypatch)
+    hot_file = node.ingest.hot_run(RUN).hot.path  # type: ignore[union-attr]
+    live_file = node.ingest.hot_run(LIVE).hot.path  # type: ignore[union-attr]
+    before = chunk_bodies(hot_file)
+    assert any(TOKEN in body for body in before.values()) and holds_token(live_file)
+    secrets = SecretFields()
+
+    dry = scrub(node.retention, secrets, dry_run=True, actor="alice")
+    assert sorted((s.run_id, s.tier, s.outcome) for s in dry) == [(LIVE, "hot", "found"), (RUN, "hot", "found")]
+    assert all(TOKEN.decode() not in s.detail for s in dry)
+    assert chunk_bodies(hot_file) == before and node.ingest.hot_run(RUN) is not None  # nothing moved
+
+    done = {s.run_id: s for s in scrub(node.retention, secrets, dry_run=False, actor="alice")}
+    assert (done[RUN].tier, done[RUN].outcome) == ("hot", "scrubbed") and "promoted" in done[RUN].detail
+    assert (done[LIVE].outcome, holds_token(live_file)) == ("skipped", True)
+    assert "live" in done[LIVE].detail
+    assert node.ingest.hot_run(RUN) is None and not hot_file.exists()  # sealed; the hot copy is gone
+    warm = warm_copy(tiers, node.catalog, tmp_path, "warm.rrd")
+    after = chunk_bodies(warm)
+    assert set(after) == set(before) and not any(TOKEN in b or API_KEY in b for b in after.values())
+    assert sum(before[chunk] != after[chunk] for chunk in before) == 2  # the two property chunks only
+    check = subprocess.run([rerun_bin, "rrd", "verify", str(warm)], capture_output=True, text=True)
+    assert check.returncode == 0, check.stderr
+
+    again = {s.run_id: s.outcome for s in scrub(node.retention, secrets, dry_run=False, actor="alice")}
+    assert again == {RUN: "clean", LIVE: "skipped"}  # the live run waits for its stream to close
+    node.ingest.close_source(stream)
