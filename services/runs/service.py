@@ -312,19 +312,8 @@ def hot_answer(record: queries.RunRecord, policies: Policies | None) -> dict[str
         "pinned": False,
         "pinned_by": None,
         "properties": record.properties,
-        "entities": [
-            {
-                "path": e.path,
-                "chunks": e.chunks,
-                "static_chunks": e.static_chunks,
-                "rows": e.rows,
-                "bytes": e.bytes,
-                "archetypes": e.archetypes,
-                "components": e.components,
-            }
-            for e in record.entities
-        ],
-        "timelines": [{"name": t.name, "type": t.type, "min": t.min, "max": t.max} for t in record.timelines],
+        "entities": [entity_answer(e, e.archetypes, e.components) for e in record.entities],
+        "timelines": [timeline_answer(t) for t in record.timelines],
         "policy": policy,
         "lifecycle": None,
         "objects": [],
@@ -335,27 +324,34 @@ def hot_answer(record: queries.RunRecord, policies: Policies | None) -> dict[str
     }
 
 
+def entity_answer(entity: Any, archetypes: list[str], components: list[str]) -> dict[str, Any]:
+    """An entity of a run as GET /v1/runs/RUN shows it, from the catalog's row or ingest's record
+    (which keep its archetypes and components as JSON text and as lists)."""
+    return {
+        "path": entity.path,
+        "chunks": entity.chunks,
+        "static_chunks": entity.static_chunks,
+        "rows": entity.rows,
+        "bytes": entity.bytes,
+        "archetypes": archetypes,
+        "components": components,
+    }
+
+
+def timeline_answer(timeline: Any) -> dict[str, Any]:
+    return {"name": timeline.name, "type": timeline.type, "min": timeline.min, "max": timeline.max}
+
+
 def _catalog_answer(catalog: sessionmaker[Session], run_id: str, policies: Policies | None) -> dict[str, Any]:
     with session_scope(catalog) as session:
         found = queries.require_run(session, run_id)
         return {
             **run_summary(found),
             "entities": [
-                {
-                    "path": e.path,
-                    "chunks": e.chunks,
-                    "static_chunks": e.static_chunks,
-                    "rows": e.rows,
-                    "bytes": e.bytes,
-                    "archetypes": json.loads(e.archetypes),
-                    "components": json.loads(e.components),
-                }
+                entity_answer(e, json.loads(e.archetypes), json.loads(e.components))
                 for e in queries.run_entities(session, run_id)
             ],
-            "timelines": [
-                {"name": t.name, "type": t.type, "min": t.min, "max": t.max}
-                for t in queries.run_timelines(session, run_id)
-            ],
+            "timelines": [timeline_answer(t) for t in queries.run_timelines(session, run_id)],
             **_lifecycle(session, found, policies),
             **edge_queries.run_edge(session, run_id),  # the robot's own copy, and the latest pulls
             "owner": nodes.owner_of(session, [run_id]).get(run_id),  # the node filing it while hot (many nodes)
