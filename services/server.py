@@ -28,10 +28,10 @@ from services.cluster.ownership import Ownership
 from services.cluster.relay import Channels, peer_channel_options
 from services.compiled import compiled_summary
 from services.console import app as console
+from services.facts.identity import SecretFields
 from services.hot.reserve import DiskReserve
 from services.hot.store import HotStore
 from services.ingest import grpc_handler
-from services.ingest.identity import SecretFields
 from services.ingest.replay import ReplayHub
 from services.ingest.service import IngestService
 from services.redap import grpc_handler as redap_handler

@@ -4,9 +4,10 @@
     rrd, storage, policies    the wire codec; object stores; retention policies (plain values)
     sdk_client                the client: imports core only, so it ships without the server
     catalog, settings         the catalog (imports core only); the one Settings
-    auth | hot                tokens, scopes, signed links | the hot tier (neither imports the other)
-    ingest                    streams and uploads into the hot tier; owns the live runs
-    sealed                    the sealed-run format (recording, chunk index, run.json) and its tiers
+    auth | hot | cluster | facts   tokens, scopes, signed links | the hot tier | run ownership among
+                              nodes | what a run is, learnt from its messages (none imports another)
+    ingest | sealed           streams and uploads into the hot tier, owning the live runs | the
+                              sealed-run format (recording, chunk index, run.json) and its tiers
     analytics                 extraction at promotion, SQL over what was extracted
     retention | runs | edge   promotion, archive, expiry | serving runs | robots' own tiers (none imports another)
     api | redap               the REST app and the gRPC port's front | the Rerun catalog server
@@ -43,8 +44,9 @@ LAYERS: dict[str, int] = {
     "services.auth": 3,
     "services.hot": 3,
     "services.cluster": 3,
+    "services.facts": 3,
     "services.ingest": 4,
-    "services.sealed": 5,
+    "services.sealed": 4,
     "services.analytics": 6,
     "services.retention": 7,
     "services.runs": 7,

@@ -20,7 +20,7 @@ from dataclasses import dataclass
 from core.clock import utcnow
 from services.agent.spool import Spool
 from services.agent.state import AgentState, RunState
-from services.ingest.facts import IngestRun
+from services.ingest.run import IngestRun
 
 log = logging.getLogger("fleet.agent")
 

@@ -15,11 +15,11 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from core.states import RunStatus
+from services.facts.identity import SecretFields
 from services.hot.read import HotRecording
 from services.hot.store import HotStore
-from services.ingest.facts import IngestRun
-from services.ingest.identity import SecretFields
 from services.ingest.replay import ReplayHub
+from services.ingest.run import IngestRun
 from services.ingest.service import IngestService
 from services.ingest.source import Source
 from services.rrd import errors as rrd_errors

@@ -29,7 +29,7 @@ from core.ids import check_id
 from core.states import Tier
 from services.auth.scopes import Principal, Scope
 from services.edge.context import Edge, acting_robot, check_robot
-from services.ingest.service import IngestRun
+from services.ingest.run import IngestRun
 from services.sealed.index import chunk_ids_of
 from services.sealed.write import INDEX
 from services.storage.objectstore import ObjectNotFoundError

@@ -15,7 +15,7 @@ from catalog import queries
 from catalog.db import session_scope
 from catalog.queries import RunRecord
 from core.errors import CATALOG_DOWN
-from services.ingest.facts import IngestRun
+from services.ingest.run import IngestRun
 
 log = logging.getLogger("services.ingest.service")
 

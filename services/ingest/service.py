@@ -32,19 +32,15 @@ from core.ids import UnsafeIdError, check_id, check_name
 from core.states import RunStatus, Tier
 from services.cluster.ownership import Ownership
 from services.cluster.relay import Channels
+from services.facts.identity import IDENTITY_PROPERTY, ROBOT_FIELD, SecretFields, check_robot, read_property_chunk
+from services.facts.run import LOG_TIME, RunFacts, check_chunk_names, store_key
+from services.facts.sealed import SealedInfo, SealedLookup
 from services.hot.read import HotRecording
 from services.hot.store import HotStore
 from services.ingest.catalog_sync import CatalogSync
-from services.ingest.facts import LOG_TIME, IngestRun, RunFacts, SealedInfo, check_chunk_names, store_key
-from services.ingest.identity import (
-    IDENTITY_PROPERTY,
-    ROBOT_FIELD,
-    SecretFields,
-    check_robot,
-    read_property_chunk,
-)
 from services.ingest.replay import ReplayHub
 from services.ingest.routing import route
+from services.ingest.run import IngestRun
 from services.ingest.source import IngestReport, Source
 from services.rrd.chunk import ChunkMeta, chunk_meta
 from services.rrd.frames import DEFAULT_VERSION, MessageKind
@@ -80,7 +76,6 @@ log = logging.getLogger(__name__)
 _HELD_LIMIT = 64 * 1024 * 1024
 _NAMED_LAYOUTS = 4096
 _RECENTLY_SEALED = 1024
-SealedLookup = Callable[[str], SealedInfo | None]
 
 
 class IngestService:

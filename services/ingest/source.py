@@ -7,7 +7,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from services.cluster.ownership import Lease, Owner
-from services.ingest.facts import SealedInfo
+from services.facts.sealed import SealedInfo
 from services.rrd.frames import RerunVersion
 from services.rrd.messages import Event, StoreInfoMessage, StoreKind
 

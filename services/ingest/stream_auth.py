@@ -27,7 +27,7 @@ from services.auth.metadata import GRPC, bearer_token
 from services.auth.scopes import Principal, Scope
 from services.auth.tokens import FORBIDDEN, INVALID, MISSING, PEER_AUDIENCE, Auth
 from services.cluster.relay import INTERNAL_KEYS, PEER_CREDENTIAL, RELAYED_BY, SOURCE_KIND, metadata_value
-from services.ingest.identity import IDENTITY_PROPERTY, TOKEN_FIELD, FleetClaim, check_robot, fleet_claim
+from services.facts.identity import IDENTITY_PROPERTY, TOKEN_FIELD, FleetClaim, check_robot, fleet_claim
 from services.rrd.chunk import chunk_meta
 from services.rrd.messages import ArrowMessage, Event, StoreKind
 

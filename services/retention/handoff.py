@@ -22,7 +22,8 @@ from services.auth.tokens import Auth
 from services.cluster.ownership import Lease, Ownership
 from services.cluster.relay import PEER_CREDENTIAL, RELAYED_BY, SOURCE_KIND, hand_over
 from services.hot.read import read_events
-from services.ingest.service import IngestRun, IngestService
+from services.ingest.run import IngestRun
+from services.ingest.service import IngestService
 
 log = logging.getLogger(__name__)
 

@@ -33,8 +33,10 @@ from core.errors import ConflictError, InsufficientStorageError
 from core.states import RunStatus, Tier
 from services.analytics.extract import Extractor
 from services.analytics.store import write_analytics
+from services.facts.sealed import SealedInfo
 from services.hot.read import read_events
-from services.ingest.service import IngestRun, IngestService, SealedInfo
+from services.ingest.run import IngestRun
+from services.ingest.service import IngestService
 from services.rrd.decoder import iter_events
 from services.rrd.messages import Event
 from services.sealed.tiers import Tiers, run_prefix, write_run_json

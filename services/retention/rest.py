@@ -19,7 +19,7 @@ from fastapi.responses import StreamingResponse
 from core.errors import BadParameterError
 from services.auth.depends import actor, require
 from services.auth.scopes import Principal, Scope
-from services.ingest.identity import SecretFields
+from services.facts.identity import SecretFields
 from services.retention import rebuild as rebuild_mod
 from services.retention import schedule, service
 from services.retention import scrub as scrub_mod

@@ -33,9 +33,9 @@ from catalog.db import session_scope
 from catalog.models import Run, RunLifecycle
 from core.errors import ConflictError
 from core.states import RunStatus, Tier
+from services.facts.identity import SecretFields, read_property_chunk
 from services.hot.read import read_events
-from services.ingest.identity import SecretFields, read_property_chunk
-from services.ingest.service import IngestRun
+from services.ingest.run import IngestRun
 from services.retention.locks import job_lock
 from services.retention.promote import download_warm
 from services.retention.service import Retention, catalog_engine, promote_now

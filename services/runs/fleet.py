@@ -18,7 +18,8 @@ from catalog.db import session_scope
 from catalog.models import JobRun, RetentionEvent, Robot, Run, RunObject
 from core.clock import aware, iso_utc, utcnow
 from core.states import RunStatus, Tier
-from services.ingest.service import IngestRun, IngestService
+from services.ingest.run import IngestRun
+from services.ingest.service import IngestService
 from services.runs.service import run_summary
 
 DAYS = 14  # runs per robot per day: this many days, today included

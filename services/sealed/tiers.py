@@ -16,7 +16,7 @@ from catalog.queries import EntityRecord, RunRecord, TimelineRecord
 from core.clock import aware
 from core.errors import InvalidArgumentError
 from core.states import ARCHIVED_IN_STORE, Tier
-from services.ingest.service import SealedInfo
+from services.facts.sealed import SealedInfo, SealedLookup
 from services.sealed.index import CHUNK, from_parquet
 from services.sealed.write import INDEX, RUN_JSON
 from services.settings import Settings
@@ -161,7 +161,7 @@ def write_run_json(session: Session, warm: ObjectStore, run_id: str) -> None:
         warm.put(found.key, found.encode())
 
 
-def sealed_lookup(catalog: sessionmaker[Session], tiers: Tiers) -> Any:
+def sealed_lookup(catalog: sessionmaker[Session], tiers: Tiers) -> SealedLookup:
     """For ingest: whether a run id not hot on this node was sealed, and which chunks it holds."""
 
     def lookup(run_id: str) -> SealedInfo | None:

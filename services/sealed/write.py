@@ -16,8 +16,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import BinaryIO, cast
 
-from services.ingest.identity import DEFAULT_SECRETS, SecretFields
-from services.ingest.service import RunFacts
+from services.facts.identity import DEFAULT_SECRETS, SecretFields
+from services.facts.run import RunFacts
 from services.rrd.chunk import ChunkMeta, chunk_meta
 from services.rrd.chunk_index import chunk_row
 from services.rrd.encoder import RrdEncoder

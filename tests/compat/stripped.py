@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from services.ingest.identity import read_property_chunk
+from services.facts.identity import read_property_chunk
 from services.rrd import iter_events
 from services.rrd.chunk import chunk_meta
 from services.rrd.encoder import RrdEncoder

@@ -14,7 +14,7 @@ from core.errors import InvalidArgumentError
 from core.states import RunStatus
 from services.agent.spool import RUNS_DIR, Spool, store_infos
 from services.hot.store import RUN_FILE
-from services.ingest.facts import IngestRun
+from services.ingest.run import IngestRun
 from services.rrd import iter_events
 from services.rrd.chunk import chunk_meta
 from services.rrd.messages import ArrowMessage, Event, StoreInfoMessage, StreamStart

@@ -19,8 +19,8 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from catalog.db import create_engine, upgrade
 from services.api.app import create_app
+from services.facts.sealed import SealedInfo
 from services.hot.store import HotStore
-from services.ingest.facts import SealedInfo
 from services.ingest.service import IngestService
 from services.settings import Durability, load_settings
 from tests.services.rrd.recordings import Recording

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from services.ingest.identity import fleet_claim, read_property_chunk
+from services.facts.identity import fleet_claim, read_property_chunk
 from services.rrd.chunk import chunk_meta, decompress_payload, read_chunk
 from services.rrd.decoder import iter_events
 from services.rrd.messages import ArrowMessage, StoreKind

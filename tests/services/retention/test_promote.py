@@ -25,8 +25,8 @@ import sqlalchemy as sa
 
 from catalog import queries
 from catalog.db import session_scope
-from services.ingest.identity import SecretFields
-from services.ingest.service import IngestRun
+from services.facts.identity import SecretFields
+from services.ingest.run import IngestRun
 from services.retention import promote
 from services.retention.rebuild import rebuild
 from services.retention.schedule import promote_job

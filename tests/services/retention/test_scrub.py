@@ -15,8 +15,8 @@ import pytest
 
 from catalog import queries
 from catalog.db import session_scope
+from services.facts.identity import PropertyChunk, SecretFields
 from services.ingest import service as ingest_service
-from services.ingest.identity import PropertyChunk, SecretFields
 from services.retention.promote import download_warm
 from services.retention.scrub import scrub
 from services.retention.service import promote_now

@@ -13,7 +13,7 @@ from pathlib import Path
 import pyarrow as pa
 import pytest
 
-from services.ingest.identity import read_property_chunk
+from services.facts.identity import read_property_chunk
 from services.rrd import conformance, errors
 from services.rrd.chunk import chunk_meta, read_chunk
 from services.rrd.decoder import decode_message

@@ -1,4 +1,4 @@
-"""Secret property fields (FLEET_SECRET_FIELDS) and property chunks (services/ingest/identity.py)."""
+"""Secret property fields (FLEET_SECRET_FIELDS) and property chunks (services/facts/identity.py)."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ from pathlib import Path
 
 import pytest
 
-from services.ingest.identity import SecretFields, fleet_claim, read_property_chunk, words
+from services.facts.identity import SecretFields, fleet_claim, read_property_chunk, words
 from services.rrd.chunk import chunk_meta, decompress_payload, read_chunk
 from tests.services.ingest.authed import recorded_requests
 from tests.services.rrd.malformed import Seed, record_seed

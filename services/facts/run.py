@@ -1,5 +1,6 @@
-"""What the catalog says about a run, learnt from its messages: `RunFacts` (any recording: live,
-recovered from disk, or being sealed) and `IngestRun` (a run in this node's hot tier).
+"""What the catalog says about a run, learnt from its messages: `RunFacts`, for any recording (live
+in ingest, recovered from disk, or being sealed). Below both ingest and the sealed format, which
+each learn a run's facts this way.
 
 Everything that reaches the catalog is checked or cleaned here first: names must fit its columns and
 indexes (no NUL, bounded bytes), and property values must be plain JSON (no NaN, no NUL), so one run
@@ -10,16 +11,12 @@ from __future__ import annotations
 
 import datetime as dt
 import math
-import threading
-from dataclasses import dataclass
 from typing import Any
 
 from catalog.queries import EntityRecord, RunRecord, TimelineRecord
 from core.ids import PATH_BYTES, check_id, check_name
 from core.states import RunStatus, Tier
-from services.cluster.ownership import Lease
-from services.hot.store import HotRun
-from services.ingest.identity import (
+from services.facts.identity import (
     DEFAULT_SECRETS,
     IDENTITY_PROPERTY,
     ROBOT_FIELD,
@@ -61,17 +58,6 @@ def plain_json(value: Any) -> Any:
     if isinstance(value, list | tuple):
         return [plain_json(v) for v in value]
     return plain_json(str(value))
-
-
-@dataclass(frozen=True)
-class SealedInfo:
-    """What the catalog knows of a run that left the hot tier (given by the retention side)."""
-
-    tier: Tier  # warm, cold or deleted
-    prefix: str  # ROBOT/YYYY-MM-DD/RUN
-    robot_id: str
-    date: dt.date
-    chunk_ids: frozenset[bytes]
 
 
 class RunFacts:
@@ -190,27 +176,3 @@ def store_key(store: StoreId) -> tuple[StoreKind, str]:
     """A store as ingest tells stores apart: kind and recording id. Rerun 0.23 and 0.24 name the
     application only in SetStoreInfo, not in the store id of each chunk."""
     return store.kind, store.recording_id
-
-
-class IngestRun(RunFacts):
-    """A run in this node's hot tier as ingest holds it: its facts, its file (`HotRun`), whether
-    streams feed it, and its hand-over to the warm tier. Only ingest keeps these in `IngestService.runs`;
-    other services get them through its read-only view (`hot_run`, `hot_runs`, `closed_runs`)."""
-
-    def __init__(self, hot: HotRun, now: dt.datetime, secret_fields: SecretFields = DEFAULT_SECRETS) -> None:
-        super().__init__(hot.run_id, now, secret_fields)
-        self.hot = hot
-        self.sealing = threading.Lock()  # held by ingest per write, and by promotion as it hands the run over
-        self.sealed = False  # handed to the warm tier: new data for this run starts a new hot run
-        self.sealed_into: SealedInfo | None = None  # where promotion put it (for data that follows)
-        self.sealed_as: SealedInfo | None = None  # this hot run adds chunks to a run already sealed
-        self.lease: Lease | None = None  # this node owns the run (None: filed here, to hand over)
-        self.catalog_failures = 0  # consecutive failed catalog writes of this run (one bad run waits alone)
-        self.catalog_retry_at: dt.datetime | None = None
-
-    def recording_bytes(self) -> int:
-        return self.hot.size  # the hot file knows its size
-
-    def holds(self, chunk_id: bytes) -> bool:
-        """Whether this run already has the chunk: in its hot file, or sealed before."""
-        return chunk_id in self.chunk_ids or (self.sealed_as is not None and chunk_id in self.sealed_as.chunk_ids)
