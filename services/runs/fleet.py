@@ -15,7 +15,7 @@ import sqlalchemy as sa
 from sqlalchemy.orm import Session, sessionmaker
 
 from catalog.db import session_scope
-from catalog.models import JobRun, RetentionEvent, Robot, Run, RunObject
+from catalog.models import JobExecution, RetentionEvent, Robot, Run, RunObject
 from core.clock import aware, iso_utc, utcnow
 from core.states import RunStatus, Tier
 from services.ingest.run import IngestRun
@@ -124,7 +124,7 @@ def object_totals(session: Session) -> list[dict[str, Any]]:
     ]
 
 
-def _job(job: JobRun) -> dict[str, Any]:
+def _job(job: JobExecution) -> dict[str, Any]:
     finished = job.finished_at
     took = (aware(finished) - aware(job.started_at)).total_seconds() if finished is not None else None
     return {
@@ -142,16 +142,16 @@ def _job(job: JobRun) -> dict[str, Any]:
 
 def recent_jobs(session: Session, limit: int = RECENT) -> list[dict[str, Any]]:
     """The latest scheduled job runs (promote, retention), newest first."""
-    query = sa.select(JobRun).order_by(JobRun.started_at.desc(), JobRun.id.desc()).limit(limit)
+    query = sa.select(JobExecution).order_by(JobExecution.started_at.desc(), JobExecution.id.desc()).limit(limit)
     return [_job(job) for job in session.scalars(query)]
 
 
 def failed_jobs(session: Session, limit: int = FAILURES) -> list[dict[str, Any]]:
     """The latest job runs that failed (the catalog keeps a month of them), newest first."""
     query = (
-        sa.select(JobRun)
-        .where(JobRun.outcome == "failed")
-        .order_by(JobRun.started_at.desc(), JobRun.id.desc())
+        sa.select(JobExecution)
+        .where(JobExecution.outcome == "failed")
+        .order_by(JobExecution.started_at.desc(), JobExecution.id.desc())
         .limit(limit)
     )
     return [_job(job) for job in session.scalars(query)]
