@@ -3,7 +3,8 @@
     core                      errors and their status table, ids, the clock
     rrd, storage, policies    the wire codec; object stores; retention policies (plain values)
     sdk_client                the client: imports core only, so it ships without the server
-    catalog, settings         the catalog (imports core only); the one Settings
+    catalog, settings         the catalog (imports core only); the depot's Settings and the base it
+                              shares with the agent's
     auth | hot | cluster | facts   tokens, scopes, signed links | the hot tier | run ownership among
                               nodes | what a run is, learnt from its messages (none imports another)
     ingest | sealed           streams and uploads into the hot tier, owning the live runs | the
