@@ -6,7 +6,8 @@
                                      values); the data dir lock and the ports; process tuning; the
                                      agent's routine calls at DEBUG; the modules mypyc compiles
     sdk_client, catalog, settings    the client (core only, so it ships without the server); the
-                                     catalog (core only); the one Settings
+                                     catalog (core only); the depot's Settings and the
+                                     base it shares with the agent's
     auth | hot | cluster | facts | migrations
                                      tokens, scopes, signed links | the hot tier | run ownership
                                      among nodes | what a run is, learnt from its messages | the

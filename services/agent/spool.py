@@ -15,6 +15,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from core.states import RunStatus
+from services.agent.settings import AgentSettings
 from services.facts.identity import SecretFields
 from services.hot.read import HotRecording
 from services.hot.store import HotStore
@@ -25,7 +26,6 @@ from services.ingest.source import Source
 from services.rrd import errors as rrd_errors
 from services.rrd.decoder import iter_events
 from services.rrd.messages import Event, StoreInfoMessage
-from services.settings import Settings
 
 log = logging.getLogger("fleet.agent")
 
@@ -35,7 +35,7 @@ MAX_STREAMS = 64
 
 
 class Spool:
-    def __init__(self, settings: Settings) -> None:
+    def __init__(self, settings: AgentSettings) -> None:
         self.root = settings.agent_spool
         self.hot = HotStore(
             self.root / RUNS_DIR,

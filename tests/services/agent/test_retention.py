@@ -12,10 +12,10 @@ from pathlib import Path
 import pytest
 
 from services.agent.retention import RetentionReport, enforce
+from services.agent.settings import load_agent_settings
 from services.agent.spool import RUNS_DIR, Spool
 from services.agent.state import AgentState, RunState
 from services.rrd import iter_events
-from services.settings import load_settings
 from tests.services.rrd.synthetic import write_recording
 
 NOW = dt.datetime(2025, 6, 1, 12, 0, tzinfo=dt.UTC)
@@ -25,7 +25,7 @@ DAY = dt.timedelta(hours=24)
 @pytest.fixture
 def spool(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Iterator[Spool]:
     monkeypatch.delenv("FLEET_CONFIG", raising=False)
-    spool = Spool(load_settings(agent_spool=tmp_path / "spool", agent_min_free_bytes=0))
+    spool = Spool(load_agent_settings(agent_spool=tmp_path / "spool", agent_min_free_bytes=0))
     spool.recover()
     yield spool
     spool.close()

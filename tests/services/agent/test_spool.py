@@ -12,13 +12,13 @@ import pytest
 
 from core.errors import InvalidArgumentError
 from core.states import RunStatus
+from services.agent.settings import load_agent_settings
 from services.agent.spool import RUNS_DIR, Spool, store_infos
 from services.hot.store import RUN_FILE
 from services.ingest.run import IngestRun
 from services.rrd import iter_events
 from services.rrd.chunk import chunk_meta
 from services.rrd.messages import ArrowMessage, Event, StoreInfoMessage, StreamStart
-from services.settings import load_settings
 from tests.services.rrd.recordings import Recording
 from tests.services.rrd.synthetic import recording_bytes, write_recording
 
@@ -33,7 +33,7 @@ def make_spool(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Iterator[Make
     made: list[Spool] = []
 
     def make() -> Spool:
-        spool = Spool(load_settings(agent_spool=tmp_path / "spool", agent_min_free_bytes=0))
+        spool = Spool(load_agent_settings(agent_spool=tmp_path / "spool", agent_min_free_bytes=0))
         spool.recover()
         made.append(spool)
         return spool
@@ -168,7 +168,7 @@ def test_recover_finds_every_run_after_a_restart(make_spool: MakeSpool, tmp_path
     sizes = {run.run_id: run.hot.size for run in first.runs()}
     first.close()
 
-    spool = Spool(load_settings(agent_spool=first.root, agent_min_free_bytes=0))
+    spool = Spool(load_agent_settings(agent_spool=first.root, agent_min_free_bytes=0))
     try:
         assert sorted(spool.recover()) == ["run-a", "run-b"]
         assert {run.run_id: run.hot.size for run in spool.runs()} == sizes
