@@ -11,7 +11,7 @@ from __future__ import annotations
 import asyncio
 import time
 from collections.abc import Callable
-from typing import TypeVar
+from typing import Generic, TypeVar
 
 T = TypeVar("T")
 
@@ -22,32 +22,35 @@ class WaitTimeout(AssertionError):
     """The condition did not hold in time; an AssertionError so pytest reports it as a failure."""
 
 
-class _LastSeen:
-    """What the condition last answered, for the failure message."""
+class _Wait(Generic[T]):
+    """One wait's state: the deadline and what the condition last answered, for the failure message."""
 
-    def __init__(self) -> None:
-        self.said = "never asked"
+    def __init__(
+        self,
+        condition: Callable[[], T | None],
+        timeout: float,
+        what: str,
+        tolerate: tuple[type[BaseException], ...],
+        detail: Callable[[], str] | None,
+    ) -> None:
+        self.condition, self.timeout, self.what, self.tolerate, self.detail = condition, timeout, what, tolerate, detail
+        self.deadline = time.monotonic() + timeout
+        self.last = "never asked"
 
-    def value(self, value: object) -> None:
-        self.said = f"last returned {value!r}"
-
-    def raised(self, exc: BaseException) -> None:
-        self.said = f"last raised {type(exc).__name__}: {exc}"
-
-
-def _ask(condition: Callable[[], T | None], tolerate: tuple[type[BaseException], ...], last: _LastSeen) -> T | None:
-    try:
-        value = condition()
-    except tolerate as exc:
-        last.raised(exc)
+    def check(self) -> T | None:
+        """The condition's value if it holds; None to ask again; WaitTimeout once the time is up."""
+        try:
+            value = self.condition()
+        except self.tolerate as exc:
+            value, self.last = None, f"last raised {type(exc).__name__}: {exc}"
+        else:
+            self.last = f"last returned {value!r}"
+        if value:
+            return value
+        if time.monotonic() > self.deadline:
+            more = f"\n{self.detail()}" if self.detail is not None else ""
+            raise WaitTimeout(f"waited {self.timeout:g} s for {self.what}; {self.last}{more}")
         return None
-    last.value(value)
-    return value
-
-
-def _timed_out(what: str, timeout: float, last: _LastSeen, detail: Callable[[], str] | None) -> WaitTimeout:
-    more = f"\n{detail()}" if detail is not None else ""
-    return WaitTimeout(f"waited {timeout:g} s for {what}; {last.said}{more}")
 
 
 def wait_for(
@@ -66,15 +69,10 @@ def wait_for(
     "not yet" (a page still changing); any other propagates at once, which is how a condition says
     that waiting longer is pointless (the process it waits on has exited).
     """
-    deadline = time.monotonic() + timeout
-    last = _LastSeen()
-    while True:
-        value = _ask(condition, tolerate, last)
-        if value:
-            return value
-        if time.monotonic() > deadline:
-            raise _timed_out(what, timeout, last, detail)
+    wait = _Wait(condition, timeout, what, tolerate, detail)
+    while (value := wait.check()) is None:
         time.sleep(interval)
+    return value
 
 
 def holds_within(condition: Callable[[], object], timeout: float, *, interval: float = 0.1) -> bool:
@@ -94,12 +92,7 @@ async def wait_for_async(
     interval: float = 0.01,
 ) -> T:
     """`wait_for` inside an event loop: polls without blocking the tasks that make the condition hold."""
-    deadline = time.monotonic() + timeout
-    last = _LastSeen()
-    while True:
-        value = _ask(condition, NOTHING_TOLERATED, last)
-        if value:
-            return value
-        if time.monotonic() > deadline:
-            raise _timed_out(what, timeout, last, None)
+    wait = _Wait(condition, timeout, what, NOTHING_TOLERATED, None)
+    while (value := wait.check()) is None:
         await asyncio.sleep(interval)
+    return value
