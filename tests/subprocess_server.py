@@ -7,11 +7,12 @@ from __future__ import annotations
 import contextlib
 import socket
 import subprocess
-import time
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 
 import httpx
+
+from tests.waiting import wait_for
 
 LOG_TAIL = 3000  # characters of the server's log quoted when it fails to start
 
@@ -78,17 +79,15 @@ class ServerProcess:
 
     def wait_until(self, condition: Callable[[], bool], timeout: float, what: str) -> None:
         """Poll `condition` until it holds, while the process lives, within `timeout` seconds."""
-        deadline = time.monotonic() + timeout
-        while True:
-            if self.proc.poll() is not None:
+
+        def living_and_holds() -> bool:
+            if self.proc.poll() is not None:  # waiting longer is pointless: fail now, with its log
                 raise AssertionError(
                     f"{self.name} exited with {self.proc.returncode} while waiting for {what}:\n{self.log_tail()}"
                 )
-            if condition():
-                return
-            if time.monotonic() > deadline:
-                raise AssertionError(f"waited {timeout:g} s for {what} from {self.name}:\n{self.log_tail()}")
-            time.sleep(0.05)  # polling for the condition, bounded by the deadline
+            return condition()
+
+        wait_for(living_and_holds, timeout, f"{what} from {self.name}", interval=0.05, detail=self.log_tail)
 
     def log_tail(self) -> str:
         return "\n".join(_tail(path) for path in (self.log, self.errors_log) if path is not None)

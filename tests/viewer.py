@@ -38,6 +38,7 @@ from rerun.experimental import ViewerClient, ViewerState
 
 from tests.subprocess_server import free_port
 from tests.viewer_widgets import ViewerWidgets
+from tests.waiting import wait_for
 
 T = TypeVar("T")
 V = TypeVar("V")
@@ -278,21 +279,17 @@ class HeadlessViewer:
 
     def wait_until(self, probe: Callable[[], T | None], what: str, timeout: float = 30) -> Waited[T]:
         """Poll `probe` until it returns something truthy (its value is returned, with how long it
-        took), while the viewer lives; fails with what the viewer shows after `timeout` seconds."""
-        started = time.monotonic()
-        seen = ""
-        while True:
-            if self._proc is None or self._proc.poll() is not None:
+        took), while the viewer lives; fails with what the viewer shows after `timeout` seconds.
+        A probe raises NotYet to say what it saw instead."""
+
+        def living_probe() -> T | None:
+            if self._proc is None or self._proc.poll() is not None:  # waiting longer is pointless
                 raise AssertionError(f"the viewer is not running while waiting for {what}:\n{self.log_tail()}")
-            try:
-                value = probe()
-            except NotYet as instead:
-                value, seen = None, f"last seen: {instead}\n"
-            if value:
-                return Waited(value, time.monotonic() - started)
-            if time.monotonic() - started > timeout:
-                raise AssertionError(f"waited {timeout:g} s for {what}\n{seen}{self.describe()}")
-            time.sleep(0.1)  # polling for the condition, bounded by the deadline
+            return probe()
+
+        started = time.monotonic()
+        value = wait_for(living_probe, timeout, what, tolerate=(NotYet,), detail=self.describe)
+        return Waited(value, time.monotonic() - started)
 
     def describe(self) -> str:
         """What the viewer shows and said, for a failure message."""

@@ -14,38 +14,30 @@ from catalog import queries
 from catalog.models import Dataset
 from catalog.queries import EntityRecord, RunRecord, TimelineRecord
 from core.clock import aware
+from tests.catalog.records import run_record
 
 NOW = dt.datetime(2026, 11, 21, 12, 0, tzinfo=dt.UTC)
 
 
 def _record(**changes: object) -> RunRecord:
-    record = RunRecord(
-        id="run-1",
-        robot_id="robot-7",
-        application_id="nav",
-        date=dt.date(2026, 11, 21),
-        status="live",
-        tier="hot",
-        started_at=NOW - dt.timedelta(minutes=5),
-        ended_at=None,
-        last_data_at=NOW,
-        sdk_version="0.41.0",
-        chunks=10,
-        rows=100,
-        bytes=12345,
-        properties={"fleet": {"robot_id": "robot-7"}},
-        entities=[
+    live = {
+        "status": "live",
+        "started_at": NOW - dt.timedelta(minutes=5),
+        "ended_at": None,
+        "chunks": 10,
+        "rows": 100,
+        "bytes": 12345,
+        "properties": {"fleet": {"robot_id": "robot-7"}},
+        "entities": [
             EntityRecord("/world/points", 6, 0, 60, 10000, ["rerun.archetypes.Points3D"], ["Points3D:positions"]),
             EntityRecord("/__properties/fleet", 1, 1, 1, 345, [], ["robot_id"]),
         ],
-        timelines=[
+        "timelines": [
             TimelineRecord("frame", "sequence", 0, 59),
             TimelineRecord("log_time", "timestamp", 1_700_000_000 * 10**9, 1_700_000_060 * 10**9),
         ],
-    )
-    for key, value in changes.items():
-        setattr(record, key, value)
-    return record
+    }
+    return run_record("run-1", NOW, **{**live, **changes})
 
 
 def test_save_and_read_back(session: Session):

@@ -13,26 +13,21 @@ from sqlalchemy.orm import sessionmaker
 from catalog import queries
 from catalog.db import create_engine, session_scope, upgrade
 from catalog.models import Run
+from tests.catalog.records import run_record
 
 T0 = dt.datetime(2026, 11, 22, 8, 0, tzinfo=dt.UTC)
 
 
 def record(run_id: str, chunks: int) -> queries.RunRecord:
-    return queries.RunRecord(
-        id=run_id,
-        robot_id="robot-7",
-        application_id="nav",
-        date=T0.date(),
+    return run_record(
+        run_id,
+        T0,
         status="live",
-        tier="hot",
-        started_at=T0,
         ended_at=None,
         last_data_at=T0 + dt.timedelta(seconds=chunks),
-        sdk_version="0.41.0",
         chunks=chunks,
         rows=chunks,
         bytes=chunks * 100,
-        properties={},
         timelines=[queries.TimelineRecord("frame", "sequence", 0, chunks)],
     )
 

@@ -7,7 +7,6 @@ import os
 import socket
 import subprocess
 import sys
-import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -19,6 +18,7 @@ from services.agent.status import status_report
 from tests.services.ingest.live_server import FLEET, LiveServer
 from tests.subprocess_server import ServerProcess, free_port
 from tests.tcp_proxy import FORWARD, REFUSE, TcpProxy
+from tests.waiting import wait_for
 
 ROBOT = str(Path(__file__).with_name("robot.py"))
 
@@ -136,17 +136,6 @@ class Robot:
     def finish(self) -> None:
         self.proc.wait(timeout=60)
         assert self.proc.returncode == 0, self.proc.stderr.read() if self.proc.stderr else ""
-
-
-def wait_for(condition: Callable[[], Any], timeout: float, what: str) -> Any:
-    deadline = time.monotonic() + timeout
-    while True:
-        value = condition()
-        if value:
-            return value
-        if time.monotonic() > deadline:
-            raise AssertionError(f"waited {timeout:g} s for {what}")
-        time.sleep(0.1)  # polling for the condition, bounded by the deadline
 
 
 def depot_chunks(depot: LiveServer, run_id: str) -> int:

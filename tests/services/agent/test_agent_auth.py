@@ -10,8 +10,9 @@ from pathlib import Path
 import httpx
 import pytest
 
-from tests.services.agent.harness import AgentProcess, Link, Robot, depot_chunks, wait_for
+from tests.services.agent.harness import AgentProcess, Link, Robot, depot_chunks
 from tests.services.ingest.live_server import LiveServer
+from tests.waiting import wait_for
 
 pytestmark = [pytest.mark.sdk, pytest.mark.slow]
 

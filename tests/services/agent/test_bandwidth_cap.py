@@ -11,9 +11,10 @@ from pathlib import Path
 
 import pytest
 
-from tests.services.agent.harness import AgentProcess, Link, Robot, depot_equals_copy, wait_for
+from tests.services.agent.harness import AgentProcess, Link, Robot, depot_equals_copy
 from tests.services.ingest.live_server import LiveServer
 from tests.tcp_proxy import TcpProxy
+from tests.waiting import wait_for
 
 pytestmark = [pytest.mark.sdk, pytest.mark.slow]
 

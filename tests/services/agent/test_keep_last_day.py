@@ -9,8 +9,9 @@ from pathlib import Path
 
 import pytest
 
-from tests.services.agent.harness import AgentProcess, Link, Robot, download, same_recording, wait_for
+from tests.services.agent.harness import AgentProcess, Link, Robot, download, same_recording
 from tests.services.ingest.live_server import LiveServer
+from tests.waiting import wait_for
 
 pytestmark = [pytest.mark.sdk, pytest.mark.slow]
 

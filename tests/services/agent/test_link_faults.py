@@ -18,10 +18,10 @@ from tests.services.agent.harness import (
     Robot,
     depot_chunks,
     depot_equals_copy,
-    wait_for,
 )
 from tests.services.ingest.live_server import LiveServer
 from tests.tcp_proxy import HANG, REFUSE
+from tests.waiting import wait_for
 
 pytestmark = [pytest.mark.sdk, pytest.mark.slow]
 

@@ -14,6 +14,7 @@ from services.agent import reports as reports_mod
 from services.agent.lanes import PullJob
 from services.agent.pulls import PullSpec
 from services.hot.index import HotEntry
+from tests.waiting import wait_for_async
 
 SPEC = PullSpec("pull-1", "run-1", [], [], None, None, None)
 
@@ -28,11 +29,6 @@ class FakeLink:
 
     async def call(self, fn: Any, *args: Any, **kwargs: Any) -> Any:
         return fn(*args, **kwargs)
-
-
-async def _until(check: Any) -> None:
-    while not check():
-        await asyncio.sleep(0.01)
 
 
 def test_a_pull_reports_its_chunks_as_they_are_sent(monkeypatch: pytest.MonkeyPatch):
@@ -50,14 +46,14 @@ def test_a_pull_reports_its_chunks_as_they_are_sent(monkeypatch: pytest.MonkeyPa
 
     async def scenario() -> None:
         serving = asyncio.create_task(reports_mod.Reports(agent)._serve(SPEC))  # type: ignore[arg-type]
-        await asyncio.wait_for(_until(lambda: jobs), 10)
+        await wait_for_async(lambda: jobs, 10, "the pull handed to its sender")
         job: PullJob = jobs[0]
         for entry in entries[:2]:
             job.count(entry)  # sent; the depot's holding them is checked later
-        await asyncio.wait_for(_until(lambda: ("sending", 2, 200) in link.reported), 10)
+        await wait_for_async(lambda: ("sending", 2, 200) in link.reported, 10, "2 chunks reported sent")
         for entry in entries[2:]:
             job.count(entry)
-        await asyncio.wait_for(_until(lambda: ("sending", 5, 500) in link.reported), 10)
+        await wait_for_async(lambda: ("sending", 5, 500) in link.reported, 10, "5 chunks reported sent")
         job.done.set()
         await asyncio.wait_for(serving, 10)
 

@@ -11,9 +11,10 @@ from typing import Any
 import httpx
 import pytest
 
-from tests.services.agent.harness import AgentProcess, Link, Robot, depot_chunks, run_status, wait_for
+from tests.services.agent.harness import AgentProcess, Link, Robot, depot_chunks, run_status
 from tests.services.agent.test_summary_pull import recording_chunks
 from tests.services.ingest.live_server import LiveServer
+from tests.waiting import wait_for
 
 pytestmark = [pytest.mark.sdk, pytest.mark.slow]
 

@@ -14,8 +14,9 @@ from services.rrd.decoder import iter_events
 from services.rrd.messages import ArrowMessage, StoreKind
 from services.runs.download import EntityFilter
 from services.runs.latest_at import ChunkEntry, select_chunks
-from tests.services.agent.harness import AgentProcess, Link, Robot, depot_chunks, download, run_status, wait_for
+from tests.services.agent.harness import AgentProcess, Link, Robot, depot_chunks, download, run_status
 from tests.services.ingest.live_server import LiveServer
+from tests.waiting import wait_for
 
 pytestmark = [pytest.mark.sdk, pytest.mark.slow]
 

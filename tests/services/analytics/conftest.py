@@ -19,7 +19,7 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from catalog.db import session_scope
 from catalog.models import RunObject
-from catalog.queries import RunRecord, save_run
+from catalog.queries import save_run
 from services.analytics.extract import SCALARS, Extractor
 from services.analytics.service import Analytics
 from services.analytics.sql import Limits
@@ -28,6 +28,7 @@ from services.api.app import create_app
 from services.retention.service import PROMOTE, plan, run_plan
 from services.settings import load_settings
 from services.storage.objectstore import ObjectStore
+from tests.catalog.records import run_record
 from tests.services.retention.conftest import Node, make_node, tiers  # noqa: F401 - fixtures used here
 
 DAY_NS = 86_400 * 10**9
@@ -151,22 +152,7 @@ def catalog_run(
     with session_scope(catalog) as session:
         save_run(
             session,
-            RunRecord(
-                id=run_id,
-                robot_id=robot,
-                application_id="test",
-                date=day,
-                status="closed",
-                tier=tier,
-                started_at=at,
-                ended_at=at,
-                last_data_at=at,
-                sdk_version="0.41.0",
-                chunks=1,
-                rows=1,
-                bytes=1,
-                properties={},
-            ),
+            run_record(run_id, at, robot_id=robot, application_id="test", tier=tier, bytes=1),
             at,
         )
         for name, key in keys.items():

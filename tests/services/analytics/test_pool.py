@@ -24,6 +24,7 @@ from services.settings import load_settings
 from services.storage.objectstore import open_store
 from tests.services.analytics.conftest import opened
 from tests.services.ingest.live_server import LiveServer
+from tests.waiting import wait_for
 
 pytestmark = pytest.mark.slow  # worker processes pushed to their limits: seconds each
 
@@ -88,9 +89,7 @@ def test_a_queued_query_answers_within_the_limit_or_is_refused(tmp_path: Path):
     assert timed_post(sql, "SELECT 1")[1].status_code == 200  # the workers are up: time only the queue
     with ThreadPoolExecutor(1) as running:
         first = running.submit(timed_post, sql, SLOW)
-        deadline = time.monotonic() + 30
-        while analytics.pool.admitted < 1 and time.monotonic() < deadline:
-            time.sleep(0.01)  # polling: the slow query holds the only worker
+        wait_for(lambda: analytics.pool.admitted >= 1, 30, "the slow query to hold the only worker", interval=0.01)
         took, queued = timed_post(sql, SLOW)  # waits behind it, then would run its own full limit
         assert first.result()[1].status_code == 408
     # the limit counts from its arrival: answered within it (slack for a loaded machine), not at twice it
@@ -131,9 +130,8 @@ def test_a_flood_of_queries_neither_starves_the_api_nor_queues_without_end(busy_
     with ThreadPoolExecutor(45) as flood:
         for _ in range(45):
             flood.submit(slow_query)
-        deadline = time.monotonic() + 10
-        while not any(r.status_code == 429 for _, r in answers) and time.monotonic() < deadline:
-            time.sleep(0.01)  # polling: the first refusal says the admitted queries hold their slots
+        # the first refusal says the admitted queries hold their slots
+        wait_for(lambda: any(r.status_code == 429 for _, r in answers), 10, "the first refusal", interval=0.01)
         during = [runs_took() for _ in range(5)]
         measured_at = time.monotonic()
     # typical requests as fast as idle (generous for a shared machine), and none waited for a query (10 s)

@@ -35,6 +35,7 @@ from services.analytics.sql import Limits
 from services.api.app import create_app
 from services.settings import load_settings
 from services.storage.objectstore import ObjectStore, open_store
+from tests.catalog.records import run_record
 from tests.conftest import CATALOG_KINDS, fresh_catalog
 from tests.seaweedfs import seaweedfs
 from tests.services.analytics.conftest import (
@@ -119,17 +120,14 @@ def catalog(empty_catalog_url: str) -> Iterator[sessionmaker[Session]]:
 def test_catalog_views(catalog: sessionmaker[Session], tmp_path: Path):
     t0 = dt.datetime(2026, 3, 1, 10, 0, tzinfo=dt.UTC)
     for n, robot in enumerate(("robot-1", "robot-2")):
-        record = queries.RunRecord(
-            id=f"run-{n}",
+        record = run_record(
+            f"run-{n}",
+            t0,
             robot_id=robot,
             application_id="picker",
-            date=t0.date(),
-            status="closed",
             tier="warm",
-            started_at=t0,
             ended_at=t0 + dt.timedelta(minutes=5),
             last_data_at=t0 + dt.timedelta(minutes=5),
-            sdk_version="0.41.0",
             chunks=10 + n,
             rows=100,
             bytes=5_000_000_000 + n,

@@ -30,6 +30,7 @@ from tests.balancer import Balancer
 from tests.seaweedfs import SeaweedFS
 from tests.services.agent.harness import AgentProcess, Link, download, same_recording
 from tests.services.ingest.live_server import LiveServer
+from tests.waiting import holds_within
 
 ROBOT = str(Path(__file__).with_name("robot.py"))
 WARM_PREFIX = "warm"  # the warm store's prefix in the bucket (FLEET_WARM_URL s3://BUCKET/warm)
@@ -280,16 +281,6 @@ class Problems:
             raise AssertionError(f"{len(self.found)} problem(s):\n{listed}\n\n{cluster.diagnosis(run_ids)}")
 
 
-def wait_until(condition: Callable[[], object], timeout: float) -> bool:
-    """Poll `condition` until it holds or `timeout` seconds pass; whether it held."""
-    deadline = time.monotonic() + timeout
-    while not condition():
-        if time.monotonic() > deadline:
-            return False
-        time.sleep(0.2)  # polling for the condition, bounded by the deadline
-    return True
-
-
 def upload(node: Node, copy: Path, token: str, *, wait_s: float = 60) -> dict[str, Any]:
     """POST the file (as it stands now) to the node with the robot's ingest token, as a robot's
     upload job does: again after a 503 UNAVAILABLE (a run whose owner is gone, until its lease
@@ -411,7 +402,7 @@ def settled(cluster: Cluster, run_id: str) -> bool:
 
 def wait_settled(cluster: Cluster, run_ids: list[str], problems: Problems, timeout: float) -> list[str]:
     """Wait until every run has settled; the runs that did are returned, the others are problems."""
-    wait_until(lambda: all(settled(cluster, r) for r in run_ids), timeout)
+    holds_within(lambda: all(settled(cluster, r) for r in run_ids), timeout)
     done = []
     for run_id in run_ids:
         run = cluster.alive()[0].run(run_id)

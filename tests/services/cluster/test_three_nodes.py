@@ -31,8 +31,8 @@ from tests.services.cluster.harness import (
     upload,
     verify_sealed,
     wait_settled,
-    wait_until,
 )
+from tests.waiting import holds_within
 
 pytestmark = [pytest.mark.sdk, pytest.mark.slow, pytest.mark.postgres, pytest.mark.s3server]
 
@@ -80,7 +80,7 @@ def test_a_node_killed_mid_run_loses_nothing_and_nothing_is_sealed_twice(
             robot.expect("STEP 1")
         # Asked of node-b, which answers from the catalog alone (node-a answers its hot runs from
         # ingest's view before its catalog flush): every run reached node-a and is filed.
-        held = wait_until(lambda: all((b.run(r) or {}).get("chunks", 0) > 0 for r in runs), 60)
+        held = holds_within(lambda: all((b.run(r) or {}).get("chunks", 0) > 0 for r in runs), 60)
         assert held, f"not every run reached node-a and the catalog\n{cluster.diagnosis(runs)}"
         for robot in sdk_robots:
             in_copy = len(chunks_in(robot.copy))
@@ -110,7 +110,7 @@ def test_a_node_killed_mid_run_loses_nothing_and_nothing_is_sealed_twice(
 
         if agent_check_s == "1":
             pairs = list(zip(agents, agent_runs, strict=True))
-            assert wait_until(lambda: all(told(agent, run_id) for agent, run_id in pairs), 30), (
+            assert holds_within(lambda: all(told(agent, run_id) for agent, run_id in pairs), 30), (
                 "no agent was told node-a holds its chunks"
             )
         for agent, run_id in zip(agents, agent_runs, strict=True):
@@ -175,7 +175,7 @@ def check_nodes(node: Node, dead: str, alive: tuple[str, ...]) -> None:
         assert answer.status_code == 200, f"{answer.status_code} {answer.text[:300]}"
         return {n["id"]: bool(n["alive"]) for n in answer.json()["nodes"]}
 
-    wait_until(lambda: seen().get(dead) is False, 30)
+    holds_within(lambda: seen().get(dead) is False, 30)
     found = seen()
     assert found.get(dead) is False and all(found.get(n) for n in alive), (
         f"expected {dead} not alive and {', '.join(alive)} alive, got {found}"

@@ -20,8 +20,8 @@ from tests.services.cluster.harness import (
     upload,
     verify_sealed,
     wait_settled,
-    wait_until,
 )
+from tests.waiting import holds_within
 
 pytestmark = [pytest.mark.sdk, pytest.mark.slow, pytest.mark.postgres, pytest.mark.s3server]
 
@@ -40,7 +40,7 @@ def test_an_upload_to_another_node_is_filed_with_the_runs_owner(cluster: Cluster
         robot.expect("STEP 1")  # flushed: node A has the first half, the copy holds it too
         # Asked of node-b, which answers from the catalog alone (node-a answers its hot run from
         # ingest's view before its catalog flush): the run is filed.
-        assert wait_until(lambda: (b.run(RUN) or {}).get("chunks", 0) > 0, 30), (
+        assert holds_within(lambda: (b.run(RUN) or {}).get("chunks", 0) > 0, 30), (
             f"the catalog never showed run {RUN}\n{cluster.diagnosis([RUN])}"
         )
         in_copy = len(chunks_in(copy))

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import os
 import shutil
-import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import TypeVar
@@ -21,6 +20,8 @@ from selenium.webdriver.chrome.options import Options
 from selenium.webdriver.chrome.service import Service
 from selenium.webdriver.common.by import By
 from selenium.webdriver.remote.webelement import WebElement
+
+from tests import waiting
 
 T = TypeVar("T")
 ROOT = Path(__file__).resolve().parents[3]
@@ -65,18 +66,10 @@ def start_chrome(downloads: Path) -> webdriver.Chrome:
 
 
 def wait_for(condition: Callable[[], T | None], timeout: float, what: str) -> T:
-    """Poll `condition` until it returns something truthy (returned), or fail naming `what`."""
-    deadline = time.monotonic() + timeout
-    while True:
-        try:
-            got = condition()
-        except Exception:  # the page is still changing (a stale element, a node not there yet)
-            got = None
-        if got:
-            return got
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out after {timeout:g} s waiting for {what}")
-        time.sleep(0.1)  # polling for the condition, bounded by the deadline
+    """Poll `condition` until it returns something truthy (returned), or fail naming `what`; while
+    the page is still changing (a stale element, a node not there yet) the exception it raises
+    counts as "not yet"."""
+    return waiting.wait_for(condition, timeout, what, tolerate=(Exception,))
 
 
 def text_of(chrome: webdriver.Chrome, css: str = "main") -> str:

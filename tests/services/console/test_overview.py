@@ -20,6 +20,7 @@ from services import __version__
 from services.auth.scopes import local_principal
 from services.console.web import PREFIX, templates
 from services.runs import fleet
+from tests.catalog.records import run_record
 from tests.services.console.browser import find, log_in, screenshot, text_of, wait_for
 from tests.services.console.conftest import ConsoleDepot
 
@@ -139,19 +140,4 @@ def test_failed_jobs_are_highlighted(fresh_catalog_url: str):
 
 
 def _record(run_id: str, now: dt.datetime) -> RunRecord:
-    return RunRecord(
-        id=run_id,
-        robot_id="robot-a",
-        application_id="nav",
-        date=now.date(),
-        status="closed",
-        tier="warm",
-        started_at=now,
-        ended_at=now,
-        last_data_at=now,
-        sdk_version="0.41.0",
-        chunks=1,
-        rows=1,
-        bytes=10,
-        properties={},
-    )
+    return run_record(run_id, now, robot_id="robot-a", tier="warm")

@@ -16,7 +16,6 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from catalog import queries
 from catalog.db import create_engine, session_scope
-from catalog.queries import RunRecord
 from core.errors import FleetError
 from core.states import RunStatus, Tier
 from services.auth.scopes import Principal, Scope
@@ -25,6 +24,7 @@ from services.rrd import ArrowMessage, iter_events
 from services.rrd.chunk import chunk_meta
 from services.sealed.tiers import Tiers
 from services.storage.objectstore import open_store
+from tests.catalog.records import run_record
 from tests.services.retention.conftest import Clock, Node, NodeFactory, log_run, make_node
 
 __all__ = ["make_node"]  # a fixture of the retention suites, used here as is
@@ -75,21 +75,8 @@ def add_run(
 ) -> None:
     """A run row as the catalog would hold it (the figures do not matter here)."""
     now = dt.datetime.now(dt.UTC)
-    record = RunRecord(
-        id=run_id,
-        robot_id=robot,
-        application_id="edge-test",
-        date=now.date(),
-        status=RunStatus(status),
-        tier=Tier(tier),
-        started_at=now,
-        ended_at=now,
-        last_data_at=now,
-        sdk_version="0.41.0",
-        chunks=1,
-        rows=1,
-        bytes=1,
-        properties={},
+    record = run_record(
+        run_id, now, robot_id=robot, application_id="edge-test", status=RunStatus(status), tier=Tier(tier), bytes=1
     )
     with session_scope(catalog, write=True) as session:
         queries.save_run(session, record, now)

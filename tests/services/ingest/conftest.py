@@ -9,9 +9,9 @@ from sqlalchemy.orm import sessionmaker
 
 from catalog.db import create_engine
 from core.clock import utcnow
-from services.hot.store import HotStore
 from services.ingest.service import IngestService
 from services.settings import Durability
+from tests.services.ingest.factory import ingest_service
 
 Factory = Callable[..., IngestService]
 
@@ -31,14 +31,14 @@ def make_service(tmp_path: Path, fresh_catalog_url: str) -> Iterator[Factory]:
         close_after_s: float = 60.0,
         clock: Callable[[], dt.datetime] = utcnow,
     ) -> IngestService:
-        hot = HotStore(tmp_path / "hot", durability=durability, interval_ms=50, min_free_bytes=min_free_bytes)
-        service = IngestService(
-            hot,
+        service = ingest_service(
+            tmp_path,
             sessionmaker(engine),
-            default_robot="default-robot",
             max_streams=max_streams,
             close_after=dt.timedelta(seconds=close_after_s),
             clock=clock,
+            durability=durability,
+            min_free_bytes=min_free_bytes,
         )
         made.append(service)
         return service

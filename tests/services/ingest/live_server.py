@@ -5,14 +5,14 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
-import time
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from pathlib import Path
 
 import grpc
 import httpx
 
 from tests.subprocess_server import ServerProcess, answers_http, free_port
+from tests.waiting import wait_for
 
 FLEET = str(Path(sys.executable).with_name("fleet"))
 WRITE_MESSAGES = "/rerun.sdk_comms.v1alpha1.MessageProxyService/WriteMessages"
@@ -85,13 +85,14 @@ class LiveServer:
                 return float(line.split()[1])
         raise AssertionError(f"no metric {name}")
 
-    def wait_for(self, predicate: object, timeout: float = 60, what: str = "condition") -> None:
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            if predicate():  # type: ignore[operator]
-                return
-            time.sleep(0.1)  # polling for the condition, bounded by the deadline
-        raise AssertionError(f"timed out waiting for {what}")
+    def said(self, lines: int = 15) -> str:
+        """The end of the server's log without the access log's lines, for a failure message."""
+        text = self.log.read_text(errors="replace") if self.log.is_file() else ""
+        return "\n".join([line for line in text.splitlines() if "HTTP/1.1" not in line][-lines:])
+
+    def wait_for(self, predicate: Callable[[], object], timeout: float = 60, what: str = "condition") -> None:
+        """Wait for `predicate` with a server's patience by default; a failure quotes what the server said."""
+        wait_for(predicate, timeout, what, detail=lambda: f"the server said:\n{self.said()}")
 
     def healthy(self) -> bool:
         """The process is alive and answers /healthz."""

@@ -5,7 +5,6 @@ The Postgres catalog is reached through a loopback proxy the test makes refuse o
 from __future__ import annotations
 
 import asyncio
-import datetime as dt
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -16,13 +15,12 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from catalog import queries
 from catalog.db import create_engine, session_scope
-from services.hot.store import HotStore
 from services.ingest.service import IngestService
 from services.rrd import ArrowMessage, iter_events
 from services.sealed.tiers import Tiers, sealed_lookup
-from services.settings import Durability
 from services.storage.objectstore import open_store
 from tests.postgres import temporary_database
+from tests.services.ingest.factory import ingest_service
 from tests.services.retention.conftest import log_run
 from tests.tcp_proxy import FORWARD, HANG, REFUSE, TcpProxy, tcp_proxy
 
@@ -83,15 +81,8 @@ def test_ingest_goes_on_while_the_catalog_is_hung_or_down_and_it_catches_up(
 ):
     catalog, proxy = proxied_catalog
     tiers = Tiers(open_store((tmp_path / "warm").as_uri()), open_store((tmp_path / "cold").as_uri()))
-    hot = HotStore(tmp_path / "hot", durability=Durability.OFF, interval_ms=50, min_free_bytes=0)
-    ingest = IngestService(
-        hot,
-        catalog,
-        default_robot="robot",
-        max_streams=10,
-        close_after=dt.timedelta(minutes=1),
-        sealed_lookup=sealed_lookup(catalog, tiers),
-        lookup_timeout_s=0.5,
+    ingest = ingest_service(
+        tmp_path, catalog, default_robot="robot", sealed_lookup=sealed_lookup(catalog, tiers), lookup_timeout_s=0.5
     )
     runs = {name: log_run(tmp_path / f"{name}.rrd", name, frames=20) for name in ("live-a", "upload-b", "down-c")}
 

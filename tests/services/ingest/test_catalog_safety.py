@@ -21,15 +21,14 @@ from catalog import queries
 from catalog.db import create_engine, session_scope
 from core.errors import InvalidArgumentError
 from core.ids import NAME_BYTES, PATH_BYTES
-from services.hot.store import HotStore
 from services.ingest.service import IngestService
 from services.rrd import StoreInfoMessage, iter_events
 from services.rrd.decoder import decode_message
 from services.rrd.messages import Event
 from services.rrd.pb import log_msg_pb2
 from services.runs.service import RunFilter, list_runs
-from services.settings import Durability
 from tests.services.ingest import feeding
+from tests.services.ingest.factory import ingest_service
 
 pytestmark = pytest.mark.sdk
 
@@ -66,10 +65,7 @@ def catalog(fresh_catalog_url: str) -> Iterator[sessionmaker[Session]]:
 
 
 def service(tmp_path: Path, catalog: sessionmaker[Session]) -> IngestService:
-    hot = HotStore(tmp_path / "hot", durability=Durability.OFF, interval_ms=50, min_free_bytes=0)
-    return IngestService(
-        hot, catalog, default_robot="default-robot", max_streams=10, close_after=dt.timedelta(seconds=60)
-    )
+    return ingest_service(tmp_path, catalog)
 
 
 def with_application(event: Event, application: str, recording_id: str) -> Event:

@@ -13,26 +13,19 @@ from catalog.db import session_scope
 from catalog.models import Dataset
 from catalog.queries import EntityRecord, RunRecord, TimelineRecord
 from services.ingest.catalog_sync import CatalogSync
+from tests.catalog.records import run_record
 
 NOW = dt.datetime(2026, 11, 23, 12, 0, tzinfo=dt.UTC)
 
 
 def record(run_id: str) -> RunRecord:
-    return RunRecord(
-        id=run_id,
+    return run_record(
+        run_id,
+        NOW,
         robot_id="robot-sync",
         application_id="sync",
-        date=NOW.date(),
         status="live",
-        tier="hot",
-        started_at=NOW,
         ended_at=None,
-        last_data_at=NOW,
-        sdk_version="0.41.0",
-        chunks=1,
-        rows=1,
-        bytes=10,
-        properties={},
         entities=[EntityRecord("/a", 1, 0, 1, 10, [], [])],
         timelines=[TimelineRecord("frame", "sequence", 0, 0)],
     )

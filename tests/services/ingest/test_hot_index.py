@@ -76,11 +76,9 @@ sys.path.insert(0, {root!r})
 from pathlib import Path
 from typing import Any
 from services.hot import index
-from services.hot.store import HotStore
-from services.ingest.service import IngestService
 from services.rrd import iter_events
-from services.settings import Durability
 from tests.services.ingest import feeding
+from tests.services.ingest.factory import ingest_service
 
 writes = 0
 real_write = index.HotIndexWriter._write
@@ -95,8 +93,7 @@ def write_then_die(self, records, covered):
     real_write(self, records, covered)
 
 index.HotIndexWriter._write = write_then_die
-hot = HotStore(Path({hot!r}), durability=Durability.OFF, interval_ms=50, min_free_bytes=0)
-service = IngestService(hot, None, default_robot="r", max_streams=4, close_after=dt.timedelta(seconds=60))
+service = ingest_service(Path({root_dir!r}), default_robot="r", max_streams=4)
 feeding.upload(service, iter_events({path!r}))
 """
 
@@ -107,7 +104,7 @@ def test_a_process_killed_mid_write_leaves_an_index_recovery_repairs(
 ):
     rec = recordings["points"]
     chunks = sum(isinstance(e, ArrowMessage) for e in iter_events(rec.path))
-    script = KILLED_WRITER.format(root=str(ROOT), die_at=chunks // 2, hot=str(tmp_path / "hot"), path=str(rec.path))
+    script = KILLED_WRITER.format(root=str(ROOT), die_at=chunks // 2, root_dir=str(tmp_path), path=str(rec.path))
     killed = subprocess.run([sys.executable, "-c", textwrap.dedent(script)], capture_output=True, timeout=120)
     assert killed.returncode == -signal.SIGKILL, killed.stderr.decode()
     (run_dir,) = (tmp_path / "hot").iterdir()

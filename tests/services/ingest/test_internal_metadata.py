@@ -22,6 +22,7 @@ from services.ingest.stream_auth import Admitted, CallAuth
 from services.rrd.messages import Event
 from tests.services.ingest.authed import AuthedDepot, recorded_requests
 from tests.services.ingest.live_server import WRITE_MESSAGES, LiveServer
+from tests.waiting import wait_for_async
 
 pytestmark = pytest.mark.sdk
 
@@ -134,8 +135,9 @@ def test_many_token_less_streams_never_hold_more_than_the_total_together() -> No
 
     async def main() -> list[BaseException | Admitted]:
         tasks = [asyncio.create_task(calls.await_property_token(stream(), decode)) for _ in range(streams)]
-        while sum(t.done() for t in tasks) + waiting < streams:  # every stream refused or held
-            await asyncio.sleep(0.01)
+        await wait_for_async(
+            lambda: sum(t.done() for t in tasks) + waiting >= streams, 60, "every stream refused or held"
+        )
         assert 0 < calls.held.used <= total
         gate.set()
         return await asyncio.gather(*tasks, return_exceptions=True)

@@ -7,7 +7,6 @@ same for streams against a Postgres that hangs or refuses.)"""
 from __future__ import annotations
 
 import asyncio
-import datetime as dt
 import threading
 import time
 from pathlib import Path
@@ -20,9 +19,8 @@ from sqlalchemy.orm import Session, sessionmaker
 from catalog.db import create_engine, upgrade
 from services.api.app import create_app
 from services.facts.sealed import SealedInfo
-from services.hot.store import HotStore
-from services.ingest.service import IngestService
-from services.settings import Durability, load_settings
+from services.settings import load_settings
+from tests.services.ingest.factory import ingest_service
 from tests.services.rrd.recordings import Recording
 
 pytestmark = pytest.mark.sdk
@@ -67,15 +65,8 @@ def test_an_upload_waits_for_the_catalog_and_the_store_on_worker_threads(
         lookup()
         return None
 
-    hot = HotStore(tmp_path / "hot", durability=Durability.OFF, interval_ms=50, min_free_bytes=0)
-    ingest = IngestService(
-        hot,
-        catalog,
-        default_robot="robot",
-        max_streams=10,
-        close_after=dt.timedelta(minutes=1),
-        sealed_lookup=sealed_lookup,
-        lookup_timeout_s=HANG_S,
+    ingest = ingest_service(
+        tmp_path, catalog, default_robot="robot", sealed_lookup=sealed_lookup, lookup_timeout_s=HANG_S
     )
     app = create_app(load_settings(data_dir=tmp_path / "data", scheduler=False), ingest)
 
@@ -99,7 +90,7 @@ def test_an_upload_waits_for_the_catalog_and_the_store_on_worker_threads(
     finally:
         lookup.released.set()
         catalog.hang.released.set()
-        hot.close()
+        ingest.hot.close()
         engine.dispose()
     assert during_lookup < ANSWER_S and during_save < ANSWER_S
     assert response.status_code == 200 and response.json()["catalog"] == "updated"

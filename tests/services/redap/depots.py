@@ -19,6 +19,7 @@ from catalog.queries import EntityRecord, RunRecord, TimelineRecord
 from services.redap.depot import Depot
 from services.redap.pb import cloud_pb2
 from services.redap.tuid import Tuid
+from tests.catalog.records import run_record
 from tests.services.ingest.live_server import LiveServer
 from tests.services.redap.conftest import Redap
 from tests.services.rrd.recordings import Recording
@@ -31,33 +32,30 @@ SCENES = ("points", "properties", "merge_a", "merge_b")
 
 def record(run_id: str, application: str = "nav", **changes: Any) -> RunRecord:
     """A run's catalog record as ingest writes it; `changes` set its fields."""
-    made = RunRecord(
-        id=run_id,
-        robot_id="robot-7",
-        application_id=application,
-        date=NOW.date(),
-        status="closed",
-        tier="hot",
-        started_at=NOW - dt.timedelta(minutes=5),
-        ended_at=NOW,
-        last_data_at=NOW,
-        sdk_version="0.41.0",
-        chunks=3,
-        rows=30,
-        bytes=1000,
-        properties={"fleet": {"robot_id": "robot-7"}, "recording": {"RecordingInfo:start_time": 1_700_000_000 * 10**9}},
-        entities=[
-            EntityRecord("/world/points", 2, 0, 20, 900, ["rerun.archetypes.Points3D"], ["Points3D:positions"]),
-            EntityRecord(
-                "/__properties", 1, 1, 1, 50, ["rerun.archetypes.RecordingInfo"], ["RecordingInfo:start_time"]
-            ),
-            EntityRecord("/__properties/fleet", 1, 1, 1, 50, [], ["robot_id"]),
-        ],
-        timelines=[TimelineRecord("frame", "sequence", 0, 9)],
+    return run_record(
+        run_id,
+        NOW,
+        **{
+            "application_id": application,
+            "started_at": NOW - dt.timedelta(minutes=5),
+            "chunks": 3,
+            "rows": 30,
+            "bytes": 1000,
+            "properties": {
+                "fleet": {"robot_id": "robot-7"},
+                "recording": {"RecordingInfo:start_time": 1_700_000_000 * 10**9},
+            },
+            "entities": [
+                EntityRecord("/world/points", 2, 0, 20, 900, ["rerun.archetypes.Points3D"], ["Points3D:positions"]),
+                EntityRecord(
+                    "/__properties", 1, 1, 1, 50, ["rerun.archetypes.RecordingInfo"], ["RecordingInfo:start_time"]
+                ),
+                EntityRecord("/__properties/fleet", 1, 1, 1, 50, [], ["robot_id"]),
+            ],
+            "timelines": [TimelineRecord("frame", "sequence", 0, 9)],
+            **changes,
+        },
     )
-    for key, value in changes.items():
-        setattr(made, key, value)
-    return made
 
 
 def save(

@@ -16,7 +16,6 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from catalog.db import create_engine, upgrade
 from services.auth.tokens import Auth
-from services.hot.store import HotStore
 from services.ingest.service import IngestReport, IngestService
 from services.policies import Policies, Policy
 from services.redap import grpc_handler
@@ -24,9 +23,9 @@ from services.redap.depot import Depot
 from services.retention.service import PROMOTE, Retention, plan, run_plan
 from services.rrd import iter_events
 from services.sealed.tiers import Tiers, sealed_lookup
-from services.settings import Durability
 from services.storage.objectstore import open_store
 from tests.services.ingest import feeding
+from tests.services.ingest.factory import ingest_service
 from tests.services.retention.conftest import Clock
 from tests.subprocess_server import free_port
 
@@ -77,15 +76,8 @@ def build_node(root: Path) -> DepotNode:
     catalog = sessionmaker(engine)
     tiers = Tiers(open_store((root / "warm").as_uri()), open_store((root / "cold").as_uri()))
     clock = Clock()
-    hot = HotStore(root / "hot", durability=Durability.OFF, interval_ms=50, min_free_bytes=0)
-    ingest = IngestService(
-        hot,
-        catalog,
-        default_robot="robot-0",
-        max_streams=10,
-        close_after=dt.timedelta(seconds=60),
-        clock=clock,
-        sealed_lookup=sealed_lookup(catalog, tiers),
+    ingest = ingest_service(
+        root, catalog, default_robot="robot-0", clock=clock, sealed_lookup=sealed_lookup(catalog, tiers)
     )
     retention = Retention(
         catalog,

@@ -9,6 +9,7 @@ FetchChunks) besides the query calls."""
 
 from __future__ import annotations
 
+import functools
 import os
 import shutil
 import subprocess
@@ -98,7 +99,7 @@ def depot_access(robot_files: dict[str, Path], tmp_path_factory: pytest.TempPath
                 f"{server.url}/v1/uploads", content=path.read_bytes(), headers=server.headers, timeout=120
             )
             assert answer.status_code == 200, answer.text
-            server.wait_for(lambda run_id=run_id: _promoted(server, run_id), timeout=60, what=f"{run_id} sealed")
+            server.wait_for(functools.partial(_promoted, server, run_id), timeout=60, what=f"{run_id} sealed")
         made = httpx.post(
             f"{server.url}/v1/tokens", json={"scopes": ["read"], "name": "analyst"}, headers=server.headers, timeout=30
         )

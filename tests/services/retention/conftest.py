@@ -13,15 +13,14 @@ import pytest
 from sqlalchemy.orm import Session, sessionmaker
 
 from catalog.db import create_engine
-from services.hot.store import HotStore
 from services.ingest.service import IngestReport, IngestService
 from services.policies import Policies, Policy, PolicyOverride
 from services.retention.service import Retention
 from services.rrd import iter_events
 from services.sealed.tiers import Tiers, sealed_lookup
-from services.settings import Durability
 from services.storage.objectstore import ObjectStore, open_store
 from tests.services.ingest import feeding
+from tests.services.ingest.factory import ingest_service
 
 WARM_BUCKET, COLD_BUCKET = "fleet-warm", "fleet-cold"
 
@@ -111,15 +110,8 @@ def make_node(tmp_path: Path, fresh_catalog_url: str) -> Iterator[NodeFactory]:
         recover: bool = True,
     ) -> Node:
         clock = clock or Clock()
-        hot = HotStore(tmp_path / "hot", durability=Durability.OFF, interval_ms=50, min_free_bytes=0)
-        ingest = IngestService(
-            hot,
-            catalog,
-            default_robot="robot-0",
-            max_streams=10,
-            close_after=dt.timedelta(seconds=60),
-            clock=clock,
-            sealed_lookup=sealed_lookup(catalog, tiers),
+        ingest = ingest_service(
+            tmp_path, catalog, default_robot="robot-0", clock=clock, sealed_lookup=sealed_lookup(catalog, tiers)
         )
         made.append(ingest)
         if recover:

@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import datetime as dt
 import subprocess
-import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -32,6 +31,7 @@ from services.storage.s3 import S3Store
 from tests.seaweedfs import seaweedfs
 from tests.services.ingest import feeding
 from tests.services.retention.conftest import Clock, Node, NodeFactory, listing, log_run
+from tests.waiting import wait_for
 
 pytestmark = pytest.mark.sdk
 
@@ -85,6 +85,11 @@ def _detail(client: TestClient, run: str) -> dict[str, Any]:
     return body
 
 
+def _wait_restored(client: TestClient, run: str) -> None:
+    """The copy back from the cold tier runs in a thread: wait for the run to read as restored."""
+    wait_for(lambda: _detail(client, run)["lifecycle"]["restore_state"] == "restored", 30, "the restore to finish")
+
+
 def _download(client: TestClient, run: str) -> Any:
     return client.get(f"/v1/runs/{run}/recording.rrd")
 
@@ -133,10 +138,7 @@ def _store_cycle(node: Node, logged: dict[str, Path], rerun_bin: str | None = No
     assert asked.status_code == 202, asked.text
     assert asked.json()["restore_state"] == "restoring"
     assert _at(asked.json()["restore_until"]) == _iso(node.clock.now + dt.timedelta(days=7))
-    deadline = time.monotonic() + 30
-    while _detail(client, RUN_A)["lifecycle"]["restore_state"] != "restored":  # the copy back runs in a thread
-        assert time.monotonic() < deadline, "the restore did not finish"
-        time.sleep(0.05)  # polling for the condition, bounded by the deadline
+    _wait_restored(client, RUN_A)
     events = _detail(client, RUN_A)["events"]
     assert any(e["action"] == "restore" and e["actor"] == "alice@lab" for e in events)
     served = _download(client, RUN_A)
@@ -180,10 +182,7 @@ def test_restore_asked_twice_changes_nothing(tiers: Tiers, make_node: NodeFactor
     _retention(node)
     first = client.post(f"/v1/runs/{RUN_A}/restore", headers={"X-Fleet-User": "alice@lab"})
     assert first.status_code == 202
-    deadline = time.monotonic() + 30
-    while _detail(client, RUN_A)["lifecycle"]["restore_state"] != "restored":
-        assert time.monotonic() < deadline, "the restore did not finish"
-        time.sleep(0.05)  # polling for the condition, bounded by the deadline
+    _wait_restored(client, RUN_A)
     again = client.post(f"/v1/runs/{RUN_A}/restore", headers={"X-Fleet-User": "bob@lab"})
     assert again.status_code == 202, again.text
     assert again.json()["restore_state"] == "restored"

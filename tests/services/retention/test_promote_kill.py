@@ -5,8 +5,6 @@ the run ends sealed with no chunk lost or doubled and no orphaned object, not ev
 from __future__ import annotations
 
 import hashlib
-import time
-from collections.abc import Callable
 from pathlib import Path
 
 import httpx
@@ -16,17 +14,9 @@ from services.sealed.write import RUN_JSON
 from tests.services.ingest.live_server import LiveServer
 from tests.services.retention.conftest import log_run
 from tests.services.retention.test_promote import ROBOT, chunk_ids, rerun
+from tests.waiting import wait_for
 
 pytestmark = [pytest.mark.sdk, pytest.mark.slow]
-
-
-def _poll(condition: Callable[[], bool], what: str, timeout: float = 60) -> None:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if condition():
-            return
-        time.sleep(0.002)  # polling for the condition, bounded by the deadline
-    raise AssertionError(f"timed out waiting for {what}")
 
 
 def test_killed_mid_promotion_again_and_again_then_completed(tmp_path: Path, rerun_bin: str):
@@ -48,18 +38,14 @@ def test_killed_mid_promotion_again_and_again_then_completed(tmp_path: Path, rer
         answer = httpx.post(f"{server.url}/v1/uploads", content=original.read_bytes(), timeout=120).json()
         assert answer["chunks_new"] == len(chunk_ids(original))
         for what, moment in moments:
-            _poll(moment, what)
+            wait_for(moment, 60, what, interval=0.002)  # often: each moment is brief
             server.kill()
             server.start()
 
         def done() -> bool:
             return not hot.exists() and httpx.get(f"{server.url}/v1/runs/{run_id}", timeout=10).json()["tier"] == "warm"
 
-        try:
-            server.wait_for(done, timeout=120, what="the run sealed and its hot copy gone")
-        except AssertionError as exc:
-            said = [line for line in server.log.read_text().splitlines() if "INFO:     127." not in line]
-            raise AssertionError(f"{exc}; the server said: {said[-15:]}") from None
+        server.wait_for(done, timeout=120, what="the run sealed and its hot copy gone")
         run = httpx.get(f"{server.url}/v1/runs/{run_id}", timeout=10).json()
         out = tmp_path / "download.rrd"
         out.write_bytes(httpx.get(f"{server.url}/v1/runs/{run_id}/recording.rrd", timeout=120).content)

@@ -12,10 +12,9 @@ import itertools
 import subprocess
 import sys
 import threading
-import time
 import uuid
 from collections.abc import Iterator
-from contextlib import contextmanager
+from contextlib import ExitStack, contextmanager
 from pathlib import Path
 
 import httpx
@@ -38,6 +37,7 @@ from tests.services.ingest import feeding
 from tests.services.ingest.live_server import FLEET, LiveServer
 from tests.services.retention.conftest import NodeFactory
 from tests.services.rrd.recordings import Recording
+from tests.waiting import wait_for
 
 HOLDER = """
 import sys, time
@@ -50,14 +50,6 @@ with job_lock(create_engine(sys.argv[1]), sys.argv[2]) as got:
 """
 
 
-def _poll(predicate: object, timeout: float, what: str) -> None:
-    deadline = time.monotonic() + timeout
-    while not predicate():  # type: ignore[operator]
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out waiting for {what}")
-        time.sleep(0.05)  # polling for the condition, bounded by the deadline
-
-
 def _free(engine: sa.Engine, job: str) -> bool:
     with job_lock(engine, job) as got:
         return got
@@ -66,15 +58,16 @@ def _free(engine: sa.Engine, job: str) -> bool:
 @contextmanager
 def _held(engine: sa.Engine, job: str, timeout: float) -> Iterator[None]:
     """Hold the job's lock, taking it as soon as whoever has it lets go."""
-    deadline = time.monotonic() + timeout
-    while True:
-        with job_lock(engine, job) as got:
-            if got:
-                yield
-                return
-        if time.monotonic() > deadline:
-            raise AssertionError(f"could not take the {job} lock within {timeout}s")
-        time.sleep(0.01)  # polling for the condition, bounded by the deadline
+
+    def taken() -> ExitStack | None:
+        holding = ExitStack()
+        if holding.enter_context(job_lock(engine, job)):
+            return holding
+        holding.close()
+        return None
+
+    with wait_for(taken, timeout, f"the {job} lock", interval=0.01):
+        yield
 
 
 # --- the lock itself ---------------------------------------------------------------------------
@@ -113,7 +106,7 @@ def test_postgres_lock_of_a_killed_process_is_freed(postgres_url: str):
         assert _free(engine, job) is False
         holder.kill()
         holder.wait(timeout=10)
-        _poll(lambda: _free(engine, job), 10, "the dead holder's lock to be released")
+        wait_for(lambda: _free(engine, job), 10, "the dead holder's lock to be released")
     finally:
         if holder.poll() is None:
             holder.kill()
@@ -227,14 +220,14 @@ def test_two_processes_run_the_retention_job_one_at_a_time(
         before = {server: _skips(server) for server in (a, b)}
         with _held(engine, "retention", 10):
             held_from = dt.datetime.now(dt.UTC)
-            _poll(lambda: all(_skips(s) > before[s] for s in (a, b)), 20, "both services to skip a turn")
+            wait_for(lambda: all(_skips(s) > before[s] for s in (a, b)), 20, "both services to skip a turn")
             held_to = dt.datetime.now(dt.UTC)
-        # polling for the condition, bounded by the deadline: the services take turns again
-        _poll(lambda: _count(engine, held_to) >= 2, 20, "retention jobs after the lock was released")
+        # the services take turns again
+        wait_for(lambda: _count(engine, held_to) >= 2, 20, "retention jobs after the lock was released")
         # both take turns: each has run the job (which one wins a turn is up to timing, so wait for it)
         assert a.proc is not None and b.proc is not None
         pids = {str(a.proc.pid), str(b.proc.pid)}
-        _poll(lambda: _nodes(engine) == pids, 60, "both services to have run the retention job")
+        wait_for(lambda: _nodes(engine) == pids, 60, "both services to have run the retention job")
         events = {
             run: [e["action"] for e in httpx.get(f"{a.url}/v1/runs/{run}", timeout=10).json()["events"]] for run in runs
         }

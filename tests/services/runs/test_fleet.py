@@ -12,8 +12,9 @@ from sqlalchemy.orm import Session, sessionmaker
 from catalog import queries
 from catalog.db import create_engine, session_scope
 from catalog.models import Robot
-from catalog.queries import ObjectRecord, RunRecord
+from catalog.queries import ObjectRecord
 from services.runs import fleet
+from tests.catalog.records import run_record
 
 NOW = dt.datetime(2026, 11, 20, 12, 0, tzinfo=dt.UTC)
 
@@ -32,21 +33,18 @@ def _add(
     start = NOW - dt.timedelta(days=days_ago)
     queries.save_run(
         session,
-        RunRecord(
-            id=run_id,
+        run_record(
+            run_id,
+            start,
             robot_id=robot,
-            application_id="nav",
-            date=start.date(),
             status=status,
             tier=tier,
             started_at=start if started else None,
             ended_at=None if status == "live" else start + dt.timedelta(minutes=5),
             last_data_at=start + dt.timedelta(minutes=5),
-            sdk_version="0.41.0",
             chunks=3,
             rows=30,
             bytes=size,
-            properties={},
         ),
         start,
     )

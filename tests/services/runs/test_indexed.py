@@ -19,7 +19,6 @@ import pytest
 from core.errors import UnavailableError
 from services.hot.index import INDEX_FILE, HotEntry
 from services.hot.read import HotRecording
-from services.hot.store import HotStore
 from services.ingest.service import IngestService
 from services.rrd import chunk, iter_events
 from services.rrd.chunk_index import CHUNK
@@ -28,8 +27,8 @@ from services.rrd.manifest import is_property_entity
 from services.runs import download, indexed, trim
 from services.runs.download import EntityFilter, TimeWindow
 from services.runs.indexed import stream_hot
-from services.settings import Durability
 from tests.services.ingest import feeding
+from tests.services.ingest.factory import ingest_service
 from tests.services.rrd.legacy import legacy_file
 from tests.services.rrd.recordings import SCENES, Recording
 from tests.services.runs.decoded import stream_run
@@ -45,8 +44,7 @@ Query = tuple[EntityFilter, bool, TimeWindow | None]  # entities, blueprint, win
 
 def _ingest(root: Path) -> IngestService:
     """An ingest service without a catalog (it plays no part here)."""
-    store = HotStore(root / "hot", durability=Durability.OFF, interval_ms=50, min_free_bytes=0)
-    return IngestService(store, None, default_robot="r", max_streams=4, close_after=dt.timedelta(minutes=10))
+    return ingest_service(root, default_robot="r", max_streams=4, close_after=dt.timedelta(minutes=10))
 
 
 def _upload(service: IngestService, path: Path) -> list[HotRecording]:

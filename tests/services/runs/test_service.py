@@ -10,10 +10,11 @@ import pytest
 from sqlalchemy.orm import Session
 
 from catalog import queries
-from catalog.queries import EntityRecord, RunRecord
+from catalog.queries import EntityRecord
 from core.errors import BadParameterError, NotFoundError
 from services.runs import service
 from services.runs.service import RunFilter, parse_properties, parse_time
+from tests.catalog.records import run_record
 
 T0 = dt.datetime(2026, 11, 1, 8, 0, tzinfo=dt.UTC)
 
@@ -32,19 +33,13 @@ def _add(
     start = T0 + dt.timedelta(hours=hours)
     queries.save_run(
         session,
-        RunRecord(
-            id=run_id,
+        run_record(
+            run_id,
+            start,
             robot_id=robot,
             application_id=app,
-            date=start.date(),
             status=status,
-            tier="hot",
-            started_at=start,
             ended_at=None,
-            last_data_at=start,
-            sdk_version="0.41.0",
-            chunks=1,
-            rows=1,
             bytes=size,
             properties={"fleet": {"robot_id": robot, "site": "lab" if hours % 2 else "field"}},
             entities=[EntityRecord(p, 1, 0, 1, 10, [], []) for p in entities],
