@@ -19,10 +19,12 @@ from __future__ import annotations
 import asyncio
 import datetime as dt
 import logging
+import threading
 import uuid
-from collections import Counter, OrderedDict
+from collections import Counter
 from collections.abc import Callable
 
+from cachetools import FIFOCache
 from sqlalchemy.orm import Session, sessionmaker
 
 from catalog.queries import RunRecord
@@ -74,6 +76,8 @@ __all__ = [
 log = logging.getLogger(__name__)
 
 _HELD_LIMIT = 64 * 1024 * 1024
+# Layouts whose names were checked: a plain dict cleared when full, not a cachetools cache, as it is
+# read for every chunk and a dict's lookup costs a sixth of an LRUCache's.
 _NAMED_LAYOUTS = 4096
 _RECENTLY_SEALED = 1024
 
@@ -112,8 +116,10 @@ class IngestService:
         self.close_after = close_after
         self.clock = clock
         self.runs: dict[str, IngestRun] = {}
-        # Runs this node sealed lately, for data that follows a promotion while the catalog does not answer.
-        self.recently_sealed: OrderedDict[str, SealedInfo] = OrderedDict()
+        # Runs this node sealed lately, for data that follows a promotion while the catalog does not
+        # answer: the last sealed stay. Written by promotion's thread, read by ingest's: locked.
+        self.recently_sealed: FIFOCache[str, SealedInfo] = FIFOCache(_RECENTLY_SEALED)
+        self._recently_sealed_lock = threading.Lock()
         self.live_streams = 0
         self.totals = {"chunks_new": 0, "chunks_duplicate": 0, "bytes_new": 0, "bytes_duplicate": 0, "messages": 0}
         self._catalog_sync = CatalogSync(catalog, self.clock)
@@ -447,7 +453,10 @@ class IngestService:
         """What the catalog said when `prepare` asked (its tier is the one that counts: a run sealed
         here may have been archived since), else what this node remembers sealing."""
         asked = source.sealed.get(run_id)
-        return asked if asked is not None else self.recently_sealed.get(run_id)
+        if asked is not None:
+            return asked
+        with self._recently_sealed_lock:
+            return self.recently_sealed.get(run_id)
 
     def _hot_run(self, source: Source, run_id: str) -> IngestRun | None:
         """The run if it is hot here (and not being handed over), counted as fed by `source`."""
@@ -554,10 +563,8 @@ class IngestService:
         if self.runs.get(run.run_id) is run:
             del self.runs[run.run_id]
         if run.sealed_into is not None:
-            self.recently_sealed[run.run_id] = run.sealed_into
-            self.recently_sealed.move_to_end(run.run_id)
-            while len(self.recently_sealed) > _RECENTLY_SEALED:
-                self.recently_sealed.popitem(last=False)
+            with self._recently_sealed_lock:
+                self.recently_sealed[run.run_id] = run.sealed_into  # sealed again: the newest again
         if self.replay is not None:
             self.replay.end_run(run.run_id)
         self.hot.forget(run.hot)

@@ -5,8 +5,9 @@ else the sealed `recording.rrd` in the warm store (a cold run once restored), op
 from __future__ import annotations
 
 import threading
-import time
 import weakref
+
+from cachetools import TTLCache
 
 from catalog import queries
 from catalog.db import session_scope
@@ -60,29 +61,30 @@ def open_recording(depot: Depot, run_id: str, *, cached: bool = False) -> Indexe
 
 
 class _Locations:
-    """Sealed runs found lately, per catalog: run id -> (prefix, size of its recording, when)."""
+    """Sealed runs found lately, per catalog: run id -> (prefix, size of its recording), each kept
+    `LOCATION_TTL_S`, at most `LOCATIONS_KEPT` per catalog (the least recently used go first)."""
 
     def __init__(self) -> None:
-        self._found: weakref.WeakKeyDictionary[object, dict[str, tuple[str, int, float]]] = weakref.WeakKeyDictionary()
+        self._found: weakref.WeakKeyDictionary[object, TTLCache[str, tuple[str, int]]] = weakref.WeakKeyDictionary()
         self._lock = threading.Lock()
 
     def get(self, catalog: object, run_id: str) -> tuple[str, int] | None:
         with self._lock:
-            found = self._found.get(catalog, {}).get(run_id)
-        if found is None or time.monotonic() - found[2] > LOCATION_TTL_S:
-            return None
-        return found[0], found[1]
+            runs = self._found.get(catalog)
+            return runs.get(run_id) if runs is not None else None
 
     def put(self, catalog: object, run_id: str, where: tuple[str, int]) -> None:
         with self._lock:
-            runs = self._found.setdefault(catalog, {})
-            if len(runs) >= LOCATIONS_KEPT:
-                runs.clear()
-            runs[run_id] = (*where, time.monotonic())
+            runs = self._found.get(catalog)
+            if runs is None:
+                runs = self._found[catalog] = TTLCache(LOCATIONS_KEPT, LOCATION_TTL_S)
+            runs[run_id] = where
 
     def forget(self, catalog: object, run_id: str) -> None:
         with self._lock:
-            self._found.get(catalog, {}).pop(run_id, None)
+            runs = self._found.get(catalog)
+            if runs is not None:
+                runs.pop(run_id, None)
 
 
 _LOCATIONS = _Locations()

@@ -29,6 +29,7 @@ from sqlalchemy.orm import Session, sessionmaker
 from catalog import queries
 from catalog.db import session_scope
 from catalog.queries import ObjectRecord, RunRecord
+from core.backoff import backoff_delay
 from core.errors import ConflictError, InsufficientStorageError
 from core.states import RunStatus, Tier
 from services.analytics.extract import Extractor
@@ -46,6 +47,7 @@ from services.storage.objectstore import RangeReader, StorageError
 log = logging.getLogger(__name__)
 
 SEAL_DIR = "seal"
+FIRST_BACKOFF = dt.timedelta(seconds=1)
 MAX_BACKOFF = dt.timedelta(minutes=5)
 PROMOTING = threading.Lock()  # one promotion at a time in this process (scheduled pass or asked for)
 
@@ -66,7 +68,8 @@ class PromoteBackoff:
 
     def failed(self, run_id: str, now: dt.datetime) -> None:
         failures = self.failures[run_id] = self.failures.get(run_id, 0) + 1
-        self.retry_at[run_id] = now + min(dt.timedelta(seconds=2 ** (failures - 1)), MAX_BACKOFF)
+        wait = backoff_delay(failures, first=FIRST_BACKOFF.total_seconds(), cap=MAX_BACKOFF.total_seconds())
+        self.retry_at[run_id] = now + dt.timedelta(seconds=wait)
 
     def forget(self, run_id: str) -> None:
         self.failures.pop(run_id, None)
