@@ -18,8 +18,8 @@ from catalog.db import session_scope
 from catalog.models import JobExecution, RetentionEvent, Robot, Run, RunObject
 from core.clock import aware, iso_utc, utcnow
 from core.states import RunStatus, Tier
-from services.ingest.run import IngestRun
 from services.ingest.service import IngestService
+from services.ingest.view import HotRunView
 from services.runs.service import run_summary
 
 DAYS = 14  # runs per robot per day: this many days, today included
@@ -184,8 +184,8 @@ def live_in_catalog(session: Session, limit: int = LIVE_LIMIT) -> list[dict[str,
     return [{**run_summary(run), "here": False} for run in session.scalars(query)]
 
 
-def _hot_brief(run: IngestRun, default_robot: str) -> dict[str, Any]:
-    start_ns = run.start_time_ns or run.first_log_time_ns
+def _hot_brief(run: HotRunView, default_robot: str) -> dict[str, Any]:
+    start_ns = run.started_ns
     started = dt.datetime.fromtimestamp(start_ns / 1e9, dt.UTC) if start_ns else None
     return {
         "id": run.run_id,
@@ -196,8 +196,8 @@ def _hot_brief(run: IngestRun, default_robot: str) -> dict[str, Any]:
         "started_at": iso_utc(started),
         "ended_at": iso_utc(run.ended_at),
         "last_data_at": iso_utc(run.last_data_at),
-        "bytes": run.recording_bytes(),
-        "chunks": run.summary.chunks if run.summary is not None else 0,
+        "bytes": run.size,
+        "chunks": run.chunks,
         "here": True,
     }
 

@@ -42,7 +42,7 @@ def sizes(spool_dir: Path) -> dict[str, int]:
             for event in iter_events(path):
                 spool.ingest.accept(source, event)
             spool.ingest.close_source(source)
-        return {run.run_id: run.hot.size for run in spool.runs()}
+        return {run.run_id: run.size for run in spool.runs()}
     finally:
         spool.close()
 
