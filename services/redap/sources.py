@@ -101,7 +101,7 @@ def _source(
     hot = depot.hot.hot_recording(run.id) if depot.hot is not None else None
     if hot is not None:
         return RunSource(run.id, hot=hot)
-    if life is None or recording is None or depot.warm is None:
+    if life is None or recording is None:
         return RunSource(
             run.id,
             unreadable=UnavailableError(
@@ -146,7 +146,7 @@ def run_schema(depot: Depot, source: RunSource) -> pa.Schema:
 
 
 def _sealed(depot: Depot, source: RunSource) -> tuple[ObjectStore, str]:
-    assert depot.warm is not None and source.prefix is not None  # a sealed source has both
+    assert source.prefix is not None  # a sealed source has one
     return depot.warm, source.prefix
 
 

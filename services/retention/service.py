@@ -19,11 +19,11 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from catalog import queries
 from catalog.db import session_scope
-from core.clock import aware, iso_utc, utcnow
+from core.clock import aware, iso_utc
 from core.errors import ConflictError
 from core.states import ARCHIVED_IN_STORE, RestoreState, RunStatus, Tier
-from services.auth.tokens import Auth
 from services.ingest.service import IngestService
+from services.node import Node
 from services.policies import Policies
 from services.retention import archive, promote
 from services.sealed.tiers import Tiers, write_run_json
@@ -37,26 +37,35 @@ ACTIONS = (PROMOTE, ARCHIVE, DELETE, RESTORE)
 
 @dataclass
 class Retention:
-    """Everything the retention jobs work with, built once by the server (or a test)."""
+    """What the retention jobs work with beside the node, built once by the server (or a test)."""
 
-    catalog: sessionmaker[Session]
-    tiers: Tiers
+    node: Node
     policies: Policies
     ingest: IngestService | None = None  # promotion needs this node's hot runs
     promote_after: dt.timedelta = dt.timedelta(minutes=10)
     promote_below_free_bytes: int = 0
     restore_days: float = 7.0
-    clock: Callable[[], dt.datetime] = utcnow
     free_bytes: Callable[[], int] | None = None  # of the hot disk (default: asked of the file system)
     reserve_bytes: int = 0  # promotion never takes the hot disk below this much free
     promote_backoff: promote.PromoteBackoff = field(default_factory=promote.PromoteBackoff)  # failed promotions
-    auth: Auth | None = None  # signs this node's hand-overs to other nodes (many nodes on one catalog)
+
+    # The node's, named here as the jobs have always named them.
+    @property
+    def catalog(self) -> sessionmaker[Session]:
+        return self.node.catalog
+
+    @property
+    def tiers(self) -> Tiers:
+        return self.node.tiers
+
+    @property
+    def clock(self) -> Callable[[], dt.datetime]:
+        return self.node.clock
 
     def hot_free_bytes(self) -> int:
         if self.free_bytes is not None:
             return self.free_bytes()
-        assert self.ingest is not None
-        return shutil.disk_usage(self.ingest.hot.root).free
+        return shutil.disk_usage(self.node.hot.root).free
 
 
 def catalog_engine(ctx: Retention) -> sa.Engine:
@@ -150,7 +159,7 @@ def plan(ctx: Retention, kinds: Iterable[str] = ACTIONS) -> list[Action]:
     if PROMOTE in kinds and ctx.ingest is not None:
         pressure = ctx.promote_below_free_bytes > 0 and ctx.hot_free_bytes() < ctx.promote_below_free_bytes
         for cand in promote.due_for_promotion(ctx.ingest, now, ctx.promote_after, pressure, ctx.promote_backoff):
-            record = cand.run.record(ctx.ingest.default_robot)
+            record = cand.run.record(ctx.node.default_robot)
             actions.append(Action(cand.run.run_id, PROMOTE, cand.reason, record.robot_id, Tier.HOT, record.bytes))
     if kinds & {ARCHIVE, DELETE, RESTORE}:
         with session_scope(ctx.catalog) as session:
@@ -281,7 +290,7 @@ def upcoming(ctx: Retention) -> list[dict[str, Any]]:
             "action": PROMOTE,
             "at": iso_utc(at),
             "reason": why,
-            "robot_id": run.robot_id or ctx.ingest.default_robot,
+            "robot_id": run.robot_id or ctx.node.default_robot,
             "tier": Tier.HOT,
             "bytes": run.hot.size,
         }

@@ -20,9 +20,8 @@ from sqlalchemy.orm import Session, sessionmaker
 from catalog.db import create_engine, upgrade
 from services.api.app import create_app
 from services.facts.sealed import SealedInfo
-from services.hot.store import HotStore
 from services.ingest.service import IngestService
-from services.settings import Durability, load_settings
+from tests.services.nodes import node_of
 from tests.services.rrd.recordings import Recording
 
 pytestmark = pytest.mark.sdk
@@ -67,9 +66,9 @@ def test_an_upload_waits_for_the_catalog_and_the_store_on_worker_threads(
         lookup()
         return None
 
-    hot = HotStore(tmp_path / "hot", durability=Durability.OFF, interval_ms=50, min_free_bytes=0)
+    node = node_of(tmp_path, catalog)  # settings of tmp_path/data
     ingest = IngestService(
-        hot,
+        node.hot,
         catalog,
         default_robot="robot",
         max_streams=10,
@@ -77,7 +76,7 @@ def test_an_upload_waits_for_the_catalog_and_the_store_on_worker_threads(
         sealed_lookup=sealed_lookup,
         lookup_timeout_s=HANG_S,
     )
-    app = create_app(load_settings(data_dir=tmp_path / "data", scheduler=False), ingest)
+    app = create_app(node, ingest)
 
     async def answers_while(hang: Hang, upload: asyncio.Task[httpx.Response], client: httpx.AsyncClient) -> float:
         await asyncio.to_thread(hang.entered.wait, HANG_S)
@@ -99,7 +98,7 @@ def test_an_upload_waits_for_the_catalog_and_the_store_on_worker_threads(
     finally:
         lookup.released.set()
         catalog.hang.released.set()
-        hot.close()
+        node.hot.close()
         engine.dispose()
     assert during_lookup < ANSWER_S and during_save < ANSWER_S
     assert response.status_code == 200 and response.json()["catalog"] == "updated"

@@ -12,16 +12,16 @@ from pathlib import Path
 import pytest
 from sqlalchemy.orm import Session, sessionmaker
 
+import services.node
 from catalog.db import create_engine
-from services.hot.store import HotStore
 from services.ingest.service import IngestReport, IngestService
 from services.policies import Policies, Policy, PolicyOverride
 from services.retention.service import Retention
 from services.rrd import iter_events
-from services.sealed.tiers import Tiers, sealed_lookup
-from services.settings import Durability
+from services.sealed.tiers import Tiers
 from services.storage.objectstore import ObjectStore, open_store
 from tests.services.ingest import feeding
+from tests.services.nodes import ingest_of, node_of
 
 WARM_BUCKET, COLD_BUCKET = "fleet-warm", "fleet-cold"
 
@@ -51,6 +51,11 @@ class Node:
     ingest: IngestService
     retention: Retention
     restarts: list[IngestService] = field(default_factory=list)
+
+    @property
+    def context(self) -> services.node.Node:
+        """What its sides share, as `fleet serve` passes it to them (settings of `root`/data)."""
+        return self.retention.node
 
     def upload(self, path: Path | bytes) -> IngestReport:
         return feeding.upload(self.ingest, iter_events(io.BytesIO(path) if isinstance(path, bytes) else path))
@@ -111,28 +116,18 @@ def make_node(tmp_path: Path, fresh_catalog_url: str) -> Iterator[NodeFactory]:
         recover: bool = True,
     ) -> Node:
         clock = clock or Clock()
-        hot = HotStore(tmp_path / "hot", durability=Durability.OFF, interval_ms=50, min_free_bytes=0)
-        ingest = IngestService(
-            hot,
-            catalog,
-            default_robot="robot-0",
-            max_streams=10,
-            close_after=dt.timedelta(seconds=60),
-            clock=clock,
-            sealed_lookup=sealed_lookup(catalog, tiers),
-        )
+        context = node_of(tmp_path, catalog, tiers=tiers, clock=clock, default_robot="robot-0")
+        ingest = ingest_of(context)
         made.append(ingest)
         if recover:
             ingest.recover()
         retention = Retention(
-            catalog,
-            tiers,
+            context,
             Policies(Policy("default", warm_days, cold_days), overrides),
             ingest,
             promote_after=dt.timedelta(seconds=promote_after_s),
             promote_below_free_bytes=promote_below_free_bytes,
             restore_days=restore_days,
-            clock=clock,
             free_bytes=free_bytes,
         )
         return Node(tmp_path, tiers, catalog, clock, ingest, retention)
