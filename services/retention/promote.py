@@ -24,7 +24,7 @@ from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from sqlalchemy.orm import Session, sessionmaker
+from sqlalchemy.orm import Session
 
 from catalog import queries
 from catalog.db import session_scope
@@ -37,6 +37,7 @@ from services.facts.sealed import SealedInfo
 from services.hot.read import read_events
 from services.ingest.run import IngestRun
 from services.ingest.service import IngestService
+from services.node import Node
 from services.rrd.decoder import iter_events
 from services.rrd.messages import Event
 from services.sealed.tiers import Tiers, run_prefix, write_run_json
@@ -80,7 +81,12 @@ class Candidate:
 
 
 def due_for_promotion(
-    ingest: IngestService, now: dt.datetime, promote_after: dt.timedelta, disk_pressure: bool, backoff: PromoteBackoff
+    ingest: IngestService,
+    node: Node,
+    now: dt.datetime,
+    promote_after: dt.timedelta,
+    disk_pressure: bool,
+    backoff: PromoteBackoff,
 ) -> list[Candidate]:
     """Closed hot runs to promote, oldest first: idle for `promote_after`, or all of them under
     disk pressure (past the high-water mark). Runs backing off after a failure wait their turn."""
@@ -88,7 +94,7 @@ def due_for_promotion(
     for run in ingest.closed_runs():
         if backoff.waiting(run.run_id, now) is not None:
             continue
-        if ingest.ownership is not None and run.lease is None:
+        if node.ownership is not None and run.lease is None:
             continue  # another node owns it, or the catalog has not said: the ownership pass settles it
         idle = now - run.last_data_at
         if idle >= promote_after:
@@ -138,8 +144,7 @@ def _human(delta: dt.timedelta) -> str:
 def promote(
     run: IngestRun,
     ingest: IngestService,
-    tiers: Tiers,
-    catalog: sessionmaker[Session],
+    node: Node,
     now: dt.datetime,
     reserve_bytes: int = 0,
     backoff: PromoteBackoff | None = None,
@@ -150,7 +155,7 @@ def promote(
     given a `backoff`, waits there (1 s, 2 s, 4 s ... up to 5 minutes) before the next attempt.
     `actor` names who asked, for the run's events: "retention" when the schedule did."""
     try:
-        record = _promote(run, ingest, tiers, catalog, now, reserve_bytes, actor)
+        record = _promote(run, ingest, node, now, reserve_bytes, actor)
     except Exception:
         if backoff is not None:
             if run.sealed:  # it left the hot tier (what failed came after the catalog switch)
@@ -166,8 +171,7 @@ def promote(
 def _promote(
     run: IngestRun,
     ingest: IngestService,
-    tiers: Tiers,
-    catalog: sessionmaker[Session],
+    node: Node,
     now: dt.datetime,
     reserve_bytes: int,
     actor: str,
@@ -179,7 +183,7 @@ def _promote(
         return None
     workdir = run.hot.directory / SEAL_DIR
     try:
-        return _seal_and_switch(run, ingest, tiers, catalog, now, reserve_bytes, size, sealed_as, workdir, actor)
+        return _seal_and_switch(run, ingest, node, now, reserve_bytes, size, sealed_as, workdir, actor)
     finally:
         shutil.rmtree(workdir, ignore_errors=True)  # a failed attempt leaves nothing on the hot disk
 
@@ -234,8 +238,7 @@ def _check_room(run: IngestRun, tiers: Tiers, base_size: int, reserve_bytes: int
 def _seal_and_switch(
     run: IngestRun,
     ingest: IngestService,
-    tiers: Tiers,
-    catalog: sessionmaker[Session],
+    node: Node,
     now: dt.datetime,
     reserve_bytes: int,
     size: int,
@@ -243,6 +246,7 @@ def _seal_and_switch(
     workdir: Path,
     actor: str,
 ) -> RunRecord:
+    tiers, catalog = node.tiers, node.catalog
     prefix = sealed_as.prefix if sealed_as else None
     base_size = tiers.warm.head(f"{prefix}/{RECORDING}").size if prefix is not None else 0
     _check_room(run, tiers, base_size, reserve_bytes)
@@ -254,8 +258,8 @@ def _seal_and_switch(
         sources.append(iter(iter_events(base)))
     sources.append(read_events(run.hot.path, size))
     analytics = Extractor(run.run_id)
-    sealed = seal(sources, workdir / RECORDING, run.run_id, now, analytics.add, ingest.secret_fields)  # (1)
-    record = _sealed_record(run, sealed, ingest.default_robot)
+    sealed = seal(sources, workdir / RECORDING, run.run_id, now, analytics.add, node.secret_fields)  # (1)
+    record = _sealed_record(run, sealed, node.default_robot)
     prefix = prefix or run_prefix(record.robot_id, record.date, run.run_id)
     objects = [
         ObjectRecord(RECORDING, f"{prefix}/{RECORDING}", Tier.WARM, sealed.recording_size, sealed.recording_sha256),

@@ -158,7 +158,9 @@ def plan(ctx: Retention, kinds: Iterable[str] = ACTIONS) -> list[Action]:
     actions: list[Action] = []
     if PROMOTE in kinds and ctx.ingest is not None:
         pressure = ctx.promote_below_free_bytes > 0 and ctx.hot_free_bytes() < ctx.promote_below_free_bytes
-        for cand in promote.due_for_promotion(ctx.ingest, now, ctx.promote_after, pressure, ctx.promote_backoff):
+        for cand in promote.due_for_promotion(
+            ctx.ingest, ctx.node, now, ctx.promote_after, pressure, ctx.promote_backoff
+        ):
             record = cand.run.record(ctx.node.default_robot)
             actions.append(Action(cand.run.run_id, PROMOTE, cand.reason, record.robot_id, Tier.HOT, record.bytes))
     if kinds & {ARCHIVE, DELETE, RESTORE}:
@@ -216,7 +218,7 @@ def _execute(ctx: Retention, action: Action, now: dt.datetime) -> str:
         run = ctx.ingest.hot_run(action.run_id)
         if run is None:
             return "no longer hot here"
-        record = promote.promote(run, ctx.ingest, ctx.tiers, ctx.catalog, now, ctx.reserve_bytes, ctx.promote_backoff)
+        record = promote.promote(run, ctx.ingest, ctx.node, now, ctx.reserve_bytes, ctx.promote_backoff)
         if record is None:
             return "nothing new: its chunks were all sealed already, hot copy removed"
         return f"sealed {record.chunks} chunks, {record.bytes} bytes"
@@ -314,9 +316,7 @@ def promote_now(ctx: Retention, run_id: str, actor: str = "retention") -> dict[s
         )
     assert ctx.ingest is not None
     with promote.PROMOTING:
-        record = promote.promote(
-            run, ctx.ingest, ctx.tiers, ctx.catalog, ctx.clock(), ctx.reserve_bytes, ctx.promote_backoff, actor
-        )
+        record = promote.promote(run, ctx.ingest, ctx.node, ctx.clock(), ctx.reserve_bytes, ctx.promote_backoff, actor)
     if record is None:
         return {"run": run_id, "tier": Tier.WARM, "detail": "nothing new: its chunks were all sealed already"}
     return {"run": run_id, "tier": record.tier, "detail": f"sealed {record.chunks} chunks, {record.bytes} bytes"}

@@ -14,6 +14,7 @@ from sqlalchemy.orm import Session, sessionmaker
 
 import services.node
 from catalog.db import create_engine
+from services.facts.identity import SecretFields
 from services.ingest.service import IngestReport, IngestService
 from services.policies import Policies, Policy, PolicyOverride
 from services.retention.service import Retention
@@ -114,9 +115,12 @@ def make_node(tmp_path: Path, fresh_catalog_url: str) -> Iterator[NodeFactory]:
         promote_below_free_bytes: int = 0,
         free_bytes: Callable[[], int] | None = None,
         recover: bool = True,
+        secret_fields: SecretFields | None = None,
     ) -> Node:
         clock = clock or Clock()
-        context = node_of(tmp_path, catalog, tiers=tiers, clock=clock, default_robot="robot-0")
+        context = node_of(
+            tmp_path, catalog, tiers=tiers, clock=clock, default_robot="robot-0", secret_fields=secret_fields
+        )
         ingest = ingest_of(context)
         made.append(ingest)
         if recover:
