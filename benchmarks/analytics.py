@@ -581,18 +581,18 @@ def breakdown(workdir: Path, endpoint: str, args: argparse.Namespace) -> dict[st
     the server's settings (after it stopped: the embedded catalog has one user at a time), best of
     --repeat each. The sandbox steps are timed in this process; then the whole query through a
     worker pool as the server runs it (a ready worker: started ahead, imports done)."""
-    from sqlalchemy.orm import sessionmaker
-
-    from catalog.db import create_engine
     from services.analytics import service, sql
-    from services.storage.s3 import S3Store
+    from services.server import open_node
+    from services.settings import load_settings
 
     for name, value in AWS.items():
         os.environ.setdefault(name, value)
-    engine = create_engine(f"duckdb:///{workdir / 'fleet-data' / 'catalog.duckdb'}")
-    warm = S3Store(f"s3://{BUCKET}/{PREFIX}", endpoint_url=endpoint)
+    # the node as `fleet serve` opens it on that data dir, its warm store the benchmark's bucket
+    settings = load_settings(
+        data_dir=workdir / "fleet-data", warm_url=f"s3://{BUCKET}/{PREFIX}", s3_endpoint_url=endpoint
+    )
     limits = sql.Limits(100_000, 3600.0, args.memory_limit, args.threads)
-    ctx = service.Analytics(sessionmaker(engine), warm, limits)
+    ctx = service.Analytics(open_node(settings), limits)
     steps: dict[str, list[float]] = {}
 
     def timed(name: str, fn: Any) -> Any:
@@ -628,7 +628,7 @@ def breakdown(workdir: Path, endpoint: str, args: argparse.Namespace) -> dict[st
                 steps.clear()
     finally:
         ctx.close()
-        engine.dispose()
+        ctx.catalog.kw["bind"].dispose()
     return {name: min(values) for name, values in steps.items()}
 
 

@@ -7,6 +7,7 @@ import contextlib
 import datetime as dt
 import logging
 import socket
+from dataclasses import dataclass
 from pathlib import Path
 
 import grpc
@@ -34,6 +35,7 @@ from services.hot.store import HotStore
 from services.ingest import grpc_handler
 from services.ingest.replay import ReplayHub
 from services.ingest.service import IngestService
+from services.node import Node
 from services.redap import grpc_handler as redap_handler
 from services.redap.depot import Depot
 from services.retention.schedule import start_scheduler
@@ -76,34 +78,58 @@ def advertised(settings: Settings, port: int) -> str:
     return f"[{host}]:{port}" if ":" in host else f"{host}:{port}"
 
 
-def build(settings: Settings, peer_addr: str | None = None) -> tuple[IngestService, Retention, Analytics]:
-    """The ingest, retention and analytics sides of one node, sharing the catalog and the stores;
-    `peer_addr`: where this node's peer port is reached, when many nodes share the catalog."""
-    hot = HotStore(
-        settings.hot_dir,
-        durability=settings.durability,
-        interval_ms=settings.group_commit_ms,
-        min_free_bytes=settings.min_free_bytes,
-    )
+def open_node(settings: Settings, peer_addr: str | None = None) -> Node:
+    """What the sides of one node share: its catalog, stores, clock and auth, and (`peer_addr`:
+    where this node's peer port is reached, when many nodes share the catalog) its run ownership
+    and channels to the other nodes."""
     catalog = sessionmaker(create_engine(settings.catalog_url, settings.catalog_timeout_s))
-    tiers = open_tiers(settings)
-    replay = ReplayHub(settings.replay_bytes) if settings.replay_bytes else None
     ownership = Ownership(catalog, node_id(settings), peer_addr, settings.lease_s, __version__) if peer_addr else None
-    ingest = IngestService(
-        hot,
-        catalog,
+    return Node(
+        settings=settings,
+        catalog=catalog,
+        tiers=open_tiers(settings),
+        hot=HotStore(
+            settings.hot_dir,
+            durability=settings.durability,
+            interval_ms=settings.group_commit_ms,
+            min_free_bytes=settings.min_free_bytes,
+        ),
+        auth=open_auth(settings, catalog),
         default_robot=settings.default_robot,
-        max_streams=settings.max_streams,
-        close_after=dt.timedelta(seconds=settings.close_after_s),
-        replay=replay,
-        sealed_lookup=sealed_lookup(catalog, tiers),
         secret_fields=SecretFields(settings.secret_fields),
         ownership=ownership,
         channels=Channels(peer_channel_options(settings.max_message_size)) if ownership else None,
     )
+
+
+@dataclass(frozen=True)
+class Sides:
+    """One node and its ingest, retention and analytics sides, built on it."""
+
+    node: Node
+    ingest: IngestService
+    retention: Retention
+    analytics: Analytics
+
+
+def build(settings: Settings, peer_addr: str | None = None) -> Sides:
+    """The node (`open_node`) and its ingest, retention and analytics sides."""
+    node = open_node(settings, peer_addr)
+    ingest = IngestService(
+        node.hot,
+        node.catalog,
+        default_robot=node.default_robot,
+        max_streams=settings.max_streams,
+        close_after=dt.timedelta(seconds=settings.close_after_s),
+        clock=node.clock,
+        replay=ReplayHub(settings.replay_bytes) if settings.replay_bytes else None,
+        sealed_lookup=sealed_lookup(node.catalog, node.tiers),
+        secret_fields=node.secret_fields,
+        ownership=node.ownership,
+        channels=node.channels,
+    )
     retention = Retention(
-        catalog,
-        tiers,
+        node,
         settings.policies,
         ingest,
         promote_after=dt.timedelta(seconds=settings.promote_after_s),
@@ -111,19 +137,15 @@ def build(settings: Settings, peer_addr: str | None = None) -> tuple[IngestServi
         restore_days=settings.restore_days,
         reserve_bytes=settings.reserve_bytes,
     )
-    analytics = Analytics(
-        catalog,
-        tiers.warm,
-        Limits(
-            settings.sql_max_rows,
-            settings.sql_timeout_s,
-            settings.sql_memory_limit,
-            settings.sql_threads,
-            settings.sql_workers,
-            settings.sql_queue,
-        ),
+    limits = Limits(
+        settings.sql_max_rows,
+        settings.sql_timeout_s,
+        settings.sql_memory_limit,
+        settings.sql_threads,
+        settings.sql_workers,
+        settings.sql_queue,
     )
-    return ingest, retention, analytics
+    return Sides(node, ingest, retention, Analytics(node, limits))
 
 
 def release_reserve_if_full(settings: Settings) -> bool:
@@ -223,35 +245,30 @@ async def serve(
     tune_allocator()
     grpc_socket, http_socket = sockets or ports or claim_ports(settings)
     grpc_server, grpc_path, peer_addr = _grpc_server(settings)
-    ingest, retention, analytics = build(settings, peer_addr)
-    auth = retention.auth = open_auth(settings, ingest.catalog)
-    if ingest.ownership is not None:
-        await asyncio.to_thread(ingest.ownership.start)
-        log.info("node %s on a shared catalog, peer port %s", ingest.ownership.node_id, peer_addr)
+    sides = build(settings, peer_addr)
+    node, ingest, retention, analytics = sides.node, sides.ingest, sides.retention, sides.analytics
+    if node.ownership is not None:
+        await asyncio.to_thread(node.ownership.start)
+        log.info("node %s on a shared catalog, peer port %s", node.ownership.node_id, peer_addr)
     if sockets is None:  # workers: the first admin token was made before they started
-        announce_admin(await asyncio.to_thread(ensure_admin_token, auth, settings.data_dir), settings.data_dir)
+        announce_admin(await asyncio.to_thread(ensure_admin_token, node.auth, settings.data_dir), settings.data_dir)
     log.info("ingest path: %s", compiled_summary())
     recovered = ingest.recover()
     if recovered:
         log.info("recovered %d hot runs", len(recovered))
-    ingest.hot.start()
+    node.hot.start()
     proxy = grpc_handler.MessageProxy(
         ingest,
-        auth,
+        node.auth,
         token_wait_s=settings.auth_wait_s,
         token_buffer_bytes=settings.auth_buffer_bytes,
         token_buffer_total_bytes=settings.auth_buffer_total_bytes,
     )
-    app = create_app(settings, ingest, retention, analytics, auth)
+    app = create_app(node, ingest, retention, analytics)
     console.install(app)
-    catalog_server = redap_handler.CatalogServer(
-        Depot(retention.catalog, retention.tiers.warm, ingest, settings.public_url), auth
-    )
-    peers = (  # other nodes read the hot runs this one owns
-        peer.PeerService(auth, ingest, retention.catalog, retention.tiers.warm, app.state.edge)
-        if ingest.ownership is not None
-        else None
-    )
+    catalog_server = redap_handler.CatalogServer(Depot(node, ingest), node.auth)
+    # other nodes read the hot runs this one owns
+    peers = peer.PeerService(node, ingest, app.state.edge) if node.ownership is not None else None
     add_services(grpc_server, proxy, catalog_server, peers)
     http_sockets = [http_socket]
     if sockets is not None:  # a worker: its own REST socket too, where its siblings ask for its figures
@@ -267,13 +284,13 @@ async def serve(
     reserve = DiskReserve(settings.data_dir, settings.reserve_bytes)
     await asyncio.to_thread(reserve.ensure)
     housekeeping = asyncio.create_task(_housekeeping(ingest, reserve, settings.catalog_flush_s))
-    heartbeat = asyncio.create_task(_heartbeat(ingest.ownership)) if ingest.ownership is not None else None
+    heartbeat = asyncio.create_task(_heartbeat(node.ownership)) if node.ownership is not None else None
     scheduler = (
         start_scheduler(
             retention,
             settings.promote_interval_s,
             settings.retention_interval_s,
-            settings.lease_s if ingest.ownership is not None else None,
+            settings.lease_s if node.ownership is not None else None,
         )
         if settings.scheduler
         else None
@@ -289,8 +306,8 @@ async def serve(
                 task.cancel()
                 with contextlib.suppress(asyncio.CancelledError):
                     await task
-        if ingest.channels is not None:
-            await ingest.channels.close()
+        if node.channels is not None:
+            await node.channels.close()
         await front.stop()
         await grpc_server.stop(grace=5)
         release_private_socket(Path(grpc_path), settings.data_dir)

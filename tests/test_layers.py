@@ -15,6 +15,8 @@
     ingest | sealed                  streams and uploads into the hot tier, owning the live runs |
                                      the sealed-run format (recording, chunk index, run.json) and
                                      its tiers
+    node                             what the sides of one node share: settings, catalog, stores,
+                                     clock, auth
     analytics                        extraction at promotion, SQL over what was extracted
     retention | runs | edge          promotion, archive, expiry | serving runs | robots' own tiers
     api | redap | agent | console    the REST app and the gRPC port's front | the Rerun catalog
@@ -58,6 +60,7 @@ LAYERS: dict[str, int] = {
     "services.facts": 3,
     "services.ingest": 4,
     "services.sealed": 4,
+    "services.node": 5,
     "services.analytics": 6,
     "services.retention": 7,
     "services.runs": 7,

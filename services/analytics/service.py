@@ -30,6 +30,7 @@ from services.analytics.extract import TABLES, extract_file
 from services.analytics.pool import Prepared, SqlPool
 from services.analytics.store import write_analytics
 from services.ingest.service import IngestService
+from services.node import Node
 from services.storage.objectstore import ObjectStore
 
 FORMATS = {
@@ -43,12 +44,26 @@ CATALOG_TABLES = {"robots": Robot, "runs": Run, "run_entities": RunEntity, "run_
 
 @dataclass
 class Analytics:
-    catalog: sessionmaker[Session]
-    warm: ObjectStore
+    """The node (its catalog, the warm store the tables are extracted to, its clock) and the SQL
+    workers' limits."""
+
+    node: Node
     limits: sql.Limits
-    clock: Callable[[], dt.datetime] = lambda: dt.datetime.now(dt.UTC)
     _pool: SqlPool | None = field(default=None, init=False, repr=False)
     _pool_lock: threading.Lock = field(default_factory=threading.Lock, init=False, repr=False)
+
+    # The node's, named here as the analytics modules have always named them.
+    @property
+    def catalog(self) -> sessionmaker[Session]:
+        return self.node.catalog
+
+    @property
+    def warm(self) -> ObjectStore:
+        return self.node.tiers.warm
+
+    @property
+    def clock(self) -> Callable[[], dt.datetime]:
+        return self.node.clock
 
     def s3_access(self) -> sql.S3Access | None:
         access = getattr(self.warm, "access", None)
@@ -237,7 +252,7 @@ def extract_hot_run(ctx: Analytics, ingest: IngestService, run_id: str) -> list[
     if run is None:
         raise queries.run_not_found(run_id)
     extractor = extract_file(run_id, run.path, run.size)
-    record = run.record(ingest.default_robot)
+    record = run.record(ctx.node.default_robot)
     objects = write_analytics(ctx.warm, extractor, record.robot_id, record.date.isoformat())
     with session_scope(ctx.catalog, write=True) as session:  # the catalog lists each run's one copy
         stale = queries.replace_analytics(session, run_id, objects)

@@ -13,35 +13,29 @@ from typing import Any, NoReturn, TypeVar
 
 import grpc
 from pydantic import TypeAdapter, ValidationError
-from sqlalchemy.orm import Session, sessionmaker
 
 from core.errors import FleetError, InvalidArgumentError
 from services.auth.metadata import call_principal
 from services.auth.scopes import Principal, Scope
-from services.auth.tokens import Auth
 from services.cluster.peer import SERVICE
 from services.cluster.relay import ERROR_CODE
 from services.edge import held
 from services.edge.context import Edge
 from services.ingest.service import IngestService
+from services.node import Node
 from services.runs.recording import RecordingQuery, recording_download
-from services.storage.objectstore import ObjectStore
 
 _QUERY_FIELDS = {f.name for f in dataclasses.fields(RecordingQuery)}
 
 
 class PeerService:
-    def __init__(
-        self, auth: Auth, ingest: IngestService, catalog: sessionmaker[Session], warm: ObjectStore | None, edge: Edge
-    ) -> None:
-        self.auth = auth
+    def __init__(self, node: Node, ingest: IngestService, edge: Edge) -> None:
+        self.node = node
         self.ingest = ingest
-        self.catalog = catalog
-        self.warm = warm
         self.edge = edge
 
     async def _principal(self, context: grpc.aio.ServicerContext, *scopes: Scope) -> Principal:
-        return await call_principal(self.auth, context.invocation_metadata(), *scopes)
+        return await call_principal(self.node.auth, context.invocation_metadata(), *scopes)
 
     async def read_hot(self, request: bytes, context: grpc.aio.ServicerContext) -> AsyncIterator[bytes]:
         """A recording download, as `GET /v1/runs/RUN/recording.rrd` would stream it here."""
@@ -50,7 +44,9 @@ class PeerService:
             asked = _json(request)
             run_id = _text(asked, "run_id")
             query = _typed(_QUERY, {k: v for k, v in asked.items() if k in _QUERY_FIELDS}, "query")
-            found = await asyncio.to_thread(recording_download, self.ingest, self.catalog, self.warm, run_id, query)
+            found = await asyncio.to_thread(
+                recording_download, self.ingest, self.node.catalog, self.node.tiers.warm, run_id, query
+            )
             if isinstance(found.body, Iterator):
                 pieces = iter(found.body)
                 while (piece := await asyncio.to_thread(next, pieces, None)) is not None:

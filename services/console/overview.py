@@ -16,5 +16,5 @@ def overview(request: Request, principal: Viewer) -> HTMLResponse:
     """Robots and their last runs, runs per robot per day, data by tier, hot disk and object-store
     usage, recent retention jobs and events, and the runs live now."""
     state = request.app.state
-    answer = fleet.overview(state.catalog, getattr(state, "ingest", None))
+    answer = fleet.overview(state.node, state.ingest)
     return render(request, "overview.html", principal, fleet=answer)

@@ -27,7 +27,6 @@ from services.runs import links
 from services.runs import run_views as runs_views
 from services.runs import service as runs_service
 from services.runs.download import EntityFilter, window_from_query
-from services.storage.objectstore import ObjectStore
 
 router = console_router()
 
@@ -99,11 +98,6 @@ def public_base(request: Request) -> str:
     return links.request_base(request)
 
 
-def _warm(request: Request) -> ObjectStore | None:
-    tiers = getattr(request.app.state, "tiers", None)  # none on a node without retention
-    return tiers.warm if tiers is not None else None
-
-
 def _timeline_types(answer: dict[str, Any]) -> dict[str, str]:
     return {t["name"]: t["type"] for t in answer["timelines"]}
 
@@ -117,11 +111,8 @@ def _views(request: Request, answer: dict[str, Any], x: str | None) -> analytics
         return analytics_views.hot_views(state.ingest, answer["id"], types, x)
     if answer["tier"] == Tier.DELETED:
         return analytics_views.RunViews("analytics tables", note="the run is deleted: its tables went with it")
-    warm = state.analytics.warm if state.analytics is not None else _warm(request)
-    if warm is None:
-        return analytics_views.RunViews("analytics tables", note="this node holds no analytics tables")
     try:
-        return analytics_views.sealed_views(state.catalog, warm, answer["id"], types, x)
+        return analytics_views.sealed_views(state.catalog, state.node.tiers.warm, answer["id"], types, x)
     except FleetError as exc:  # the store did not answer: the rest of the page still shows
         return analytics_views.RunViews(
             "analytics tables", note=f"the run's analytics tables cannot be read: {exc.message}"
@@ -153,13 +144,15 @@ def run_page(
     state = request.app.state
     retention = state.retention
     policies = retention.policies if retention else None
-    answer = runs_service.run_answer(state.catalog, run_id, policies, runs_service.hot_lookup(state.ingest))
+    answer = runs_service.run_answer(
+        state.catalog, run_id, policies, runs_service.hot_lookup(state.ingest, state.node.default_robot)
+    )
     deleted = answer["tier"] == Tier.DELETED
     views = _views(request, answer, x)
     cover, cover_problem = runs_views.run_coverage(
         state.ingest,
         state.catalog,
-        _warm(request),
+        state.node.tiers.warm,
         run_id,
         views.x.removeprefix("timeline_") if views.x else None,
     )
@@ -316,7 +309,10 @@ def download(
     }
     try:
         answer = runs_service.run_answer(
-            request.app.state.catalog, run_id, None, runs_service.hot_lookup(request.app.state.ingest)
+            request.app.state.catalog,
+            run_id,
+            None,
+            runs_service.hot_lookup(request.app.state.ingest, request.app.state.node.default_robot),
         )
         keep, drop = patterns(include), patterns(exclude)
         EntityFilter(keep, drop)  # checked here: a bad pattern is shown on the page, not downloaded as JSON

@@ -64,7 +64,10 @@ def viewer_assets(package: str = PACKAGE) -> ViewerAssets | None:
 @router.get("/runs/{run_id}/viewer")
 def viewer_page(request: Request, run_id: str, principal: Viewer) -> HTMLResponse:
     answer = runs_service.run_answer(
-        request.app.state.catalog, run_id, None, runs_service.hot_lookup(request.app.state.ingest)
+        request.app.state.catalog,
+        run_id,
+        None,
+        runs_service.hot_lookup(request.app.state.ingest, request.app.state.node.default_robot),
     )
     if answer["tier"] == Tier.DELETED:
         raise GoneError(f"run {run_id!r} is deleted: there is nothing to open")

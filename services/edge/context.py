@@ -8,24 +8,35 @@ from dataclasses import dataclass, field
 
 from sqlalchemy.orm import Session, sessionmaker
 
-from core.clock import utcnow
 from core.errors import PermissionDeniedError
 from services.auth.scopes import Principal, Scope
 from services.edge.cache import SealedChunkIds
 from services.ingest.service import IngestService
+from services.node import Node
 from services.storage.objectstore import ObjectStore
 
 
 @dataclass
 class Edge:
-    """The catalog, this node's hot runs (None on a node without ingest) and the warm store where
-    sealed runs' chunk indexes are read (None on a node without retention: hot runs only)."""
+    """The node, and this node's hot runs (None on a node without ingest), for the edge routes."""
 
-    catalog: sessionmaker[Session]
+    node: Node
     ingest: IngestService | None = None
-    warm: ObjectStore | None = None
-    clock: Callable[[], dt.datetime] = utcnow
     sealed_ids: SealedChunkIds = field(default_factory=SealedChunkIds)
+
+    # The node's, named here as the edge modules have always named them.
+    @property
+    def catalog(self) -> sessionmaker[Session]:
+        return self.node.catalog
+
+    @property
+    def warm(self) -> ObjectStore:
+        """Where sealed runs' chunk indexes are read."""
+        return self.node.tiers.warm
+
+    @property
+    def clock(self) -> Callable[[], dt.datetime]:
+        return self.node.clock
 
 
 def acting_robot(principal: Principal, free: Scope) -> str | None:

@@ -125,7 +125,7 @@ def _hot_view(edge: Edge, run_id: str, asked: dict[str, bytes]) -> _Hot | None:
     held = frozenset(c for c, raw in asked.items() if run.in_hot_file(raw))
     before = run.adds_to.chunk_ids if run.adds_to is not None else frozenset()
     sealed_before = frozenset(c for c, raw in asked.items() if raw in before)
-    return _Hot(run.robot_id or edge.ingest.default_robot, str(run.status), held, sealed_before)
+    return _Hot(run.robot_id or edge.node.default_robot, str(run.status), held, sealed_before)
 
 
 def _catalog_view(edge: Edge, run_id: str) -> _Catalogued | None:
@@ -145,9 +145,8 @@ def _catalog_view(edge: Edge, run_id: str) -> _Catalogued | None:
 
 
 def _sealed_ids(edge: Edge, run_id: str, found: _Catalogued | None) -> frozenset[bytes]:
-    """The chunk ids of the run's committed sealed index (none for a run not sealed, deleted, or
-    on a node that cannot read the warm store)."""
-    if found is None or found.tier not in (Tier.WARM, Tier.COLD) or edge.warm is None:
+    """The chunk ids of the run's committed sealed index (none for a run not sealed, or deleted)."""
+    if found is None or found.tier not in (Tier.WARM, Tier.COLD):
         return frozenset()
     prefix, committed = found.prefix, found.index_sha256
     if prefix is None or committed is None:

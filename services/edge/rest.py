@@ -50,10 +50,10 @@ async def held_chunks(
     edge = _edge(request)
     owner = await owner_elsewhere(edge.ingest, run_id) if edge.ingest is not None else None
     if owner is not None and edge.ingest is not None:  # hot on another node of the depot: asked there
-        assert edge.ingest.channels is not None  # a node with owners has channels to them
+        assert edge.node.channels is not None  # a node with owners has channels to them
         asked = {"run_id": run_id, "chunk_ids": body.chunk_ids}
-        metadata = asking_for(edge.ingest, request.app.state.auth, principal)
-        return await peer.held(edge.ingest.channels, owner, asked, metadata)
+        metadata = asking_for(edge.ingest, edge.node.auth, principal)
+        return await peer.held(edge.node.channels, owner, asked, metadata)
     return await asyncio.to_thread(held.held_answer, edge, principal, run_id, body.chunk_ids)
 
 

@@ -103,7 +103,7 @@ def _source(
     hot = depot.hot.hot_recording(run.id) if depot.hot is not None else None
     if hot is not None:
         return IndexedRecordingSource(run.id, hot=hot)
-    if life is None or recording is None or depot.warm is None:
+    if life is None or recording is None:
         return IndexedRecordingSource(
             run.id,
             unreadable=UnavailableError(
@@ -148,7 +148,7 @@ def run_schema(depot: Depot, source: IndexedRecordingSource) -> pa.Schema:
 
 
 def _sealed(depot: Depot, source: IndexedRecordingSource) -> tuple[ObjectStore, str]:
-    assert depot.warm is not None and source.prefix is not None  # a sealed source has both
+    assert source.prefix is not None  # a sealed source has one
     return depot.warm, source.prefix
 
 

@@ -22,6 +22,7 @@ from services.cluster.relay import PEER_CREDENTIAL, RELAYED_BY, SOURCE_KIND, han
 from services.hot.read import read_events
 from services.ingest.service import IngestService
 from services.ingest.view import HotRunView
+from services.node import Node
 
 log = logging.getLogger(__name__)
 
@@ -38,8 +39,8 @@ class PassReport:
     failed: dict[str, str] = field(default_factory=dict)
 
 
-def ownership_pass(ingest: IngestService, auth: Auth | None) -> PassReport:
-    ownership = ingest.ownership
+def ownership_pass(ingest: IngestService, node: Node) -> PassReport:
+    ownership = node.ownership
     report = PassReport()
     if ownership is None:
         return report
@@ -48,7 +49,7 @@ def ownership_pass(ingest: IngestService, auth: Auth | None) -> PassReport:
     for run in ingest.closed_runs():
         if run.lease is None:
             try:
-                _settle(run, ingest, ownership, auth, report)
+                _settle(run, ingest, ownership, node.auth, report)
             except Exception as exc:  # the next pass tries again
                 report.failed[run.run_id] = f"{type(exc).__name__}: {exc}"
                 log.warning("run %s not handed to its owner yet: %s", run.run_id, report.failed[run.run_id])

@@ -24,7 +24,7 @@ from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from sqlalchemy.orm import Session, sessionmaker
+from sqlalchemy.orm import Session
 
 from catalog import queries
 from catalog.db import session_scope
@@ -39,6 +39,7 @@ from services.facts.sealed import SealedInfo
 from services.hot.read import read_events
 from services.ingest.service import IngestService
 from services.ingest.view import HotRunView
+from services.node import Node
 from services.rrd.decoder import iter_events
 from services.rrd.messages import Event
 from services.sealed.tiers import Tiers, run_prefix, write_run_json
@@ -84,7 +85,12 @@ class Candidate:
 
 
 def due_for_promotion(
-    ingest: IngestService, now: dt.datetime, promote_after: dt.timedelta, disk_pressure: bool, backoff: PromoteBackoff
+    ingest: IngestService,
+    node: Node,
+    now: dt.datetime,
+    promote_after: dt.timedelta,
+    disk_pressure: bool,
+    backoff: PromoteBackoff,
 ) -> list[Candidate]:
     """Closed hot runs to promote, oldest first: idle for `promote_after`, or all of them under
     disk pressure (past the high-water mark). Runs backing off after a failure wait their turn."""
@@ -92,7 +98,7 @@ def due_for_promotion(
     for run in ingest.closed_runs():
         if backoff.waiting(run.run_id, now) is not None:
             continue
-        if ingest.ownership is not None and run.lease is None:
+        if node.ownership is not None and run.lease is None:
             continue  # another node owns it, or the catalog has not said: the ownership pass settles it
         idle = now - run.last_data_at
         if idle >= promote_after:
@@ -142,8 +148,7 @@ def _human(delta: dt.timedelta) -> str:
 def promote(
     run: HotRunView,
     ingest: IngestService,
-    tiers: Tiers,
-    catalog: sessionmaker[Session],
+    node: Node,
     now: dt.datetime,
     reserve_bytes: int = 0,
     backoff: PromoteBackoff | None = None,
@@ -155,7 +160,7 @@ def promote(
     `actor` names who asked, for the run's events: "retention" when the schedule did. `run` is as
     ingest gave it just before: data it received since makes the hand-over refuse (promoted later)."""
     try:
-        record = _promote(run, ingest, tiers, catalog, now, reserve_bytes, actor)
+        record = _promote(run, ingest, node, now, reserve_bytes, actor)
     except Exception:
         if backoff is not None:
             if ingest.has_left(run):  # what failed came after the catalog switch
@@ -171,19 +176,18 @@ def promote(
 def _promote(
     run: HotRunView,
     ingest: IngestService,
-    tiers: Tiers,
-    catalog: sessionmaker[Session],
+    node: Node,
     now: dt.datetime,
     reserve_bytes: int,
     actor: str,
 ) -> RunRecord | None:
     adds_to = _sealed_before(run, ingest)
     if adds_to is not None and run.chunk_ids <= adds_to.chunk_ids:
-        _drop_hot_copy(run, ingest, adds_to, f"all {len(run.chunk_ids)} of its chunks are sealed already")
+        _drop_hot_copy(run, ingest, node, adds_to, f"all {len(run.chunk_ids)} of its chunks are sealed already")
         return None
     workdir = run.directory / SEAL_DIR
     try:
-        return _seal_and_switch(run, ingest, tiers, catalog, now, reserve_bytes, adds_to, workdir, actor)
+        return _seal_and_switch(run, ingest, node, now, reserve_bytes, adds_to, workdir, actor)
     finally:
         shutil.rmtree(workdir, ignore_errors=True)  # a failed attempt leaves nothing on the hot disk
 
@@ -203,13 +207,13 @@ def _sealed_before(run: HotRunView, ingest: IngestService) -> SealedInfo | None:
     return sealed
 
 
-def _drop_hot_copy(run: HotRunView, ingest: IngestService, adds_to: SealedInfo, why: str) -> None:
+def _drop_hot_copy(run: HotRunView, ingest: IngestService, node: Node, adds_to: SealedInfo, why: str) -> None:
     """A hot copy with nothing the sealed run lacks: removed, and the data that follows is filed
     beside the sealed run (`adds_to`, where its chunks are)."""
     left = ingest.hand_over(run, lambda _: adds_to, doing="being checked", then="promoted later")
     shutil.rmtree(left.folder, ignore_errors=True)
-    if ingest.ownership is not None and left.lease is not None:
-        ingest.ownership.release(left.lease)
+    if node.ownership is not None and left.lease is not None:
+        node.ownership.release(left.lease)
     log.info("hot copy of run %s removed: %s", run.run_id, why)
 
 
@@ -235,14 +239,14 @@ def _check_room(run: HotRunView, tiers: Tiers, base_size: int, reserve_bytes: in
 def _seal_and_switch(
     run: HotRunView,
     ingest: IngestService,
-    tiers: Tiers,
-    catalog: sessionmaker[Session],
+    node: Node,
     now: dt.datetime,
     reserve_bytes: int,
     adds_to: SealedInfo | None,
     workdir: Path,
     actor: str,
 ) -> RunRecord:
+    tiers, catalog = node.tiers, node.catalog
     prefix = adds_to.prefix if adds_to else None
     base_size = tiers.warm.head(f"{prefix}/{RECORDING}").size if prefix is not None else 0
     _check_room(run, tiers, base_size, reserve_bytes)
@@ -254,8 +258,8 @@ def _seal_and_switch(
         sources.append(iter(iter_events(base)))
     sources.append(read_events(run.path, run.size))
     analytics = Extractor(run.run_id)
-    sealed = seal(sources, workdir / RECORDING, run.run_id, now, analytics.add, ingest.secret_fields)  # (1)
-    record = _sealed_record(run, adds_to, sealed, ingest.default_robot)
+    sealed = seal(sources, workdir / RECORDING, run.run_id, now, analytics.add, node.secret_fields)  # (1)
+    record = _sealed_record(run, adds_to, sealed, node.default_robot)
     prefix = prefix or run_prefix(record.robot_id, record.date, run.run_id)
     objects = [
         ObjectRecord(RECORDING, f"{prefix}/{RECORDING}", Tier.WARM, sealed.recording_size, sealed.recording_sha256),
@@ -274,7 +278,7 @@ def _seal_and_switch(
 
     def switch(lease: Lease | None) -> SealedInfo:  # (4), under the run's lock
         with session_scope(catalog, write=True) as session:
-            _give_up_lease(session, run.run_id, lease, ingest)
+            _give_up_lease(session, run.run_id, lease, ingest, node)
             stale.update(queries.analytics_keys(session, run.run_id) - {o.key for o in objects})
             queries.record_promotion(session, record, prefix, objects, now, detail, actor)
             write_run_json(session, tiers.warm, run.run_id)  # with the pin as the catalog has it now
@@ -288,10 +292,10 @@ def _seal_and_switch(
     return record
 
 
-def _give_up_lease(session: Session, run_id: str, lease: Lease | None, ingest: IngestService) -> None:
+def _give_up_lease(session: Session, run_id: str, lease: Lease | None, ingest: IngestService, node: Node) -> None:
     """Many nodes on one catalog: only the run's owner seals it, and gives the run up in the same
     transaction (a node that lost the run meanwhile hands its hot copy over instead)."""
-    ownership = ingest.ownership
+    ownership = node.ownership
     if ownership is None:
         return
     if lease is None or not ownership.holds(session, lease):

@@ -19,7 +19,6 @@ from fastapi.responses import StreamingResponse
 from core.errors import BadParameterError
 from services.auth.depends import actor, require
 from services.auth.scopes import Principal, Scope
-from services.facts.identity import SecretFields
 from services.retention import rebuild as rebuild_mod
 from services.retention import schedule, service
 from services.retention import scrub as scrub_mod
@@ -125,8 +124,7 @@ def scrub_secrets(
     dry_run: Annotated[bool, Query(description="only say which runs hold them")] = False,
 ) -> StreamingResponse:
     ctx = _ctx(request)
-    secrets = ctx.ingest.secret_fields if ctx.ingest is not None else SecretFields()
-    work = functools.partial(scrub_mod.scrub_streamed, ctx, secrets, dry_run, actor(request, principal))
+    work = functools.partial(scrub_mod.scrub_streamed, ctx, ctx.node.secret_fields, dry_run, actor(request, principal))
     return StreamingResponse(_ndjson(work), media_type=NDJSON)
 
 

@@ -123,7 +123,7 @@ class Job:
 
 def ownership_job(ctx: Retention) -> None:
     if ctx.ingest is not None:
-        ownership_pass(ctx.ingest, ctx.auth)
+        ownership_pass(ctx.ingest, ctx.node)
 
 
 def jobs(promote_interval_s: float, retention_interval_s: float, lease_s: float | None = None) -> list[Job]:

@@ -19,11 +19,11 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from catalog import queries
 from catalog.db import session_scope
-from core.clock import aware, iso_utc, utcnow
+from core.clock import aware, iso_utc
 from core.errors import ConflictError
 from core.states import ARCHIVED_IN_STORE, RestoreState, RunStatus, Tier
-from services.auth.tokens import Auth
 from services.ingest.service import IngestService
+from services.node import Node
 from services.policies import Policies
 from services.retention import archive, promote
 from services.sealed.tiers import Tiers, write_run_json
@@ -37,26 +37,35 @@ ACTIONS = (PROMOTE, ARCHIVE, DELETE, RESTORE)
 
 @dataclass
 class Retention:
-    """Everything the retention jobs work with, built once by the server (or a test)."""
+    """What the retention jobs work with beside the node, built once by the server (or a test)."""
 
-    catalog: sessionmaker[Session]
-    tiers: Tiers
+    node: Node
     policies: Policies
     ingest: IngestService | None = None  # promotion needs this node's hot runs
     promote_after: dt.timedelta = dt.timedelta(minutes=10)
     promote_below_free_bytes: int = 0
     restore_days: float = 7.0
-    clock: Callable[[], dt.datetime] = utcnow
     free_bytes: Callable[[], int] | None = None  # of the hot disk (default: asked of the file system)
     reserve_bytes: int = 0  # promotion never takes the hot disk below this much free
     promote_backoff: promote.PromoteBackoff = field(default_factory=promote.PromoteBackoff)  # failed promotions
-    auth: Auth | None = None  # signs this node's hand-overs to other nodes (many nodes on one catalog)
+
+    # The node's, named here as the jobs have always named them.
+    @property
+    def catalog(self) -> sessionmaker[Session]:
+        return self.node.catalog
+
+    @property
+    def tiers(self) -> Tiers:
+        return self.node.tiers
+
+    @property
+    def clock(self) -> Callable[[], dt.datetime]:
+        return self.node.clock
 
     def hot_free_bytes(self) -> int:
         if self.free_bytes is not None:
             return self.free_bytes()
-        assert self.ingest is not None
-        return shutil.disk_usage(self.ingest.hot.root).free
+        return shutil.disk_usage(self.node.hot.root).free
 
 
 def catalog_engine(ctx: Retention) -> sa.Engine:
@@ -149,8 +158,10 @@ def plan(ctx: Retention, kinds: Iterable[str] = ACTIONS) -> list[Action]:
     actions: list[Action] = []
     if PROMOTE in kinds and ctx.ingest is not None:
         pressure = ctx.promote_below_free_bytes > 0 and ctx.hot_free_bytes() < ctx.promote_below_free_bytes
-        for cand in promote.due_for_promotion(ctx.ingest, now, ctx.promote_after, pressure, ctx.promote_backoff):
-            record = cand.run.record(ctx.ingest.default_robot)
+        for cand in promote.due_for_promotion(
+            ctx.ingest, ctx.node, now, ctx.promote_after, pressure, ctx.promote_backoff
+        ):
+            record = cand.run.record(ctx.node.default_robot)
             actions.append(Action(cand.run.run_id, PROMOTE, cand.reason, record.robot_id, Tier.HOT, record.bytes))
     if kinds & {ARCHIVE, DELETE, RESTORE}:
         with session_scope(ctx.catalog) as session:
@@ -207,7 +218,7 @@ def _execute(ctx: Retention, action: Action, now: dt.datetime) -> str:
         run = ctx.ingest.hot_run(action.run_id)
         if run is None:
             return "no longer hot here"
-        record = promote.promote(run, ctx.ingest, ctx.tiers, ctx.catalog, now, ctx.reserve_bytes, ctx.promote_backoff)
+        record = promote.promote(run, ctx.ingest, ctx.node, now, ctx.reserve_bytes, ctx.promote_backoff)
         if record is None:
             return "nothing new: its chunks were all sealed already, hot copy removed"
         return f"sealed {record.chunks} chunks, {record.bytes} bytes"
@@ -281,7 +292,7 @@ def upcoming(ctx: Retention) -> list[dict[str, Any]]:
             "action": PROMOTE,
             "at": iso_utc(at),
             "reason": why,
-            "robot_id": run.robot_id or ctx.ingest.default_robot,
+            "robot_id": run.robot_id or ctx.node.default_robot,
             "tier": Tier.HOT,
             "bytes": run.size,
         }
@@ -305,9 +316,7 @@ def promote_now(ctx: Retention, run_id: str, actor: str = "retention") -> dict[s
         )
     assert ctx.ingest is not None
     with promote.PROMOTING:
-        record = promote.promote(
-            run, ctx.ingest, ctx.tiers, ctx.catalog, ctx.clock(), ctx.reserve_bytes, ctx.promote_backoff, actor
-        )
+        record = promote.promote(run, ctx.ingest, ctx.node, ctx.clock(), ctx.reserve_bytes, ctx.promote_backoff, actor)
     if record is None:
         return {"run": run_id, "tier": Tier.WARM, "detail": "nothing new: its chunks were all sealed already"}
     return {"run": run_id, "tier": record.tier, "detail": f"sealed {record.chunks} chunks, {record.bytes} bytes"}

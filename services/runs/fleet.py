@@ -12,14 +12,16 @@ from pathlib import Path
 from typing import Any
 
 import sqlalchemy as sa
-from sqlalchemy.orm import Session, sessionmaker
+from sqlalchemy.orm import Session
 
 from catalog.db import session_scope
 from catalog.models import JobExecution, RetentionEvent, Robot, Run, RunObject
 from core.clock import aware, iso_utc, utcnow
 from core.states import RunStatus, Tier
+from services.hot.store import HotStore
 from services.ingest.service import IngestService
 from services.ingest.view import HotRunView
+from services.node import Node
 from services.runs.service import run_summary
 
 DAYS = 14  # runs per robot per day: this many days, today included
@@ -202,12 +204,12 @@ def _hot_brief(run: HotRunView, default_robot: str) -> dict[str, Any]:
     }
 
 
-def hot_here(ingest: IngestService | None) -> list[dict[str, Any]]:
+def hot_here(ingest: IngestService | None, default_robot: str) -> list[dict[str, Any]]:
     """The hot runs this node holds (being written, or closed and waiting to be sealed), newest
     data first, as ingest knows them now."""
     if ingest is None:
         return []
-    runs = [_hot_brief(run, ingest.default_robot) for run in ingest.hot_runs()]
+    runs = [_hot_brief(run, default_robot) for run in ingest.hot_runs()]
     return sorted(runs, key=lambda r: (r["last_data_at"] or "", r["id"]), reverse=True)
 
 
@@ -233,14 +235,14 @@ def disk_usage(root: Path, reserve: int = 0) -> dict[str, Any]:
     }
 
 
-def hot_disk(ingest: IngestService | None, hot: list[dict[str, Any]]) -> dict[str, Any] | None:
+def hot_disk(store: HotStore | None, hot: list[dict[str, Any]]) -> dict[str, Any] | None:
     """This node's hot disk, with the hot runs on it; None on a node that ingests nothing."""
-    if ingest is None:
+    if store is None:
         return None
     try:
-        usage = disk_usage(ingest.hot.root, ingest.hot.min_free_bytes)
+        usage = disk_usage(store.root, store.min_free_bytes)
     except OSError as exc:  # the disk went away: shown as such, the rest of the overview still answers
-        return {"path": str(ingest.hot.root), "problem": f"cannot read the hot tier's disk: {exc.strerror or exc}"}
+        return {"path": str(store.root), "problem": f"cannot read the hot tier's disk: {exc.strerror or exc}"}
     return {
         **usage,
         "runs": len(hot),
@@ -250,12 +252,11 @@ def hot_disk(ingest: IngestService | None, hot: list[dict[str, Any]]) -> dict[st
     }
 
 
-def overview(
-    catalog: sessionmaker[Session], ingest: IngestService | None, *, now: dt.datetime | None = None
-) -> dict[str, Any]:
-    """The fleet overview: everything the console's first page shows, as plain values."""
+def overview(node: Node, ingest: IngestService | None, *, now: dt.datetime | None = None) -> dict[str, Any]:
+    """The fleet overview: everything the console's first page shows, as plain values (this node's
+    hot runs and disk from `ingest`, when it has one)."""
     now = now or utcnow()
-    with session_scope(catalog) as session:
+    with session_scope(node.catalog) as session:
         answer: dict[str, Any] = {
             "robots": robots(session),
             "per_day": runs_per_day(session, now.astimezone(dt.UTC).date()),
@@ -266,8 +267,8 @@ def overview(
             "events": recent_events(session),
         }
         catalog_live = live_in_catalog(session)
-    hot = hot_here(ingest)
+    hot = hot_here(ingest, node.default_robot)
     answer["live"] = live_now(catalog_live, hot)
-    answer["hot_disk"] = hot_disk(ingest, hot)
+    answer["hot_disk"] = hot_disk(node.hot if ingest is not None else None, hot)
     answer["generated_at"] = iso_utc(now)
     return answer

@@ -73,9 +73,9 @@ def runs(
 
 @router.get("/v1/runs/{run_id}", summary="One run: metadata, entities, timelines, sizes, tier")
 def run(request: Request, run_id: str, _: Reader) -> dict[str, Any]:
-    retention = request.app.state.retention
-    hot = service.hot_lookup(request.app.state.ingest)  # the view the overview lists hot runs from
-    return service.run_answer(request.app.state.catalog, run_id, retention.policies if retention else None, hot)
+    state = request.app.state
+    hot = service.hot_lookup(state.ingest, state.node.default_robot)  # the view the overview lists hot runs from
+    return service.run_answer(state.catalog, run_id, state.retention.policies if state.retention else None, hot)
 
 
 @router.get(
@@ -125,15 +125,13 @@ async def recording(
     """`rerun "http://HOST:8080/v1/runs/RUN/recording.rrd?include=/world/**"` opens it in the viewer.
     Static data is always kept unless its entity is excluded; payloads are copied untouched. Needs a
     `read` token, or a signed link (`POST /v1/runs/RUN/links`) for clients that send no header."""
-    tiers = getattr(request.app.state, "tiers", None)  # none on a node without retention: hot runs only
+    node = request.app.state.node
     ingest = request.app.state.ingest
     query = RecordingQuery(include or [], exclude or [], blueprint, timeline, start, end, latest_at, follow, exact)
     owner = await owner_elsewhere(ingest, run_id)
     if owner is not None:  # hot on another node of the depot: streamed from there
         asked = {"run_id": run_id, **dataclasses.asdict(query)}
-        body = await first_piece(
-            peer.read_hot(ingest.channels, owner, asked, asking_for(ingest, request.app.state.auth, principal))
-        )
+        body = await first_piece(peer.read_hot(node.channels, owner, asked, asking_for(ingest, node.auth, principal)))
         disposition = f'attachment; filename="{run_id}.rrd"'
         return StreamingResponse(
             until_grant_ends(request, principal, body) if follow else body,
@@ -141,9 +139,7 @@ async def recording(
             headers={"Content-Disposition": disposition},
         )
     try:
-        found = await asyncio.to_thread(
-            recording_download, ingest, request.app.state.catalog, tiers.warm if tiers else None, run_id, query
-        )
+        found = await asyncio.to_thread(recording_download, ingest, node.catalog, node.tiers.warm, run_id, query)
     except NotFoundError:  # not here; if its owner is down the run is there, not missing: 503 naming it
         down = await owner_down(ingest, run_id) if ingest is not None else None
         if down is None:

@@ -262,14 +262,15 @@ def run_summary(run: Run) -> dict[str, Any]:
     }
 
 
-def hot_lookup(ingest: IngestService | None) -> HotLookup | None:
-    """The lookup `run_answer` falls back on: this node's hot runs as ingest knows them."""
+def hot_lookup(ingest: IngestService | None, default_robot: str) -> HotLookup | None:
+    """The lookup `run_answer` falls back on: this node's hot runs as ingest knows them (a run
+    that names no robot is `default_robot`'s)."""
     if ingest is None:
         return None
 
     def lookup(run_id: str) -> queries.RunRecord | None:
         run = ingest.hot_run(run_id)
-        return run.record(ingest.default_robot) if run is not None else None
+        return run.record(default_robot) if run is not None else None
 
     return lookup
 

@@ -66,7 +66,7 @@ def served_methods() -> set[str]:
         registry,  # type: ignore[arg-type]
         MessageProxy(None, off),  # type: ignore[arg-type]
         CatalogServer(None, off),  # type: ignore[arg-type]
-        peer.PeerService(off, None, None, None, None),  # type: ignore[arg-type]
+        peer.PeerService(None, None, None),  # type: ignore[arg-type]
     )
     return registry.methods
 

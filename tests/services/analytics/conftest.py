@@ -26,7 +26,6 @@ from services.analytics.sql import Limits
 from services.analytics.store import write_analytics
 from services.api.app import create_app
 from services.retention.service import PROMOTE, plan, run_plan
-from services.settings import load_settings
 from services.storage.objectstore import ObjectStore
 from tests.catalog.records import run_record
 from tests.services.retention.conftest import Node, make_node, tiers  # noqa: F401 - fixtures used here
@@ -85,13 +84,12 @@ def _stop_sql_workers() -> Iterator[None]:
 
 
 def analytics_for(node: Node, limits: Limits | None = None) -> Analytics:
-    return opened(Analytics(node.catalog, node.tiers.warm, limits or Limits()))
+    return opened(Analytics(node.context, limits or Limits()))
 
 
 def api(node: Node, limits: Limits | None = None, *, raise_server_exceptions: bool = True) -> TestClient:
     """The service's REST API over `node` (ingest, retention and analytics), in process."""
-    settings = load_settings(data_dir=node.root / "data", scheduler=False)
-    app = create_app(settings, node.ingest, node.retention, analytics_for(node, limits))
+    app = create_app(node.context, node.ingest, node.retention, analytics_for(node, limits))
     return TestClient(app, raise_server_exceptions=raise_server_exceptions)
 
 

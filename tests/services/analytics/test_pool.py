@@ -20,10 +20,9 @@ from catalog.db import create_engine, upgrade
 from services.analytics.service import Analytics
 from services.analytics.sql import Limits
 from services.api.app import create_app
-from services.settings import load_settings
-from services.storage.objectstore import open_store
 from tests.services.analytics.conftest import opened
 from tests.services.ingest.live_server import LiveServer
+from tests.services.nodes import node_of
 from tests.waiting import wait_for
 
 pytestmark = pytest.mark.slow  # worker processes pushed to their limits: seconds each
@@ -43,8 +42,9 @@ SLOW = "SELECT count(*) FROM range(1000000000000) a WHERE hash(a.range) = 0"
 def client(tmp_path: Path, limits: Limits) -> tuple[TestClient, Analytics]:
     engine = create_engine(f"duckdb:///{tmp_path / 'catalog.duckdb'}")
     upgrade(engine)
-    analytics = opened(Analytics(sessionmaker(engine), open_store((tmp_path / "warm").as_uri()), limits))
-    app = create_app(load_settings(scheduler=False), analytics=analytics)
+    node = node_of(tmp_path, sessionmaker(engine))
+    analytics = opened(Analytics(node, limits))
+    app = create_app(node, analytics=analytics)
     return TestClient(app, raise_server_exceptions=False), analytics
 
 

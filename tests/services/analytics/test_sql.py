@@ -33,7 +33,7 @@ from sdk_client.rest import FleetClient, ServiceError
 from services.analytics.service import Analytics
 from services.analytics.sql import Limits
 from services.api.app import create_app
-from services.settings import load_settings
+from services.sealed.tiers import Tiers
 from services.storage.objectstore import ObjectStore, open_store
 from tests.catalog.records import run_record
 from tests.conftest import CATALOG_KINDS, fresh_catalog
@@ -47,6 +47,7 @@ from tests.services.analytics.conftest import (
     write_scalars,
 )
 from tests.services.ingest.live_server import FLEET, LiveServer
+from tests.services.nodes import node_of
 
 ROBOTS, DATES = ("robot-1", "robot-2", "robot-3"), ("2026-03-01", "2026-03-02")
 BUCKET = "fleet-warm"
@@ -55,10 +56,12 @@ READ_ONLY = "queries are read-only, only SELECT (or EXPLAIN)"  # the rule for st
 
 
 def sql_app(
-    store: ObjectStore, catalog: sessionmaker[Session], limits: Limits | None = None, **client: Any
+    root: Path, store: ObjectStore, catalog: sessionmaker[Session], limits: Limits | None = None, **client: Any
 ) -> TestClient:
-    analytics = opened(Analytics(catalog, store, limits or Limits()))
-    return TestClient(create_app(load_settings(scheduler=False), analytics=analytics), **client)
+    """The REST app of a node (under `root`) that serves only SQL over `store` and `catalog`."""
+    node = node_of(root, catalog, tiers=Tiers(store, store))
+    analytics = opened(Analytics(node, limits or Limits()))
+    return TestClient(create_app(node, analytics=analytics), **client)
 
 
 def post(client: TestClient, query: str, **kwargs: Any) -> httpx.Response:
@@ -137,7 +140,7 @@ def test_catalog_views(catalog: sessionmaker[Session], tmp_path: Path):
         )
         with session_scope(catalog) as session:
             queries.save_run(session, record, t0)
-    client = sql_app(open_store((tmp_path / "warm").as_uri()), catalog)
+    client = sql_app(tmp_path, open_store((tmp_path / "warm").as_uri()), catalog)
     runs = client.post("/v1/sql", json={"query": "SELECT * FROM runs ORDER BY id"}).json()
     assert [c["name"] for c in runs["columns"]] == [
         "id",
@@ -215,8 +218,8 @@ EXPECTED = [
 ]
 
 
-def test_formats_by_accept_and_by_parameter(local: ObjectStore, blank: sessionmaker[Session]):
-    client = sql_app(local, blank)
+def test_formats_by_accept_and_by_parameter(local: ObjectStore, blank: sessionmaker[Session], tmp_path: Path):
+    client = sql_app(tmp_path, local, blank)
     answer = post(client, QUERY)
     assert answer.headers["content-type"].startswith("application/json") and answer.headers["x-row-count"] == "3"
     body = answer.json()
@@ -262,17 +265,17 @@ def test_formats_by_accept_and_by_parameter(local: ObjectStore, blank: sessionma
     assert bad.status_code == 422 and bad.json()["code"] == "INVALID_ARGUMENT" and "xml" in bad.json()["message"]
 
 
-def test_json_numbers_stay_numbers(local: ObjectStore, blank: sessionmaker[Session]):
+def test_json_numbers_stay_numbers(local: ObjectStore, blank: sessionmaker[Session], tmp_path: Path):
     """sum() of integers is a HUGEINT in DuckDB (a decimal in Arrow): JSON must still say 42, not "42"."""
-    client = sql_app(local, blank)
+    client = sql_app(tmp_path, local, blank)
     assert sql_rows(client, "SELECT count(*) AS files, sum(frame) AS frames, avg(value) AS mean FROM scalars") == [
         {"files": 36, "frames": 36, "mean": 2.5}
     ]
 
 
 @pytest.mark.slow
-def test_nested_values_never_fail_the_server(local: ObjectStore, blank: sessionmaker[Session]):
-    client = sql_app(local, blank, raise_server_exceptions=False)
+def test_nested_values_never_fail_the_server(local: ObjectStore, blank: sessionmaker[Session], tmp_path: Path):
+    client = sql_app(tmp_path, local, blank, raise_server_exceptions=False)
     query = (
         "SELECT run_id, list(value ORDER BY frame) AS series FROM scalars WHERE run_id = 'robot-1-2026-03-01-0' "
         "GROUP BY run_id"
@@ -287,8 +290,8 @@ def test_nested_values_never_fail_the_server(local: ObjectStore, blank: sessionm
 # --- limits and errors -------------------------------------------------------------------------
 
 
-def test_row_limit(local: ObjectStore, blank: sessionmaker[Session]):
-    client = sql_app(local, blank, limits=Limits(rows=36))
+def test_row_limit(local: ObjectStore, blank: sessionmaker[Session], tmp_path: Path):
+    client = sql_app(tmp_path, local, blank, limits=Limits(rows=36))
     assert len(sql_rows(client, "SELECT * FROM scalars")) == 36  # exactly at the limit
     assert sql_rows(client, "SELECT count(*) AS n FROM range(1000000)") == [{"n": 1_000_000}]
     too_many = post(client, "SELECT * FROM range(37)")
@@ -297,8 +300,8 @@ def test_row_limit(local: ObjectStore, blank: sessionmaker[Session]):
     assert "more than 36 rows" in too_many.json()["message"] and "LIMIT" in too_many.json()["message"]
 
 
-def test_time_limit(local: ObjectStore, blank: sessionmaker[Session]):
-    client = sql_app(local, blank, limits=Limits(seconds=0.5))
+def test_time_limit(local: ObjectStore, blank: sessionmaker[Session], tmp_path: Path):
+    client = sql_app(tmp_path, local, blank, limits=Limits(seconds=0.5))
     started = time.monotonic()
     slow = post(client, "SELECT sum(a.range * b.range) FROM range(200000) a CROSS JOIN range(200000) b")
     assert slow.status_code == 408, slow.text
@@ -307,8 +310,8 @@ def test_time_limit(local: ObjectStore, blank: sessionmaker[Session]):
     assert sql_rows(client, "SELECT count(*) AS n FROM scalars") == [{"n": 36}]  # the next query runs
 
 
-def test_invalid_sql(local: ObjectStore, blank: sessionmaker[Session]):
-    client = sql_app(local, blank)
+def test_invalid_sql(local: ObjectStore, blank: sessionmaker[Session], tmp_path: Path):
+    client = sql_app(tmp_path, local, blank)
     for query, needle in (
         ("SELEC 1", "syntax error"),
         ("SELECT nope FROM scalars", "nope"),
@@ -345,7 +348,7 @@ def test_invalid_sql(local: ObjectStore, blank: sessionmaker[Session]):
 def test_sandbox_refuses(local: ObjectStore, blank: sessionmaker[Session], tmp_path: Path, query: str, rule: str):
     pq.write_table(pa.table({"secret": [1]}), tmp_path / "outside.parquet")
     local.put("outside.parquet", (tmp_path / "outside.parquet").read_bytes())  # in the warm store, not analytics
-    answer = post(sql_app(local, blank), query.format(tmp=tmp_path))
+    answer = post(sql_app(tmp_path, local, blank), query.format(tmp=tmp_path))
     assert answer.status_code == 400, answer.text
     assert answer.json()["code"] == "SQL_NOT_ALLOWED" and rule in answer.json()["message"], answer.json()
     assert not (tmp_path / "copied.csv").exists() and not (tmp_path / "other.duckdb").exists()
@@ -356,7 +359,7 @@ def test_sandbox_refuses(local: ObjectStore, blank: sessionmaker[Session], tmp_p
 def test_explain_analyze_cannot_write(local: ObjectStore, blank: sessionmaker[Session], tmp_path: Path, explain: str):
     """EXPLAIN ANALYZE runs the statement it explains: a COPY under it must be refused like a bare COPY
     (else a query plants rows in the analytics tables, which the sandbox lets DuckDB write to)."""
-    client = sql_app(local, blank)
+    client = sql_app(tmp_path, local, blank)
     partition = tmp_path / "warm" / "analytics" / "scalars" / "robot_id=robot-1" / "date=2026-03-01"
     planted = partition / "planted.parquet"
     answer = post(
@@ -373,10 +376,10 @@ def test_explain_analyze_cannot_write(local: ObjectStore, blank: sessionmaker[Se
 
 
 @ON_BOTH_CATALOGS
-def test_only_the_files_the_catalog_lists_count(local: ObjectStore, blank: sessionmaker[Session]):
+def test_only_the_files_the_catalog_lists_count(local: ObjectStore, blank: sessionmaker[Session], tmp_path: Path):
     """One copy per run, gone with the run: an orphan file (a crash before the catalog recorded it),
     an early extraction filed under another robot and date, and a deleted run's file are not read."""
-    client = sql_app(local, blank)
+    client = sql_app(tmp_path, local, blank)
     assert sql_rows(client, "SELECT count(*) AS n, max(value) AS top FROM scalars") == [{"n": 36, "top": 4.0}]
     write_scalars(local, "robot-1", "2026-03-01", "orphan-run", [100.0])
     write_scalars(local, "unknown-robot", "2026-02-28", "robot-1-2026-03-01-0", [1.0, 2.0, 3.0])
@@ -424,7 +427,7 @@ SHOWS_THE_SERVER = [
 def test_nothing_shows_settings_environment_or_paths(
     local: ObjectStore, blank: sessionmaker[Session], tmp_path: Path, query: str
 ):
-    answer = post(sql_app(local, blank), query)
+    answer = post(sql_app(tmp_path, local, blank), query)
     assert answer.status_code == 400 and answer.json()["code"] in ("SQL_NOT_ALLOWED", "INVALID_SQL"), answer.text
     assert answer.json()["code"] == "SQL_NOT_ALLOWED" or "getvariable" not in query
     for server_string in (str(tmp_path), str(Path.home()), "pytest-of"):
@@ -433,7 +436,7 @@ def test_nothing_shows_settings_environment_or_paths(
 
 @pytest.mark.slow
 def test_plans_and_errors_name_no_server_path(local: ObjectStore, blank: sessionmaker[Session], tmp_path: Path):
-    client = sql_app(local, blank)
+    client = sql_app(tmp_path, local, blank)
     for explain in ("EXPLAIN ANALYZE", "EXPLAIN", "EXPLAIN (FORMAT json)", "EXPLAIN (ANALYZE, FORMAT json)"):
         plan = post(client, f"{explain} SELECT * FROM scalars WHERE robot_id = 'robot-1'")
         assert plan.status_code == 200, plan.text
@@ -459,8 +462,10 @@ def test_plans_and_errors_name_no_server_path(local: ObjectStore, blank: session
 
 @pytest.mark.slow
 @ON_BOTH_CATALOGS
-def test_filters_on_robot_and_date_read_only_those_partitions(local: ObjectStore, blank: sessionmaker[Session]):
-    client = sql_app(local, blank)
+def test_filters_on_robot_and_date_read_only_those_partitions(
+    local: ObjectStore, blank: sessionmaker[Session], tmp_path: Path
+):
+    client = sql_app(tmp_path, local, blank)
     assert files_read(client, "SELECT count(*) FROM scalars") == 12
     assert files_read(client, "SELECT count(*) FROM scalars WHERE robot_id = 'robot-2'") == 4
     assert files_read(client, "SELECT count(*) FROM scalars WHERE date = DATE '2026-03-02'") == 6
@@ -508,7 +513,7 @@ def on_s3(
     with contextlib.suppress(s3.exceptions.BucketAlreadyOwnedByYou, s3.exceptions.BucketAlreadyExists):
         s3.create_bucket(Bucket=OTHER_BUCKET)
     s3.put_object(Bucket=OTHER_BUCKET, Key="private/notes.csv", Body=b"secret\n1\n")
-    yield sql_app(store, blank), store
+    yield sql_app(tmp_path, store, blank), store
 
 
 KEY_ID, SECRET, OTHER_BUCKET = "fleet-test-key", "fleet-test-secret-6c1f", "fleet-other"

@@ -17,13 +17,13 @@ from services.settings import Settings, load_settings
 
 @contextmanager
 def node(settings: Settings) -> Iterator[TestClient]:
-    ingest, retention, analytics = build(settings)[:3]
+    built = build(settings)
     try:
-        with TestClient(create_app(settings, ingest, retention, analytics)) as client:
+        with TestClient(create_app(built.node, built.ingest, built.retention, built.analytics)) as client:
             yield client
     finally:
-        ingest.hot.close()
-        retention.catalog.kw["bind"].dispose()
+        built.node.hot.close()
+        built.node.catalog.kw["bind"].dispose()
 
 
 def migrated_settings(tmp_path: Path, **overrides: Any) -> Settings:

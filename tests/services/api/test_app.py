@@ -11,6 +11,7 @@ from fastapi.testclient import TestClient
 from prometheus_client.parser import text_string_to_metric_families
 
 from services.api.app import create_app
+from services.server import open_node
 from services.settings import load_settings
 from tests.services.api.nodes import migrated_settings
 from tests.services.api.nodes import node as node_of
@@ -34,7 +35,7 @@ def _referenced_urls(html: str) -> list[str]:
 def test_api_docs_load_only_from_the_service(tmp_path: Path, page: str):
     """A depot without internet still shows its API docs: every script, style and icon the page
     loads is served by the service itself, and nothing names another host."""
-    client = TestClient(create_app(load_settings(data_dir=tmp_path)))
+    client = TestClient(create_app(open_node(load_settings(data_dir=tmp_path))))
     response = client.get(page)
     assert response.status_code == 200
     html = response.text
@@ -51,7 +52,7 @@ def test_api_docs_load_only_from_the_service(tmp_path: Path, page: str):
 
 
 def test_swagger_ui_sends_the_spec_to_no_validator(tmp_path: Path):
-    html = TestClient(create_app(load_settings(data_dir=tmp_path))).get("/docs").text
+    html = TestClient(create_app(open_node(load_settings(data_dir=tmp_path)))).get("/docs").text
     assert '"validatorUrl": null' in html
 
 

@@ -51,7 +51,7 @@ def test_an_embedded_catalog_that_cannot_be_opened_is_named(tmp_path: Path):
     settings = migrated_settings(tmp_path)
     with node(settings) as client:
         assert client.get("/readyz").status_code == 200
-        client.app.state.ingest.catalog.kw["bind"].dispose()  # type: ignore[attr-defined]
+        client.app.state.node.catalog.kw["bind"].dispose()  # type: ignore[attr-defined]
         path = Path(settings.catalog_url.removeprefix("duckdb:///"))
         path.unlink()
         path.mkdir()  # the catalog's file is gone and nothing can open one there

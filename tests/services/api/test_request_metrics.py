@@ -9,11 +9,12 @@ from fastapi.testclient import TestClient
 from prometheus_client.parser import text_string_to_metric_families
 
 from services.api.app import create_app
+from services.server import open_node
 from services.settings import load_settings
 
 
 def test_requests_are_counted_by_route_template_and_status(tmp_path: Path):
-    client = TestClient(create_app(load_settings(data_dir=tmp_path)))
+    client = TestClient(create_app(open_node(load_settings(data_dir=tmp_path))))
     for _ in range(2):
         assert client.get("/healthz").status_code == 200
     for path in ("/no/such/page", "/another/made-up/path"):

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import datetime as dt
 import re
+from pathlib import Path
 from typing import Any
 
 import pytest
@@ -23,6 +24,7 @@ from services.runs import fleet
 from tests.catalog.records import run_record
 from tests.services.console.browser import find, log_in, screenshot, text_of, wait_for
 from tests.services.console.conftest import ConsoleDepot
+from tests.services.nodes import node_of
 
 
 def all_runs(depot: ConsoleDepot, **params: str) -> list[dict[str, Any]]:
@@ -107,7 +109,7 @@ def test_hot_runs_and_retention_events(overview: webdriver.Chrome, console_depot
     screenshot(overview, "overview")
 
 
-def test_failed_jobs_are_highlighted(fresh_catalog_url: str):
+def test_failed_jobs_are_highlighted(fresh_catalog_url: str, tmp_path: Path):
     """The page as the template renders it from `fleet.overview` (no browser): a failed job run is
     flagged in the jobs table and named in an alert above it."""
     engine = create_engine(fresh_catalog_url)
@@ -120,7 +122,7 @@ def test_failed_jobs_are_highlighted(fresh_catalog_url: str):
             queries.finish_job(session, ok, now + dt.timedelta(seconds=2), "ok", "1 done, 0 failed")
             bad = queries.start_job(session, "retention", "node-1", now + dt.timedelta(minutes=1))
             queries.finish_job(session, bad, now + dt.timedelta(minutes=1), "failed", "OSError: the cold store refused")
-        answer = fleet.overview(catalog, None, now=now)
+        answer = fleet.overview(node_of(tmp_path, catalog), None, now=now)
     finally:
         engine.dispose()
     page = templates.get_template("overview.html").render(

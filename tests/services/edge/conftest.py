@@ -25,6 +25,7 @@ from services.rrd.chunk import chunk_meta
 from services.sealed.tiers import Tiers
 from services.storage.objectstore import open_store
 from tests.catalog.records import run_record
+from tests.services.nodes import node_of
 from tests.services.retention.conftest import Clock, Node, NodeFactory, log_run, make_node
 
 __all__ = ["make_node"]  # a fixture of the retention suites, used here as is
@@ -65,9 +66,10 @@ def catalog(fresh_catalog_url: str) -> Iterator[sessionmaker[Session]]:
 
 
 @pytest.fixture
-def edge(catalog: sessionmaker[Session], clock: Clock) -> Edge:
-    """The edge with a catalog only (no hot tier, no warm store): pulls and robot copies."""
-    return Edge(catalog, clock=clock)
+def edge(catalog: sessionmaker[Session], clock: Clock, tmp_path: Path) -> Edge:
+    """The edge of a node that ingests nothing (no hot runs; nothing in its warm store): pulls and
+    robot copies."""
+    return Edge(node_of(tmp_path, catalog, clock=clock))
 
 
 def add_run(
@@ -118,4 +120,4 @@ def node(make_node: NodeFactory, tmp_path: Path) -> Node:
 @pytest.fixture
 def node_edge(node: Node) -> Edge:
     """The edge as the app wires it on that node: its catalog, its hot runs, its warm store."""
-    return Edge(node.catalog, node.ingest, node.tiers.warm, node.clock)
+    return Edge(node.context, node.ingest)

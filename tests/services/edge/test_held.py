@@ -156,7 +156,7 @@ def test_late_data_beside_a_sealed_copy_is_unsealed_and_the_copy_sealed(node: No
 
 @SDK
 def test_the_sealed_index_is_read_once_per_committed_digest(node: Node, sdk_runs: SdkRuns):
-    edge = Edge(node.catalog, node.ingest, node.tiers.warm, node.clock, SealedChunkIds())
+    edge = Edge(node.context, node.ingest, SealedChunkIds())
     node.upload(sdk_runs.first)
     promote_now(node.retention, RUN)
     ids = chunk_ids(sdk_runs.first)

@@ -19,8 +19,7 @@ from sqlalchemy.orm import Session, sessionmaker
 from catalog.db import create_engine, upgrade
 from services.api.app import create_app
 from services.facts.sealed import SealedInfo
-from services.settings import load_settings
-from tests.services.ingest.factory import ingest_service
+from tests.services.nodes import ingest_of, node_of
 from tests.services.rrd.recordings import Recording
 
 pytestmark = pytest.mark.sdk
@@ -65,10 +64,9 @@ def test_an_upload_waits_for_the_catalog_and_the_store_on_worker_threads(
         lookup()
         return None
 
-    ingest = ingest_service(
-        tmp_path, catalog, default_robot="robot", sealed_lookup=sealed_lookup, lookup_timeout_s=HANG_S
-    )
-    app = create_app(load_settings(data_dir=tmp_path / "data", scheduler=False), ingest)
+    node = node_of(tmp_path, catalog, default_robot="robot")  # settings of tmp_path/data
+    ingest = ingest_of(node, sealed_lookup=sealed_lookup, lookup_timeout_s=HANG_S)
+    app = create_app(node, ingest)
 
     async def answers_while(hang: Hang, upload: asyncio.Task[httpx.Response], client: httpx.AsyncClient) -> float:
         await asyncio.to_thread(hang.entered.wait, HANG_S)
@@ -90,7 +88,7 @@ def test_an_upload_waits_for_the_catalog_and_the_store_on_worker_threads(
     finally:
         lookup.released.set()
         catalog.hang.released.set()
-        ingest.hot.close()
+        node.hot.close()
         engine.dispose()
     assert during_lookup < ANSWER_S and during_save < ANSWER_S
     assert response.status_code == 200 and response.json()["catalog"] == "updated"

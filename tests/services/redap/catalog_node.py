@@ -70,7 +70,7 @@ class CatalogGrpc:
 @contextmanager
 def catalog_server(node: Node) -> Iterator[BigRedap]:
     """The node's catalog server and a client of it."""
-    server = CatalogGrpc(Depot(node.catalog, node.tiers.warm, node.ingest, clock=node.clock))
+    server = CatalogGrpc(Depot(node.context, node.ingest))
     server.start()
     client = BigRedap(server.port)
     try:

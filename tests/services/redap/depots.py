@@ -4,6 +4,7 @@ retention write them), and `fleet serve` holding recordings logged with the real
 from __future__ import annotations
 
 import datetime as dt
+import tempfile
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -19,8 +20,10 @@ from catalog.queries import EntityRecord, RunRecord, TimelineRecord
 from services.redap.depot import Depot
 from services.redap.pb import cloud_pb2
 from services.redap.tuid import Tuid
+from services.settings import load_settings
 from tests.catalog.records import run_record
 from tests.services.ingest.live_server import LiveServer
+from tests.services.nodes import node_of
 from tests.services.redap.conftest import Redap
 from tests.services.rrd.recordings import Recording
 
@@ -81,10 +84,13 @@ def entry_of(depot: Depot, name: str) -> Tuid:
 
 @contextmanager
 def catalog_depot(url: str, public_url: str = "") -> Iterator[Depot]:
-    """A depot over the catalog at `url` alone (no stores, no hot runs: the catalog answers all)."""
+    """A depot over the catalog at `url` (no hot runs, nothing in its stores: the catalog answers
+    all), its node in a folder of its own."""
     engine = create_engine(url)
     try:
-        yield Depot(sessionmaker(engine), None, None, public_url)
+        with tempfile.TemporaryDirectory(prefix="catalog-depot-") as root:
+            settings = load_settings(data_dir=Path(root) / "data", public_url=public_url)
+            yield Depot(node_of(Path(root), sessionmaker(engine), settings=settings), None)
     finally:
         engine.dispose()
 

@@ -22,10 +22,9 @@ from services.redap import grpc_handler
 from services.redap.depot import Depot
 from services.retention.service import PROMOTE, Retention, plan, run_plan
 from services.rrd import iter_events
-from services.sealed.tiers import Tiers, sealed_lookup
-from services.storage.objectstore import open_store
+from services.sealed.tiers import Tiers
 from tests.services.ingest import feeding
-from tests.services.ingest.factory import ingest_service
+from tests.services.nodes import ingest_of, node_of
 from tests.services.retention.conftest import Clock
 from tests.subprocess_server import free_port
 
@@ -53,7 +52,7 @@ class DepotNode:
 
     @property
     def depot(self) -> Depot:
-        return Depot(self.catalog, self.tiers.warm, self.ingest, clock=self.clock)
+        return Depot(self.retention.node, self.ingest)
 
     def upload(self, path: Path | bytes) -> IngestReport:
         return feeding.upload(self.ingest, iter_events(io.BytesIO(path) if isinstance(path, bytes) else path))
@@ -73,23 +72,18 @@ def build_node(root: Path) -> DepotNode:
     """A node on `root`: hot tier, warm and cold folders, a DuckDB catalog."""
     engine = create_engine(f"duckdb:///{root / 'catalog.duckdb'}")
     upgrade(engine)
-    catalog = sessionmaker(engine)
-    tiers = Tiers(open_store((root / "warm").as_uri()), open_store((root / "cold").as_uri()))
     clock = Clock()
-    ingest = ingest_service(
-        root, catalog, default_robot="robot-0", clock=clock, sealed_lookup=sealed_lookup(catalog, tiers)
-    )
+    node = node_of(root, sessionmaker(engine), clock=clock, default_robot="robot-0")
+    ingest = ingest_of(node)
     retention = Retention(
-        catalog,
-        tiers,
+        node,
         Policies(Policy("default", 30.0, 365.0), ()),
         ingest,
         promote_after=PROMOTE_AFTER,
         promote_below_free_bytes=0,
         restore_days=7.0,
-        clock=clock,
     )
-    return DepotNode(catalog, tiers, clock, ingest, retention)
+    return DepotNode(node.catalog, node.tiers, clock, ingest, retention)
 
 
 class CatalogServerThread:

@@ -3,6 +3,8 @@ never UNKNOWN or INTERNAL, so Rerun's clients and operators see a retryable outa
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import grpc
 import pytest
 from sqlalchemy.orm import sessionmaker
@@ -10,6 +12,7 @@ from sqlalchemy.orm import sessionmaker
 from catalog.db import create_engine
 from services.redap.depot import Depot
 from services.redap.pb import cloud_pb2
+from tests.services.nodes import node_of
 from tests.services.redap.catalog_node import CatalogGrpc
 from tests.services.redap.conftest import Redap
 from tests.services.redap.depots import status_of
@@ -17,9 +20,9 @@ from tests.subprocess_server import free_port
 
 
 @pytest.mark.postgres
-def test_a_catalog_that_refuses_connections_is_unavailable():
+def test_a_catalog_that_refuses_connections_is_unavailable(tmp_path: Path):
     engine = create_engine(f"postgresql+psycopg://postgres@127.0.0.1:{free_port()}/test")  # nothing listens
-    server = CatalogGrpc(Depot(sessionmaker(engine), None, None))
+    server = CatalogGrpc(Depot(node_of(tmp_path, sessionmaker(engine)), None))
     server.start()
     client = Redap(server.port)
     try:

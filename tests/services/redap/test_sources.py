@@ -77,7 +77,7 @@ def test_a_sealed_run_is_read_once_then_kept(node: DepotNode, points: Path):
     node.upload(points)
     node.seal_all()
     counting = CountingStore(node.tiers.warm)
-    depot = replace(node.depot, warm=counting)
+    depot = replace(node.depot, node=replace(node.depot.node, tiers=replace(node.tiers, warm=counting)))
     (source,) = _sources(depot)
     assert source.prefix is not None and source.hot is None and len(source.digest) == 64
 

@@ -12,15 +12,17 @@ from pathlib import Path
 import pytest
 from sqlalchemy.orm import Session, sessionmaker
 
+import services.node
 from catalog.db import create_engine
+from services.facts.identity import SecretFields
 from services.ingest.service import IngestReport, IngestService
 from services.policies import Policies, Policy, PolicyOverride
 from services.retention.service import Retention
 from services.rrd import iter_events
-from services.sealed.tiers import Tiers, sealed_lookup
+from services.sealed.tiers import Tiers
 from services.storage.objectstore import ObjectStore, open_store
 from tests.services.ingest import feeding
-from tests.services.ingest.factory import ingest_service
+from tests.services.nodes import ingest_of, node_of
 
 WARM_BUCKET, COLD_BUCKET = "fleet-warm", "fleet-cold"
 
@@ -50,6 +52,11 @@ class Node:
     ingest: IngestService
     retention: Retention
     restarts: list[IngestService] = field(default_factory=list)
+
+    @property
+    def context(self) -> services.node.Node:
+        """What its sides share, as `fleet serve` passes it to them (settings of `root`/data)."""
+        return self.retention.node
 
     def upload(self, path: Path | bytes) -> IngestReport:
         return feeding.upload(self.ingest, iter_events(io.BytesIO(path) if isinstance(path, bytes) else path))
@@ -108,23 +115,23 @@ def make_node(tmp_path: Path, fresh_catalog_url: str) -> Iterator[NodeFactory]:
         promote_below_free_bytes: int = 0,
         free_bytes: Callable[[], int] | None = None,
         recover: bool = True,
+        secret_fields: SecretFields | None = None,
     ) -> Node:
         clock = clock or Clock()
-        ingest = ingest_service(
-            tmp_path, catalog, default_robot="robot-0", clock=clock, sealed_lookup=sealed_lookup(catalog, tiers)
+        context = node_of(
+            tmp_path, catalog, tiers=tiers, clock=clock, default_robot="robot-0", secret_fields=secret_fields
         )
+        ingest = ingest_of(context)
         made.append(ingest)
         if recover:
             ingest.recover()
         retention = Retention(
-            catalog,
-            tiers,
+            context,
             Policies(Policy("default", warm_days, cold_days), overrides),
             ingest,
             promote_after=dt.timedelta(seconds=promote_after_s),
             promote_below_free_bytes=promote_below_free_bytes,
             restore_days=restore_days,
-            clock=clock,
             free_bytes=free_bytes,
         )
         return Node(tmp_path, tiers, catalog, clock, ingest, retention)

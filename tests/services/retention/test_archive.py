@@ -25,7 +25,6 @@ from services.retention.service import plan, run_plan
 from services.rrd import iter_events
 from services.sealed.tiers import Tiers
 from services.sealed.write import INDEX, RECORDING, RUN_JSON
-from services.settings import load_settings
 from services.storage.objectstore import ObjectInfo, ObjectStore, StorageError, open_store
 from services.storage.s3 import S3Store
 from tests.seaweedfs import seaweedfs
@@ -63,8 +62,7 @@ def _promoted(node: Node, logged: dict[str, Path], *runs: str) -> dict[str, tupl
 
 
 def _client(node: Node) -> TestClient:
-    settings = load_settings(data_dir=node.root / "data", scheduler=False)
-    return TestClient(create_app(settings, node.ingest, node.retention))
+    return TestClient(create_app(node.context, node.ingest, node.retention))
 
 
 def _retention(node: Node) -> list[tuple[str, str, str]]:
@@ -481,7 +479,7 @@ def test_analytics_written_early_are_kept_once_and_deleted_with_the_run(
     early = log_run(tmp_path / "early.rrd", "early-run", entities=1, frames=5, points=10)
     later = log_run(tmp_path / "later.rrd", "early-run", entities=1, frames=5, points=10, robot="robot-7")
     node.upload(early)
-    analytics = Analytics(node.catalog, node.tiers.warm, Limits())
+    analytics = Analytics(node.context, Limits())
     written = extract_hot_run(analytics, node.ingest, "early-run")
     assert written and all("robot_id=robot-0/" in w["key"] for w in written)
     node.upload(later)  # the robot's identity arrives: the run is filed under robot-7

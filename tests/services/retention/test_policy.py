@@ -173,13 +173,12 @@ def app_from_toml(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> Iterator[T
     engine = create_engine(settings.catalog_url)
     upgrade(engine)
     engine.dispose()
-    built = build(settings)  # the node's sides: ingest and retention first
-    ingest, retention = built[0], built[1]
+    built = build(settings)  # the node and its sides
     try:
-        yield TestClient(create_app(settings, ingest, retention))
+        yield TestClient(create_app(built.node, built.ingest, built.retention))
     finally:
-        ingest.hot.close()
-        retention.catalog.kw["bind"].dispose()
+        built.node.hot.close()
+        built.node.catalog.kw["bind"].dispose()
 
 
 def test_get_retention_shows_the_default_and_each_override_resolved(app_from_toml: TestClient):
@@ -236,9 +235,7 @@ def test_bench_runs_expire_in_a_week_while_production_keeps_a_year(
     node.clock.advance(minutes=11)
     promotions = plan(node.retention, ["promote"])
     assert len(promotions) == 3 and all(o.ok for o in run_plan(node.retention, promotions))
-    client = TestClient(
-        create_app(load_settings(data_dir=node.root / "data", scheduler=False), node.ingest, node.retention)
-    )
+    client = TestClient(create_app(node.context, node.ingest, node.retention))
     assert _run(client, "bench-run")["policy"] == {"name": "bench", "warm_days": 2, "cold_days": 5}
     assert _run(client, "prod-run")["policy"] == {"name": "production", "warm_days": 30, "cold_days": 335}
     assert _run(client, "lab-run")["policy"] == {"name": "default", "warm_days": 30, "cold_days": 30}

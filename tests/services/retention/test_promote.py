@@ -441,7 +441,7 @@ def test_a_crash_right_after_the_switch_leaves_a_hot_copy_removed_without_sealin
 
     with pytest.MonkeyPatch.context() as patch, pytest.raises(SystemExit):
         patch.setattr(node.ingest.hot, "set_aside", crash)
-        promote.promote(hot_run(node), node.ingest, node.tiers, node.catalog, clock.now)
+        promote.promote(hot_run(node), node.ingest, node.context, clock.now)
     assert catalog_tier(node) == "warm" and (hot_dir(node) / "run.rrd").is_file()
     with session_scope(node.catalog) as session:
         life = queries.lifecycle(session, RUN)
@@ -484,7 +484,7 @@ def test_a_failed_promotion_backs_off_before_the_next_attempt(tiers: Tiers, make
 
     backoff.failures[RUN], faulty.left = 30, 1  # ... up to five minutes
     with pytest.raises(StorageError):
-        promote.promote(run, node.ingest, node.tiers, node.catalog, clock.now, backoff=backoff)
+        promote.promote(run, node.ingest, node.context, clock.now, backoff=backoff)
     assert backoff.retry_at[RUN] == clock.now + promote.MAX_BACKOFF == clock.now + dt.timedelta(minutes=5)
     clock.advance(minutes=5)
     assert [o.ok for o in promote_now(node)] == [True]
@@ -585,8 +585,7 @@ def test_sealing_reads_properties_with_the_nodes_secret_fields(tiers: Tiers, mak
     """A node that strips only passwords keeps an `api_key` field through promotion too (sealing reads
     the stored property chunks with the node's setting, not the default list; the fleet property's
     `token`, the depot's own credential, is stripped whatever the setting)."""
-    node = make_node(tiers, clock=Clock())
-    node.ingest.secret_fields = SecretFields(["password"])
+    node = make_node(tiers, clock=Clock(), secret_fields=SecretFields(["password"]))
     path = tmp_path / "props.rrd"
     subprocess.run(
         [

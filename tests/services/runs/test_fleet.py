@@ -15,6 +15,7 @@ from catalog.models import Robot
 from catalog.queries import ObjectRecord
 from services.runs import fleet
 from tests.catalog.records import run_record
+from tests.services.nodes import node_of
 
 NOW = dt.datetime(2026, 11, 20, 12, 0, tzinfo=dt.UTC)
 
@@ -154,17 +155,17 @@ def test_disk_usage(tmp_path: Path):
     usage = fleet.disk_usage(tmp_path, reserve=123)
     assert usage["path"] == str(tmp_path) and usage["reserve"] == 123
     assert usage["used"] + usage["free"] <= usage["total"] and 0 < usage["used_fraction"] < 1
-    assert fleet.hot_disk(None, []) is None and fleet.hot_here(None) == []
+    assert fleet.hot_disk(None, []) is None and fleet.hot_here(None, "robot-0") == []
 
 
-def test_overview_answer(fresh_catalog_url: str):
+def test_overview_answer(fresh_catalog_url: str, tmp_path: Path):
     engine = create_engine(fresh_catalog_url)
     try:
         catalog = sessionmaker(engine)
         with session_scope(catalog, write=True) as session:
             _add(session, "a-1", "robot-a", 1, size=300)
             _add(session, "a-2", "robot-a", 0, tier="hot", status="live", size=40, started=False)
-        answer = fleet.overview(catalog, None, now=NOW)
+        answer = fleet.overview(node_of(tmp_path, catalog), None, now=NOW)
     finally:
         engine.dispose()
     assert answer["generated_at"] == "2026-11-20T12:00:00Z"

@@ -24,7 +24,6 @@ from services.retention.service import PROMOTE, plan, run_plan
 from services.runs.latest_at import ChunkEntry, select_chunks
 from services.sealed.tiers import Tiers
 from services.sealed.write import INDEX
-from services.settings import load_settings
 from services.storage.objectstore import open_store
 from tests.services.retention import conftest as retention
 from tests.services.retention.conftest import Clock, Node, NodeFactory
@@ -174,7 +173,7 @@ def test_window_answers_equal_rerun_latest_at(
     node.upload(scenes[chunking])
     run_id = RECORDING_IDS["per_call" if chunking == "compacted" else chunking]
     assert list(node.ingest.runs) == [run_id]
-    client = TestClient(create_app(load_settings(data_dir=node.root / "data"), node.ingest, node.retention))
+    client = TestClient(create_app(node.context, node.ingest, node.retention))
     _check(scenes[chunking], _answers(client, run_id, tmp_path, "hot"), rerun_bin)
     prefix = _promote(node, run_id)
     _check(scenes[chunking], _answers(client, run_id, tmp_path, "warm"), rerun_bin)

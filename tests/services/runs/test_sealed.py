@@ -33,7 +33,6 @@ from services.runs.sealed import stream_sealed
 from services.sealed.read import open_sealed
 from services.sealed.tiers import Tiers
 from services.sealed.write import INDEX, RECORDING
-from services.settings import load_settings
 from services.storage.objectstore import ObjectInfo, ObjectStore
 from tests.conftest import find_rerun
 from tests.services.retention import conftest as retention
@@ -288,7 +287,7 @@ QUERIES: list[dict[str, Any]] = [
 
 
 def _app(node: Node) -> Any:
-    return create_app(load_settings(data_dir=node.root / "data"), node.ingest, node.retention)
+    return create_app(node.context, node.ingest, node.retention)
 
 
 def _get(client: TestClient, run_id: str, params: dict[str, Any]) -> bytes:
