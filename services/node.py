@@ -22,6 +22,7 @@ from services.facts.identity import SecretFields
 from services.hot.store import HotStore
 from services.sealed.tiers import Tiers
 from services.settings import Settings
+from services.storage.objectstore import ObjectStore
 
 
 @dataclass(frozen=True)
@@ -40,3 +41,23 @@ class Node:
     # Both None on a node that files every run itself (one node, or an embedded catalog).
     ownership: Ownership | None = None
     channels: Channels | None = None
+
+
+class OnNode:
+    """For a side of the node (`Analytics`, `Edge`, the catalog server's `Depot`) that keeps its
+    `node`: the parts its modules read, by the names they have always used."""
+
+    node: Node
+
+    @property
+    def catalog(self) -> sessionmaker[Session]:
+        return self.node.catalog
+
+    @property
+    def warm(self) -> ObjectStore:
+        """Where sealed runs, their chunk indexes and the extracted tables are."""
+        return self.node.tiers.warm
+
+    @property
+    def clock(self) -> Callable[[], dt.datetime]:
+        return self.node.clock

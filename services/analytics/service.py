@@ -9,7 +9,7 @@ import functools
 import io
 import json
 import threading
-from collections.abc import Callable, Iterable
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -18,7 +18,7 @@ import pyarrow as pa
 import pyarrow.csv as pacsv
 import pyarrow.parquet as pq
 import sqlalchemy as sa
-from sqlalchemy.orm import Session, sessionmaker
+from sqlalchemy.orm import Session
 
 from catalog import queries
 from catalog.db import session_scope
@@ -30,8 +30,7 @@ from services.analytics.extract import TABLES, extract_file
 from services.analytics.pool import Prepared, SqlPool
 from services.analytics.store import write_analytics
 from services.ingest.service import IngestService
-from services.node import Node
-from services.storage.objectstore import ObjectStore
+from services.node import Node, OnNode
 
 FORMATS = {
     "json": "application/json",
@@ -43,7 +42,7 @@ CATALOG_TABLES = {"robots": Robot, "runs": Run, "run_entities": RunEntity, "run_
 
 
 @dataclass
-class Analytics:
+class Analytics(OnNode):
     """The node (its catalog, the warm store the tables are extracted to, its clock) and the SQL
     workers' limits."""
 
@@ -51,19 +50,6 @@ class Analytics:
     limits: sql.Limits
     _pool: SqlPool | None = field(default=None, init=False, repr=False)
     _pool_lock: threading.Lock = field(default_factory=threading.Lock, init=False, repr=False)
-
-    # The node's, named here as the analytics modules have always named them.
-    @property
-    def catalog(self) -> sessionmaker[Session]:
-        return self.node.catalog
-
-    @property
-    def warm(self) -> ObjectStore:
-        return self.node.tiers.warm
-
-    @property
-    def clock(self) -> Callable[[], dt.datetime]:
-        return self.node.clock
 
     def s3_access(self) -> sql.S3Access | None:
         access = getattr(self.warm, "access", None)

@@ -2,41 +2,22 @@
 
 from __future__ import annotations
 
-import datetime as dt
-from collections.abc import Callable
 from dataclasses import dataclass, field
-
-from sqlalchemy.orm import Session, sessionmaker
 
 from core.errors import PermissionDeniedError
 from services.auth.scopes import Principal, Scope
 from services.edge.cache import SealedChunkIds
 from services.ingest.service import IngestService
-from services.node import Node
-from services.storage.objectstore import ObjectStore
+from services.node import Node, OnNode
 
 
 @dataclass
-class Edge:
+class Edge(OnNode):
     """The node, and this node's hot runs (None on a node without ingest), for the edge routes."""
 
     node: Node
     ingest: IngestService | None = None
     sealed_ids: SealedChunkIds = field(default_factory=SealedChunkIds)
-
-    # The node's, named here as the edge modules have always named them.
-    @property
-    def catalog(self) -> sessionmaker[Session]:
-        return self.node.catalog
-
-    @property
-    def warm(self) -> ObjectStore:
-        """Where sealed runs' chunk indexes are read."""
-        return self.node.tiers.warm
-
-    @property
-    def clock(self) -> Callable[[], dt.datetime]:
-        return self.node.clock
 
 
 def acting_robot(principal: Principal, free: Scope) -> str | None:

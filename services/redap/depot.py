@@ -3,34 +3,16 @@ depot) and this node's hot runs. Built once in `server.py` and passed to every c
 
 from __future__ import annotations
 
-import datetime as dt
-from collections.abc import Callable
 from dataclasses import dataclass
 
-from sqlalchemy.orm import Session, sessionmaker
-
 from services.hot.read import HotRuns
-from services.node import Node
-from services.storage.objectstore import ObjectStore
+from services.node import Node, OnNode
 
 
 @dataclass(frozen=True)
-class Depot:
+class Depot(OnNode):
     node: Node
     hot: HotRuns | None  # None on a node without ingest
-
-    # The node's, named here as the catalog server's modules have always named them.
-    @property
-    def catalog(self) -> sessionmaker[Session]:
-        return self.node.catalog
-
-    @property
-    def warm(self) -> ObjectStore:
-        return self.node.tiers.warm
-
-    @property
-    def clock(self) -> Callable[[], dt.datetime]:
-        return self.node.clock
 
     @property
     def public_url(self) -> str:
