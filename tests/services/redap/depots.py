@@ -21,7 +21,7 @@ from services.redap.pb import cloud_pb2
 from services.redap.tuid import Tuid
 from tests.catalog.records import run_record
 from tests.services.ingest.live_server import LiveServer
-from tests.services.redap.conftest import Redap
+from tests.services.redap.client import Redap
 from tests.services.rrd.recordings import Recording
 
 NOW = dt.datetime(2026, 11, 21, 12, 0, tzinfo=dt.UTC)
