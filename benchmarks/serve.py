@@ -40,7 +40,7 @@ from benchmarks.ingest import FleetServer  # noqa: E402
 from services.hot.read import HotRecording  # noqa: E402
 from services.hot.store import Changes  # noqa: E402
 from services.rrd.footer import summarize_from_footer  # noqa: E402
-from services.runs.recording import RecordingQuery, open_recording  # noqa: E402
+from services.runs.recording import RecordingQuery, recording_download  # noqa: E402
 
 TTFB_TARGET_S = 0.050
 RATIO_TARGET = 2.0
@@ -97,7 +97,7 @@ def time_in_process(run_file: Path, run_id: str, params: dict[str, str]) -> tupl
     hot = HotRecording(run_file, size, {}, lambda: (size, False), Changes())
     query = RecordingQuery(include=[params["include"]] if "include" in params else [])
     start = time.perf_counter()
-    body = open_recording(_OneHotRun(hot), cast(Any, None), None, run_id, query).body  # hot: no catalog asked
+    body = recording_download(_OneHotRun(hot), cast(Any, None), None, run_id, query).body  # hot: no catalog asked
     assert isinstance(body, Iterator)
     out = sum(len(piece) for piece in body)
     return None, time.perf_counter() - start, out

@@ -132,8 +132,9 @@ class RetentionEvent(Base):
     detail: Mapped[str] = mapped_column(Text, default="")
 
 
-class JobRun(Base):
-    """One run of a scheduled job on one node (so overlaps and failures can be seen)."""
+class JobExecution(Base):
+    """One execution of a scheduled job on one node (so overlaps and failures can be seen); the table
+    keeps its first name, `job_runs`."""
 
     __tablename__ = "job_runs"
 

@@ -15,7 +15,7 @@ from sqlalchemy.orm import Session
 from catalog.models import (
     Base,
     Dataset,
-    JobRun,
+    JobExecution,
     RetentionEvent,
     Robot,
     Run,
@@ -344,24 +344,24 @@ def sealed_runs(session: Session, tiers: tuple[str, ...]) -> list[tuple[Run, Run
 
 def start_job(session: Session, job: str, node: str, now: dt.datetime) -> str:
     job_id = uuid.uuid4().hex
-    session.add(JobRun(id=job_id, job=job, node=node, started_at=now, outcome="running", detail=""))
+    session.add(JobExecution(id=job_id, job=job, node=node, started_at=now, outcome="running", detail=""))
     return job_id
 
 
 def finish_job(session: Session, job_id: str, now: dt.datetime, outcome: str, detail: str) -> None:
-    row = session.get(JobRun, job_id)
+    row = session.get(JobExecution, job_id)
     if row is not None:
         row.finished_at, row.outcome, row.detail = now, outcome, detail[:2000]
 
 
 def prune_jobs(session: Session, before: dt.datetime) -> int:
-    """Forget job runs that started before `before`; returns how many."""
-    result = session.execute(sa.delete(JobRun).where(JobRun.started_at < before))
+    """Forget job executions that started before `before`; returns how many."""
+    result = session.execute(sa.delete(JobExecution).where(JobExecution.started_at < before))
     return int(getattr(result, "rowcount", 0) or 0)
 
 
-def recent_jobs(session: Session, limit: int = 20) -> list[JobRun]:
-    return list(session.scalars(sa.select(JobRun).order_by(JobRun.started_at.desc()).limit(limit)))
+def recent_jobs(session: Session, limit: int = 20) -> list[JobExecution]:
+    return list(session.scalars(sa.select(JobExecution).order_by(JobExecution.started_at.desc()).limit(limit)))
 
 
 def get_run(session: Session, run_id: str) -> Run | None:

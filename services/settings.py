@@ -1,11 +1,14 @@
-"""The one settings object: read once at start (environment `FLEET_*`, then an optional TOML
-file named by `FLEET_CONFIG`, then defaults) and passed down to everything that needs it."""
+"""The depot's settings (`Settings`, for `fleet serve`) and the base it shares with the robot
+agent's (`services/agent/settings.py`): each program's read once at start (environment `FLEET_*`,
+then an optional TOML file named by `FLEET_CONFIG`, then defaults) and passed down to everything
+that needs it."""
 
 from __future__ import annotations
 
 import enum
 import json
 import os
+from collections.abc import Callable
 from pathlib import Path
 from typing import Annotated, Any
 
@@ -58,8 +61,86 @@ DEFAULT_SECRET_FIELDS = (
 )
 
 
-class Settings(BaseSettings):
+# The agent's own settings are named `agent_*` (FLEET_AGENT_*): a TOML file shared by both programs
+# on one machine holds them beside the depot's, and `fleet serve` leaves them to `fleet agent`.
+AGENT_PREFIX = "agent_"
+
+
+def name_list(value: Any) -> Any:
+    """`["token", "password"]` (JSON, TOML) or `token,password`: how a list setting is written."""
+    if isinstance(value, str):
+        text = value.strip()
+        return json.loads(text) if text.startswith("[") else [n.strip() for n in text.split(",") if n.strip()]
+    return value
+
+
+class SharedSettings(BaseSettings):
+    """What `fleet serve` and `fleet agent` both read, under the same names: the robot's spool is
+    the depot's hot tier and ingest run on the robot, so the ingest settings apply to both. Each
+    program's class adds its own fields; neither knows the other's."""
+
     model_config = SettingsConfigDict(env_prefix="FLEET_", extra="forbid")
+
+    max_message_size: int = Field(
+        DEFAULT_MAX_MESSAGE_SIZE, gt=0, description="largest RRD/gRPC message accepted, in bytes"
+    )
+    secret_fields: Annotated[list[str], NoDecode] = Field(
+        default_factory=lambda: list(DEFAULT_SECRET_FIELDS),
+        description="recording property fields never stored nor served: a field is secret if one of these "
+        "names, as words, appears in its name (token matches ingest_token, apiKey matches api_key; a JSON list "
+        "or comma-separated)",
+    )
+    group_commit_ms: int = Field(
+        200, gt=0, description="with durability=interval (the agent's: agent_durability), fsync every this many ms"
+    )
+    close_after_s: float = Field(60.0, gt=0, description="a live run with no data for this long is closed")
+    default_robot: str = Field(
+        "unknown-robot", pattern=r"^[A-Za-z0-9._-]{1,128}$", description="robot id of runs that name none"
+    )
+
+    @field_validator("secret_fields", mode="before")
+    @classmethod
+    def _secret_field_names(cls, value: Any) -> Any:
+        return name_list(value)
+
+    @classmethod
+    def other_programs_key(cls, key: str) -> bool:
+        """Whether `key` of the TOML file is a setting of the other program (left to it, not
+        refused as unknown)."""
+        return False
+
+    @classmethod
+    def settings_customise_sources(
+        cls,
+        settings_cls: type[BaseSettings],
+        init_settings: PydanticBaseSettingsSource,
+        env_settings: PydanticBaseSettingsSource,
+        dotenv_settings: PydanticBaseSettingsSource,
+        file_secret_settings: PydanticBaseSettingsSource,
+    ) -> tuple[PydanticBaseSettingsSource, ...]:
+        # The environment needs no such care: only the variables of this class's fields are read,
+        # so the other program's FLEET_* variables (and any unknown one) are never looked at.
+        sources: list[PydanticBaseSettingsSource] = [init_settings, env_settings]
+        config = os.environ.get("FLEET_CONFIG")
+        if config:
+            sources.append(ConfigFile(settings_cls, Path(config), cls.other_programs_key))
+        return tuple(sources)
+
+
+class ConfigFile(TomlConfigSettingsSource):
+    """The TOML file named by FLEET_CONFIG, less the other program's keys: one file may serve both
+    programs on one machine, while a key neither reads (a typo) is still refused."""
+
+    def __init__(self, settings_cls: type[BaseSettings], path: Path, others: Callable[[str], bool]) -> None:
+        super().__init__(settings_cls, toml_file=path)
+        self.others = others
+
+    def __call__(self) -> dict[str, Any]:
+        return {key: value for key, value in super().__call__().items() if not self.others(key)}
+
+
+class Settings(SharedSettings):
+    """`fleet serve`'s settings (the depot's)."""
 
     data_dir: Path = Field(
         Path("./fleet-data"), description="hot tier and embedded defaults live here; one fleet serve per data dir"
@@ -83,9 +164,6 @@ class Settings(BaseSettings):
         description="archive by moving warm objects to this S3 storage class "
         "(GLACIER, DEEP_ARCHIVE, STANDARD_IA, ...) instead of copying to cold_url",
     )
-    max_message_size: int = Field(
-        DEFAULT_MAX_MESSAGE_SIZE, gt=0, description="largest RRD/gRPC message accepted, in bytes"
-    )
     max_chunk_bytes: int = Field(
         DEFAULT_MAX_CHUNK_BYTES,
         gt=0,
@@ -97,16 +175,9 @@ class Settings(BaseSettings):
         gt=0,
         description="decompressed chunk bytes held at once by all readers of stored runs (downloads, sealing) together",
     )
-    secret_fields: Annotated[list[str], NoDecode] = Field(
-        default_factory=lambda: list(DEFAULT_SECRET_FIELDS),
-        description="recording property fields never stored nor served: a field is secret if one of these "
-        "names, as words, appears in its name (token matches ingest_token, apiKey matches api_key; a JSON list "
-        "or comma-separated)",
-    )
     durability: Durability = Field(
         Durability.INTERVAL, description="hot-tier fsync: always (before answering) | interval (group commit) | off"
     )
-    group_commit_ms: int = Field(200, gt=0, description="with durability=interval, fsync every this many ms")
     min_free_bytes: int = Field(1 << 30, ge=0, description="refuse new data when the hot disk has less free")
     reserve_bytes: int = Field(
         64 << 20,
@@ -115,7 +186,6 @@ class Settings(BaseSettings):
         "(released when the disk is full); promotion never takes the disk below it",
     )
     max_streams: int = Field(1000, gt=0, description="most concurrent gRPC streams on this node")
-    close_after_s: float = Field(60.0, gt=0, description="a live run with no data for this long is closed")
     replay_bytes: int = Field(
         64 * 1024 * 1024, ge=0, description="recent live data kept for ReadMessages readers (0: none)"
     )
@@ -207,9 +277,6 @@ class Settings(BaseSettings):
     )
     sql_rate: str = Field("60/minute", description="SQL queries per token (limits notation: 60/minute, 5/second)")
     download_rate: str = Field("120/minute", description="recording downloads per token or signed link")
-    default_robot: str = Field(
-        "unknown-robot", pattern=r"^[A-Za-z0-9._-]{1,128}$", description="robot id of runs that name none"
-    )
 
     # many depot processes on one Postgres catalog and one bucket (docs/scale-out.md)
     workers: int = Field(
@@ -237,55 +304,6 @@ class Settings(BaseSettings):
     lease_s: float = Field(
         10.0, gt=0, description="a node that stops heart-beating this long loses its hot runs to the other nodes"
     )
-    # `fleet agent`, on the robot (DESIGN.md: each also a flag)
-    agent_spool: Path = Field(
-        Path("./fleet-agent"), description="the agent's spool on the robot's disk: its runs and its state"
-    )
-    agent_listen: str = Field("127.0.0.1:9876", description="where the robot's SDK streams (GrpcSink URL .../proxy)")
-    agent_status_addr: str = Field("127.0.0.1:9877", description="where the agent serves /metrics (Prometheus)")
-    agent_depot: str = Field(
-        "rerun+http://127.0.0.1:51234", description="the depot's gRPC address (rerun+http[s]://HOST:PORT)"
-    )
-    agent_api_url: str = Field("", description="the depot's REST API (default: http://DEPOT_HOST:8080)")
-    agent_token: SecretStr | None = Field(None, description="the robot's ingest token (FLEET_TOKEN)")
-    agent_retain_hours: float = Field(24.0, ge=0, description="runs the depot holds are kept on the robot this long")
-    agent_max_bytes: int = Field(
-        0, ge=0, description="the spool is kept under this size by deleting its oldest confirmed runs (0: no cap)"
-    )
-    agent_min_free_bytes: int = Field(
-        256 << 20, ge=0, description="hard limit: with less free disk the agent refuses new data"
-    )
-    agent_bandwidth: str = Field("0", description="upload cap in bytes per second (500k, 2M; 0: none)")
-    agent_bandwidth_rules: list[dict[str, Any]] = Field(
-        default_factory=list,
-        description="caps by time of day or network: TOML [[agent_bandwidth_rules]] tables of from, to, "
-        "interface, bytes_per_s; the first that applies wins, else agent_bandwidth",
-    )
-    agent_live_include: Annotated[list[str], NoDecode] = Field(
-        default_factory=lambda: ["/**"],
-        description="entities forwarded live (the rest stays on the robot until pulled); "
-        "a JSON list or comma-separated",
-    )
-    agent_live_exclude: Annotated[list[str], NoDecode] = Field(
-        default_factory=list, description="entities never forwarded live; wins over agent_live_include"
-    )
-    agent_watch: Annotated[list[Path], NoDecode] = Field(
-        default_factory=list, description="folders where the robot writes .rrd files (FileSink) for the agent to send"
-    )
-    agent_file_idle_s: float = Field(30.0, gt=0, description="a watched file that stops growing this long is complete")
-    agent_check_s: float = Field(
-        30.0, gt=0, description="how often the agent asks the depot which of the chunks it sent it holds"
-    )
-    agent_stall_s: float = Field(
-        30.0, gt=0, description="a link that takes no data for this long is dropped and connected anew"
-    )
-    agent_pull_poll_s: float = Field(5.0, gt=0, description="how often the agent asks the depot for pulls")
-    agent_pull_progress_s: float = Field(
-        1.0, gt=0, description="while a pull is sent, how often its chunks and bytes so far are reported (if changed)"
-    )
-    agent_durability: Durability = Field(
-        Durability.INTERVAL, description="spool fsync: always | interval (group_commit_ms) | off"
-    )
 
     @property
     def hot_dir(self) -> Path:
@@ -304,23 +322,14 @@ class Settings(BaseSettings):
             raise ValueError(f"{value!r} is not a rate such as 60/minute or 5/second") from exc
         return value
 
-    @field_validator(
-        "secret_fields",
-        "public_hosts",
-        "cors_origins",
-        "auth_previous_keys",
-        "agent_live_include",
-        "agent_live_exclude",
-        "agent_watch",
-        mode="before",
-    )
+    @field_validator("public_hosts", "cors_origins", "auth_previous_keys", mode="before")
     @classmethod
     def _name_list(cls, value: Any) -> Any:
-        """`["token", "password"]` (JSON, TOML) or `token,password`."""
-        if isinstance(value, str):
-            text = value.strip()
-            return json.loads(text) if text.startswith("[") else [n.strip() for n in text.split(",") if n.strip()]
-        return value
+        return name_list(value)
+
+    @classmethod
+    def other_programs_key(cls, key: str) -> bool:
+        return key.startswith(AGENT_PREFIX)
 
     @field_validator("auth_key")
     @classmethod
@@ -350,21 +359,6 @@ class Settings(BaseSettings):
         if not self.cold_url:
             self.cold_url = (data / "cold").as_uri()
         return self
-
-    @classmethod
-    def settings_customise_sources(
-        cls,
-        settings_cls: type[BaseSettings],
-        init_settings: PydanticBaseSettingsSource,
-        env_settings: PydanticBaseSettingsSource,
-        dotenv_settings: PydanticBaseSettingsSource,
-        file_secret_settings: PydanticBaseSettingsSource,
-    ) -> tuple[PydanticBaseSettingsSource, ...]:
-        sources: list[PydanticBaseSettingsSource] = [init_settings, env_settings]
-        config = os.environ.get("FLEET_CONFIG")
-        if config:
-            sources.append(TomlConfigSettingsSource(settings_cls, toml_file=Path(config)))
-        return tuple(sources)
 
 
 def load_settings(**overrides: Any) -> Settings:

@@ -1,17 +1,28 @@
 """The dependency rule, enforced: data flows one way, and a layer imports only layers below it.
 
-    core                      errors and their status table, ids, the clock
-    rrd, storage, policies    the wire codec; object stores; retention policies (plain values)
-    sdk_client                the client: imports core only, so it ships without the server
-    catalog, settings         the catalog (imports core only); the one Settings
-    auth | hot | cluster | facts   tokens, scopes, signed links | the hot tier | run ownership among
-                              nodes | what a run is, learnt from its messages (none imports another)
-    ingest | sealed           streams and uploads into the hot tier, owning the live runs | the
-                              sealed-run format (recording, chunk index, run.json) and its tiers
-    analytics                 extraction at promotion, SQL over what was extracted
-    retention | runs | edge   promotion, archive, expiry | serving runs | robots' own tiers (none imports another)
-    api | redap               the REST app and the gRPC port's front | the Rerun catalog server
-    server, then cli          the wiring; the command line
+    core                             errors and their status table, ids, the clock
+    rrd, storage, policies, startup, runtime, routine_logs, compiled
+                                     the wire codec; object stores; retention policies (plain
+                                     values); the data dir lock and the ports; process tuning; the
+                                     agent's routine calls at DEBUG; the modules mypyc compiles
+    sdk_client, catalog, settings    the client (core only, so it ships without the server); the
+                                     catalog (core only); the depot's Settings and the
+                                     base it shares with the agent's
+    auth | hot | cluster | facts | migrations
+                                     tokens, scopes, signed links | the hot tier | run ownership
+                                     among nodes | what a run is, learnt from its messages | the
+                                     catalog's schema migrations
+    ingest | sealed                  streams and uploads into the hot tier, owning the live runs |
+                                     the sealed-run format (recording, chunk index, run.json) and
+                                     its tiers
+    analytics                        extraction at promotion, SQL over what was extracted
+    retention | runs | edge          promotion, archive, expiry | serving runs | robots' own tiers
+    api | redap | agent | console    the REST app and the gRPC port's front | the Rerun catalog
+                                     server | `fleet agent`, on the robot | the web console
+    server -> workers -> cli         the wiring; `fleet serve --workers N`; the command line
+
+A line is a layer (`->` starts the next one). The same table is drawn in docs/architecture.md ("The
+dependency rule"); tests/test_architecture_doc.py checks that both drawings are LAYERS below.
 
 An import from a layer to one above it, or between two modules of one layer (other than within a
 package), fails this test, which names the file and the import. Imports inside functions and under

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import asyncio
 import logging
-import random
 import time
 from dataclasses import dataclass, field
 from typing import Any
@@ -20,6 +19,7 @@ from urllib.parse import urlsplit
 import grpc
 import httpx
 
+from core.backoff import backoff_delay, jittered
 from core.errors import FleetError, InvalidArgumentError
 from sdk_client.rest import FleetClient, ServiceError
 
@@ -228,12 +228,13 @@ class Backoff:
 
     def __init__(self, first_s: float = BACKOFF_FIRST_S, max_s: float = BACKOFF_MAX_S) -> None:
         self.first_s, self.max_s = first_s, max_s
-        self.next_s = first_s
+        self.failures = 0
 
     def reset(self) -> None:
-        self.next_s = self.first_s
+        self.failures = 0
 
     async def wait(self, refused: bool = False) -> None:
-        delay = REFUSED_RETRY_S if refused else self.next_s
-        self.next_s = min(self.next_s * 2, self.max_s)
-        await asyncio.sleep(delay * random.uniform(0.8, 1.2))
+        """After a failure: a refusal waits `REFUSED_RETRY_S` (and still counts towards the next wait)."""
+        self.failures += 1
+        delay = REFUSED_RETRY_S if refused else backoff_delay(self.failures, first=self.first_s, cap=self.max_s)
+        await asyncio.sleep(jittered(delay))

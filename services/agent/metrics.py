@@ -23,13 +23,13 @@ class AgentCollector(Collector):
         runs = agent.spool.runs()
         progress = {run_id: sender.sent_until for run_id, sender in list(agent.runners.items())}
         saved = agent.state.runs()
-        spool_bytes = sum(run.hot.size for run in runs)
+        spool_bytes = sum(run.size for run in runs)
         backlog = sum(
-            max(run.hot.size - progress.get(run.run_id, 0), 0)
+            max(run.size - progress.get(run.run_id, 0), 0)
             for run in runs
             if not (saved.get(run.run_id) and saved[run.run_id].confirmed)
         )
-        unconfirmed = sum(run.hot.size for run in runs if not (saved.get(run.run_id) and saved[run.run_id].confirmed))
+        unconfirmed = sum(run.size for run in runs if not (saved.get(run.run_id) and saved[run.run_id].confirmed))
         yield GaugeMetricFamily("fleet_agent_spool_bytes", "Bytes of runs in the robot's spool", value=spool_bytes)
         yield GaugeMetricFamily("fleet_agent_backlog_bytes", "Spooled bytes not yet sent to the depot", value=backlog)
         yield GaugeMetricFamily(

@@ -55,12 +55,13 @@ class Reports:
         return robots
 
     async def _serve(self, spec: PullSpec) -> None:
-        run = self.agent.spool.run(spec.run_id)
-        if run is None:
+        recording = self.agent.spool.recording(spec.run_id)
+        if recording is None:
             return
-        types = {t.name: t.type for t in run.summary.timelines.values()} if run.summary else {}
         try:
-            entries = await asyncio.to_thread(select_pull, spec, run.hot.path, run.hot.size, types)
+            entries = await asyncio.to_thread(
+                select_pull, spec, recording.path, recording.size, recording.timeline_types
+            )
         except PullRefused as exc:
             await self._progress(spec, "failed", error=str(exc))
             return
@@ -129,7 +130,7 @@ class Reports:
             state = agent.run_states.get(run.run_id)
             if state is None or (sender is not None and not sender.learned):
                 continue  # a starting sender has yet to ask the depot what is on the robot only
-            figures = (run.hot.size, state.local_only_chunks, state.local_only_bytes)
+            figures = (run.size, state.local_only_chunks, state.local_only_bytes)
             if self.reported.get(run.run_id) == figures:
                 continue
             entities = sorted(sender.local_only_entities) if sender is not None else []
@@ -137,8 +138,8 @@ class Reports:
                 await link.call(
                     link.api.report_robot_copy,
                     run.run_id,
-                    chunks=max(run.summary.chunks if run.summary else 0, state.local_only_chunks),
-                    bytes=run.hot.size,
+                    chunks=max(run.chunks, state.local_only_chunks),
+                    bytes=run.size,
                     local_only_chunks=state.local_only_chunks,
                     local_only_bytes=state.local_only_bytes,
                     local_only_entities=entities,

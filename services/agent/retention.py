@@ -20,7 +20,7 @@ from dataclasses import dataclass
 from core.clock import utcnow
 from services.agent.spool import Spool
 from services.agent.state import AgentState, RunState
-from services.ingest.run import IngestRun
+from services.ingest.view import HotRunView
 
 log = logging.getLogger("fleet.agent")
 
@@ -77,7 +77,7 @@ def enforce(
         total -= max(deletion.bytes, 0)  # -1: kept (something feeds it again)
         need -= max(deletion.bytes, 0)
     deleted = [d for d in deleted if d.bytes >= 0]
-    unconfirmed = sum(run.hot.size for run in spool.runs() if not _confirmed(saved.get(run.run_id)))
+    unconfirmed = sum(run.size for run in spool.runs() if not _confirmed(saved.get(run.run_id)))
     over_by = max(need, 0)
     if over_by:
         log.warning(
@@ -98,8 +98,8 @@ def _confirmed(run: RunState | None) -> bool:
     return run is not None and run.confirmed
 
 
-def _delete(spool: Spool, state: AgentState, run: IngestRun, saved: RunState, why: str) -> Deletion:
-    size = run.hot.size
+def _delete(spool: Spool, state: AgentState, run: HotRunView, saved: RunState, why: str) -> Deletion:
+    size = run.size
     if not spool.remove(run.run_id):
         return Deletion(run.run_id, -1, why, 0)  # something feeds it again: kept
     state.forget_run(run.run_id)

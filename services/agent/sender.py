@@ -102,7 +102,7 @@ class RunSender:
 
     def _size(self) -> int:
         run = self._run()
-        return run.hot.size if run is not None else 0
+        return run.size if run is not None else 0
 
     def _forwarded(self, entry: HotEntry) -> bool:
         if entry.kind != CHUNK or entry.meta is None:
@@ -117,7 +117,7 @@ class RunSender:
         if run is None:
             return []
         out: list[bytes] = []
-        fd = os.open(run.hot.path, os.O_RDONLY)
+        fd = os.open(run.path, os.O_RDONLY)
         try:
             for entry in entries:
                 frame = os.pread(fd, entry.length, entry.offset)
@@ -214,7 +214,7 @@ class RunSender:
 
     def _scan(self, passed: int) -> tuple[list[HotEntry], list[HotEntry]]:
         """The run's store infos, and its chunks up to `passed` the current live rules keep."""
-        tail = HotIndexTail(self._run().hot.path)
+        tail = HotIndexTail(self._run().path)
         size = self._size()
         infos: list[HotEntry] = []
         kept: list[HotEntry] = []
@@ -259,7 +259,7 @@ class RunSender:
         await self._recheck_if_handed()
 
     def _entries(self, start: int, end: int) -> list[HotEntry]:
-        tail = HotIndexTail(self._run().hot.path, start)
+        tail = HotIndexTail(self._run().path, start)
         out: list[HotEntry] = []
         while entries := tail.read(end):
             out += [e for e in entries if e.end <= end]
@@ -306,7 +306,7 @@ class RunSender:
     def _plan_lanes(self) -> None:
         """Live data from the file's end; a large gap behind it as backfill."""
         size = self._size()
-        path = self._run().hot.path
+        path = self._run().path
         if size - self.sent_until > BACKFILL_SPLIT_BYTES:
             self.lanes.append(
                 Lane(Priority.BACKFILL, HotIndexTail(path, self.sent_until), end=size, on_sent=self._count_backfill)
@@ -361,11 +361,11 @@ class RunSender:
         run = self._run()
         if run is None:
             return
-        seen = run.hot.changes.count
+        seen = run.changes.count
         await self._maybe_check()
         if self._size() <= self.sent_until and not self.wake.is_set():
             with contextlib.suppress(TimeoutError):
-                await asyncio.wait_for(self._woken(run.hot.changes, seen), self.ctx.check_s)
+                await asyncio.wait_for(self._woken(run.changes, seen), self.ctx.check_s)
         self.wake.clear()
         self.lanes.clear()
 
@@ -387,13 +387,13 @@ class RunSender:
                     return
                 if not self.ctx.spool.is_open(run) and time.monotonic() - self.last_append > LINGER_S:
                     return
-                seen = run.hot.changes.count
+                seen = run.changes.count
                 if self._size() > self.sent_until or self.wake.is_set():
                     self.wake.clear()
                     continue
                 await self._maybe_check()
                 with contextlib.suppress(TimeoutError):
-                    await asyncio.wait_for(self._woken(run.hot.changes, seen), min(LINGER_S, self.ctx.check_s))
+                    await asyncio.wait_for(self._woken(run.changes, seen), min(LINGER_S, self.ctx.check_s))
                 self.wake.clear()
                 continue
             self.last_append = time.monotonic()

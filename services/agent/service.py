@@ -27,13 +27,13 @@ from services.agent.metrics import serve_metrics
 from services.agent.reports import REPORT_S, Reports
 from services.agent.retention import RetentionReport, enforce
 from services.agent.sender import Forwarding, RunSender
+from services.agent.settings import AgentSettings
 from services.agent.spool import Spool, store_infos
 from services.agent.state import AgentState, RunState
 from services.agent.watch import FileWatcher
 from services.ingest import grpc_handler
 from services.rrd.messages import Event, StreamStart
 from services.runs.download import EntityFilter
-from services.settings import Settings
 from services.startup import listen, split_addr
 
 log = logging.getLogger("fleet.agent")
@@ -43,13 +43,13 @@ HEARTBEAT_S = 2.0
 RETENTION_S = 10.0
 
 
-async def run_agent(settings: Settings) -> None:
+async def run_agent(settings: AgentSettings) -> None:
     """Build the agent on the running event loop (its gRPC channel belongs to that loop) and serve."""
     await Agent(settings).serve()
 
 
 class Agent:
-    def __init__(self, settings: Settings) -> None:
+    def __init__(self, settings: AgentSettings) -> None:
         self.settings = settings
         self.spool = Spool(settings)
         self.state = AgentState(settings.agent_spool)

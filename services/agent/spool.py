@@ -14,18 +14,19 @@ import shutil
 from collections.abc import Sequence
 from pathlib import Path
 
+from core.errors import ConflictError
 from core.states import RunStatus
+from services.agent.settings import AgentSettings
 from services.facts.identity import SecretFields
 from services.hot.read import HotRecording
 from services.hot.store import HotStore
 from services.ingest.replay import ReplayHub
-from services.ingest.run import IngestRun
 from services.ingest.service import IngestService
 from services.ingest.source import Source
+from services.ingest.view import HotRunView
 from services.rrd import errors as rrd_errors
 from services.rrd.decoder import iter_events
 from services.rrd.messages import Event, StoreInfoMessage
-from services.settings import Settings
 
 log = logging.getLogger("fleet.agent")
 
@@ -35,7 +36,7 @@ MAX_STREAMS = 64
 
 
 class Spool:
-    def __init__(self, settings: Settings) -> None:
+    def __init__(self, settings: AgentSettings) -> None:
         self.root = settings.agent_spool
         self.hot = HotStore(
             self.root / RUNS_DIR,
@@ -67,32 +68,33 @@ class Spool:
 
     # --- runs ---------------------------------------------------------------------------------
 
-    def runs(self) -> list[IngestRun]:
+    def runs(self) -> list[HotRunView]:
         return self.ingest.hot_runs()
 
-    def run(self, run_id: str) -> IngestRun | None:
+    def run(self, run_id: str) -> HotRunView | None:
         return self.ingest.hot_run(run_id)
 
     def recording(self, run_id: str) -> HotRecording | None:
         return self.ingest.hot_recording(run_id)
 
     @staticmethod
-    def is_open(run: IngestRun) -> bool:
+    def is_open(run: HotRunView) -> bool:
         """More may come: a stream or a watched file still feeds it."""
         return run.status == RunStatus.LIVE or run.sources > 0
 
     def size(self) -> int:
-        return sum(run.hot.size for run in self.runs())
+        return sum(run.size for run in self.runs())
 
     def remove(self, run_id: str) -> bool:
         """Delete a run's spool copy (retention); False if it is not here or something still feeds it."""
         run = self.ingest.hot_run(run_id)
         if run is None or self.is_open(run):
             return False
-        with run.sealing:
-            run.sealed = True  # nothing more is written to it
-            self.ingest.forget(run)
-        shutil.rmtree(run.hot.directory, ignore_errors=True)
+        try:
+            left = self.ingest.hand_over(run, doing="being removed", then="kept")
+        except ConflictError:  # fed again since: kept
+            return False
+        shutil.rmtree(left.folder, ignore_errors=True)
         return True
 
     # --- watched files --------------------------------------------------------------------------

@@ -236,7 +236,7 @@ def extract_hot_run(ctx: Analytics, ingest: IngestService, run_id: str) -> list[
     run = ingest.hot_run(run_id)
     if run is None:
         raise queries.run_not_found(run_id)
-    extractor = extract_file(run_id, run.hot.path, run.hot.size)
+    extractor = extract_file(run_id, run.path, run.size)
     record = run.record(ingest.default_robot)
     objects = write_analytics(ctx.warm, extractor, record.robot_id, record.date.isoformat())
     with session_scope(ctx.catalog, write=True) as session:  # the catalog lists each run's one copy

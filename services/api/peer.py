@@ -24,7 +24,7 @@ from services.cluster.relay import ERROR_CODE
 from services.edge import held
 from services.edge.context import Edge
 from services.ingest.service import IngestService
-from services.runs.recording import RecordingQuery, open_recording
+from services.runs.recording import RecordingQuery, recording_download
 from services.storage.objectstore import ObjectStore
 
 _QUERY_FIELDS = {f.name for f in dataclasses.fields(RecordingQuery)}
@@ -50,7 +50,7 @@ class PeerService:
             asked = _json(request)
             run_id = _text(asked, "run_id")
             query = _typed(_QUERY, {k: v for k, v in asked.items() if k in _QUERY_FIELDS}, "query")
-            found = await asyncio.to_thread(open_recording, self.ingest, self.catalog, self.warm, run_id, query)
+            found = await asyncio.to_thread(recording_download, self.ingest, self.catalog, self.warm, run_id, query)
             if isinstance(found.body, Iterator):
                 pieces = iter(found.body)
                 while (piece := await asyncio.to_thread(next, pieces, None)) is not None:

@@ -7,7 +7,8 @@ answer (down, hung, past its deadline), the record last seen is still used while
 `stale_s` (FLEET_AUTH_STALE_S): a revocation made during a catalog outage takes effect within that
 bound. A token the catalog never confirmed, or confirmed too long ago, is refused UNAVAILABLE (503),
 never let in unchecked. One lookup per token at a time: while one is under way (a hung catalog),
-later checks of that token do not wait for it."""
+later checks of that token do not wait for it. What is known is a cachetools `TTLCache`: a record
+leaves it once it is too old to be used even stale, and at most `MAX_TOKENS` are held."""
 
 from __future__ import annotations
 
@@ -16,6 +17,8 @@ import logging
 import threading
 import time
 from collections.abc import Callable
+
+from cachetools import TTLCache
 
 from catalog.tokens import TokenRecord
 from core.errors import CATALOG_DOWN, CatalogUnavailableError
@@ -26,6 +29,7 @@ WAIT_S = 2.0  # the longest a token check waits for the catalog before it uses w
 # A hung catalog holds at most this many lookup threads (daemons: they never hold up the process's
 # exit); beyond them a token is checked against what is known, without asking.
 LOOKUP_THREADS = 4
+MAX_TOKENS = 100_000  # records held at most (the least recently used go first: asked again when used)
 
 
 class TokenCache:
@@ -36,10 +40,12 @@ class TokenCache:
         fresh_s: float,
         stale_s: float,
         wait_s: float = WAIT_S,
+        max_tokens: int = MAX_TOKENS,
     ) -> None:
         self._lookup = lookup
         self.fresh_s, self.stale_s, self.wait_s = fresh_s, max(stale_s, fresh_s), wait_s
-        self._known: dict[str, tuple[float, TokenRecord | None]] = {}  # token id -> (asked at, record)
+        # token id -> (asked at, record), dropped `stale_s` after it came: older, it could not be used even stale.
+        self._known: TTLCache[str, tuple[float, TokenRecord | None]] = TTLCache(max_tokens, self.stale_s)
         self._pending: dict[str, concurrent.futures.Future[TokenRecord | None]] = {}
         self._lock = threading.Lock()
 
@@ -48,7 +54,8 @@ class TokenCache:
         off the event loop. CatalogUnavailableError if the catalog cannot confirm it in time and
         what was last seen of it is older than `stale_s` (or nothing was)."""
         now = time.monotonic()
-        known = self._known.get(token_id)
+        with self._lock:
+            known = self._known.get(token_id)
         if known is not None and now - known[0] < self.fresh_s:
             return known[1]
         future, waiting = self._ask(token_id, now)

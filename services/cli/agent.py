@@ -1,8 +1,10 @@
 """`fleet agent`: run the robot's agent; `fleet agent status`: where its runs stand.
 
-The agent's flags are made from the `agent_*` settings (`--spool`, `--listen`, `--depot`, ...), as
-`fleet serve`'s are from the others: each also a FLEET_AGENT_* variable or a key of the TOML file
-named by FLEET_CONFIG; the token also FLEET_TOKEN, the depot's REST address also FLEET_API_URL."""
+The agent's flags are made from its `AgentSettings`, as `fleet serve`'s are from the depot's
+`Settings`: its own `agent_*` settings without the prefix (`--spool`, `--listen`, `--depot`, ...)
+and the ingest settings it shares with the depot (`--max-message-size`, ...); each also a FLEET_*
+variable or a key of the TOML file named by FLEET_CONFIG; the token also FLEET_TOKEN, the depot's
+REST address also FLEET_API_URL."""
 
 from __future__ import annotations
 
@@ -13,16 +15,30 @@ from typing import TYPE_CHECKING, Any
 
 import click
 
-from services.cli.serve import SettingsCommand, agent_setting
+from services.cli.settings_options import SettingsCommand
 
 if TYPE_CHECKING:
-    from services.settings import Settings
+    from services.agent.settings import AgentSettings
+
+# Settings that are no option of `fleet agent`, and why (shown after the options).
+NOT_OPTIONS = {"agent_bandwidth_rules": "a list of tables: TOML only"}
+# Options also read from a variable of the CLI's own (as every command that talks to the depot).
+ENVVARS = {"agent_token": "FLEET_TOKEN", "agent_api_url": "FLEET_API_URL"}
+
+
+def _agent_settings() -> type[AgentSettings]:
+    from services.agent.settings import AgentSettings
+
+    return AgentSettings
 
 
 class AgentCommand(click.Group, SettingsCommand):
     """`fleet agent` runs the agent unless a subcommand (status) is named."""
 
-    selected = staticmethod(agent_setting)
+    settings_class = staticmethod(_agent_settings)
+    flag_prefix = "agent_"
+    not_options = NOT_OPTIONS
+    envvars = ENVVARS
 
 
 @click.group(cls=AgentCommand, invoke_without_command=True)
@@ -39,11 +55,11 @@ def agent(ctx: click.Context, /, **flags: object) -> None:
     import logging
 
     from services.agent.service import run_agent
+    from services.agent.settings import load_agent_settings
     from services.routine_logs import quiet_routine_requests
-    from services.settings import load_settings
     from services.startup import hold_data_dir
 
-    settings = load_settings(**flags)
+    settings = load_agent_settings(**flags)
     held = hold_data_dir(settings.agent_spool, what="spool", command="fleet agent", fix="--spool or FLEET_AGENT_SPOOL")
     with held, contextlib.suppress(KeyboardInterrupt):  # Ctrl-C: the spool is safe, the agent stops
         _check_ports(settings)  # a refusal is the only line said, before anything starts
@@ -58,7 +74,7 @@ def agent(ctx: click.Context, /, **flags: object) -> None:
         asyncio.run(run_agent(settings))
 
 
-def _check_ports(settings: Settings) -> None:
+def _check_ports(settings: AgentSettings) -> None:
     """Both addresses are HOST:PORT and free (InvalidArgumentError or ConflictError naming the setting)."""
     from core.errors import InvalidArgumentError
     from services.startup import is_loopback, listen, split_addr
@@ -85,10 +101,10 @@ def _check_ports(settings: Settings) -> None:
 def status(ctx: click.Context, spool: Path | None, as_json: bool) -> None:
     """Per run: bytes on the robot, sent, not yet confirmed at the depot, kept on the robot only; the
     link and the backlog. Works whether the agent runs or not (give the same --spool)."""
+    from services.agent.settings import load_agent_settings
     from services.agent.status import status_report
-    from services.settings import load_settings
 
-    settings = load_settings(**{**(ctx.obj or {}), "agent_spool": spool})
+    settings = load_agent_settings(**{**(ctx.obj or {}), "agent_spool": spool})
     report = status_report(settings.agent_spool)
     if as_json:
         click.echo(json.dumps(report, indent=2))

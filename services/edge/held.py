@@ -29,7 +29,7 @@ from core.ids import check_id
 from core.states import Tier
 from services.auth.scopes import Principal, Scope
 from services.edge.context import Edge, acting_robot, check_robot
-from services.ingest.run import IngestRun
+from services.ingest.view import HotRunView
 from services.sealed.index import chunk_ids_of
 from services.sealed.write import INDEX
 from services.storage.objectstore import ObjectNotFoundError
@@ -118,12 +118,12 @@ def held_answer(edge: Edge, principal: Principal, run_id: str, chunk_ids: Sequen
 
 
 def _hot_view(edge: Edge, run_id: str, asked: dict[str, bytes]) -> _Hot | None:
-    run: IngestRun | None = edge.ingest.hot_run(run_id) if edge.ingest is not None else None
+    run: HotRunView | None = edge.ingest.hot_run(run_id) if edge.ingest is not None else None
     if run is None or edge.ingest is None:
         return None
-    # membership tests only: ingest adds to these sets on the event loop meanwhile
-    held = frozenset(c for c, raw in asked.items() if raw in run.chunk_ids)
-    before = run.sealed_as.chunk_ids if run.sealed_as is not None else frozenset()
+    # membership tests only (no copy of the run's chunk ids): ingest adds to them on the event loop meanwhile
+    held = frozenset(c for c, raw in asked.items() if run.in_hot_file(raw))
+    before = run.adds_to.chunk_ids if run.adds_to is not None else frozenset()
     sealed_before = frozenset(c for c, raw in asked.items() if raw in before)
     return _Hot(run.robot_id or edge.ingest.default_robot, str(run.status), held, sealed_before)
 

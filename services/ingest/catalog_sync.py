@@ -14,11 +14,13 @@ from sqlalchemy.orm import Session, sessionmaker
 from catalog import queries
 from catalog.db import session_scope
 from catalog.queries import RunRecord
+from core.backoff import backoff_delay
 from core.errors import CATALOG_DOWN
 from services.ingest.run import IngestRun
 
 log = logging.getLogger("services.ingest.service")
 
+BACKOFF_FIRST = dt.timedelta(seconds=2)
 BACKOFF_MAX = dt.timedelta(minutes=5)
 
 
@@ -102,7 +104,7 @@ class CatalogSync:
                 return
             run.dirty = True
             run.catalog_failures += 1
-            wait = min(dt.timedelta(seconds=2 ** min(run.catalog_failures, 16)), BACKOFF_MAX)
+            wait = _retry_wait(run.catalog_failures)
             run.catalog_retry_at = self.clock() + wait
             log.error(
                 "the catalog refused the record of run %s (%s: %s); retrying in %s",
@@ -122,3 +124,9 @@ class CatalogSync:
             run = runs.get(record.id)
             if run is not None:
                 run.dirty = True  # retried at the next flush
+
+
+def _retry_wait(failures: int) -> dt.timedelta:
+    """How long a run whose record the catalog refused `failures` times in a row waits alone."""
+    seconds = backoff_delay(failures, first=BACKOFF_FIRST.total_seconds(), cap=BACKOFF_MAX.total_seconds())
+    return dt.timedelta(seconds=seconds)

@@ -37,7 +37,7 @@ async def route(service: IngestService, source: Source, run_id: str) -> None:
         return
     source.routed.add(run_id)
     run = service.runs.get(run_id)
-    if run is not None and not run.sealed and run.lease is not None:
+    if run is not None and not run.handed_over and run.lease is not None:
         source.leases[run_id] = run.lease
         service.open_claims[run_id] += 1
         return
@@ -49,7 +49,7 @@ async def route(service: IngestService, source: Source, run_id: str) -> None:
         return
     if isinstance(got, Lease):
         source.leases[run_id] = got
-        if run is not None and not run.sealed and run.lease is None:
+        if run is not None and not run.handed_over and run.lease is None:
             run.lease = got
         return
     if source.relayed_by is None and source.recording_run is None:

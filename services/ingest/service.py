@@ -19,10 +19,12 @@ from __future__ import annotations
 import asyncio
 import datetime as dt
 import logging
+import threading
 import uuid
-from collections import Counter, OrderedDict
+from collections import Counter
 from collections.abc import Callable
 
+from cachetools import FIFOCache
 from sqlalchemy.orm import Session, sessionmaker
 
 from catalog.queries import RunRecord
@@ -30,7 +32,7 @@ from core.clock import utcnow
 from core.errors import ConflictError, InvalidArgumentError, PermissionDeniedError, ResourceExhaustedError
 from core.ids import UnsafeIdError, check_id, check_name
 from core.states import RunStatus, Tier
-from services.cluster.ownership import Ownership
+from services.cluster.ownership import Lease, Ownership
 from services.cluster.relay import Channels
 from services.facts.identity import IDENTITY_PROPERTY, ROBOT_FIELD, SecretFields, check_robot, read_property_chunk
 from services.facts.run import LOG_TIME, RunFacts, check_chunk_names, store_key
@@ -42,6 +44,7 @@ from services.ingest.replay import ReplayHub
 from services.ingest.routing import route
 from services.ingest.run import IngestRun
 from services.ingest.source import IngestReport, Source
+from services.ingest.view import HandedOver, HotRunView, view_of
 from services.rrd.chunk import ChunkMeta, chunk_meta
 from services.rrd.frames import DEFAULT_VERSION, MessageKind
 from services.rrd.layout import ChunkLayout
@@ -74,8 +77,13 @@ __all__ = [
 log = logging.getLogger(__name__)
 
 _HELD_LIMIT = 64 * 1024 * 1024
+# Layouts whose names were checked: a plain dict cleared when full, not a cachetools cache, as it is
+# read for every chunk and a dict's lookup costs a sixth of an LRUCache's.
 _NAMED_LAYOUTS = 4096
 _RECENTLY_SEALED = 1024
+
+# What a hand-over commits under the run's lock, given the run's lease: where the run went, if anywhere.
+Commit = Callable[[Lease | None], SealedInfo | None]
 
 
 class IngestService:
@@ -112,8 +120,10 @@ class IngestService:
         self.close_after = close_after
         self.clock = clock
         self.runs: dict[str, IngestRun] = {}
-        # Runs this node sealed lately, for data that follows a promotion while the catalog does not answer.
-        self.recently_sealed: OrderedDict[str, SealedInfo] = OrderedDict()
+        # Runs this node sealed lately, for data that follows a promotion while the catalog does not
+        # answer: the last sealed stay. Written by promotion's thread, read by ingest's: locked.
+        self.recently_sealed: FIFOCache[str, SealedInfo] = FIFOCache(_RECENTLY_SEALED)
+        self._recently_sealed_lock = threading.Lock()
         self.live_streams = 0
         self.totals = {"chunks_new": 0, "chunks_duplicate": 0, "bytes_new": 0, "bytes_duplicate": 0, "messages": 0}
         self._catalog_sync = CatalogSync(catalog, self.clock)
@@ -121,18 +131,18 @@ class IngestService:
 
     # --- the hot runs as other services see them (read-only: only ingest changes `runs`) ------
 
-    def hot_run(self, run_id: str) -> IngestRun | None:
-        """The run if it is hot here and not handed to the warm tier (late additions to a sealed run
-        included)."""
+    def hot_run(self, run_id: str) -> HotRunView | None:
+        """The run if it is hot here and not handed over (late additions to a sealed run included)."""
         run = self.runs.get(run_id)
-        return run if run is not None and not run.sealed else None
+        return view_of(run) if run is not None and not run.handed_over else None
 
-    def hot_runs(self) -> list[IngestRun]:
-        """This node's hot runs not handed to the warm tier, oldest data first: a snapshot, as
-        promotion may take runs away meanwhile."""
-        return sorted((run for run in list(self.runs.values()) if not run.sealed), key=lambda run: run.last_data_at)
+    def hot_runs(self) -> list[HotRunView]:
+        """This node's hot runs not handed over, oldest data first, as they are now (promotion may
+        take runs away meanwhile)."""
+        views = [view_of(run) for run in list(self.runs.values()) if not run.handed_over]
+        return sorted(views, key=lambda run: run.last_data_at)
 
-    def closed_runs(self) -> list[IngestRun]:
+    def closed_runs(self) -> list[HotRunView]:
         """Hot runs that no stream feeds any more, oldest data first: those promotion may seal."""
         return [run for run in self.hot_runs() if run.status == RunStatus.CLOSED and not run.live_sources]
 
@@ -146,7 +156,7 @@ class IngestService:
         catalog, so a run is served from its first chunk (the catalog lags a little). None when the
         run is not hot here, or is sealed and only its late additions are hot."""
         run = self.runs.get(run_id)
-        if run is None or run.sealed_as is not None:
+        if run is None or run.adds_to is not None:
             return None
         hot = run.hot
 
@@ -374,10 +384,10 @@ class IngestService:
 
     def _drop(self, source: Source, run: IngestRun) -> None:
         with run.sealing:
-            if run.sealed:  # promotion took it meanwhile: it stays, and says so
+            if run.handed_over:  # promotion took it meanwhile: it stays, and says so
                 log.warning("run %s was sealed before its robot was refused; delete it if unwanted", run.run_id)
                 return
-            run.sealed = True  # nothing more is written to it
+            run.handed_over = True  # nothing more is written to it
         del self.runs[run.run_id]
         source.attached.discard(run.run_id)
         source.report.runs = [r for r in source.report.runs if r != run.run_id]
@@ -427,7 +437,7 @@ class IngestService:
         def held() -> bool:
             if run_id in source.created:
                 return False
-            sealed = run.sealed_as if run is not None else self._sealed_info(source, run_id)
+            sealed = run.adds_to if run is not None else self._sealed_info(source, run_id)
             return bool(run is not None and run.chunk_ids) or bool(sealed is not None and sealed.chunk_ids)
 
         return held
@@ -447,12 +457,15 @@ class IngestService:
         """What the catalog said when `prepare` asked (its tier is the one that counts: a run sealed
         here may have been archived since), else what this node remembers sealing."""
         asked = source.sealed.get(run_id)
-        return asked if asked is not None else self.recently_sealed.get(run_id)
+        if asked is not None:
+            return asked
+        with self._recently_sealed_lock:
+            return self.recently_sealed.get(run_id)
 
     def _hot_run(self, source: Source, run_id: str) -> IngestRun | None:
         """The run if it is hot here (and not being handed over), counted as fed by `source`."""
         run = self.runs.get(run_id)
-        if run is None or run.sealed:
+        if run is None or run.handed_over:
             return None
         self._attach(source, run)
         return run
@@ -484,7 +497,7 @@ class IngestService:
         hot = self.hot.create(run_id, version, source.robot)
         run = self.runs[run_id] = IngestRun(hot, self.clock(), self.secret_fields)
         run.robot_id = source.robot or run.robot_id  # the token's robot, until a property names the same one
-        run.sealed_as = sealed  # chunks sent after it was sealed: sealed in with the rest later
+        run.adds_to = sealed  # chunks sent after it was sealed: sealed in with the rest later
         run.lease = source.leases.get(run_id)
         source.created.add(run_id)
         self._attach(source, run)
@@ -506,10 +519,10 @@ class IngestService:
         meta: ChunkMeta | None = None,
     ) -> IngestRun:
         """Write one message to the run's hot file (and its chunk index: `store_kind`, and a chunk's
-        `meta`), unless promotion has just taken the run."""
+        `meta`), unless it has just been handed over (then to a new hot run of the same id)."""
         while True:
             with run.sealing:
-                if not run.sealed:
+                if not run.handed_over:
                     run.hot.append(kind, raw, store_kind, meta)
                     return run
             run = self._materialize(source, run.run_id)
@@ -549,15 +562,57 @@ class IngestService:
         if self.replay is not None:
             self.replay.end_run(run.run_id)  # readers that connect later get live runs only
 
-    def forget(self, run: IngestRun) -> None:
-        """Promotion sealed this run: it leaves the hot tier (called with `run.sealing` held)."""
+    # --- a hot run leaving this node's hot tier (the one place it happens), and its lease --------
+
+    def hand_over(self, run: HotRunView, commit: Commit | None = None, *, doing: str, then: str) -> HandedOver:
+        """`run` leaves this node's hot tier: sealed by promotion, handed to the node that owns it,
+        or removed by the robot agent's retention. Under the run's lock (ingest waits there only if
+        it has data for this very run): refused with a ConflictError saying what was under way
+        (`doing`) and what happens next (`then`) if the run received data since `run` was taken
+        (its size changed), is live, or a stream feeds it; else `commit` runs with the run's lease
+        as it stands (promotion's catalog transaction; what it returns is where the run went,
+        remembered for data that follows), and the run is marked handed over, forgotten and its
+        folder set aside."""
+        live = run._run
+        with live.sealing:
+            if live.handed_over or self.runs.get(run.run_id) is not live:
+                raise ConflictError(f"run {run.run_id} left the hot tier while {doing}: nothing more to do")
+            if live.hot.size != run.size or live.status == RunStatus.LIVE or live.live_sources:
+                raise ConflictError(f"run {run.run_id} received data while {doing}: {then}")
+            sealed_to = commit(live.lease) if commit is not None else None
+            live.sealed_to, live.handed_over = sealed_to, True
+            self._forget(live)
+            return HandedOver(self.hot.set_aside(live.hot), live.lease)
+
+    def has_left(self, run: HotRunView) -> bool:
+        """Whether this hot run (not a later one of the same id) has left the hot tier."""
+        return run._run.handed_over
+
+    def set_adds_to(self, run: HotRunView, sealed: SealedInfo | None) -> None:
+        """What the catalog says now of the run sealed before that `run` adds to (promotion asks:
+        ingest may have filed the data while the catalog did not answer, or another node sealed it)."""
+        run._run.adds_to = sealed
+
+    def take_lease(self, run_id: str, lease: Lease) -> None:
+        """This node owns the hot run (the ownership pass adopted or claimed it): its catalog row is
+        written, and it is promoted here."""
+        run = self.runs.get(run_id)
+        if run is not None and not run.handed_over:
+            run.lease, run.dirty = lease, True
+
+    def lose_lease(self, run_id: str) -> None:
+        """Another node owns the run now: its hot copy here is handed to that node."""
+        run = self.runs.get(run_id)
+        if run is not None and not run.handed_over:
+            run.lease = None
+
+    def _forget(self, run: IngestRun) -> None:
+        """The run left the hot tier (called by `hand_over`, with `run.sealing` held)."""
         if self.runs.get(run.run_id) is run:
             del self.runs[run.run_id]
-        if run.sealed_into is not None:
-            self.recently_sealed[run.run_id] = run.sealed_into
-            self.recently_sealed.move_to_end(run.run_id)
-            while len(self.recently_sealed) > _RECENTLY_SEALED:
-                self.recently_sealed.popitem(last=False)
+        if run.sealed_to is not None:
+            with self._recently_sealed_lock:
+                self.recently_sealed[run.run_id] = run.sealed_to  # sealed again: the newest again
         if self.replay is not None:
             self.replay.end_run(run.run_id)
         self.hot.forget(run.hot)

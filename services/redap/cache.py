@@ -1,12 +1,15 @@
 """A small thread-safe LRU cache bounded by a weight (entries, rows): what the catalog server keeps
-of runs between queries, so memory stays bounded whatever the number of runs held."""
+of runs between queries, so memory stays bounded whatever the number of runs held. cachetools'
+`LRUCache` does the bookkeeping; what is ours is the lock (it is shared by the gRPC worker threads,
+and an LRU reorders on every read) and that a value too heavy to keep is still answered."""
 
 from __future__ import annotations
 
 import threading
-from collections import OrderedDict
 from collections.abc import Callable, Hashable
 from typing import Generic, TypeVar
+
+from cachetools import LRUCache
 
 V = TypeVar("V")
 
@@ -14,33 +17,20 @@ V = TypeVar("V")
 class WeightedLru(Generic[V]):
     def __init__(self, max_weight: int, weigh: Callable[[V], int] = lambda _: 1) -> None:
         self.max_weight = max_weight
-        self._weigh = weigh
-        self._items: OrderedDict[Hashable, tuple[V, int]] = OrderedDict()
-        self._weight = 0
+        self._items: LRUCache[Hashable, V] = LRUCache(max_weight, getsizeof=weigh)
         self._lock = threading.Lock()
 
     def get(self, key: Hashable) -> V | None:
         with self._lock:
-            found = self._items.get(key)
-            if found is None:
-                return None
-            self._items.move_to_end(key)
-            return found[0]
+            return self._items.get(key)
 
     def put(self, key: Hashable, value: V) -> V:
         """Keep `value` (unless it alone outweighs the cache), evicting the least recently used."""
-        weight = self._weigh(value)
         with self._lock:
-            old = self._items.pop(key, None)
-            if old is not None:
-                self._weight -= old[1]
-            if weight > self.max_weight:
-                return value
-            self._items[key] = (value, weight)
-            self._weight += weight
-            while self._weight > self.max_weight:
-                _, (_, evicted) = self._items.popitem(last=False)
-                self._weight -= evicted
+            try:
+                self._items[key] = value
+            except ValueError:  # too heavy to keep: answered, and what the key held before is stale
+                self._items.pop(key, None)
         return value
 
     def get_or_load(self, key: Hashable, load: Callable[[], V]) -> V:
@@ -52,7 +42,6 @@ class WeightedLru(Generic[V]):
     def clear(self) -> None:
         with self._lock:
             self._items.clear()
-            self._weight = 0
 
     def __len__(self) -> int:
         with self._lock:

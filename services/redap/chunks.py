@@ -29,11 +29,12 @@ from services.auth.scopes import Principal
 from services.redap.dataframe import read_dataframe_part
 from services.redap.depot import Depot
 from services.redap.pb import cloud_pb2
-from services.redap.recordings import RunRecording, open_recording
+from services.redap.recordings import open_recording
 from services.rrd import errors as rrd_errors
 from services.rrd import limits
 from services.rrd.frames import MESSAGE_HEADER_SIZE, MessageKind, decode_message_header
 from services.rrd.protowire import fields
+from services.runs.indexed import IndexedRecording
 
 RUN_URL_PREFIX = "fleet:"
 READ_BYTES = 8 * 1024 * 1024  # adjacent chunks are read together up to this
@@ -113,7 +114,7 @@ def fetch_chunks(depot: Depot, principal: Principal, request: cloud_pb2.FetchChu
     """Serialized `FetchChunksResponse`s holding the stored bytes of the requested chunks. Every key
     and every run is checked before the first answer, so a bad request fails whole."""
     wanted = requested_chunks(request)
-    runs: dict[str, RunRecording] = {}
+    runs: dict[str, IndexedRecording] = {}
     try:
         for location in wanted:
             if location.run_id not in runs:
@@ -156,13 +157,13 @@ def _chunk_keys(table: pa.Table) -> list[bytes]:
 class _Read:
     """One ranged read of a run: adjacent chunks together."""
 
-    recording: RunRecording
+    recording: IndexedRecording
     offset: int
     end: int
     chunks: list[ChunkLocation]
 
 
-def _reads(wanted: list[ChunkLocation], runs: dict[str, RunRecording]) -> Iterator[_Read]:
+def _reads(wanted: list[ChunkLocation], runs: dict[str, IndexedRecording]) -> Iterator[_Read]:
     """Reads in each run's order, adjacent (or overlapping) chunks merged up to `READ_BYTES`."""
     by_run: dict[str, list[ChunkLocation]] = {}
     for location in wanted:
@@ -185,7 +186,7 @@ def _reads(wanted: list[ChunkLocation], runs: dict[str, RunRecording]) -> Iterat
             yield current
 
 
-def _responses(wanted: list[ChunkLocation], runs: dict[str, RunRecording]) -> Iterator[bytes]:
+def _responses(wanted: list[ChunkLocation], runs: dict[str, IndexedRecording]) -> Iterator[bytes]:
     pieces: list[bytes | memoryview] = []
     size = 0
     try:
@@ -206,7 +207,7 @@ def _responses(wanted: list[ChunkLocation], runs: dict[str, RunRecording]) -> It
             recording.close()
 
 
-def _arrow_message(recording: RunRecording, location: ChunkLocation, data: memoryview, base: int) -> memoryview:
+def _arrow_message(recording: IndexedRecording, location: ChunkLocation, data: memoryview, base: int) -> memoryview:
     """The stored ArrowMsg the key points at, checked: a chunk frame of that length holding that
     chunk id. Else the chunk is looked up by id in the run's index (a key handed out before the run
     was sealed, or sealed again); NOT_FOUND if the run does not hold it."""

@@ -40,7 +40,7 @@ from services.redap.datasets import dataset_by_entry
 from services.redap.depot import Depot
 from services.redap.pb import cloud_pb2
 from services.redap.schema import merge_schemas
-from services.redap.sources import RunSource, dataset_sources, run_chunks, run_schema
+from services.redap.sources import IndexedRecordingSource, dataset_sources, run_chunks, run_schema
 from services.redap.tuid import Tuid
 
 log = logging.getLogger(__name__)
@@ -74,7 +74,7 @@ class DatasetView:
 
     name: str
     timelines: frozenset[str]
-    sources: list[RunSource]
+    sources: list[IndexedRecordingSource]
     empty: bool  # the dataset holds no run (any timeline may be named of it)
 
 

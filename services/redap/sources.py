@@ -44,8 +44,10 @@ CACHED_SCHEMAS = 20_000
 
 
 @dataclass(frozen=True)
-class RunSource:
-    """Where one run of a dataset is read from, or why it cannot be now."""
+class IndexedRecordingSource:
+    """Where one run of a dataset is read from, or why it cannot be now: the run's recording and
+    chunk index, found but not opened (an `IndexedRecording` holds a hot run's file open). A query
+    reads only the index and the schema, kept in a cache under what is found here."""
 
     run_id: str
     hot: HotRecording | None = None
@@ -80,7 +82,7 @@ def clear_caches() -> None:
 
 def dataset_sources(
     depot: Depot, session: Session, dataset: Dataset, now: dt.datetime, only: frozenset[str] | None = None
-) -> list[RunSource]:
+) -> list[IndexedRecordingSource]:
     """The dataset's runs that hold data (by run id; `only` those named), with where each can be read."""
     query = sa.select(Run).where(Run.application_id == dataset.name, Run.tier != Tier.DELETED)
     if only is not None:
@@ -97,12 +99,12 @@ def dataset_sources(
 
 def _source(
     depot: Depot, run: Run, life: RunLifecycle | None, recording: RunObject | None, now: dt.datetime
-) -> RunSource:
+) -> IndexedRecordingSource:
     hot = depot.hot.hot_recording(run.id) if depot.hot is not None else None
     if hot is not None:
-        return RunSource(run.id, hot=hot)
+        return IndexedRecordingSource(run.id, hot=hot)
     if life is None or recording is None or depot.warm is None:
-        return RunSource(
+        return IndexedRecordingSource(
             run.id,
             unreadable=UnavailableError(
                 f"run {run.id!r} is being written on another node of the depot: query it once it is sealed"
@@ -111,14 +113,14 @@ def _source(
     try:
         prefix = readable_prefix(run, life, now)
     except (ConflictError, GoneError) as exc:
-        return RunSource(run.id, unreadable=exc)
-    return RunSource(run.id, prefix=prefix, digest=recording.sha256, size=recording.size)
+        return IndexedRecordingSource(run.id, unreadable=exc)
+    return IndexedRecordingSource(run.id, prefix=prefix, digest=recording.sha256, size=recording.size)
 
 
 # --- reading a run -----------------------------------------------------------------------------
 
 
-def run_chunks(depot: Depot, source: RunSource) -> RunChunks:
+def run_chunks(depot: Depot, source: IndexedRecordingSource) -> RunChunks:
     """The run's chunks (cached for sealed runs); the source's error if it cannot be read now."""
     if source.unreadable is not None:
         raise source.unreadable
@@ -133,7 +135,7 @@ def run_chunks(depot: Depot, source: RunSource) -> RunChunks:
     return found
 
 
-def run_schema(depot: Depot, source: RunSource) -> pa.Schema:
+def run_schema(depot: Depot, source: IndexedRecordingSource) -> pa.Schema:
     """The run's Sorbet schema in Rerun's order: for a sealed run, from its footer alone."""
     if source.unreadable is not None:
         raise source.unreadable
@@ -145,7 +147,7 @@ def run_schema(depot: Depot, source: RunSource) -> pa.Schema:
     )
 
 
-def _sealed(depot: Depot, source: RunSource) -> tuple[ObjectStore, str]:
+def _sealed(depot: Depot, source: IndexedRecordingSource) -> tuple[ObjectStore, str]:
     assert depot.warm is not None and source.prefix is not None  # a sealed source has both
     return depot.warm, source.prefix
 

@@ -16,14 +16,12 @@ import logging
 import shutil
 from dataclasses import dataclass, field
 
-from core.errors import ConflictError
-from core.states import RunStatus
 from services.auth.tokens import Auth
 from services.cluster.ownership import Lease, Ownership
 from services.cluster.relay import PEER_CREDENTIAL, RELAYED_BY, SOURCE_KIND, hand_over
 from services.hot.read import read_events
-from services.ingest.run import IngestRun
 from services.ingest.service import IngestService
+from services.ingest.view import HotRunView
 
 log = logging.getLogger(__name__)
 
@@ -66,26 +64,28 @@ def _match_leases(ingest: IngestService, leases: dict[str, int], report: PassRep
         epoch = leases.get(run.run_id)
         if run.lease is not None and epoch != run.lease.epoch:
             log.warning("run %s was taken over by another node: its hot copy here goes to that node", run.run_id)
-            run.lease = None
+            ingest.lose_lease(run.run_id)
             report.lost.append(run.run_id)
         elif run.lease is None and epoch is not None:
-            run.lease, run.dirty = Lease(run.run_id, epoch), True
+            ingest.take_lease(run.run_id, Lease(run.run_id, epoch))
             report.adopted.append(run.run_id)
 
 
-def _settle(run: IngestRun, ingest: IngestService, ownership: Ownership, auth: Auth | None, report: PassReport) -> None:
+def _settle(
+    run: HotRunView, ingest: IngestService, ownership: Ownership, auth: Auth | None, report: PassReport
+) -> None:
     got = ownership.claim(run.run_id)
     if isinstance(got, Lease):
-        run.lease, run.dirty = got, True  # its owner now: its catalog row is written, and it is promoted
+        ingest.take_lease(run.run_id, got)  # its owner now: its catalog row is written, and it is promoted
         report.claimed.append(run.run_id)
         return
-    size = run.hot.size
-    token = auth.peer_token(ownership.node_id, run.robot_id or run.hot.robot) if auth is not None else None
+    token = auth.peer_token(ownership.node_id, run.robot_id or run.started_by) if auth is not None else None
     metadata = [(RELAYED_BY, ownership.node_id), (SOURCE_KIND, "upload")]
     if token is not None:  # the owner files it as this node's (write scope), and believes who relays it
         metadata += [("authorization", f"Bearer {token}"), (PEER_CREDENTIAL, token)]
-    answer = hand_over(got, read_events(run.hot.path, size), metadata, HAND_OVER_TIMEOUT_S)
-    _drop_copy(run, ingest, size)
+    answer = hand_over(got, read_events(run.path, run.size), metadata, HAND_OVER_TIMEOUT_S)
+    left = ingest.hand_over(run, doing="being handed over", then="handed over again")
+    shutil.rmtree(left.folder, ignore_errors=True)
     report.handed_over.append(run.run_id)
     log.info(
         "hot copy of run %s handed to node %s, which owns it (%s new chunks, %s it held) and removed here",
@@ -94,13 +94,3 @@ def _settle(run: IngestRun, ingest: IngestService, ownership: Ownership, auth: A
         answer.get("chunks_new", "?"),
         answer.get("chunks_duplicate", "?"),
     )
-
-
-def _drop_copy(run: IngestRun, ingest: IngestService, size: int) -> None:
-    with run.sealing:
-        if run.hot.size != size or run.status == RunStatus.LIVE or run.live_sources:
-            raise ConflictError(f"run {run.run_id} received data while being handed over: handed over again")
-        run.sealed = True  # nothing more is written to this copy
-        ingest.forget(run)
-        aside = ingest.hot.set_aside(run.hot)
-    shutil.rmtree(aside, ignore_errors=True)

@@ -29,14 +29,16 @@ from sqlalchemy.orm import Session, sessionmaker
 from catalog import queries
 from catalog.db import session_scope
 from catalog.queries import ObjectRecord, RunRecord
+from core.backoff import backoff_delay
 from core.errors import ConflictError, InsufficientStorageError
 from core.states import RunStatus, Tier
 from services.analytics.extract import Extractor
 from services.analytics.store import write_analytics
+from services.cluster.ownership import Lease
 from services.facts.sealed import SealedInfo
 from services.hot.read import read_events
-from services.ingest.run import IngestRun
 from services.ingest.service import IngestService
+from services.ingest.view import HotRunView
 from services.rrd.decoder import iter_events
 from services.rrd.messages import Event
 from services.sealed.tiers import Tiers, run_prefix, write_run_json
@@ -46,6 +48,7 @@ from services.storage.objectstore import RangeReader, StorageError
 log = logging.getLogger(__name__)
 
 SEAL_DIR = "seal"
+FIRST_BACKOFF = dt.timedelta(seconds=1)
 MAX_BACKOFF = dt.timedelta(minutes=5)
 PROMOTING = threading.Lock()  # one promotion at a time in this process (scheduled pass or asked for)
 
@@ -66,7 +69,8 @@ class PromoteBackoff:
 
     def failed(self, run_id: str, now: dt.datetime) -> None:
         failures = self.failures[run_id] = self.failures.get(run_id, 0) + 1
-        self.retry_at[run_id] = now + min(dt.timedelta(seconds=2 ** (failures - 1)), MAX_BACKOFF)
+        wait = backoff_delay(failures, first=FIRST_BACKOFF.total_seconds(), cap=MAX_BACKOFF.total_seconds())
+        self.retry_at[run_id] = now + dt.timedelta(seconds=wait)
 
     def forget(self, run_id: str) -> None:
         self.failures.pop(run_id, None)
@@ -75,7 +79,7 @@ class PromoteBackoff:
 
 @dataclass(frozen=True)
 class Candidate:
-    run: IngestRun
+    run: HotRunView
     reason: str
 
 
@@ -98,7 +102,7 @@ def due_for_promotion(
     return out
 
 
-Upcoming = tuple[IngestRun, dt.datetime | None, str]
+Upcoming = tuple[HotRunView, dt.datetime | None, str]
 
 
 def upcoming(
@@ -136,7 +140,7 @@ def _human(delta: dt.timedelta) -> str:
 
 
 def promote(
-    run: IngestRun,
+    run: HotRunView,
     ingest: IngestService,
     tiers: Tiers,
     catalog: sessionmaker[Session],
@@ -148,12 +152,13 @@ def promote(
     """Seal `run` into the warm tier; returns its new catalog record (None when the run held nothing
     that was not sealed already: its hot copy is simply removed). On failure the run stays hot and,
     given a `backoff`, waits there (1 s, 2 s, 4 s ... up to 5 minutes) before the next attempt.
-    `actor` names who asked, for the run's events: "retention" when the schedule did."""
+    `actor` names who asked, for the run's events: "retention" when the schedule did. `run` is as
+    ingest gave it just before: data it received since makes the hand-over refuse (promoted later)."""
     try:
         record = _promote(run, ingest, tiers, catalog, now, reserve_bytes, actor)
     except Exception:
         if backoff is not None:
-            if run.sealed:  # it left the hot tier (what failed came after the catalog switch)
+            if ingest.has_left(run):  # what failed came after the catalog switch
                 backoff.forget(run.run_id)
             else:
                 backoff.failed(run.run_id, now)
@@ -164,7 +169,7 @@ def promote(
 
 
 def _promote(
-    run: IngestRun,
+    run: HotRunView,
     ingest: IngestService,
     tiers: Tiers,
     catalog: sessionmaker[Session],
@@ -172,22 +177,21 @@ def _promote(
     reserve_bytes: int,
     actor: str,
 ) -> RunRecord | None:
-    size = run.hot.size
-    sealed_as = _sealed_before(run, ingest)
-    if sealed_as is not None and run.chunk_ids <= sealed_as.chunk_ids:
-        _drop_hot_copy(run, ingest, size, f"all {len(run.chunk_ids)} of its chunks are sealed already")
+    adds_to = _sealed_before(run, ingest)
+    if adds_to is not None and run.chunk_ids <= adds_to.chunk_ids:
+        _drop_hot_copy(run, ingest, adds_to, f"all {len(run.chunk_ids)} of its chunks are sealed already")
         return None
-    workdir = run.hot.directory / SEAL_DIR
+    workdir = run.directory / SEAL_DIR
     try:
-        return _seal_and_switch(run, ingest, tiers, catalog, now, reserve_bytes, size, sealed_as, workdir, actor)
+        return _seal_and_switch(run, ingest, tiers, catalog, now, reserve_bytes, adds_to, workdir, actor)
     finally:
         shutil.rmtree(workdir, ignore_errors=True)  # a failed attempt leaves nothing on the hot disk
 
 
-def _sealed_before(run: IngestRun, ingest: IngestService) -> SealedInfo | None:
+def _sealed_before(run: HotRunView, ingest: IngestService) -> SealedInfo | None:
     """Whether the run was sealed before (its hot data came later): asked of the catalog now, as ingest
     may have filed the data while the catalog did not answer, or another node may have sealed it."""
-    sealed = ingest.sealed_lookup(run.run_id) if ingest.sealed_lookup is not None else run.sealed_as
+    sealed = ingest.sealed_lookup(run.run_id) if ingest.sealed_lookup is not None else run.adds_to
     if sealed is not None and sealed.tier != Tier.WARM:
         what = (
             "restore it (fleet runs restore), then it is sealed in"
@@ -195,35 +199,32 @@ def _sealed_before(run: IngestRun, ingest: IngestService) -> SealedInfo | None:
             else "it was deleted: its late data stays hot until removed by hand"
         )
         raise ConflictError(f"run {run.run_id} received {len(run.chunk_ids)} chunks while {sealed.tier}: {what}")
-    run.sealed_as = sealed
+    ingest.set_adds_to(run, sealed)
     return sealed
 
 
-def _drop_hot_copy(run: IngestRun, ingest: IngestService, size: int, why: str) -> None:
-    with run.sealing:
-        if run.hot.size != size or run.status == RunStatus.LIVE:
-            raise ConflictError(f"run {run.run_id} received data while being checked: promoted later")
-        run.sealed_into, run.sealed = run.sealed_as, True
-        ingest.forget(run)
-        aside = ingest.hot.set_aside(run.hot)
-    shutil.rmtree(aside, ignore_errors=True)
-    if ingest.ownership is not None and run.lease is not None:
-        ingest.ownership.release(run.lease)
+def _drop_hot_copy(run: HotRunView, ingest: IngestService, adds_to: SealedInfo, why: str) -> None:
+    """A hot copy with nothing the sealed run lacks: removed, and the data that follows is filed
+    beside the sealed run (`adds_to`, where its chunks are)."""
+    left = ingest.hand_over(run, lambda _: adds_to, doing="being checked", then="promoted later")
+    shutil.rmtree(left.folder, ignore_errors=True)
+    if ingest.ownership is not None and left.lease is not None:
+        ingest.ownership.release(left.lease)
     log.info("hot copy of run %s removed: %s", run.run_id, why)
 
 
-def _check_room(run: IngestRun, tiers: Tiers, base_size: int, reserve_bytes: int) -> None:
+def _check_room(run: HotRunView, tiers: Tiers, base_size: int, reserve_bytes: int) -> None:
     """Sealing writes the recording once more on the hot disk (twice when the warm store is a folder
     on that disk): refuse before starting rather than fill the disk the catalog lives on."""
-    need = run.hot.size + base_size
+    need = run.size + base_size
     warm_root = getattr(tiers.warm, "root", None)
     if (
         isinstance(warm_root, Path)
         and warm_root.exists()
-        and os.stat(warm_root).st_dev == os.stat(run.hot.directory).st_dev
+        and os.stat(warm_root).st_dev == os.stat(run.directory).st_dev
     ):
         need *= 2
-    free = shutil.disk_usage(run.hot.directory).free
+    free = shutil.disk_usage(run.directory).free
     if free - need < reserve_bytes:
         raise InsufficientStorageError(
             f"sealing run {run.run_id} needs about {need} bytes on the hot disk, which has {free} free and keeps "
@@ -232,18 +233,17 @@ def _check_room(run: IngestRun, tiers: Tiers, base_size: int, reserve_bytes: int
 
 
 def _seal_and_switch(
-    run: IngestRun,
+    run: HotRunView,
     ingest: IngestService,
     tiers: Tiers,
     catalog: sessionmaker[Session],
     now: dt.datetime,
     reserve_bytes: int,
-    size: int,
-    sealed_as: SealedInfo | None,
+    adds_to: SealedInfo | None,
     workdir: Path,
     actor: str,
 ) -> RunRecord:
-    prefix = sealed_as.prefix if sealed_as else None
+    prefix = adds_to.prefix if adds_to else None
     base_size = tiers.warm.head(f"{prefix}/{RECORDING}").size if prefix is not None else 0
     _check_room(run, tiers, base_size, reserve_bytes)
     workdir.mkdir(exist_ok=True)
@@ -252,10 +252,10 @@ def _seal_and_switch(
         base = workdir / "base.rrd"
         download_warm(tiers, f"{prefix}/{RECORDING}", base)
         sources.append(iter(iter_events(base)))
-    sources.append(read_events(run.hot.path, size))
+    sources.append(read_events(run.path, run.size))
     analytics = Extractor(run.run_id)
     sealed = seal(sources, workdir / RECORDING, run.run_id, now, analytics.add, ingest.secret_fields)  # (1)
-    record = _sealed_record(run, sealed, ingest.default_robot)
+    record = _sealed_record(run, adds_to, sealed, ingest.default_robot)
     prefix = prefix or run_prefix(record.robot_id, record.date, run.run_id)
     objects = [
         ObjectRecord(RECORDING, f"{prefix}/{RECORDING}", Tier.WARM, sealed.recording_size, sealed.recording_sha256),
@@ -269,46 +269,46 @@ def _seal_and_switch(
         held = tiers.warm.head(obj.key).size
         if held != obj.size:
             raise StorageError(f"{tiers.warm.url}/{obj.key} holds {held} bytes after upload, {obj.size} were sealed")
-    with run.sealing:  # ingest waits here only if it has data for this very run
-        if run.hot.size != size or run.status == RunStatus.LIVE:
-            raise ConflictError(f"run {run.run_id} received data while being sealed: promoted later")
-        detail = f"{sealed.recording_size} bytes, {len(sealed.chunk_ids)} chunks to {tiers.warm.url}/{prefix}/"
-        with session_scope(catalog, write=True) as session:  # (4)
-            _give_up_lease(session, run, ingest)
-            stale = queries.analytics_keys(session, run.run_id) - {o.key for o in objects}
+    detail = f"{sealed.recording_size} bytes, {len(sealed.chunk_ids)} chunks to {tiers.warm.url}/{prefix}/"
+    stale: set[str] = set()
+
+    def switch(lease: Lease | None) -> SealedInfo:  # (4), under the run's lock
+        with session_scope(catalog, write=True) as session:
+            _give_up_lease(session, run.run_id, lease, ingest)
+            stale.update(queries.analytics_keys(session, run.run_id) - {o.key for o in objects})
             queries.record_promotion(session, record, prefix, objects, now, detail, actor)
             write_run_json(session, tiers.warm, run.run_id)  # with the pin as the catalog has it now
-        run.sealed_into = SealedInfo(Tier.WARM, prefix, record.robot_id, record.date, frozenset(sealed.chunk_ids))
-        run.sealed = True
-        ingest.forget(run)
-        aside = ingest.hot.set_aside(run.hot)
+        return SealedInfo(Tier.WARM, prefix, record.robot_id, record.date, frozenset(sealed.chunk_ids))
+
+    left = ingest.hand_over(run, switch, doing="being sealed", then="promoted later")
     for key in stale:  # analytics written earlier under another robot or date: one copy per run
         tiers.warm.delete(key)
-    shutil.rmtree(aside, ignore_errors=True)  # (5)
+    shutil.rmtree(left.folder, ignore_errors=True)  # (5)
     log.info("promoted run %s: %s", run.run_id, detail)
     return record
 
 
-def _give_up_lease(session: Session, run: IngestRun, ingest: IngestService) -> None:
+def _give_up_lease(session: Session, run_id: str, lease: Lease | None, ingest: IngestService) -> None:
     """Many nodes on one catalog: only the run's owner seals it, and gives the run up in the same
     transaction (a node that lost the run meanwhile hands its hot copy over instead)."""
     ownership = ingest.ownership
     if ownership is None:
         return
-    if run.lease is None or not ownership.holds(session, run.lease):
-        run.lease = None
-        raise ConflictError(f"run {run.run_id} is owned by another node now: its hot copy here is handed over to it")
-    ownership.release_in(session, run.lease)
+    if lease is None or not ownership.holds(session, lease):
+        ingest.lose_lease(run_id)
+        raise ConflictError(f"run {run_id} is owned by another node now: its hot copy here is handed over to it")
+    ownership.release_in(session, lease)
 
 
-def _sealed_record(run: IngestRun, sealed: SealedRun, default_robot: str) -> RunRecord:
-    """The run's catalog record after sealing: identity as it was filed, figures from the sealed file."""
+def _sealed_record(run: HotRunView, adds_to: SealedInfo | None, sealed: SealedRun, default_robot: str) -> RunRecord:
+    """The run's catalog record after sealing: identity as it was filed (the sealed run's, for data
+    that `adds_to` it), figures from the sealed file."""
     filed = run.record(default_robot)
     figures = sealed.facts.record(default_robot)
-    if run.sealed_as is not None:
-        filed.robot_id, filed.date = run.sealed_as.robot_id, run.sealed_as.date
     return dataclasses.replace(
         filed,
+        robot_id=adds_to.robot_id if adds_to is not None else filed.robot_id,
+        date=adds_to.date if adds_to is not None else filed.date,
         status=RunStatus.CLOSED,
         tier=Tier.WARM,
         sdk_version=figures.sdk_version or filed.sdk_version,

@@ -35,7 +35,7 @@ from core.errors import ConflictError
 from core.states import RunStatus, Tier
 from services.facts.identity import SecretFields, read_property_chunk
 from services.hot.read import read_events
-from services.ingest.run import IngestRun
+from services.ingest.view import HotRunView
 from services.retention.locks import job_lock
 from services.retention.promote import download_warm
 from services.retention.service import Retention, catalog_engine, promote_now
@@ -151,10 +151,10 @@ def _scrub_one(
     return ScrubStep(run_id, "scrubbed", detail)
 
 
-def _scrub_hot(ctx: Retention, secret_fields: SecretFields, run: IngestRun, dry_run: bool, actor: str) -> ScrubStep:
+def _scrub_hot(ctx: Retention, secret_fields: SecretFields, run: HotRunView, dry_run: bool, actor: str) -> ScrubStep:
     """A hot run of this node read from its file up to its size now; holding secret-like fields and
     closed, it is promoted and its warm copy scrubbed."""
-    found = _secret_properties(read_events(run.hot.path, run.hot.size), secret_fields)
+    found = _secret_properties(read_events(run.path, run.size), secret_fields)
     if not found:
         return ScrubStep(run.run_id, "clean", "no secret-like property field", Tier.HOT)
     what = f"secret-like fields in {len(found)} property chunks ({', '.join(sorted(set(found)))})"

@@ -283,7 +283,7 @@ def upcoming(ctx: Retention) -> list[dict[str, Any]]:
             "reason": why,
             "robot_id": run.robot_id or ctx.ingest.default_robot,
             "tier": Tier.HOT,
-            "bytes": run.hot.size,
+            "bytes": run.size,
         }
         for run, at, why in promote.upcoming(ctx.ingest, now, ctx.promote_after, ctx.promote_backoff)
     ]

@@ -15,11 +15,11 @@ import sqlalchemy as sa
 from sqlalchemy.orm import Session, sessionmaker
 
 from catalog.db import session_scope
-from catalog.models import JobRun, RetentionEvent, Robot, Run, RunObject
+from catalog.models import JobExecution, RetentionEvent, Robot, Run, RunObject
 from core.clock import aware, iso_utc, utcnow
 from core.states import RunStatus, Tier
-from services.ingest.run import IngestRun
 from services.ingest.service import IngestService
+from services.ingest.view import HotRunView
 from services.runs.service import run_summary
 
 DAYS = 14  # runs per robot per day: this many days, today included
@@ -124,7 +124,7 @@ def object_totals(session: Session) -> list[dict[str, Any]]:
     ]
 
 
-def _job(job: JobRun) -> dict[str, Any]:
+def _job(job: JobExecution) -> dict[str, Any]:
     finished = job.finished_at
     took = (aware(finished) - aware(job.started_at)).total_seconds() if finished is not None else None
     return {
@@ -142,16 +142,16 @@ def _job(job: JobRun) -> dict[str, Any]:
 
 def recent_jobs(session: Session, limit: int = RECENT) -> list[dict[str, Any]]:
     """The latest scheduled job runs (promote, retention), newest first."""
-    query = sa.select(JobRun).order_by(JobRun.started_at.desc(), JobRun.id.desc()).limit(limit)
+    query = sa.select(JobExecution).order_by(JobExecution.started_at.desc(), JobExecution.id.desc()).limit(limit)
     return [_job(job) for job in session.scalars(query)]
 
 
 def failed_jobs(session: Session, limit: int = FAILURES) -> list[dict[str, Any]]:
     """The latest job runs that failed (the catalog keeps a month of them), newest first."""
     query = (
-        sa.select(JobRun)
-        .where(JobRun.outcome == "failed")
-        .order_by(JobRun.started_at.desc(), JobRun.id.desc())
+        sa.select(JobExecution)
+        .where(JobExecution.outcome == "failed")
+        .order_by(JobExecution.started_at.desc(), JobExecution.id.desc())
         .limit(limit)
     )
     return [_job(job) for job in session.scalars(query)]
@@ -184,8 +184,8 @@ def live_in_catalog(session: Session, limit: int = LIVE_LIMIT) -> list[dict[str,
     return [{**run_summary(run), "here": False} for run in session.scalars(query)]
 
 
-def _hot_brief(run: IngestRun, default_robot: str) -> dict[str, Any]:
-    start_ns = run.start_time_ns or run.first_log_time_ns
+def _hot_brief(run: HotRunView, default_robot: str) -> dict[str, Any]:
+    start_ns = run.started_ns
     started = dt.datetime.fromtimestamp(start_ns / 1e9, dt.UTC) if start_ns else None
     return {
         "id": run.run_id,
@@ -196,8 +196,8 @@ def _hot_brief(run: IngestRun, default_robot: str) -> dict[str, Any]:
         "started_at": iso_utc(started),
         "ended_at": iso_utc(run.ended_at),
         "last_data_at": iso_utc(run.last_data_at),
-        "bytes": run.recording_bytes(),
-        "chunks": run.summary.chunks if run.summary is not None else 0,
+        "bytes": run.size,
+        "chunks": run.chunks,
         "here": True,
     }
 

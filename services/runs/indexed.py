@@ -17,7 +17,8 @@ from __future__ import annotations
 
 import os
 from collections.abc import Callable, Iterable, Iterator, Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
+from functools import cached_property
 
 from core.errors import UnavailableError
 from services.hot.read import HotRecording
@@ -28,6 +29,7 @@ from services.rrd.frames import MESSAGE_HEADER_SIZE, STREAM_HEADER_SIZE, decode_
 from services.rrd.messages import ArrowMessage, Event, StreamStart
 from services.runs.download import FLUSH_BYTES, EntityFilter, TimeWindow, encode_run
 from services.runs.latest_at import ChunkEntry, pick_rows, select_chunks
+from services.storage.objectstore import ObjectStore
 
 GAP_BYTES = 64 * 1024  # neighbouring messages closer than this are fetched in one read
 MAX_READ_BYTES = 16 * 1024 * 1024  # one read holds at most this much (memory stays bounded)
@@ -39,17 +41,62 @@ FIRST_READ_BYTES = 2 * FLUSH_BYTES
 ReadRange = Callable[[int, int], bytes]
 
 
+def _nothing() -> None:
+    pass
+
+
 @dataclass(frozen=True)
 class IndexedRecording:
-    """A run's recording readable by byte range, with its chunk index: a sealed run's object in the
-    warm store, or a hot run's file up to the size its reader was given."""
+    """A run's recording opened for ranged reads planned from its chunk index, whichever tier holds
+    it: a hot run's file up to the size its reader was given (`hot`), or a sealed run's object in
+    the warm store (`store`, `key`). Downloads stream from it; the catalog server's manifests and
+    FetchChunks read from it. `close()` it when done: a hot run's file is held open, so a run sealed
+    meanwhile stays readable."""
 
     read: ReadRange
     size: int
-    rows: Iterable[IndexRow]  # in file order; gone through once, unless a window is planned
+    index: Callable[[], Iterable[IndexRow]]  # its rows in file order, read from the index when called
     # chunk metadata by frame offset, where the index holds it (a hot run's): what the footer's
     # manifest and the window's plan need, so those chunks are never decompressed
     metas: Mapping[int, ChunkMeta] = field(default_factory=dict)
+    hot: HotRecording | None = None
+    store: ObjectStore | None = None
+    key: str = ""  # of the sealed recording in `store`
+    close: Callable[[], None] = _nothing
+
+    def chunk_row(self, chunk_id: bytes) -> IndexRow | None:
+        """Where the chunk with this id is in the recording (None: not in it); the index is read
+        once, on the first call."""
+        return self._chunk_rows.get(chunk_id)
+
+    @cached_property
+    def _chunk_rows(self) -> dict[bytes, IndexRow]:
+        return {r.chunk_id: r for r in self.index() if r.kind == CHUNK and r.chunk_id is not None}
+
+
+def open_hot(hot: HotRecording) -> IndexedRecording:
+    """A hot run's file as it stands (its first `hot.size` bytes), with its whole chunk index."""
+    fd = os.open(hot.path, os.O_RDONLY)  # kept open: a run sealed meanwhile stays readable
+
+    def read(offset: int, length: int) -> bytes:
+        data = os.pread(fd, length, offset)
+        if len(data) != length:  # a hot run file only grows: never shorter than its index says
+            raise UnavailableError(f"hot run file {hot.path} is shorter than its index says: try again")
+        return data
+
+    return IndexedRecording(read, hot.size, lambda: hot.chunk_index().rows, hot=hot, close=lambda: os.close(fd))
+
+
+def open_sealed_object(
+    store: ObjectStore, key: str, size: int, index: Callable[[], Iterable[IndexRow]]
+) -> IndexedRecording:
+    """A sealed run's `recording.rrd` (`size` bytes) read by range from the warm store, with its
+    chunk index as `index` reads it (nothing to close)."""
+
+    def read(offset: int, length: int) -> bytes:
+        return store.get_range(key, offset, length)
+
+    return IndexedRecording(read, size, index, store=store, key=key)
 
 
 def stream_indexed(
@@ -57,7 +104,7 @@ def stream_indexed(
 ) -> Iterator[bytes | memoryview]:
     """The messages a download keeps, read by range and copied as they are, as one RRD stream with
     a footer."""
-    rows = recording.rows
+    rows = recording.index()
     keep: set[bytes] | None = None
     picks: dict[bytes, set[int]] = {}
     if window is not None:  # planned over every chunk before the first is read
@@ -78,14 +125,7 @@ def stream_hot(
     hot: HotRecording, entities: EntityFilter, *, blueprint: bool = True, window: TimeWindow | None = None
 ) -> Iterator[bytes | memoryview]:
     """A hot run as it stands (its file's first `hot.size` bytes), served from its chunk index."""
-    fd = os.open(hot.path, os.O_RDONLY)  # opened first: a run sealed meanwhile stays readable
-
-    def read(offset: int, length: int) -> bytes:
-        data = os.pread(fd, length, offset)
-        if len(data) != length:  # a hot run file only grows: never shorter than its index says
-            raise UnavailableError(f"hot run file {hot.path} is shorter than its index says: try again")
-        return data
-
+    recording = open_hot(hot)  # opened first: a run sealed meanwhile stays readable
     metas: dict[int, ChunkMeta] = {}
     try:
         if window is None:  # chosen in file order as the index is read: the first bytes go out at once
@@ -94,10 +134,10 @@ def stream_hot(
             index = hot.chunk_index()
             metas.update((e.offset, e.meta) for e in index.entries if e.meta is not None)
             rows = list(_checked(hot, index.rows))
-        recording = IndexedRecording(read, hot.size, rows, metas)
-        yield from stream_indexed(recording, entities, blueprint=blueprint, window=window)
+        planned = replace(recording, index=lambda: rows, metas=metas)
+        yield from stream_indexed(planned, entities, blueprint=blueprint, window=window)
     finally:
-        os.close(fd)
+        recording.close()
 
 
 def _hot_rows(hot: HotRecording, metas: dict[int, ChunkMeta]) -> Iterator[IndexRow]:

@@ -45,7 +45,7 @@ class RecordingDownload:
     warnings: list[str] = field(default_factory=list)  # filters that match no entity of the run
 
 
-def open_recording(
+def recording_download(
     hot_runs: HotRuns | None,
     catalog: sessionmaker[Session],
     warm: ObjectStore | None,

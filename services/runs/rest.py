@@ -21,7 +21,7 @@ from services.cluster import peer
 from services.ingest.routing import asking_for, owner_down, owner_elsewhere
 from services.rrd.frames import MessageKind, encode_message_header
 from services.runs import links, service
-from services.runs.recording import RecordingQuery, open_recording
+from services.runs.recording import RecordingQuery, recording_download
 from services.runs.service import RunFilter, parse_properties, parse_time
 
 router = APIRouter()
@@ -142,7 +142,7 @@ async def recording(
         )
     try:
         found = await asyncio.to_thread(
-            open_recording, ingest, request.app.state.catalog, tiers.warm if tiers else None, run_id, query
+            recording_download, ingest, request.app.state.catalog, tiers.warm if tiers else None, run_id, query
         )
     except NotFoundError:  # not here; if its owner is down the run is there, not missing: 503 naming it
         down = await owner_down(ingest, run_id) if ingest is not None else None

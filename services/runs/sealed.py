@@ -10,17 +10,13 @@ from __future__ import annotations
 from collections.abc import Iterator
 
 from services.runs.download import FLUSH_BYTES, EntityFilter, TimeWindow
-from services.runs.indexed import IndexedRecording, stream_indexed
+from services.runs.indexed import IndexedRecording, open_sealed_object, stream_indexed
 from services.sealed.read import SealedRecording
 
 
 def indexed_recording(sealed: SealedRecording) -> IndexedRecording:
-    """The sealed object read by range from the warm store, with its chunk index."""
-
-    def read(offset: int, length: int) -> bytes:
-        return sealed.store.get_range(sealed.key, offset, length)
-
-    return IndexedRecording(read, sealed.size, sealed.rows)
+    """The sealed object read by range from the warm store, with the chunk index already read."""
+    return open_sealed_object(sealed.store, sealed.key, sealed.size, lambda: sealed.rows)
 
 
 def stream_sealed(

@@ -35,6 +35,23 @@ def test_unknown_toml_key_is_refused(tmp_path, monkeypatch):
         load_settings()
 
 
+def test_the_agents_keys_are_left_to_it(tmp_path, monkeypatch):
+    """One TOML file may serve `fleet serve` and `fleet agent` on one machine: the agent's keys
+    (`agent_*`, tests/services/agent/test_settings.py) are not the depot's, nor refused by it."""
+    config = tmp_path / "fleet.toml"
+    config.write_text('http_addr = "127.0.0.1:1111"\nagent_spool = "spool"\nagent_retain_hours = -1\n')
+    monkeypatch.setenv("FLEET_CONFIG", str(config))
+    settings = load_settings()
+    assert settings.http_addr == "127.0.0.1:1111" and not hasattr(settings, "agent_spool")
+
+
+def test_unknown_variables_are_not_read(monkeypatch):
+    monkeypatch.delenv("FLEET_CONFIG", raising=False)
+    monkeypatch.setenv("FLEET_HTP_ADDR", "127.0.0.1:1111")  # a variable is looked up by name, never listed
+    monkeypatch.setenv("FLEET_AGENT_RETAIN_HOURS", "-1")  # the agent's, invalid for it
+    assert load_settings().http_addr == "0.0.0.0:8080"
+
+
 def test_max_message_size_must_be_positive(monkeypatch):
     monkeypatch.setenv("FLEET_MAX_MESSAGE_SIZE", "0")
     with pytest.raises(ValidationError, match="max_message_size"):

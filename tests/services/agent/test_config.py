@@ -10,7 +10,8 @@ from pathlib import Path
 import pytest
 
 from services.agent.bandwidth import RateSchedule
-from services.settings import Durability, load_settings
+from services.agent.settings import load_agent_settings
+from services.settings import Durability
 
 DEPLOY = Path(__file__).resolve().parents[3] / "deploy" / "agent"
 
@@ -27,7 +28,7 @@ def config(monkeypatch: pytest.MonkeyPatch) -> Path:
 
 
 def test_the_example_config_loads_into_settings(config: Path):
-    settings = load_settings()
+    settings = load_agent_settings()
     assert settings.agent_spool == Path("/var/lib/fleet-agent")
     assert settings.agent_listen == "127.0.0.1:9876" and settings.agent_status_addr == "127.0.0.1:9877"
     assert settings.agent_depot == "rerun+http://fleet:51234" and settings.agent_api_url == "http://fleet:8080"
@@ -40,7 +41,7 @@ def test_the_example_config_loads_into_settings(config: Path):
 
 
 def test_its_bandwidth_rules_are_what_the_agent_runs_with(config: Path, tmp_path: Path):
-    settings = load_settings()
+    settings = load_agent_settings()
     sysfs = tmp_path / "net"
     (sysfs / "eth0").mkdir(parents=True)
     schedule = RateSchedule.from_config(settings.agent_bandwidth_rules, settings.agent_bandwidth, sysfs_root=sysfs)

@@ -36,10 +36,10 @@ def test_a_pull_reports_its_chunks_as_they_are_sent(monkeypatch: pytest.MonkeyPa
     monkeypatch.setattr(reports_mod, "select_pull", lambda *_: entries)
     link, jobs = FakeLink(), list[PullJob]()
     sender = SimpleNamespace(add_pull=jobs.append)
-    run = SimpleNamespace(summary=None, hot=SimpleNamespace(path="run.rrd", size=500))
+    recording = SimpleNamespace(path="run.rrd", size=500, timeline_types={})
     agent = SimpleNamespace(
         link=link,
-        spool=SimpleNamespace(run=lambda _: run),
+        spool=SimpleNamespace(recording=lambda _: recording),
         sender_for=lambda _: sender,
         settings=SimpleNamespace(agent_pull_progress_s=0.05, agent_pull_poll_s=5.0),
     )

@@ -12,10 +12,10 @@ from pathlib import Path
 import pytest
 
 from services.agent.retention import RetentionReport, enforce
+from services.agent.settings import load_agent_settings
 from services.agent.spool import RUNS_DIR, Spool
 from services.agent.state import AgentState, RunState
 from services.rrd import iter_events
-from services.settings import load_settings
 from tests.services.rrd.synthetic import write_recording
 
 NOW = dt.datetime(2025, 6, 1, 12, 0, tzinfo=dt.UTC)
@@ -25,7 +25,7 @@ DAY = dt.timedelta(hours=24)
 @pytest.fixture
 def spool(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Iterator[Spool]:
     monkeypatch.delenv("FLEET_CONFIG", raising=False)
-    spool = Spool(load_settings(agent_spool=tmp_path / "spool", agent_min_free_bytes=0))
+    spool = Spool(load_agent_settings(agent_spool=tmp_path / "spool", agent_min_free_bytes=0))
     spool.recover()
     yield spool
     spool.close()
@@ -47,8 +47,8 @@ def add_run(spool: Spool, run_id: str, age: dt.timedelta, chunks: int = 6) -> in
     spool.ingest.close_source(source)
     run = spool.run(run_id)
     assert run is not None and not spool.is_open(run)
-    run.last_data_at = NOW - age
-    return run.hot.size
+    spool.ingest.runs[run_id].last_data_at = NOW - age  # its age, as ingest holds it
+    return run.size
 
 
 def confirm(state: AgentState, run_id: str, local_only_bytes: int = 0) -> None:
@@ -166,7 +166,7 @@ def test_a_run_still_fed_is_kept_even_if_confirmed(spool: Spool, state: AgentSta
     spool.file_events(path, list(iter_events(path)))  # a watched file still being read
     run = spool.run("run-growing")
     assert run is not None and spool.is_open(run)
-    run.last_data_at = NOW - dt.timedelta(days=3)
+    spool.ingest.runs["run-growing"].last_data_at = NOW - dt.timedelta(days=3)
     confirm(state, "run-growing")
     report = keep(spool, state, max_bytes=1)
     assert report.deleted == [] and on_disk(spool) == {"run-growing"}

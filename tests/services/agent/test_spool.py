@@ -12,13 +12,13 @@ import pytest
 
 from core.errors import InvalidArgumentError
 from core.states import RunStatus
+from services.agent.settings import load_agent_settings
 from services.agent.spool import RUNS_DIR, Spool, store_infos
 from services.hot.store import RUN_FILE
-from services.ingest.run import IngestRun
+from services.ingest.view import HotRunView
 from services.rrd import iter_events
 from services.rrd.chunk import chunk_meta
 from services.rrd.messages import ArrowMessage, Event, StoreInfoMessage, StreamStart
-from services.settings import load_settings
 from tests.services.rrd.recordings import Recording
 from tests.services.rrd.synthetic import recording_bytes, write_recording
 
@@ -33,7 +33,7 @@ def make_spool(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Iterator[Make
     made: list[Spool] = []
 
     def make() -> Spool:
-        spool = Spool(load_settings(agent_spool=tmp_path / "spool", agent_min_free_bytes=0))
+        spool = Spool(load_agent_settings(agent_spool=tmp_path / "spool", agent_min_free_bytes=0))
         spool.recover()
         made.append(spool)
         return spool
@@ -58,7 +58,7 @@ def chunk_ids(path: Path) -> Counter[bytes]:
     return Counter(chunk_meta(e).chunk_id for e in iter_events(path) if isinstance(e, ArrowMessage))
 
 
-def status(run: IngestRun) -> RunStatus:
+def status(run: HotRunView) -> RunStatus:
     return run.status
 
 
@@ -84,17 +84,18 @@ def test_a_stream_files_its_recording_into_one_run_each_chunk_once(spool: Spool,
     assert run is not None and spool.is_open(run) and status(run) == RunStatus.LIVE
     assert spool.remove("run-spool") is False  # a stream feeds it: never removed
     spool.ingest.close_source(source)
-    assert not spool.is_open(run) and status(run) == RunStatus.CLOSED
+    run = spool.run("run-spool")  # as it is now
+    assert run is not None and not spool.is_open(run) and status(run) == RunStatus.CLOSED
     assert [r.run_id for r in spool.runs()] == ["run-spool"]
     assert chunk_ids(run_file(spool, "run-spool")) == chunk_ids(recording)
     assert set(chunk_ids(recording).values()) == {1} and len(chunk_ids(recording)) == CHUNKS
-    assert spool.size() == run.hot.size == run_file(spool, "run-spool").stat().st_size
+    assert spool.size() == run.size == run_file(spool, "run-spool").stat().st_size
     recording_info = spool.recording("run-spool")
-    assert recording_info is not None and recording_info.size == run.hot.size
+    assert recording_info is not None and recording_info.size == run.size
 
     stream(spool, events)  # the robot sends it again (its file copy): nothing is written twice
     assert chunk_ids(run_file(spool, "run-spool")) == chunk_ids(recording)
-    assert spool.size() == run.hot.size
+    assert spool.size() == run.size
 
 
 def test_a_watched_file_is_filed_in_batches(spool: Spool, recording: Path):
@@ -152,7 +153,7 @@ def test_remove_refuses_an_open_or_unknown_run_and_removes_a_closed_one(spool: S
     assert spool.remove("run-nowhere") is False
     assert spool.remove("run-open") is False
     assert run_file(spool, "run-open").is_file()
-    size_open = spool.run("run-open").hot.size  # type: ignore[union-attr]
+    size_open = spool.run("run-open").size  # type: ignore[union-attr]
     assert spool.remove("run-closed") is True
     assert not (spool.root / RUNS_DIR / "run-closed").exists()
     assert spool.run("run-closed") is None and [r.run_id for r in spool.runs()] == ["run-open"]
@@ -165,18 +166,18 @@ def test_recover_finds_every_run_after_a_restart(make_spool: MakeSpool, tmp_path
     files = {run_id: write_recording(tmp_path / f"{run_id}.rrd", run_id, 6) for run_id in ("run-a", "run-b")}
     for path in files.values():
         stream(first, list(iter_events(path)))
-    sizes = {run.run_id: run.hot.size for run in first.runs()}
+    sizes = {run.run_id: run.size for run in first.runs()}
     first.close()
 
-    spool = Spool(load_settings(agent_spool=first.root, agent_min_free_bytes=0))
+    spool = Spool(load_agent_settings(agent_spool=first.root, agent_min_free_bytes=0))
     try:
         assert sorted(spool.recover()) == ["run-a", "run-b"]
-        assert {run.run_id: run.hot.size for run in spool.runs()} == sizes
+        assert {run.run_id: run.size for run in spool.runs()} == sizes
         assert all(not spool.is_open(run) and run.status == RunStatus.CLOSED for run in spool.runs())
         for run_id, path in files.items():
             assert chunk_ids(run_file(spool, run_id)) == chunk_ids(path)
             stream(spool, list(iter_events(path)))  # sent again: every chunk is known, none written
-        assert {run.run_id: run.hot.size for run in spool.runs()} == sizes
+        assert {run.run_id: run.size for run in spool.runs()} == sizes
         assert spool.remove("run-a") is True  # a recovered, closed run may go
     finally:
         spool.close()
@@ -204,8 +205,8 @@ def test_a_real_recording_streamed_then_its_file_copy(spool: Spool, recordings: 
     run = spool.run(run_id)
     assert run is not None and not spool.is_open(run)
     assert chunk_ids(run_file(spool, run_id)) == chunk_ids(rec.path)
-    size = run.hot.size
     for start in range(0, len(events), 5):  # the robot's FileSink copy of it, watched: nothing new
         spool.file_events(rec.path, events[start : start + 5])
     spool.file_done(rec.path)
-    assert chunk_ids(run_file(spool, run_id)) == chunk_ids(rec.path) and run.hot.size == size
+    after = spool.run(run_id)
+    assert chunk_ids(run_file(spool, run_id)) == chunk_ids(rec.path) and after is not None and after.size == run.size

@@ -15,12 +15,12 @@ import pytest
 from click.testing import CliRunner
 
 from services.agent import state as state_module
+from services.agent.settings import load_agent_settings
 from services.agent.spool import Spool
 from services.agent.state import AgentState, PullState, RunState
 from services.agent.status import STALE_S, status_report
 from services.cli.agent import agent
 from services.rrd import iter_events
-from services.settings import load_settings
 from tests.services.rrd.synthetic import write_recording
 
 
@@ -33,7 +33,7 @@ def spool_dir(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
 @pytest.fixture
 def sizes(spool_dir: Path) -> dict[str, int]:
     """Three closed runs in a spool (then closed, as when the agent has stopped)."""
-    spool = Spool(load_settings(agent_spool=spool_dir, agent_min_free_bytes=0))
+    spool = Spool(load_agent_settings(agent_spool=spool_dir, agent_min_free_bytes=0))
     spool.recover()
     try:
         for run_id, chunks in (("run-a", 4), ("run-b", 8), ("run-c", 6)):
@@ -42,7 +42,7 @@ def sizes(spool_dir: Path) -> dict[str, int]:
             for event in iter_events(path):
                 spool.ingest.accept(source, event)
             spool.ingest.close_source(source)
-        return {run.run_id: run.hot.size for run in spool.runs()}
+        return {run.run_id: run.size for run in spool.runs()}
     finally:
         spool.close()
 

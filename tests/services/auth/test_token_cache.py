@@ -77,3 +77,18 @@ def test_a_hung_catalog_is_waited_for_at_most_wait_s_and_only_once():
         assert 0.25 < first < 1.0 and again < 0.1, (first, again)
     finally:
         catalog.release.set()
+
+
+def test_what_is_known_is_bounded_and_the_least_recently_used_token_is_asked_again():
+    asked: list[str] = []
+
+    def lookup(token_id: str) -> TokenRecord | None:
+        asked.append(token_id)
+        return RECORD if token_id == "t1" else None
+
+    cache = TokenCache(lookup, fresh_s=60, stale_s=60, max_tokens=2)
+    assert cache.get("t1") == RECORD and cache.get("t2") is None
+    assert cache.get("t1") == RECORD and asked == ["t1", "t2"]  # both known
+    assert cache.get("t3") is None  # t2, used least recently, makes room
+    assert cache.get("t1") == RECORD and cache.get("t2") is None
+    assert asked == ["t1", "t2", "t3", "t2"]

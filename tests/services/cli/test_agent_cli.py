@@ -1,5 +1,5 @@
-"""`fleet agent`: its options are made from the `agent_*` settings (and the few it shares with the
-depot's ingest), named without the prefix; one agent per spool and per port, a second refused in
+"""`fleet agent`: its options are made from its own settings, the `agent_*` ones (and the few it
+shares with the depot's ingest), named without the prefix; one agent per spool and per port, a second refused in
 one line naming who holds what and the setting to change."""
 
 from __future__ import annotations
@@ -16,9 +16,10 @@ import pytest
 from click.testing import CliRunner
 
 from core.errors import ConflictError, InvalidArgumentError
-from services.cli.agent import agent
-from services.cli.serve import AGENT_SHARED, NOT_OPTIONS, agent_setting, serve
-from services.settings import Settings, load_settings
+from services.agent.settings import AgentSettings, load_agent_settings
+from services.cli.agent import NOT_OPTIONS, agent
+from services.cli.serve import serve
+from services.settings import Settings, SharedSettings
 from tests.services.cli.test_serve import _scalar
 from tests.subprocess_server import ServerProcess, free_port
 
@@ -41,13 +42,14 @@ def _help(command: click.Command, *args: str) -> str:
 
 def test_every_agent_setting_is_an_option_without_the_prefix():
     options = _options(agent)
-    agent_scalars = {n for n, f in Settings.model_fields.items() if n.startswith("agent_") and _scalar(f.annotation)}
+    fields = AgentSettings.model_fields
+    agent_scalars = {n for n, f in fields.items() if n.startswith("agent_") and _scalar(f.annotation)}
     assert {"agent_spool", "agent_listen", "agent_depot", "agent_retain_hours", "agent_durability"} <= agent_scalars
     lists = {"agent_live_include", "agent_live_exclude", "agent_watch"}  # read from one string, as --secret-fields
     help_text = _help(agent)
     for name in sorted(agent_scalars | lists | {"agent_token"}):
-        field, option = Settings.model_fields[name], options.get(name)
-        assert option is not None, f"Settings.{name} has no fleet agent option"
+        field, option = fields[name], options.get(name)
+        assert option is not None, f"AgentSettings.{name} has no fleet agent option"
         flag = "--" + name.removeprefix("agent_").replace("_", "-")
         assert option.opts[0] == flag, option.opts
         assert option.help is not None and option.help.startswith(f"FLEET_{name.upper()}"), option.help
@@ -57,10 +59,11 @@ def test_every_agent_setting_is_an_option_without_the_prefix():
     assert options["agent_spool"].opts == ["--spool"] and options["agent_listen"].opts == ["--listen"]
     assert options["agent_token"].help.startswith("FLEET_AGENT_TOKEN or FLEET_TOKEN: ")  # type: ignore[union-attr]
     assert options["agent_api_url"].help.startswith("FLEET_AGENT_API_URL or FLEET_API_URL: ")  # type: ignore[union-attr]
-    for name in AGENT_SHARED:  # the spool is the depot's hot tier: its ingest settings apply
+    shared = [n for n in fields if not n.startswith("agent_")]
+    for name in shared:  # the spool is the depot's hot tier: its ingest settings apply
         assert options[name].opts[0] == "--" + name.replace("_", "-")
         assert options[name].help.startswith(f"FLEET_{name.upper()}: ")  # type: ignore[union-attr]
-    assert set(AGENT_SHARED) == {
+    assert set(shared) == {
         "max_message_size",
         "group_commit_ms",
         "close_after_s",
@@ -68,9 +71,11 @@ def test_every_agent_setting_is_an_option_without_the_prefix():
         "default_robot",
         "insecure",
     }
-    assert not {n for n in options if not agent_setting(n)}, "fleet agent has only the agent's options"
+    assert set(SharedSettings.model_fields) < set(shared), "the base's fields: what both programs read"
+    assert set(shared) <= set(Settings.model_fields), "a setting the agent shares is the depot's too"
+    assert not {n for n in options if n not in fields}, "fleet agent has only the agent's options"
     assert "agent_bandwidth_rules" not in options and "agent_bandwidth_rules" in NOT_OPTIONS
-    rules = " ".join(str(Settings.model_fields["agent_bandwidth_rules"].description).split())
+    rules = " ".join(str(fields["agent_bandwidth_rules"].description).split())
     assert f"FLEET_AGENT_BANDWIDTH_RULES {rules}" in help_text  # named after the options, as TOML only
 
 
@@ -93,7 +98,7 @@ def test_the_token_and_the_api_url_come_from_the_cli_variables(monkeypatch: pyte
         "agent_token": "robot-7-token",
         "agent_api_url": "http://depot:8080",
     }
-    settings = load_settings(**params)
+    settings = load_agent_settings(**params)
     assert settings.agent_token is not None and settings.agent_token.get_secret_value() == "robot-7-token"
     assert (settings.agent_spool, settings.agent_retain_hours) == (Path("s"), 2.0)
 
@@ -198,12 +203,9 @@ def test_a_bad_address_is_one_clear_error(tmp_path: Path, monkeypatch: pytest.Mo
 
 
 def test_a_list_flag_is_repeatable_and_takes_a_comma_separated_list():
-    from services.cli.agent import agent
-    from services.settings import load_settings
-
     def parsed(*args: str) -> list[str]:
         flags = agent.make_context("agent", list(args)).params
-        return load_settings(**flags).agent_live_include
+        return load_agent_settings(**flags).agent_live_include
 
     assert parsed("--live-include", "/metrics/**", "--live-include", "/logs/**") == ["/metrics/**", "/logs/**"]
     assert parsed("--live-include", "/metrics/**,/logs/**") == ["/metrics/**", "/logs/**"]
@@ -212,10 +214,8 @@ def test_a_list_flag_is_repeatable_and_takes_a_comma_separated_list():
 
 def test_a_listen_address_off_the_robot_is_refused_unless_insecure(tmp_path: Path):
     from services.cli.agent import _check_ports
-    from services.settings import load_settings
 
+    listen = {"agent_spool": tmp_path, "agent_listen": "0.0.0.0:0", "agent_status_addr": "127.0.0.1:0"}
     with pytest.raises(InvalidArgumentError, match=r"not a loopback address.*--insecure"):
-        _check_ports(load_settings(agent_spool=tmp_path, agent_listen="0.0.0.0:0", agent_status_addr="127.0.0.1:0"))
-    _check_ports(
-        load_settings(agent_spool=tmp_path, agent_listen="0.0.0.0:0", agent_status_addr="127.0.0.1:0", insecure=True)
-    )
+        _check_ports(load_agent_settings(**listen))
+    _check_ports(load_agent_settings(**listen, insecure=True))

@@ -58,12 +58,10 @@ def test_serve_refuses_a_postgres_catalog_that_is_behind(empty_postgres_url: str
 
 def test_serve_help_documents_every_setting():
     out = subprocess.run([FLEET, "serve", "--help"], capture_output=True, text=True, check=True).stdout
-    from services.cli.serve import serve_setting
     from services.settings import Settings
 
-    names = [n for n in Settings.model_fields if serve_setting(n)]  # every setting but the agent's is a serve flag
     assert "FLEET_CONFIG" in out
-    for name in names:
+    for name in Settings.model_fields:  # the depot's settings, none of the agent's
         assert f"FLEET_{name.upper()}" in out, name
 
 
@@ -89,13 +87,15 @@ def _shown(default: object) -> str:
 
 def test_every_scalar_setting_is_an_option_described_by_its_field():
     """The options are made from Settings: one description and one default, in one place."""
-    from services.cli.serve import NOT_OPTIONS, serve, serve_setting
+    from services.cli.serve import NOT_OPTIONS, serve
     from services.settings import Settings
 
     options = {p.name: p for p in serve.get_params(click.Context(serve)) if isinstance(p, click.Option)}
-    scalars = {n for n, field in Settings.model_fields.items() if _scalar(field.annotation) and serve_setting(n)}
+    scalars = {n for n, field in Settings.model_fields.items() if _scalar(field.annotation)}
     assert len(scalars) > 30 and not set(NOT_OPTIONS) & scalars
-    assert not {n for n in options if not serve_setting(n)}, "the agent's settings are no options of fleet serve"
+    help_option = serve.get_help_option(click.Context(serve))
+    made = {n for n, p in options.items() if p is not help_option}
+    assert not made - set(Settings.model_fields), "fleet serve has only the depot's options"
     help_text = " ".join(
         CliRunner().invoke(serve, ["--help"], terminal_width=10_000, max_content_width=10_000).output.split()
     )  # unwrapped
@@ -109,7 +109,7 @@ def test_every_scalar_setting_is_an_option_described_by_its_field():
             assert option.help.endswith(f" [default: {_shown(default)}]"), option.help
         assert option.default is None, "a flag's default would override the environment and the TOML file"
         assert f"{option.opts[0]} " in help_text and " ".join(option.help.split()) in help_text
-    for name in filter(serve_setting, NOT_OPTIONS):  # named after the options, with their description
+    for name in NOT_OPTIONS:  # named after the options, with their description
         assert f"FLEET_{name.upper()} {' '.join(str(Settings.model_fields[name].description).split())}" in help_text
 
 

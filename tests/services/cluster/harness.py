@@ -23,7 +23,7 @@ from typing import Any, cast
 import httpx
 import sqlalchemy as sa
 
-from catalog.models import JobRun, RetentionEvent, RunObject
+from catalog.models import JobExecution, RetentionEvent, RunObject
 from services.rrd import ArrowMessage, iter_events
 from services.sealed.index import CHUNK, from_parquet
 from tests.balancer import Balancer
@@ -207,9 +207,9 @@ class Cluster:
         A run still open when its node was killed ended with it (its lock went with its connection)."""
         with self.engine.connect() as conn:
             rows = conn.execute(
-                sa.select(JobRun.node, JobRun.started_at, JobRun.finished_at, JobRun.outcome)
-                .where(JobRun.job == job)
-                .order_by(JobRun.started_at)
+                sa.select(JobExecution.node, JobExecution.started_at, JobExecution.finished_at, JobExecution.outcome)
+                .where(JobExecution.job == job)
+                .order_by(JobExecution.started_at)
             ).all()
         now = dt.datetime.now(dt.UTC)
         spans = [

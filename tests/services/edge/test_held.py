@@ -144,7 +144,7 @@ def test_late_data_beside_a_sealed_copy_is_unsealed_and_the_copy_sealed(node: No
     promote_now(node.retention, RUN)
     node.upload(sdk_runs.later)  # the robot's file copy brings chunks the stream missed
     hot = node.ingest.hot_run(RUN)
-    assert hot is not None and hot.sealed_as is not None  # a hot run adding to the sealed one
+    assert hot is not None and hot.adds_to is not None  # a hot run adding to the sealed one
     first, later, others = chunk_ids(sdk_runs.first), chunk_ids(sdk_runs.later), unknown_ids()
     answer = ask(node_edge, first + later + others)
     assert answer["tier"] == "warm" and answer["sealed"] == len(first)

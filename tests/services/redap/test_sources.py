@@ -38,7 +38,7 @@ def node(tmp_path: Path) -> Iterator[DepotNode]:
     sources.clear_caches()
 
 
-def _sources(depot: Depot) -> list[sources.RunSource]:
+def _sources(depot: Depot) -> list[sources.IndexedRecordingSource]:
     with session_scope(depot.catalog) as session:
         entry = Tuid.parse(queries.datasets(session)[0].entry_id)
         return sources.dataset_sources(depot, session, dataset_by_entry(session, entry), depot.clock())

@@ -26,7 +26,7 @@ import sqlalchemy as sa
 from catalog import queries
 from catalog.db import session_scope
 from services.facts.identity import SecretFields
-from services.ingest.run import IngestRun
+from services.ingest.view import HotRunView
 from services.retention import promote
 from services.retention.rebuild import rebuild
 from services.retention.schedule import promote_job
@@ -321,6 +321,13 @@ FAULTS = [
 ]
 
 
+def hot_run(node: Node) -> HotRunView:
+    """The run as ingest hands it to promotion now."""
+    run = node.ingest.hot_run(RUN)
+    assert run is not None
+    return run
+
+
 def assert_still_hot(node: Node, want: set[bytes]) -> None:
     """A failed promotion left the run hot, whole and served; the catalog untouched."""
     with session_scope(node.catalog) as session:
@@ -328,7 +335,7 @@ def assert_still_hot(node: Node, want: set[bytes]) -> None:
         assert run is not None and run.tier == "hot"
         assert queries.lifecycle(session, RUN) is None and queries.run_objects(session, RUN) == {}
         assert queries.run_events(session, RUN) == []
-    assert not node.ingest.runs[RUN].sealed and (hot_dir(node) / "run.rrd").is_file()
+    assert not node.ingest.runs[RUN].handed_over and (hot_dir(node) / "run.rrd").is_file()
     ids = chunk_ids(served(node, RUN))
     assert len(ids) == len(set(ids)) and set(ids) == want  # no chunk lost
 
@@ -430,7 +437,7 @@ def test_a_crash_right_after_the_switch_leaves_a_hot_copy_removed_without_sealin
 
     with pytest.MonkeyPatch.context() as patch, pytest.raises(SystemExit):
         patch.setattr(node.ingest.hot, "set_aside", crash)
-        promote.promote(node.ingest.runs[RUN], node.ingest, node.tiers, node.catalog, clock.now)
+        promote.promote(hot_run(node), node.ingest, node.tiers, node.catalog, clock.now)
     assert catalog_tier(node) == "warm" and (hot_dir(node) / "run.rrd").is_file()
     with session_scope(node.catalog) as session:
         life = queries.lifecycle(session, RUN)
@@ -457,7 +464,7 @@ def test_a_failed_promotion_backs_off_before_the_next_attempt(tiers: Tiers, make
     faulty = FaultyStore(tiers.warm, "put", RECORDING, times=3)
     node = make_node(Tiers(faulty, tiers.cold), clock=clock, promote_after_s=PROMOTE_AFTER_S)
     node.upload(sdk_runs.first)
-    run: IngestRun = node.ingest.runs[RUN]
+    run = hot_run(node)
     backoff = node.retention.promote_backoff
     assert backoff.retry_at.get(RUN) is None
     clock.advance(seconds=PROMOTE_AFTER_S)
@@ -501,7 +508,7 @@ def test_late_data_is_sealed_in_with_the_rest(
     added = node.upload(sdk_runs.later)  # the same recording id, new chunks: an addendum, hot
     assert (added.runs, added.chunks_new, added.chunks_duplicate) == ([RUN], len(later), 0)
     addendum = node.ingest.runs[RUN]
-    assert addendum.sealed_as is not None and addendum.sealed_as.prefix == prefix
+    assert addendum.adds_to is not None and addendum.adds_to.prefix == prefix
     assert catalog_tier(node) == "warm"  # the sealed run stands until it is sealed again
 
     clock.advance(seconds=PROMOTE_AFTER_S)

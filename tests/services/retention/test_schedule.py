@@ -24,7 +24,7 @@ from sqlalchemy.orm import Session
 
 from catalog import queries
 from catalog.db import create_engine, session_scope
-from catalog.models import JobRun
+from catalog.models import JobExecution
 from services.ingest.service import IngestService
 from services.retention.locks import job_lock
 from services.retention.schedule import promote_job, retention_job
@@ -138,7 +138,7 @@ def test_retention_job_skips_while_another_holds_the_lock(make_node: NodeFactory
 
     def job_rows() -> int:
         with Session(engine) as session:
-            return int(session.scalar(sa.select(sa.func.count()).where(JobRun.job == "retention")) or 0)
+            return int(session.scalar(sa.select(sa.func.count()).where(JobExecution.job == "retention")) or 0)
 
     with job_lock(engine, "retention") as got:
         assert got
@@ -168,7 +168,7 @@ def _skips(server: LiveServer) -> int:
     return server.log.read_text().count(SKIPPED) if server.log.exists() else 0
 
 
-def _overlapping(rows: list[JobRun]) -> list[tuple[JobRun, JobRun]]:
+def _overlapping(rows: list[JobExecution]) -> list[tuple[JobExecution, JobExecution]]:
     """Pairs of job runs that overlap in time (a run not finished lasts until the end)."""
     far = dt.datetime.max.replace(tzinfo=dt.UTC)
     spans = sorted(
@@ -235,8 +235,8 @@ def test_two_processes_run_the_retention_job_one_at_a_time(
         a.stop()
         b.stop()
     with Session(engine) as session:
-        rows = list(session.scalars(sa.select(JobRun).where(JobRun.job == "retention")))
-        promotions = list(session.scalars(sa.select(JobRun).where(JobRun.job == "promote")))
+        rows = list(session.scalars(sa.select(JobExecution).where(JobExecution.job == "retention")))
+        promotions = list(session.scalars(sa.select(JobExecution).where(JobExecution.job == "promote")))
     engine.dispose()
 
     # Both services are stopped now: a job with no end was cut by its service's stop (which frees the
@@ -270,14 +270,18 @@ def _nodes(engine: sa.Engine) -> set[str]:
     """The processes (pids) that have run the retention job."""
     with Session(engine) as session:
         return {
-            node.rsplit(":", 1)[1] for node in session.scalars(sa.select(JobRun.node).where(JobRun.job == "retention"))
+            node.rsplit(":", 1)[1]
+            for node in session.scalars(sa.select(JobExecution.node).where(JobExecution.job == "retention"))
         }
 
 
 def _count(engine: sa.Engine, since: dt.datetime) -> int:
     with Session(engine) as session:
         return int(
-            session.scalar(sa.select(sa.func.count()).where(JobRun.job == "retention", JobRun.started_at > since)) or 0
+            session.scalar(
+                sa.select(sa.func.count()).where(JobExecution.job == "retention", JobExecution.started_at > since)
+            )
+            or 0
         )
 
 

@@ -151,8 +151,8 @@ def test_hot_runs_closed_are_promoted_without_secrets_live_ones_left(
         feeding.feed(node.ingest, stream, iter_events(live_path))  # a stream still open: the run is live
 
     filed_before(file_both, monkeypatch)
-    hot_file = node.ingest.hot_run(RUN).hot.path  # type: ignore[union-attr]
-    live_file = node.ingest.hot_run(LIVE).hot.path  # type: ignore[union-attr]
+    hot_file = node.ingest.hot_run(RUN).path  # type: ignore[union-attr]
+    live_file = node.ingest.hot_run(LIVE).path  # type: ignore[union-attr]
     before = chunk_bodies(hot_file)
     assert any(TOKEN in body for body in before.values()) and holds_token(live_file)
     secrets = SecretFields()
