@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 import sqlalchemy as sa
-from sqlalchemy.orm import Session
+from sqlalchemy.orm import Session, sessionmaker
 
 from catalog.db import create_engine, upgrade
 from services.compiled import compiled_modules
@@ -174,6 +174,17 @@ CATALOG_KINDS = ["duckdb", pytest.param("postgres", marks=pytest.mark.postgres)]
 def fresh_catalog_url(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[str]:
     with fresh_catalog(request.param, request, tmp_path) as url:
         yield url
+
+
+@pytest.fixture
+def catalog(fresh_catalog_url: str) -> Iterator[sessionmaker[Session]]:
+    """Sessions on a migrated catalog of this test's own, of each kind (a module that means
+    something else by `catalog` defines its own)."""
+    engine = create_engine(fresh_catalog_url)
+    try:
+        yield sessionmaker(engine)
+    finally:
+        engine.dispose()
 
 
 @pytest.fixture

@@ -138,6 +138,16 @@ class Robot:
         assert self.proc.returncode == 0, self.proc.stderr.read() if self.proc.stderr else ""
 
 
+def log_whole_run(agent: AgentProcess, copy: Path, run_id: str, frames: int) -> None:
+    """A robot logs a run of `frames` frames in one step through the agent (and to its own `copy`),
+    then ends it."""
+    robot = Robot("steps", agent.url, str(copy), run_id, "1", str(frames))
+    robot.expect("STEP 1")
+    robot.go_on()
+    robot.expect("DONE")
+    robot.finish()
+
+
 def depot_chunks(depot: LiveServer, run_id: str) -> int:
     answer = httpx.get(f"{depot.url}/v1/runs/{run_id}", headers=depot.headers, timeout=10)
     return int(answer.json().get("chunks", 0)) if answer.status_code == 200 else 0

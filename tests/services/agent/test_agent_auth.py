@@ -10,7 +10,7 @@ from pathlib import Path
 import httpx
 import pytest
 
-from tests.services.agent.harness import AgentProcess, Link, Robot, depot_chunks
+from tests.services.agent.harness import AgentProcess, Link, depot_chunks, log_whole_run
 from tests.services.ingest.live_server import LiveServer
 from tests.waiting import wait_for
 
@@ -41,11 +41,7 @@ def test_the_robots_token_carries_its_runs(depot: LiveServer, tmp_path: Path):
     link = Link(depot)
     agent = AgentProcess(tmp_path / "spool", link, token=token).start()
     try:
-        robot = Robot("steps", agent.url, str(tmp_path / "copy.rrd"), "run-token", "1", "10")
-        robot.expect("STEP 1")
-        robot.go_on()
-        robot.expect("DONE")
-        robot.finish()
+        log_whole_run(agent, tmp_path / "copy.rrd", "run-token", 10)
         wait_for(lambda: depot_chunks(depot, "run-token") > 0, 60, "the run at the depot")
         answer = httpx.get(f"{depot.url}/v1/runs/run-token", headers=depot.headers, timeout=10).json()
         assert answer["robot_id"] == "robot-agent"
@@ -62,11 +58,7 @@ def test_another_robots_token_is_refused_and_the_run_kept(depot: LiveServer, tmp
     link = Link(depot)
     agent = AgentProcess(tmp_path / "spool", link, token=token).start()
     try:
-        robot = Robot("steps", agent.url, str(tmp_path / "copy.rrd"), "run-wrong", "1", "10")
-        robot.expect("STEP 1")
-        robot.go_on()
-        robot.expect("DONE")
-        robot.finish()
+        log_whole_run(agent, tmp_path / "copy.rrd", "run-wrong", 10)
         refused = wait_for(lambda: agent.status()["link"].get("refused"), 60, "the depot's refusal")
         assert "robot" in refused
         assert agent.spool_bytes("run-wrong") > 0  # kept on the robot

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.services.agent.harness import AgentProcess, Link, Robot, depot_equals_copy
+from tests.services.agent.harness import AgentProcess, Link, depot_equals_copy, log_whole_run
 from tests.services.ingest.live_server import LiveServer
 from tests.tcp_proxy import TcpProxy
 from tests.waiting import wait_for
@@ -62,11 +62,8 @@ def test_the_link_carries_the_cap_while_a_backlog_drains(depot: LiveServer, link
     sampler = ByteSampler(link.grpc)
     try:
         copy = tmp_path / "copy.rrd"
-        robot = Robot("steps", agent.url, str(copy), "run-capped", "1", str(FRAMES))
-        robot.expect("STEP 1")  # all of it logged and in the agent's spool: far ahead of the link
-        robot.go_on()
-        robot.expect("DONE")
-        robot.finish()
+        # all of it logged and in the agent's spool: far ahead of the link
+        log_whole_run(agent, copy, "run-capped", FRAMES)
         total = copy.stat().st_size
         assert total > 3_000_000, total
         wait_for(lambda: sampler.latest() >= WINDOW_TO * total, 40, "the backlog to mostly cross the link")

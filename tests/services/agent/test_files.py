@@ -24,7 +24,7 @@ from services.rrd.errors import TruncatedError
 from services.rrd.frames import FOOTER_ENTRY_SIZE, FOOTER_FIXED_SIZE, MESSAGE_HEADER_SIZE, STREAM_HEADER_SIZE
 from services.rrd.messages import ArrowMessage, EndMessage, Event, StoreInfoMessage, StreamFooter, StreamStart
 from tests.services.rrd.legacy import legacy_file
-from tests.services.rrd.recordings import generate_scenes, walk_frames
+from tests.services.rrd.recordings import Recording, walk_frames
 
 pytestmark = pytest.mark.sdk
 
@@ -32,10 +32,9 @@ SCENES = ("points", "scalars", "no_footer", "large", "blueprint")
 
 
 @pytest.fixture(scope="module")
-def files(tmp_path_factory: pytest.TempPathFactory) -> dict[str, bytes]:
+def files(recordings: dict[str, Recording]) -> dict[str, bytes]:
     """The bytes of real SDK recordings, plus files holding two streams one after the other."""
-    out = tmp_path_factory.mktemp("agent-recordings")
-    data = {name: rec.data for name, rec in generate_scenes(SCENES, out).items()}
+    data = {name: recordings[name].data for name in SCENES}
     data["concat"] = data["points"] + data["scalars"]  # End and footer, then a second stream
     data["concat_no_end"] = data["no_footer"] + data["points"]  # a stream without End, then another
     return data

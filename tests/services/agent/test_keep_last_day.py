@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.services.agent.harness import AgentProcess, Link, Robot, download, same_recording
+from tests.services.agent.harness import AgentProcess, Link, download, log_whole_run, same_recording
 from tests.services.ingest.live_server import LiveServer
 from tests.waiting import wait_for
 
@@ -31,11 +31,7 @@ def test_unconfirmed_runs_are_kept_over_the_cap_and_confirmed_ones_go(
     try:
         link.cut()
         copy = tmp_path / "copy.rrd"
-        robot = Robot("steps", agent.url, str(copy), "run-kept", "1", "25")
-        robot.expect("STEP 1")
-        robot.go_on()
-        robot.expect("DONE")
-        robot.finish()
+        log_whole_run(agent, copy, "run-kept", 25)
         size = agent.spool_bytes("run-kept")
         assert size > 1_000_000
 

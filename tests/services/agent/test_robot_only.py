@@ -11,7 +11,7 @@ from typing import Any
 import httpx
 import pytest
 
-from tests.services.agent.harness import AgentProcess, Link, Robot, depot_chunks, run_status
+from tests.services.agent.harness import AgentProcess, Link, depot_chunks, log_whole_run, run_status
 from tests.services.agent.test_summary_pull import recording_chunks
 from tests.services.ingest.live_server import LiveServer
 from tests.waiting import wait_for
@@ -30,11 +30,7 @@ def test_a_run_sent_whole_stays_held_after_a_narrower_restart(depot: LiveServer,
     agent = AgentProcess(spool, link).start()  # everything live
     try:
         copy = tmp_path / "copy.rrd"
-        robot = Robot("steps", agent.url, str(copy), "run-whole", "1", "30")
-        robot.expect("STEP 1")
-        robot.go_on()
-        robot.expect("DONE")
-        robot.finish()
+        log_whole_run(agent, copy, "run-whole", 30)
         total = len(recording_chunks(copy))
         wait_for(lambda: depot_chunks(depot, "run-whole") >= total, 60, "the depot to hold every chunk")
         wait_for(lambda: run_status(depot, "run-whole") == "closed", 60, "the run to close at the depot")

@@ -14,7 +14,7 @@ from services.rrd.decoder import iter_events
 from services.rrd.messages import ArrowMessage, StoreKind
 from services.runs.download import EntityFilter
 from services.runs.latest_at import ChunkEntry, select_chunks
-from tests.services.agent.harness import AgentProcess, Link, Robot, depot_chunks, download, run_status
+from tests.services.agent.harness import AgentProcess, Link, depot_chunks, download, log_whole_run, run_status
 from tests.services.ingest.live_server import LiveServer
 from tests.waiting import wait_for
 
@@ -37,11 +37,7 @@ def test_summary_live_then_a_pulled_window(depot: LiveServer, link: Link, tmp_pa
     agent = AgentProcess(tmp_path / "spool", link, live_include=",".join(LIVE)).start()
     try:
         copy = tmp_path / "copy.rrd"
-        robot = Robot("steps", agent.url, str(copy), "run-summary", "1", "40")
-        robot.expect("STEP 1")
-        robot.go_on()
-        robot.expect("DONE")
-        robot.finish()
+        log_whole_run(agent, copy, "run-summary", 40)
         chunks = recording_chunks(copy)
         live = EntityFilter(LIVE)
         summary = {cid for cid, (entity, _) in chunks.items() if live(entity)}

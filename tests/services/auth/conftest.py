@@ -16,24 +16,14 @@ from fastapi.testclient import TestClient
 from prometheus_client.parser import text_string_to_metric_families
 from sqlalchemy.orm import Session, sessionmaker
 
-from catalog.db import create_engine
 from services.auth.keys import SigningKey, SigningKeys
 from services.auth.tokens import Auth, IssuedToken
 from tests.services.api.nodes import migrated_settings, node
-from tests.services.rrd.recordings import Recording, generate_scenes
+from tests.services.rrd.recordings import Recording
 
 KEYS = SigningKeys(SigningKey(b"k" * 48))
 OTHER_KEYS = SigningKeys(SigningKey(b"o" * 48))
 HOSTS = ["depot.example", "127.0.0.1"]
-
-
-@pytest.fixture
-def catalog(fresh_catalog_url: str) -> Iterator[sessionmaker[Session]]:
-    engine = create_engine(fresh_catalog_url)
-    try:
-        yield sessionmaker(engine)
-    finally:
-        engine.dispose()
 
 
 @pytest.fixture
@@ -116,5 +106,5 @@ SCENES = ("points", "properties")
 
 
 @pytest.fixture(scope="session")
-def scenes(rerun_analytics_disabled: None, tmp_path_factory: pytest.TempPathFactory) -> dict[str, Recording]:
-    return generate_scenes(SCENES, tmp_path_factory.mktemp("auth-scenes"))
+def scenes(recordings: dict[str, Recording]) -> dict[str, Recording]:
+    return {name: recordings[name] for name in SCENES}

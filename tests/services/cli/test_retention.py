@@ -13,7 +13,7 @@ import httpx
 import pytest
 
 from tests.services.ingest.live_server import FLEET, LiveServer
-from tests.services.rrd.recordings import Recording
+from tests.services.rrd.recordings import Recording, rerun_rrd_ok
 
 pytestmark = pytest.mark.sdk
 
@@ -76,13 +76,7 @@ def test_plan_then_run_promotes_with_progress(
     # what the warm tier serves is the recording that was uploaded
     out = tmp_path / "warm.rrd"
     assert fleet(server, "download", run_id, "-o", str(out)).returncode == 0
-    compare = subprocess.run(
-        [rerun_bin, "rrd", "compare", "--unordered", str(rec.path), str(out)],
-        capture_output=True,
-        text=True,
-        timeout=120,
-    )
-    assert compare.returncode == 0, compare.stderr
+    rerun_rrd_ok(rerun_bin, "compare", "--unordered", rec.path, out)
 
 
 def _sealed(server: LiveServer, rec: Recording) -> str:
@@ -216,8 +210,7 @@ for i in range(3):
         bodies, kept = chunk_bodies(got), chunk_bodies(held)
         assert set(bodies) == set(kept) and not any(SITE_KEY.encode() in body for body in bodies.values())
         assert sum(bodies[c] != kept[c] for c in kept) == 1 and any(b"lab" in body for body in bodies.values())
-        check = subprocess.run([rerun_bin, "rrd", "verify", str(got)], capture_output=True, text=True)
-        assert check.returncode == 0, check.stderr
+        rerun_rrd_ok(rerun_bin, "verify", got)
         page = run_json(live, run_id)
         assert SITE_KEY not in json.dumps(page) and page["properties"]["site"] == {"site_name": "lab"}
 

@@ -181,9 +181,10 @@ def _one_line(result: subprocess.CompletedProcess[str]) -> str:
     return lines[0]
 
 
-@pytest.fixture
-def running(tmp_path: Path) -> Iterator[LiveServer]:
-    live = LiveServer(tmp_path / "first").start()
+@pytest.fixture(scope="module")
+def running(tmp_path_factory: pytest.TempPathFactory) -> Iterator[LiveServer]:
+    """The first `fleet serve`, shared: each test's second serve is refused and leaves it running."""
+    live = LiveServer(tmp_path_factory.mktemp("serve") / "first").start()
     yield live
     live.stop()
 

@@ -15,7 +15,7 @@ import pytest
 from sqlalchemy.orm import Session, sessionmaker
 
 from catalog import queries
-from catalog.db import create_engine, session_scope
+from catalog.db import session_scope
 from core.errors import FleetError
 from core.states import RunStatus, Tier
 from services.auth.scopes import Principal, Scope
@@ -54,15 +54,6 @@ def robot_token(robot: str = ROBOT) -> Principal:
 @pytest.fixture
 def clock() -> Clock:
     return Clock()
-
-
-@pytest.fixture
-def catalog(fresh_catalog_url: str) -> Iterator[sessionmaker[Session]]:
-    engine = create_engine(fresh_catalog_url)
-    try:
-        yield sessionmaker(engine)
-    finally:
-        engine.dispose()
 
 
 @pytest.fixture

@@ -5,8 +5,7 @@ from __future__ import annotations
 
 import asyncio
 import threading
-from collections.abc import AsyncGenerator, Iterator
-from pathlib import Path
+from collections.abc import AsyncGenerator
 
 import pytest
 
@@ -14,7 +13,6 @@ from services.hot import read
 from services.hot.read import HotRecording, follow_sizes
 from services.hot.store import Changes, HotRun, HotStore
 from services.rrd.frames import DEFAULT_VERSION, MessageKind
-from services.settings import Durability
 
 WAKE_S = 5.0  # a woken follower answers well within this; the safety recheck is made far longer
 
@@ -26,18 +24,11 @@ def no_recheck(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setattr(read, "FOLLOW_BATCH_S", 0.0)
 
 
-@pytest.fixture
-def store(tmp_path: Path) -> Iterator[HotStore]:
-    hot = HotStore(tmp_path / "hot", durability=Durability.OFF, interval_ms=50, min_free_bytes=0)
-    yield hot
-    hot.close()
-
-
 class LiveRun:
     """A hot run and its live flag, as ingest shows them to readers."""
 
-    def __init__(self, store: HotStore, run_id: str) -> None:
-        self.hot = store.create(run_id, DEFAULT_VERSION)
+    def __init__(self, hot_store: HotStore, run_id: str) -> None:
+        self.hot = hot_store.create(run_id, DEFAULT_VERSION)
         self.live = True
 
     def recording(self) -> HotRecording:
@@ -57,8 +48,8 @@ async def next_size(sizes: AsyncGenerator[int, None]) -> int:
     return await asyncio.wait_for(anext(sizes), WAKE_S)
 
 
-def test_a_follower_sees_each_append_and_ends_when_the_run_ends(store: HotStore):
-    run = LiveRun(store, "run-a")
+def test_a_follower_sees_each_append_and_ends_when_the_run_ends(hot_store: HotStore):
+    run = LiveRun(hot_store, "run-a")
 
     async def scenario() -> None:
         sizes = follow_sizes(run.recording())
@@ -81,8 +72,8 @@ def test_a_follower_sees_each_append_and_ends_when_the_run_ends(store: HotStore)
     asyncio.run(scenario())
 
 
-def test_appends_and_the_end_from_another_thread_wake_the_follower(store: HotStore):
-    run = LiveRun(store, "run-b")
+def test_appends_and_the_end_from_another_thread_wake_the_follower(hot_store: HotStore):
+    run = LiveRun(hot_store, "run-b")
     sizes: list[int] = []
 
     async def follow() -> None:
@@ -120,8 +111,8 @@ def test_a_change_made_before_the_wait_is_not_missed():
     asyncio.run(scenario())
 
 
-def test_a_follower_that_goes_away_leaves_no_waiter(store: HotStore):
-    run = LiveRun(store, "run-c")
+def test_a_follower_that_goes_away_leaves_no_waiter(hot_store: HotStore):
+    run = LiveRun(hot_store, "run-c")
 
     async def scenario() -> None:
         async def follow() -> None:

@@ -7,7 +7,6 @@ from __future__ import annotations
 import os
 import struct
 import zlib
-from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -18,7 +17,6 @@ from services.rrd import iter_events
 from services.rrd.chunk import ChunkMeta, chunk_meta
 from services.rrd.frames import DEFAULT_VERSION, MessageKind
 from services.rrd.messages import ArrowMessage, StoreId, StoreKind
-from services.settings import Durability
 from tests.services.hot.indexing import append_recording, entry_keys, expected_entries, manifest_of
 from tests.services.rrd.recordings import Recording
 
@@ -41,29 +39,22 @@ SCENES = (
 )
 
 
-@pytest.fixture
-def store(tmp_path: Path) -> Iterator[HotStore]:
-    hot = HotStore(tmp_path / "hot", durability=Durability.OFF, interval_ms=50, min_free_bytes=0)
-    yield hot
-    hot.close()
-
-
 def recording_store(rec: Recording) -> StoreId:
     first = rec.recordings[0]
     return StoreId(StoreKind.RECORDING, first["application_id"], first["recording_id"])
 
 
-def reopened(store: HotStore, run: HotRun) -> HotRun:
+def reopened(hot_store: HotStore, run: HotRun) -> HotRun:
     """The run after a restart (its file closed, then recovered from disk)."""
-    store.forget(run)
-    recovered, _ = store.recover(run.directory)
+    hot_store.forget(run)
+    recovered, _ = hot_store.recover(run.directory)
     return recovered
 
 
 @pytest.mark.parametrize("scene", SCENES)
-def test_the_index_says_what_the_file_says(store: HotStore, recordings: dict[str, Recording], scene: str):
+def test_the_index_says_what_the_file_says(hot_store: HotStore, recordings: dict[str, Recording], scene: str):
     rec = recordings[scene]
-    run = store.create(f"run-{scene}", DEFAULT_VERSION)
+    run = hot_store.create(f"run-{scene}", DEFAULT_VERSION)
     append_recording(run, rec.path)
     index = read_hot_index(run.path, run.size)
     expected = expected_entries(run.path)
@@ -75,9 +66,9 @@ def test_the_index_says_what_the_file_says(store: HotStore, recordings: dict[str
     assert sorbet.equals(want_sorbet, check_metadata=True) and sha == want_sha
 
 
-def test_readers_take_what_the_index_lacks_from_the_file(store: HotStore, recordings: dict[str, Recording]):
+def test_readers_take_what_the_index_lacks_from_the_file(hot_store: HotStore, recordings: dict[str, Recording]):
     rec = recordings["scalars"]
-    run = store.create("run-lagging", DEFAULT_VERSION)
+    run = hot_store.create("run-lagging", DEFAULT_VERSION)
     appended = append_recording(run, rec.path, limit=6)
     append_recording_rest(run, rec, skip=appended)  # chunks without metadata: the index stops
     assert run.index is not None and run.index.stopped
@@ -95,9 +86,9 @@ def append_recording_rest(run: HotRun, rec: Recording, skip: int) -> None:
         run.append(event.kind, event.raw, event.store_id.kind)
 
 
-def test_a_reader_sees_only_the_size_it_was_given(store: HotStore, recordings: dict[str, Recording]):
+def test_a_reader_sees_only_the_size_it_was_given(hot_store: HotStore, recordings: dict[str, Recording]):
     rec = recordings["points"]
-    run = store.create("run-growing", DEFAULT_VERSION)
+    run = hot_store.create("run-growing", DEFAULT_VERSION)
     append_recording(run, rec.path, limit=5)
     size = run.size
     append_recording_rest_with_meta(run, rec, skip=5)
@@ -117,12 +108,12 @@ def append_recording_rest_with_meta(run: HotRun, rec: Recording, skip: int) -> N
         run.append(event.kind, event.raw, event.store_id.kind, chunk_meta(event))
 
 
-def test_a_restart_keeps_the_index(store: HotStore, recordings: dict[str, Recording]):
+def test_a_restart_keeps_the_index(hot_store: HotStore, recordings: dict[str, Recording]):
     rec = recordings["transforms"]
-    run = store.create("run-restart", DEFAULT_VERSION)
+    run = hot_store.create("run-restart", DEFAULT_VERSION)
     append_recording(run, rec.path)
     before = (run.directory / INDEX_FILE).read_bytes()
-    run = reopened(store, run)
+    run = reopened(hot_store, run)
     assert (run.directory / INDEX_FILE).read_bytes() == before  # nothing to redo
     append_recording(run, recordings["points"].path, limit=4)  # and it grows on after the restart
     index = read_hot_index(run.path, run.size)
@@ -130,18 +121,18 @@ def test_a_restart_keeps_the_index(store: HotStore, recordings: dict[str, Record
     assert entry_keys(index.entries) == entry_keys(expected_entries(run.path))
 
 
-def test_a_torn_tail_is_trimmed_from_the_file_and_its_index(store: HotStore, recordings: dict[str, Recording]):
+def test_a_torn_tail_is_trimmed_from_the_file_and_its_index(hot_store: HotStore, recordings: dict[str, Recording]):
     rec = recordings["large"]  # 1 MB chunks: a crash in the middle of writing one
-    run = store.create("run-torn", DEFAULT_VERSION)
+    run = hot_store.create("run-torn", DEFAULT_VERSION)
     append_recording(run, rec.path)
     whole = expected_entries(run.path)
     last = whole[-1].row
     assert last.kind == "chunk"
     index_before = (run.directory / INDEX_FILE).read_bytes()
-    store.forget(run)
+    hot_store.forget(run)
     # The crash: the last chunk was only half written, though its index record made it to disk.
     os.truncate(run.path, last.offset + last.length // 2)
-    recovered, _ = store.recover(run.directory)
+    recovered, _ = hot_store.recover(run.directory)
     assert recovered.size == last.offset
     assert len((run.directory / INDEX_FILE).read_bytes()) < len(index_before)
     index = read_hot_index(recovered.path, recovered.size)
@@ -149,28 +140,28 @@ def test_a_torn_tail_is_trimmed_from_the_file_and_its_index(store: HotStore, rec
     assert entry_keys(index.entries) == entry_keys(whole[:-1])
 
 
-def test_an_index_behind_its_file_is_completed(store: HotStore, recordings: dict[str, Recording]):
+def test_an_index_behind_its_file_is_completed(hot_store: HotStore, recordings: dict[str, Recording]):
     rec = recordings["scalars"]
-    run = store.create("run-behind", DEFAULT_VERSION)
+    run = hot_store.create("run-behind", DEFAULT_VERSION)
     append_recording(run, rec.path)
     path = run.directory / INDEX_FILE
     data = path.read_bytes()
-    store.forget(run)
+    hot_store.forget(run)
     path.write_bytes(data[: len(data) // 2])  # a crash (or a lost page) took its second half
-    recovered, _ = store.recover(run.directory)
+    recovered, _ = hot_store.recover(run.directory)
     index = read_hot_index(recovered.path, recovered.size)
     assert index.from_index == len(index.entries)
     assert entry_keys(index.entries) == entry_keys(expected_entries(recovered.path))
 
 
 @pytest.mark.parametrize("damage", ["missing", "foreign", "flipped", "zeroed"])
-def test_a_missing_or_damaged_index_is_rebuilt(store: HotStore, recordings: dict[str, Recording], damage: str):
+def test_a_missing_or_damaged_index_is_rebuilt(hot_store: HotStore, recordings: dict[str, Recording], damage: str):
     rec = recordings["textlogs"]
-    run = store.create(f"run-{damage}", DEFAULT_VERSION)
+    run = hot_store.create(f"run-{damage}", DEFAULT_VERSION)
     append_recording(run, rec.path)
     path = run.directory / INDEX_FILE
     data = bytearray(path.read_bytes())
-    store.forget(run)
+    hot_store.forget(run)
     if damage == "missing":
         path.unlink()
     elif damage == "foreign":
@@ -184,17 +175,17 @@ def test_a_missing_or_damaged_index_is_rebuilt(store: HotStore, recordings: dict
     expected = entry_keys(expected_entries(run.path))
     # Before recovery, a reader still gets the whole truth (from the file where the index fails).
     assert entry_keys(read_hot_index(run.path, run.size).entries) == expected
-    recovered, _ = store.recover(run.directory)
+    recovered, _ = hot_store.recover(run.directory)
     index = read_hot_index(recovered.path, recovered.size)
     assert index.from_index == len(index.entries)
     assert entry_keys(index.entries) == expected
 
 
 def test_a_failed_index_write_stops_the_index_not_the_run(
-    store: HotStore, recordings: dict[str, Recording], monkeypatch: pytest.MonkeyPatch
+    hot_store: HotStore, recordings: dict[str, Recording], monkeypatch: pytest.MonkeyPatch
 ):
     rec = recordings["points"]
-    run = store.create("run-disk-full", DEFAULT_VERSION)
+    run = hot_store.create("run-disk-full", DEFAULT_VERSION)
     append_recording(run, rec.path, limit=4)
     assert run.index is not None
     length = (run.directory / INDEX_FILE).stat().st_size
@@ -213,12 +204,12 @@ def test_a_failed_index_write_stops_the_index_not_the_run(
     assert (run.directory / INDEX_FILE).stat().st_size == length  # no half record left
     index = read_hot_index(run.path, run.size)
     assert entry_keys(index.entries) == entry_keys(expected_entries(run.path))
-    recovered = reopened(store, run)
+    recovered = reopened(hot_store, run)
     assert read_hot_index(recovered.path, recovered.size).from_index == len(index.entries)
 
 
-def test_a_message_appended_without_index_details(store: HotStore):
-    run = store.create("run-bare", DEFAULT_VERSION)
+def test_a_message_appended_without_index_details(hot_store: HotStore):
+    run = hot_store.create("run-bare", DEFAULT_VERSION)
     run.append(MessageKind.ARROW_MSG, b"x" * 100)  # a chunk whose metadata nobody gave
     assert run.index is not None and run.index.stopped
     assert run.size > 12

@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import struct
 import zlib
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -19,19 +18,11 @@ from services.rrd import iter_events
 from services.rrd.chunk import chunk_meta
 from services.rrd.frames import DEFAULT_VERSION, STREAM_HEADER_SIZE
 from services.rrd.messages import ArrowMessage, BlueprintActivationMessage, Event, StoreInfoMessage, StoreKind
-from services.settings import Durability
 from tests.services.hot.indexing import append_recording, entry_keys, expected_entries
 from tests.services.rrd.recordings import Recording
 from tests.services.rrd.synthetic import write_recording
 
 CHUNKS = 30
-
-
-@pytest.fixture
-def store(tmp_path: Path) -> Iterator[HotStore]:
-    hot = HotStore(tmp_path / "hot", durability=Durability.OFF, interval_ms=50, min_free_bytes=0)
-    yield hot
-    hot.close()
 
 
 @pytest.fixture
@@ -72,14 +63,14 @@ def read_all(tail: HotIndexTail, size: int, limit: int = 4096) -> list[HotEntry]
     return entries
 
 
-def full_run(store: HotStore, recording: Path, run_id: str = "run-tail") -> HotRun:
-    run = store.create(run_id, DEFAULT_VERSION)
+def full_run(hot_store: HotStore, recording: Path, run_id: str = "run-tail") -> HotRun:
+    run = hot_store.create(run_id, DEFAULT_VERSION)
     assert append_recording(run, recording) > 0
     return run
 
 
-def test_one_read_gives_what_the_whole_index_gives(store: HotStore, recording: Path):
-    run = full_run(store, recording)
+def test_one_read_gives_what_the_whole_index_gives(hot_store: HotStore, recording: Path):
+    run = full_run(hot_store, recording)
     expected = whole(run)
     assert len(expected) == CHUNKS + 2  # two SetStoreInfo (as the SDK sends), then every chunk
     tail = HotIndexTail(run.path)
@@ -90,8 +81,8 @@ def test_one_read_gives_what_the_whole_index_gives(store: HotStore, recording: P
     assert tail.read(run.size) == []  # nothing twice
 
 
-def test_reads_while_the_file_grows_give_each_entry_once_in_order(store: HotStore, recording: Path):
-    run = store.create("run-growing", DEFAULT_VERSION)
+def test_reads_while_the_file_grows_give_each_entry_once_in_order(hot_store: HotStore, recording: Path):
+    run = hot_store.create("run-growing", DEFAULT_VERSION)
     tail = HotIndexTail(run.path)
     assert tail.read(run.size) == []  # only the stream header so far
     got: list[HotEntry] = []
@@ -107,8 +98,8 @@ def test_reads_while_the_file_grows_give_each_entry_once_in_order(store: HotStor
     assert len({e.offset for e in got}) == len(got)
 
 
-def test_limit_splits_the_entries_without_losing_or_repeating_one(store: HotStore, recording: Path):
-    run = full_run(store, recording)
+def test_limit_splits_the_entries_without_losing_or_repeating_one(hot_store: HotStore, recording: Path):
+    run = full_run(hot_store, recording)
     tail = HotIndexTail(run.path)
     first = tail.read(run.size, limit=5)
     assert len(first) == 5 and tail.position == first[-1].end
@@ -116,8 +107,8 @@ def test_limit_splits_the_entries_without_losing_or_repeating_one(store: HotStor
     assert keys(first + rest) == keys(whole(run))
 
 
-def test_limit_holds_for_entries_read_from_the_run_file(store: HotStore, recording: Path):
-    run = full_run(store, recording)
+def test_limit_holds_for_entries_read_from_the_run_file(hot_store: HotStore, recording: Path):
+    run = full_run(hot_store, recording)
     (run.directory / INDEX_FILE).unlink()
     tail = HotIndexTail(run.path)
     got = read_all(tail, run.size, limit=4)
@@ -125,8 +116,8 @@ def test_limit_holds_for_entries_read_from_the_run_file(store: HotStore, recordi
 
 
 @pytest.mark.parametrize("index", [1, 7, CHUNKS + 1])
-def test_a_follower_resuming_mid_file_skips_what_came_before(store: HotStore, recording: Path, index: int):
-    run = full_run(store, recording)
+def test_a_follower_resuming_mid_file_skips_what_came_before(hot_store: HotStore, recording: Path, index: int):
+    run = full_run(hot_store, recording)
     expected = whole(run)
     start = expected[index].offset
     tail = HotIndexTail(run.path, start)
@@ -136,8 +127,8 @@ def test_a_follower_resuming_mid_file_skips_what_came_before(store: HotStore, re
     assert tail.position == run.size
 
 
-def test_resuming_mid_file_while_it_grows(store: HotStore, recording: Path):
-    run = store.create("run-resume", DEFAULT_VERSION)
+def test_resuming_mid_file_while_it_grows(hot_store: HotStore, recording: Path):
+    run = hot_store.create("run-resume", DEFAULT_VERSION)
     events = messages(recording)
     for event in events[:10]:
         append(run, event)
@@ -150,8 +141,8 @@ def test_resuming_mid_file_while_it_grows(store: HotStore, recording: Path):
     assert keys(got) == keys(whole(run)[6:])
 
 
-def test_without_its_index_the_run_file_is_read(store: HotStore, recording: Path):
-    run = store.create("run-no-index", DEFAULT_VERSION)
+def test_without_its_index_the_run_file_is_read(hot_store: HotStore, recording: Path):
+    run = hot_store.create("run-no-index", DEFAULT_VERSION)
     events = messages(recording)
     half = len(events) // 2
     for event in events[:half]:
@@ -210,8 +201,8 @@ def _cut_short(index: Path) -> None:
 
 
 @pytest.mark.parametrize("damage", [_bad_magic, _bad_crc, _unknown_record, _unknown_layout, _cut_short])
-def test_a_damaged_index_falls_back_to_the_run_file(store: HotStore, recording: Path, damage: Any):
-    run = store.create("run-damaged", DEFAULT_VERSION)
+def test_a_damaged_index_falls_back_to_the_run_file(hot_store: HotStore, recording: Path, damage: Any):
+    run = hot_store.create("run-damaged", DEFAULT_VERSION)
     events = messages(recording)
     for event in events[:20]:
         append(run, event)
@@ -227,8 +218,8 @@ def test_a_damaged_index_falls_back_to_the_run_file(store: HotStore, recording: 
     assert keys(got) == keys(expected_entries(run.path))
 
 
-def test_never_an_entry_past_the_size_it_is_given(store: HotStore, recording: Path):
-    run = full_run(store, recording)
+def test_never_an_entry_past_the_size_it_is_given(hot_store: HotStore, recording: Path):
+    run = full_run(hot_store, recording)
     expected = whole(run)
     tail = HotIndexTail(run.path)
     got: list[HotEntry] = []
@@ -243,8 +234,8 @@ def test_never_an_entry_past_the_size_it_is_given(store: HotStore, recording: Pa
     assert keys(got) == keys(expected)
 
 
-def test_never_past_the_size_when_reading_the_run_file(store: HotStore, recording: Path):
-    run = full_run(store, recording)
+def test_never_past_the_size_when_reading_the_run_file(hot_store: HotStore, recording: Path):
+    run = full_run(hot_store, recording)
     expected = whole(run)
     (run.directory / INDEX_FILE).unlink()
     tail = HotIndexTail(run.path)
@@ -256,7 +247,7 @@ def test_never_past_the_size_when_reading_the_run_file(store: HotStore, recordin
 
 
 def test_an_index_behind_the_file_is_used_again_once_it_catches_up(
-    store: HotStore, recording: Path, monkeypatch: pytest.MonkeyPatch
+    hot_store: HotStore, recording: Path, monkeypatch: pytest.MonkeyPatch
 ):
     """A reader may see the run file grown before the record of its last message is written (ingest
     writes the message, then its record): that message comes from the run file, and the index is
@@ -268,7 +259,7 @@ def test_an_index_behind_the_file_is_used_again_once_it_catches_up(
         return scan_run_file(run_file, start, size)
 
     monkeypatch.setattr("services.hot.tail.scan_run_file", counting_scan)
-    run = store.create("run-lag", DEFAULT_VERSION)
+    run = hot_store.create("run-lag", DEFAULT_VERSION)
     events = messages(recording)
     for event in events[:10]:
         append(run, event)
@@ -287,8 +278,8 @@ def test_an_index_behind_the_file_is_used_again_once_it_catches_up(
     assert scanned == [], "the index holds every message now: nothing is read from the run file"
 
 
-def test_a_tail_of_a_fresh_run_starts_after_the_stream_header(store: HotStore):
-    run = store.create("run-empty", DEFAULT_VERSION)
+def test_a_tail_of_a_fresh_run_starts_after_the_stream_header(hot_store: HotStore):
+    run = hot_store.create("run-empty", DEFAULT_VERSION)
     tail = HotIndexTail(run.path)
     assert tail.position == STREAM_HEADER_SIZE == run.size
     assert tail.read(run.size) == []
@@ -297,8 +288,8 @@ def test_a_tail_of_a_fresh_run_starts_after_the_stream_header(store: HotStore):
 
 @pytest.mark.sdk
 @pytest.mark.parametrize("scene", ["points", "blueprint", "properties"])
-def test_real_recordings_read_a_piece_at_a_time(store: HotStore, recordings: dict[str, Recording], scene: str):
-    run = store.create(f"run-{scene}", DEFAULT_VERSION)
+def test_real_recordings_read_a_piece_at_a_time(hot_store: HotStore, recordings: dict[str, Recording], scene: str):
+    run = hot_store.create(f"run-{scene}", DEFAULT_VERSION)
     tail = HotIndexTail(run.path)
     got: list[HotEntry] = []
     for event in messages(recordings[scene].path):

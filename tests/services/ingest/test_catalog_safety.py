@@ -10,7 +10,6 @@ import datetime as dt
 import json
 import subprocess
 import sys
-from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -18,7 +17,7 @@ import sqlalchemy as sa
 from sqlalchemy.orm import Session, sessionmaker
 
 from catalog import queries
-from catalog.db import create_engine, session_scope
+from catalog.db import session_scope
 from core.errors import InvalidArgumentError
 from core.ids import NAME_BYTES, PATH_BYTES
 from services.ingest.service import IngestService
@@ -55,13 +54,6 @@ rec.flush()
 """
     subprocess.run([sys.executable, "-c", script], check=True, timeout=120, capture_output=True)
     return path
-
-
-@pytest.fixture
-def catalog(fresh_catalog_url: str) -> Iterator[sessionmaker[Session]]:
-    engine = create_engine(fresh_catalog_url)
-    yield sessionmaker(engine)
-    engine.dispose()
 
 
 def service(tmp_path: Path, catalog: sessionmaker[Session]) -> IngestService:

@@ -4,7 +4,6 @@ uploaded afterwards; the run held equals the copy, every chunk once, the token n
 from __future__ import annotations
 
 import subprocess
-from collections.abc import Iterator
 from pathlib import Path
 
 import httpx
@@ -13,15 +12,9 @@ import pytest
 from services.rrd import ArrowMessage, iter_events
 from services.rrd.chunk import read_chunk
 from tests.services.ingest.live_server import LiveServer, start_robot
+from tests.services.rrd.recordings import rerun_rrd_ok
 
 pytestmark = pytest.mark.sdk
-
-
-@pytest.fixture
-def server(tmp_path: Path) -> Iterator[LiveServer]:
-    live = LiveServer(tmp_path / "data").start()
-    yield live
-    live.stop()
 
 
 def _chunk_ids(path: Path) -> list[bytes]:
@@ -61,12 +54,7 @@ def test_kill_during_stream_then_upload_the_copy(server: LiveServer, tmp_path: P
             capture_output=True,
         )
         filtered[name] = out
-    compare = subprocess.run(
-        [rerun_bin, "rrd", "compare", "--unordered", str(filtered["copy"]), str(filtered["held"])],
-        capture_output=True,
-        text=True,
-    )
-    assert compare.returncode == 0, compare.stdout + compare.stderr
+    rerun_rrd_ok(rerun_bin, "compare", "--unordered", filtered["copy"], filtered["held"])
     properties = [
         read_chunk(e).to_pylist()
         for e in iter_events(hot)

@@ -20,7 +20,6 @@ from collections.abc import Iterator
 
 import grpc
 import httpx
-import pyarrow as pa
 import pytest
 from hypothesis import HealthCheck, Phase, given, settings
 from hypothesis import strategies as st
@@ -31,7 +30,7 @@ from services.rrd.messages import ArrowMessage, StoreInfoMessage
 from services.rrd.pb import log_msg_pb2, sdk_comms_pb2
 from tests.services.ingest.live_server import LiveServer
 from tests.services.rrd import hostile
-from tests.services.rrd.ipc_damage import damaged
+from tests.services.rrd.ipc_damage import damaged, fully_valid
 from tests.services.rrd.malformed import Seed, entity_of, record_seed, renamed_arrow, renamed_store_info, wrap
 
 pytestmark = [pytest.mark.sdk, pytest.mark.slow]
@@ -85,15 +84,6 @@ def token(server: LiveServer) -> str:
     answer = httpx.post(f"{server.url}/v1/tokens", json=body, headers=server.headers, timeout=30)
     assert answer.status_code == 201, answer.text
     return str(answer.json()["token"])
-
-
-def fully_valid(ipc: bytes) -> bool:
-    """Whether full Arrow validation (what Rerun's reader does) accepts the chunk."""
-    try:
-        pa.ipc.open_stream(ipc).read_all().validate(full=True)
-    except (pa.ArrowException, ValueError):
-        return False
-    return True
 
 
 def _messages(seed: Seed, arrow_raw: bytes, run_id: str) -> list[tuple[MessageKind, bytes]]:

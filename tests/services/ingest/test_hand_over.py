@@ -15,10 +15,9 @@ from core.errors import ConflictError
 from core.states import RunStatus, Tier
 from services.cluster.ownership import Lease
 from services.facts.sealed import SealedInfo
-from services.hot.store import HotStore
 from services.ingest.service import IngestService
 from services.ingest.view import HotRunView
-from services.settings import Durability
+from tests.services.ingest.factory import ingest_service
 from tests.services.rrd.synthetic import chunk_id, recording_events, write_recording
 
 RUN = "run-hand-over"
@@ -26,10 +25,9 @@ RUN = "run-hand-over"
 
 @pytest.fixture
 def ingest(tmp_path: Path) -> Iterator[IngestService]:
-    hot = HotStore(tmp_path / "hot", durability=Durability.OFF, interval_ms=50, min_free_bytes=0)
-    service = IngestService(hot, None, default_robot="robot", max_streams=4, close_after=dt.timedelta(minutes=1))
+    service = ingest_service(tmp_path, default_robot="robot", max_streams=4)
     yield service
-    hot.close()
+    service.hot.close()
 
 
 def feed(ingest: IngestService, path: Path, *, live: bool = False) -> None:

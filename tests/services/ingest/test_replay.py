@@ -15,6 +15,7 @@ from services.ingest.replay import COPY_BELOW, ReplayHub, read_response
 from services.rrd.frames import MessageKind
 from services.rrd.pb import log_msg_pb2, sdk_comms_pb2
 from tests.services.ingest.live_server import LiveServer, start_robot
+from tests.services.rrd.recordings import rerun_rrd_ok
 from tests.subprocess_server import free_port
 
 
@@ -126,7 +127,4 @@ def test_rerun_cli_reads_a_live_stream(tmp_path: Path, rerun_bin: str):
         server.stop()  # ends the reader's stream; rerun --save then writes its file
         reader.wait(timeout=60)
     assert saved.exists() and saved.stat().st_size > 0, reader.stderr.read() if reader.stderr else ""
-    compare = subprocess.run(
-        [rerun_bin, "rrd", "compare", "--unordered", str(copy), str(saved)], capture_output=True, text=True
-    )
-    assert compare.returncode == 0, compare.stdout + compare.stderr
+    rerun_rrd_ok(rerun_bin, "compare", "--unordered", copy, saved)

@@ -18,9 +18,10 @@ from tests.services.rrd.recordings import Recording
 pytestmark = pytest.mark.sdk
 
 
-@pytest.fixture
-def server(tmp_path: Path) -> Iterator[LiveServer]:
-    live = LiveServer(tmp_path / "data").start()
+@pytest.fixture(scope="module")
+def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[LiveServer]:
+    """One depot for the module: each test uploads recordings of its own, none kills it."""
+    live = LiveServer(tmp_path_factory.mktemp("rest") / "data").start()
     yield live
     live.stop()
 

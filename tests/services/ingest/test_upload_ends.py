@@ -6,7 +6,6 @@ from __future__ import annotations
 import socket
 import subprocess
 import sys
-from collections.abc import Iterator
 from pathlib import Path
 
 import httpx
@@ -29,13 +28,6 @@ rec.flush()
 rec.send_property("fleet", rr.AnyValues(robot_id="../not-a-robot"))
 rec.flush()
 """
-
-
-@pytest.fixture
-def server(tmp_path: Path) -> Iterator[LiveServer]:
-    live = LiveServer(tmp_path / "data").start()
-    yield live
-    live.stop()
 
 
 def _run(server: LiveServer, run_id: str) -> httpx.Response:

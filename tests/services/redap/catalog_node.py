@@ -19,7 +19,7 @@ from catalog.models import Dataset
 from services.auth.tokens import Auth
 from services.redap import grpc_handler
 from services.redap.depot import Depot
-from tests.services.redap.conftest import Redap
+from tests.services.redap.client import Redap
 from tests.services.retention.conftest import Node
 
 MAX_MESSAGE = 256 * 1024 * 1024

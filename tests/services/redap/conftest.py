@@ -1,96 +1,65 @@
-"""Shared pieces of the catalog-server tests: a small client of the protocol (our generated stubs,
-with Rerun's headers), the reference `rerun server` serving the same files, and a depot holding
-runs logged with the real SDK."""
+"""Shared pieces of the catalog-server tests: Rerun's own `rerun server` on given recordings, and the
+depot's scenes (depots.SCENES) served by `fleet serve` and by Rerun's server alike, once per test
+session for the tests that only read them."""
 
 from __future__ import annotations
 
-import shutil
-from collections.abc import Iterator
-from dataclasses import dataclass, field
+import itertools
+from collections.abc import Callable, Iterator
+from contextlib import ExitStack
 from pathlib import Path
-from typing import Any
 
-import grpc
 import pytest
 
-from services.redap.pb import cloud_pb2, cloud_pb2_grpc
+from tests.services.ingest.live_server import LiveServer
+from tests.services.redap.client import Redap, reference_serving
+from tests.services.redap.depots import SCENES, reference_datasets, serving
 from tests.services.rrd.recordings import Recording
-from tests.subprocess_server import ServerProcess, free_port
-from tests.viewer import native_rerun
 
-CLIENT_VERSION = "rerun-py/0.41.0"
-
-
-def grpc_answers(port: int) -> bool:
-    """The server answers gRPC: a Version call returns (any status but UNAVAILABLE)."""
-    with grpc.insecure_channel(f"127.0.0.1:{port}") as channel:
-        try:
-            cloud_pb2_grpc.RerunCloudServiceStub(channel).Version(cloud_pb2.VersionRequest(), timeout=1)
-        except grpc.RpcError as exc:
-            return bool(exc.code() != grpc.StatusCode.UNAVAILABLE)
-    return True
-
-
-@dataclass
-class Redap:
-    """A client of a catalog server on `port`: every call carries Rerun's client-version header, the
-    token if given, and `x-rerun-entry-id` when `entry` is given."""
-
-    port: int
-    token: str | None = None
-    client_version: str = CLIENT_VERSION
-    channel: grpc.Channel = field(init=False)
-
-    def __post_init__(self) -> None:
-        self.channel = grpc.insecure_channel(f"127.0.0.1:{self.port}")
-        self.stub = cloud_pb2_grpc.RerunCloudServiceStub(self.channel)
-
-    def metadata(self, entry: str | None = None) -> list[tuple[str, str]]:
-        md = [("x-rerun-client-version", self.client_version)]
-        if self.token:
-            md.append(("authorization", f"Bearer {self.token}"))
-        if entry is not None:
-            md.append(("x-rerun-entry-id", entry))
-        return md
-
-    def call(self, rpc: str, request: Any, entry: str | None = None, timeout: float = 30) -> Any:
-        """A unary call's response, or a list of a streaming call's responses."""
-        answer = getattr(self.stub, rpc)(request, metadata=self.metadata(entry), timeout=timeout)
-        return answer if hasattr(answer, "SerializeToString") else list(answer)
-
-    def close(self) -> None:
-        self.channel.close()
+ReferenceServer = Callable[[dict[str, list[Recording]]], Redap]
 
 
 @pytest.fixture
-def reference_server(rerun_bin: str, tmp_path: Path) -> Iterator[Any]:
+def reference_server(rerun_bin: str, tmp_path: Path) -> Iterator[ReferenceServer]:
     """Start Rerun's own `rerun server -d NAME=DIR` on the given recordings (a dataset per name);
     returns a `Redap` client of it. Stopped at the end of the test."""
-    started: list[ServerProcess] = []
-    clients: list[Redap] = []
+    numbers = itertools.count()
+    with ExitStack() as started:
 
-    def start(datasets: dict[str, list[Recording]]) -> Redap:
-        args = []
-        for name, recordings in datasets.items():
-            folder = tmp_path / f"reference-{name}"
-            folder.mkdir()
-            for rec in recordings:
-                shutil.copy(rec.path, folder / Path(rec.path).name)
-            args += ["-d", f"{name}={folder}"]
-        port = free_port()
-        server = ServerProcess(
-            [native_rerun(rerun_bin), "server", "--host", "127.0.0.1", "-p", str(port), *args],
-            log=tmp_path / "reference-server.log",
-            ready=lambda: grpc_answers(port),
-            name="rerun server",
-        )
-        server.start(timeout=60)
-        started.append(server)
-        clients.append(Redap(port))
-        return clients[-1]
+        def start(datasets: dict[str, list[Recording]]) -> Redap:
+            folder = tmp_path / f"reference-{next(numbers)}"
+            files = {name: [rec.path for rec in recs] for name, recs in datasets.items()}
+            return started.enter_context(reference_serving(rerun_bin, folder, files))
 
-    yield start
-    for client in clients:
-        client.close()
-    for server in started:
-        server.stop()
+        yield start
+
+
+@pytest.fixture(scope="session")
+def scenes(recordings: dict[str, Recording]) -> dict[str, Recording]:
+    """The scenes a depot of these tests holds, from the session's recordings."""
+    return {name: recordings[name] for name in SCENES}
+
+
+@pytest.fixture(scope="session")
+def served(scenes: dict[str, Recording], tmp_path_factory: pytest.TempPathFactory) -> Iterator[LiveServer]:
+    """`fleet serve` holding the scenes (depots.serving); tests only read it."""
+    with serving(scenes, tmp_path_factory.mktemp("redap-depot") / "data") as server:
+        yield server
+
+
+@pytest.fixture
+def served_client(served: LiveServer) -> Iterator[Redap]:
+    client = Redap(served.grpc_port)
+    yield client
+    client.close()
+
+
+@pytest.fixture(scope="session")
+def scenes_reference(
+    rerun_bin: str, scenes: dict[str, Recording], tmp_path_factory: pytest.TempPathFactory
+) -> Iterator[Redap]:
+    """Rerun's own server on the same scenes, a dataset per application id; tests only read it."""
+    folder = tmp_path_factory.mktemp("redap-reference")
+    files = {name: [rec.path for rec in recs] for name, recs in reference_datasets(scenes).items()}
+    with reference_serving(rerun_bin, folder, files) as client:
+        yield client

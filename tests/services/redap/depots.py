@@ -24,7 +24,7 @@ from services.settings import load_settings
 from tests.catalog.records import run_record
 from tests.services.ingest.live_server import LiveServer
 from tests.services.nodes import node_of
-from tests.services.redap.conftest import Redap
+from tests.services.redap.client import Redap
 from tests.services.rrd.recordings import Recording
 
 NOW = dt.datetime(2026, 11, 21, 12, 0, tzinfo=dt.UTC)

@@ -4,8 +4,8 @@ builders, and Rerun's own dataframe reader as the oracle of what a set of chunks
 
 from __future__ import annotations
 
-import shutil
 from collections.abc import Iterator
+from contextlib import ExitStack
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -23,11 +23,10 @@ from services.rrd import ArrowMessage, StoreInfoMessage, iter_events
 from services.rrd.encoder import RrdEncoder
 from services.rrd.messages import StreamStart
 from services.rrd.pb import common_pb2
-from tests.services.redap.conftest import Redap, grpc_answers
-from tests.services.redap.serving import CatalogServerThread, DepotNode, build_node, rerun_executable
-from tests.services.rrd.recordings import generate_scenes
+from tests.services.redap.client import Redap, reference_serving
+from tests.services.redap.serving import CatalogServerThread, DepotNode, build_node
+from tests.services.rrd.recordings import Recording
 from tests.services.runs.latest_at_scenes import log_scene
-from tests.subprocess_server import ServerProcess, free_port
 
 SCENES = ("points", "scalars", "static", "properties", "transforms", "merge_a", "merge_b")
 # dataset (application id) -> its recordings; the latest-at scene logged twice, chunked two ways
@@ -102,31 +101,15 @@ class Servers:
 
 
 @pytest.fixture(scope="module", name="recordings")
-def recordings_fixture(tmp_path_factory: pytest.TempPathFactory, rerun_bin: str) -> dict[str, Path]:
+def recordings_fixture(
+    recordings: dict[str, Recording], tmp_path_factory: pytest.TempPathFactory, rerun_bin: str
+) -> dict[str, Path]:
+    """The session's scenes that the query tests read, and two chunkings of one more scene."""
     folder = tmp_path_factory.mktemp("query-recordings")
-    files = {name: rec.path for name, rec in generate_scenes(SCENES, folder).items()}
+    files = {name: recordings[name].path for name in SCENES}
     for chunking in ("per_call", "batched"):
         files[chunking] = log_scene(chunking, folder / f"{chunking}.rrd", rerun_bin)
     return files
-
-
-def _start_reference(rerun_bin: str, root: Path, datasets: dict[str, list[Path]]) -> tuple[ServerProcess, Redap]:
-    args = []
-    for name, files in datasets.items():
-        folder = root / f"reference-{name}"
-        folder.mkdir()
-        for path in files:
-            shutil.copy(path, folder / path.name)
-        args += ["-d", f"{name}={folder}"]
-    port = free_port()
-    server = ServerProcess(
-        [rerun_executable(rerun_bin), "server", "--host", "127.0.0.1", "-p", str(port), *args],
-        log=root / "reference-server.log",
-        ready=lambda: grpc_answers(port),
-        name="rerun server",
-    )
-    server.start(timeout=60)
-    return server, Redap(port)
 
 
 @pytest.fixture(scope="module", name="servers")
@@ -134,30 +117,26 @@ def servers_fixture(
     recordings: dict[str, Path], rerun_bin: str, tmp_path_factory: pytest.TempPathFactory
 ) -> Iterator[Servers]:
     root = tmp_path_factory.mktemp("query-servers")
-    node = build_node(root / "node")
-    for files in DATASETS.values():
-        for name in files:
-            node.upload(recordings[name])
-    node.seal_all()
-    ours = CatalogServerThread(node.depot).start()
-    # the reference also serves each run of a multi-run dataset alone, for its per-run schema
-    single = {f"one-{name}": [recordings[name]] for name in ("merge_a", "merge_b", "per_call", "batched")}
-    reference, reference_client = _start_reference(
-        rerun_bin, root, {**{k: [recordings[n] for n in v] for k, v in DATASETS.items()}, **single}
-    )
-    found = reference_client.call("FindEntries", cloud_pb2.FindEntriesRequest(filter=cloud_pb2.EntryFilter()))
-    reference_ids = {e.name: str(Tuid.from_proto(e.id.id)) for e in found.entries}
-    with session_scope(node.catalog) as session:
-        our_ids = {d.name: d.entry_id for d in queries.datasets(session)}
-    client = Redap(ours.port)
-    try:
+    with ExitStack() as stack:
+        node = build_node(root / "node")
+        stack.callback(node.close)
+        for files in DATASETS.values():
+            for name in files:
+                node.upload(recordings[name])
+        node.seal_all()
+        ours = CatalogServerThread(node.depot).start()
+        stack.callback(ours.stop)
+        # the reference also serves each run of a multi-run dataset alone, for its per-run schema
+        single = {f"one-{name}": [recordings[name]] for name in ("merge_a", "merge_b", "per_call", "batched")}
+        datasets = {**{k: [recordings[n] for n in v] for k, v in DATASETS.items()}, **single}
+        reference_client = stack.enter_context(reference_serving(rerun_bin, root, datasets))
+        found = reference_client.call("FindEntries", cloud_pb2.FindEntriesRequest(filter=cloud_pb2.EntryFilter()))
+        reference_ids = {e.name: str(Tuid.from_proto(e.id.id)) for e in found.entries}
+        with session_scope(node.catalog) as session:
+            our_ids = {d.name: d.entry_id for d in queries.datasets(session)}
+        client = Redap(ours.port)
+        stack.callback(client.close)
         yield Servers(client, reference_client, our_ids, reference_ids, recordings, node)
-    finally:
-        client.close()
-        reference_client.close()
-        reference.stop()
-        ours.stop()
-        node.close()
 
 
 # --- the oracle ---------------------------------------------------------------------------------

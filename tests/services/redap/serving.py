@@ -31,17 +31,6 @@ from tests.subprocess_server import free_port
 PROMOTE_AFTER = dt.timedelta(minutes=10)
 
 
-def rerun_executable(rerun_bin: str) -> str:
-    """The `rerun` binary itself: the venv's `rerun` is a Python script that runs it as a child,
-    and stopping the script would leave the child (a `rerun server`) running."""
-    try:
-        import rerun_cli  # type: ignore[import-untyped]
-    except ImportError:
-        return rerun_bin
-    binary = Path(rerun_cli.__file__).with_name("rerun")
-    return str(binary) if binary.is_file() else rerun_bin
-
-
 @dataclass
 class DepotNode:
     catalog: sessionmaker[Session]

@@ -14,7 +14,7 @@ from services.redap.depot import Depot
 from services.redap.pb import cloud_pb2
 from tests.services.nodes import node_of
 from tests.services.redap.catalog_node import CatalogGrpc
-from tests.services.redap.conftest import Redap
+from tests.services.redap.client import Redap
 from tests.services.redap.depots import status_of
 from tests.subprocess_server import free_port
 

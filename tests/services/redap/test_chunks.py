@@ -29,7 +29,7 @@ from services.rrd.pb import common_pb2
 from services.sealed.tiers import Tiers
 from services.sealed.write import RECORDING
 from tests.services.redap.catalog_node import BigRedap, catalog_server, count_reads, entry_of
-from tests.services.redap.conftest import Redap
+from tests.services.redap.client import Redap
 from tests.services.retention import conftest as retention
 from tests.services.retention.conftest import Node, NodeFactory
 from tests.services.rrd.recordings import Recording

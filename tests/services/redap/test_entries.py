@@ -11,7 +11,6 @@ import re
 import subprocess
 from collections.abc import Iterator
 from dataclasses import dataclass
-from typing import Any
 
 import grpc
 import pyarrow as pa
@@ -28,22 +27,20 @@ from services.redap.pb import cloud_pb2
 from services.redap.tuid import Tuid
 from services.rrd.pb import common_pb2
 from tests.services.ingest.live_server import FLEET, LiveServer
-from tests.services.redap.conftest import Redap
+from tests.services.redap.client import Redap
 from tests.services.redap.depots import (
     NOW,
-    SCENES,
     catalog_depot,
     dataset_ids,
     entry_of,
     record,
-    reference_datasets,
     rerun_own,
     save,
     serving,
     status_of,
     table_ids,
 )
-from tests.services.rrd.recordings import Recording, generate_scenes
+from tests.services.rrd.recordings import Recording
 
 K = cloud_pb2
 READER = Principal("alice", frozenset({Scope.READ}), token_id="t1")
@@ -273,118 +270,93 @@ def _ns_as_int(schema: pa.Schema) -> pa.Schema:
 # --- compared with Rerun's own server, and Rerun's own SDK -----------------------------------
 
 
-@pytest.fixture(scope="module")
-def scenes(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Recording]:
-    return generate_scenes(SCENES, tmp_path_factory.mktemp("redap-scenes"))
+@pytest.mark.sdk
+def test_entries_answer_as_rerun_server_does(served_client: Redap, scenes_reference: Redap):
+    clients = {"reference": scenes_reference, "ours": served_client}
+    viewer_filter = K.EntryFilter(entry_kinds=VIEWER_KINDS)
+    listed = {}
+    for side, client in clients.items():
+        found = client.call("FindEntries", K.FindEntriesRequest(filter=viewer_filter)).entries
+        listed[side] = {e.name: e.entry_kind for e in found if not rerun_own(e.name)}
+    assert (
+        listed["ours"]
+        == listed["reference"]
+        == {
+            "__entries": K.ENTRY_KIND_TABLE,
+            "fleet_points": K.ENTRY_KIND_DATASET,
+            "fleet_props": K.ENTRY_KIND_DATASET,
+            "fleet_merge": K.ENTRY_KIND_DATASET,
+        }
+    )
 
+    tables = {side: table_ids(client)["__entries"] for side, client in clients.items()}
+    read = {s: c.call("ReadTableEntry", K.ReadTableEntryRequest(), entry=tables[s]).table for s, c in clients.items()}
+    assert read["ours"].provider_details == read["reference"].provider_details
+    assert read["ours"].details.entry_kind == read["reference"].details.entry_kind
+    assert read["ours"].HasField("table_details") and read["reference"].HasField("table_details")
 
-@pytest.fixture(scope="module")
-def served(scenes: dict[str, Recording], tmp_path_factory: pytest.TempPathFactory) -> Iterator[LiveServer]:
-    with serving(scenes, tmp_path_factory.mktemp("redap-depot") / "data") as server:
-        yield server
+    schemas = {}
+    for side, client in clients.items():
+        answer = client.call("GetTableSchema", K.GetTableSchemaRequest(), entry=tables[side])
+        schemas[side] = pa.ipc.read_schema(pa.py_buffer(answer.schema.arrow_schema))
+    assert schemas["ours"].equals(schemas["reference"], check_metadata=True)
+    for side, client in clients.items():
+        parts = client.call("ScanTable", K.ScanTableRequest(), entry=tables[side])
+        rows = pa.Table.from_batches([b for p in parts for b in read_dataframe_part(p.dataframe_part).to_batches()])
+        assert rows.schema.equals(schemas["reference"], check_metadata=True), side
+        kinds = dict(zip(rows.column("name").to_pylist(), rows.column("entry_kind").to_pylist(), strict=True))
+        assert {n: k for n, k in kinds.items() if not rerun_own(n)} == listed["reference"], side
+
+    for name in ("fleet_points", "fleet_props", "fleet_merge"):
+        got = {}
+        for side, client in clients.items():
+            entry = dataset_ids(client)[name]
+            got[side] = client.call("ReadDatasetEntry", K.ReadDatasetEntryRequest(), entry=entry).dataset
+            assert got[side].HasField("dataset_details"), side
+            assert got[side].dataset_handle.HasField("dataset_url"), side
+        assert got["ours"].details.entry_kind == got["reference"].details.entry_kind
+        assert got["ours"].dataset_handle.dataset_kind == got["reference"].dataset_handle.dataset_kind
+        assert got["ours"].dataset_handle.store_kind == got["reference"].dataset_handle.store_kind
+
+    capabilities = {s: set(c.call("WhoAmI", K.WhoAmIRequest()).capabilities.capabilities) for s, c in clients.items()}
+    assert capabilities["ours"] <= capabilities["reference"]
 
 
 @pytest.mark.sdk
-def test_entries_answer_as_rerun_server_does(served: LiveServer, scenes: dict[str, Recording], reference_server: Any):
-    clients = {"reference": reference_server(reference_datasets(scenes)), "ours": Redap(served.grpc_port)}
-    try:
-        viewer_filter = K.EntryFilter(entry_kinds=VIEWER_KINDS)
-        listed = {}
-        for side, client in clients.items():
-            found = client.call("FindEntries", K.FindEntriesRequest(filter=viewer_filter)).entries
-            listed[side] = {e.name: e.entry_kind for e in found if not rerun_own(e.name)}
-        assert (
-            listed["ours"]
-            == listed["reference"]
-            == {
-                "__entries": K.ENTRY_KIND_TABLE,
-                "fleet_points": K.ENTRY_KIND_DATASET,
-                "fleet_props": K.ENTRY_KIND_DATASET,
-                "fleet_merge": K.ENTRY_KIND_DATASET,
-            }
-        )
-
-        tables = {side: table_ids(client)["__entries"] for side, client in clients.items()}
-        read = {
-            s: c.call("ReadTableEntry", K.ReadTableEntryRequest(), entry=tables[s]).table for s, c in clients.items()
+def test_refusals_have_rerun_servers_status_codes(served_client: Redap, scenes_reference: Redap):
+    for client in (scenes_reference, served_client):
+        table, dataset = table_ids(client)["__entries"], dataset_ids(client)["fleet_props"]
+        body = Tuid.parse(table).entry_id()
+        unspecified = K.EntryFilter(entry_kinds=[K.ENTRY_KIND_UNSPECIFIED])
+        calls: dict[str, tuple[str, object, str | None]] = {
+            "unspecified kind": ("FindEntries", K.FindEntriesRequest(filter=unspecified), None),
+            "legacy unspecified kind": (
+                "FindEntries",
+                K.FindEntriesRequest(filter=K.EntryFilter(entry_kind=K.ENTRY_KIND_UNSPECIFIED)),
+                None,
+            ),
+            "table named by neither": ("ReadTableEntry", K.ReadTableEntryRequest(), None),
+            "header and body disagree": (
+                "ScanTable",
+                K.ScanTableRequest(table_id=Tuid.parse(dataset).entry_id()),
+                table,
+            ),
+            "a dataset read as a table": ("ReadTableEntry", K.ReadTableEntryRequest(), dataset),
+            "an unknown dataset": ("ReadDatasetEntry", K.ReadDatasetEntryRequest(), str(Tuid(1, 2))),
+            "a malformed entry id": ("ReadDatasetEntry", K.ReadDatasetEntryRequest(), "xyz"),
+            "the table by its body (old clients)": ("GetTableSchema", K.GetTableSchemaRequest(table_id=body), None),
         }
-        assert read["ours"].provider_details == read["reference"].provider_details
-        assert read["ours"].details.entry_kind == read["reference"].details.entry_kind
-        assert read["ours"].HasField("table_details") and read["reference"].HasField("table_details")
-
-        schemas = {}
-        for side, client in clients.items():
-            answer = client.call("GetTableSchema", K.GetTableSchemaRequest(), entry=tables[side])
-            schemas[side] = pa.ipc.read_schema(pa.py_buffer(answer.schema.arrow_schema))
-        assert schemas["ours"].equals(schemas["reference"], check_metadata=True)
-        for side, client in clients.items():
-            parts = client.call("ScanTable", K.ScanTableRequest(), entry=tables[side])
-            rows = pa.Table.from_batches([b for p in parts for b in read_dataframe_part(p.dataframe_part).to_batches()])
-            assert rows.schema.equals(schemas["reference"], check_metadata=True), side
-            kinds = dict(zip(rows.column("name").to_pylist(), rows.column("entry_kind").to_pylist(), strict=True))
-            assert {n: k for n, k in kinds.items() if not rerun_own(n)} == listed["reference"], side
-
-        for name in ("fleet_points", "fleet_props", "fleet_merge"):
-            got = {}
-            for side, client in clients.items():
-                entry = dataset_ids(client)[name]
-                got[side] = client.call("ReadDatasetEntry", K.ReadDatasetEntryRequest(), entry=entry).dataset
-                assert got[side].HasField("dataset_details"), side
-                assert got[side].dataset_handle.HasField("dataset_url"), side
-            assert got["ours"].details.entry_kind == got["reference"].details.entry_kind
-            assert got["ours"].dataset_handle.dataset_kind == got["reference"].dataset_handle.dataset_kind
-            assert got["ours"].dataset_handle.store_kind == got["reference"].dataset_handle.store_kind
-
-        capabilities = {
-            s: set(c.call("WhoAmI", K.WhoAmIRequest()).capabilities.capabilities) for s, c in clients.items()
-        }
-        assert capabilities["ours"] <= capabilities["reference"]
-    finally:
-        clients["ours"].close()
-
-
-@pytest.mark.sdk
-def test_refusals_have_rerun_servers_status_codes(
-    served: LiveServer, scenes: dict[str, Recording], reference_server: Any
-):
-    reference = reference_server(reference_datasets(scenes))
-    ours = Redap(served.grpc_port)
-    try:
-        for client in (reference, ours):
-            table, dataset = table_ids(client)["__entries"], dataset_ids(client)["fleet_props"]
-            body = Tuid.parse(table).entry_id()
-            unspecified = K.EntryFilter(entry_kinds=[K.ENTRY_KIND_UNSPECIFIED])
-            calls: dict[str, tuple[str, object, str | None]] = {
-                "unspecified kind": ("FindEntries", K.FindEntriesRequest(filter=unspecified), None),
-                "legacy unspecified kind": (
-                    "FindEntries",
-                    K.FindEntriesRequest(filter=K.EntryFilter(entry_kind=K.ENTRY_KIND_UNSPECIFIED)),
-                    None,
-                ),
-                "table named by neither": ("ReadTableEntry", K.ReadTableEntryRequest(), None),
-                "header and body disagree": (
-                    "ScanTable",
-                    K.ScanTableRequest(table_id=Tuid.parse(dataset).entry_id()),
-                    table,
-                ),
-                "a dataset read as a table": ("ReadTableEntry", K.ReadTableEntryRequest(), dataset),
-                "an unknown dataset": ("ReadDatasetEntry", K.ReadDatasetEntryRequest(), str(Tuid(1, 2))),
-                "a malformed entry id": ("ReadDatasetEntry", K.ReadDatasetEntryRequest(), "xyz"),
-                "the table by its body (old clients)": ("GetTableSchema", K.GetTableSchemaRequest(table_id=body), None),
-            }
-            codes = {what: status_of(client, *call) for what, call in calls.items()}
-            assert codes == {
-                "unspecified kind": grpc.StatusCode.INVALID_ARGUMENT,
-                "legacy unspecified kind": grpc.StatusCode.INVALID_ARGUMENT,
-                "table named by neither": grpc.StatusCode.INVALID_ARGUMENT,
-                "header and body disagree": grpc.StatusCode.INVALID_ARGUMENT,
-                "a dataset read as a table": grpc.StatusCode.NOT_FOUND,
-                "an unknown dataset": grpc.StatusCode.NOT_FOUND,
-                "a malformed entry id": grpc.StatusCode.INVALID_ARGUMENT,
-                "the table by its body (old clients)": grpc.StatusCode.OK,
-            }, client
-    finally:
-        ours.close()
+        codes = {what: status_of(client, *call) for what, call in calls.items()}
+        assert codes == {
+            "unspecified kind": grpc.StatusCode.INVALID_ARGUMENT,
+            "legacy unspecified kind": grpc.StatusCode.INVALID_ARGUMENT,
+            "table named by neither": grpc.StatusCode.INVALID_ARGUMENT,
+            "header and body disagree": grpc.StatusCode.INVALID_ARGUMENT,
+            "a dataset read as a table": grpc.StatusCode.NOT_FOUND,
+            "an unknown dataset": grpc.StatusCode.NOT_FOUND,
+            "a malformed entry id": grpc.StatusCode.INVALID_ARGUMENT,
+            "the table by its body (old clients)": grpc.StatusCode.OK,
+        }, client
 
 
 @dataclass(frozen=True)

@@ -29,10 +29,10 @@ from services.rrd.manifest import read_manifest
 from services.rrd.pb import common_pb2, log_msg_pb2, sdk_comms_pb2
 from tests.postgres import temporary_database
 from tests.services.ingest.live_server import LiveServer
-from tests.services.redap.conftest import Redap
+from tests.services.redap.client import Redap
 from tests.services.redap.depots import dataset_ids
 from tests.services.rrd import hostile
-from tests.services.rrd.ipc_damage import damaged
+from tests.services.rrd.ipc_damage import damaged, fully_valid
 from tests.services.rrd.synthetic import APPLICATION, recording_bytes
 from tests.subprocess_server import free_port
 
@@ -181,14 +181,6 @@ def relay(target: Target, run_id: str, payload: bytes, compressed: bool, declare
         except grpc.RpcError as exc:
             return exc.code(), exc.details() or ""  # type: ignore[attr-defined]
     return Code.OK, ""
-
-
-def fully_valid(ipc: bytes) -> bool:
-    try:
-        pa.ipc.open_stream(ipc).read_all().validate(full=True)
-    except (pa.ArrowException, ValueError):
-        return False
-    return True
 
 
 @pytest.mark.timeout(600)

@@ -26,7 +26,7 @@ from services.redap.pb import cloud_pb2
 from services.redap.tuid import Tuid
 from services.retention.service import ARCHIVE, plan, run_plan
 from services.rrd.pb import common_pb2, log_msg_pb2
-from tests.services.redap.conftest import Redap
+from tests.services.redap.client import Redap
 from tests.services.redap.golden import (  # noqa: F401 - the two *_fixture are fixtures of this module
     ALL,
     EVERYTHING,

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import functools
 import os
-import shutil
 import subprocess
 import sys
 from collections.abc import Callable, Iterator
@@ -25,9 +24,7 @@ import pytest
 
 from tests.compat.sdk_venvs import sdk_bin
 from tests.services.ingest.live_server import LiveServer
-from tests.services.redap.conftest import grpc_answers
-from tests.services.redap.serving import rerun_executable
-from tests.subprocess_server import ServerProcess, free_port
+from tests.services.redap.client import reference_serving
 
 pytestmark = pytest.mark.sdk
 
@@ -72,20 +69,8 @@ def reference_url(
 ) -> Iterator[str]:
     """Rerun's own server on the robot's files."""
     folder = tmp_path_factory.mktemp("reference-dataset")
-    for path in robot_files.values():
-        shutil.copy(path, folder / path.name)
-    port = free_port()
-    server = ServerProcess(
-        [rerun_executable(rerun_bin), "server", "--host", "127.0.0.1", "-p", str(port), "-d", f"{DATASET}={folder}"],
-        log=folder.parent / "reference-server.log",
-        ready=lambda: grpc_answers(port),
-        name="rerun server",
-    )
-    server.start(timeout=60)
-    try:
-        yield f"rerun+http://127.0.0.1:{port}"
-    finally:
-        server.stop()
+    with reference_serving(rerun_bin, folder, {DATASET: robot_files.values()}) as client:
+        yield f"rerun+http://127.0.0.1:{client.port}"
 
 
 @pytest.fixture(scope="module")

@@ -23,20 +23,16 @@ from services.redap.depot import Depot
 from services.redap.pb import cloud_pb2
 from services.redap.tuid import Tuid
 from tests.services.ingest.live_server import LiveServer
-from tests.services.redap.conftest import Redap
+from tests.services.redap.client import Redap
 from tests.services.redap.depots import (
     NOW,
-    SCENES,
     catalog_depot,
     dataset_ids,
     entry_of,
     record,
-    reference_datasets,
     save,
-    serving,
     status_of,
 )
-from tests.services.rrd.recordings import Recording, generate_scenes
 
 K = cloud_pb2
 READER = Principal("alice", frozenset({Scope.READ}), token_id="t1")
@@ -364,17 +360,6 @@ REFERENCE_ONLY = {"property:fleet:token"}
 OWN_VALUES = {"rerun_storage_urls", "rerun_last_updated_at", "rerun_size_bytes"}
 
 
-@pytest.fixture(scope="module")
-def scenes(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Recording]:
-    return generate_scenes(SCENES, tmp_path_factory.mktemp("segment-scenes"))
-
-
-@pytest.fixture(scope="module")
-def served(scenes: dict[str, Recording], tmp_path_factory: pytest.TempPathFactory) -> Iterator[LiveServer]:
-    with serving(scenes, tmp_path_factory.mktemp("segment-depot") / "data") as server:
-        yield server
-
-
 def remote_schema(client: Redap, entry: str) -> pa.Schema:
     answer = client.call("GetSegmentTableSchema", K.GetSegmentTableSchemaRequest(), entry=entry)
     return pa.ipc.read_schema(pa.py_buffer(answer.schema.arrow_schema))
@@ -390,60 +375,48 @@ def fields(schema: pa.Schema, leave_out: set[str]) -> dict[str, pa.Field]:
 
 
 @pytest.mark.sdk
-def test_segment_tables_match_rerun_servers_for_the_same_files(
-    served: LiveServer, scenes: dict[str, Recording], reference_server: Any
-):
-    reference = reference_server(reference_datasets(scenes))
-    ours = Redap(served.grpc_port)
-    try:
-        ids = {"reference": dataset_ids(reference), "ours": dataset_ids(ours)}
-        for name in ("fleet_points", "fleet_props", "fleet_merge"):
-            theirs_schema = remote_schema(reference, ids["reference"][name])
-            our_schema = remote_schema(ours, ids["ours"][name])
-            assert list(our_schema)[: len(FIXED)] == list(theirs_schema)[: len(FIXED)] == FIXED
-            theirs, mine = fields(theirs_schema, REFERENCE_ONLY), fields(our_schema, OURS_ONLY)
-            assert mine.keys() == theirs.keys(), name
-            for column, field in theirs.items():  # type, nullability and every rerun:* metadata entry
-                assert mine[column].equals(field, check_metadata=True), (name, mine[column], field)
-            assert set(our_schema.names) >= OURS_ONLY
+def test_segment_tables_match_rerun_servers_for_the_same_files(served_client: Redap, scenes_reference: Redap):
+    ours, reference = served_client, scenes_reference
+    ids = {"reference": dataset_ids(reference), "ours": dataset_ids(ours)}
+    for name in ("fleet_points", "fleet_props", "fleet_merge"):
+        theirs_schema = remote_schema(reference, ids["reference"][name])
+        our_schema = remote_schema(ours, ids["ours"][name])
+        assert list(our_schema)[: len(FIXED)] == list(theirs_schema)[: len(FIXED)] == FIXED
+        theirs, mine = fields(theirs_schema, REFERENCE_ONLY), fields(our_schema, OURS_ONLY)
+        assert mine.keys() == theirs.keys(), name
+        for column, field in theirs.items():  # type, nullability and every rerun:* metadata entry
+            assert mine[column].equals(field, check_metadata=True), (name, mine[column], field)
+        assert set(our_schema.names) >= OURS_ONLY
 
-            their_rows = rows(remote_scan(reference, ids["reference"][name]))
-            our_rows = rows(remote_scan(ours, ids["ours"][name]))
-            assert our_rows.keys() == their_rows.keys(), name
-            for segment, row in their_rows.items():
-                same = set(theirs) - OWN_VALUES
-                assert {c: our_rows[segment][c] for c in same} == {c: row[c] for c in same}, (name, segment)
-    finally:
-        ours.close()
+        their_rows = rows(remote_scan(reference, ids["reference"][name]))
+        our_rows = rows(remote_scan(ours, ids["ours"][name]))
+        assert our_rows.keys() == their_rows.keys(), name
+        for segment, row in their_rows.items():
+            same = set(theirs) - OWN_VALUES
+            assert {c: our_rows[segment][c] for c in same} == {c: row[c] for c in same}, (name, segment)
 
 
 @pytest.mark.sdk
-def test_projection_and_filters_answer_as_rerun_servers_do(
-    served: LiveServer, scenes: dict[str, Recording], reference_server: Any
-):
-    reference = reference_server(reference_datasets(scenes))
-    ours = Redap(served.grpc_port)
-    try:
-        for client in (reference, ours):
-            entry = dataset_ids(client)["fleet_merge"]
-            asked = ["rerun_num_chunks", "tick:end", "rerun_segment_id"]
-            projected = remote_scan(client, entry, columns=asked)
-            assert projected.column_names == asked
-            assert sorted(projected.column("rerun_segment_id").to_pylist()) == ["rec-merge-a", "rec-merge-b"]
-            only = K.SegmentIdFilter(scan_only=K.SegmentIdList(segment_ids=["rec-merge-b"]))
-            kept = remote_scan(client, entry, columns=["rerun_segment_id"], segment_id_filter=only)
-            assert kept.column("rerun_segment_id").to_pylist() == ["rec-merge-b"]
-            skip = K.SegmentIdFilter(skip=K.SegmentIdList(segment_ids=["rec-merge-b"]))
-            assert remote_scan(client, entry, segment_id_filter=skip).column("rerun_segment_id").to_pylist() == [
-                "rec-merge-a"
-            ]
-            none = K.SegmentIdFilter(scan_only=K.SegmentIdList())
-            assert remote_scan(client, entry, columns=["rerun_segment_id"], segment_id_filter=none).num_rows == 0
-            for columns in (["rerun_segment_id", "nope"], ["rerun_segment_id", "rerun_segment_id"]):
-                request = K.ScanSegmentTableRequest(columns=columns)
-                assert status_of(client, "ScanSegmentTable", request, entry) == grpc.StatusCode.INVALID_ARGUMENT
-    finally:
-        ours.close()
+def test_projection_and_filters_answer_as_rerun_servers_do(served_client: Redap, scenes_reference: Redap):
+    ours, reference = served_client, scenes_reference
+    for client in (reference, ours):
+        entry = dataset_ids(client)["fleet_merge"]
+        asked = ["rerun_num_chunks", "tick:end", "rerun_segment_id"]
+        projected = remote_scan(client, entry, columns=asked)
+        assert projected.column_names == asked
+        assert sorted(projected.column("rerun_segment_id").to_pylist()) == ["rec-merge-a", "rec-merge-b"]
+        only = K.SegmentIdFilter(scan_only=K.SegmentIdList(segment_ids=["rec-merge-b"]))
+        kept = remote_scan(client, entry, columns=["rerun_segment_id"], segment_id_filter=only)
+        assert kept.column("rerun_segment_id").to_pylist() == ["rec-merge-b"]
+        skip = K.SegmentIdFilter(skip=K.SegmentIdList(segment_ids=["rec-merge-b"]))
+        assert remote_scan(client, entry, segment_id_filter=skip).column("rerun_segment_id").to_pylist() == [
+            "rec-merge-a"
+        ]
+        none = K.SegmentIdFilter(scan_only=K.SegmentIdList())
+        assert remote_scan(client, entry, columns=["rerun_segment_id"], segment_id_filter=none).num_rows == 0
+        for columns in (["rerun_segment_id", "nope"], ["rerun_segment_id", "rerun_segment_id"]):
+            request = K.ScanSegmentTableRequest(columns=columns)
+            assert status_of(client, "ScanSegmentTable", request, entry) == grpc.StatusCode.INVALID_ARGUMENT
 
 
 @pytest.mark.sdk

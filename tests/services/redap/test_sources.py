@@ -6,9 +6,8 @@ from __future__ import annotations
 
 import io
 from collections.abc import Iterator
-from dataclasses import dataclass, field, replace
+from dataclasses import replace
 from pathlib import Path
-from typing import BinaryIO
 
 import pytest
 
@@ -18,44 +17,16 @@ from services.redap import sources
 from services.redap.datasets import dataset_by_entry
 from services.redap.depot import Depot
 from services.redap.tuid import Tuid
-from services.storage.objectstore import ObjectInfo, ObjectStore
 from tests.services.redap.serving import DepotNode, build_node
-from tests.services.rrd.recordings import generate_scenes
+from tests.services.rrd.recordings import Recording
+from tests.services.storage.counting import CountingStore
 
 pytestmark = pytest.mark.sdk
 
 
-@dataclass
-class CountingStore:
-    """A store that counts its ranged reads."""
-
-    inner: ObjectStore
-    reads: list[tuple[str, int, int | None]] = field(default_factory=list)
-    url: str = ""
-
-    def __post_init__(self) -> None:
-        self.url = self.inner.url
-
-    def put(self, key: str, data: bytes | BinaryIO) -> ObjectInfo:
-        return self.inner.put(key, data)
-
-    def get_range(self, key: str, start: int = 0, length: int | None = None) -> bytes:
-        self.reads.append((key, start, length))
-        return self.inner.get_range(key, start, length)
-
-    def head(self, key: str) -> ObjectInfo:
-        return self.inner.head(key)
-
-    def list(self, prefix: str = "") -> Iterator[ObjectInfo]:
-        return self.inner.list(prefix)
-
-    def delete(self, key: str) -> None:
-        self.inner.delete(key)
-
-
 @pytest.fixture(scope="module")
-def points(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    return generate_scenes(("points",), tmp_path_factory.mktemp("sources"))["points"].path
+def points(recordings: dict[str, Recording]) -> Path:
+    return recordings["points"].path
 
 
 @pytest.fixture
@@ -83,13 +54,13 @@ def test_a_sealed_run_is_read_once_then_kept(node: DepotNode, points: Path):
 
     schema = sources.run_schema(depot, source)
     footer_reads = list(counting.reads)
-    assert footer_reads and all(key.endswith("/recording.rrd") for key, _, _ in footer_reads)
-    assert sum(length or 0 for _, _, length in footer_reads) < source.size  # the footer, not the recording
+    assert footer_reads and all(r.key.endswith("/recording.rrd") for r in footer_reads)
+    assert sum(r.length or 0 for r in footer_reads) < source.size  # the footer, not the recording
     assert "/world/points:Points3D:positions" in schema.names
 
     found = sources.run_chunks(depot, source)
     assert len(found.rows) == 7 and all(r.chunk_id in found.uncompressed for r in found.rows)
-    assert any(key.endswith("/chunks.parquet") for key, _, _ in counting.reads)
+    assert any(r.key.endswith("/chunks.parquet") for r in counting.reads)
     before = len(counting.reads)
     assert sources.run_chunks(depot, source) is found and sources.run_schema(depot, source).equals(schema)
     assert len(counting.reads) == before  # kept: nothing read again

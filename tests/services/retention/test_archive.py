@@ -6,7 +6,6 @@ archive/delete steps that fail part way through leaving the run whole."""
 from __future__ import annotations
 
 import datetime as dt
-import subprocess
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -30,6 +29,7 @@ from services.storage.s3 import S3Store
 from tests.seaweedfs import seaweedfs
 from tests.services.ingest import feeding
 from tests.services.retention.conftest import Clock, Node, NodeFactory, listing, log_run
+from tests.services.rrd.recordings import rerun_rrd_ok
 from tests.waiting import wait_for
 
 pytestmark = pytest.mark.sdk
@@ -145,13 +145,7 @@ def _store_cycle(node: Node, logged: dict[str, Path], rerun_bin: str | None = No
     if rerun_bin is not None:
         copy = node.root / "restored.rrd"
         copy.write_bytes(served.content)
-        compare = subprocess.run(
-            [rerun_bin, "rrd", "compare", "--unordered", str(logged[RUN_A]), str(copy)],
-            capture_output=True,
-            text=True,
-            timeout=120,
-        )
-        assert compare.returncode == 0, compare.stderr
+        rerun_rrd_ok(rerun_bin, "compare", "--unordered", logged[RUN_A], copy)
 
     node.clock.advance(days=6)
     assert _planned(node) == []  # still inside restore_days

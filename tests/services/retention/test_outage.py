@@ -3,7 +3,6 @@ stay hot, promotion fails and backs off; once the server is back, promotion catc
 
 from __future__ import annotations
 
-import subprocess
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -14,7 +13,7 @@ import pytest
 
 from tests.seaweedfs import SeaweedFS
 from tests.services.ingest.live_server import LiveServer
-from tests.services.rrd.recordings import Recording
+from tests.services.rrd.recordings import Recording, rerun_rrd_ok
 
 pytestmark = [pytest.mark.s3server, pytest.mark.slow, pytest.mark.sdk]
 
@@ -128,12 +127,5 @@ def test_ingest_goes_on_through_an_s3_outage_and_promotion_catches_up(
         server.stop()
     sources = {recordings[s].recordings[0]["recording_id"]: recordings[s].path for s in SCENES}
     for run_id, out in served.items():
-        verify = subprocess.run([rerun_bin, "rrd", "verify", str(out)], capture_output=True, text=True, timeout=120)
-        assert verify.returncode == 0, verify.stderr
-        compare = subprocess.run(
-            [rerun_bin, "rrd", "compare", "--unordered", str(sources[run_id]), str(out)],
-            capture_output=True,
-            text=True,
-            timeout=120,
-        )
-        assert compare.returncode == 0, f"{run_id}: {compare.stderr}"
+        rerun_rrd_ok(rerun_bin, "verify", out)
+        rerun_rrd_ok(rerun_bin, "compare", "--unordered", sources[run_id], out)

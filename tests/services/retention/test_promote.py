@@ -45,6 +45,7 @@ from services.storage import s3
 from services.storage.objectstore import ObjectInfo, ObjectStore, StorageError, open_store
 from tests.services.ingest import feeding
 from tests.services.retention.conftest import Clock, Node, NodeFactory, listing, log_run
+from tests.services.rrd.recordings import rerun_rrd_ok
 from tests.services.runs import decoded
 
 pytestmark = pytest.mark.sdk
@@ -109,11 +110,6 @@ def catalog_tier(node: Node, run_id: str = RUN) -> str:
         run = queries.get_run(session, run_id)
         assert run is not None
         return run.tier
-
-
-def rerun(rerun_bin: str, *args: str) -> None:
-    done = subprocess.run([rerun_bin, "rrd", *args], capture_output=True, text=True, timeout=120)
-    assert done.returncode == 0, f"rerun rrd {' '.join(args)}: {done.stdout}{done.stderr}"
 
 
 def assert_warm(node: Node, want: set[bytes], run_id: str = RUN) -> tuple[str, bytes, list[IndexRow]]:
@@ -211,8 +207,8 @@ def test_a_closed_run_is_sealed_once_idle_for_promote_after(
     # recording.rrd: one stream with a footer, the run as the SDK wrote it.
     out = tmp_path / "recording.rrd"
     out.write_bytes(recording)
-    rerun(rerun_bin, "verify", str(out))
-    rerun(rerun_bin, "compare", "--unordered", str(sdk_runs.first), str(out))
+    rerun_rrd_ok(rerun_bin, "verify", str(out))
+    rerun_rrd_ok(rerun_bin, "compare", "--unordered", str(sdk_runs.first), str(out))
     events = list(iter_events(io.BytesIO(recording)))
     (end,) = [e for e in events if isinstance(e, EndMessage)]
     assert isinstance(events[-1], StreamFooter) and end.footer is not None
@@ -424,7 +420,7 @@ def test_a_crash_before_the_hot_files_go_is_finished_at_restart(
     _, recording, _ = assert_warm(node, want)
     out = tmp_path / "recording.rrd"
     out.write_bytes(recording)
-    rerun(rerun_bin, "compare", "--unordered", str(sdk_runs.first), str(out))
+    rerun_rrd_ok(rerun_bin, "compare", "--unordered", str(sdk_runs.first), str(out))
 
 
 def test_a_crash_right_after_the_switch_leaves_a_hot_copy_removed_without_sealing_again(
@@ -528,8 +524,8 @@ def test_late_data_is_sealed_in_with_the_rest(
     both.write_bytes(sdk_runs.first.read_bytes() + sdk_runs.later.read_bytes())
     out = tmp_path / "recording.rrd"
     out.write_bytes(recording)
-    rerun(rerun_bin, "verify", str(out))
-    rerun(rerun_bin, "compare", "--unordered", str(both), str(out))
+    rerun_rrd_ok(rerun_bin, "verify", str(out))
+    rerun_rrd_ok(rerun_bin, "compare", "--unordered", str(both), str(out))
     assert served(node, RUN) == recording
 
     assert node.upload(sdk_runs.later).chunks_duplicate == len(later)  # late data is now sealed too

@@ -13,7 +13,8 @@ import pytest
 from services.sealed.write import RUN_JSON
 from tests.services.ingest.live_server import LiveServer
 from tests.services.retention.conftest import log_run
-from tests.services.retention.test_promote import ROBOT, chunk_ids, rerun
+from tests.services.retention.test_promote import ROBOT, chunk_ids
+from tests.services.rrd.recordings import rerun_rrd_ok
 from tests.waiting import wait_for
 
 pytestmark = [pytest.mark.sdk, pytest.mark.slow]
@@ -55,8 +56,8 @@ def test_killed_mid_promotion_again_and_again_then_completed(tmp_path: Path, rer
     assert [e["action"] for e in run["events"]] == ["promote"]
     ids = chunk_ids(out)
     assert len(ids) == len(set(ids)) and set(ids) == set(chunk_ids(original))  # no chunk lost, none twice
-    rerun(rerun_bin, "verify", str(out))
-    rerun(rerun_bin, "compare", "--unordered", str(original), str(out))
+    rerun_rrd_ok(rerun_bin, "verify", str(out))
+    rerun_rrd_ok(rerun_bin, "compare", "--unordered", str(original), str(out))
     # No orphan, not even a half-written temporary file: the store holds what the catalog records.
     assert files(warm) == sorted([o["key"] for o in run["objects"]] + [f"{prefix}/{RUN_JSON}"])
     for obj in run["objects"]:

@@ -27,9 +27,9 @@ from services.sealed.tiers import Tiers, parse_run_json
 from services.sealed.write import RUN_JSON
 from tests.postgres import admin_engine, temporary_database
 from tests.services.ingest.live_server import FLEET, LiveServer
-from tests.services.redap.conftest import Redap
+from tests.services.redap.client import Redap
 from tests.services.retention.conftest import Clock, Node, NodeFactory, log_run
-from tests.services.rrd.recordings import Recording
+from tests.services.rrd.recordings import Recording, rerun_rrd_ok
 
 pytestmark = pytest.mark.sdk
 
@@ -224,13 +224,7 @@ def test_rebuilt_catalog_answers_as_before(
     assert served_after == served_before
     assert {r for r, (status, _) in served_before.items() if status == 409} == COLD
     source = next(recordings[s] for s in SCENES if recordings[s].recordings[0]["recording_id"] == "rec-image")
-    compare = subprocess.run(
-        [rerun_bin, "rrd", "compare", "--unordered", str(source.path), str(restored)],
-        capture_output=True,
-        text=True,
-        timeout=120,
-    )
-    assert compare.returncode == 0, compare.stderr
+    rerun_rrd_ok(rerun_bin, "compare", "--unordered", source.path, restored)
 
 
 # --- datasets: their entry ids are kept in run.json and come back with a rebuild -----------------

@@ -103,6 +103,16 @@ def damaged(draw: st.DrawFn, ipc: bytes) -> bytes:
     return bytes(data)
 
 
+def fully_valid(ipc: bytes) -> bool:
+    """Whether full Arrow validation (what Rerun's reader does) accepts the stream: what a surface
+    that files damaged IPC must hold to."""
+    try:
+        pa.ipc.open_stream(ipc).read_all().validate(full=True)
+    except (pa.ArrowException, ValueError):
+        return False
+    return True
+
+
 def _arrays(array: pa.Array) -> Iterator[pa.Array]:
     """An array and its descendants in IPC order: one field node each."""
     yield array

@@ -133,6 +133,15 @@ def load(scene: str, out_dir: Path) -> Recording:
     return Recording(scene, out_dir / f"{scene}.rrd", truth)
 
 
+def rerun_rrd_ok(rerun_bin: str, *args: str | Path, timeout: float = 120) -> str:
+    """`rerun rrd ARGS...` (compare, verify, ...) succeeds, or the test fails with what it said;
+    what it printed."""
+    done = subprocess.run([rerun_bin, "rrd", *map(str, args)], capture_output=True, text=True, timeout=timeout)
+    said = done.stdout + done.stderr
+    assert done.returncode == 0, f"rerun rrd {' '.join(map(str, args))}: {said[-4000:]}"
+    return said
+
+
 def rerun_rrd(rerun_bin: str, command: str, inputs: list[Recording], out_dir: Path, name: str) -> Recording:
     """`rerun rrd merge|optimize IN... -o OUT`: one stream (with footer) holding every input recording,
     re-encoded by Rerun (`optimize` also compacts chunks of an entity into one)."""

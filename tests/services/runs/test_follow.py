@@ -2,24 +2,16 @@
 
 from __future__ import annotations
 
-import subprocess
 import threading
-from collections.abc import Iterator
 from pathlib import Path
 
 import httpx
 import pytest
 
 from tests.services.ingest.live_server import LiveServer, start_robot
+from tests.services.rrd.recordings import rerun_rrd_ok
 
 pytestmark = pytest.mark.sdk
-
-
-@pytest.fixture
-def server(tmp_path: Path) -> Iterator[LiveServer]:
-    live = LiveServer(tmp_path / "data").start()
-    yield live
-    live.stop()
 
 
 def test_follow_streams_a_live_run_until_it_closes(server: LiveServer, tmp_path: Path, rerun_bin: str):
@@ -54,12 +46,8 @@ def test_follow_streams_a_live_run_until_it_closes(server: LiveServer, tmp_path:
     assert done.wait(60), "the response did not end when the run closed"
     out = tmp_path / "followed.rrd"
     out.write_bytes(bytes(received))
-    verify = subprocess.run([rerun_bin, "rrd", "verify", str(out)], capture_output=True, text=True)
-    assert verify.returncode == 0, verify.stderr  # ends with End and a footer
-    compare = subprocess.run(
-        [rerun_bin, "rrd", "compare", "--unordered", str(copy), str(out)], capture_output=True, text=True
-    )
-    assert compare.returncode == 0, compare.stdout + compare.stderr  # every chunk, the later ones too
+    rerun_rrd_ok(rerun_bin, "verify", out)  # ends with End and a footer
+    rerun_rrd_ok(rerun_bin, "compare", "--unordered", copy, out)  # every chunk, the later ones too
 
     windowed = httpx.get(
         f"{server.url}/v1/runs/{run_id}/recording.rrd", params={"follow": "true", "timeline": "frame"}, timeout=30

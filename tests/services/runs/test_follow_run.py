@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import asyncio
 import io
-from collections.abc import AsyncIterator, Iterator
+from collections.abc import AsyncIterator
 from pathlib import Path
 
 import pytest
@@ -21,7 +21,6 @@ from services.rrd.frames import MessageKind
 from services.rrd.messages import BlueprintActivationMessage, StoreInfoMessage, StreamStart
 from services.runs import download
 from services.runs.download import EntityFilter, follow_run
-from services.settings import Durability
 from tests.services.rrd.recordings import Recording
 from tests.services.runs.decoded import stream_run
 
@@ -35,17 +34,10 @@ def no_recheck(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setattr(read, "FOLLOW_RECHECK_S", 3600.0)
 
 
-@pytest.fixture
-def store(tmp_path: Path) -> Iterator[HotStore]:
-    hot = HotStore(tmp_path / "hot", durability=Durability.OFF, interval_ms=50, min_free_bytes=0)
-    yield hot
-    hot.close()
-
-
 class LiveRun:
     """A hot run written from a recording's messages, and its live flag, as ingest shows them."""
 
-    def __init__(self, store: HotStore, rec: Recording) -> None:
+    def __init__(self, hot_store: HotStore, rec: Recording) -> None:
         events = list(iter_events(rec.path))
         version = next(e.version for e in events if isinstance(e, StreamStart))
         self.messages = [
@@ -53,7 +45,7 @@ class LiveRun:
             for e in events
             if isinstance(e, StoreInfoMessage | ArrowMessage | BlueprintActivationMessage)
         ]
-        self.hot: HotRun = store.create("followed", version)
+        self.hot: HotRun = hot_store.create("followed", version)
         self.live = True
 
     def write(self, start: int, end: int) -> None:
@@ -86,14 +78,14 @@ async def next_piece(body: AsyncIterator[bytes]) -> bytes:
 @pytest.mark.parametrize("on_loop_bytes", [0, 1 << 30], ids=["read-on-a-thread", "read-on-the-loop"])
 @pytest.mark.parametrize("entities", [EntityFilter(), EntityFilter(include=["/world/points"])], ids=["all", "one"])
 def test_a_followed_run_is_the_download_of_the_finished_run(
-    store: HotStore,
+    hot_store: HotStore,
     recordings: dict[str, Recording],
     monkeypatch: pytest.MonkeyPatch,
     on_loop_bytes: int,
     entities: EntityFilter,
 ):
     monkeypatch.setattr(download, "ON_LOOP_BYTES", on_loop_bytes)
-    run = LiveRun(store, recordings["points"])
+    run = LiveRun(hot_store, recordings["points"])
     half = len(run.messages) // 2
     run.write(0, half)
 
@@ -119,8 +111,8 @@ def test_a_followed_run_is_the_download_of_the_finished_run(
     assert read_footer(io.BytesIO(followed)) is not None
 
 
-def test_a_viewer_that_goes_away_leaves_no_open_file_or_waiter(store: HotStore, recordings: dict[str, Recording]):
-    run = LiveRun(store, recordings["points"])
+def test_a_viewer_that_goes_away_leaves_no_open_file_or_waiter(hot_store: HotStore, recordings: dict[str, Recording]):
+    run = LiveRun(hot_store, recordings["points"])
     run.write(0, len(run.messages))
     writer_only = _open_on(run.hot.path)  # the hot tier's own descriptor
 

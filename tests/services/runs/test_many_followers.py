@@ -7,7 +7,6 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import io
-import subprocess
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass, field
@@ -19,6 +18,7 @@ import pytest
 from services.rrd import ArrowMessage, iter_events
 from services.rrd.footer import read_footer
 from tests.services.ingest.live_server import LiveServer, start_robot
+from tests.services.rrd.recordings import rerun_rrd_ok
 
 pytestmark = pytest.mark.sdk
 FOLLOWERS = 100  # more than the 40 worker threads Starlette runs sync handlers and sync bodies on
@@ -136,9 +136,5 @@ def test_a_hundred_followers_of_a_live_run_do_not_slow_the_catalog(server: LiveS
         assert footer is not None and footer.manifests
     out = tmp_path / "followed.rrd"
     out.write_bytes(bytes(seen.followers[0].received))
-    verify = subprocess.run([rerun_bin, "rrd", "verify", str(out)], capture_output=True, text=True)
-    assert verify.returncode == 0, verify.stderr
-    compare = subprocess.run(
-        [rerun_bin, "rrd", "compare", "--unordered", str(copy), str(out)], capture_output=True, text=True
-    )
-    assert compare.returncode == 0, compare.stdout + compare.stderr
+    rerun_rrd_ok(rerun_bin, "verify", out)
+    rerun_rrd_ok(rerun_bin, "compare", "--unordered", copy, out)

@@ -12,10 +12,8 @@ import json
 import subprocess
 import sys
 from collections import Counter
-from collections.abc import Iterator
-from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, BinaryIO
+from typing import Any
 
 import pyarrow.parquet as pq
 import pytest
@@ -33,11 +31,11 @@ from services.runs.sealed import stream_sealed
 from services.sealed.read import open_sealed
 from services.sealed.tiers import Tiers
 from services.sealed.write import INDEX, RECORDING
-from services.storage.objectstore import ObjectInfo, ObjectStore
 from tests.conftest import find_rerun
 from tests.services.retention import conftest as retention
 from tests.services.retention.conftest import Clock, Node, NodeFactory, log_run
 from tests.services.runs.decoded import stream_run
+from tests.services.storage.counting import CountingStore
 
 pytestmark = pytest.mark.sdk
 tiers, make_node = retention.tiers, retention.make_node  # the retention tests' fixtures: stores and nodes
@@ -85,37 +83,6 @@ for i in range(30):
 """
     subprocess.run([sys.executable, "-c", script], check=True, timeout=120)
     return path
-
-
-@dataclass
-class CountingStore:
-    """A warm store that counts the bytes its ranged reads return."""
-
-    inner: ObjectStore
-    read: int = 0
-    reads: list[tuple[str, int, int | None, int]] = field(default_factory=list)
-    url: str = ""
-
-    def __post_init__(self) -> None:
-        self.url = self.inner.url
-
-    def put(self, key: str, data: bytes | BinaryIO) -> ObjectInfo:
-        return self.inner.put(key, data)
-
-    def get_range(self, key: str, start: int = 0, length: int | None = None) -> bytes:
-        data = self.inner.get_range(key, start, length)
-        self.read += len(data)
-        self.reads.append((key, start, length, len(data)))
-        return data
-
-    def head(self, key: str) -> ObjectInfo:
-        return self.inner.head(key)
-
-    def list(self, prefix: str = "") -> Iterator[ObjectInfo]:
-        return self.inner.list(prefix)
-
-    def delete(self, key: str) -> None:
-        self.inner.delete(key)
 
 
 def _node(make_node: NodeFactory, tiers: Tiers, run: Path) -> tuple[Node, str]:
