@@ -19,6 +19,7 @@ from services.node import Node
 from services.sealed.tiers import Tiers, sealed_lookup
 from services.settings import Durability, Settings, load_settings
 from services.storage.objectstore import open_store
+from tests.services.ingest.factory import ingest_service
 
 
 def local_tiers(root: Path) -> Tiers:
@@ -53,17 +54,14 @@ def node_of(
     )
 
 
-def ingest_of(
-    node: Node, *, max_streams: int = 10, close_after: dt.timedelta = dt.timedelta(seconds=60), **more: Any
-) -> IngestService:
-    """The ingest service of `node`, asking its catalog and warm store what was sealed before;
-    `more`: other arguments of `IngestService`."""
-    return IngestService(
-        node.hot,
+def ingest_of(node: Node, **more: Any) -> IngestService:
+    """The ingest service of `node` (wired by the tests' one factory), asking its catalog and warm
+    store what was sealed before; `more`: other arguments of `ingest_service`."""
+    return ingest_service(
+        node.settings.data_dir,
         node.catalog,
+        hot=node.hot,
         default_robot=node.default_robot,
-        max_streams=max_streams,
-        close_after=close_after,
         clock=node.clock,
         sealed_lookup=more.pop("sealed_lookup", sealed_lookup(node.catalog, node.tiers)),
         secret_fields=node.secret_fields,

@@ -14,6 +14,9 @@ from pathlib import Path
 from sqlalchemy.orm import Session, sessionmaker
 
 from core.clock import utcnow
+from services.cluster.ownership import Ownership
+from services.cluster.relay import Channels
+from services.facts.identity import SecretFields
 from services.facts.sealed import SealedLookup
 from services.hot.store import HotStore
 from services.ingest.service import IngestService
@@ -34,11 +37,16 @@ def ingest_service(
     lookup_timeout_s: float = 2.0,
     durability: Durability = Durability.OFF,
     min_free_bytes: int = 0,
+    hot: HotStore | None = None,
+    secret_fields: SecretFields | None = None,
+    ownership: Ownership | None = None,
+    channels: Channels | None = None,
 ) -> IngestService:
     """Ingest with its hot tier in `root / "hot"` (not fsynced, no disk reserve: tests are about
     other things) filing runs in `catalog` (None: no catalog). A second call on the same root is
-    a restart: the new service finds the old one's files (`recover()`)."""
-    hot = HotStore(root / "hot", durability=durability, interval_ms=50, min_free_bytes=min_free_bytes)
+    a restart: the new service finds the old one's files (`recover()`). `hot`: a hot tier made
+    already (a node's: `tests.services.nodes.ingest_of`), in place of one under `root`."""
+    hot = hot or HotStore(root / "hot", durability=durability, interval_ms=50, min_free_bytes=min_free_bytes)
     return IngestService(
         hot,
         catalog,
@@ -48,4 +56,7 @@ def ingest_service(
         clock=clock,
         sealed_lookup=sealed_lookup,
         lookup_timeout_s=lookup_timeout_s,
+        secret_fields=secret_fields,
+        ownership=ownership,
+        channels=channels,
     )
