@@ -46,7 +46,10 @@ def test_serve_answers_health_on_the_configured_address(tmp_path):
 @pytest.mark.slow
 def test_serve_refuses_a_postgres_catalog_that_is_behind(empty_postgres_url: str, tmp_path):
     result = subprocess.run(
-        [FLEET, "serve", "--data-dir", str(tmp_path), "--catalog-url", empty_postgres_url, "--auth", "on"],
+        [
+            *(FLEET, "serve", "--data-dir", str(tmp_path), "--catalog-url", empty_postgres_url, "--auth", "on"),
+            *("--http-addr", f"127.0.0.1:{free_port()}", "--grpc-addr", f"127.0.0.1:{free_port()}"),
+        ],  # ports of its own: the ports are claimed before the catalog is looked at
         capture_output=True,
         text=True,
         timeout=60,
