@@ -159,6 +159,7 @@ def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[LiveServer]:
         live.stop()
 
 
+@pytest.mark.slow  # starts fleet serve
 def test_get_version_on_the_grpc_port(server: LiveServer):
     answer = httpx.get(f"http://127.0.0.1:{server.grpc_port}/version", timeout=10)
     assert answer.status_code == 200 and answer.text == f"fleet-telemetry {__version__}\n"
@@ -194,6 +195,7 @@ def grpc_call_over_h2(port: int, scheme: str, calls: int) -> list[dict[str, str]
     return answers
 
 
+@pytest.mark.slow  # starts fleet serve
 @pytest.mark.parametrize("scheme", ["rerun+http", "http"])
 def test_requests_reach_the_depot_whatever_their_scheme(server: LiveServer, scheme: str):
     """rerun-sdk 0.22 sends `:scheme: rerun+http`, which gRPC alone refuses before the depot can
@@ -203,6 +205,7 @@ def test_requests_reach_the_depot_whatever_their_scheme(server: LiveServer, sche
         assert trailers["grpc-message"] == LEGACY_REFUSAL
 
 
+@pytest.mark.slow  # starts fleet serve
 def test_garbage_on_the_grpc_port_is_closed_and_the_port_keeps_serving(server: LiveServer):
     with socket.create_connection(("127.0.0.1", server.grpc_port), timeout=20) as sock:
         sock.sendall(b"\x16\x03\x01" + b"\x00" * 20_000)  # say, TLS to a plain port
@@ -215,6 +218,7 @@ def test_garbage_on_the_grpc_port_is_closed_and_the_port_keeps_serving(server: L
     assert server.write_messages([])[0].name == "OK"
 
 
+@pytest.mark.slow  # starts fleet serve
 def test_the_grpc_server_is_not_reachable_around_the_front(server: LiveServer):
     path = Path(server.data_dir) / "private" / "grpc.sock"
     assert path.exists() and path.parent.stat().st_mode & 0o077 == 0
@@ -225,6 +229,7 @@ def open_fds(server: LiveServer) -> int:
     return len(list(Path(f"/proc/{server.proc.pid}/fd").iterdir()))
 
 
+@pytest.mark.slow  # starts fleet serve
 def test_connections_leave_no_descriptors_behind(server: LiveServer):
     """Every way a connection ends (a finished call, a client that vanishes mid-stream, a request
     for /version, a rewritten connection) closes both of its sockets and its pipes."""

@@ -20,6 +20,7 @@ from tests.subprocess_server import ServerProcess, answers_http, free_port
 FLEET = str(Path(sys.executable).with_name("fleet"))
 
 
+@pytest.mark.slow  # starts fleet serve
 def test_serve_answers_health_on_the_configured_address(tmp_path):
     port = free_port()
     env = {**os.environ, "FLEET_DATA_DIR": str(tmp_path / "data")}
@@ -265,6 +266,7 @@ def test_two_serves_never_share_a_data_dir_even_with_postgres(empty_postgres_url
         first.stop()
 
 
+@pytest.mark.slow  # starts fleet serve
 @pytest.mark.parametrize("busy", ["http", "grpc"])
 def test_a_busy_port_is_refused_before_anything_is_printed_or_created(tmp_path: Path, busy: str):
     """Ports first: one line naming the port and its flag, no start-up lines, no catalog made in a

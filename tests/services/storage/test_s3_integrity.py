@@ -86,6 +86,7 @@ def _corrupt_after_checksum(request: Any, **_: object) -> None:
 
 
 @pytest.mark.s3server
+@pytest.mark.slow  # starts SeaweedFS
 @pytest.mark.parametrize("s3_target", ["s3-seaweedfs"], indirect=True)  # moto keeps any checksum it is sent
 @pytest.mark.parametrize("shape", SIZES)
 def test_a_body_corrupted_on_the_way_is_refused(s3_target: S3Target, monkeypatch: pytest.MonkeyPatch, shape: str):
