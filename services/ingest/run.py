@@ -22,7 +22,7 @@ class IngestRun(RunFacts):
     def __init__(self, hot: HotRun, now: dt.datetime, secret_fields: SecretFields = DEFAULT_SECRETS) -> None:
         super().__init__(hot.run_id, now, secret_fields)
         self.hot = hot
-        self.sealing = threading.Lock()  # held by ingest per write, and by `IngestService.hand_over`
+        self.leaving = threading.Lock()  # held by ingest per write, and by `IngestService.hand_over`
         self.handed_over = False  # left this node's hot tier: new data for this run starts a new hot run
         self.sealed_to: SealedInfo | None = None  # where promotion put it (for data that follows)
         self.adds_to: SealedInfo | None = None  # this hot run adds chunks to a run sealed before

@@ -383,7 +383,7 @@ class IngestService:
             raise
 
     def _drop(self, source: Source, run: IngestRun) -> None:
-        with run.sealing:
+        with run.leaving:
             if run.handed_over:  # promotion took it meanwhile: it stays, and says so
                 log.warning("run %s was sealed before its robot was refused; delete it if unwanted", run.run_id)
                 return
@@ -521,7 +521,7 @@ class IngestService:
         """Write one message to the run's hot file (and its chunk index: `store_kind`, and a chunk's
         `meta`), unless it has just been handed over (then to a new hot run of the same id)."""
         while True:
-            with run.sealing:
+            with run.leaving:
                 if not run.handed_over:
                     run.hot.append(kind, raw, store_kind, meta)
                     return run
@@ -574,7 +574,7 @@ class IngestService:
         remembered for data that follows), and the run is marked handed over, forgotten and its
         folder set aside."""
         live = run._run
-        with live.sealing:
+        with live.leaving:
             if live.handed_over or self.runs.get(run.run_id) is not live:
                 raise ConflictError(f"run {run.run_id} left the hot tier while {doing}: nothing more to do")
             if live.hot.size != run.size or live.status == RunStatus.LIVE or live.live_sources:
@@ -607,7 +607,7 @@ class IngestService:
             run.lease = None
 
     def _forget(self, run: IngestRun) -> None:
-        """The run left the hot tier (called by `hand_over`, with `run.sealing` held)."""
+        """The run left the hot tier (called by `hand_over`, with `run.leaving` held)."""
         if self.runs.get(run.run_id) is run:
             del self.runs[run.run_id]
         if run.sealed_to is not None:
