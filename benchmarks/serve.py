@@ -97,7 +97,8 @@ def time_in_process(run_file: Path, run_id: str, params: dict[str, str]) -> tupl
     hot = HotRecording(run_file, size, {}, lambda: (size, False), Changes())
     query = RecordingQuery(include=[params["include"]] if "include" in params else [])
     start = time.perf_counter()
-    body = recording_download(_OneHotRun(hot), cast(Any, None), None, run_id, query).body  # hot: no catalog asked
+    no_catalog, no_warm = cast(Any, None), cast(Any, None)  # a hot run: neither is asked
+    body = recording_download(_OneHotRun(hot), no_catalog, no_warm, run_id, query).body
     assert isinstance(body, Iterator)
     out = sum(len(piece) for piece in body)
     return None, time.perf_counter() - start, out

@@ -38,8 +38,6 @@ def open_recording(depot: Depot, run_id: str, *, cached: bool = False) -> Indexe
             return open_hot(hot)
         except FileNotFoundError:
             pass  # sealed and removed since it was asked for: read it where it went
-    if depot.warm is None:
-        raise UnavailableError(f"run {run_id!r} is not hot on this node, and this node reads no sealed runs")
     found = _LOCATIONS.get(depot.catalog, run_id) if cached else None
     if found is not None:
         prefix, size = found

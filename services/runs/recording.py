@@ -12,7 +12,6 @@ from dataclasses import dataclass, field
 
 from sqlalchemy.orm import Session, sessionmaker
 
-from catalog import queries
 from core.clock import utcnow
 from core.errors import BadParameterError
 from services.hot.read import HotRecording, HotRuns
@@ -48,20 +47,18 @@ class RecordingDownload:
 def recording_download(
     hot_runs: HotRuns | None,
     catalog: sessionmaker[Session],
-    warm: ObjectStore | None,
+    warm: ObjectStore,
     run_id: str,
     query: RecordingQuery,
 ) -> RecordingDownload:
     """The run as an .rrd stream: hot runs from this node's disk (`hot_runs`: None on a node without
-    ingest), any other from the warm store (`warm`: None on a node without the sealed tiers)."""
+    ingest), any other from the warm store."""
     entities = download.EntityFilter(query.include, query.exclude)
     hot = hot_runs.hot_recording(run_id) if hot_runs is not None else None
     found: SealedRecording | None = None
     if hot is not None:
         types, size = hot.timeline_types, hot.size
     else:  # 404 naming the run, 409 for a cold run not restored, 410 for a deleted one
-        if warm is None:
-            raise queries.run_not_found(run_id)  # no sealed tier here: only hot runs are
         found = locate_sealed(catalog, warm, run_id, utcnow())
         types, size = found.timeline_types(), found.size
     window = download.window_from_query(types, query.timeline, query.start, query.end, query.latest_at, query.exact)

@@ -40,15 +40,13 @@ class NextStep:
 
 
 def index_rows(
-    hot_runs: HotRuns | None, catalog: sessionmaker[Session], warm: ObjectStore | None, run_id: str
+    hot_runs: HotRuns | None, catalog: sessionmaker[Session], warm: ObjectStore, run_id: str
 ) -> list[IndexRow]:
     """The run's chunk index: the hot file's here, else the sealed run's (NotFound, Conflict for a
     cold run not restored, Gone for a deleted one: the caller shows why there is none)."""
     hot = hot_runs.hot_recording(run_id) if hot_runs is not None else None
     if hot is not None:
         return hot.chunk_index().rows
-    if warm is None:
-        raise NotFoundError(f"run {run_id!r} is not hot on this node, which holds no sealed tier")
     return locate_sealed(catalog, warm, run_id, utcnow()).rows
 
 
@@ -86,7 +84,7 @@ def coverage(rows: list[IndexRow], timeline: str | None = None, most: int = 64) 
 def run_coverage(
     hot_runs: HotRuns | None,
     catalog: sessionmaker[Session],
-    warm: ObjectStore | None,
+    warm: ObjectStore,
     run_id: str,
     timeline: str | None = None,
 ) -> tuple[Coverage | None, str | None]:
