@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import datetime as dt
 
-from sqlalchemy import BigInteger, Boolean, Date, DateTime, Index, MetaData, String, Text
+from sqlalchemy import BigInteger, Boolean, Date, DateTime, Double, Index, MetaData, String, Text
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column
 
 from core.ids import ID_LENGTH
@@ -272,3 +272,127 @@ class SavedQuery(Base):
     created_by: Mapped[str] = mapped_column(String(256))  # the token's subject, never the token
     created_at: Mapped[dt.datetime] = mapped_column(DateTime(timezone=True))
     updated_at: Mapped[dt.datetime] = mapped_column(DateTime(timezone=True))
+
+
+# --- the corpus: rules, what they make of runs, tags, webhooks ------------------------------------
+
+
+class RulesVersion(Base):
+    """One version of the rules file (`fleet rules apply`): its text as applied, who and when. The
+    highest version is the running set; every event and metric a rule made names its version."""
+
+    __tablename__ = "rules_versions"
+
+    version: Mapped[int] = mapped_column(BigInteger, primary_key=True, autoincrement=False)
+    text: Mapped[str] = mapped_column(Text)  # the TOML file as applied
+    digest: Mapped[str] = mapped_column(String(64))  # sha256 of the text: applying the same text again is a no-op
+    created_by: Mapped[str] = mapped_column(String(256))  # the token's subject, never the token
+    created_at: Mapped[dt.datetime] = mapped_column(DateTime(timezone=True))
+
+
+class RunEvaluation(Base):
+    """Which rules version a run's rule-made events and metrics come from, and how far: the one home
+    of that fact. `final` once evaluated over the whole sealed run; a backfill evaluates every run
+    whose version is not the running one."""
+
+    __tablename__ = "run_evaluations"
+
+    run_id: Mapped[str] = mapped_column(String(ID_LENGTH), primary_key=True)
+    rules_version: Mapped[int] = mapped_column(BigInteger)
+    state: Mapped[str] = mapped_column(String(16))  # live | final | skipped (cold: not read)
+    events_capped: Mapped[bool] = mapped_column(Boolean, default=False)  # FLEET_MAX_EVENTS_PER_RUN reached
+    note: Mapped[str | None] = mapped_column(Text)  # why skipped, or which rule hit the cap
+    evaluated_at: Mapped[dt.datetime] = mapped_column(DateTime(timezone=True))
+
+
+class Event(Base):
+    """A time range on a run: made by a rule (`origin` rule), by a robot (a TextLog under
+    /events/**: `origin` robot), or by a person (an annotation: `origin` person). Re-evaluating a
+    run replaces its rule- and robot-made events; a person's are never touched."""
+
+    __tablename__ = "events"
+    __table_args__ = (
+        Index("ix_events_run_id", "run_id"),
+        Index("ix_events_kind", "kind"),
+        Index("ix_events_robot_id", "robot_id"),
+    )
+
+    id: Mapped[str] = mapped_column(String(32), primary_key=True)  # ev- and 16 hex digits
+    run_id: Mapped[str] = mapped_column(String(ID_LENGTH))
+    robot_id: Mapped[str] = mapped_column(String(ID_LENGTH))
+    kind: Mapped[str] = mapped_column(String(256))  # the rule's name, or the person's or robot's kind
+    severity: Mapped[str] = mapped_column(String(8))  # info | warn | error
+    timeline: Mapped[str] = mapped_column(String(256))
+    timeline_type: Mapped[str] = mapped_column(String(16))  # timestamp (ns since epoch) | sequence | duration (ns)
+    range_start: Mapped[int] = mapped_column(BigInteger)  # on `timeline`, inclusive
+    range_end: Mapped[int] = mapped_column(BigInteger)  # on `timeline`, inclusive (= range_start: an instant)
+    origin: Mapped[str] = mapped_column(String(8))  # rule | robot | person
+    source: Mapped[str] = mapped_column(String(256))  # "rule NAME@VERSION", a token's name, or "robot"
+    rules_version: Mapped[int | None] = mapped_column(BigInteger)  # rule- and robot-made events
+    label: Mapped[str] = mapped_column(Text, default="")
+    note: Mapped[str] = mapped_column(Text, default="")
+    created_at: Mapped[dt.datetime] = mapped_column(DateTime(timezone=True))
+
+
+class RunMetric(Base):
+    """One value per run and metric rule: a number (`value`) or, for a property metric, text."""
+
+    __tablename__ = "run_metrics"
+    __table_args__ = (Index("ix_run_metrics_name", "name"),)
+
+    run_id: Mapped[str] = mapped_column(String(ID_LENGTH), primary_key=True)
+    name: Mapped[str] = mapped_column(String(256), primary_key=True)
+    robot_id: Mapped[str] = mapped_column(String(ID_LENGTH))
+    value: Mapped[float | None] = mapped_column(Double)
+    text_value: Mapped[str | None] = mapped_column(Text)
+    rules_version: Mapped[int] = mapped_column(BigInteger)
+    computed_at: Mapped[dt.datetime] = mapped_column(DateTime(timezone=True))
+
+
+class RunTag(Base):
+    """A freeform tag on a run, from a person (`added_by` the token's subject) or from the robot
+    (the `tags` field of its `fleet` property: `added_by` "robot")."""
+
+    __tablename__ = "run_tags"
+    __table_args__ = (Index("ix_run_tags_tag", "tag"),)
+
+    run_id: Mapped[str] = mapped_column(String(ID_LENGTH), primary_key=True)
+    tag: Mapped[str] = mapped_column(String(128), primary_key=True)
+    added_by: Mapped[str] = mapped_column(String(256))
+    added_at: Mapped[dt.datetime] = mapped_column(DateTime(timezone=True))
+
+
+class Webhook(Base):
+    """An endpoint told of occurrences (`event:KIND`, `event:*`, `run.sealed`, `robot.silent`) by a
+    signed JSON POST. Its signing secret is kept sealed with the depot's key, never in clear."""
+
+    __tablename__ = "webhooks"
+
+    id: Mapped[str] = mapped_column(String(32), primary_key=True)  # wh- and 12 hex digits
+    url: Mapped[str] = mapped_column(Text)
+    subscriptions: Mapped[str] = mapped_column(Text)  # JSON list of what it is told of
+    body_format: Mapped[str] = mapped_column(String(16))  # json | slack
+    secret_sealed: Mapped[str] = mapped_column(Text)  # the HMAC secret, encrypted with the depot's key
+    created_by: Mapped[str] = mapped_column(String(256))
+    created_at: Mapped[dt.datetime] = mapped_column(DateTime(timezone=True))
+
+
+class WebhookDelivery(Base):
+    """One occurrence to tell one webhook of, written in the transaction that made the occurrence
+    (an outbox): at most one per webhook and occurrence, retried with backoff until delivered or a
+    day has passed."""
+
+    __tablename__ = "webhook_deliveries"
+    __table_args__ = (Index("ix_webhook_deliveries_webhook_id", "webhook_id"),)
+
+    id: Mapped[str] = mapped_column(String(64), primary_key=True)  # webhook id + ":" + occurrence id
+    webhook_id: Mapped[str] = mapped_column(String(32))
+    occurrence: Mapped[str] = mapped_column(String(256))  # e.g. event:intervention, run.sealed
+    body: Mapped[str] = mapped_column(Text)  # the JSON body as sent
+    state: Mapped[str] = mapped_column(String(16))  # pending | delivered | failed (gave up)
+    attempts: Mapped[int] = mapped_column(BigInteger, default=0)
+    next_at: Mapped[dt.datetime] = mapped_column(DateTime(timezone=True))
+    last_status: Mapped[int | None] = mapped_column(BigInteger)  # the endpoint's HTTP status
+    last_error: Mapped[str | None] = mapped_column(Text)
+    created_at: Mapped[dt.datetime] = mapped_column(DateTime(timezone=True))
+    delivered_at: Mapped[dt.datetime | None] = mapped_column(DateTime(timezone=True))
