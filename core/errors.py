@@ -98,6 +98,22 @@ class InvalidArgumentError(FleetError):
     code = ErrorCode.INVALID_ARGUMENT
 
 
+class InvalidRulesError(InvalidArgumentError):
+    """A rules file refused whole: every problem found, each naming its line and field."""
+
+    def __init__(self, problems: list[dict[str, object]]) -> None:
+        lines = "; ".join(
+            f"line {p['line']}: {p['field']}: {p['message']}" if p.get("line") else f"{p['field']}: {p['message']}"
+            for p in problems
+        )
+        super().__init__(f"the rules file has {len(problems)} problem(s), nothing was applied: {lines}")
+        self.problems = problems
+
+    def to_dict(self) -> dict[str, str]:
+        answer: dict[str, object] = {**super().to_dict(), "problems": self.problems}
+        return answer  # type: ignore[return-value]
+
+
 class NotFoundError(FleetError):
     code = ErrorCode.NOT_FOUND
 
