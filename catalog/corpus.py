@@ -1,0 +1,260 @@
+"""Catalog reads and writes of the corpus: versions of the rules file, what rules made of each run
+(its events and metrics, and which version made them), people's annotations, and tags.
+
+A run's evaluation is replaced whole in one transaction (`replace_evaluation`): its rule- and
+robot-made events and its metrics go, the new ones come, so re-evaluating never doubles anything;
+people's events and tags are not touched. Event ids are derived from what the event is (run, origin,
+kind, timeline, start, entity), so the same event found again (live, then sealed, then after a rules
+change) keeps its id: what was told of it once (webhooks) is not told again.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import hashlib
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+
+import sqlalchemy as sa
+from sqlalchemy.orm import Session
+
+from catalog.models import Event, RulesVersion, RunEvaluation, RunMetric, RunTag
+
+RULE, ROBOT, PERSON = "rule", "robot", "person"  # an event's origin
+MADE_BY_EVALUATION = (RULE, ROBOT)  # the origins a re-evaluation replaces
+ROBOT_TAGGER = "robot"  # added_by of the tags a robot's `fleet` property gives
+
+
+# --- the rules file's versions --------------------------------------------------------------------
+
+
+def current_rules(session: Session) -> RulesVersion | None:
+    """The running rules: the highest version (None before the first `fleet rules apply`)."""
+    return session.scalars(sa.select(RulesVersion).order_by(RulesVersion.version.desc()).limit(1)).first()
+
+
+def add_rules_version(session: Session, text: str, who: str, now: dt.datetime) -> tuple[RulesVersion, bool]:
+    """A new version holding `text`, or the current one if it holds the same text already (applying
+    a file twice makes no version and re-evaluates nothing). The flag says whether it is new."""
+    digest = hashlib.sha256(text.encode()).hexdigest()
+    current = current_rules(session)
+    if current is not None and current.digest == digest:
+        return current, False
+    version = RulesVersion(
+        version=(current.version + 1) if current is not None else 1,
+        text=text,
+        digest=digest,
+        created_by=who,
+        created_at=now,
+    )
+    session.add(version)
+    session.flush()
+    return version, True
+
+
+def rules_history(session: Session) -> list[RulesVersion]:
+    """Every version, newest first."""
+    return list(session.scalars(sa.select(RulesVersion).order_by(RulesVersion.version.desc())))
+
+
+def rules_version(session: Session, version: int) -> RulesVersion | None:
+    return session.get(RulesVersion, version)
+
+
+# --- what rules made of a run ---------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class EventFacts:
+    """An event as an evaluation or a person gives it, before it has an id and a row."""
+
+    kind: str
+    severity: str
+    timeline: str
+    timeline_type: str
+    start: int
+    end: int
+    origin: str  # rule | robot | person
+    source: str  # "rule NAME@V", "robot", or a token's subject
+    label: str = ""
+    note: str = ""
+    entity: str = ""  # the entity it was found on (part of its identity, not stored)
+
+
+@dataclass(frozen=True)
+class MetricFacts:
+    name: str
+    value: float | None
+    text_value: str | None
+
+
+def event_id(run_id: str, facts: EventFacts) -> str:
+    """The id of an evaluation's event: the same event found again keeps it."""
+    key = "\x1f".join((run_id, facts.origin, facts.kind, facts.timeline, str(facts.start), facts.entity))
+    return "ev-" + hashlib.sha256(key.encode()).hexdigest()[:16]
+
+
+def replace_evaluation(
+    session: Session,
+    *,
+    run_id: str,
+    robot_id: str,
+    rules_version: int,
+    state: str,
+    events: Sequence[EventFacts],
+    metrics: Sequence[MetricFacts],
+    capped: bool,
+    note: str | None,
+    now: dt.datetime,
+) -> list[Event]:
+    """Replace the run's rule- and robot-made events, its metrics and its evaluation row. Returns
+    the events that are new (not held before under the same id): what webhooks are told of."""
+    before = set(
+        session.scalars(sa.select(Event.id).where(Event.run_id == run_id, Event.origin.in_(MADE_BY_EVALUATION)))
+    )
+    session.execute(sa.delete(Event).where(Event.run_id == run_id, Event.origin.in_(MADE_BY_EVALUATION)))
+    session.execute(sa.delete(RunMetric).where(RunMetric.run_id == run_id))
+    rows: dict[str, Event] = {}
+    for facts in events:
+        row = _event_row(event_id(run_id, facts), run_id, robot_id, facts, rules_version, now)
+        rows.setdefault(row.id, row)  # two identical findings are one event
+    session.add_all(rows.values())
+    session.add_all(
+        RunMetric(
+            run_id=run_id,
+            name=m.name,
+            robot_id=robot_id,
+            value=m.value,
+            text_value=m.text_value,
+            rules_version=rules_version,
+            computed_at=now,
+        )
+        for m in metrics
+    )
+    evaluation = session.get(RunEvaluation, run_id)
+    if evaluation is None:
+        evaluation = RunEvaluation(run_id=run_id)
+        session.add(evaluation)
+    evaluation.rules_version = rules_version
+    evaluation.state = state
+    evaluation.events_capped = capped
+    evaluation.note = note
+    evaluation.evaluated_at = now
+    session.flush()
+    return [row for event_key, row in rows.items() if event_key not in before]
+
+
+def set_evaluation_state(
+    session: Session, run_id: str, rules_version: int, state: str, note: str | None, now: dt.datetime
+) -> None:
+    """Record that the run was looked at without new values (skipped: a cold run is not read)."""
+    evaluation = session.get(RunEvaluation, run_id)
+    if evaluation is None:
+        session.add(
+            RunEvaluation(
+                run_id=run_id,
+                rules_version=rules_version,
+                state=state,
+                events_capped=False,
+                note=note,
+                evaluated_at=now,
+            )
+        )
+        return
+    evaluation.rules_version, evaluation.state, evaluation.note, evaluation.evaluated_at = (
+        rules_version,
+        state,
+        note,
+        now,
+    )
+
+
+def evaluation_of(session: Session, run_id: str) -> RunEvaluation | None:
+    return session.get(RunEvaluation, run_id)
+
+
+def add_event(session: Session, run_id: str, robot_id: str, facts: EventFacts, now: dt.datetime, new_id: str) -> Event:
+    """A person's event (an annotation): `new_id` is fresh, since two people may mark the same span."""
+    row = _event_row(new_id, run_id, robot_id, facts, None, now)
+    session.add(row)
+    session.flush()
+    return row
+
+
+def _event_row(
+    ident: str, run_id: str, robot_id: str, facts: EventFacts, rules_version: int | None, now: dt.datetime
+) -> Event:
+    return Event(
+        id=ident,
+        run_id=run_id,
+        robot_id=robot_id,
+        kind=facts.kind,
+        severity=facts.severity,
+        timeline=facts.timeline,
+        timeline_type=facts.timeline_type,
+        range_start=facts.start,
+        range_end=facts.end,
+        origin=facts.origin,
+        source=facts.source,
+        rules_version=rules_version,
+        label=facts.label,
+        note=facts.note,
+        created_at=now,
+    )
+
+
+def metrics_of(session: Session, run_id: str) -> list[RunMetric]:
+    return list(session.scalars(sa.select(RunMetric).where(RunMetric.run_id == run_id).order_by(RunMetric.name)))
+
+
+def event_counts_of(session: Session, run_id: str) -> dict[str, int]:
+    """The run's events by kind."""
+    rows = session.execute(
+        sa.select(Event.kind, sa.func.count()).where(Event.run_id == run_id).group_by(Event.kind).order_by(Event.kind)
+    )
+    return {kind: int(count) for kind, count in rows}
+
+
+def events_of_run(session: Session, run_id: str) -> list[Event]:
+    return list(session.scalars(sa.select(Event).where(Event.run_id == run_id).order_by(Event.range_start, Event.id)))
+
+
+def forget_run(session: Session, run_id: str) -> None:
+    """A deleted run's events, metrics, tags and evaluation go with it."""
+    for model in (Event, RunMetric, RunTag, RunEvaluation):
+        session.execute(sa.delete(model).where(model.run_id == run_id))
+
+
+# --- tags -----------------------------------------------------------------------------------------
+
+
+def tags_of(session: Session, run_id: str) -> list[RunTag]:
+    return list(session.scalars(sa.select(RunTag).where(RunTag.run_id == run_id).order_by(RunTag.tag)))
+
+
+def add_tags(session: Session, run_id: str, tags: Iterable[str], who: str, now: dt.datetime) -> list[str]:
+    """Add the tags the run does not have yet (who added a tag first is kept). Returns those added."""
+    held = {t.tag for t in tags_of(session, run_id)}
+    added = [tag for tag in dict.fromkeys(tags) if tag not in held]
+    session.add_all(RunTag(run_id=run_id, tag=tag, added_by=who, added_at=now) for tag in added)
+    session.flush()
+    return added
+
+
+def remove_tags(session: Session, run_id: str, tags: Iterable[str]) -> list[str]:
+    """Remove the given tags the run has. Returns those removed."""
+    wanted = set(tags)
+    held = [t for t in tags_of(session, run_id) if t.tag in wanted]
+    for tag in held:
+        session.delete(tag)
+    session.flush()
+    return [t.tag for t in held]
+
+
+def sync_robot_tags(session: Session, run_id: str, tags: Iterable[str], now: dt.datetime) -> None:
+    """Make the run's robot-given tags these (a tag a person also gave stays theirs)."""
+    wanted = set(tags)
+    for held in tags_of(session, run_id):
+        if held.added_by == ROBOT_TAGGER and held.tag not in wanted:
+            session.delete(held)
+    add_tags(session, run_id, sorted(wanted), ROBOT_TAGGER, now)
