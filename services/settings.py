@@ -305,6 +305,20 @@ class Settings(SharedSettings):
         10.0, gt=0, description="a node that stops heart-beating this long loses its hot runs to the other nodes"
     )
 
+    # the corpus: what rules make of runs (docs/corpus.md)
+    max_events_per_run: int = Field(
+        10_000, gt=0, description="a rule stops adding events to a run at this many, and the run's answer says so"
+    )
+    rules_backfill_bytes_s: int = Field(
+        32 << 20,
+        gt=0,
+        description="bytes per second the rules backfill reads from stored runs (re-evaluating them after a rules "
+        "change), so that serving is not starved",
+    )
+    rules_backfill_interval_s: float = Field(
+        300.0, gt=0, description="how often the rules backfill job looks for runs the running rules have not evaluated"
+    )
+
     @property
     def hot_dir(self) -> Path:
         return self.data_dir / "hot"

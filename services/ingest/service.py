@@ -59,6 +59,7 @@ from services.rrd.messages import (
     StreamStart,
 )
 from services.rrd.validate import check_chunk
+from services.rules.observe import ChunkObserver
 
 __all__ = [
     "LOG_TIME",
@@ -102,8 +103,12 @@ class IngestService:
         secret_fields: SecretFields | None = None,
         ownership: Ownership | None = None,
         channels: Channels | None = None,
+        observer: ChunkObserver | None = None,
     ) -> None:
         self.hot = hot
+        # Told of each new recording chunk (not a property) that it wants: the rules, live. None on
+        # the robot agent's spool.
+        self.observer = observer
         # Many nodes on one catalog: who owns which run (None: this node files everything it gets).
         self.ownership = ownership
         self.channels = channels  # to the peer ports of runs' owners
@@ -353,6 +358,8 @@ class IngestService:
         if prop is not None:
             run.observe_property(prop.name, prop.values)
         run.observe_chunk(msg, meta, self.clock())
+        if self.observer is not None and prop is None and msg.store_id.kind == StoreKind.RECORDING:
+            self._observe(self.observer, run, msg, meta)
         if source.live and run.status != RunStatus.LIVE:  # closed as idle, and its stream speaks again
             run.status, run.ended_at = RunStatus.LIVE, None
             self._republish_store_infos(source, run.run_id)
@@ -368,6 +375,10 @@ class IngestService:
         source.report.bytes_new += len(msg.raw)
         chunks, size = source.new_of_run.get(run.run_id, (0, 0))
         source.new_of_run[run.run_id] = (chunks + 1, size + len(msg.raw))
+
+    def _observe(self, observer: ChunkObserver, run: IngestRun, msg: ArrowMessage, meta: ChunkMeta) -> None:
+        if observer.wants(meta.entity_path):  # one dict lookup for the entities no rule names
+            observer.chunk(run.run_id, run.robot_id or self.default_robot, msg, meta)
 
     def _check_named_robot(self, source: Source, run: IngestRun | None, robot: str) -> None:
         """A `robot_id` property that is no safe id, or disagrees with the source's token, is refused

@@ -20,7 +20,7 @@ import logging
 import os
 import shutil
 import threading
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -51,6 +51,8 @@ log = logging.getLogger(__name__)
 SEAL_DIR = "seal"
 FIRST_BACKOFF = dt.timedelta(seconds=1)
 MAX_BACKOFF = dt.timedelta(minutes=5)
+# Told a run's id once its seal has committed (wired by the server: the corpus evaluates the run).
+OnSealed = Callable[[str], None]
 PROMOTING = threading.Lock()  # one promotion at a time in this process (scheduled pass or asked for)
 
 
@@ -153,12 +155,15 @@ def promote(
     reserve_bytes: int = 0,
     backoff: PromoteBackoff | None = None,
     actor: str = "retention",
+    on_sealed: OnSealed | None = None,
 ) -> RunRecord | None:
     """Seal `run` into the warm tier; returns its new catalog record (None when the run held nothing
     that was not sealed already: its hot copy is simply removed). On failure the run stays hot and,
     given a `backoff`, waits there (1 s, 2 s, 4 s ... up to 5 minutes) before the next attempt.
     `actor` names who asked, for the run's events: "retention" when the schedule did. `run` is as
-    ingest gave it just before: data it received since makes the hand-over refuse (promoted later)."""
+    ingest gave it just before: data it received since makes the hand-over refuse (promoted later).
+    `on_sealed` is told the run's id once its seal has committed (what rules make of the run); its
+    failure is logged, never the promotion's."""
     try:
         record = _promote(run, ingest, node, now, reserve_bytes, actor)
     except Exception:
@@ -170,7 +175,16 @@ def promote(
         raise
     if backoff is not None:
         backoff.forget(run.run_id)
+    if record is not None and on_sealed is not None:
+        _tell_sealed(on_sealed, run.run_id)
     return record
+
+
+def _tell_sealed(on_sealed: OnSealed, run_id: str) -> None:
+    try:
+        on_sealed(run_id)
+    except Exception:  # the seal stands; what depends on it catches up later (the rules backfill)
+        log.exception("run %s was sealed, but what follows a seal failed", run_id)
 
 
 def _promote(

@@ -7,6 +7,8 @@
 - `ownership`: with many nodes on one catalog, this node's hot runs matched with their leases, and
   copies of runs other nodes own handed to them (`handoff.py`); not recorded in `job_runs` (it runs
   every few seconds).
+- jobs of services above retention, handed in by the server (`extra`): the rules backfill
+  (`services.corpus.backfill`), which re-evaluates the stored runs the running rules have not.
 Each job run is recorded in the catalog (`job_runs`): where, when, and how it went.
 """
 
@@ -16,7 +18,7 @@ import datetime as dt
 import logging
 import os
 import socket
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -126,18 +128,27 @@ def ownership_job(ctx: Retention) -> None:
         ownership_pass(ctx.ingest, ctx.node)
 
 
-def jobs(promote_interval_s: float, retention_interval_s: float, lease_s: float | None = None) -> list[Job]:
+def jobs(
+    promote_interval_s: float,
+    retention_interval_s: float,
+    lease_s: float | None = None,
+    extra: Sequence[Job] = (),
+) -> list[Job]:
     found = [Job("promote", promote_job, promote_interval_s), Job("retention", retention_job, retention_interval_s)]
     if lease_s is not None:  # many nodes on one catalog
         found.append(Job("ownership", ownership_job, max(0.5, lease_s / 2)))
-    return found
+    return found + list(extra)
 
 
 def start_scheduler(
-    ctx: Retention, promote_interval_s: float, retention_interval_s: float, lease_s: float | None = None
+    ctx: Retention,
+    promote_interval_s: float,
+    retention_interval_s: float,
+    lease_s: float | None = None,
+    extra: Sequence[Job] = (),
 ) -> BackgroundScheduler:
     scheduler = BackgroundScheduler(timezone="UTC")
-    for job in jobs(promote_interval_s, retention_interval_s, lease_s):
+    for job in jobs(promote_interval_s, retention_interval_s, lease_s, extra):
         scheduler.add_job(
             _guarded(job, ctx),
             "interval",

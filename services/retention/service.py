@@ -48,6 +48,7 @@ class Retention:
     free_bytes: Callable[[], int] | None = None  # of the hot disk (default: asked of the file system)
     reserve_bytes: int = 0  # promotion never takes the hot disk below this much free
     promote_backoff: promote.PromoteBackoff = field(default_factory=promote.PromoteBackoff)  # failed promotions
+    on_sealed: promote.OnSealed | None = None  # told each run sealed here (the server wires the corpus)
 
     # The node's, named here as the jobs have always named them.
     @property
@@ -218,7 +219,9 @@ def _execute(ctx: Retention, action: Action, now: dt.datetime) -> str:
         run = ctx.ingest.hot_run(action.run_id)
         if run is None:
             return "no longer hot here"
-        record = promote.promote(run, ctx.ingest, ctx.node, now, ctx.reserve_bytes, ctx.promote_backoff)
+        record = promote.promote(
+            run, ctx.ingest, ctx.node, now, ctx.reserve_bytes, ctx.promote_backoff, on_sealed=ctx.on_sealed
+        )
         if record is None:
             return "nothing new: its chunks were all sealed already, hot copy removed"
         return f"sealed {record.chunks} chunks, {record.bytes} bytes"
@@ -316,7 +319,9 @@ def promote_now(ctx: Retention, run_id: str, actor: str = "retention") -> dict[s
         )
     assert ctx.ingest is not None
     with promote.PROMOTING:
-        record = promote.promote(run, ctx.ingest, ctx.node, ctx.clock(), ctx.reserve_bytes, ctx.promote_backoff, actor)
+        record = promote.promote(
+            run, ctx.ingest, ctx.node, ctx.clock(), ctx.reserve_bytes, ctx.promote_backoff, actor, ctx.on_sealed
+        )
     if record is None:
         return {"run": run_id, "tier": Tier.WARM, "detail": "nothing new: its chunks were all sealed already"}
     return {"run": run_id, "tier": record.tier, "detail": f"sealed {record.chunks} chunks, {record.bytes} bytes"}
