@@ -271,6 +271,11 @@ class FleetClient:
         robot_copy: None}`."""
         return self._request("DELETE", f"/v1/runs/{run_id}/robot-copy")
 
+    def rules_backfill(self) -> Iterator[dict[str, Any]]:
+        """Evaluate now every stored run the running rules have not (`POST /v1/rules/backfill`);
+        yields progress events, the last one the summary."""
+        return self._events("POST", "/v1/rules/backfill")
+
     def _events(self, method: str, url: str, **kwargs: Any) -> Iterator[dict[str, Any]]:
         try:
             with self._http.stream(method, url, timeout=None, **kwargs) as response:

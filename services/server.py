@@ -29,6 +29,8 @@ from services.cluster.ownership import Ownership
 from services.cluster.relay import Channels, peer_channel_options
 from services.compiled import compiled_summary
 from services.console import app as console
+from services.corpus import backfill_rest
+from services.corpus.pipeline import BACKFILL_JOB, CorpusPipeline, corpus_pipeline
 from services.facts.identity import SecretFields
 from services.hot.reserve import DiskReserve
 from services.hot.store import HotStore
@@ -38,7 +40,7 @@ from services.ingest.service import IngestService
 from services.node import Node
 from services.redap import grpc_handler as redap_handler
 from services.redap.depot import Depot
-from services.retention.schedule import start_scheduler
+from services.retention.schedule import Job, start_scheduler
 from services.retention.service import Retention
 from services.routine_logs import quiet_routine_requests
 from services.runtime import freeze_startup_objects, tune_allocator
@@ -110,11 +112,13 @@ class Sides:
     ingest: IngestService
     retention: Retention
     analytics: Analytics
+    corpus: CorpusPipeline
 
 
 def build(settings: Settings, peer_addr: str | None = None) -> Sides:
     """The node (`open_node`) and its ingest, retention and analytics sides."""
     node = open_node(settings, peer_addr)
+    corpus = corpus_pipeline(node)
     ingest = IngestService(
         node.hot,
         node.catalog,
@@ -127,7 +131,9 @@ def build(settings: Settings, peer_addr: str | None = None) -> Sides:
         secret_fields=node.secret_fields,
         ownership=node.ownership,
         channels=node.channels,
+        observer=corpus.live,
     )
+    corpus.attach(ingest)
     retention = Retention(
         node,
         settings.policies,
@@ -136,6 +142,7 @@ def build(settings: Settings, peer_addr: str | None = None) -> Sides:
         promote_below_free_bytes=settings.promote_below_free_bytes,
         restore_days=settings.restore_days,
         reserve_bytes=settings.reserve_bytes,
+        on_sealed=corpus.sealing.sealed,
     )
     limits = Limits(
         settings.sql_max_rows,
@@ -145,7 +152,7 @@ def build(settings: Settings, peer_addr: str | None = None) -> Sides:
         settings.sql_workers,
         settings.sql_queue,
     )
-    return Sides(node, ingest, retention, Analytics(node, limits))
+    return Sides(node, ingest, retention, Analytics(node, limits), corpus)
 
 
 def release_reserve_if_full(settings: Settings) -> bool:
@@ -247,6 +254,7 @@ async def serve(
     grpc_server, grpc_path, peer_addr = _grpc_server(settings)
     sides = build(settings, peer_addr)
     node, ingest, retention, analytics = sides.node, sides.ingest, sides.retention, sides.analytics
+    corpus = sides.corpus
     if node.ownership is not None:
         await asyncio.to_thread(node.ownership.start)
         log.info("node %s on a shared catalog, peer port %s", node.ownership.node_id, peer_addr)
@@ -257,6 +265,7 @@ async def serve(
     if recovered:
         log.info("recovered %d hot runs", len(recovered))
     node.hot.start()
+    await asyncio.to_thread(corpus.start)
     proxy = grpc_handler.MessageProxy(
         ingest,
         node.auth,
@@ -266,6 +275,8 @@ async def serve(
     )
     app = create_app(node, ingest, retention, analytics)
     console.install(app)
+    app.include_router(backfill_rest.router)
+    app.state.rules_backfill = corpus.backfill
     catalog_server = redap_handler.CatalogServer(Depot(node, ingest), node.auth)
     # other nodes read the hot runs this one owns
     peers = peer.PeerService(node, ingest, app.state.edge) if node.ownership is not None else None
@@ -291,6 +302,7 @@ async def serve(
             settings.promote_interval_s,
             settings.retention_interval_s,
             settings.lease_s if node.ownership is not None else None,
+            [Job(BACKFILL_JOB, lambda _: corpus.backfill.run(), settings.rules_backfill_interval_s)],
         )
         if settings.scheduler
         else None
@@ -311,5 +323,6 @@ async def serve(
         await front.stop()
         await grpc_server.stop(grace=5)
         release_private_socket(Path(grpc_path), settings.data_dir)
+        corpus.stop()
         ingest.close()
         analytics.close()  # its idle query workers and their scratch folders

@@ -11,6 +11,7 @@ from services.cli.agent import agent
 from services.cli.db import db
 from services.cli.retention import catalog, retention
 from services.cli.rrd import rrd
+from services.cli.rules_backfill import rules
 from services.cli.runs import download, runs, view
 from services.cli.serve import serve
 from services.cli.sql import sql
@@ -36,6 +37,7 @@ cli.add_command(catalog)
 cli.add_command(sql)
 cli.add_command(tokens)
 cli.add_command(agent)
+cli.add_command(rules)
 
 
 def main() -> None:
