@@ -11,7 +11,8 @@
     auth | hot | cluster | facts | rules | migrations
                                      tokens, scopes, signed links | the hot tier | run ownership
                                      among nodes | what a run is, learnt from its messages | the
-                                     rules language | the catalog's schema migrations
+                                     rules language, what it makes of a run's chunks | the
+                                     catalog's schema migrations
     ingest | sealed                  streams and uploads into the hot tier, owning the live runs |
                                      the sealed-run format (recording, chunk index, run.json) and
                                      its tiers
