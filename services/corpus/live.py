@@ -158,7 +158,7 @@ class LiveRules:
 
     def start(self) -> None:
         """Read the running rules and start the worker."""
-        self._reload_rules()
+        self.reload_rules()
         self._thread = threading.Thread(target=self._work, name="fleet-live-rules", daemon=True)
         self._thread.start()
 
@@ -221,7 +221,7 @@ class LiveRules:
 
     def _tick(self) -> None:
         try:
-            self._reload_rules()
+            self.reload_rules()
             self._flush()
         except Exception as exc:  # the catalog is down: the next tick writes what changed
             log.warning("live rules not written (%s: %s); retrying", type(exc).__name__, exc)
@@ -270,7 +270,8 @@ class LiveRules:
             overflowed = run.run_id in self._overflowed
         return run.whole and not overflowed and run.evaluator.in_order
 
-    def _reload_rules(self) -> None:
+    def reload_rules(self) -> None:
+        """Follow the running rules (a new version resets the hot runs' evaluators)."""
         with session_scope(self.node.catalog) as session:
             current = current_rules(session)
             if (current.version if current is not None else NO_RULES_VERSION) == self._running.version:

@@ -7,7 +7,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from services.corpus.backfill import RulesBackfill
-from services.corpus.live import LiveRules
+from services.corpus.live import QUEUE_CHUNKS, LiveRules
 from services.corpus.sealing import Sealing
 from services.hot.read import HotRuns
 from services.node import Node
@@ -34,9 +34,11 @@ class CorpusPipeline:
         self.live.stop()
 
 
-def corpus_pipeline(node: Node) -> CorpusPipeline:
+def corpus_pipeline(node: Node, *, queue_chunks: int = QUEUE_CHUNKS) -> CorpusPipeline:
     settings = node.settings
-    live = LiveRules(node, max_events=settings.max_events_per_run, flush_s=settings.catalog_flush_s)
+    live = LiveRules(
+        node, max_events=settings.max_events_per_run, flush_s=settings.catalog_flush_s, queue_chunks=queue_chunks
+    )
     return CorpusPipeline(
         live,
         Sealing(node, live, None, max_events=settings.max_events_per_run),

@@ -59,6 +59,7 @@ class Sealing:
         self.node, self.live, self.hot, self.max_events = node, live, hot, max_events
         self.reads = Reads()  # what evaluating sealed runs read (the live evaluator's runs read nothing)
         self.from_live = 0  # runs whose final values came from the live evaluator
+        self.failures = 0  # runs whose final values were not written (the backfill writes them)
         self._queue: queue.Queue[str] = queue.Queue()  # run ids: small, never bounded by ingest
         self._thread: threading.Thread | None = None
 
@@ -81,6 +82,7 @@ class Sealing:
             try:
                 self.finalize(run_id)
             except Exception:  # the backfill picks the run up (its values are still live)
+                self.failures += 1
                 log.exception("final rules values of run %s not written; the rules backfill retries", run_id)
 
     def finalize(self, run_id: str) -> list[Event]:

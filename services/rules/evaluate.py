@@ -183,6 +183,10 @@ class RunEvaluator:
         self._taken = len(self._found.events)
         return events
 
+    def metrics_so_far(self, properties: dict[str, dict[str, Any]]) -> list[MetricValue]:
+        """The run's metrics as they stand (live use: `finish` gives the final ones)."""
+        return self._metrics(properties)
+
     def finish(self, properties: dict[str, dict[str, Any]]) -> Evaluation:
         """The run's events (those taken already too) and metrics, once its last chunk was added.
         `properties`: the run's recording properties (`fleet` -> {field: value})."""

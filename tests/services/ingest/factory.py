@@ -20,6 +20,7 @@ from services.facts.identity import SecretFields
 from services.facts.sealed import SealedLookup
 from services.hot.store import HotStore
 from services.ingest.service import IngestService
+from services.rules.observe import ChunkObserver
 from services.settings import Durability
 
 DEFAULT_ROBOT = "default-robot"  # the robot of a run whose recording names none
@@ -41,6 +42,7 @@ def ingest_service(
     secret_fields: SecretFields | None = None,
     ownership: Ownership | None = None,
     channels: Channels | None = None,
+    observer: ChunkObserver | None = None,
 ) -> IngestService:
     """Ingest with its hot tier in `root / "hot"` (not fsynced, no disk reserve: tests are about
     other things) filing runs in `catalog` (None: no catalog). A second call on the same root is
@@ -59,4 +61,5 @@ def ingest_service(
         secret_fields=secret_fields,
         ownership=ownership,
         channels=channels,
+        observer=observer,
     )
