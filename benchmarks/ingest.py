@@ -4,7 +4,7 @@
                                           [--servers ours,rerun] [--client aio|thread] [--memory-passes 3]
                                           [--workers N] [--catalog duckdb|postgres] [--server-cpus LIST]
                                           [--load-cpus LIST] [--big-mb 220] [--small-chunks 50000] [--stamped]
-                                          [--json]
+                                          [--rules FILE --servers ours,ours+rules] [--json]
 
 1. The recordings are those of ``benchmarks/codec.py`` (``benchmarks/data/big.rrd``: 93 chunks of
    2.4-2.6 MB, point clouds and images; ``small.rrd``: 50,001 one-row chunks of scalars), generated
@@ -69,6 +69,15 @@
    ``--server-cpus`` and ``--load-cpus`` pin the server (all its processes) and the load processes
    to those CPUs (sched_setaffinity; default: not pinned). A load share near 1.0 of its cores means
    the load, not the server, set the pace: give it more.
+
+7. Rules (``--rules FILE``): server ``ours+rules`` is ours with the rules file applied before it starts
+   (the live rules then evaluate, on a thread of the server, each chunk of an entity the file names;
+   the others cost one dict lookup). ``--servers ours,ours+rules`` runs both in turn and prints the
+   server's CPU per chunk of each and their ratio (target: within 10 %). For example, with
+   ``benchmarks/rules-bench.toml`` (one entity of the small workload's 100, and four not in it)::
+
+       .venv/bin/python benchmarks/ingest.py --workload small --servers ours,ours+rules \
+           --rules benchmarks/rules-bench.toml --memory-passes 0 --no-read-back --repeat 3
 
 MB = 10**6 bytes; bytes = sum of the inner messages sent (protobuf LogMsg contents, as in an RRD file).
 ``ours/rerun`` = our MB/s / rerun's MB/s on the same workload (best run of each); targets: >= 1.0x on
@@ -525,9 +534,17 @@ class FleetServer(Server):
     name = "ours"
 
     def __init__(
-        self, workdir: Path, cpus: set[int] | None = None, workers: int | None = None, catalog: str = "duckdb"
+        self,
+        workdir: Path,
+        cpus: set[int] | None = None,
+        workers: int | None = None,
+        catalog: str = "duckdb",
+        rules: Path | None = None,
     ) -> None:
         super().__init__(workdir, cpus)
+        self.rules = rules  # a rules file applied before the start (`ours+rules`)
+        if rules is not None:
+            self.name = "ours+rules"
         self.http_port = free_port()
         self.data_dir = workdir / "fleet-data"
         self.workers = workers  # `fleet serve --workers N` (None: the option left out)
@@ -566,7 +583,28 @@ class FleetServer(Server):
 
             self.catalog_url = self._database.enter_context(temporary_database("ingest_bench"))
             checked(run_process(self.fleet("db", "upgrade"), env=self.env()), "fleet db upgrade")
+        if self.rules is not None:
+            self.apply_rules(self.rules)
         super().start(timeout)
+
+    def apply_rules(self, rules: Path) -> None:
+        """The rules file as the running rules of the catalog the server is about to open (written by
+        a child process: this script's own folder shadows the `catalog` package)."""
+        self.data_dir.mkdir(parents=True, exist_ok=True)
+        if self.catalog_url is None:
+            checked(run_process(self.fleet("db", "upgrade"), env=self.env()), "fleet db upgrade")
+        url = self.catalog_url or f"duckdb:///{self.data_dir.resolve() / 'catalog.duckdb'}"
+        code = (
+            f"import sys, datetime as dt; sys.path.insert(0, {str(ROOT)!r})\n"
+            "from sqlalchemy.orm import sessionmaker\n"
+            "from catalog import corpus\n"
+            "from catalog.db import create_engine, session_scope\n"
+            f"engine = create_engine({url!r})\n"
+            "with session_scope(sessionmaker(engine), write=True) as session:\n"
+            f"    corpus.add_rules_version(session, {rules.read_text()!r}, 'benchmark', dt.datetime.now(dt.UTC))\n"
+            "engine.dispose()\n"
+        )
+        checked(run_process([sys.executable, "-c", code]), "apply the rules")
 
     def stop(self) -> None:
         try:
@@ -940,6 +978,30 @@ def summarize(runs: list[Run], workloads: list[str]) -> list[dict[str, Any]]:
     return out
 
 
+def rules_cost(runs: list[Run], workloads: list[str]) -> list[dict[str, Any]]:
+    """Per workload run with and without rules: the server's CPU per chunk (best run of each) and
+    their ratio."""
+    out = []
+    for w in workloads:
+        costs = {}
+        for name in ("ours", "ours+rules"):
+            mine = [r.cpu_us_per_chunk for r in runs if r.server == name and r.workload == w and r.passes == 1]
+            if mine:
+                costs[name] = min(mine)
+        if len(costs) == 2:
+            ratio = costs["ours+rules"] / costs["ours"]
+            out.append(
+                {
+                    "workload": w,
+                    "ours_us_per_chunk": round(costs["ours"], 1),
+                    "rules_us_per_chunk": round(costs["ours+rules"], 1),
+                    "ratio": round(ratio, 3),
+                    "met": ratio <= 1.10,
+                }
+            )
+    return out
+
+
 def memory_verdict(runs: list[Run]) -> dict[str, Any] | None:
     """Does our memory grow with the bytes ingested? Two measures, each in MB of RSS per GB ingested
     (about 0 if memory is bounded, about 1000 if what is ingested stays in memory):
@@ -1209,12 +1271,17 @@ def main(argv: list[str] | None = None) -> None:
         action="store_true",
         help="chunks stamped as rerun-sdk stamps those it streams (a file's lack the stamps): what robots send",
     )
+    parser.add_argument(
+        "--rules", type=Path, help="a rules file: server ours+rules is ours running it (--servers ours,ours+rules)"
+    )
     parser.add_argument("--json", action="store_true", help="print the results as JSON on stdout instead of tables")
     args = parser.parse_args(argv)
     workloads = [w.strip() for w in args.workload.split(",") if w.strip()]
     servers = [s.strip() for s in args.servers.split(",") if s.strip()]
-    if not servers or any(s not in ("ours", "rerun") for s in servers):
-        parser.error("--servers takes ours, rerun or ours,rerun")
+    if not servers or any(s not in ("ours", "rerun", "ours+rules") for s in servers):
+        parser.error("--servers takes ours, rerun, ours+rules, or several of them separated by commas")
+    if ("ours+rules" in servers) != (args.rules is not None):
+        parser.error("--rules FILE goes with server ours+rules")
     if not workloads or any(w not in TARGETS for w in workloads):
         parser.error("--workload takes big, small or big,small")
     if min(args.robots, args.procs, args.repeat, args.small_chunks, args.small_entities) < 1 or args.big_mb <= 0:
@@ -1226,8 +1293,8 @@ def main(argv: list[str] | None = None) -> None:
         parser.error("--workers above 1 needs --catalog postgres (the embedded DuckDB catalog has one writer)")
     server_cpus, load_cpus = cpu_list(args.server_cpus), cpu_list(args.load_cpus)
 
-    def ours(workdir: Path) -> FleetServer:
-        return FleetServer(workdir, server_cpus, args.workers, catalog)
+    def ours(workdir: Path, rules: Path | None = None) -> FleetServer:
+        return FleetServer(workdir, server_cpus, args.workers, catalog, rules)
 
     load = os.getloadavg()[0]
     if load > 0.5 * (os.cpu_count() or 1):
@@ -1254,8 +1321,8 @@ def main(argv: list[str] | None = None) -> None:
                     workdir = tmp_root / f"{w}-{name}-{i}"
                     workdir.mkdir()
                     server: Server = (
-                        ours(workdir)
-                        if name == "ours"
+                        ours(workdir, args.rules if name == "ours+rules" else None)
+                        if name.startswith("ours")
                         else RerunServer(workdir, rerun_bin, args.rerun_memory_limit, server_cpus)
                     )
                     log(f"{w} #{i + 1}: {name} ...")
@@ -1334,11 +1401,17 @@ def main(argv: list[str] | None = None) -> None:
         ],
         "summary": summarize(runs, workloads),
         "memory": memory_verdict(runs),
+        "rules": rules_cost(runs, workloads),
     }
     if args.json:
         print(json.dumps(report, indent=2))
     else:
         print_report(report)
+        for entry in report["rules"]:
+            print(
+                f"rules, {entry['workload']}: server CPU {entry['ours_us_per_chunk']:,.1f} us/chunk without, "
+                f"{entry['rules_us_per_chunk']:,.1f} with ({entry['ratio']:.3f}x; target <= 1.10)"
+            )
 
 
 if __name__ == "__main__":

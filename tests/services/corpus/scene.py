@@ -2,12 +2,14 @@
 in it, computed here from the values logged (not by the depot's evaluator).
 
 `python scene.py OUT RUN_ID [TAGS]` writes the recording (`OUT` a .rrd path, or `grpc:URL` to
-stream it, printing READY halfway and waiting for a line on stdin before the rest).
+stream it, printing READY halfway and waiting for a line on stdin before the rest; FLEET_TOKEN: the
+robot's ingest token, sent in its `fleet` property).
 """
 
 from __future__ import annotations
 
 import math
+import os
 import sys
 
 FRAMES = 60
@@ -155,7 +157,8 @@ def main(out: str, run_id: str, tags: str) -> None:
         rec.set_sinks(rr.GrpcSink(out.removeprefix("grpc:")))
     else:
         rec.set_sinks(rr.FileSink(out))
-    rec.send_property("fleet", rr.AnyValues(robot_id="robot-c", sw_version=SW_VERSION, tags=tags))
+    token = {"token": os.environ["FLEET_TOKEN"]} if os.environ.get("FLEET_TOKEN") else {}  # proves the robot
+    rec.send_property("fleet", rr.AnyValues(robot_id="robot-c", sw_version=SW_VERSION, tags=tags, **token))
     for frame in range(FRAMES // 2):
         log_frame(rec, frame)
     rec.flush(timeout_sec=30)
