@@ -11,6 +11,7 @@ from __future__ import annotations
 import math
 import os
 import sys
+from typing import Any
 
 FRAMES = 60
 T0_S = 1_700_000_000  # sim_time of frame 0, seconds since the epoch
@@ -157,8 +158,10 @@ def main(out: str, run_id: str, tags: str) -> None:
         rec.set_sinks(rr.GrpcSink(out.removeprefix("grpc:")))
     else:
         rec.set_sinks(rr.FileSink(out))
-    token = {"token": os.environ["FLEET_TOKEN"]} if os.environ.get("FLEET_TOKEN") else {}  # proves the robot
-    rec.send_property("fleet", rr.AnyValues(robot_id="robot-c", sw_version=SW_VERSION, tags=tags, **token))
+    fields: dict[str, Any] = {"robot_id": "robot-c", "sw_version": SW_VERSION, "tags": tags}
+    if os.environ.get("FLEET_TOKEN"):
+        fields["token"] = os.environ["FLEET_TOKEN"]  # proves the robot
+    rec.send_property("fleet", rr.AnyValues(**fields))
     for frame in range(FRAMES // 2):
         log_frame(rec, frame)
     rec.flush(timeout_sec=30)
