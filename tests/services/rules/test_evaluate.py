@@ -396,7 +396,7 @@ def test_events_stop_at_the_cap_and_say_so(rules, scene_chunks, scene):
     assert capped.note is not None and "cap of 5 events" in capped.note
     kept = {(e.kind, e.start, e.end, e.label) for e in capped.events}
     lost = [e for e in everything.events if (e.kind, e.start, e.end, e.label) not in kept]
-    for who in {e.rule or f"robot events {e.kind}" for e in lost}:
+    for who in {f"rule {e.rule}" if e.rule else f"robot events {e.kind}" for e in lost}:
         assert who in capped.note
     assert metrics(capped)["interventions"].value == 3  # metrics count every event found
 
