@@ -133,7 +133,9 @@ class AnnotationBody(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     timeline: str = Field(description="one of the run's timelines, e.g. log_time")
-    start: StrictStr | StrictInt = Field(description="ISO-8601 or ns (timestamp), an integer (sequence), 12.5s or ns (duration)")
+    start: StrictStr | StrictInt = Field(
+        description="ISO-8601 or ns (timestamp), an integer (sequence), 12.5s or ns (duration)"
+    )
     end: StrictStr | StrictInt | None = Field(None, description="as start; none: an instant")
     label: str = ""
     note: str = ""
