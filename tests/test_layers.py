@@ -18,7 +18,9 @@
     node                             what the sides of one node share: settings, catalog, stores,
                                      clock, auth
     analytics                        extraction at promotion, SQL over what was extracted
-    retention | runs | edge          promotion, archive, expiry | serving runs | robots' own tiers
+    retention | runs | edge | webhooks
+                                     promotion, archive, expiry | serving runs | robots' own tiers |
+                                     telling endpoints of what happens, signed
     api | redap | agent | console    the REST app and the gRPC port's front | the Rerun catalog
                                      server | `fleet agent`, on the robot | the web console
     server -> workers -> cli         the wiring; `fleet serve --workers N`; the command line
@@ -65,6 +67,7 @@ LAYERS: dict[str, int] = {
     "services.retention": 7,
     "services.runs": 7,
     "services.edge": 7,
+    "services.webhooks": 7,
     "services.api": 8,
     "services.redap": 8,
     "services.agent": 8,
