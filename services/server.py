@@ -189,9 +189,11 @@ async def _heartbeat(ownership: Ownership) -> None:
 def webhook_jobs(hooks: Webhooks, ingest: IngestService) -> list[Job]:
     """The webhooks' passes, run by the one schedule: deliveries due, and robots gone silent."""
     every = hooks.settings.webhook_interval_s
+    silent_check_s = max(1.0, min(30.0, hooks.settings.silent_after_s / 4))
     return [
         Job("webhooks", lambda _: deliver_due(hooks), every),
-        Job("robot.silent", lambda _: silent_pass(hooks, ingest.hot_runs()), max(every, 5.0)),
+        # a silence is seen within a quarter of FLEET_SILENT_AFTER_S (at most 30 s) of its start
+        Job("robot.silent", lambda _: silent_pass(hooks, ingest.hot_runs()), silent_check_s),
     ]
 
 

@@ -16,6 +16,7 @@ from services.cli.serve import serve
 from services.cli.sql import sql
 from services.cli.tokens import tokens
 from services.cli.upload import upload
+from services.cli.webhooks import webhooks
 
 
 @click.group(context_settings={"help_option_names": ["-h", "--help"]})
@@ -36,6 +37,7 @@ cli.add_command(catalog)
 cli.add_command(sql)
 cli.add_command(tokens)
 cli.add_command(agent)
+cli.add_command(webhooks)
 
 
 def main() -> None:
