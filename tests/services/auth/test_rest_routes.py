@@ -45,6 +45,7 @@ class Guarded:
             .replace("{token_id}", "no-such-token")
             .replace("{pull_id}", "no-such-pull")
             .replace("{query_id}", "no-such-query")
+            .replace("{webhook_id}", "wh-000000000000")
         )
 
     def __str__(self) -> str:
@@ -93,6 +94,10 @@ TABLE = [
     Guarded("POST", "/v1/pulls/{pull_id}/cancel", (WRITE,)),
     Guarded("PUT", "/v1/runs/{run_id}/robot-copy", (INGEST, ADMIN), {"json": {"chunks": 0, "bytes": 0}}),
     Guarded("DELETE", "/v1/runs/{run_id}/robot-copy", (INGEST, ADMIN)),
+    Guarded("POST", "/v1/webhooks", (ADMIN,), {"json": {"url": "https://hooks.example/", "on": ["run.sealed"]}}),
+    Guarded("GET", "/v1/webhooks", (ADMIN,)),
+    Guarded("DELETE", "/v1/webhooks/{webhook_id}", (ADMIN,)),
+    Guarded("GET", "/v1/webhooks/{webhook_id}/deliveries", (ADMIN,)),
 ]
 
 
