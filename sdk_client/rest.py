@@ -210,6 +210,24 @@ class FleetClient:
         """Revoke a token (`DELETE /v1/tokens/ID`, admin); answers its record."""
         return self._request("DELETE", f"/v1/tokens/{token_id}")
 
+    # --- webhooks (admin) ------------------------------------------------------------------------
+
+    def add_webhook(self, url: str, on: list[str], body_format: str = "json") -> dict[str, Any]:
+        """A new webhook (`POST /v1/webhooks`): its record and, this once, its signing `secret`."""
+        return self._request("POST", "/v1/webhooks", json={"url": url, "on": on, "format": body_format})
+
+    def webhooks(self) -> dict[str, Any]:
+        """`{"webhooks": [...]}`: where each goes and what it is told of, never its secret."""
+        return self._request("GET", "/v1/webhooks")
+
+    def remove_webhook(self, webhook_id: str) -> dict[str, Any]:
+        return self._request("DELETE", f"/v1/webhooks/{webhook_id}")
+
+    def webhook_deliveries(self, webhook_id: str, limit: int = 50, cursor: str | None = None) -> dict[str, Any]:
+        """A page of a webhook's deliveries, newest first, and `next_cursor`."""
+        params: dict[str, Any] = {"limit": limit, **({"cursor": cursor} if cursor else {})}
+        return self._request("GET", f"/v1/webhooks/{webhook_id}/deliveries", params=params)
+
     # --- robots' own tiers: what a robot's agent asks, and pulls from robots ----------------------
 
     def held(self, run_id: str, chunk_ids: list[str]) -> dict[str, Any]:

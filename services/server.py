@@ -38,7 +38,7 @@ from services.ingest.service import IngestService
 from services.node import Node
 from services.redap import grpc_handler as redap_handler
 from services.redap.depot import Depot
-from services.retention.schedule import start_scheduler
+from services.retention.schedule import Job, start_scheduler
 from services.retention.service import Retention
 from services.routine_logs import quiet_routine_requests
 from services.runtime import freeze_startup_objects, tune_allocator
@@ -53,6 +53,9 @@ from services.startup import (
     split_addr,
     worker_socket_path,
 )
+from services.webhooks.deliver import deliver_due
+from services.webhooks.service import Webhooks
+from services.webhooks.silent import silent_pass
 
 log = logging.getLogger("fleet")
 
@@ -183,6 +186,17 @@ async def _heartbeat(ownership: Ownership) -> None:
             log.warning("heartbeat not written (%s); this node's runs pass to others after FLEET_LEASE_S", exc)
 
 
+def webhook_jobs(hooks: Webhooks, ingest: IngestService) -> list[Job]:
+    """The webhooks' passes, run by the one schedule: deliveries due, and robots gone silent."""
+    every = hooks.settings.webhook_interval_s
+    silent_check_s = max(1.0, min(30.0, hooks.settings.silent_after_s / 4))
+    return [
+        Job("webhooks", lambda _: deliver_due(hooks), every),
+        # a silence is seen within a quarter of FLEET_SILENT_AFTER_S (at most 30 s) of its start
+        Job("robot.silent", lambda _: silent_pass(hooks, ingest.hot_runs()), silent_check_s),
+    ]
+
+
 def claim_ports(settings: Settings) -> tuple[socket.socket, socket.socket]:
     """Both ports, before any recovery work: a refused start is one line, quick, and changes nothing."""
     grpc_socket = listen_grpc(*split_addr(settings.grpc_addr))
@@ -291,6 +305,7 @@ async def serve(
             settings.promote_interval_s,
             settings.retention_interval_s,
             settings.lease_s if node.ownership is not None else None,
+            webhook_jobs(app.state.webhooks, ingest),
         )
         if settings.scheduler
         else None

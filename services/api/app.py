@@ -27,6 +27,8 @@ from services.retention import rest as retention_rest
 from services.retention.service import Retention
 from services.runs import rest as runs_rest
 from services.settings import Settings
+from services.webhooks import rest as webhooks_rest
+from services.webhooks.service import webhooks_of
 
 
 def path_ids(request: Request) -> None:
@@ -86,12 +88,14 @@ def _keep(
     app.state.analytics = analytics
     if ingest is not None:
         app.state.edge = Edge(node, ingest)
+    app.state.webhooks = webhooks_of(node)
 
 
 def _install_routes(
     app: FastAPI, ingest: IngestService | None, retention: Retention | None, analytics: Analytics | None
 ) -> None:
     app.include_router(auth_rest.router)
+    app.include_router(webhooks_rest.router)
     if analytics is not None:
         app.include_router(analytics_rest.router)
         app.include_router(queries_rest.router)

@@ -18,6 +18,7 @@ from services.cli.serve import serve
 from services.cli.sql import sql
 from services.cli.tokens import tokens
 from services.cli.upload import upload
+from services.cli.webhooks import webhooks
 
 
 @click.group(context_settings={"help_option_names": ["-h", "--help"]})
@@ -43,6 +44,7 @@ cli.add_command(events)
 runs.add_command(runs_annotate)
 runs.add_command(runs_tag)
 runs.add_command(runs_untag)
+cli.add_command(webhooks)
 
 
 def main() -> None:

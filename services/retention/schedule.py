@@ -8,6 +8,9 @@
   copies of runs other nodes own handed to them (`handoff.py`); not recorded in `job_runs` (it runs
   every few seconds).
 Each job run is recorded in the catalog (`job_runs`): where, when, and how it went.
+
+Jobs of sides above retention (the webhooks' delivery and `robot.silent` passes) are given to
+`start_scheduler` by the wiring (`services/server.py`) as `extra` jobs, and run here alike.
 """
 
 from __future__ import annotations
@@ -16,7 +19,7 @@ import datetime as dt
 import logging
 import os
 import socket
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -126,18 +129,28 @@ def ownership_job(ctx: Retention) -> None:
         ownership_pass(ctx.ingest, ctx.node)
 
 
-def jobs(promote_interval_s: float, retention_interval_s: float, lease_s: float | None = None) -> list[Job]:
+def jobs(
+    promote_interval_s: float,
+    retention_interval_s: float,
+    lease_s: float | None = None,
+    extra: Sequence[Job] = (),
+) -> list[Job]:
     found = [Job("promote", promote_job, promote_interval_s), Job("retention", retention_job, retention_interval_s)]
     if lease_s is not None:  # many nodes on one catalog
         found.append(Job("ownership", ownership_job, max(0.5, lease_s / 2)))
-    return found
+    return [*found, *extra]
 
 
 def start_scheduler(
-    ctx: Retention, promote_interval_s: float, retention_interval_s: float, lease_s: float | None = None
+    ctx: Retention,
+    promote_interval_s: float,
+    retention_interval_s: float,
+    lease_s: float | None = None,
+    extra: Sequence[Job] = (),
 ) -> BackgroundScheduler:
+    """The jobs above, and `extra` jobs of other sides (each given `ctx`, which it may ignore)."""
     scheduler = BackgroundScheduler(timezone="UTC")
-    for job in jobs(promote_interval_s, retention_interval_s, lease_s):
+    for job in jobs(promote_interval_s, retention_interval_s, lease_s, extra):
         scheduler.add_job(
             _guarded(job, ctx),
             "interval",

@@ -46,6 +46,7 @@ class Guarded:
             .replace("{pull_id}", "no-such-pull")
             .replace("{query_id}", "no-such-query")
             .replace("{event_id}", "no-such-event")
+            .replace("{webhook_id}", "wh-000000000000")
         )
 
     def __str__(self) -> str:
@@ -103,6 +104,10 @@ TABLE = [
     Guarded("POST", "/v1/runs/{run_id}/events", (WRITE,), {"json": {"timeline": "log_time", "start": 0}}),
     Guarded("POST", "/v1/runs/{run_id}/tags", (WRITE,), {"json": {"tags": ["a"]}}),
     Guarded("DELETE", "/v1/runs/{run_id}/tags", (WRITE,), {"params": {"tag": "a"}}),
+    Guarded("POST", "/v1/webhooks", (ADMIN,), {"json": {"url": "https://hooks.example/", "on": ["run.sealed"]}}),
+    Guarded("GET", "/v1/webhooks", (ADMIN,)),
+    Guarded("DELETE", "/v1/webhooks/{webhook_id}", (ADMIN,)),
+    Guarded("GET", "/v1/webhooks/{webhook_id}/deliveries", (ADMIN,)),
 ]
 
 
