@@ -271,6 +271,49 @@ class FleetClient:
         robot_copy: None}`."""
         return self._request("DELETE", f"/v1/runs/{run_id}/robot-copy")
 
+    # --- the corpus: rules, events, tags ------------------------------------------------------------
+
+    def apply_rules(self, text: str) -> dict[str, Any]:
+        """Apply a rules file (`PUT /v1/rules`, the TOML as the body): the version it made (or the
+        running one, `changed` false, for the same text). A bad file: a 422 whose body's `problems`
+        name every one by line and field."""
+        return self._request("PUT", "/v1/rules", content=text.encode(), headers={"Content-Type": "application/toml"})
+
+    def rules(self, version: int | None = None) -> dict[str, Any]:
+        """The running rules (`GET /v1/rules`), or an older version."""
+        return self._request("GET", "/v1/rules", params={"version": version} if version is not None else None)
+
+    def rules_history(self) -> list[dict[str, Any]]:
+        """Every version of the rules, newest first, with who applied it and when."""
+        versions: list[dict[str, Any]] = self._request("GET", "/v1/rules/history")["versions"]
+        return versions
+
+    def events(self, **params: Any) -> dict[str, Any]:
+        """`GET /v1/events` with its filters (kind, robot, run, severity, origin, source, since, until,
+        limit, cursor): `{events, next_cursor}`."""
+        return self._request("GET", "/v1/events", params={k: v for k, v in params.items() if v not in (None, [], ())})
+
+    def event(self, event_id: str) -> dict[str, Any]:
+        return self._request("GET", f"/v1/events/{event_id}")
+
+    def run_events(self, run_id: str) -> list[dict[str, Any]]:
+        events: list[dict[str, Any]] = self._request("GET", f"/v1/runs/{run_id}/events")["events"]
+        return events
+
+    def annotate(self, run_id: str, timeline: str, start: str | int, **fields: Any) -> dict[str, Any]:
+        """A person's event on a run (`POST /v1/runs/RUN/events`): fields end, label, note, severity,
+        kind."""
+        body = {"timeline": timeline, "start": start, **{k: v for k, v in fields.items() if v is not None}}
+        return self._request("POST", f"/v1/runs/{run_id}/events", json=body)
+
+    def tag(self, run_id: str, tags: list[str]) -> dict[str, Any]:
+        """`POST /v1/runs/RUN/tags`: the run's tags after, each with who added it, and those `added`."""
+        return self._request("POST", f"/v1/runs/{run_id}/tags", json={"tags": tags})
+
+    def untag(self, run_id: str, tags: list[str]) -> dict[str, Any]:
+        """`DELETE /v1/runs/RUN/tags`: the run's tags after, and those `removed`."""
+        return self._request("DELETE", f"/v1/runs/{run_id}/tags", params={"tag": tags})
+
     def _events(self, method: str, url: str, **kwargs: Any) -> Iterator[dict[str, Any]]:
         try:
             with self._http.stream(method, url, timeout=None, **kwargs) as response:

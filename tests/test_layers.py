@@ -19,6 +19,7 @@
                                      clock, auth
     analytics                        extraction at promotion, SQL over what was extracted
     retention | runs | edge          promotion, archive, expiry | serving runs | robots' own tiers
+    corpus                           what rules make of runs: events, metrics; people's events and tags
     api | redap | agent | console    the REST app and the gRPC port's front | the Rerun catalog
                                      server | `fleet agent`, on the robot | the web console
     server -> workers -> cli         the wiring; `fleet serve --workers N`; the command line
@@ -65,13 +66,14 @@ LAYERS: dict[str, int] = {
     "services.retention": 7,
     "services.runs": 7,
     "services.edge": 7,
-    "services.api": 8,
-    "services.redap": 8,
-    "services.agent": 8,
-    "services.console": 8,
-    "services.server": 9,
-    "services.workers": 10,
-    "services.cli": 11,
+    "services.corpus": 8,
+    "services.api": 9,
+    "services.redap": 9,
+    "services.agent": 9,
+    "services.console": 9,
+    "services.server": 10,
+    "services.workers": 11,
+    "services.cli": 12,
 }
 # Besides the layers: what may a unit import from our packages at all.
 ONLY = {"sdk_client": {"core"}, "catalog": {"core"}}

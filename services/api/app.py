@@ -17,6 +17,7 @@ from services.api.cors import Cors
 from services.api.redirects import SameOriginRedirects
 from services.auth import rest as auth_rest
 from services.auth.ratelimit import RateLimits
+from services.corpus import rest as corpus_rest
 from services.edge import rest as edge_rest
 from services.edge.context import Edge
 from services.ingest import rest as ingest_rest
@@ -101,3 +102,4 @@ def _install_routes(
         app.include_router(runs_rest.router)
         app.include_router(nodes_rest.router)
         app.include_router(edge_rest.router)
+        app.include_router(corpus_rest.router)

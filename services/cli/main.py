@@ -9,8 +9,10 @@ import click
 from services import __version__
 from services.cli.agent import agent
 from services.cli.db import db
+from services.cli.events import events, runs_annotate, runs_tag, runs_untag
 from services.cli.retention import catalog, retention
 from services.cli.rrd import rrd
+from services.cli.rules import rules
 from services.cli.runs import download, runs, view
 from services.cli.serve import serve
 from services.cli.sql import sql
@@ -36,6 +38,11 @@ cli.add_command(catalog)
 cli.add_command(sql)
 cli.add_command(tokens)
 cli.add_command(agent)
+cli.add_command(rules)
+cli.add_command(events)
+runs.add_command(runs_annotate)
+runs.add_command(runs_tag)
+runs.add_command(runs_untag)
 
 
 def main() -> None:
