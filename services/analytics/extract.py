@@ -21,22 +21,27 @@ import pyarrow.parquet as pq
 from services.hot.read import read_events
 from services.rrd.chunk import ChunkMeta, chunk_meta
 from services.rrd.errors import InvalidChunkError
-from services.rrd.fieldmeta import component_name, rerun_key
+from services.rrd.fieldmeta import component_name
 from services.rrd.messages import ArrowMessage, StoreKind
 from services.rrd.validate import validated_batch
+from services.rrd.values import (
+    AXIS_ANGLE,
+    LEVEL,
+    QUATERNION,
+    SCALARS,
+    TEXT,
+    TRANSLATION,
+    axis_angle_quaternions,
+    first_instances,
+    timelines,
+    vectors,
+)
 
 log = logging.getLogger(__name__)
 
 TABLES = ("scalars", "text_logs", "transforms")
 PARTITION_COLUMNS = ("robot_id", "date")  # the Hive partition: no file column may take these names
 LOG_TIME = "log_time"
-SCALARS = "Scalars:scalars"
-TEXT, LEVEL = "TextLog:text", "TextLog:level"
-TRANSLATION, QUATERNION, AXIS_ANGLE = (
-    "Transform3D:translation",
-    "Transform3D:quaternion",
-    "Transform3D:rotation_axis_angle",
-)
 
 FIXED_COLUMNS = {
     "scalars": ("run_id", "entity", "component", "instance", "value"),
@@ -67,7 +72,7 @@ class Extractor:
             log.warning("run %s: analytics skip %s", self.run_id, exc)
             return
         columns = {_component(f): batch.column(i) for i, f in enumerate(batch.schema)}
-        times = _timelines(batch)
+        times = timelines(batch)
         if SCALARS in columns:
             self._scalars(meta.entity_path, columns[SCALARS], times)
         if TEXT in columns:
@@ -97,11 +102,11 @@ class Extractor:
         )
 
     def _text_logs(self, entity: str, text: pa.Array, level: pa.Array | None, times: dict[str, pa.Array]) -> None:
-        texts, has = _first(text)
+        texts, has = first_instances(text)
         rows = np.flatnonzero(has)
         if len(rows) == 0:
             return
-        levels = _first(level)[0] if level is not None else pa.nulls(len(text), pa.string())
+        levels = first_instances(level)[0] if level is not None else pa.nulls(len(text), pa.string())
         n = len(rows)
         self._emit(
             "text_logs",
@@ -117,10 +122,10 @@ class Extractor:
 
     def _transforms(self, entity: str, columns: dict[str, pa.Array], times: dict[str, pa.Array]) -> None:
         length = len(next(iter(times.values()))) if times else len(next(iter(columns.values())))
-        translation, has_t = _vectors(columns.get(TRANSLATION), 3, length)
-        rotation, has_r = _vectors(columns.get(QUATERNION), 4, length)
+        translation, has_t = vectors(columns.get(TRANSLATION), 3, length)
+        rotation, has_r = vectors(columns.get(QUATERNION), 4, length)
         if AXIS_ANGLE in columns:
-            axis_angle, has_aa = _axis_angle_quaternions(columns[AXIS_ANGLE], length)
+            axis_angle, has_aa = axis_angle_quaternions(columns[AXIS_ANGLE], length)
             rotation = np.where(has_aa[:, None] & ~has_r[:, None], axis_angle, rotation)
             has_r = has_r | has_aa
         rows = np.flatnonzero(has_t | has_r)
@@ -171,52 +176,8 @@ def partition_key(table: str, robot_id: str, date: str, run_id: str) -> str:
     return f"analytics/{table}/robot_id={robot_id}/date={date}/{run_id}.parquet"
 
 
-# --- Arrow helpers -------------------------------------------------------------------------------
+# --- Arrow helpers (the generic ones are services.rrd.values') --------------------------------
 
 
 def _component(fld: pa.Field) -> str:
     return component_name(fld)
-
-
-def _timelines(batch: pa.RecordBatch) -> dict[str, pa.Array]:
-    out = {}
-    for i, fld in enumerate(batch.schema):
-        if rerun_key(fld, "kind") == b"index":
-            out[rerun_key(fld, "index_name", fld.name.encode()).decode()] = batch.column(i)
-    return out
-
-
-def _first(column: pa.Array) -> tuple[pa.Array, np.ndarray]:
-    """The first instance of each row of a list column (null where the row has none), and which rows have one."""
-    offsets = np.asarray(column.offsets)
-    valid = np.asarray(column.is_valid())
-    has = valid & (offsets[1:] > offsets[:-1])
-    values = column.values
-    first = (
-        values.take(pa.array(np.where(has, offsets[:-1], 0).astype(np.int64)))
-        if len(values)
-        else pa.nulls(len(column), values.type)
-    )
-    return pc.if_else(pa.array(has), first, pa.nulls(len(column), values.type)), has
-
-
-def _vectors(column: pa.Array | None, width: int, length: int) -> tuple[np.ndarray, np.ndarray]:
-    """First instance of a list<fixed_size_list<float, width>> column as an (n, width) array."""
-    if column is None:
-        return np.zeros((length, width)), np.zeros(length, dtype=bool)
-    first, has = _first(column)
-    flat = np.asarray(first.values.to_numpy(zero_copy_only=False), dtype=np.float64)
-    start = first.offset * width
-    return flat[start : start + len(first) * width].reshape(len(first), width), has
-
-
-def _axis_angle_quaternions(column: pa.Array, length: int) -> tuple[np.ndarray, np.ndarray]:
-    first, has = _first(column)
-    axis = np.asarray(first.field("axis").values.to_numpy(zero_copy_only=False), dtype=np.float64)
-    axis = axis.reshape(len(first), 3)
-    angle = np.asarray(first.field("angle").to_numpy(zero_copy_only=False), dtype=np.float64)
-    norm = np.linalg.norm(axis, axis=1, keepdims=True)
-    unit = np.divide(axis, norm, out=np.zeros_like(axis), where=norm > 0)
-    half = np.nan_to_num(angle) / 2
-    quaternion = np.column_stack([unit * np.sin(half)[:, None], np.cos(half)])
-    return quaternion, has & (norm[:, 0] > 0)

@@ -1,0 +1,349 @@
+"""The rules file: TOML `[[event]]` and `[[metric]]` tables (`[[trigger]]` reserved), parsed and
+checked whole.
+
+`parse_rules` either gives a `RuleSet` or raises `InvalidRulesError` naming every problem it found
+(line, field, message): an unknown key, a missing or mistyped value, a condition without its
+threshold, a regex re2 refuses, two rules of one name. Regexes are compiled with re2 (google-re2):
+its matching is linear in the text whatever the pattern, so `(a+)+$` is accepted and harmless, and
+what re2 cannot do in linear time (backreferences, lookaround) is a problem of the file.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+import tomllib
+from dataclasses import dataclass, field
+from typing import Any
+
+import re2
+
+from core.errors import InvalidRulesError
+from services.rules.globs import compile_glob, entity_problem, is_glob, matches
+from services.rules.toml_lines import TomlLines, syntax_error_line
+
+MAX_RULES_BYTES = 1024 * 1024
+MAX_RULES = 1000  # event and metric rules each
+MAX_REGEX_LENGTH = 1000
+_REGEX_MEMORY = 8 << 20  # re2's budget for one compiled pattern: a larger one is refused
+_ENTITY_CACHE = 100_000  # entity paths remembered by a rule set; more and it starts over
+
+CONDITIONS = ("falls_below", "rises_above", "below", "above", "text")
+NUMERIC = ("falls_below", "rises_above", "below", "above")
+SEVERITIES = ("info", "warn", "error")
+LEVELS = ("TRACE", "DEBUG", "INFO", "WARN", "ERROR", "CRITICAL")
+METRIC_KINDS = ("path_length", "event_count", "duration_s", "mean", "min", "max", "last", "property")
+SCALAR_METRICS = ("mean", "min", "max", "last")
+LOG_TIME = "log_time"
+# A rule's name is an event's kind or a metric's name: it appears in filters (`metric=NAME>3`) and
+# in the catalog protocol's column names, so it is kept plain.
+_NAME = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.-]{0,127}")
+_EVENT_KEYS = ("name", "entity", "when", "threshold", "for_s", "level", "match", "timeline", "severity")
+_METRIC_KEYS = ("name", "kind", "entity", "event", "property")
+_METRIC_NEEDS = {
+    "path_length": ("entity",),
+    "event_count": ("event",),
+    "duration_s": ("event",),
+    "mean": ("entity",),
+    "min": ("entity",),
+    "max": ("entity",),
+    "last": ("entity",),
+    "property": ("property",),
+}
+
+
+@dataclass(frozen=True)
+class EventRule:
+    """An `[[event]]` table: the condition that makes events of kind `name` on `entity` (a glob:
+    each matching entity on its own)."""
+
+    name: str
+    entity: str
+    when: str  # falls_below | rises_above | below | above | text
+    severity: str = "info"
+    threshold: float | None = None  # the numeric conditions'
+    for_s: float = 0.0  # below / above: how long the condition must hold (ticks on a sequence timeline)
+    level: str | None = None  # text: the lowest TextLog level (None: any)
+    match: str | None = None  # text: a regex the text must contain a match of (None: any text)
+    timeline: str = LOG_TIME
+    line: int | None = None
+    pattern: Any = field(default=None, compare=False, repr=False)  # `match` compiled (re2)
+    glob: Any = field(default=None, compare=False, repr=False)  # `entity` compiled, when a glob
+
+
+@dataclass(frozen=True)
+class MetricRule:
+    """A `[[metric]]` table: one value per run."""
+
+    name: str
+    kind: str  # path_length | event_count | duration_s | mean | min | max | last | property
+    entity: str | None = None  # path_length and the Scalars kinds: one entity path
+    event: str | None = None  # event_count, duration_s: an event kind (a rule's, or robots')
+    property: str | None = None  # property: PROPERTY.FIELD, e.g. fleet.sw_version
+    line: int | None = None
+
+
+@dataclass(frozen=True)
+class EntityRules:
+    """What the rules read of one entity path."""
+
+    events: tuple[EventRule, ...] = ()
+    path_length: bool = False  # its Transform3D translations
+    scalar_stats: bool = False  # its Scalars, for mean / min / max / last
+
+    def __bool__(self) -> bool:
+        return bool(self.events) or self.path_length or self.scalar_stats
+
+
+NO_RULES = EntityRules()
+
+
+@dataclass(frozen=True)
+class RuleSet:
+    """A checked rules file. `triggers` are the `[[trigger]]` tables as written (not read yet)."""
+
+    events: tuple[EventRule, ...] = ()
+    metrics: tuple[MetricRule, ...] = ()
+    triggers: tuple[dict[str, Any], ...] = ()
+    text: str = ""
+    _by_entity: dict[str, EntityRules] = field(default_factory=dict, compare=False, repr=False)
+
+    @classmethod
+    def empty(cls) -> RuleSet:
+        return cls()
+
+    def names_entity(self, path: str) -> bool:
+        """Whether a rule reads this entity (one dict lookup once the path was seen)."""
+        return bool(self.rules_for(path))
+
+    def rules_for(self, path: str) -> EntityRules:
+        """The rules that read `path`: each glob matched once per path, then remembered."""
+        found = self._by_entity.get(path)
+        if found is None:
+            if len(self._by_entity) >= _ENTITY_CACHE:
+                self._by_entity.clear()
+            found = self._by_entity[path] = self._match(path)
+        return found
+
+    def _match(self, path: str) -> EntityRules:
+        events = tuple(r for r in self.events if r.entity == path or (r.glob is not None and matches(r.glob, path)))
+        kinds = {m.kind for m in self.metrics if m.entity == path}
+        found = EntityRules(events, "path_length" in kinds, bool(kinds & set(SCALAR_METRICS)))
+        return found if found else NO_RULES
+
+
+# --- parsing -------------------------------------------------------------------------------------
+
+
+def parse_rules(text: str) -> RuleSet:
+    """The rules of a TOML rules file; InvalidRulesError listing every problem (nothing is half-read)."""
+    problems = _Problems(TomlLines.of(text))
+    if len(text.encode()) > MAX_RULES_BYTES:
+        problems.add(None, "file", f"{len(text.encode())} bytes: a rules file holds at most {MAX_RULES_BYTES}")
+        raise InvalidRulesError(problems.found)
+    try:
+        document = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        problems.add(syntax_error_line(str(exc)), "toml", f"not valid TOML: {exc}")
+        raise InvalidRulesError(problems.found) from exc
+    for key in document:
+        if key not in ("event", "metric", "trigger"):
+            problems.add(
+                problems.lines.top_level(key),
+                key,
+                "unknown key: a rules file holds [[event]], [[metric]] and [[trigger]]",
+            )
+    events = [_event_rule(t, i, problems) for i, t in enumerate(_tables(document, "event", problems))]
+    metrics = [_metric_rule(t, i, problems) for i, t in enumerate(_tables(document, "metric", problems))]
+    triggers = _tables(document, "trigger", problems)
+    _check_unique("event", [_table_name(t) for t in _tables(document, "event", None)], problems)
+    _check_unique("metric", [_table_name(t) for t in _tables(document, "metric", None)], problems)
+    if problems.found:
+        raise InvalidRulesError(problems.found)
+    return RuleSet(
+        tuple(r for r in events if r is not None),
+        tuple(r for r in metrics if r is not None),
+        tuple(triggers),
+        text,
+    )
+
+
+@dataclass
+class _Problems:
+    lines: TomlLines
+    found: list[dict[str, object]] = field(default_factory=list)
+
+    def add(self, line: int | None, name: str, message: str) -> None:
+        self.found.append({"line": line, "field": name, "message": message})
+
+
+def _table_name(table: dict[str, Any]) -> str | None:
+    name = table.get("name")
+    return name if isinstance(name, str) else None
+
+
+def _tables(document: dict[str, Any], name: str, problems: _Problems | None) -> list[dict[str, Any]]:
+    """The `[[name]]` tables of the document (`problems`: where to say they are not tables)."""
+    value = document.get(name, [])
+    if not isinstance(value, list) or not all(isinstance(t, dict) for t in value):
+        if problems is not None:
+            problems.add(problems.lines.top_level(name), name, f"write each {name} as a [[{name}]] table")
+        return []
+    if len(value) > MAX_RULES:
+        if problems is not None:
+            problems.add(problems.lines.table(name, MAX_RULES), name, f"{len(value)} tables: at most {MAX_RULES}")
+        return []
+    return value
+
+
+class _Table:
+    """One `[[event]]` / `[[metric]]` table being read: its values, each problem at its key's line."""
+
+    def __init__(self, kind: str, index: int, values: dict[str, Any], allowed: tuple[str, ...], problems: _Problems):
+        self.kind, self.index, self.values, self.problems = kind, index, values, problems
+        self.line = problems.lines.table(kind, index)
+        self.failed = False
+        for key in values:
+            if key not in allowed:
+                self.problem(key, f"unknown key; [[{kind}]] has {', '.join(allowed)}")
+
+    def problem(self, key: str, message: str) -> None:
+        self.failed = True
+        line = self.problems.lines.key(self.kind, self.index, key) if key in self.values else self.line
+        self.problems.add(line, f"{self.kind}[{self.index + 1}].{key}", message)
+
+    def text(self, key: str, *, required: bool = False, choices: tuple[str, ...] = ()) -> str | None:
+        value = self.values.get(key)
+        if value is None:
+            if required:
+                self.problem(key, "missing" + (f" (one of {', '.join(choices)})" if choices else ""))
+            return None
+        if not isinstance(value, str) or not value:
+            self.problem(key, f"a non-empty string, not {value!r}")
+            return None
+        if choices and value not in choices:
+            self.problem(key, f"{value!r} is none of {', '.join(choices)}")
+            return None
+        return value
+
+    def number(self, key: str, *, minimum: float | None = None) -> float | None:
+        value = self.values.get(key)
+        if value is None:
+            return None
+        if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
+            self.problem(key, f"a finite number, not {value!r}")
+            return None
+        if minimum is not None and value < minimum:
+            self.problem(key, f"at least {minimum:g}, not {value!r}")
+            return None
+        return float(value)
+
+    def not_for(self, keys: tuple[str, ...], what: str) -> None:
+        for key in keys:
+            if key in self.values:
+                self.problem(key, f"not read {what}")
+
+
+def _name(table: _Table) -> str | None:
+    name = table.text("name", required=True)
+    if name is not None and not _NAME.fullmatch(name):
+        table.problem("name", f"{name!r}: letters, digits, '_', '.', '-' (up to 128, not starting with '.' or '-')")
+        return None
+    return name
+
+
+def _entity(table: _Table, *, glob: bool) -> tuple[str | None, Any]:
+    entity = table.text("entity", required=True)
+    if entity is None:
+        return None, None
+    problem = entity_problem(entity)
+    if problem is None and is_glob(entity) and not glob:
+        problem = f"{entity!r}: a metric reads one entity, not a glob"
+    if problem is not None:
+        table.problem("entity", problem)
+        return None, None
+    return entity, compile_glob(entity) if is_glob(entity) else None
+
+
+def _event_rule(values: dict[str, Any], index: int, problems: _Problems) -> EventRule | None:
+    table = _Table("event", index, values, _EVENT_KEYS, problems)
+    name = _name(table)
+    entity, glob = _entity(table, glob=True)
+    when = table.text("when", required=True, choices=CONDITIONS)
+    severity = table.text("severity", choices=SEVERITIES) or "info"
+    timeline = table.text("timeline") or LOG_TIME
+    for_s = table.number("for_s", minimum=0) or 0.0
+    threshold, level, match, pattern = None, None, None, None
+    if when in NUMERIC:
+        table.not_for(("level", "match"), f"by when = {when!r} (only by when = 'text')")
+        threshold = table.number("threshold")
+        if threshold is None and "threshold" not in values:
+            table.problem("threshold", f"missing: when = {when!r} compares the value with a threshold")
+    elif when == "text":
+        table.not_for(("threshold", "for_s"), "by when = 'text' (only by the numeric conditions)")
+        level = _level(table)
+        match, pattern = _regex(table)
+    if table.failed or name is None or entity is None or when is None:
+        return None
+    return EventRule(name, entity, when, severity, threshold, for_s, level, match, timeline, table.line, pattern, glob)
+
+
+def _level(table: _Table) -> str | None:
+    level = table.text("level")
+    if level is not None and level.upper() not in LEVELS:
+        table.problem("level", f"{level!r} is none of {', '.join(LEVELS)}")
+        return None
+    return level.upper() if level is not None else None
+
+
+def _regex(table: _Table) -> tuple[str | None, Any]:
+    match = table.text("match")
+    if match is None:
+        return None, None
+    if len(match) > MAX_REGEX_LENGTH:
+        table.problem("match", f"a regex of {len(match)} characters: at most {MAX_REGEX_LENGTH}")
+        return None, None
+    options = re2.Options()
+    options.log_errors = False
+    options.max_mem = _REGEX_MEMORY
+    try:
+        return match, re2.compile(match, options)
+    except re2.error as exc:
+        reason = exc.args[0].decode(errors="replace") if exc.args and isinstance(exc.args[0], bytes) else str(exc)
+        table.problem("match", f"{match!r} is not a regex re2 runs in linear time: {reason}")
+        return None, None
+
+
+def _metric_rule(values: dict[str, Any], index: int, problems: _Problems) -> MetricRule | None:
+    table = _Table("metric", index, values, _METRIC_KEYS, problems)
+    name = _name(table)
+    kind = table.text("kind", required=True, choices=METRIC_KINDS)
+    if kind is None:
+        return None
+    needs = _METRIC_NEEDS[kind]
+    table.not_for(tuple(k for k in ("entity", "event", "property") if k not in needs), f"by kind = {kind!r}")
+    entity = _entity(table, glob=False)[0] if "entity" in needs else None
+    event = table.text("event", required=True) if "event" in needs else None
+    prop = table.text("property", required=True) if "property" in needs else None
+    if prop is not None and "." not in prop.strip("."):
+        table.problem("property", f"{prop!r}: write PROPERTY.FIELD, e.g. fleet.sw_version")
+    if table.failed or name is None:
+        return None
+    return MetricRule(name, kind, entity, event, prop, table.line)
+
+
+def _check_unique(kind: str, names: list[str | None], problems: _Problems) -> None:
+    """Two `kind` tables of one name (`names`: each table's, None where it has none)."""
+    first: dict[str, int] = {}
+    for index, name in enumerate(names):
+        if name is None:
+            continue
+        if name in first:
+            earlier = problems.lines.key(kind, first[name], "name")
+            problems.add(
+                problems.lines.key(kind, index, "name"),
+                f"{kind}[{index + 1}].name",
+                f"{name!r} names {kind}[{first[name] + 1}] too" + (f" (line {earlier})" if earlier else ""),
+            )
+        else:
+            first[name] = index
