@@ -76,7 +76,8 @@ class FleetClient:
 
     def runs(self, **params: Any) -> dict[str, Any]:
         """`GET /v1/runs` with its filters (robot, application, since, until, status, tier, entity,
-        property, sort, limit, cursor)."""
+        property, metric, tag, event, sort, limit, cursor); repeatable ones as lists, e.g.
+        `runs(metric=["distance_m>100"], tag=["night-shift"], sort="-metric.distance_m")`."""
         return self._request("GET", "/v1/runs", params={k: v for k, v in params.items() if v not in (None, [], ())})
 
     def run(self, run_id: str) -> dict[str, Any]:
