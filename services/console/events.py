@@ -48,7 +48,7 @@ def events_page(request: Request, principal: Viewer) -> HTMLResponse:
     asked = asked_of(request)
     problem, status = None, 200
     try:
-        found, next_cursor = console_corpus.events_page(request.app.state.catalog, asked)
+        found, next_cursor = console_corpus.events_page(request, principal, asked)
     except InvalidArgumentError as exc:  # a bad severity or cursor: the page says so
         found, next_cursor, problem, status = [], None, exc.message, exc.http_status()
     return render(

@@ -175,7 +175,7 @@ def run_page(
         )
         for plot in views.plots
     ]
-    corpus = corpus_context(state.catalog, run_id, cover)
+    corpus = corpus_context(request, principal, run_id, cover)
     coverage_chart = (
         charts.coverage(cover.rows, cover.lo, cover.hi, marks=corpus["event_marks"]) if cover is not None else None
     )

@@ -6,8 +6,9 @@ from __future__ import annotations
 from typing import Any
 from urllib.parse import quote, urlencode
 
-from sqlalchemy.orm import Session, sessionmaker
+from fastapi import Request
 
+from services.auth.scopes import Principal
 from services.console import charts
 from services.console import corpus as console_corpus
 from services.console.web import PREFIX
@@ -38,7 +39,7 @@ def marks(events: list[dict[str, Any]], cover: Coverage | None) -> list[charts.M
     ]
 
 
-def corpus_context(catalog: sessionmaker[Session], run_id: str, cover: Coverage | None) -> dict[str, Any]:
+def corpus_context(request: Request, principal: Principal, run_id: str, cover: Coverage | None) -> dict[str, Any]:
     """The run page's corpus part: `corpus` (events, metrics, tags), `event_marks` and `viewer_href`."""
-    found = console_corpus.run_corpus(catalog, run_id)
+    found = console_corpus.run_corpus(request, principal, run_id)
     return {"corpus": found, "event_marks": marks(found.events, cover), "viewer_href": viewer_href}

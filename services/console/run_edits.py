@@ -1,6 +1,7 @@
 """What people change of a run's corpus on its page (`write` scope): tags added and removed, and
-annotations (a person's event on a timeline range). Each goes back to the run's page saying what
-happened; a refusal or bad input is shown on the page with its status."""
+annotations (a person's event on a timeline range), through the corpus service as the REST API
+does. Each goes back to the run's page saying what happened; a refusal or bad input is shown on
+the page with its status."""
 
 from __future__ import annotations
 
@@ -9,13 +10,12 @@ import re
 from fastapi import Request
 from fastapi.responses import Response
 
-from core.clock import utcnow
 from services.auth.depends import actor
 from services.auth.scopes import Scope
 from services.console import corpus as console_corpus
 from services.console.run import act
 from services.console.web import Form, Viewer, console_router
-from services.runs import service as runs_service
+from services.corpus.service import Annotation
 
 router = console_router()
 
@@ -25,11 +25,15 @@ def tags_typed(text: str) -> list[str]:
     return [t for t in re.split(r"[\s,]+", text) if t]
 
 
+def _text(form: Form, name: str) -> str:
+    return str(form.get(name) or "").strip()
+
+
 @router.post("/runs/{run_id}/tags")
 def tag(request: Request, run_id: str, principal: Viewer, form: Form) -> Response:
     def work() -> str:
-        tags = tags_typed(str(form.get("tags") or ""))
-        console_corpus.add_tags(request.app.state.catalog, run_id, tags, actor(request, principal), utcnow())
+        now = request.app.state.node.clock()
+        console_corpus.add_tags(request, run_id, tags_typed(_text(form, "tags")), actor(request, principal), now)
         return "tagged"
 
     return act(request, principal, run_id, Scope.WRITE, work)
@@ -38,7 +42,7 @@ def tag(request: Request, run_id: str, principal: Viewer, form: Form) -> Respons
 @router.post("/runs/{run_id}/tags/remove")
 def untag(request: Request, run_id: str, principal: Viewer, form: Form) -> Response:
     def work() -> str:
-        console_corpus.remove_tags(request.app.state.catalog, run_id, tags_typed(str(form.get("tag") or "")))
+        console_corpus.remove_tags(request, run_id, tags_typed(_text(form, "tag")))
         return "untagged"
 
     return act(request, principal, run_id, Scope.WRITE, work)
@@ -47,17 +51,14 @@ def untag(request: Request, run_id: str, principal: Viewer, form: Form) -> Respo
 @router.post("/runs/{run_id}/annotate")
 def annotate(request: Request, run_id: str, principal: Viewer, form: Form) -> Response:
     def work() -> str:
-        state = request.app.state
-        run = runs_service.run_answer(
-            state.catalog, run_id, None, runs_service.hot_lookup(state.ingest, state.node.default_robot)
+        asked = Annotation(
+            timeline=_text(form, "timeline"),
+            start=_text(form, "start"),
+            end=_text(form, "end") or None,
+            label=_text(form, "label"),
         )
-        asked = console_corpus.Annotation(
-            timeline=str(form.get("timeline") or ""),
-            start=str(form.get("start") or ""),
-            end=str(form.get("end") or ""),
-            label=str(form.get("label") or "").strip(),
-        )
-        console_corpus.annotate(state.catalog, run, asked, actor(request, principal), utcnow())
+        now = request.app.state.node.clock()
+        console_corpus.annotate(request, principal, run_id, asked, actor(request, principal), now)
         return "annotated"
 
     return act(request, principal, run_id, Scope.WRITE, work)
