@@ -33,7 +33,8 @@ def console(tmp_path: Path, fresh_catalog_url: str, recordings: dict[str, Record
     """A depot with the console, holding the points scene as a run."""
     with open_depot(tmp_path, fresh_catalog_url) as depot:
         install(depot.app)
-        uploaded = depot.client.post("/v1/uploads", content=recordings["points"].data, headers=bearer(depot.token("write")))
+        writer = bearer(depot.token("write"))
+        uploaded = depot.client.post("/v1/uploads", content=recordings["points"].data, headers=writer)
         assert uploaded.status_code == 200, uploaded.text
         yield depot
 
@@ -51,13 +52,14 @@ def csrf(page: str) -> str:
 
 def evaluate(depot: Depot, run_id: str, robot: str = "robot-7", *, severity: str = "warn", count: int = 2) -> None:
     """Rule-made events on `frame` and a log_time instant, and metrics, as an evaluation writes them."""
+    rule = "rule intervention@1"
     events = [
-        corpus.EventFacts("intervention", severity, "frame", "sequence", 100 + i, 101 + i, corpus.RULE, "rule intervention@1")
+        corpus.EventFacts("intervention", severity, "frame", "sequence", 100 + i, 101 + i, corpus.RULE, rule)
         for i in range(count)
     ]
-    events.append(
-        corpus.EventFacts("hard_brake", "error", "log_time", "timestamp", 10**18, 10**18, corpus.ROBOT, "robot", "brake!")
-    )
+    at = 10**18
+    brake = corpus.EventFacts("hard_brake", "error", "log_time", "timestamp", at, at, corpus.ROBOT, "robot", "!")
+    events.append(brake)
     metrics = [corpus.MetricFacts("distance_m", 12.5, None), corpus.MetricFacts("sw_version", None, "2.3.0")]
     with session_scope(depot.app.state.catalog, write=True) as session:
         corpus.replace_evaluation(
@@ -182,7 +184,7 @@ def test_the_viewer_page_opens_an_events_window(console: Depot) -> None:
     browser = signed_in(console, "read")
     page = browser.get(f"/console/runs/{RUN}/viewer?timeline=frame&start=101&end=103")
     assert page.status_code == 200
-    signed = re.search(r'data-url="([^"]+)"', page.text) or re.search(r'rerun &#34;([^&]+)', page.text)
+    signed = re.search(r'data-url="([^"]+)"', page.text) or re.search(r"rerun &#34;([^&]+)", page.text)
     assert signed
     query = parse_qs(urlsplit(signed.group(1).replace("&amp;", "&")).query)
     assert query["timeline"] == ["frame"] and query["start"] == ["101"] and query["end"] == ["103"]
@@ -238,7 +240,8 @@ def test_the_events_page_filters_and_pages_like_the_api(console: Depot) -> None:
     assert {r["run"] for r in rows} == {"run-a", "run-b"} and {r["source"] for r in rows} == {"robot"}
     one = browser.get("/console/events?kind=hard_brake&robot=robot-a").text
     assert 'href="/console/runs/run-a"' in one  # to its run, and to the viewer at its window
-    assert "/console/runs/run-a/viewer?timeline=log_time&amp;start=999999995000000000&amp;end=1000000005000000000" in one
+    window = "timeline=log_time&amp;start=999999995000000000&amp;end=1000000005000000000"
+    assert f"/console/runs/run-a/viewer?{window}" in one
 
     empty = browser.get("/console/events?kind=nothing-like-it")
     assert empty.status_code == 200 and 'id="no-events"' in empty.text
