@@ -102,7 +102,7 @@ class RunsQuery:
         out += [(name, value) for name, value in (("since", self.since), ("until", self.until)) if value]
         out += [(name, value) for name, value in (("status", self.status), ("tier", self.tier)) if value]
         out += [("entity", v) for v in self.entity] + [("property", v) for v in self.property]
-        out += [("metric", v) for v in self.metric] + [("tag", v) for v in self.tag] + [("event", v) for v in self.event]
+        out += [(name, v) for name, values in self.corpus_filters() for v in values]
         if self.sort != "-started_at":
             out.append(("sort", self.sort))
         if self.limit != str(DEFAULT_LIMIT):
@@ -110,6 +110,9 @@ class RunsQuery:
         if self.cursor:
             out.append(("cursor", self.cursor))
         return out
+
+    def corpus_filters(self) -> tuple[tuple[str, list[str]], ...]:
+        return (("metric", self.metric), ("tag", self.tag), ("event", self.event))
 
     def href(self, **changes: Any) -> str:
         """This table's URL with some parameters changed (a new sort, the next page's cursor)."""
