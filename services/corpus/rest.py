@@ -9,7 +9,7 @@ from typing import Annotated, Any
 
 from fastapi import APIRouter, Body, Depends, Query, Request
 from fastapi.concurrency import run_in_threadpool
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, StrictInt, StrictStr
 
 from core.errors import BadParameterError
 from services.auth.depends import actor, require
@@ -133,8 +133,10 @@ class AnnotationBody(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     timeline: str = Field(description="one of the run's timelines, e.g. log_time")
-    start: str | int = Field(description="ISO-8601 or ns (timestamp), an integer (sequence), 12.5s or ns (duration)")
-    end: str | int | None = Field(None, description="as start; none: an instant")
+    start: StrictStr | StrictInt = Field(
+        description="ISO-8601 or ns (timestamp), an integer (sequence), 12.5s or ns (duration)"
+    )
+    end: StrictStr | StrictInt | None = Field(None, description="as start; none: an instant")
     label: str = ""
     note: str = ""
     severity: str = Field("info", description=" | ".join(service.SEVERITIES))

@@ -45,6 +45,7 @@ class Guarded:
             .replace("{token_id}", "no-such-token")
             .replace("{pull_id}", "no-such-pull")
             .replace("{query_id}", "no-such-query")
+            .replace("{event_id}", "no-such-event")
         )
 
     def __str__(self) -> str:
@@ -93,6 +94,15 @@ TABLE = [
     Guarded("POST", "/v1/pulls/{pull_id}/cancel", (WRITE,)),
     Guarded("PUT", "/v1/runs/{run_id}/robot-copy", (INGEST, ADMIN), {"json": {"chunks": 0, "bytes": 0}}),
     Guarded("DELETE", "/v1/runs/{run_id}/robot-copy", (INGEST, ADMIN)),
+    Guarded("PUT", "/v1/rules", (WRITE,), {"content": ""}),  # no content type: 422, nothing applied
+    Guarded("GET", "/v1/rules", (READ,)),
+    Guarded("GET", "/v1/rules/history", (READ,)),
+    Guarded("GET", "/v1/events", (READ,)),
+    Guarded("GET", "/v1/events/{event_id}", (READ,)),
+    Guarded("GET", "/v1/runs/{run_id}/events", (READ,)),
+    Guarded("POST", "/v1/runs/{run_id}/events", (WRITE,), {"json": {"timeline": "log_time", "start": 0}}),
+    Guarded("POST", "/v1/runs/{run_id}/tags", (WRITE,), {"json": {"tags": ["a"]}}),
+    Guarded("DELETE", "/v1/runs/{run_id}/tags", (WRITE,), {"params": {"tag": "a"}}),
 ]
 
 
