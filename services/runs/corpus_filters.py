@@ -108,8 +108,7 @@ def join_metric(query: sa.Select[Any], name: str) -> tuple[sa.Select[Any], sa.Co
     """`query` joined to the run's value of metric `name` (NULL where it has none), and that value."""
     metric = aliased(RunMetric, name="sort_metric")
     joined = query.outerjoin(metric, sa.and_(metric.run_id == Run.id, metric.name == name))
-    value: sa.ColumnElement[float | None] = metric.value
-    return joined, value
+    return joined, metric.value.expression
 
 
 def after_cursor(

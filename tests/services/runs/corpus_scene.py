@@ -5,6 +5,7 @@ SQL and catalog-protocol tests of search all read this one scene, so they can ag
 from __future__ import annotations
 
 import datetime as dt
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 from sqlalchemy.orm import Session
@@ -99,16 +100,16 @@ def event(kind: str, origin: str, i: int) -> EventFacts:
     return EventFacts(kind, "warn", "log_time", "timestamp", start, start + 2 * NS, origin, source, f"{kind} {i}")
 
 
-def expected(flt: dict[str, object]) -> list[str]:
+def expected(flt: Mapping[str, Sequence[str]]) -> list[str]:
     """The scene's runs a filter keeps, computed from the scene itself (in id order)."""
     kept = []
     for run in RUNS:
         ok = True
-        for expression in flt.get("metric", []):  # type: ignore[attr-defined]
+        for expression in flt.get("metric", ()):
             ok &= _meets(run, expression)
-        for tag in flt.get("tag", []):  # type: ignore[attr-defined]
+        for tag in flt.get("tag", ()):
             ok &= tag in run.tags
-        for kind in flt.get("event", []):  # type: ignore[attr-defined]
+        for kind in flt.get("event", ()):
             ok &= any(k == kind for k, _ in run.events)
         if ok:
             kept.append(run.run_id)
