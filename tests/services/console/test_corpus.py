@@ -110,6 +110,7 @@ def test_the_run_page_shows_events_metrics_and_tags_and_a_reader_gets_no_forms(c
     assert 'data-metric="distance_m"' in page.text and "12.5" in page.text and "v1" in page.text
     assert 'data-metric="sw_version"' in page.text and "2.3.0" in page.text
     assert re.search(r'data-tag="dock-2">.*?by robot', page.text, re.S)
+    assert 'id="evaluation" data-state="final"' in page.text
 
     # The coverage marks the events on its timeline, each opening the viewer at its padded window.
     timeline = re.search(r"Timeline coverage on <code>([^<]+)</code>", page.text)

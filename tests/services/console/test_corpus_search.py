@@ -19,7 +19,6 @@ from fastapi.testclient import TestClient
 from catalog import corpus
 from catalog.db import session_scope
 from catalog.queries import save_run
-from services.analytics.sql import VIEWS
 from services.console.app import install
 from services.console.interventions import Metrics, dashboard_sql
 from tests.catalog.records import run_record
@@ -177,7 +176,6 @@ def assert_same(got: Cells, want: Cells) -> None:
             assert (have is None) == (wanted is None) and (wanted is None or have == pytest.approx(wanted)), key
 
 
-@pytest.mark.skipif("run_metrics" not in VIEWS, reason="the SQL side has no run_metrics table yet")
 def test_the_dashboard_equals_an_independent_computation_and_its_sql(console: Depot) -> None:
     browser = signed_in(console)
     page = browser.get("/console/dashboards/interventions")
