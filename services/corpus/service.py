@@ -18,13 +18,14 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
+import sqlalchemy.exc as sa_exc
 from sqlalchemy.orm import Session, sessionmaker
 
 from catalog import corpus
 from catalog.db import session_scope
 from catalog.queries import require_run, run_timelines
 from core.clock import iso_utc
-from core.errors import BadParameterError, InvalidRulesError, NotFoundError
+from core.errors import BadParameterError, ConflictError, InvalidRulesError, NotFoundError
 from services.corpus.links import Viewer, event_answer
 from services.rules.spec import RuleSet, parse_rules
 from services.runs.download import parse_time_value
@@ -54,9 +55,12 @@ def apply_rules(
     untouched) and record it as a new version by `who`; the same text as the running set makes no
     version (`changed` false)."""
     rules = parse_rules(text)
-    with session_scope(catalog, write=True) as session:
-        version, changed = corpus.add_rules_version(session, text, who, now)
-        answer = _version_answer(version, rules)
+    try:
+        with session_scope(catalog, write=True) as session:
+            version, changed = corpus.add_rules_version(session, text, who, now)
+            answer = _version_answer(version, rules)
+    except sa_exc.IntegrityError as exc:  # another apply took the same version number at the same moment
+        raise ConflictError("another rules file was applied at the same moment: apply yours again") from exc
     if changed and on_applied is not None:
         on_applied(rules, answer["version"])
     return {**answer, "changed": changed}

@@ -124,3 +124,16 @@ def test_applying_needs_write_and_reading_needs_read(depot: Depot):
     for method, path in (("PUT", "/v1/rules"), ("GET", "/v1/rules"), ("GET", "/v1/rules/history")):
         assert depot.client.request(method, path, content=RULES).status_code == 401
     assert reader.rules()["version"] is None
+
+
+def test_two_applies_at_once_one_is_told_to_apply_again(depot: Depot, monkeypatch):
+    """Both read the same running version and take the next number: the second to commit is a 409
+    saying to apply again, and the first one's version stands."""
+    alice = sdk(depot, depot.token("write", name="alice"))
+    alice.apply_rules(RULES)
+    from catalog import corpus
+
+    monkeypatch.setattr(corpus, "current_rules", lambda session: None)  # it has not seen version 1
+    refused(lambda: alice.apply_rules(MORE), 409, "apply yours again")
+    monkeypatch.undo()
+    assert [v["version"] for v in alice.rules_history()] == [1]
