@@ -258,3 +258,53 @@ def sync_robot_tags(session: Session, run_id: str, tags: Iterable[str], now: dt.
         if held.added_by == ROBOT_TAGGER and held.tag not in wanted:
             session.delete(held)
     add_tags(session, run_id, sorted(wanted), ROBOT_TAGGER, now)
+
+
+# --- events found -----------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class EventQuery:
+    """Which events, newest first (by when the depot recorded them, then id). Empty lists: any."""
+
+    kinds: Sequence[str] = ()
+    robots: Sequence[str] = ()
+    runs: Sequence[str] = ()
+    severities: Sequence[str] = ()
+    origins: Sequence[str] = ()
+    source: str | None = None
+    since: dt.datetime | None = None  # created at or after
+    until: dt.datetime | None = None  # created before
+    after: tuple[dt.datetime, str] | None = None  # the last (created_at, id) of the previous page
+    limit: int = 100
+
+
+def find_events(session: Session, query: EventQuery) -> list[Event]:
+    """A page of events (at most `query.limit`), newest first."""
+    select = sa.select(Event)
+    for column, values in (
+        (Event.kind, query.kinds),
+        (Event.robot_id, query.robots),
+        (Event.run_id, query.runs),
+        (Event.severity, query.severities),
+        (Event.origin, query.origins),
+    ):
+        if values:
+            select = select.where(column.in_(list(values)))
+    if query.source is not None:
+        select = select.where(Event.source == query.source)
+    if query.since is not None:
+        select = select.where(Event.created_at >= query.since)
+    if query.until is not None:
+        select = select.where(Event.created_at < query.until)
+    if query.after is not None:
+        created, ident = query.after
+        select = select.where(
+            sa.or_(Event.created_at < created, sa.and_(Event.created_at == created, Event.id < ident))
+        )
+    select = select.order_by(Event.created_at.desc(), Event.id.desc()).limit(query.limit)
+    return list(session.scalars(select))
+
+
+def get_event(session: Session, ident: str) -> Event | None:
+    return session.get(Event, ident)

@@ -76,7 +76,8 @@ class FleetClient:
 
     def runs(self, **params: Any) -> dict[str, Any]:
         """`GET /v1/runs` with its filters (robot, application, since, until, status, tier, entity,
-        property, sort, limit, cursor)."""
+        property, metric, tag, event, sort, limit, cursor); repeatable ones as lists, e.g.
+        `runs(metric=["distance_m>100"], tag=["night-shift"], sort="-metric.distance_m")`."""
         return self._request("GET", "/v1/runs", params={k: v for k, v in params.items() if v not in (None, [], ())})
 
     def run(self, run_id: str) -> dict[str, Any]:
@@ -210,6 +211,24 @@ class FleetClient:
         """Revoke a token (`DELETE /v1/tokens/ID`, admin); answers its record."""
         return self._request("DELETE", f"/v1/tokens/{token_id}")
 
+    # --- webhooks (admin) ------------------------------------------------------------------------
+
+    def add_webhook(self, url: str, on: list[str], body_format: str = "json") -> dict[str, Any]:
+        """A new webhook (`POST /v1/webhooks`): its record and, this once, its signing `secret`."""
+        return self._request("POST", "/v1/webhooks", json={"url": url, "on": on, "format": body_format})
+
+    def webhooks(self) -> dict[str, Any]:
+        """`{"webhooks": [...]}`: where each goes and what it is told of, never its secret."""
+        return self._request("GET", "/v1/webhooks")
+
+    def remove_webhook(self, webhook_id: str) -> dict[str, Any]:
+        return self._request("DELETE", f"/v1/webhooks/{webhook_id}")
+
+    def webhook_deliveries(self, webhook_id: str, limit: int = 50, cursor: str | None = None) -> dict[str, Any]:
+        """A page of a webhook's deliveries, newest first, and `next_cursor`."""
+        params: dict[str, Any] = {"limit": limit, **({"cursor": cursor} if cursor else {})}
+        return self._request("GET", f"/v1/webhooks/{webhook_id}/deliveries", params=params)
+
     # --- robots' own tiers: what a robot's agent asks, and pulls from robots ----------------------
 
     def held(self, run_id: str, chunk_ids: list[str]) -> dict[str, Any]:
@@ -271,10 +290,53 @@ class FleetClient:
         robot_copy: None}`."""
         return self._request("DELETE", f"/v1/runs/{run_id}/robot-copy")
 
+    # --- the corpus: rules, events, tags ------------------------------------------------------------
+
+    def apply_rules(self, text: str) -> dict[str, Any]:
+        """Apply a rules file (`PUT /v1/rules`, the TOML as the body): the version it made (or the
+        running one, `changed` false, for the same text). A bad file: a 422 whose body's `problems`
+        name every one by line and field."""
+        return self._request("PUT", "/v1/rules", content=text.encode(), headers={"Content-Type": "application/toml"})
+
+    def rules(self, version: int | None = None) -> dict[str, Any]:
+        """The running rules (`GET /v1/rules`), or an older version."""
+        return self._request("GET", "/v1/rules", params={"version": version} if version is not None else None)
+
     def rules_backfill(self) -> Iterator[dict[str, Any]]:
         """Evaluate now every stored run the running rules have not (`POST /v1/rules/backfill`);
         yields progress events, the last one the summary."""
         return self._events("POST", "/v1/rules/backfill")
+
+    def rules_history(self) -> list[dict[str, Any]]:
+        """Every version of the rules, newest first, with who applied it and when."""
+        versions: list[dict[str, Any]] = self._request("GET", "/v1/rules/history")["versions"]
+        return versions
+
+    def events(self, **params: Any) -> dict[str, Any]:
+        """`GET /v1/events` with its filters (kind, robot, run, severity, origin, source, since, until,
+        limit, cursor): `{events, next_cursor}`."""
+        return self._request("GET", "/v1/events", params={k: v for k, v in params.items() if v not in (None, [], ())})
+
+    def event(self, event_id: str) -> dict[str, Any]:
+        return self._request("GET", f"/v1/events/{event_id}")
+
+    def run_events(self, run_id: str) -> list[dict[str, Any]]:
+        events: list[dict[str, Any]] = self._request("GET", f"/v1/runs/{run_id}/events")["events"]
+        return events
+
+    def annotate(self, run_id: str, timeline: str, start: str | int, **fields: Any) -> dict[str, Any]:
+        """A person's event on a run (`POST /v1/runs/RUN/events`): fields end, label, note, severity,
+        kind."""
+        body = {"timeline": timeline, "start": start, **{k: v for k, v in fields.items() if v is not None}}
+        return self._request("POST", f"/v1/runs/{run_id}/events", json=body)
+
+    def tag(self, run_id: str, tags: list[str]) -> dict[str, Any]:
+        """`POST /v1/runs/RUN/tags`: the run's tags after, each with who added it, and those `added`."""
+        return self._request("POST", f"/v1/runs/{run_id}/tags", json={"tags": tags})
+
+    def untag(self, run_id: str, tags: list[str]) -> dict[str, Any]:
+        """`DELETE /v1/runs/RUN/tags`: the run's tags after, and those `removed`."""
+        return self._request("DELETE", f"/v1/runs/{run_id}/tags", params={"tag": tags})
 
     def _events(self, method: str, url: str, **kwargs: Any) -> Iterator[dict[str, Any]]:
         try:

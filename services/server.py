@@ -29,7 +29,6 @@ from services.cluster.ownership import Ownership
 from services.cluster.relay import Channels, peer_channel_options
 from services.compiled import compiled_summary
 from services.console import app as console
-from services.corpus import backfill_rest
 from services.corpus.pipeline import BACKFILL_JOB, CorpusPipeline, corpus_pipeline
 from services.facts.identity import SecretFields
 from services.hot.reserve import DiskReserve
@@ -55,6 +54,9 @@ from services.startup import (
     split_addr,
     worker_socket_path,
 )
+from services.webhooks.deliver import deliver_due
+from services.webhooks.service import Webhooks
+from services.webhooks.silent import silent_pass
 
 log = logging.getLogger("fleet")
 
@@ -190,6 +192,17 @@ async def _heartbeat(ownership: Ownership) -> None:
             log.warning("heartbeat not written (%s); this node's runs pass to others after FLEET_LEASE_S", exc)
 
 
+def webhook_jobs(hooks: Webhooks, ingest: IngestService) -> list[Job]:
+    """The webhooks' passes, run by the one schedule: deliveries due, and robots gone silent."""
+    every = hooks.settings.webhook_interval_s
+    silent_check_s = max(1.0, min(30.0, hooks.settings.silent_after_s / 4))
+    return [
+        Job("webhooks", lambda _: deliver_due(hooks), every),
+        # a silence is seen within a quarter of FLEET_SILENT_AFTER_S (at most 30 s) of its start
+        Job("robot.silent", lambda _: silent_pass(hooks, ingest.hot_runs()), silent_check_s),
+    ]
+
+
 def claim_ports(settings: Settings) -> tuple[socket.socket, socket.socket]:
     """Both ports, before any recovery work: a refused start is one line, quick, and changes nothing."""
     grpc_socket = listen_grpc(*split_addr(settings.grpc_addr))
@@ -275,8 +288,7 @@ async def serve(
     )
     app = create_app(node, ingest, retention, analytics)
     console.install(app)
-    app.include_router(backfill_rest.router)
-    app.state.rules_backfill = corpus.backfill
+    app.state.rules_backfill = corpus.backfill  # POST /v1/rules/backfill
     catalog_server = redap_handler.CatalogServer(Depot(node, ingest), node.auth)
     # other nodes read the hot runs this one owns
     peers = peer.PeerService(node, ingest, app.state.edge) if node.ownership is not None else None
@@ -302,7 +314,10 @@ async def serve(
             settings.promote_interval_s,
             settings.retention_interval_s,
             settings.lease_s if node.ownership is not None else None,
-            [Job(BACKFILL_JOB, lambda _: corpus.backfill.run(), settings.rules_backfill_interval_s)],
+            [
+                *webhook_jobs(app.state.webhooks, ingest),
+                Job(BACKFILL_JOB, lambda _: corpus.backfill.run(), settings.rules_backfill_interval_s),
+            ],
         )
         if settings.scheduler
         else None

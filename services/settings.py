@@ -318,6 +318,23 @@ class Settings(SharedSettings):
     rules_backfill_interval_s: float = Field(
         300.0, gt=0, description="how often the rules backfill job looks for runs the running rules have not evaluated"
     )
+    # webhooks (docs/corpus.md)
+    webhook_hosts: Annotated[list[str], NoDecode] = Field(
+        default_factory=list,
+        description="hosts webhooks may be sent to, as HOST (any port) or HOST:PORT (a JSON list or "
+        "comma-separated; none: no webhook can be added). This depot's own ports on loopback and link-local "
+        "or cloud metadata addresses are refused unless their very HOST:PORT is listed",
+    )
+    silent_after_s: float = Field(
+        300.0, gt=0, description="a robot whose live run sends nothing this long is told of (robot.silent)"
+    )
+    webhook_interval_s: float = Field(5.0, gt=0, description="how often due webhook deliveries are sent")
+    webhook_timeout_s: float = Field(5.0, gt=0, description="a webhook endpoint has this long to answer")
+    webhook_batch: int = Field(50, gt=0, description="most webhook deliveries attempted per pass")
+    webhook_workers: int = Field(4, gt=0, description="webhook deliveries sent at once")
+    webhook_retry_s: float = Field(
+        24 * 3600.0, gt=0, description="a webhook delivery is retried with backoff this long, then given up"
+    )
 
     @property
     def hot_dir(self) -> Path:
@@ -344,6 +361,11 @@ class Settings(SharedSettings):
     @classmethod
     def other_programs_key(cls, key: str) -> bool:
         return key.startswith(AGENT_PREFIX)
+
+    @field_validator("webhook_hosts", mode="before")
+    @classmethod
+    def _webhook_hosts(cls, value: Any) -> Any:
+        return [h.strip().lower() for h in name_list(value)] if value is not None else value
 
     @field_validator("auth_key")
     @classmethod

@@ -19,8 +19,10 @@
     node                             what the sides of one node share: settings, catalog, stores,
                                      clock, auth
     analytics                        extraction at promotion, SQL over what was extracted
-    retention | runs | edge          promotion, archive, expiry | serving runs | robots' own tiers
-    corpus                           what rules make of runs: events, metrics, tags
+    retention | runs | edge | webhooks
+                                     promotion, archive, expiry | serving runs | robots' own tiers |
+                                     telling endpoints of what happens, signed
+    corpus                           what rules make of runs: events, metrics; people's events and tags
     api | redap | agent | console    the REST app and the gRPC port's front | the Rerun catalog
                                      server | `fleet agent`, on the robot | the web console
     server -> workers -> cli         the wiring; `fleet serve --workers N`; the command line
@@ -68,6 +70,7 @@ LAYERS: dict[str, int] = {
     "services.retention": 7,
     "services.runs": 7,
     "services.edge": 7,
+    "services.webhooks": 7,
     "services.corpus": 8,
     "services.api": 9,
     "services.redap": 9,

@@ -28,13 +28,15 @@ from services.rrd.values import (
     AXIS_ANGLE,
     LEVEL,
     QUATERNION,
-    SCALARS,
     TEXT,
     TRANSLATION,
     axis_angle_quaternions,
     first_instances,
     timelines,
     vectors,
+)
+from services.rrd.values import (
+    SCALARS as SCALARS,  # the scalars table's component, which analytics' users import from here
 )
 
 log = logging.getLogger(__name__)

@@ -20,7 +20,8 @@ router = APIRouter()
 
 class SqlRequest(BaseModel):
     query: str = Field(
-        description="one SELECT over robots, runs, run_entities, run_timelines, scalars, text_logs, transforms"
+        description="one SELECT over robots, runs, run_entities, run_timelines, run_metrics, events, run_tags, "
+        "scalars, text_logs, transforms"
     )
 
 

@@ -20,6 +20,7 @@ from catalog.db import session_scope
 from catalog.saved_queries import CHARTS, SavedQueryRecord
 from core.errors import FleetError, InvalidArgumentError
 from services.analytics import service
+from services.analytics.corpus_tables import CORPUS_TABLES
 from services.analytics.extract import FIXED_COLUMNS, LOG_TIME, PARTITION_COLUMNS
 from services.analytics.service import CATALOG_TABLES, Analytics
 
@@ -60,6 +61,10 @@ def tables() -> list[TableGuide]:
     guides = [
         TableGuide(name, "catalog", tuple((c.name, _sql_type(c.type)) for c in model.__table__.columns))
         for name, model in CATALOG_TABLES.items()
+    ]
+    guides += [
+        TableGuide(name, "catalog", tuple((label, _sql_type(c.type)) for label, c in columns))
+        for name, columns in CORPUS_TABLES.items()
     ]
     types = {"instance": "INTEGER", "value": "DOUBLE", "tx": "DOUBLE", "ty": "DOUBLE", "tz": "DOUBLE"}
     types.update({q: "DOUBLE" for q in ("qx", "qy", "qz", "qw")})

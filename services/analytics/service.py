@@ -26,6 +26,7 @@ from catalog.models import Robot, Run, RunEntity, RunObject, RunTimeline
 from core.errors import InvalidArgumentError
 from core.states import Tier
 from services.analytics import sql
+from services.analytics.corpus_tables import CORPUS_TABLES
 from services.analytics.extract import TABLES, extract_file
 from services.analytics.pool import Prepared, SqlPool
 from services.analytics.store import write_analytics
@@ -39,6 +40,7 @@ FORMATS = {
     "parquet": "application/vnd.apache.parquet",
 }
 CATALOG_TABLES = {"robots": Robot, "runs": Run, "run_entities": RunEntity, "run_timelines": RunTimeline}
+SQL_CATALOG_TABLES = (*CATALOG_TABLES, *CORPUS_TABLES)  # every table the server hands a worker
 
 
 @dataclass
@@ -90,17 +92,26 @@ class Analytics(OnNode):
             pool.close()
 
 
-def catalog_tables(session: Session, names: Iterable[str] = CATALOG_TABLES) -> dict[str, pa.Table]:
+def catalog_tables(session: Session, names: Iterable[str] = SQL_CATALOG_TABLES) -> dict[str, pa.Table]:
     """The catalog as Arrow tables (the same on Postgres and DuckDB): what the SQL views show."""
     out = {}
     for name in names:
-        model = CATALOG_TABLES[name]
-        columns = list(model.__table__.columns)
-        rows = session.execute(sa.select(*columns)).all()
+        columns = _sql_columns(name)
+        rows = session.execute(sa.select(*(column for _, column in columns))).all()
         out[name] = pa.table(
-            {c.name: pa.array([_plain(row[i]) for row in rows], _arrow_type(c.type)) for i, c in enumerate(columns)}
+            {
+                label: pa.array([_plain(row[i]) for row in rows], _arrow_type(column.type))
+                for i, (label, column) in enumerate(columns)
+            }
         )
     return out
+
+
+def _sql_columns(name: str) -> tuple[tuple[str, Any], ...]:
+    """A catalog table's columns as SQL names them: all of a model's, or the corpus tables' choice."""
+    if name in CORPUS_TABLES:
+        return CORPUS_TABLES[name]
+    return tuple((c.name, c) for c in CATALOG_TABLES[name].__table__.columns)
 
 
 def _arrow_type(column_type: Any) -> pa.DataType:
@@ -112,6 +123,8 @@ def _arrow_type(column_type: Any) -> pa.DataType:
         return pa.bool_()
     if isinstance(column_type, sa.Integer):  # BigInteger included
         return pa.int64()
+    if isinstance(column_type, sa.Float):  # Double included
+        return pa.float64()
     return pa.string()
 
 
@@ -147,7 +160,7 @@ def prepare(ctx: Analytics, named: set[str]) -> Prepared:
     with session_scope(ctx.catalog) as session:
         return Prepared(
             analytics_files(session, ctx.root, [t for t in TABLES if t in named]),
-            catalog_tables(session, [t for t in CATALOG_TABLES if t in named]),
+            catalog_tables(session, [t for t in SQL_CATALOG_TABLES if t in named]),
         )
 
 

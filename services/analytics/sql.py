@@ -48,7 +48,7 @@ class SqlBusyError(ResourceExhaustedError):
         return {"Retry-After": str(self.retry_after_s)}
 
 
-CATALOG_VIEWS = ("robots", "runs", "run_entities", "run_timelines")
+CATALOG_VIEWS = ("robots", "runs", "run_entities", "run_timelines", "run_metrics", "events", "run_tags")
 ANALYTICS_VIEWS = ("scalars", "text_logs", "transforms")
 VIEWS = CATALOG_VIEWS + ANALYTICS_VIEWS
 TABLE_FUNCTIONS = frozenset({"range", "generate_series", "unnest", "json_each", "json_tree"})

@@ -17,6 +17,8 @@ from services.api.cors import Cors
 from services.api.redirects import SameOriginRedirects
 from services.auth import rest as auth_rest
 from services.auth.ratelimit import RateLimits
+from services.corpus import backfill_rest
+from services.corpus import rest as corpus_rest
 from services.edge import rest as edge_rest
 from services.edge.context import Edge
 from services.ingest import rest as ingest_rest
@@ -26,6 +28,8 @@ from services.retention import rest as retention_rest
 from services.retention.service import Retention
 from services.runs import rest as runs_rest
 from services.settings import Settings
+from services.webhooks import rest as webhooks_rest
+from services.webhooks.service import webhooks_of
 
 
 def path_ids(request: Request) -> None:
@@ -85,12 +89,14 @@ def _keep(
     app.state.analytics = analytics
     if ingest is not None:
         app.state.edge = Edge(node, ingest)
+    app.state.webhooks = webhooks_of(node)
 
 
 def _install_routes(
     app: FastAPI, ingest: IngestService | None, retention: Retention | None, analytics: Analytics | None
 ) -> None:
     app.include_router(auth_rest.router)
+    app.include_router(webhooks_rest.router)
     if analytics is not None:
         app.include_router(analytics_rest.router)
         app.include_router(queries_rest.router)
@@ -101,3 +107,5 @@ def _install_routes(
         app.include_router(runs_rest.router)
         app.include_router(nodes_rest.router)
         app.include_router(edge_rest.router)
+        app.include_router(corpus_rest.router)
+        app.include_router(backfill_rest.router)  # answers 503 on a node without the corpus pipeline

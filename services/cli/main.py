@@ -9,14 +9,17 @@ import click
 from services import __version__
 from services.cli.agent import agent
 from services.cli.db import db
+from services.cli.events import events, runs_annotate, runs_tag, runs_untag
 from services.cli.retention import catalog, retention
 from services.cli.rrd import rrd
-from services.cli.rules_backfill import rules
+from services.cli.rules import rules
+from services.cli.rules_backfill import backfill
 from services.cli.runs import download, runs, view
 from services.cli.serve import serve
 from services.cli.sql import sql
 from services.cli.tokens import tokens
 from services.cli.upload import upload
+from services.cli.webhooks import webhooks
 
 
 @click.group(context_settings={"help_option_names": ["-h", "--help"]})
@@ -37,7 +40,13 @@ cli.add_command(catalog)
 cli.add_command(sql)
 cli.add_command(tokens)
 cli.add_command(agent)
+rules.add_command(backfill)
 cli.add_command(rules)
+cli.add_command(events)
+runs.add_command(runs_annotate)
+runs.add_command(runs_tag)
+runs.add_command(runs_untag)
+cli.add_command(webhooks)
 
 
 def main() -> None:

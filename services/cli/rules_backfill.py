@@ -26,11 +26,3 @@ def backfill(api_url: str) -> None:
     )
     if end.get("failed"):
         raise SystemExit(1)
-
-
-@click.group()
-def rules() -> None:
-    """The rules that make events and metrics of runs."""
-
-
-rules.add_command(backfill)

@@ -77,7 +77,10 @@ runs.add_command(runs_pulls)
 @click.option("--tier", type=click.Choice([t.value for t in Tier]))
 @click.option("--entity", multiple=True, help="has an entity: /a/b or /a/** (repeatable)")
 @click.option("--property", "prop", multiple=True, help="NAME.FIELD=VALUE, e.g. fleet.robot_id=robot-7")
-@click.option("--sort", default="-started_at", show_default=True)
+@click.option("--metric", multiple=True, help="NAME OP VALUE, OP one of > >= < <= = != (e.g. distance_m>100)")
+@click.option("--tag", multiple=True, help="has this tag (repeatable: all of them)")
+@click.option("--event", multiple=True, help="has at least one event of this kind (repeatable)")
+@click.option("--sort", default="-started_at", show_default=True, help="-started_at, bytes, id, metric.NAME, ...")
 @click.option("--limit", type=int, default=100, show_default=True)
 @click.option("--json", "as_json", is_flag=True, help="print JSON (the service's answer) instead of a table")
 def runs_ls(api_url: str, as_json: bool, prop: tuple[str, ...], **filters: Any) -> None:
@@ -148,7 +151,25 @@ def runs_show(api_url: str, run_id: str, as_json: bool) -> None:
             t["name"], t["type"], _timeline_value(t["type"], t["min"]), _timeline_value(t["type"], t["max"])
         )
     console.print(timelines)
+    _print_corpus(console, run)
     print_robot_side(console, run)
+
+
+def _print_corpus(console: Console, run: dict[str, Any]) -> None:
+    """The run's metrics (and the rules version that made them), tags and events by kind."""
+    metrics = run.get("metrics") or {}
+    if metrics:
+        shown = ", ".join(f"{name}={value}" for name, value in sorted(metrics.items()))
+        console.print(f"metrics (rules v{run.get('metrics_rules_version')}): {shown}", markup=False)
+    tags = run.get("tags") or []
+    if tags:
+        console.print("tags: " + ", ".join(f"{t['tag']} ({t['added_by']})" for t in tags), markup=False)
+    counts = run.get("event_counts") or {}
+    if counts:
+        console.print("events: " + ", ".join(f"{kind} {n}" for kind, n in sorted(counts.items())), markup=False)
+    evaluation = run.get("evaluation")
+    if evaluation and (evaluation["events_capped"] or evaluation["note"]):
+        console.print(f"evaluation: {evaluation['state']}: {evaluation['note'] or 'events capped'}", markup=False)
 
 
 def _timeline_value(timeline_type: str, value: int | None) -> str:

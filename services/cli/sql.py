@@ -27,8 +27,8 @@ FORMATS = ("table", "json", "csv", "arrow", "parquet")
 )
 @click.option("-o", "--output", type=click.Path(dir_okay=False, path_type=Path), help="write the answer here")
 def sql(api_url: str, query: str, fmt: str, output: Path | None) -> None:
-    """Run QUERY (one SELECT) over robots, runs, run_entities, run_timelines, scalars, text_logs and
-    transforms. Example: fleet sql "SELECT robot_id, count(*) FROM runs GROUP BY 1" """
+    """Run QUERY (one SELECT) over robots, runs, run_entities, run_timelines, run_metrics, events,
+    run_tags, scalars, text_logs and transforms. Example: fleet sql "SELECT robot_id, count(*) FROM runs GROUP BY 1" """
     with client(api_url) as fleet:
         if fmt == "table":
             from services.analytics.service import textual

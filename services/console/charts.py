@@ -122,19 +122,45 @@ def bars(labels: Sequence[str], values: Sequence[float], *, width: int = 720, ti
     return Markup("".join(parts))
 
 
-def coverage(rows: Sequence[tuple[str, float, float]], lo: float, hi: float, *, width: int = 720) -> Markup:
-    """Where each row (an entity, a timeline) has data between `lo` and `hi`: one bar per row."""
-    if not rows:
+@dataclass(frozen=True)
+class Mark:
+    """An event drawn on the coverage: its range, where clicking it leads, and what hovering says."""
+
+    start: float
+    end: float
+    href: str
+    title: str
+    severity: str = "info"
+    ident: str = ""
+
+
+SEVERITY_COLOURS = {"info": PALETTE[0], "warn": PALETTE[1], "error": PALETTE[3]}
+
+
+def coverage(
+    rows: Sequence[tuple[str, float, float]],
+    lo: float,
+    hi: float,
+    *,
+    width: int = 720,
+    marks: Sequence[Mark] = (),
+) -> Markup:
+    """Where each row (an entity, a timeline) has data between `lo` and `hi`: one bar per row; with
+    `marks`, a first row of events, each a link (a span, or a tick for an instant)."""
+    if not rows and not marks:
         return Markup('<p class="empty">no time ranges</p>')
     row, label_w = 20, 240
     plot_w = width - label_w - 8
     span = (hi - lo) or 1
-    height = row * len(rows) + 4
+    first = 1 if marks else 0
+    height = row * (len(rows) + first) + 4
     parts = [
         f'<svg class="chart coverage" role="img" viewBox="0 0 {width} {height}" width="{width}" '
         f'height="{height}" xmlns="http://www.w3.org/2000/svg"><title>timeline coverage</title>'
     ]
-    for i, (label, start, end) in enumerate(rows):
+    if marks:
+        parts.append(_marks(marks, lo, span, label_w, plot_w, row))
+    for i, (label, start, end) in enumerate(rows, start=first):
         y = 2 + i * row
         x0 = label_w + (start - lo) / span * plot_w
         x1 = label_w + (end - lo) / span * plot_w
@@ -146,3 +172,25 @@ def coverage(rows: Sequence[tuple[str, float, float]], lo: float, hi: float, *, 
         )
     parts.append("</svg>")
     return Markup("".join(parts))
+
+
+def _marks(marks: Sequence[Mark], lo: float, span: float, label_w: int, plot_w: int, row: int) -> str:
+    """The events' row: each mark a link (an SVG `<a>`), clamped to the drawn span."""
+
+    def at(value: float) -> float:
+        return label_w + min(max((value - lo) / span, 0.0), 1.0) * plot_w
+
+    parts = [
+        f'<text x="{label_w - 6}" y="15" text-anchor="end" class="axis">events</text>'
+        f'<rect x="{label_w}" y="5" width="{plot_w}" height="{row - 6}" class="track"/>'
+    ]
+    for mark in marks:
+        x0, x1 = at(mark.start), at(mark.end)
+        colour = SEVERITY_COLOURS.get(mark.severity, PALETTE[0])
+        parts.append(
+            f'<a href="{escape(mark.href)}" class="event-mark" data-event="{escape(mark.ident)}">'
+            f"<title>{escape(mark.title)}</title>"
+            f'<rect x="{min(x0, label_w + plot_w - 3):.1f}" y="3" width="{max(x1 - x0, 3):.1f}" height="{row - 2}" '
+            f'fill="{colour}" fill-opacity="0.8"/></a>'
+        )
+    return "".join(parts)

@@ -1,6 +1,7 @@
 """A run's page (`/console/runs/{run}`): what it is, where it is and what retention does next, its
-entities, coverage, scalar plots and text logs, the `rerun` command with a signed link, and its
-actions by scope (pin, restore, promote, pull, delete; a filtered download by signed link)."""
+entities, coverage (with its events marked), events, metrics and tags, scalar plots and text logs, the
+`rerun` command with a signed link, and its actions by scope (pin, restore, promote, pull, delete;
+tags and annotations in run_edits; a filtered download by signed link)."""
 
 from __future__ import annotations
 
@@ -20,6 +21,7 @@ from services.analytics import run_views as analytics_views
 from services.auth.depends import actor
 from services.auth.scopes import Principal, Scope
 from services.console import charts
+from services.console.run_corpus import corpus_context
 from services.console.web import PREFIX, Form, Viewer, console_router, render
 from services.edge import pulls
 from services.retention import service as retention_service
@@ -39,6 +41,9 @@ NOTICES = {
     "pull": "Pull queued: the robot's agent sends the run's missing chunks when it next polls.",
     "pull-pending": "The same pull was queued already: nothing new was asked of the robot.",
     "deleted": "Deleted: the run's objects are gone; its tombstone stays.",
+    "tagged": "Tagged: the run's tags are listed below.",
+    "untagged": "Tag removed.",
+    "annotated": "Annotated: your event is in the run's events.",
 }
 
 
@@ -170,7 +175,10 @@ def run_page(
         )
         for plot in views.plots
     ]
-    coverage_chart = charts.coverage(cover.rows, cover.lo, cover.hi) if cover is not None else None
+    corpus = corpus_context(request, principal, run_id, cover)
+    coverage_chart = (
+        charts.coverage(cover.rows, cover.lo, cover.hi, marks=corpus["event_marks"]) if cover is not None else None
+    )
     return render(
         request,
         "run.html",
@@ -188,6 +196,7 @@ def run_page(
         notice=notice,
         problem=problem,
         asked={**dict.fromkeys(("include", "exclude", "timeline", "start", "end"), ""), **(asked or {})},
+        **corpus,
     )
 
 
@@ -205,7 +214,7 @@ def run(
 # --- actions --------------------------------------------------------------------------------------
 
 
-def _act(request: Request, principal: Principal, run_id: str, scope: Scope, work: Callable[[], str]) -> Response:
+def act(request: Request, principal: Principal, run_id: str, scope: Scope, work: Callable[[], str]) -> Response:
     """Check the scope again, do the action, and go back to the run's page saying what happened;
     a refusal or failure is shown on the run's page with its status."""
     try:
@@ -229,7 +238,7 @@ def pin(request: Request, run_id: str, principal: Viewer, _: Form) -> Response:
         retention_service.set_pinned(_retention(request), run_id, True, actor(request, principal))
         return "pinned"
 
-    return _act(request, principal, run_id, Scope.WRITE, work)
+    return act(request, principal, run_id, Scope.WRITE, work)
 
 
 @router.post("/runs/{run_id}/unpin")
@@ -238,7 +247,7 @@ def unpin(request: Request, run_id: str, principal: Viewer, _: Form) -> Response
         retention_service.set_pinned(_retention(request), run_id, False, actor(request, principal))
         return "unpinned"
 
-    return _act(request, principal, run_id, Scope.WRITE, work)
+    return act(request, principal, run_id, Scope.WRITE, work)
 
 
 @router.post("/runs/{run_id}/restore")
@@ -247,7 +256,7 @@ def restore(request: Request, run_id: str, principal: Viewer, _: Form) -> Respon
         retention_service.request_restore(_retention(request), run_id, actor(request, principal))
         return "restore"
 
-    return _act(request, principal, run_id, Scope.WRITE, work)
+    return act(request, principal, run_id, Scope.WRITE, work)
 
 
 @router.post("/runs/{run_id}/promote")
@@ -256,7 +265,7 @@ def promote(request: Request, run_id: str, principal: Viewer, _: Form) -> Respon
         retention_service.promote_now(_retention(request), run_id, actor(request, principal))
         return "promoted"
 
-    return _act(request, principal, run_id, Scope.WRITE, work)
+    return act(request, principal, run_id, Scope.WRITE, work)
 
 
 @router.post("/runs/{run_id}/pull")
@@ -276,7 +285,7 @@ def pull(request: Request, run_id: str, principal: Viewer, form: Form) -> Respon
         _, created = pulls.request_pull(edge, ask, actor(request, principal))
         return "pull" if created else "pull-pending"
 
-    return _act(request, principal, run_id, Scope.WRITE, work)
+    return act(request, principal, run_id, Scope.WRITE, work)
 
 
 @router.post("/runs/{run_id}/delete")
@@ -288,7 +297,7 @@ def delete(request: Request, run_id: str, principal: Viewer, form: Form) -> Resp
         retention_service.delete_now(_retention(request), run_id, actor(request, principal))
         return "deleted"
 
-    return _act(request, principal, run_id, Scope.ADMIN, work)
+    return act(request, principal, run_id, Scope.ADMIN, work)
 
 
 @router.get("/runs/{run_id}/download")

@@ -1,5 +1,6 @@
 """The console's runs table (`GET /console/runs`): the filters of `GET /v1/runs` (robot,
-application, since, until, status, tier, entity, property NAME.FIELD=VALUE), sort and cursor paging,
+application, since, until, status, tier, entity, property NAME.FIELD=VALUE, metric `distance_m>100`,
+tag, event), sort (a metric's too: `metric.NAME`) and cursor paging,
 all as query parameters, so a table's URL can be kept and shared."""
 
 from __future__ import annotations
@@ -37,6 +38,9 @@ class RunsQuery:
     tier: str = ""
     entity: list[str] = field(default_factory=list)
     property: list[str] = field(default_factory=list)
+    metric: list[str] = field(default_factory=list)  # `distance_m>100`, as GET /v1/runs takes it
+    tag: list[str] = field(default_factory=list)
+    event: list[str] = field(default_factory=list)
     sort: str = "-started_at"
     limit: str = str(DEFAULT_LIMIT)
     cursor: str = ""
@@ -60,6 +64,9 @@ class RunsQuery:
             tier=one("tier"),
             entity=many("entity"),
             property=many("property"),
+            metric=many("metric"),
+            tag=many("tag"),
+            event=many("event"),
             sort=one("sort", "-started_at"),
             limit=one("limit", str(DEFAULT_LIMIT)),
             cursor=one("cursor"),
@@ -80,6 +87,9 @@ class RunsQuery:
             tier=self.tier or None,
             entity=self.entity,
             properties=parse_properties(self.property),
+            metric=self.metric,
+            tag=self.tag,
+            event=self.event,
             sort=self.sort,
             limit=limit,
             cursor=self.cursor or None,
@@ -92,6 +102,7 @@ class RunsQuery:
         out += [(name, value) for name, value in (("since", self.since), ("until", self.until)) if value]
         out += [(name, value) for name, value in (("status", self.status), ("tier", self.tier)) if value]
         out += [("entity", v) for v in self.entity] + [("property", v) for v in self.property]
+        out += [(name, v) for name, values in self.corpus_filters() for v in values]
         if self.sort != "-started_at":
             out.append(("sort", self.sort))
         if self.limit != str(DEFAULT_LIMIT):
@@ -99,6 +110,9 @@ class RunsQuery:
         if self.cursor:
             out.append(("cursor", self.cursor))
         return out
+
+    def corpus_filters(self) -> tuple[tuple[str, list[str]], ...]:
+        return (("metric", self.metric), ("tag", self.tag), ("event", self.event))
 
     def href(self, **changes: Any) -> str:
         """This table's URL with some parameters changed (a new sort, the next page's cursor)."""

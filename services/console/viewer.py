@@ -9,8 +9,9 @@ import importlib.metadata
 from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
+from typing import Annotated, Any
 
-from fastapi import Request
+from fastapi import Query, Request
 from fastapi.responses import FileResponse, HTMLResponse, Response
 
 from core.errors import GoneError, NotFoundError
@@ -18,6 +19,7 @@ from core.states import Tier
 from services.console.run import public_base, signed_link
 from services.console.web import Viewer, console_router, render
 from services.runs import service as runs_service
+from services.runs.download import window_from_query
 
 router = console_router()
 
@@ -62,7 +64,16 @@ def viewer_assets(package: str = PACKAGE) -> ViewerAssets | None:
 
 
 @router.get("/runs/{run_id}/viewer")
-def viewer_page(request: Request, run_id: str, principal: Viewer) -> HTMLResponse:
+def viewer_page(
+    request: Request,
+    run_id: str,
+    principal: Viewer,
+    timeline: Annotated[str | None, Query()] = None,
+    start: Annotated[str | None, Query()] = None,
+    end: Annotated[str | None, Query()] = None,
+) -> HTMLResponse:
+    """The run in the web viewer; with `timeline`, `start`, `end` only that window of it (an
+    event's link: the recording's link is signed with the window)."""
     answer = runs_service.run_answer(
         request.app.state.catalog,
         run_id,
@@ -74,8 +85,9 @@ def viewer_page(request: Request, run_id: str, principal: Viewer) -> HTMLRespons
     # The viewer fetches the recording from this page's own origin (the policy's connect-src 'self'):
     # its link is a path, made absolute by the page's script; the `rerun` command beside it uses the
     # depot's public address.
-    viewer_url = signed_link(request, principal, run_id, [], "")
-    command_url = signed_link(request, principal, run_id, [], public_base(request))
+    window = window_params(answer, timeline, start, end)
+    viewer_url = signed_link(request, principal, run_id, window, "")
+    command_url = signed_link(request, principal, run_id, window, public_base(request))
     assets = viewer_assets()
     response = render(
         request,
@@ -85,9 +97,22 @@ def viewer_page(request: Request, run_id: str, principal: Viewer) -> HTMLRespons
         assets=assets,
         viewer_url=viewer_url,
         command_url=command_url,
+        window=dict(window),
+        window_type=next((t["type"] for t in answer["timelines"] if t["name"] == timeline), None),
     )
     response.headers["content-security-policy"] = VIEWER_CSP  # before the console's default is set
     return response
+
+
+def window_params(
+    answer: dict[str, Any], timeline: str | None, start: str | None, end: str | None
+) -> list[tuple[str, str]]:
+    """The recording's window parameters, checked against the run's timelines (a bad one is the
+    page's 422, not a viewer that fails to load)."""
+    types = {t["name"]: t["type"] for t in answer["timelines"]}
+    window_from_query(types, timeline or None, start or None, end or None, latest_at=True)
+    given = (("timeline", timeline), ("start", start), ("end", end))
+    return [(name, value) for name, value in given if value]
 
 
 @router.get("/viewer-assets/{version}/{name}")

@@ -34,6 +34,7 @@ from services.corpus.evaluation import (
     NotReadable,
     Reads,
     RunningRules,
+    announce_events,
     evaluate_run,
     running_rules,
     write_evaluation,
@@ -146,7 +147,8 @@ class RulesBackfill:
         now = self.node.clock()
         with session_scope(self.node.catalog, write=True) as session:
             if run.tier == Tier.HOT:  # still growing: its sealing makes the values final
-                write_evaluation(session, run.id, run.robot_id, running.version, LIVE, evaluation, now)
+                new = write_evaluation(session, run.id, run.robot_id, running.version, LIVE, evaluation, now)
+                announce_events(session, new)
                 state = LIVE
             else:
                 finish_run(session, run, running.version, evaluation, now)

@@ -16,16 +16,18 @@ import dataclasses
 import datetime as dt
 import json
 import logging
-from collections.abc import Callable, Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
 from sqlalchemy.orm import Session
 
 from catalog import corpus as corpus_db
-from catalog import queries
+from catalog import queries, webhooks
 from catalog.db import session_scope
 from catalog.models import Event, Run
+from catalog.webhooks import EVENT_PREFIX
+from core.clock import iso_utc
 from core.errors import ConflictError, GoneError
 from core.states import Tier
 from services.facts.identity import IDENTITY_PROPERTY
@@ -210,3 +212,26 @@ def evaluate_run(
     finally:
         recording.close()
     return run, evaluation
+
+
+def announce_events(session: Session, new_events: Sequence[Event]) -> None:
+    """Webhooks told of each new event (`event:KIND`), in the writer's transaction: at most once
+    each, as an event found again (live, sealed, after a rules change) keeps its id."""
+    for event in new_events:
+        webhooks.enqueue(session, EVENT_PREFIX + event.kind, event.id, event_payload(event))
+
+
+def event_payload(event: Event) -> dict[str, Any]:
+    return {
+        "event_id": event.id,
+        "run_id": event.run_id,
+        "robot_id": event.robot_id,
+        "kind": event.kind,
+        "severity": event.severity,
+        "timeline": event.timeline,
+        "start": event.range_start,
+        "end": event.range_end,
+        "source": event.source,
+        "label": event.label,
+        "created_at": iso_utc(event.created_at),
+    }

@@ -38,6 +38,7 @@ from services.corpus.evaluation import (
     LIVE,
     NO_RULES_VERSION,
     RunningRules,
+    announce_events,
     properties_of,
     running_rules,
     wanted_rows,
@@ -301,7 +302,8 @@ class LiveRules:
             if row.tier != Tier.HOT:
                 return True  # data that came after the run was sealed: evaluated at its next seal
             evaluation = _so_far(run, properties_of(row))
-            write_evaluation(session, run.run_id, row.robot_id, run.version, LIVE, evaluation, now, run.events)
+            new = write_evaluation(session, run.run_id, row.robot_id, run.version, LIVE, evaluation, now, run.events)
+            announce_events(session, new)
         return True
 
 

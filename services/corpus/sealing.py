@@ -15,22 +15,22 @@ import dataclasses
 import logging
 import queue
 import threading
-from collections.abc import Sequence
 from typing import Any
 
 from sqlalchemy.orm import Session
 
 from catalog import corpus as corpus_db
-from catalog import queries
+from catalog import queries, webhooks
 from catalog.db import session_scope
 from catalog.models import Event, Run
-from core.clock import iso_utc
+from catalog.webhooks import RUN_SEALED
 from services.corpus.evaluation import (
     FINAL,
     SKIPPED,
     NotReadable,
     Reads,
     RunningRules,
+    announce_events,
     evaluate_recording,
     open_run,
     properties_of,
@@ -45,9 +45,6 @@ from services.node import Node
 from services.rules.evaluate import Evaluation
 
 log = logging.getLogger(__name__)
-
-RUN_SEALED = "run.sealed"  # webhook occurrences
-EVENT_OCCURRENCE = "event:"  # + the event's kind
 
 _STOP = ""
 
@@ -127,39 +124,10 @@ def finish_run(session: Session, run: Run, version: int, evaluation: Evaluation,
     """A sealed run's final values written, its robot tags synced, webhooks told: one transaction."""
     new = write_evaluation(session, run.id, run.robot_id, version, FINAL, evaluation, now)
     corpus_db.sync_robot_tags(session, run.id, robot_tags(properties_of(run)), now)
-    announce_sealed(session, run, new)
+    webhooks.enqueue(session, RUN_SEALED, f"{RUN_SEALED}:{run.id}", run_payload(run))
+    announce_events(session, new)
     return new
 
 
-def announce_sealed(session: Session, run: Run, new_events: Sequence[Event]) -> None:
-    """Webhooks' occurrences of a seal: `run.sealed`, and `event:KIND` for each new event (each at
-    most once: an event found again keeps its id)."""
-    enqueue_occurrence(session, RUN_SEALED, f"{RUN_SEALED}:{run.id}", run_payload(run))
-    for event in new_events:
-        enqueue_occurrence(session, EVENT_OCCURRENCE + event.kind, event.id, event_payload(event))
-
-
 def run_payload(run: Run) -> dict[str, Any]:
-    return {"run": run.id, "robot_id": run.robot_id, "tier": run.tier, "bytes": run.bytes}
-
-
-def event_payload(event: Event) -> dict[str, Any]:
-    return {
-        "id": event.id,
-        "run": event.run_id,
-        "robot_id": event.robot_id,
-        "kind": event.kind,
-        "severity": event.severity,
-        "timeline": event.timeline,
-        "start": event.range_start,
-        "end": event.range_end,
-        "source": event.source,
-        "label": event.label,
-        "created_at": iso_utc(event.created_at),
-    }
-
-
-def enqueue_occurrence(session: Session, occurrence: str, occurrence_id: str, payload: dict[str, Any]) -> None:
-    """THE ONE CALL SITE of webhooks' outbox (catalog/webhooks.py `enqueue`), inside the caller's
-    transaction. Webhooks are not on this branch yet: nothing to tell until they are merged."""
-    del session, occurrence, occurrence_id, payload
+    return {"run_id": run.id, "robot_id": run.robot_id, "tier": run.tier, "bytes": run.bytes}

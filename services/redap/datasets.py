@@ -6,7 +6,7 @@ from __future__ import annotations
 import datetime as dt
 import json
 from collections.abc import Iterator, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import sqlalchemy as sa
@@ -14,7 +14,7 @@ from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from catalog import queries
-from catalog.models import Dataset, Run, RunEntity, RunTimeline
+from catalog.models import Dataset, Run, RunEntity, RunMetric, RunTag, RunTimeline
 from core.clock import aware
 from core.errors import NotFoundError
 from core.ids import possible_ids
@@ -67,6 +67,8 @@ class SegmentRow:
     updated_at: dt.datetime
     properties: dict[str, Any]  # property name -> component -> value ("recording": `/__properties`)
     timelines: dict[str, tuple[str, int, int]]  # name -> (type, min, max)
+    metrics: dict[str, tuple[float | None, str | None]] = field(default_factory=dict)  # name -> (value, text)
+    tags: list[str] = field(default_factory=list)  # sorted
 
 
 # The columns a segment row is read from (not whole ORM objects: a page holds a thousand runs).
@@ -126,8 +128,31 @@ def _timelines(session: Session, run_ids: list[str]) -> dict[str, dict[str, tupl
     return found
 
 
+def _corpus(
+    session: Session, run_ids: list[str]
+) -> tuple[dict[str, dict[str, tuple[float | None, str | None]]], dict[str, list[str]]]:
+    """The metrics and tags of runs `run_ids` (in id order), read by id range as `_timelines` is."""
+    metrics: dict[str, dict[str, tuple[float | None, str | None]]] = {run_id: {} for run_id in run_ids}
+    tags: dict[str, list[str]] = {run_id: [] for run_id in run_ids}
+    if not run_ids:
+        return metrics, tags
+    low, high = run_ids[0], run_ids[-1]
+    found = select(RunMetric.run_id, RunMetric.name, RunMetric.value, RunMetric.text_value).where(
+        RunMetric.run_id >= low, RunMetric.run_id <= high
+    )
+    for run_id, name, value, text in session.execute(found):
+        if run_id in metrics:
+            metrics[run_id][name] = (value, text)
+    tagged = select(RunTag.run_id, RunTag.tag).where(RunTag.run_id >= low, RunTag.run_id <= high).order_by(RunTag.tag)
+    for run_id, tag in session.execute(tagged):
+        if run_id in tags:
+            tags[run_id].append(tag)
+    return metrics, tags
+
+
 def _rows(session: Session, runs: Sequence[sa.Row[Any]]) -> list[SegmentRow]:
     timelines = _timelines(session, [run.id for run in runs])
+    metrics, tags = _corpus(session, [run.id for run in runs])
     return [
         SegmentRow(
             run.id,
@@ -142,6 +167,8 @@ def _rows(session: Session, runs: Sequence[sa.Row[Any]]) -> list[SegmentRow]:
             aware(run.updated_at),
             _properties(run.properties),
             timelines[run.id],
+            metrics[run.id],
+            tags[run.id],
         )
         for run in runs
     ]
@@ -178,6 +205,17 @@ def timeline_types(session: Session, name: str) -> dict[str, str]:
         if name not in best or (count, kind) > best[name]:
             best[name] = (count, kind)
     return {name: kind for name, (_, kind) in best.items()}
+
+
+def metric_kinds(session: Session, name: str) -> dict[str, bool]:
+    """Each metric some segment of dataset `name` has, and whether any run holds it as text."""
+    query = (
+        select(RunMetric.name, sa.func.count(RunMetric.text_value))
+        .join(Run, Run.id == RunMetric.run_id)
+        .where(Run.application_id == name, Run.tier != Tier.DELETED)
+        .group_by(RunMetric.name)
+    )
+    return {metric: texts > 0 for metric, texts in session.execute(query)}
 
 
 def property_archetypes(session: Session, name: str) -> dict[str, set[str]]:

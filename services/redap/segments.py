@@ -8,9 +8,13 @@ Columns, named and typed as Rerun's own server does (the golden tests compare):
   column with the `rerun:*` metadata of the property entity it comes from;
 - what the depot knows of each run, as the properties of a `depot` property entity:
   `property:depot:robot_id`, `:tier`, `:status`, `:started_at`, `:ended_at`, `:pinned`;
+- what the corpus knows: `property:depot:metric:NAME` per metric some run of the dataset has
+  (list<float64>, or list<utf8> for a metric some run holds as text) and `property:depot:tags`
+  (list<utf8>, sorted), so a client filters segments on them as on any property column
+  (`array_has(col("property:depot:tags"), lit("night-shift"))`, `col("property:depot:metric:distance_m")[0] > 100`);
 - per timeline, `TIMELINE:start` and `TIMELINE:end` with their `rerun:index*` metadata.
 
-Everything comes from catalog rows (runs, run_timelines, run_entities): no run file is opened.
+Everything comes from catalog rows (runs, run_timelines, run_entities, run_metrics, run_tags): no run file is opened.
 """
 
 from __future__ import annotations
@@ -40,6 +44,7 @@ LAYER = "base"  # Rerun's name for a segment's first layer; a run is one recordi
 PAGE_ROWS = 1000  # runs read from the catalog at a time
 PART_BYTES = 4 << 20  # a response's table is cut below this many bytes
 DEPOT_PROPERTY = "depot"  # the property entity the depot's own facts are shown under
+METRIC_PREFIX = "metric:"  # a run metric's component under the depot's property entity
 RECORDING_PROPERTY = "recording"  # how the catalog keys the `/__properties` entity's own components
 
 Cell = Any  # one value of a column, as pyarrow takes it
@@ -208,6 +213,27 @@ def depot_columns() -> list[Column]:
     ]
 
 
+def _metric_column(metric: str, text: bool) -> Column:
+    item = pa.utf8() if text else pa.float64()
+
+    def cell(row: SegmentRow) -> Cell:
+        found = row.metrics.get(metric)
+        if found is None:
+            return None
+        value, text_value = found
+        if text:
+            return [text_value if text_value is not None else _convert(value, item)]
+        return None if value is None else [value]
+
+    return Column(_property_field(DEPOT_PROPERTY, f"{METRIC_PREFIX}{metric}", item, set()), cell)
+
+
+def corpus_columns(session: Session, name: str) -> list[Column]:
+    """The dataset's metrics, a column each, and the runs' tags."""
+    tags = Column(_property_field(DEPOT_PROPERTY, "tags", pa.utf8(), set()), lambda row: row.tags or None)
+    return [tags, *(_metric_column(metric, text) for metric, text in datasets.metric_kinds(session, name).items())]
+
+
 # --- timeline columns ------------------------------------------------------------------------
 
 INDEX_TYPES = {"sequence": pa.int64(), "timestamp": pa.timestamp("ns"), "duration": pa.duration("ns")}
@@ -271,7 +297,7 @@ def segment_table(session: Session, name: str, depot: Depot, *, properties: bool
     and the depot's) sorted by name, then the timelines' sorted by name. `properties=False` leaves
     the recording's properties out (reading them means reading every run's row)."""
     found = recording_property_columns(session, name) if properties else []
-    props = sorted([*found, *depot_columns()], key=lambda c: c.name)
+    props = sorted([*found, *depot_columns(), *corpus_columns(session, name)], key=lambda c: c.name)
     timelines = sorted(timeline_columns(session, name), key=lambda c: c.name)
     return SegmentTable([*_fixed_columns(depot), *props, *timelines])
 

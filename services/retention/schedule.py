@@ -7,9 +7,11 @@
 - `ownership`: with many nodes on one catalog, this node's hot runs matched with their leases, and
   copies of runs other nodes own handed to them (`handoff.py`); not recorded in `job_runs` (it runs
   every few seconds).
-- jobs of services above retention, handed in by the server (`extra`): the rules backfill
-  (`services.corpus.backfill`), which re-evaluates the stored runs the running rules have not.
 Each job run is recorded in the catalog (`job_runs`): where, when, and how it went.
+
+Jobs of sides above retention (the webhooks' delivery and `robot.silent` passes, the rules
+backfill of `services.corpus.backfill`) are given to
+`start_scheduler` by the wiring (`services/server.py`) as `extra` jobs, and run here alike.
 """
 
 from __future__ import annotations
@@ -137,7 +139,7 @@ def jobs(
     found = [Job("promote", promote_job, promote_interval_s), Job("retention", retention_job, retention_interval_s)]
     if lease_s is not None:  # many nodes on one catalog
         found.append(Job("ownership", ownership_job, max(0.5, lease_s / 2)))
-    return found + list(extra)
+    return [*found, *extra]
 
 
 def start_scheduler(
@@ -147,6 +149,7 @@ def start_scheduler(
     lease_s: float | None = None,
     extra: Sequence[Job] = (),
 ) -> BackgroundScheduler:
+    """The jobs above, and `extra` jobs of other sides (each given `ctx`, which it may ignore)."""
     scheduler = BackgroundScheduler(timezone="UTC")
     for job in jobs(promote_interval_s, retention_interval_s, lease_s, extra):
         scheduler.add_job(

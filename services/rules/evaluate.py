@@ -171,7 +171,7 @@ class RunEvaluator:
             text, level = first_texts(columns[TEXT]), columns.get(LEVEL)
             levels: list[str | None] = first_texts(level) if level is not None else [None] * len(text)
             for rule in texts:
-                self._text(rule, path, text, levels, index)
+                self._text(rule, text, levels, index)
             if kind is not None:
                 self._robot_events(kind, text, levels, index)
         if reads_path:
@@ -191,8 +191,8 @@ class RunEvaluator:
         """The run's events (those taken already too) and metrics, once its last chunk was added.
         `properties`: the run's recording properties (`fleet` -> {field: value})."""
         for held in self._conditions.values():
-            self._emit_all(held.condition, held.entity, held.samples.flush())
-            self._emit_all(held.condition, held.entity, held.condition.finish())
+            self._emit_all(held.condition, held.samples.flush())
+            self._emit_all(held.condition, held.condition.finish())
         for _, samples in self._paths.values():
             samples.flush()
         found = self._found
@@ -218,7 +218,7 @@ class RunEvaluator:
                 held = self._conditions[(path, rule.name)] = _Condition(
                     condition, _Ordered(condition.feed, self.buffered), path
                 )
-            self._emit_all(held.condition, path, held.samples.add(ordered_times, ordered_values))
+            self._emit_all(held.condition, held.samples.add(ordered_times, ordered_values))
 
     def _scalar_stats(self, path: str, values: np.ndarray, index: Index) -> None:
         keep = ~np.isnan(values)
@@ -226,21 +226,16 @@ class RunEvaluator:
         times = np.where(log_time[2], log_time[1], _NO_TIME)[keep] if log_time is not None else None
         self._stats.setdefault(path, ScalarStats()).feed(values[keep], times)
 
-    def _text(
-        self, rule: EventRule, path: str, texts: list[str | None], levels: list[str | None], index: Index
-    ) -> None:
+    def _text(self, rule: EventRule, texts: list[str | None], levels: list[str | None], index: Index) -> None:
         if rule.timeline not in index:
             return
-        kind, times, has_time = index[rule.timeline]
+        timeline_type, times, has_time = index[rule.timeline]
         rows = np.flatnonzero(has_time)
-        picked = text_matches(rule, times[rows], [texts[i] for i in rows], [levels[i] for i in rows])
-        for found in picked:
-            self._emit(
-                FoundEvent(
-                    rule.name, rule.severity, rule.timeline, kind, *_range(found), "rule", rule.name, found.label
-                ),
-                rule.name,
+        for found in text_matches(rule, times[rows], [texts[i] for i in rows], [levels[i] for i in rows]):
+            event = FoundEvent(
+                rule.name, rule.severity, rule.timeline, timeline_type, *_range(found), "rule", rule.name, found.label
             )
+            self._emit(event, f"rule {rule.name}")
 
     def _robot_events(self, kind: str, texts: list[str | None], levels: list[str | None], index: Index) -> None:
         if not index:
@@ -283,7 +278,7 @@ class RunEvaluator:
 
     # --- events and metrics ----------------------------------------------------------------------
 
-    def _emit_all(self, condition: NumericCondition, path: str, found: list[Found]) -> None:
+    def _emit_all(self, condition: NumericCondition, found: list[Found]) -> None:
         rule = condition.rule
         for each in found:
             event = FoundEvent(
@@ -296,7 +291,7 @@ class RunEvaluator:
                 rule.name,
                 each.label,
             )
-            self._emit(event, rule.name)
+            self._emit(event, f"rule {rule.name}")
 
     def _emit(self, event: FoundEvent, who: str) -> None:
         found = self._found

@@ -51,7 +51,15 @@ def runs(
     prop: Annotated[
         list[str] | None, Query(alias="property", description="NAME.FIELD=VALUE, e.g. fleet.robot_id=robot-7")
     ] = None,
-    sort: Annotated[str, Query(description=" | ".join(service.SORTS))] = "-started_at",
+    metric: Annotated[
+        list[str] | None,
+        Query(description="NAME OP VALUE, OP one of > >= < <= = != (e.g. distance_m>100; repeatable: all hold)"),
+    ] = None,
+    tag: Annotated[list[str] | None, Query(description="has this tag (repeatable: all of them)")] = None,
+    event: Annotated[
+        list[str] | None, Query(description="has at least one event of this kind (repeatable: each of them)")
+    ] = None,
+    sort: Annotated[str, Query(description=" | ".join(service.SORT_FORMS))] = "-started_at",
     limit: Annotated[int, Query(description=f"1 to {service.MAX_LIMIT}")] = 100,
     cursor: Annotated[str | None, Query(description="`next_cursor` of the previous page")] = None,
 ) -> dict[str, Any]:
@@ -64,6 +72,9 @@ def runs(
         tier=tier,
         entity=entity or [],
         properties=parse_properties(prop or []),
+        metric=metric or [],
+        tag=tag or [],
+        event=event or [],
         sort=sort,
         limit=limit,
         cursor=cursor,

@@ -22,6 +22,9 @@ from core.clock import iso_utc
 from core.errors import BadParameterError, NotFoundError
 from core.states import RunStatus, Tier
 from services.policies import Policies
+from services.runs import corpus_filters
+from services.runs.corpus_answer import corpus_answer
+from services.runs.corpus_filters import MetricCondition
 
 if TYPE_CHECKING:
     from services.ingest.service import IngestService
@@ -32,8 +35,10 @@ HotLookup = Callable[[str], "queries.RunRecord | None"]
 MAX_LIMIT = 1000
 MAX_ENTITY_FILTERS = 32  # each is a subquery: a bounded number keeps the query plannable
 MAX_PROPERTY_FILTERS = 32
+MAX_CORPUS_FILTERS = 32  # of each of metric, tag, event
 MAX_CURSOR_LENGTH = 2048  # a cursor this service gives out is a few dozen characters
 SORTS = ("-started_at", "started_at", "-bytes", "bytes", "id", "-id")
+SORT_FORMS = (*SORTS, "metric.NAME", "-metric.NAME")
 STATUSES = tuple(RunStatus)
 TIERS = tuple(Tier)
 
@@ -48,13 +53,17 @@ class RunFilter:
     tier: str | None = None
     entity: list[str] = field(default_factory=list)  # `/world/**` (subtree) or an exact path
     properties: dict[str, str] = field(default_factory=dict)  # "fleet.robot_id" -> value
+    metric: list[str] = field(default_factory=list)  # `distance_m>100` (corpus_filters.MetricCondition)
+    tag: list[str] = field(default_factory=list)  # has every one of these tags
+    event: list[str] = field(default_factory=list)  # has at least one event of each of these kinds
     sort: str = "-started_at"
     limit: int = 100
     cursor: str | None = None
 
-    def check(self) -> None:
-        if self.sort not in SORTS:
-            raise BadParameterError("sort", f"{self.sort!r} is not one of {', '.join(SORTS)}")
+    def check(self) -> list[MetricCondition]:
+        """Refuse what cannot be asked (a 422 naming the parameter); the metric conditions parsed."""
+        if self.sort not in SORTS and corpus_filters.sort_metric(self.sort) is None:
+            raise BadParameterError("sort", f"{self.sort!r} is not one of {', '.join(SORT_FORMS)}")
         if not 1 <= self.limit <= MAX_LIMIT:
             raise BadParameterError("limit", f"{self.limit} is not between 1 and {MAX_LIMIT}")
         if self.status is not None and self.status not in STATUSES:
@@ -64,6 +73,9 @@ class RunFilter:
         for name, count, most in (
             ("entity", len(self.entity), MAX_ENTITY_FILTERS),
             ("property", len(self.properties), MAX_PROPERTY_FILTERS),
+            ("metric", len(self.metric), MAX_CORPUS_FILTERS),
+            ("tag", len(self.tag), MAX_CORPUS_FILTERS),
+            ("event", len(self.event), MAX_CORPUS_FILTERS),
         ):
             if count > most:
                 raise BadParameterError(name, f"{count} filters: at most {most}")
@@ -75,10 +87,14 @@ class RunFilter:
             ("application", self.application),
             ("entity", self.entity),
             ("property", [*self.properties, *self.properties.values()]),
+            ("metric", self.metric),
+            ("tag", self.tag),
+            ("event", self.event),
         )
         for name, values in texts:
             if any("\x00" in value for value in values):
                 raise BadParameterError(name, "contains a NUL character, which no run id, path or property holds")
+        return [MetricCondition.parse(expression) for expression in self.metric]
 
 
 def parse_time(name: str, text: str | None) -> dt.datetime | None:
@@ -147,7 +163,12 @@ def _decode_cursor(cursor: str, sort: str) -> tuple[Any, str]:
         raise bad
     value, run_id = decoded
     column = sort.lstrip("-")
-    if column == "started_at":
+    if corpus_filters.sort_metric(sort) is not None:
+        try:
+            value = corpus_filters.cursor_value(value)
+        except ValueError:
+            raise bad from None
+    elif column == "started_at":
         try:
             value = dt.datetime.fromisoformat(value) if isinstance(value, str) else None
         except ValueError:
@@ -167,7 +188,7 @@ def _decode_cursor(cursor: str, sort: str) -> tuple[Any, str]:
 
 def list_runs(session: Session, flt: RunFilter) -> tuple[list[Run], str | None]:
     """A page of runs and the cursor of the next page (None at the end)."""
-    flt.check()
+    metric_conditions = flt.check()
     query = sa.select(Run).where(Run.tier != Tier.DELETED) if flt.tier is None else sa.select(Run)
     if flt.robot:
         query = query.where(Run.robot_id.in_(flt.robot))
@@ -187,15 +208,13 @@ def list_runs(session: Session, flt: RunFilter) -> tuple[list[Run], str | None]:
     for prop, value in flt.properties.items():
         name, field_name = prop.split(".")
         query = query.where(_property_value(session, name, field_name) == value)
-    key = _sort_key(flt.sort)
-    descending = flt.sort.startswith("-")
-    if flt.cursor:
-        last_value, last_id = _decode_cursor(flt.cursor, flt.sort)
-        if descending:
-            query = query.where(sa.or_(key < last_value, sa.and_(key == last_value, Run.id < last_id)))
-        else:
-            query = query.where(sa.or_(key > last_value, sa.and_(key == last_value, Run.id > last_id)))
-    order = (key.desc(), Run.id.desc()) if descending else (key.asc(), Run.id.asc())
+    for condition in metric_conditions:
+        query = query.where(condition.condition())
+    for tag in flt.tag:
+        query = query.where(corpus_filters.tag_condition(tag))
+    for kind in flt.event:
+        query = query.where(corpus_filters.event_condition(kind))
+    query, key, order = _ordered(query, flt)
     rows = list(session.execute(query.add_columns(key).order_by(*order).limit(flt.limit + 1)))
     runs = [row[0] for row in rows[: flt.limit]]
     next_cursor = None
@@ -203,6 +222,25 @@ def list_runs(session: Session, flt: RunFilter) -> tuple[list[Run], str | None]:
         last = rows[flt.limit - 1]
         next_cursor = _encode_cursor(last[1], last[0].id)
     return runs, next_cursor
+
+
+def _ordered(query: sa.Select[Any], flt: RunFilter) -> tuple[sa.Select[Any], sa.ColumnElement[Any], tuple[Any, Any]]:
+    """`query` from the cursor on in the filter's sort, with the sort's key and order."""
+    descending = flt.sort.startswith("-")
+    sorted_metric = corpus_filters.sort_metric(flt.sort)
+    if sorted_metric is not None:  # nulls (runs without the metric) last, either way
+        query, key = corpus_filters.join_metric(query, sorted_metric)
+        if flt.cursor:
+            query = query.where(corpus_filters.after_cursor(key, *_decode_cursor(flt.cursor, flt.sort), descending))
+        return query, key, corpus_filters.order(key, descending)
+    key = _sort_key(flt.sort)
+    if flt.cursor:
+        last_value, last_id = _decode_cursor(flt.cursor, flt.sort)
+        if descending:
+            query = query.where(sa.or_(key < last_value, sa.and_(key == last_value, Run.id < last_id)))
+        else:
+            query = query.where(sa.or_(key > last_value, sa.and_(key == last_value, Run.id > last_id)))
+    return query, key, ((key.desc(), Run.id.desc()) if descending else (key.asc(), Run.id.asc()))
 
 
 def list_robots(session: Session) -> list[tuple[Robot, int]]:
@@ -279,17 +317,19 @@ def run_answer(
     catalog: sessionmaker[Session], run_id: str, policies: Policies | None, hot: HotLookup | None = None
 ) -> dict[str, Any]:
     """`GET /v1/runs/{run}`: one run with its entities, timelines, policy, lifecycle (`policies`:
-    None where this node runs no retention), what its robot reports holding of it and its latest
-    pulls. A run hot here that the catalog has no row of yet (a stream just started or ended, the
-    next catalog flush is up to FLEET_CATALOG_FLUSH_S away) is answered from `hot`, ingest's view,
-    as the overview lists it from there: what a list shows, its page opens."""
+    None where this node runs no retention), what its robot reports holding of it, its latest
+    pulls, and what the corpus knows of it (metrics, tags, event counts, evaluation). A run hot
+    here that the catalog has no row of yet (a stream just started or ended, the next catalog
+    flush is up to FLEET_CATALOG_FLUSH_S away) is answered from `hot`, ingest's view, as the
+    overview lists it from there: what a list shows, its page opens."""
     try:
         return _catalog_answer(catalog, run_id, policies)
     except NotFoundError:
         record = hot(run_id) if hot is not None else None
         if record is None:
             raise
-        return hot_answer(record, policies)
+        with session_scope(catalog) as session:  # live rules write a hot run's corpus rows before its row
+            return {**hot_answer(record, policies), **corpus_answer(session, run_id)}
 
 
 def hot_answer(record: queries.RunRecord, policies: Policies | None) -> dict[str, Any]:
@@ -356,6 +396,7 @@ def _catalog_answer(catalog: sessionmaker[Session], run_id: str, policies: Polic
             **_lifecycle(session, found, policies),
             **edge_queries.run_edge(session, run_id),  # the robot's own copy, and the latest pulls
             "owner": nodes.owner_of(session, [run_id]).get(run_id),  # the node filing it while hot (many nodes)
+            **corpus_answer(session, run_id),
         }
 
 

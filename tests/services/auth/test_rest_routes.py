@@ -45,6 +45,8 @@ class Guarded:
             .replace("{token_id}", "no-such-token")
             .replace("{pull_id}", "no-such-pull")
             .replace("{query_id}", "no-such-query")
+            .replace("{event_id}", "no-such-event")
+            .replace("{webhook_id}", "wh-000000000000")
         )
 
     def __str__(self) -> str:
@@ -93,6 +95,20 @@ TABLE = [
     Guarded("POST", "/v1/pulls/{pull_id}/cancel", (WRITE,)),
     Guarded("PUT", "/v1/runs/{run_id}/robot-copy", (INGEST, ADMIN), {"json": {"chunks": 0, "bytes": 0}}),
     Guarded("DELETE", "/v1/runs/{run_id}/robot-copy", (INGEST, ADMIN)),
+    Guarded("PUT", "/v1/rules", (WRITE,), {"content": ""}),  # no content type: 422, nothing applied
+    Guarded("GET", "/v1/rules", (READ,)),
+    Guarded("GET", "/v1/rules/history", (READ,)),
+    Guarded("POST", "/v1/rules/backfill", (WRITE,)),
+    Guarded("GET", "/v1/events", (READ,)),
+    Guarded("GET", "/v1/events/{event_id}", (READ,)),
+    Guarded("GET", "/v1/runs/{run_id}/events", (READ,)),
+    Guarded("POST", "/v1/runs/{run_id}/events", (WRITE,), {"json": {"timeline": "log_time", "start": 0}}),
+    Guarded("POST", "/v1/runs/{run_id}/tags", (WRITE,), {"json": {"tags": ["a"]}}),
+    Guarded("DELETE", "/v1/runs/{run_id}/tags", (WRITE,), {"params": {"tag": "a"}}),
+    Guarded("POST", "/v1/webhooks", (ADMIN,), {"json": {"url": "https://hooks.example/", "on": ["run.sealed"]}}),
+    Guarded("GET", "/v1/webhooks", (ADMIN,)),
+    Guarded("DELETE", "/v1/webhooks/{webhook_id}", (ADMIN,)),
+    Guarded("GET", "/v1/webhooks/{webhook_id}/deliveries", (ADMIN,)),
 ]
 
 

@@ -52,6 +52,7 @@ DEPOT_COLUMNS = {
     "property:depot:ended_at": pa.timestamp("ns"),
     "property:depot:pinned": pa.bool_(),
 }
+TAGS_COLUMN = "property:depot:tags"  # the corpus's: always there (metric columns come with metrics)
 
 
 def ns(moment: dt.datetime) -> int:
@@ -341,7 +342,7 @@ def test_a_dataset_whose_runs_are_all_deleted_is_one_empty_part(depot: Depot):
     save(depot, record("run-1"), later={"run-1": {"tier": "deleted"}})
     (part,) = scan_parts(depot, entry_of(depot, "nav"))
     assert part.num_rows == 0
-    assert [f.name for f in part.schema] == [f.name for f in FIXED] + sorted(DEPOT_COLUMNS)
+    assert [f.name for f in part.schema] == [f.name for f in FIXED] + sorted([*DEPOT_COLUMNS, TAGS_COLUMN])
 
 
 def test_an_unknown_dataset_is_not_found(depot: Depot):
@@ -354,7 +355,7 @@ def test_an_unknown_dataset_is_not_found(depot: Depot):
 # --- compared with Rerun's own server; Rerun's SDK -------------------------------------------
 
 # Columns only one side has, by design: the depot's facts, and a secret the depot never stores.
-OURS_ONLY = set(DEPOT_COLUMNS)
+OURS_ONLY = {*DEPOT_COLUMNS, TAGS_COLUMN}
 REFERENCE_ONLY = {"property:fleet:token"}
 # Values that differ by design: where the file is, when it was registered, its size as stored.
 OWN_VALUES = {"rerun_storage_urls", "rerun_last_updated_at", "rerun_size_bytes"}

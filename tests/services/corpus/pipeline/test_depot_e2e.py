@@ -19,8 +19,8 @@ from catalog import corpus as corpus_db
 from catalog.db import create_engine, session_scope
 from catalog.models import RunEvaluation
 from tests.conftest import fresh_catalog
-from tests.services.corpus import scene as expect
-from tests.services.corpus.conftest import CHUNK_ROWS, SCENE
+from tests.services.corpus.pipeline import scene as expect
+from tests.services.corpus.pipeline.conftest import CHUNK_ROWS, SCENE
 from tests.services.ingest.live_server import FLEET, LiveServer
 from tests.waiting import wait_for
 

@@ -15,8 +15,8 @@ from services.corpus.backfill import Pace, due_runs
 from services.corpus.evaluation import COLD_NOTE
 from services.retention import archive
 from services.rrd import iter_events
-from tests.services.corpus import scene as expect
-from tests.services.corpus.conftest import Depot, DepotFactory
+from tests.services.corpus.pipeline import scene as expect
+from tests.services.corpus.pipeline.conftest import Depot, DepotFactory
 from tests.services.ingest import feeding
 from tests.waiting import wait_for
 
