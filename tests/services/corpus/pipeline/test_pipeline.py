@@ -6,10 +6,13 @@ from __future__ import annotations
 
 import asyncio
 import io
+from collections import Counter
 
 import pytest
 
+from catalog import webhooks
 from catalog.db import session_scope
+from catalog.webhooks import WebhookRecord
 from services.corpus import evaluation
 from services.corpus.backfill import Pace, due_runs
 from services.corpus.evaluation import COLD_NOTE
@@ -203,3 +206,30 @@ def test_a_failed_seal_evaluation_is_left_to_the_backfill(make_depot: DepotFacto
     summary = depot.corpus.backfill.run()
     assert summary is not None and summary.evaluated == 1
     assert_v1_values(depot, "corpus-retry", 1)
+
+
+def test_a_rule_stops_at_the_cap_and_says_so(make_depot: DepotFactory, scene):
+    depot = make_depot(max_events_per_run=2)
+    depot.apply(expect.RULES_V1)
+    sealed(depot, scene, "corpus-capped")
+    evaluated = depot.evaluation("corpus-capped")
+    assert evaluated is not None and evaluated.events_capped
+    assert evaluated.note is not None and "FLEET_MAX_EVENTS_PER_RUN" in evaluated.note
+    assert len(depot.events("corpus-capped")) == 2
+
+
+def test_webhooks_are_told_of_the_seal_and_of_each_event_once(make_depot: DepotFactory, scene):
+    depot = make_depot(catalog_flush_s=0.1)
+    now = depot.node.clock()
+    with session_scope(depot.node.catalog, write=True) as session:
+        hook = WebhookRecord("wh-000000000001", "http://127.0.0.1:9/", ("run.sealed", "event:*"), "json", "x", "t", now)
+        webhooks.add_webhook(session, hook)
+    depot.apply(expect.RULES_V1)
+    depot.upload(scene("corpus-hooks"))
+    depot.seal("corpus-hooks")
+    wait_final(depot, "corpus-hooks")
+    depot.apply(expect.RULES_V2)
+    depot.corpus.backfill.run()  # the same interventions found again: not told again
+    with session_scope(depot.node.catalog) as session:
+        told = Counter(d.occurrence for d in webhooks.deliveries(session, hook.id, limit=100)[0])
+    assert told == {"run.sealed": 1, "event:intervention": 3, "event:stuck": 2, "event:hard_brake": 1}
