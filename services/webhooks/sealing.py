@@ -13,7 +13,7 @@ from cryptography.fernet import Fernet, InvalidToken, MultiFernet
 from cryptography.hazmat.primitives import hashes
 from cryptography.hazmat.primitives.kdf.hkdf import HKDF
 
-from core.errors import FleetError
+from core.errors import ConflictError
 from services.auth.keys import SigningKey, SigningKeys
 
 _CONTEXT = b"fleet-telemetry webhook secrets v1"  # a key derived for this use signs nothing else
@@ -37,7 +37,7 @@ class SecretBox:
         try:
             return self._fernet.decrypt(sealed.encode()).decode()
         except InvalidToken:
-            raise FleetError(
+            raise ConflictError(
                 "a webhook's secret does not open with this depot's signing keys (was FLEET_AUTH_KEY changed "
                 "without listing the old one in FLEET_AUTH_PREVIOUS_KEYS?): remove the webhook and add it again"
             ) from None
