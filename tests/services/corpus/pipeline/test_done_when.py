@@ -428,7 +428,8 @@ def test_done_when(serve: ServeFactory, receiver: Receiver, tmp_path: Path, monk
     assert "reviewed  added by test-write" in tagged.stdout, tagged.stdout
     tags = {t["tag"]: t["added_by"] for t in user.run(CALM)["tags"]}
     assert tags == {"day-shift": "robot", "dock-2": "robot", "reviewed": "test-write"}
-    with log_in(httpx.Client(base_url=depot.url, timeout=60), user.reader) as browser:  # the console, logged in
+    with httpx.Client(base_url=depot.url, timeout=60) as browser:
+        log_in(browser, user.reader)  # the console's session
         assert_everywhere(user, browser, v1_searches())
         assert_dashboard(user, browser)
 
