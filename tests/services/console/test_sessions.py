@@ -5,9 +5,10 @@ from __future__ import annotations
 import re
 from collections.abc import Iterator
 from pathlib import Path
+from typing import TypeVar
 
+import httpx
 import pytest
-from fastapi.testclient import TestClient
 
 from services.auth.sessions import close_session, csrf_value, session_principal
 from services.auth.tokens import Auth
@@ -20,6 +21,7 @@ from tests.services.auth.conftest import Depot, open_depot
 
 CSRF = re.compile(r'name="csrf" value="([^"]+)"')
 ALERT = re.compile(r'role="alert">([^<]+)<')
+Client = TypeVar("Client", bound=httpx.Client)  # a TestClient, or an httpx client of a real server
 
 
 @pytest.fixture
@@ -29,7 +31,7 @@ def console(tmp_path: Path, fresh_catalog_url: str) -> Iterator[Depot]:
         yield depot
 
 
-def login_form(client: TestClient) -> str:
+def login_form(client: httpx.Client) -> str:
     page = client.get("/console/login")
     assert page.status_code == 200
     found = CSRF.search(page.text)
@@ -37,7 +39,7 @@ def login_form(client: TestClient) -> str:
     return found.group(1)
 
 
-def log_in(client: TestClient, token: str, nxt: str = "/console/runs") -> TestClient:
+def log_in(client: Client, token: str, nxt: str = "/console/runs") -> Client:
     csrf = login_form(client)
     answer = client.post("/console/login", data={"token": token, "csrf": csrf, "next": nxt}, follow_redirects=False)
     assert answer.status_code == 303, answer.text

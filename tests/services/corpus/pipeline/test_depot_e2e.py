@@ -5,23 +5,16 @@ metrics are there while it is hot, final once sealed; `fleet rules backfill` (PO
 from __future__ import annotations
 
 import datetime as dt
-import os
-import subprocess
-import sys
-from collections.abc import Iterator
-from pathlib import Path
 
 import httpx
 import pytest
 from sqlalchemy.orm import Session, sessionmaker
 
 from catalog import corpus as corpus_db
-from catalog.db import create_engine, session_scope
+from catalog.db import session_scope
 from catalog.models import RunEvaluation
-from tests.conftest import fresh_catalog
 from tests.services.corpus.pipeline import scene as expect
-from tests.services.corpus.pipeline.conftest import CHUNK_ROWS, SCENE
-from tests.services.ingest.live_server import FLEET, LiveServer
+from tests.services.corpus.pipeline.conftest import Served, ServeFactory
 from tests.waiting import wait_for
 
 RUN = "corpus-e2e"
@@ -29,33 +22,9 @@ pytestmark = pytest.mark.postgres
 
 
 @pytest.fixture
-def depot(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[tuple[LiveServer, sessionmaker[Session]]]:
+def depot(serve: ServeFactory) -> Served:
     """A server on a Postgres catalog the test reads too, running the scene's rules."""
-    with fresh_catalog("postgres", request, tmp_path) as url:
-        engine = create_engine(url)
-        catalog = sessionmaker(engine)
-        with session_scope(catalog, write=True) as session:
-            corpus_db.add_rules_version(session, expect.RULES_V1, "test", dt.datetime.now(dt.UTC))
-        server = LiveServer(
-            tmp_path / "data",
-            auth="on",
-            catalog_url=url,
-            scheduler="false",
-            catalog_flush_s="0.2",
-            promote_after_s="3600",
-        ).start()
-        try:
-            yield server, catalog
-        finally:
-            server.stop()
-            engine.dispose()
-
-
-def token(server: LiveServer, *scopes: str, robot: str | None = None) -> str:
-    body = {"scopes": list(scopes), "name": f"test-{'-'.join(scopes)}", "robot": robot}
-    answer = httpx.post(f"{server.url}/v1/tokens", json=body, headers=server.headers, timeout=30)
-    assert answer.status_code == 201, answer.text
-    return str(answer.json()["token"])
+    return serve(rules=expect.RULES_V1)
 
 
 def evaluation(catalog: sessionmaker[Session]) -> tuple[str, int] | None:
@@ -71,16 +40,9 @@ def interventions(catalog: sessionmaker[Session]) -> list[tuple[int, int]]:
         )
 
 
-def test_streamed_run_live_then_sealed_then_backfilled(depot: tuple[LiveServer, sessionmaker[Session]]):
-    server, catalog = depot
-    env = {**os.environ, "RERUN_FLUSH_NUM_ROWS": CHUNK_ROWS, "FLEET_TOKEN": token(server, "ingest", robot="robot-c")}
-    robot = subprocess.Popen(
-        [sys.executable, SCENE, f"grpc:{server.grpc_url}", RUN],
-        stdin=subprocess.PIPE,
-        stdout=subprocess.PIPE,
-        text=True,
-        env=env,
-    )
+def test_streamed_run_live_then_sealed_then_backfilled(depot: Served):
+    server, catalog = depot.server, depot.catalog
+    robot = depot.stream_scene(RUN, depot.token("ingest", robot="robot-c"))
     assert robot.stdout is not None and robot.stdin is not None
     try:
         assert robot.stdout.readline().strip() == "READY"  # frames 0-29: one drop over, one under way
@@ -93,13 +55,8 @@ def test_streamed_run_live_then_sealed_then_backfilled(depot: tuple[LiveServer, 
     finally:
         robot.kill()
 
-    writer = {"Authorization": f"Bearer {token(server, 'write')}"}
-
-    def promoted() -> bool:
-        answer = httpx.post(f"{server.url}/v1/runs/{RUN}/promote", headers=writer, timeout=60)
-        return answer.status_code == 200  # 409 while its stream is still open
-
-    wait_for(promoted, timeout=60, what="the run promoted")
+    writer = depot.token("write")
+    wait_for(lambda: depot.promoted(RUN, writer), timeout=60, what="the run promoted")
     wait_for(lambda: evaluation(catalog) == ("final", 1), timeout=60, what="final values")
     assert interventions(catalog) == expect.expected_interventions()
     with session_scope(catalog) as session:
@@ -111,18 +68,11 @@ def test_streamed_run_live_then_sealed_then_backfilled(depot: tuple[LiveServer, 
     assert metrics["temp_mean"] == pytest.approx(expect.expected_temp_mean())
     assert tags == {"night-shift": "robot", "dock-2": "robot"}
 
-    reader = {"Authorization": f"Bearer {token(server, 'read')}"}
+    reader = {"Authorization": f"Bearer {depot.token('read')}"}
     assert httpx.post(f"{server.url}/v1/rules/backfill", timeout=30).status_code == 401
     assert httpx.post(f"{server.url}/v1/rules/backfill", headers=reader, timeout=30).status_code == 403
 
-    out = subprocess.run(
-        [FLEET, "rules", "backfill", "--api-url", server.url],
-        capture_output=True,
-        text=True,
-        timeout=120,
-        env={**os.environ, "FLEET_TOKEN": writer["Authorization"].removeprefix("Bearer ")},
-    )
-    assert out.returncode == 0, out.stderr
+    out = depot.fleet(writer, "rules", "backfill")
     assert "1 runs evaluated, 0 skipped (cold)" in out.stdout and "0 failed" in out.stdout
     assert f"evaluated {RUN}" in out.stderr
     assert evaluation(catalog) == ("final", version)

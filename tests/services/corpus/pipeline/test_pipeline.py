@@ -44,7 +44,7 @@ def assert_v1_values(depot: Depot, run_id: str, version: int) -> None:
     assert metrics["distance_m"][0] == pytest.approx(expect.expected_distance())
     assert metrics["temp_mean"][0] == pytest.approx(expect.expected_temp_mean())
     assert metrics["interventions"][0] == 3
-    assert metrics["sw"][1] == expect.SW_VERSION
+    assert metrics["sw_version"][1] == expect.SW_VERSION
     assert {m[2] for m in metrics.values()} == {version}
 
 
