@@ -91,7 +91,7 @@ class RulesBackfill:
     """What the backfill works with, built once by the server (or a test)."""
 
     node: Node
-    hot: HotRuns | None
+    hot_runs: HotRuns | None
     max_events: int
     bytes_per_s: int
     sleep: Callable[[float], None] = time.sleep
@@ -129,7 +129,7 @@ class RulesBackfill:
     def _one(self, run_id: str, running: RunningRules, reads: Reads, summary: Summary) -> tuple[str, str]:
         try:
             run, evaluation = evaluate_run(
-                self.node, self.hot, run_id, running, max_events=self.max_events, reads=reads
+                self.node, self.hot_runs, run_id, running, max_events=self.max_events, reads=reads
             )
         except NotReadable as exc:
             if not exc.skipped:

@@ -122,7 +122,7 @@ class LiveRules:
         max_runs: int = MAX_RUNS,
     ) -> None:
         self.node = node
-        self.hot: HotRuns | None = None  # the node's ingest, set once it is built (the hot files)
+        self.hot_runs: HotRuns | None = None  # the node's ingest, set once it is built (the hot files)
         self.max_events = max_events
         self.flush_s = flush_s
         self.max_runs = max_runs
@@ -247,7 +247,7 @@ class LiveRules:
         run = HotRun(
             chunk.run_id, chunk.robot_id, running.version, RunEvaluator(running.rules, max_events=self.max_events)
         )
-        recording = self.hot.hot_recording(chunk.run_id) if self.hot is not None else None
+        recording = self.hot_runs.hot_recording(chunk.run_id) if self.hot_runs is not None else None
         if recording is None:
             run.whole = False
         else:

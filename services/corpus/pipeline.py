@@ -23,7 +23,7 @@ class CorpusPipeline:
 
     def attach(self, hot: HotRuns) -> None:
         """The node's ingest, once built (it takes `live` as its observer): where hot runs are read."""
-        self.live.hot = self.sealing.hot = self.backfill.hot = hot
+        self.live.hot_runs = self.sealing.hot_runs = self.backfill.hot_runs = hot
 
     def start(self) -> None:
         self.live.start()

@@ -53,7 +53,7 @@ class Sealing:
     """Final values for the runs this node seals, on a thread of its own (promotion never waits)."""
 
     def __init__(self, node: Node, live: LiveRules | None, hot: HotRuns | None, *, max_events: int) -> None:
-        self.node, self.live, self.hot, self.max_events = node, live, hot, max_events
+        self.node, self.live, self.hot_runs, self.max_events = node, live, hot, max_events
         self.reads = Reads()  # what evaluating sealed runs read (the live evaluator's runs read nothing)
         self.from_live = 0  # runs whose final values came from the live evaluator
         self.failures = 0  # runs whose final values were not written (the backfill writes them)
@@ -100,7 +100,7 @@ class Sealing:
 
     def _evaluate(self, run: Run, running: RunningRules, handed: HandedOver | None) -> Evaluation:
         properties = properties_of(run)
-        recording = open_run(self.node, self.hot, run, self.node.clock())
+        recording = open_run(self.node, self.hot_runs, run, self.node.clock())
         try:
             rows = list(recording.index())
             live = handed.run if handed is not None and handed.version == running.version else None
