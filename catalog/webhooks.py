@@ -281,9 +281,12 @@ def _decode_cursor(cursor: str) -> tuple[dt.datetime, str]:
         raise bad
     try:
         created, last = json.loads(base64.urlsafe_b64decode(cursor + "=" * (-len(cursor) % 4)))
-        return aware(dt.datetime.fromisoformat(created)), str(last)
+        when = aware(dt.datetime.fromisoformat(created))
     except (ValueError, TypeError, binascii.Error, RecursionError):
         raise bad from None
+    if not isinstance(last, str) or "\x00" in last:  # Postgres refuses a NUL in a query's text
+        raise bad
+    return when, last
 
 
 def _delivery(row: WebhookDelivery) -> DeliveryRecord:

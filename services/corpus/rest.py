@@ -24,6 +24,7 @@ Reader = Annotated[Principal, Depends(require(Scope.READ))]
 Writer = Annotated[Principal, Depends(require(Scope.WRITE))]
 RULES_TYPES = ("text/plain", "application/toml")
 MAX_RULES_BODY = 2 * 1024 * 1024  # the rules language refuses more than half of this, naming the size
+MAX_VERSION = 2**63 - 1  # the catalog's BigInteger: a larger number is no version (and no query error)
 
 
 def viewer(request: Request, principal: Principal) -> Viewer:
@@ -76,7 +77,9 @@ async def _rules_text(request: Request) -> str:
 def rules(
     request: Request,
     _: Reader,
-    version: Annotated[int | None, Query(description="an older version (see /v1/rules/history)", ge=1)] = None,
+    version: Annotated[
+        int | None, Query(description="an older version (see /v1/rules/history)", ge=1, le=MAX_VERSION)
+    ] = None,
 ) -> dict[str, Any]:
     return service.rules_answer(request.app.state.catalog, version)
 

@@ -278,13 +278,28 @@ def _check_annotation(asked: Annotation) -> None:
         raise BadParameterError("note", f"{len(asked.note)} characters: at most {MAX_NOTE}")
     if not asked.timeline or "\x00" in asked.timeline:
         raise BadParameterError("timeline", "name one of the run's timelines, e.g. log_time")
+    for name, text in (("timeline", asked.timeline), ("label", asked.label), ("note", asked.note)):
+        if not storable(text):
+            raise BadParameterError(name, "holds a NUL character or an unpaired surrogate: send plain UTF-8 text")
+
+
+def storable(text: str) -> bool:
+    """Whether every catalog can keep `text`: no NUL (Postgres refuses it in text) and valid UTF-8
+    (JSON escapes can carry a lone surrogate, which no database encodes)."""
+    if "\x00" in text:
+        return False
+    try:
+        text.encode()
+    except UnicodeEncodeError:
+        return False
+    return True
 
 
 def _timeline_type(session: Session, run_id: str, name: str) -> str:
     timelines = {t.name: t.type for t in run_timelines(session, run_id)}
     if name not in timelines:
         have = ", ".join(sorted(timelines)) or "none yet"
-        raise BadParameterError("timeline", f"run {run_id!r} has no timeline {name!r} (it has: {have})")
+        raise BadParameterError("timeline", f"run {run_id!r} has no timeline {name[:100]!r} (it has: {have})")
     return timelines[name]
 
 

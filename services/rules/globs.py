@@ -20,10 +20,10 @@ def is_glob(entity: str) -> bool:
 
 def entity_problem(entity: str) -> str | None:
     """Why `entity` is no entity path or glob (None: it is one)."""
+    if len(entity) > MAX_ENTITY_LENGTH:  # first: the messages below quote the path
+        return f"an entity path of {len(entity)} characters: at most {MAX_ENTITY_LENGTH}"
     if not entity.startswith("/"):
         return f"{entity!r} is not an entity path: it starts with '/' (e.g. /world/robot or /logs/**)"
-    if len(entity) > MAX_ENTITY_LENGTH:
-        return f"an entity path of {len(entity)} characters: at most {MAX_ENTITY_LENGTH}"
     segments = entity[1:].split("/") if entity != "/" else []
     if any(not s for s in segments):
         return f"{entity!r} has an empty segment ('//' or a trailing '/')"

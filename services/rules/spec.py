@@ -25,6 +25,10 @@ from services.rules.toml_lines import TomlLines, syntax_error_line
 MAX_RULES_BYTES = 1024 * 1024
 MAX_RULES = 1000  # event and metric rules each
 MAX_REGEX_LENGTH = 1000
+MAX_KEY_PARTS = 16  # of a dotted key or table name (`a.b.c`): TOML readers spend time and memory on
+# each part times the parts before it, so a key of thousands of parts costs gigabytes
+MAX_PROBLEMS = 100  # listed of a refused file; the rest are counted
+SHOWN_VALUE = 80  # characters of a value quoted back in a problem
 _REGEX_MEMORY = 8 << 20  # re2's budget for one compiled pattern: a larger one is refused
 _ENTITY_CACHE = 100_000  # entity paths remembered by a rule set; more and it starts over
 
@@ -40,6 +44,9 @@ LOG_TIME = "log_time"
 _NAME = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.-]{0,127}")
 _EVENT_KEYS = ("name", "entity", "when", "threshold", "for_s", "level", "match", "timeline", "severity")
 _METRIC_KEYS = ("name", "kind", "entity", "event", "property")
+# A run of more than MAX_KEY_PARTS dotted key parts, anywhere (re2: linear time over the whole file).
+_KEY_PART = r"""(?:[A-Za-z0-9_-]+|"[^"\n]*"|'[^'\n]*')"""
+_DEEP_KEY = re2.compile(rf"{_KEY_PART}(?:[ \t]*\.[ \t]*{_KEY_PART}){{{MAX_KEY_PARTS}}}")
 _METRIC_NEEDS = {
     "path_length": ("entity",),
     "event_count": ("event",),
@@ -138,16 +145,9 @@ class RuleSet:
 def parse_rules(text: str) -> RuleSet:
     """The rules of a TOML rules file; InvalidRulesError listing every problem (nothing is half-read)."""
     problems = _Problems(TomlLines.of(text))
-    if len(text.encode()) > MAX_RULES_BYTES:
-        problems.add(None, "file", f"{len(text.encode())} bytes: a rules file holds at most {MAX_RULES_BYTES}")
-        raise InvalidRulesError(problems.found)
-    try:
-        document = tomllib.loads(text)
-    except tomllib.TOMLDecodeError as exc:
-        problems.add(syntax_error_line(str(exc)), "toml", f"not valid TOML: {exc}")
-        raise InvalidRulesError(problems.found) from exc
+    document = _document(text, problems)
     for key in document:
-        if key not in ("event", "metric", "trigger"):
+        if key not in ("event", "metric", "trigger") and problems.room():
             problems.add(
                 problems.lines.top_level(key),
                 key,
@@ -159,7 +159,7 @@ def parse_rules(text: str) -> RuleSet:
     _check_unique("event", [_table_name(t) for t in _tables(document, "event", None)], problems)
     _check_unique("metric", [_table_name(t) for t in _tables(document, "metric", None)], problems)
     if problems.found:
-        raise InvalidRulesError(problems.found)
+        raise InvalidRulesError(problems.listed())
     return RuleSet(
         tuple(r for r in events if r is not None),
         tuple(r for r in metrics if r is not None),
@@ -168,13 +168,55 @@ def parse_rules(text: str) -> RuleSet:
     )
 
 
+def _document(text: str, problems: _Problems) -> dict[str, Any]:
+    """The TOML of `text`, read only when its size and shape are ones a reader copes with."""
+    size = len(text.encode(errors="surrogatepass"))
+    if size > MAX_RULES_BYTES:
+        problems.add(None, "file", f"{size} bytes: a rules file holds at most {MAX_RULES_BYTES}")
+        raise InvalidRulesError(problems.found)
+    deep = _DEEP_KEY.search(text)
+    if deep is not None:
+        line = text.count("\n", 0, deep.start()) + 1
+        problems.add(line, "toml", f"a dotted key of more than {MAX_KEY_PARTS} parts: a rules file needs at most 3")
+        raise InvalidRulesError(problems.found)
+    try:
+        return tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        problems.add(syntax_error_line(str(exc)), "toml", f"not valid TOML: {exc}")
+        raise InvalidRulesError(problems.found) from exc
+    except RecursionError:  # arrays or inline tables in arrays, thousands deep
+        problems.add(None, "toml", "arrays or inline tables nested too deeply: a rules file has none nested")
+        raise InvalidRulesError(problems.found) from None
+
+
+def shown(value: object) -> str:
+    """A value quoted back in a problem: its repr, cut at SHOWN_VALUE characters."""
+    text = repr(value)
+    return text if len(text) <= SHOWN_VALUE else f"{text[:SHOWN_VALUE]}... ({len(text)} characters)"
+
+
 @dataclass
 class _Problems:
     lines: TomlLines
     found: list[dict[str, object]] = field(default_factory=list)
+    more: int = 0  # problems past MAX_PROBLEMS, counted only
+
+    def room(self) -> bool:
+        """Whether another problem is listed: past MAX_PROBLEMS it is only counted (finding the
+        line of each of thousands would cost more than the file is worth)."""
+        if len(self.found) < MAX_PROBLEMS:
+            return True
+        self.more += 1
+        return False
 
     def add(self, line: int | None, name: str, message: str) -> None:
         self.found.append({"line": line, "field": name, "message": message})
+
+    def listed(self) -> list[dict[str, object]]:
+        if not self.more:
+            return self.found
+        more = f"{self.more} more problem(s) not listed: at most {MAX_PROBLEMS} are"
+        return [*self.found, {"line": None, "field": "file", "message": more}]
 
 
 def _table_name(table: dict[str, Any]) -> str | None:
@@ -186,11 +228,11 @@ def _tables(document: dict[str, Any], name: str, problems: _Problems | None) -> 
     """The `[[name]]` tables of the document (`problems`: where to say they are not tables)."""
     value = document.get(name, [])
     if not isinstance(value, list) or not all(isinstance(t, dict) for t in value):
-        if problems is not None:
+        if problems is not None and problems.room():
             problems.add(problems.lines.top_level(name), name, f"write each {name} as a [[{name}]] table")
         return []
     if len(value) > MAX_RULES:
-        if problems is not None:
+        if problems is not None and problems.room():
             problems.add(problems.lines.table(name, MAX_RULES), name, f"{len(value)} tables: at most {MAX_RULES}")
         return []
     return value
@@ -209,6 +251,8 @@ class _Table:
 
     def problem(self, key: str, message: str) -> None:
         self.failed = True
+        if not self.problems.room():
+            return
         line = self.problems.lines.key(self.kind, self.index, key) if key in self.values else self.line
         self.problems.add(line, f"{self.kind}[{self.index + 1}].{key}", message)
 
@@ -219,10 +263,10 @@ class _Table:
                 self.problem(key, "missing" + (f" (one of {', '.join(choices)})" if choices else ""))
             return None
         if not isinstance(value, str) or not value:
-            self.problem(key, f"a non-empty string, not {value!r}")
+            self.problem(key, f"a non-empty string, not {shown(value)}")
             return None
         if choices and value not in choices:
-            self.problem(key, f"{value!r} is none of {', '.join(choices)}")
+            self.problem(key, f"{shown(value)} is none of {', '.join(choices)}")
             return None
         return value
 
@@ -231,10 +275,10 @@ class _Table:
         if value is None:
             return None
         if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
-            self.problem(key, f"a finite number, not {value!r}")
+            self.problem(key, f"a finite number, not {shown(value)}")
             return None
         if minimum is not None and value < minimum:
-            self.problem(key, f"at least {minimum:g}, not {value!r}")
+            self.problem(key, f"at least {minimum:g}, not {shown(value)}")
             return None
         return float(value)
 
@@ -247,7 +291,9 @@ class _Table:
 def _name(table: _Table) -> str | None:
     name = table.text("name", required=True)
     if name is not None and not _NAME.fullmatch(name):
-        table.problem("name", f"{name!r}: letters, digits, '_', '.', '-' (up to 128, not starting with '.' or '-')")
+        table.problem(
+            "name", f"{shown(name)}: letters, digits, '_', '.', '-' (up to 128, not starting with '.' or '-')"
+        )
         return None
     return name
 
@@ -258,7 +304,7 @@ def _entity(table: _Table, *, glob: bool) -> tuple[str | None, Any]:
         return None, None
     problem = entity_problem(entity)
     if problem is None and is_glob(entity) and not glob:
-        problem = f"{entity!r}: a metric reads one entity, not a glob"
+        problem = f"{shown(entity)}: a metric reads one entity, not a glob"
     if problem is not None:
         table.problem("entity", problem)
         return None, None
@@ -291,7 +337,7 @@ def _event_rule(values: dict[str, Any], index: int, problems: _Problems) -> Even
 def _level(table: _Table) -> str | None:
     level = table.text("level")
     if level is not None and level.upper() not in LEVELS:
-        table.problem("level", f"{level!r} is none of {', '.join(LEVELS)}")
+        table.problem("level", f"{shown(level)} is none of {', '.join(LEVELS)}")
         return None
     return level.upper() if level is not None else None
 
@@ -310,7 +356,7 @@ def _regex(table: _Table) -> tuple[str | None, Any]:
         return match, re2.compile(match, options)
     except re2.error as exc:
         reason = exc.args[0].decode(errors="replace") if exc.args and isinstance(exc.args[0], bytes) else str(exc)
-        table.problem("match", f"{match!r} is not a regex re2 runs in linear time: {reason}")
+        table.problem("match", f"{shown(match)} is not a regex re2 runs in linear time: {reason[:SHOWN_VALUE]}")
         return None, None
 
 
@@ -326,7 +372,7 @@ def _metric_rule(values: dict[str, Any], index: int, problems: _Problems) -> Met
     event = table.text("event", required=True) if "event" in needs else None
     prop = table.text("property", required=True) if "property" in needs else None
     if prop is not None and "." not in prop.strip("."):
-        table.problem("property", f"{prop!r}: write PROPERTY.FIELD, e.g. fleet.sw_version")
+        table.problem("property", f"{shown(prop)}: write PROPERTY.FIELD, e.g. fleet.sw_version")
     if table.failed or name is None:
         return None
     return MetricRule(name, kind, entity, event, prop, table.line)
@@ -338,12 +384,12 @@ def _check_unique(kind: str, names: list[str | None], problems: _Problems) -> No
     for index, name in enumerate(names):
         if name is None:
             continue
-        if name in first:
+        if name in first and problems.room():
             earlier = problems.lines.key(kind, first[name], "name")
             problems.add(
                 problems.lines.key(kind, index, "name"),
                 f"{kind}[{index + 1}].name",
-                f"{name!r} names {kind}[{first[name] + 1}] too" + (f" (line {earlier})" if earlier else ""),
+                f"{shown(name)} names {kind}[{first[name] + 1}] too" + (f" (line {earlier})" if earlier else ""),
             )
-        else:
+        elif name not in first:
             first[name] = index

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import re
 from dataclasses import dataclass
+from functools import cached_property
 
 _ARRAY_HEADER = re.compile(r'^\s*\[\[\s*"?([A-Za-z0-9_-]+)"?\s*\]\]')
 _ANY_HEADER = re.compile(r'^\s*\[\[?\s*"?([A-Za-z0-9_-]+)"?')
@@ -32,16 +33,21 @@ class TomlLines:
     def of(cls, text: str) -> TomlLines:
         return cls(tuple(text.splitlines()))
 
-    def table(self, name: str, index: int) -> int | None:
-        """The line of the `index`-th (0-based) `[[name]]` header."""
-        seen = 0
+    @cached_property
+    def _headers(self) -> dict[str, list[int]]:
+        """The lines of each name's `[[name]]` headers, in order (found once: a file of a thousand
+        tables asks for each)."""
+        found: dict[str, list[int]] = {}
         for number, line in enumerate(self.lines, 1):
             match = _ARRAY_HEADER.match(line)
-            if match and match[1] == name:
-                if seen == index:
-                    return number
-                seen += 1
-        return None
+            if match:
+                found.setdefault(match[1], []).append(number)
+        return found
+
+    def table(self, name: str, index: int) -> int | None:
+        """The line of the `index`-th (0-based) `[[name]]` header."""
+        lines = self._headers.get(name, [])
+        return lines[index] if 0 <= index < len(lines) else None
 
     def key(self, name: str, index: int, key: str) -> int | None:
         """The line of `key` in the `index`-th `[[name]]` table (else the table's line)."""

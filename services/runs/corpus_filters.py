@@ -132,6 +132,12 @@ def cursor_value(value: Any) -> float | None:
     """A metric sort's cursor value, checked (client input); ValueError if it is not one."""
     if value is None:
         return None
-    if type(value) not in (int, float) or not math.isfinite(value):
+    if type(value) not in (int, float):
         raise ValueError(value)
-    return float(value)
+    try:
+        number = float(value)
+    except OverflowError:  # an integer of hundreds of digits
+        raise ValueError(value) from None
+    if not math.isfinite(number):
+        raise ValueError(value)
+    return number

@@ -139,8 +139,11 @@ def _address(text: str) -> Address:
 def _parse(url: str) -> tuple[str, str, int, tuple[str, str]]:
     """Scheme, host (lowercase, no brackets), port (the scheme's default if none) and path and
     query of a webhook URL; RefusedUrlError for anything that is no plain http(s) URL."""
-    if len(url) > MAX_URL_LENGTH or any(c.isspace() or ord(c) < 32 for c in url):
-        raise RefusedUrlError(f"a webhook URL is an http(s) URL of at most {MAX_URL_LENGTH} characters, no spaces")
+    if len(url) > MAX_URL_LENGTH or any(c.isspace() or ord(c) < 32 or 0xD800 <= ord(c) < 0xE000 for c in url):
+        raise RefusedUrlError(
+            f"a webhook URL is an http(s) URL of at most {MAX_URL_LENGTH} characters, "
+            "no spaces, control characters or unpaired surrogates"
+        )
     try:
         parts = urlsplit(url)
         port = parts.port
