@@ -14,6 +14,7 @@ from fastapi import Request
 
 from catalog import corpus
 from catalog.db import session_scope
+from core.errors import NotFoundError
 from services.auth.scopes import Principal
 from services.corpus import service
 from services.corpus.links import Viewer, padded
@@ -54,7 +55,10 @@ def viewer(request: Request, principal: Principal) -> Viewer:
 
 def run_corpus(request: Request, principal: Principal, run_id: str) -> RunCorpus:
     catalog = request.app.state.catalog
-    events = service.run_events_answer(catalog, viewer(request, principal), run_id)["events"]
+    try:
+        events = service.run_events_answer(catalog, viewer(request, principal), run_id)["events"]
+    except NotFoundError:  # hot here before the catalog flush wrote its row: nothing derived yet
+        return RunCorpus()
     with session_scope(catalog) as session:
         return RunCorpus(
             events=events,

@@ -391,7 +391,18 @@ class IngestService:
         except (PermissionDeniedError, UnsafeIdError):
             if run is not None and run.run_id in source.created and run.sources == 1:
                 self._drop(source, run)
+            elif run is None and run_id is not None:  # the property came first: nothing of it was written
+                self._refused_before_kept(source, run_id)
             raise
+
+    @staticmethod
+    def _refused_before_kept(source: Source, run_id: str) -> None:
+        if run_id in source.new_of_run:  # chunks of it went to a hot run since handed over: they stay
+            return
+        if run_id in source.report.runs:
+            source.report.runs.remove(run_id)
+        if run_id not in source.report.dropped:
+            source.report.dropped.append(run_id)
 
     def _drop(self, source: Source, run: IngestRun) -> None:
         with run.leaving:

@@ -4,7 +4,8 @@ Postgres, so it has its peer port too).
 The gRPC methods are listed from what a node registers (`server.add_services`): each must have its
 hostile requests here (the catalog service's from its descriptor: garbage for every method, and the
 hostile dataframe parts for every field that carries one), so a new RPC fails this test until it
-has them. REST bodies other than JSON and forms are read only by the upload route. Every answer must
+has them. REST bodies other than JSON and forms are read only by the upload route and the rules
+route (whose hostile files are in tests/services/corpus/test_hostile.py). Every answer must
 be the refusal it should be, never UNKNOWN, INTERNAL or a 5xx, and the node must stay up and keep
 nothing of what it refused."""
 
@@ -407,4 +408,5 @@ def test_only_the_upload_route_reads_a_raw_body() -> None:
         for p in services.rglob("*.py")
         if "request.stream()" in p.read_text() or "request.body()" in p.read_text()
     )
-    assert readers == ["ingest/rest.py"], f"a new route reads a raw body: give it hostile bodies here ({readers})"
+    # each reader's hostile bodies: the uploads' here, the rules file's in tests/services/corpus/test_hostile.py
+    assert readers == ["corpus/rest.py", "ingest/rest.py"], f"a new route reads a raw body: test it ({readers})"

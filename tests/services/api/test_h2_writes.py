@@ -115,10 +115,11 @@ async def test_large_messages_after_the_first_are_read_from_the_socket_straight_
         assert handler.received["s1"] == bodies
     # Only the first large body (read before the connection knows large ones come) and frame heads,
     # prefixes and small messages go through the connection's buffer: the large bodies after it are
-    # read straight into their own.
-    direct_at_least = len(large[1]) + len(large[2])
-    assert read["direct"] >= direct_at_least
-    assert read["buffered"] <= len(large[0]) + DIRECT_BYTES
+    # read straight into their own. A busy machine lets frames pile up in the socket: a buffered read
+    # under way when a large body begins may take up to DIRECT_BYTES of its start.
+    slack = DIRECT_BYTES * (len(large) - 1)
+    assert read["direct"] >= len(large[1]) + len(large[2]) - slack
+    assert read["buffered"] <= len(large[0]) + DIRECT_BYTES + slack
 
 
 @asynchronous

@@ -11,6 +11,7 @@ import pytest
 
 from services.rrd import ArrowMessage, iter_events
 from services.rrd.chunk import read_chunk
+from services.rrd.errors import RrdError
 from tests.services.ingest.live_server import LiveServer, start_robot
 from tests.services.rrd.recordings import rerun_rrd_ok
 
@@ -21,13 +22,21 @@ def _chunk_ids(path: Path) -> list[bytes]:
     return [e.chunk_id for e in iter_events(path) if isinstance(e, ArrowMessage)]  # type: ignore[misc]
 
 
+def _chunk_ids_so_far(path: Path) -> list[bytes]:
+    """The chunk ids of a hot file being written: none while it is created and still empty."""
+    try:
+        return _chunk_ids(path)
+    except (FileNotFoundError, RrdError):  # not there yet, empty, or a message half-written
+        return []
+
+
 def test_kill_during_stream_then_upload_the_copy(server: LiveServer, tmp_path: Path, rerun_bin: str):
     copy, run_id = tmp_path / "copy.rrd", "e2e-run-1"
     robot = start_robot("scene", server.grpc_url, str(copy), run_id)
     assert robot.stdout is not None and robot.stdin is not None
     assert robot.stdout.readline().strip() == "HALF"
     hot = server.data_dir / "hot" / run_id / "run.rrd"
-    server.wait_for(lambda: hot.exists() and len(_chunk_ids(hot)) > 10, what="the first half on disk")
+    server.wait_for(lambda: len(_chunk_ids_so_far(hot)) > 10, what="the first half on disk")
     server.kill()  # kill -9 in the middle of the robot's stream
     server.start()  # recovery: torn tails trimmed, runs back in the catalog
     robot.stdin.write("go\n")

@@ -314,3 +314,25 @@ def test_a_refused_robot_keeps_a_run_that_another_source_feeds(make_service: Fac
     with pytest.raises(FleetError, match="robot 'robot-7'"):
         feeding.feed(service, robot_a, events[first_data + 1 :])
     assert service.hot_run("rec-properties") is not None  # another stream still feeds it: not dropped
+
+
+def _properties_first(events: list[Any]) -> list[Any]:
+    """The recording's events with its property chunks before its first data chunk (the SDK's
+    batcher sends them so at times)."""
+    props = [e for e in events if isinstance(e, ArrowMessage) and chunk_meta(e).entity_path.startswith("/__properties")]
+    rest = [e for e in events if not any(e is p for p in props)]
+    first_data = next(i for i, e in enumerate(rest) if isinstance(e, ArrowMessage))
+    return rest[:first_data] + props + rest[first_data:]
+
+
+@pytest.mark.parametrize("order", [_properties_first, _data_before_properties], ids=["property-first", "data-first"])
+def test_a_refused_run_is_reported_dropped_whichever_chunk_came_first(
+    make_service: Factory, recordings: dict[str, Recording], order: Any
+):
+    service = make_service()
+    stream = service.open_source(live=False, robot="robot-a")
+    with pytest.raises(FleetError, match="robot 'robot-7'"):
+        feeding.feed(service, stream, order(list(iter_events(recordings["properties"].path))))
+    report = stream.report
+    assert (report.runs, report.dropped, report.chunks_new, report.bytes_new) == ([], ["rec-properties"], 0, 0)
+    assert service.hot_run("rec-properties") is None and list(service.hot.existing()) == []

@@ -43,9 +43,10 @@ POLICIES = json.dumps(
 SCENES = ("points", "image", "scalars", "textlogs", "properties")
 COLD = {"rec-image", "rec-textlogs"}
 PINNED = {"rec-points", "rec-image"}  # one warm, one cold
-# What a rebuild cannot bring back: the history (replaced by one "rebuild" event) and when a run was
-# archived (read from its cold object's time).
-LOST = {"events", "lifecycle.archived_at"}
+# What a rebuild cannot bring back: the history (replaced by one "rebuild" event), when a run was
+# archived (read from its cold object's time) and the rules' evaluation (`fleet rules backfill` makes
+# it again from the data).
+LOST = {"events", "lifecycle.archived_at", "evaluation"}
 
 
 def fleet(server: LiveServer, *args: str) -> subprocess.CompletedProcess[str]:
