@@ -7,8 +7,6 @@ job claims due deliveries (`claim_due`), sends them, and records each attempt.""
 
 from __future__ import annotations
 
-import base64
-import binascii
 import datetime as dt
 import hashlib
 import json
@@ -21,7 +19,8 @@ from sqlalchemy.orm import Session
 
 from catalog.models import Webhook, WebhookDelivery
 from core.clock import aware, iso_utc, utcnow
-from core.errors import BadParameterError, NotFoundError
+from core.cursors import decode_cursor, encode_cursor
+from core.errors import NotFoundError
 
 PENDING, DELIVERED, FAILED = "pending", "delivered", "failed"
 JSON, SLACK = "json", "slack"
@@ -29,7 +28,6 @@ BODY_FORMATS = (JSON, SLACK)
 RUN_SEALED, ROBOT_SILENT, EVENT_PREFIX = "run.sealed", "robot.silent", "event:"
 ANY_EVENT = "event:*"
 DELIVERY_ID_LENGTH = 64  # the column's width
-MAX_CURSOR_LENGTH = 512
 
 
 @dataclass(frozen=True)
@@ -256,7 +254,7 @@ def deliveries(
     webhook(session, webhook_id)  # 404 for a webhook that is not there
     query = sa.select(WebhookDelivery).where(WebhookDelivery.webhook_id == webhook_id)
     if cursor:
-        created, last = _decode_cursor(cursor)
+        created, last = decode_cursor(cursor)
         query = query.where(
             sa.or_(
                 WebhookDelivery.created_at < created,
@@ -267,26 +265,7 @@ def deliveries(
     page = [_delivery(row) for row in session.scalars(query)]
     more = len(page) > limit
     page = page[:limit]
-    return page, _encode_cursor(page[-1]) if more else None
-
-
-def _encode_cursor(last: DeliveryRecord) -> str:
-    text = json.dumps([last.created_at.isoformat(), last.id])
-    return base64.urlsafe_b64encode(text.encode()).decode().rstrip("=")
-
-
-def _decode_cursor(cursor: str) -> tuple[dt.datetime, str]:
-    bad = BadParameterError("cursor", "not a cursor this service gave out: pass `next_cursor` as is")
-    if len(cursor) > MAX_CURSOR_LENGTH:
-        raise bad
-    try:
-        created, last = json.loads(base64.urlsafe_b64decode(cursor + "=" * (-len(cursor) % 4)))
-        when = aware(dt.datetime.fromisoformat(created))
-    except (ValueError, TypeError, binascii.Error, RecursionError):
-        raise bad from None
-    if not isinstance(last, str) or "\x00" in last:  # Postgres refuses a NUL in a query's text
-        raise bad
-    return when, last
+    return page, encode_cursor(page[-1].created_at, page[-1].id) if more else None
 
 
 def _delivery(row: WebhookDelivery) -> DeliveryRecord:

@@ -264,6 +264,12 @@ class Settings(SharedSettings):
     auth_cache_s: float = Field(
         5.0, ge=0, description="a token's revocation is seen by every node within this many seconds"
     )
+    auth_catalog_wait_s: float = Field(
+        2.0,
+        gt=0,
+        le=60.0,
+        description="the longest a token check waits for the catalog before it answers from what it knows (else 503)",
+    )
     auth_stale_s: float = Field(
         600.0,
         ge=0,

@@ -48,6 +48,7 @@ def open_auth(settings: Settings, catalog: sessionmaker[Session] | None) -> Auth
         public_hosts=settings.public_hosts or None,
         cache_s=settings.auth_cache_s,
         stale_s=settings.auth_stale_s,
+        catalog_wait_s=settings.auth_catalog_wait_s,
     )
 
 

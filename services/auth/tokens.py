@@ -29,7 +29,7 @@ from core.ids import check_id
 from services.auth import links
 from services.auth.keys import SigningKeys
 from services.auth.scopes import Principal, Scope, local_principal, parse_scopes
-from services.auth.token_cache import TokenCache
+from services.auth.token_cache import WAIT_S, TokenCache
 
 log = logging.getLogger(__name__)
 
@@ -71,6 +71,7 @@ class Auth:
         public_hosts: list[str] | None = None,
         cache_s: float = 5.0,
         stale_s: float = 600.0,
+        catalog_wait_s: float = WAIT_S,
         clock: Callable[[], dt.datetime] = utcnow,
     ) -> None:
         if enabled and (keys is None or catalog is None):
@@ -82,7 +83,7 @@ class Auth:
         self.cache_s = cache_s
         self.clock = clock
         self.failures: Counter[tuple[str, str]] = Counter()  # (surface, reason) -> refusals
-        self._known = TokenCache(self._catalog_record, fresh_s=cache_s, stale_s=stale_s)
+        self._known = TokenCache(self._catalog_record, fresh_s=cache_s, stale_s=stale_s, wait_s=catalog_wait_s)
         self._lock = threading.Lock()
 
     # --- checking ---------------------------------------------------------------------------

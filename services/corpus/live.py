@@ -1,14 +1,16 @@
 """The rules, live: hot runs evaluated as their chunks arrive.
 
 Ingest tells `LiveRules` (its `ChunkObserver`) of each new recording chunk an entity of which a rule
-names; `chunk` puts it on a bounded queue and returns. One worker thread takes the chunks off and
-keeps a `RunEvaluator` per hot run (at most `max_runs`, the least recently fed evicted); every
-`flush_s` it writes each changed run's events and metrics so far (`state="live"`). Ingest never
-waits: a full queue drops the chunk, and the run's live result no longer counts as whole (its
-sealing evaluates the stored run).
+names; `chunk` puts it on a bounded queue and returns. One worker thread takes the chunks off (in
+batches, every `BATCH_S`) and keeps a `RunEvaluator` per hot run (at most `max_runs`, the least
+recently fed evicted); every `flush_s` it writes each changed run's events and metrics so far
+(`state="live"`): at once when it has new events, every `METRICS_EVERY` flushes when only its metrics
+moved. Ingest never waits: a full queue drops the chunk, and the run's live result no longer counts
+as whole (its sealing evaluates the stored run).
 
-A run's evaluator starts from the run's hot file as it stands (its wanted chunks read through the
-chunk index), and afterwards skips the chunks it holds already: a run first seen after a restart,
+A run ingest starts here is announced (`started`, queued before its first chunk): its evaluator starts
+empty. Any other run's evaluator starts from the run's hot file as it stands (its wanted chunks read
+through the chunk index), and afterwards skips the chunks it holds already: a run first seen after a restart,
 an eviction or a rules change is still evaluated from its start. At sealing, `hand_over` gives the
 run's evaluator to the sealing (through the queue, behind the run's last chunks), with the ids of
 the chunks it was fed: it gives the final values only if those are every wanted chunk of the
@@ -21,10 +23,9 @@ evaluators (each starts again from its file with its next chunk).
 from __future__ import annotations
 
 import logging
-import queue
 import threading
 import time
-from collections import OrderedDict
+from collections import OrderedDict, deque
 from concurrent.futures import Future
 from dataclasses import dataclass, field
 
@@ -55,6 +56,12 @@ from services.runs.indexed import open_hot, read_events
 log = logging.getLogger(__name__)
 
 QUEUE_CHUNKS = 4096  # chunks waiting for the worker; past it they are dropped (the run is not whole)
+# The worker takes what is queued in batches, this often: woken for each chunk, its thread and
+# ingest's would contend for the interpreter at every chunk (ingest costs a third more beside it).
+BATCH_S = 0.25
+# A hot run whose only change is its metrics' values is written every this many flushes (new events
+# at the next flush): each write replaces the run's values in the catalog, the worker's main cost.
+METRICS_EVERY = 5
 MAX_RUNS = 256  # hot runs with an evaluator at once
 _WANTED_PATHS = 65536  # entity paths whose answer is remembered (cleared when full)
 _GAVE_UP = 4096  # runs remembered as not whole (evicted, or chunks dropped)
@@ -73,6 +80,8 @@ class HotRun:
     events: list[FoundEvent] = field(default_factory=list)  # complete ones so far
     changed: bool = True
     whole: bool = True  # fed every wanted chunk from the run's start
+    events_written: int | None = None  # how many of `events` its last write held (None: never written)
+    flushes_unwritten: int = 0  # flushes since its last write that found only metrics changed
 
 
 @dataclass(frozen=True)
@@ -90,6 +99,12 @@ class _Chunk:
     robot_id: str
     msg: ArrowMessage
     meta: ChunkMeta
+
+
+@dataclass(frozen=True)
+class _Started:
+    run_id: str
+    robot_id: str
 
 
 @dataclass(frozen=True)
@@ -127,7 +142,9 @@ class LiveRules:
         self.flush_s = flush_s
         self.max_runs = max_runs
         self.dropped_chunks = 0  # chunks not evaluated live because the queue was full
-        self._queue: queue.Queue[object] = queue.Queue(maxsize=queue_chunks)
+        self.queue_chunks = queue_chunks
+        self._queue: deque[object] = deque()  # chunks, then hand-overs and the stop, in order
+        self._wake = threading.Event()  # a hand-over or the stop: take the queue now
         self._running = RunningRules(NO_RULES_VERSION, RuleSet.empty())
         self._filter = _Filter(RunEvaluator(self._running.rules, max_events=max_events), {})
         self._runs: OrderedDict[str, HotRun] = OrderedDict()  # the worker's alone
@@ -148,12 +165,16 @@ class LiveRules:
         return wanted
 
     def chunk(self, run_id: str, robot_id: str, msg: ArrowMessage, meta: ChunkMeta) -> None:
-        try:
-            self._queue.put_nowait(_Chunk(run_id, robot_id, msg, meta))
-        except queue.Full:
+        if len(self._queue) >= self.queue_chunks:
             with self._lock:
                 self._overflowed.add(run_id)
                 self.dropped_chunks += 1
+            return
+        self._queue.append(_Chunk(run_id, robot_id, msg, meta))  # no wake-up: the worker comes by
+
+    def started(self, run_id: str, robot_id: str) -> None:
+        if len(self._queue) < self.queue_chunks:  # (else its first chunk reads the file from its start)
+            self._queue.append(_Started(run_id, robot_id))
 
     # --- running --------------------------------------------------------------------------
 
@@ -167,7 +188,8 @@ class LiveRules:
         """Write what changed and stop the worker."""
         if self._thread is None:
             return
-        self._queue.put(_STOP)
+        self._queue.append(_STOP)
+        self._wake.set()
         self._thread.join(timeout=30)
         self._thread = None
 
@@ -181,10 +203,11 @@ class LiveRules:
         if self._thread is None:
             return None
         answer: Future[HandedOver] = Future()
+        self._queue.append(_HandOver(run_id, answer))
+        self._wake.set()
         try:
-            self._queue.put(_HandOver(run_id, answer), timeout=timeout_s)
             return answer.result(timeout_s)
-        except (queue.Full, TimeoutError):
+        except TimeoutError:
             log.warning("live rules did not hand run %s over in time: it is evaluated from its data", run_id)
             return None
 
@@ -193,17 +216,17 @@ class LiveRules:
     def _work(self) -> None:
         next_tick = time.monotonic() + self.flush_s
         while True:
-            try:
-                item = self._queue.get(timeout=max(0.0, next_tick - time.monotonic()))
-            except queue.Empty:
-                item = None
-            if item is _STOP:
-                self._flush()
-                return
-            try:
-                self._take(item)
-            except Exception:  # one bad chunk or run stops nothing else
-                log.exception("live rules could not evaluate a chunk")
+            self._wake.wait(min(BATCH_S, max(0.0, next_tick - time.monotonic())))
+            self._wake.clear()  # (what is queued before a later set is taken below)
+            while self._queue:
+                item = self._queue.popleft()
+                if item is _STOP:
+                    self._flush()
+                    return
+                try:
+                    self._take(item)
+                except Exception:  # one bad chunk or run stops nothing else
+                    log.exception("live rules could not evaluate a chunk")
             if time.monotonic() >= next_tick:
                 self._tick()
                 next_tick = time.monotonic() + self.flush_s
@@ -211,6 +234,9 @@ class LiveRules:
     def _take(self, item: object) -> None:
         if isinstance(item, _Chunk):
             self._add(item)
+        elif isinstance(item, _Started):
+            self._gave_up.pop(item.run_id, None)
+            self._keep(self._new_run(item.run_id, item.robot_id, changed=False))  # nothing in its file to read
         elif isinstance(item, _HandOver):
             run = self._runs.pop(item.run_id, None)
             if run is not None and not self._is_whole(run):
@@ -241,12 +267,21 @@ class LiveRules:
         run.evaluator.add(chunk.msg, chunk.meta)
         run.changed = True
 
-    def _open(self, chunk: _Chunk) -> HotRun:
-        """A new evaluator for the run, fed what its hot file holds so far."""
+    def _new_run(self, run_id: str, robot_id: str, *, changed: bool) -> HotRun:
         running = self._running
-        run = HotRun(
-            chunk.run_id, chunk.robot_id, running.version, RunEvaluator(running.rules, max_events=self.max_events)
-        )
+        evaluator = RunEvaluator(running.rules, max_events=self.max_events)
+        return HotRun(run_id, robot_id, running.version, evaluator, changed=changed)
+
+    def _keep(self, run: HotRun) -> None:
+        self._runs[run.run_id] = run
+        while len(self._runs) > self.max_runs:
+            evicted, _ = self._runs.popitem(last=False)
+            self._gave_up[evicted] = True  # evaluated from its data at sealing
+
+    def _open(self, chunk: _Chunk) -> HotRun:
+        """A new evaluator for a run whose start it did not see (after a restart, an eviction or a
+        rules change), fed what the run's hot file holds so far."""
+        run = self._new_run(chunk.run_id, chunk.robot_id, changed=True)
         recording = self.hot_runs.hot_recording(chunk.run_id) if self.hot_runs is not None else None
         if recording is None:
             run.whole = False
@@ -260,10 +295,7 @@ class LiveRules:
                         run.evaluator.add(event, meta)
             finally:
                 indexed.close()
-        self._runs[chunk.run_id] = run
-        while len(self._runs) > self.max_runs:
-            evicted, _ = self._runs.popitem(last=False)
-            self._gave_up[evicted] = True  # evaluated from its data at sealing
+        self._keep(run)
         return run
 
     def _is_whole(self, run: HotRun) -> bool:
@@ -289,8 +321,13 @@ class LiveRules:
         changed = [run for run in self._runs.values() if run.changed]
         for run in changed:
             run.events.extend(run.evaluator.take_closed())
+            if run.events_written == len(run.events) and run.flushes_unwritten + 1 < METRICS_EVERY:
+                run.flushes_unwritten += 1  # only metrics moved: written a few flushes on
+                continue
             run.changed = False
-            if not self._write(run):
+            if self._write(run):
+                run.events_written, run.flushes_unwritten = len(run.events), 0
+            else:
                 run.changed = True  # its catalog row is not there yet: the next tick
 
     def _write(self, run: HotRun) -> bool:

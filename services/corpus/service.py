@@ -9,10 +9,8 @@ time of day), and paging by it is stable while rules add events.
 
 from __future__ import annotations
 
-import base64
 import dataclasses
 import datetime as dt
-import json
 import re
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -25,7 +23,9 @@ from catalog import corpus
 from catalog.db import session_scope
 from catalog.queries import require_run, run_timelines
 from core.clock import iso_utc
+from core.cursors import decode_cursor, encode_cursor
 from core.errors import BadParameterError, ConflictError, InvalidRulesError, NotFoundError
+from core.text import storable
 from services.corpus.links import Viewer, event_answer
 from services.rules.spec import RuleSet, parse_rules
 from services.runs.download import parse_time_value
@@ -34,7 +34,6 @@ SEVERITIES = ("info", "warn", "error")
 ORIGINS = (corpus.RULE, corpus.ROBOT, corpus.PERSON)
 MAX_LIMIT = 1000
 MAX_FILTER_VALUES = 32
-MAX_CURSOR_LENGTH = 512
 PERSON_KIND = "annotation"  # a person's event when they name no kind
 MAX_LABEL, MAX_NOTE = 1000, 10_000
 MAX_TAGS = 100  # in one request
@@ -196,26 +195,6 @@ def one_event_answer(catalog: sessionmaker[Session], viewer: Viewer, event_id: s
         return event_answer(found, viewer)
 
 
-def encode_cursor(created_at: dt.datetime, ident: str) -> str:
-    raw = json.dumps([iso_utc(created_at), ident])
-    return base64.urlsafe_b64encode(raw.encode()).decode().rstrip("=")
-
-
-def decode_cursor(cursor: str) -> tuple[dt.datetime, str]:
-    """The (created_at, id) a cursor carries; a tampered one is a 422, never a query error."""
-    bad = BadParameterError("cursor", "not a cursor this service gave out: pass `next_cursor` as is")
-    if len(cursor) > MAX_CURSOR_LENGTH:
-        raise bad
-    try:
-        created, ident = json.loads(base64.urlsafe_b64decode(cursor + "=" * (-len(cursor) % 4)))
-        when = dt.datetime.fromisoformat(created.replace("Z", "+00:00"))
-    except (ValueError, TypeError, AttributeError, RecursionError):
-        raise bad from None
-    if not isinstance(ident, str) or "\x00" in ident or when.tzinfo is None:
-        raise bad
-    return when, ident
-
-
 # --- a person's events --------------------------------------------------------------------------------
 
 
@@ -281,18 +260,6 @@ def _check_annotation(asked: Annotation) -> None:
     for name, text in (("timeline", asked.timeline), ("label", asked.label), ("note", asked.note)):
         if not storable(text):
             raise BadParameterError(name, "holds a NUL character or an unpaired surrogate: send plain UTF-8 text")
-
-
-def storable(text: str) -> bool:
-    """Whether every catalog can keep `text`: no NUL (Postgres refuses it in text) and valid UTF-8
-    (JSON escapes can carry a lone surrogate, which no database encodes)."""
-    if "\x00" in text:
-        return False
-    try:
-        text.encode()
-    except UnicodeEncodeError:
-        return False
-    return True
 
 
 def _timeline_type(session: Session, run_id: str, name: str) -> str:

@@ -523,6 +523,8 @@ class IngestService:
         run.lease = source.leases.get(run_id)
         source.created.add(run_id)
         self._attach(source, run)
+        if self.observer is not None:
+            self.observer.started(run_id, run.robot_id or self.default_robot)
         for key, store_info in source.store_infos.items():
             if source.run_of_store.get(key) == run_id and key not in run.stores_written:
                 run.hot.append(MessageKind.SET_STORE_INFO, store_info.raw, key[0])

@@ -17,3 +17,6 @@ class ChunkObserver(Protocol):
     def wants(self, entity_path: str) -> bool: ...
 
     def chunk(self, run_id: str, robot_id: str, msg: ArrowMessage, meta: ChunkMeta) -> None: ...
+
+    def started(self, run_id: str, robot_id: str) -> None:
+        """Ingest created the run's hot file here, before its first chunk: there is nothing of it to read."""

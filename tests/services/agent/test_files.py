@@ -223,7 +223,8 @@ def test_replaced_or_truncated_file_is_read_again_from_the_start(files: dict[str
     with open(path, "ab") as fh:  # growing is not replacing
         fh.write(files["points"])
     events, batch = read_all(tail)
-    assert not batch.started_over and events == reference(files["concat_no_end"], tmp_path)[6:]
+    already = len(reference(files["no_footer"], tmp_path))  # (how many the SDK wrote: it batches as it likes)
+    assert not batch.started_over and events == reference(files["concat_no_end"], tmp_path)[already:]
     with open(path, "r+b") as fh:  # the same inode, rewritten and larger by the next look
         fh.truncate(0)
         fh.write(files["blueprint"])

@@ -89,6 +89,9 @@ def bearer(token: str) -> dict[str, str]:
 
 @contextmanager
 def open_depot(tmp_path: Path, catalog_url: str, **settings: Any) -> Iterator[Depot]:
+    # A busy machine can take seconds to open a fresh database's first connection: a token check
+    # waits for it here (the tests of a catalog that does not answer set their own wait).
+    settings.setdefault("auth_catalog_wait_s", 30.0)
     with node(migrated_settings(tmp_path, auth="on", catalog_url=catalog_url, **settings)) as client:
         yield Depot(client)
 

@@ -122,3 +122,9 @@ def test_nothing_is_announced_when_no_admin_token_was_made(tmp_path: Path):
     out = io.StringIO()
     announce_admin(None, tmp_path, out)
     assert out.getvalue() == ""
+
+
+def test_the_catalog_wait_of_a_token_check_is_the_setting(tmp_path: Path, catalog: sessionmaker[Session]):
+    settings = load_settings(data_dir=tmp_path, auth="on", auth_catalog_wait_s=7.5)
+    assert open_auth(settings, catalog)._known.wait_s == 7.5
+    assert open_auth(load_settings(data_dir=tmp_path, auth="on"), catalog)._known.wait_s == 2.0

@@ -13,7 +13,7 @@ import pytest
 from catalog import webhooks
 from catalog.db import session_scope
 from catalog.webhooks import WebhookRecord
-from services.corpus import evaluation
+from services.corpus import evaluation, live
 from services.corpus.backfill import Pace, due_runs
 from services.corpus.evaluation import COLD_NOTE
 from services.retention import archive
@@ -48,7 +48,11 @@ def assert_v1_values(depot: Depot, run_id: str, version: int) -> None:
     assert {m[2] for m in metrics.values()} == {version}
 
 
-def test_a_run_has_its_values_while_hot_and_final_ones_once_sealed(make_depot: DepotFactory, scene):
+def test_a_run_has_its_values_while_hot_and_final_ones_once_sealed(make_depot: DepotFactory, scene, monkeypatch):
+    def unread(recording: object) -> None:
+        raise AssertionError("a run ingest started is evaluated from its chunks, its file never read")
+
+    monkeypatch.setattr(live, "open_hot", unread)
     depot = make_depot(catalog_flush_s=0.1)
     version = depot.apply(expect.RULES_V1)
     run_id = "corpus-live"
@@ -233,3 +237,33 @@ def test_webhooks_are_told_of_the_seal_and_of_each_event_once(make_depot: DepotF
     with session_scope(depot.node.catalog) as session:
         told = Counter(d.occurrence for d in webhooks.deliveries(session, hook.id, limit=100)[0])
     assert told == {"run.sealed": 1, "event:intervention": 3, "event:stuck": 2, "event:hard_brake": 1}
+
+
+def test_a_hot_run_whose_metrics_alone_move_is_written_every_few_flushes(make_depot: DepotFactory, scene, monkeypatch):
+    depot = make_depot(start=False)  # the test drives the worker's steps itself
+    depot.apply('[[metric]]\nname = "distance_m"\nkind = "path_length"\nentity = "/world/robot"\n')
+    live_rules = depot.corpus.live
+    live_rules.reload_rules()
+    writes: list[str] = []
+    write = live_rules._write
+    monkeypatch.setattr(live_rules, "_write", lambda run: writes.append(run.run_id) or write(run))
+
+    def take_queued() -> None:
+        while live_rules._queue:
+            live_rules._take(live_rules._queue.popleft())
+
+    events = list(iter_events(io.BytesIO(scene("corpus-metrics"))))
+    source = depot.ingest.open_source(live=True)
+    feeding.feed(depot.ingest, source, events[: len(events) // 2])
+    depot.ingest.flush_catalog()
+    take_queued()
+    live_rules._flush()
+    assert writes == ["corpus-metrics"]  # a run's first values: at once
+    feeding.feed(depot.ingest, source, events[len(events) // 2 :])
+    take_queued()
+    for _ in range(live.METRICS_EVERY - 1):
+        live_rules._flush()
+    assert writes == ["corpus-metrics"]  # its distance moved, and nothing else: not yet
+    live_rules._flush()
+    assert writes == ["corpus-metrics"] * 2
+    assert depot.metrics("corpus-metrics")["distance_m"][0] == pytest.approx(expect.expected_distance())
