@@ -246,7 +246,12 @@ def test_a_hot_run_whose_metrics_alone_move_is_written_every_few_flushes(make_de
     live_rules.reload_rules()
     writes: list[str] = []
     write = live_rules._write
-    monkeypatch.setattr(live_rules, "_write", lambda run: writes.append(run.run_id) or write(run))
+
+    def counted(run: live.HotRun) -> bool:
+        writes.append(run.run_id)
+        return write(run)
+
+    monkeypatch.setattr(live_rules, "_write", counted)
 
     def take_queued() -> None:
         while live_rules._queue:
