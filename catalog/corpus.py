@@ -108,29 +108,29 @@ def replace_evaluation(
     now: dt.datetime,
 ) -> list[Event]:
     """Replace the run's rule- and robot-made events, its metrics and its evaluation row. Returns
-    the events that are new (not held before under the same id): what webhooks are told of."""
-    before = set(
-        session.scalars(sa.select(Event.id).where(Event.run_id == run_id, Event.origin.in_(MADE_BY_EVALUATION)))
-    )
-    session.execute(sa.delete(Event).where(Event.run_id == run_id, Event.origin.in_(MADE_BY_EVALUATION)))
-    session.execute(sa.delete(RunMetric).where(RunMetric.run_id == run_id))
+    the events that are new (not held before under the same id): what webhooks are told of.
+
+    Only what differs is written (a live run is written every few seconds with mostly the same
+    values): an event held before keeps its row and when it was first recorded."""
+    held = {
+        e.id: e
+        for e in session.scalars(sa.select(Event).where(Event.run_id == run_id, Event.origin.in_(MADE_BY_EVALUATION)))
+    }
     rows: dict[str, Event] = {}
     for facts in events:
         row = _event_row(event_id(run_id, facts), run_id, robot_id, facts, rules_version, now)
         rows.setdefault(row.id, row)  # two identical findings are one event
-    session.add_all(rows.values())
-    session.add_all(
-        RunMetric(
-            run_id=run_id,
-            name=m.name,
-            robot_id=robot_id,
-            value=m.value,
-            text_value=m.text_value,
-            rules_version=rules_version,
-            computed_at=now,
-        )
-        for m in metrics
-    )
+    new: list[Event] = []
+    for ident, row in rows.items():
+        before = held.pop(ident, None)
+        if before is None:
+            session.add(row)
+            new.append(row)
+        else:
+            _update(before, row, _EVENT_FACTS)
+    for gone in held.values():
+        session.delete(gone)
+    _replace_metrics(session, run_id, robot_id, rules_version, metrics, now)
     evaluation = session.get(RunEvaluation, run_id)
     if evaluation is None:
         evaluation = RunEvaluation(run_id=run_id)
@@ -141,7 +141,62 @@ def replace_evaluation(
     evaluation.note = note
     evaluation.evaluated_at = now
     session.flush()
-    return [row for event_key, row in rows.items() if event_key not in before]
+    return new
+
+
+_EVENT_FACTS = (
+    "robot_id",
+    "kind",
+    "severity",
+    "timeline",
+    "timeline_type",
+    "range_start",
+    "range_end",
+    "origin",
+    "source",
+    "rules_version",
+    "label",
+    "note",
+)
+
+
+def _update(held: object, fresh: object, fields: Sequence[str]) -> bool:
+    """Copy onto `held` the `fields` of `fresh` that differ; whether any did."""
+    changed = False
+    for name in fields:
+        value = getattr(fresh, name)
+        if getattr(held, name) != value:
+            setattr(held, name, value)
+            changed = True
+    return changed
+
+
+def _replace_metrics(
+    session: Session,
+    run_id: str,
+    robot_id: str,
+    rules_version: int,
+    metrics: Sequence[MetricFacts],
+    now: dt.datetime,
+) -> None:
+    held = {m.name: m for m in session.scalars(sa.select(RunMetric).where(RunMetric.run_id == run_id))}
+    for m in metrics:
+        fresh = RunMetric(
+            run_id=run_id,
+            name=m.name,
+            robot_id=robot_id,
+            value=m.value,
+            text_value=m.text_value,
+            rules_version=rules_version,
+            computed_at=now,
+        )
+        before = held.pop(m.name, None)
+        if before is None:
+            session.add(fresh)
+        elif _update(before, fresh, ("robot_id", "value", "text_value", "rules_version")):
+            before.computed_at = now
+    for gone in held.values():
+        session.delete(gone)
 
 
 def set_evaluation_state(

@@ -10,6 +10,7 @@ from sqlalchemy.orm import Session, sessionmaker
 from catalog import corpus
 from catalog.corpus import EventFacts, MetricFacts
 from catalog.db import session_scope
+from core.clock import aware
 
 NOW = dt.datetime(2026, 11, 29, 12, tzinfo=dt.UTC)
 
@@ -90,3 +91,33 @@ def test_robot_tags_follow_the_property_and_leave_peoples(catalog: sessionmaker[
         corpus.sync_robot_tags(session, "run-1", [], NOW)
     with session_scope(catalog) as session:
         assert [(t.tag, t.added_by) for t in corpus.tags_of(session, "run-1")] == [("dock-2", "alice")]
+
+
+def test_replacing_writes_only_what_differs_and_keeps_when_an_event_was_first_recorded(
+    catalog: sessionmaker[Session],
+) -> None:
+    later = NOW + dt.timedelta(minutes=5)
+    with session_scope(catalog, write=True) as session:
+        _replace(
+            session, 1, [_rule_event(100), _rule_event(200)], [MetricFacts("a", 1.0, None), MetricFacts("b", 2.0, None)]
+        )
+    with session_scope(catalog, write=True) as session:
+        new = corpus.replace_evaluation(
+            session,
+            run_id="run-1",
+            robot_id="r1",
+            rules_version=1,
+            state="live",
+            events=[_rule_event(200), _rule_event(300)],  # 100 no longer found, 300 new
+            metrics=[MetricFacts("a", 1.0, None), MetricFacts("c", 3.0, None)],  # b gone, c new
+            capped=False,
+            note=None,
+            now=later,
+        )
+        assert [e.range_start for e in new] == [300]
+    with session_scope(catalog) as session:
+        events = {e.range_start: e.created_at for e in corpus.events_of_run(session, "run-1")}
+        assert sorted(events) == [200, 300]
+        assert aware(events[200]) == NOW and aware(events[300]) == later  # recorded when first found
+        metrics = {m.name: (m.value, aware(m.computed_at)) for m in corpus.metrics_of(session, "run-1")}
+        assert metrics == {"a": (1.0, NOW), "c": (3.0, later)}  # an unchanged value is not written again
