@@ -22,6 +22,7 @@ evaluators (each starts again from its file with its next chunk).
 
 from __future__ import annotations
 
+import datetime as dt
 import logging
 import threading
 import time
@@ -30,6 +31,7 @@ from concurrent.futures import Future
 from dataclasses import dataclass, field
 
 from cachetools import FIFOCache
+from sqlalchemy.orm import Session
 
 from catalog import queries
 from catalog.corpus import current_rules
@@ -317,30 +319,33 @@ class LiveRules:
         self._gave_up.clear()
 
     def _flush(self) -> None:
-        """Write each changed run's events and metrics so far."""
-        changed = [run for run in self._runs.values() if run.changed]
-        for run in changed:
+        """Write each changed run's events and metrics so far, all in one transaction (a commit is
+        what a write costs most on an embedded catalog)."""
+        due: list[HotRun] = []
+        for run in (run for run in self._runs.values() if run.changed):
             run.events.extend(run.evaluator.take_closed())
             if run.events_written == len(run.events) and run.flushes_unwritten + 1 < METRICS_EVERY:
                 run.flushes_unwritten += 1  # only metrics moved: written a few flushes on
                 continue
-            run.changed = False
-            if self._write(run):
-                run.events_written, run.flushes_unwritten = len(run.events), 0
-            else:
-                run.changed = True  # its catalog row is not there yet: the next tick
-
-    def _write(self, run: HotRun) -> bool:
+            due.append(run)
+        if not due:
+            return
         now = self.node.clock()
         with session_scope(self.node.catalog, write=True) as session:
-            row = queries.get_run(session, run.run_id)
-            if row is None:
-                return False
-            if row.tier != Tier.HOT:
-                return True  # data that came after the run was sealed: evaluated at its next seal
-            evaluation = _so_far(run, properties_of(row))
-            new = write_evaluation(session, run.run_id, row.robot_id, run.version, LIVE, evaluation, now, run.events)
-            announce_events(session, new)
+            written = [run for run in due if self._write(session, run, now)]
+        for run in written:  # (the others' catalog rows are not there yet: the next tick)
+            run.changed = False
+            run.events_written, run.flushes_unwritten = len(run.events), 0
+
+    def _write(self, session: Session, run: HotRun, now: dt.datetime) -> bool:
+        row = queries.get_run(session, run.run_id)
+        if row is None:
+            return False
+        if row.tier != Tier.HOT:
+            return True  # data that came after the run was sealed: evaluated at its next seal
+        evaluation = _so_far(run, properties_of(row))
+        new = write_evaluation(session, run.run_id, row.robot_id, run.version, LIVE, evaluation, now, run.events)
+        announce_events(session, new)
         return True
 
 

@@ -5,10 +5,12 @@ runs skipped), with the values a test computes itself from what the scene logged
 from __future__ import annotations
 
 import asyncio
+import datetime as dt
 import io
 from collections import Counter
 
 import pytest
+from sqlalchemy.orm import Session
 
 from catalog import webhooks
 from catalog.db import session_scope
@@ -247,9 +249,9 @@ def test_a_hot_run_whose_metrics_alone_move_is_written_every_few_flushes(make_de
     writes: list[str] = []
     write = live_rules._write
 
-    def counted(run: live.HotRun) -> bool:
+    def counted(session: Session, run: live.HotRun, now: dt.datetime) -> bool:
         writes.append(run.run_id)
-        return write(run)
+        return write(session, run, now)
 
     monkeypatch.setattr(live_rules, "_write", counted)
 
