@@ -118,7 +118,7 @@ def rules_summary(rules: RuleSet) -> dict[str, Any]:
     return {
         "events": [plain(r) for r in rules.events],
         "metrics": [plain(r) for r in rules.metrics],
-        "triggers": len(rules.triggers),
+        "triggers": [plain(r) for r in rules.triggers],
     }
 
 

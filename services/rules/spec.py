@@ -1,4 +1,4 @@
-"""The rules file: TOML `[[event]]` and `[[metric]]` tables (`[[trigger]]` reserved), parsed and
+"""The rules file: TOML `[[event]]`, `[[metric]]` and `[[trigger]]` (triggers.py) tables, parsed and
 checked whole.
 
 `parse_rules` either gives a `RuleSet` or raises `InvalidRulesError` naming every problem it found
@@ -10,7 +10,6 @@ what re2 cannot do in linear time (backreferences, lookaround) is a problem of t
 
 from __future__ import annotations
 
-import math
 import re
 import tomllib
 from dataclasses import dataclass, field
@@ -19,16 +18,18 @@ from typing import Any
 import re2
 
 from core.errors import InvalidRulesError
+from services.rules import tables
 from services.rules.globs import compile_glob, entity_problem, is_glob, matches
+from services.rules.tables import SHOWN_VALUE, Problems, Table, shown, table_name, tables_of
 from services.rules.toml_lines import TomlLines, syntax_error_line
+from services.rules.triggers import TriggerRule, trigger_rule
 
 MAX_RULES_BYTES = 1024 * 1024
-MAX_RULES = 1000  # event and metric rules each
+MAX_RULES = tables.MAX_RULES  # event, metric and trigger rules each
+MAX_PROBLEMS = tables.MAX_PROBLEMS
 MAX_REGEX_LENGTH = 1000
 MAX_KEY_PARTS = 16  # of a dotted key or table name (`a.b.c`): TOML readers spend time and memory on
 # each part times the parts before it, so a key of thousands of parts costs gigabytes
-MAX_PROBLEMS = 100  # listed of a refused file; the rest are counted
-SHOWN_VALUE = 80  # characters of a value quoted back in a problem
 _REGEX_MEMORY = 8 << 20  # re2's budget for one compiled pattern: a larger one is refused
 _ENTITY_CACHE = 100_000  # entity paths remembered by a rule set; more and it starts over
 
@@ -107,11 +108,11 @@ NO_RULES = EntityRules()
 
 @dataclass(frozen=True)
 class RuleSet:
-    """A checked rules file. `triggers` are the `[[trigger]]` tables as written (not read yet)."""
+    """A checked rules file."""
 
     events: tuple[EventRule, ...] = ()
     metrics: tuple[MetricRule, ...] = ()
-    triggers: tuple[dict[str, Any], ...] = ()
+    triggers: tuple[TriggerRule, ...] = ()
     text: str = ""
     _by_entity: dict[str, EntityRules] = field(default_factory=dict, compare=False, repr=False)
 
@@ -144,7 +145,7 @@ class RuleSet:
 
 def parse_rules(text: str) -> RuleSet:
     """The rules of a TOML rules file; InvalidRulesError listing every problem (nothing is half-read)."""
-    problems = _Problems(TomlLines.of(text))
+    problems = Problems(TomlLines.of(text))
     document = _document(text, problems)
     for key in document:
         if key not in ("event", "metric", "trigger") and problems.room():
@@ -153,22 +154,25 @@ def parse_rules(text: str) -> RuleSet:
                 key,
                 "unknown key: a rules file holds [[event]], [[metric]] and [[trigger]]",
             )
-    events = [_event_rule(t, i, problems) for i, t in enumerate(_tables(document, "event", problems))]
-    metrics = [_metric_rule(t, i, problems) for i, t in enumerate(_tables(document, "metric", problems))]
-    triggers = _tables(document, "trigger", problems)
-    _check_unique("event", [_table_name(t) for t in _tables(document, "event", None)], problems)
-    _check_unique("metric", [_table_name(t) for t in _tables(document, "metric", None)], problems)
+    events = [_event_rule(t, i, problems) for i, t in enumerate(tables_of(document, "event", problems))]
+    metrics = [_metric_rule(t, i, problems) for i, t in enumerate(tables_of(document, "metric", problems))]
+    event_names = {r.name for r in events if r is not None}
+    triggers = [
+        trigger_rule(t, i, problems, event_names) for i, t in enumerate(tables_of(document, "trigger", problems))
+    ]
+    _check_unique("event", [table_name(t) for t in tables_of(document, "event", None)], problems)
+    _check_unique("metric", [table_name(t) for t in tables_of(document, "metric", None)], problems)
     if problems.found:
         raise InvalidRulesError(problems.listed())
     return RuleSet(
         tuple(r for r in events if r is not None),
         tuple(r for r in metrics if r is not None),
-        tuple(triggers),
+        tuple(r for r in triggers if r is not None),
         text,
     )
 
 
-def _document(text: str, problems: _Problems) -> dict[str, Any]:
+def _document(text: str, problems: Problems) -> dict[str, Any]:
     """The TOML of `text`, read only when its size and shape are ones a reader copes with."""
     size = len(text.encode(errors="surrogatepass"))
     if size > MAX_RULES_BYTES:
@@ -189,106 +193,7 @@ def _document(text: str, problems: _Problems) -> dict[str, Any]:
         raise InvalidRulesError(problems.found) from None
 
 
-def shown(value: object) -> str:
-    """A value quoted back in a problem: its repr, cut at SHOWN_VALUE characters."""
-    text = repr(value)
-    return text if len(text) <= SHOWN_VALUE else f"{text[:SHOWN_VALUE]}... ({len(text)} characters)"
-
-
-@dataclass
-class _Problems:
-    lines: TomlLines
-    found: list[dict[str, object]] = field(default_factory=list)
-    more: int = 0  # problems past MAX_PROBLEMS, counted only
-
-    def room(self) -> bool:
-        """Whether another problem is listed: past MAX_PROBLEMS it is only counted (finding the
-        line of each of thousands would cost more than the file is worth)."""
-        if len(self.found) < MAX_PROBLEMS:
-            return True
-        self.more += 1
-        return False
-
-    def add(self, line: int | None, name: str, message: str) -> None:
-        self.found.append({"line": line, "field": name, "message": message})
-
-    def listed(self) -> list[dict[str, object]]:
-        if not self.more:
-            return self.found
-        more = f"{self.more} more problem(s) not listed: at most {MAX_PROBLEMS} are"
-        return [*self.found, {"line": None, "field": "file", "message": more}]
-
-
-def _table_name(table: dict[str, Any]) -> str | None:
-    name = table.get("name")
-    return name if isinstance(name, str) else None
-
-
-def _tables(document: dict[str, Any], name: str, problems: _Problems | None) -> list[dict[str, Any]]:
-    """The `[[name]]` tables of the document (`problems`: where to say they are not tables)."""
-    value = document.get(name, [])
-    if not isinstance(value, list) or not all(isinstance(t, dict) for t in value):
-        if problems is not None and problems.room():
-            problems.add(problems.lines.top_level(name), name, f"write each {name} as a [[{name}]] table")
-        return []
-    if len(value) > MAX_RULES:
-        if problems is not None and problems.room():
-            problems.add(problems.lines.table(name, MAX_RULES), name, f"{len(value)} tables: at most {MAX_RULES}")
-        return []
-    return value
-
-
-class _Table:
-    """One `[[event]]` / `[[metric]]` table being read: its values, each problem at its key's line."""
-
-    def __init__(self, kind: str, index: int, values: dict[str, Any], allowed: tuple[str, ...], problems: _Problems):
-        self.kind, self.index, self.values, self.problems = kind, index, values, problems
-        self.line = problems.lines.table(kind, index)
-        self.failed = False
-        for key in values:
-            if key not in allowed:
-                self.problem(key, f"unknown key; [[{kind}]] has {', '.join(allowed)}")
-
-    def problem(self, key: str, message: str) -> None:
-        self.failed = True
-        if not self.problems.room():
-            return
-        line = self.problems.lines.key(self.kind, self.index, key) if key in self.values else self.line
-        self.problems.add(line, f"{self.kind}[{self.index + 1}].{key}", message)
-
-    def text(self, key: str, *, required: bool = False, choices: tuple[str, ...] = ()) -> str | None:
-        value = self.values.get(key)
-        if value is None:
-            if required:
-                self.problem(key, "missing" + (f" (one of {', '.join(choices)})" if choices else ""))
-            return None
-        if not isinstance(value, str) or not value:
-            self.problem(key, f"a non-empty string, not {shown(value)}")
-            return None
-        if choices and value not in choices:
-            self.problem(key, f"{shown(value)} is none of {', '.join(choices)}")
-            return None
-        return value
-
-    def number(self, key: str, *, minimum: float | None = None) -> float | None:
-        value = self.values.get(key)
-        if value is None:
-            return None
-        if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
-            self.problem(key, f"a finite number, not {shown(value)}")
-            return None
-        if minimum is not None and value < minimum:
-            self.problem(key, f"at least {minimum:g}, not {shown(value)}")
-            return None
-        return float(value)
-
-    def not_for(self, keys: tuple[str, ...], what: str) -> None:
-        for key in keys:
-            if key in self.values:
-                self.problem(key, f"not read {what}")
-
-
-def _name(table: _Table) -> str | None:
+def _name(table: Table) -> str | None:
     name = table.text("name", required=True)
     if name is not None and not _NAME.fullmatch(name):
         table.problem(
@@ -298,7 +203,7 @@ def _name(table: _Table) -> str | None:
     return name
 
 
-def _entity(table: _Table, *, glob: bool) -> tuple[str | None, Any]:
+def _entity(table: Table, *, glob: bool) -> tuple[str | None, Any]:
     entity = table.text("entity", required=True)
     if entity is None:
         return None, None
@@ -311,8 +216,8 @@ def _entity(table: _Table, *, glob: bool) -> tuple[str | None, Any]:
     return entity, compile_glob(entity) if is_glob(entity) else None
 
 
-def _event_rule(values: dict[str, Any], index: int, problems: _Problems) -> EventRule | None:
-    table = _Table("event", index, values, _EVENT_KEYS, problems)
+def _event_rule(values: dict[str, Any], index: int, problems: Problems) -> EventRule | None:
+    table = Table("event", index, values, _EVENT_KEYS, problems)
     name = _name(table)
     entity, glob = _entity(table, glob=True)
     when = table.text("when", required=True, choices=CONDITIONS)
@@ -334,7 +239,7 @@ def _event_rule(values: dict[str, Any], index: int, problems: _Problems) -> Even
     return EventRule(name, entity, when, severity, threshold, for_s, level, match, timeline, table.line, pattern, glob)
 
 
-def _level(table: _Table) -> str | None:
+def _level(table: Table) -> str | None:
     level = table.text("level")
     if level is not None and level.upper() not in LEVELS:
         table.problem("level", f"{shown(level)} is none of {', '.join(LEVELS)}")
@@ -342,7 +247,7 @@ def _level(table: _Table) -> str | None:
     return level.upper() if level is not None else None
 
 
-def _regex(table: _Table) -> tuple[str | None, Any]:
+def _regex(table: Table) -> tuple[str | None, Any]:
     match = table.text("match")
     if match is None:
         return None, None
@@ -360,8 +265,8 @@ def _regex(table: _Table) -> tuple[str | None, Any]:
         return None, None
 
 
-def _metric_rule(values: dict[str, Any], index: int, problems: _Problems) -> MetricRule | None:
-    table = _Table("metric", index, values, _METRIC_KEYS, problems)
+def _metric_rule(values: dict[str, Any], index: int, problems: Problems) -> MetricRule | None:
+    table = Table("metric", index, values, _METRIC_KEYS, problems)
     name = _name(table)
     kind = table.text("kind", required=True, choices=METRIC_KINDS)
     if kind is None:
@@ -378,7 +283,7 @@ def _metric_rule(values: dict[str, Any], index: int, problems: _Problems) -> Met
     return MetricRule(name, kind, entity, event, prop, table.line)
 
 
-def _check_unique(kind: str, names: list[str | None], problems: _Problems) -> None:
+def _check_unique(kind: str, names: list[str | None], problems: Problems) -> None:
     """Two `kind` tables of one name (`names`: each table's, None where it has none)."""
     first: dict[str, int] = {}
     for index, name in enumerate(names):

@@ -53,7 +53,7 @@ def test_rules_are_applied_versioned_and_shown(depot: Depot):
     reader = sdk(depot, depot.token("read", name="rita"))
     empty = reader.rules()
     assert (empty["version"], empty["text"], empty["created_by"]) == (None, "", None)
-    assert empty["rules"] == {"events": [], "metrics": [], "triggers": 0}
+    assert empty["rules"] == {"events": [], "metrics": [], "triggers": []}
     assert reader.rules_history() == []
 
     first = alice.apply_rules(RULES)
@@ -137,3 +137,23 @@ def test_two_applies_at_once_one_is_told_to_apply_again(depot: Depot, monkeypatc
     refused(lambda: alice.apply_rules(MORE), 409, "apply yours again")
     monkeypatch.undo()
     assert [v["version"] for v in alice.rules_history()] == [1]
+
+
+def test_triggers_are_checked_with_the_file_and_shown(depot: Depot):
+    alice = sdk(depot, depot.token("write", name="alice"))
+    trigger = '\n[[trigger]]\nevent = "intervention"\ninclude = ["/camera/**"]\nbefore_s = 10\nafter_s = 5\n'
+    applied = alice.apply_rules(RULES + trigger)
+    assert applied["rules"]["triggers"] == [
+        {
+            "events": ["intervention"],
+            "include": ["/camera/**"],
+            "before_s": 10.0,
+            "after_s": 5.0,
+            "max_bytes_per_robot_day": None,
+            "priority": "normal",
+            "line": 13,
+        }
+    ]
+    unknown = trigger.replace('"intervention"', '"hard_brake"')
+    refused(lambda: alice.apply_rules(RULES + unknown), 422, "trigger[1].event", "'hard_brake'", "intervention")
+    assert alice.rules()["version"] == applied["version"]  # the running set stays

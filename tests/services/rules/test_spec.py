@@ -10,6 +10,7 @@ import pytest
 
 from core.errors import InvalidRulesError
 from services.rules.spec import EventRule, MetricRule, RuleSet, parse_rules
+from services.rules.triggers import MAX_WINDOW_S, TriggerRule
 
 VALID = """\
 # the robots' rules
@@ -51,8 +52,12 @@ kind = "property"
 property = "fleet.sw_version"
 
 [[trigger]]
-on = "event:intervention"
-anything = ["kept", "as written"]
+event = "intervention"
+include = ["/camera/**", "/lidar/front"]
+before_s = 10
+after_s = 5
+max_bytes_per_robot_day = 500_000_000
+priority = "high"
 """
 
 
@@ -91,7 +96,11 @@ def test_a_valid_file_gives_its_rules_with_their_defaults():
         MetricRule("interventions", "event_count", event="intervention", line=29),
         MetricRule("sw_version", "property", property="fleet.sw_version", line=34),
     )
-    assert rules.triggers == ({"on": "event:intervention", "anything": ["kept", "as written"]},)
+    assert rules.triggers == (
+        TriggerRule(("intervention",), ("/camera/**", "/lidar/front"), 10.0, 5.0, 500_000_000, "high", line=39),
+    )
+    (trigger,) = rules.triggers
+    assert [g.fullmatch("/camera/left/rgb") is not None for g in trigger.globs] == [True]
 
 
 def test_an_empty_rule_set_names_nothing():
@@ -279,3 +288,50 @@ def test_bad_values_are_problems(line: str, problem_field: str):
     key = line.split(" = ")[0]
     body = "\n".join(f"{k} = {v}" for k, v in base.items() if k != key) + "\n" + line + "\n"
     assert [f for _, f in problems("[[event]]\n" + body)] == [problem_field]
+
+
+EVENT = '[[event]]\nname = "hard_brake"\nentity = "/imu/accel"\nwhen = "above"\nthreshold = 8.0\n'
+
+
+def test_a_trigger_takes_one_event_or_several_and_has_defaults():
+    text = EVENT + '[[event]]\nname = "stop"\nentity = "/cmd"\nwhen = "below"\nthreshold = 0.1\n'
+    rules = parse_rules(text + '[[trigger]]\nevent = ["hard_brake", "stop", "stop"]\ninclude = "/camera/**"\n')
+    (trigger,) = rules.triggers
+    assert (trigger.events, trigger.include, trigger.before_s, trigger.after_s) == (
+        ("hard_brake", "stop"),
+        ("/camera/**",),
+        10.0,
+        10.0,
+    )
+    assert (trigger.max_bytes_per_robot_day, trigger.priority) == (None, "normal")
+
+
+@pytest.mark.parametrize(
+    ("trigger", "field", "says"),
+    [
+        ('event = "hard_brak"\ninclude = "/camera/**"', "trigger[1].event", "no [[event]] rule's name in this file"),
+        ('include = "/camera/**"', "trigger[1].event", "missing"),
+        ('event = []\ninclude = "/camera/**"', "trigger[1].event", "a non-empty string or a list"),
+        ('event = "hard_brake"', "trigger[1].include", "missing"),
+        ('event = "hard_brake"\ninclude = "camera/**"', "trigger[1].include", "starts with '/'"),
+        ('event = "hard_brake"\ninclude = ["/a", ""]', "trigger[1].include", "a non-empty string or a list"),
+        ('event = "hard_brake"\ninclude = "/a"\nbefore_s = 3000\nafter_s = 3000', "trigger[1].after_s", "at most"),
+        ('event = "hard_brake"\ninclude = "/a"\nbefore_s = -1', "trigger[1].before_s", "at least 0"),
+        (
+            'event = "hard_brake"\ninclude = "/a"\nmax_bytes_per_robot_day = 0',
+            "trigger[1].max_bytes_per_robot_day",
+            "above 0",
+        ),
+        (
+            'event = "hard_brake"\ninclude = "/a"\nmax_bytes_per_robot_day = 1.5',
+            "trigger[1].max_bytes_per_robot_day",
+            "whole",
+        ),
+        ('event = "hard_brake"\ninclude = "/a"\npriority = "urgent"', "trigger[1].priority", "none of high, normal"),
+        ('event = "hard_brake"\ninclude = "/a"\ncolour = "red"', "trigger[1].colour", "unknown key"),
+    ],
+)
+def test_a_bad_trigger_is_refused_naming_its_field(trigger: str, field: str, says: str):
+    said = messages(EVENT + "[[trigger]]\n" + trigger + "\n")
+    assert says in said[field], said
+    assert MAX_WINDOW_S == 3600.0  # (the window's limit the message names)
