@@ -399,10 +399,7 @@ class IngestService:
     def _refused_before_kept(source: Source, run_id: str) -> None:
         if run_id in source.new_of_run:  # chunks of it went to a hot run since handed over: they stay
             return
-        if run_id in source.report.runs:
-            source.report.runs.remove(run_id)
-        if run_id not in source.report.dropped:
-            source.report.dropped.append(run_id)
+        source.report.drop_run(run_id)
 
     def _drop(self, source: Source, run: IngestRun) -> None:
         with run.leaving:
@@ -412,8 +409,7 @@ class IngestService:
             run.handed_over = True  # nothing more is written to it
         del self.runs[run.run_id]
         source.attached.discard(run.run_id)
-        source.report.runs = [r for r in source.report.runs if r != run.run_id]
-        source.report.dropped.append(run.run_id)
+        source.report.drop_run(run.run_id)
         chunks, size = source.new_of_run.pop(run.run_id, (0, 0))  # nothing of it is kept: not counted as kept
         source.report.chunks_new -= chunks
         source.report.bytes_new -= size

@@ -28,6 +28,12 @@ class IngestReport:
     catalog: str = "updated"  # "pending" when the catalog could not be written yet (the data is kept)
     warnings: list[str] = field(default_factory=list)  # what the uploader should know (kept data is fine)
 
+    def drop_run(self, run_id: str) -> None:
+        """Report `run_id` as dropped, not kept."""
+        self.runs = [r for r in self.runs if r != run_id]
+        if run_id not in self.dropped:
+            self.dropped.append(run_id)
+
     def to_dict(self) -> dict[str, Any]:
         return {
             "runs": self.runs,

@@ -64,7 +64,8 @@ def tables_of(document: dict[str, Any], name: str, problems: Problems | None) ->
 
 
 class Table:
-    """One `[[event]]` / `[[metric]]` table being read: its values, each problem at its key's line."""
+    """One `[[event]]`, `[[metric]]` or `[[trigger]]` table being read: its values, each problem at its
+    key's line."""
 
     def __init__(self, kind: str, index: int, values: dict[str, Any], allowed: tuple[str, ...], problems: Problems):
         self.kind, self.index, self.values, self.problems = kind, index, values, problems
