@@ -133,7 +133,9 @@ class Meter:
 class AgentServer(Server):
     """`fleet agent` on a free loopback port (the base class's `grpc_port`), forwarding to a depot."""
 
-    def __init__(self, workdir: Path, depot_grpc_port: int, depot_http_port: int, bandwidth: str = "0") -> None:
+    def __init__(
+        self, workdir: Path, depot_grpc_port: int, depot_http_port: int, bandwidth: str = "0", **settings: str
+    ) -> None:
         self.name = f"agent-{workdir.name}"
         super().__init__(workdir)
         self.spool = workdir / "spool"
@@ -145,6 +147,7 @@ class AgentServer(Server):
             "FLEET_AGENT_DEPOT": f"rerun+http://127.0.0.1:{depot_grpc_port}",
             "FLEET_AGENT_API_URL": f"http://127.0.0.1:{depot_http_port}",
             "FLEET_AGENT_BANDWIDTH": bandwidth,
+            **{f"FLEET_AGENT_{key.upper()}": value for key, value in settings.items()},
         }
 
     @property
@@ -166,8 +169,18 @@ class AgentServer(Server):
 class RobotProcess:
     """agent_robot.py in its own process: started, told to go, its figures read."""
 
-    def __init__(self, url: str, copy: Path, run_id: str, seconds: float, rate_hz: float, camera: str) -> None:
+    def __init__(
+        self,
+        url: str,
+        copy: Path,
+        run_id: str,
+        seconds: float,
+        rate_hz: float,
+        camera: str,
+        brake_at: float | None = None,
+    ) -> None:
         argv = [sys.executable, ROBOT, url, str(copy), run_id, str(seconds), str(rate_hz), camera]
+        argv += [str(brake_at)] if brake_at is not None else []
         self.proc = subprocess.Popen(argv, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
         self.expect("READY")
 

@@ -1,7 +1,7 @@
 """A robot for `benchmarks/agent.py`: the real Rerun SDK streaming a typical robot's data at a fixed
 rate to a gRPC URL (the agent's, or the depot's), with a FileSink copy beside it.
 
-    python benchmarks/agent_robot.py GRPC_URL COPY_PATH RUN_ID SECONDS RATE_HZ [jpeg|raw]
+    python benchmarks/agent_robot.py GRPC_URL COPY_PATH RUN_ID SECONDS RATE_HZ [jpeg|raw] [BRAKE_AT_S]
 
 Each frame: a camera image (jpeg: 50 kB of incompressible bytes as a 640x480 JPEG would be; raw:
 320x240 RGB, 230 kB), a lidar sweep of 10,000 points (120 kB), eight scalars (battery, speed, six
@@ -11,7 +11,9 @@ drawn ahead of time from a small pool, so the robot's CPU is what logging costs,
 Protocol on stdin/stdout: prints READY once its sinks are set, waits for a line, streams for
 SECONDS, flushes, prints one JSON line (monotonic times `start` and `flushed`, `frames`, `late`:
 frames logged over a period behind time, `cpu_s`: this process's CPU while streaming), ends its
-stream and prints DONE.
+stream and prints DONE. With BRAKE_AT_S it also logs `/metrics/brake` each frame, 9.0 in the frame at
+that second and 0.5 in the others, and the JSON line gives `brake_wall`: the wall-clock time (seconds
+since the epoch) it logged the spike.
 """
 
 from __future__ import annotations
@@ -58,7 +60,9 @@ def log_frame(rec: rr.RecordingStream, i: int, rate_hz: float, frame: tuple[rr.A
     rec.log("/logs/robot", rr.TextLog(f"frame {i}: nominal", level=rr.TextLogLevel.INFO))
 
 
-def stream(url: str, copy: str, run_id: str, seconds: float, rate_hz: float, camera: str) -> None:
+def stream(
+    url: str, copy: str, run_id: str, seconds: float, rate_hz: float, camera: str, brake_at: float | None = None
+) -> None:
     pool = data_pool(camera)
     rec = rr.RecordingStream("fleet_agent_bench", recording_id=run_id)
     rec.set_sinks(rr.GrpcSink(url), rr.FileSink(copy))
@@ -69,6 +73,8 @@ def stream(url: str, copy: str, run_id: str, seconds: float, rate_hz: float, cam
     start = time.monotonic()
     frames = round(seconds * rate_hz)
     late = 0
+    brake_frame = round(brake_at * rate_hz) if brake_at is not None else None
+    brake_wall: float | None = None
     for i in range(frames):
         due = start + i / rate_hz
         wait = due - time.monotonic()
@@ -77,9 +83,20 @@ def stream(url: str, copy: str, run_id: str, seconds: float, rate_hz: float, cam
         elif wait < -1 / rate_hz:
             late += 1
         log_frame(rec, i, rate_hz, pool[i % POOL])
+        if brake_frame is not None:
+            if i == brake_frame:
+                brake_wall = time.time()
+            rec.log("/metrics/brake", rr.Scalars([9.0 if i == brake_frame else 0.5]))
     rec.flush(timeout_sec=60)
     flushed = time.monotonic()
-    result = {"start": start, "flushed": flushed, "frames": frames, "late": late, "cpu_s": time.process_time() - cpu0}
+    result = {
+        "start": start,
+        "flushed": flushed,
+        "frames": frames,
+        "late": late,
+        "cpu_s": time.process_time() - cpu0,
+        "brake_wall": brake_wall,
+    }
     print(json.dumps(result), flush=True)
     rec.disconnect()
     print("DONE", flush=True)
@@ -87,4 +104,5 @@ def stream(url: str, copy: str, run_id: str, seconds: float, rate_hz: float, cam
 
 if __name__ == "__main__":
     url, copy, run_id, seconds, rate_hz, *rest = sys.argv[1:]
-    stream(url, copy, run_id, float(seconds), float(rate_hz), rest[0] if rest else "jpeg")
+    brake = float(rest[1]) if len(rest) > 1 else None
+    stream(url, copy, run_id, float(seconds), float(rate_hz), rest[0] if rest else "jpeg", brake)

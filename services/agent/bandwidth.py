@@ -8,10 +8,11 @@ cannot save up more than a short burst. Before sending a message, a sender asks 
 bucket goes when the bucket is full and leaves it in debt; later senders wait the debt out, so the
 average still holds.
 
-Senders queue by priority: live data first, then backfill, then pulls; first come, first served
-within a class. Only the sender at the head of the queue sleeps on a timer, never more than a
-second at a time, so a cap that changes while it waits (the dock's network comes up, a time window
-opens) takes effect within about a second.
+Senders queue by priority: live data first, then the windows of high-priority triggers, then
+backfill, then pulls (and normal triggers' windows); first come, first served within a class.
+Only the sender at the head of the queue sleeps on a timer, never more than a second at a time, so
+a cap that changes while it waits (the dock's network comes up, a time window opens) takes effect
+within about a second.
 """
 
 from __future__ import annotations
@@ -38,11 +39,12 @@ _SLACK_BYTES = 1.0
 
 
 class Priority(enum.IntEnum):
-    """The three kinds of traffic on the uplink; a lower number is served first."""
+    """The kinds of traffic on the uplink; a lower number is served first."""
 
     LIVE = 0
-    BACKFILL = 1
-    PULL = 2
+    TRIGGER = 1  # the window of a `priority = "high"` trigger: after live data, before backfill
+    BACKFILL = 2
+    PULL = 3  # a person's pull, and a normal trigger's window
 
 
 # --- rates as people type them ---------------------------------------------------------------

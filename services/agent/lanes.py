@@ -16,11 +16,13 @@ from services.hot.tail import HotIndexTail
 
 @dataclass
 class PullJob:
-    """Chunks a pull asks for: sent behind live data and backfill, then asked about at the next
-    check (a cut may have lost some: those are sent again), then done."""
+    """Chunks a pull (or a trigger's window) asks for: sent at its priority (a pull: behind live data
+    and backfill), then asked about at the next check (a cut may have lost some: those are sent
+    again), then done."""
 
     pull_id: str
     entries: list[HotEntry]
+    priority: Priority = Priority.PULL
     chunks_sent: int = 0
     bytes_sent: int = 0
     written_at_check: int | None = None  # the check count when its last chunk was written

@@ -64,6 +64,44 @@ class AgentCollector(Collector):
         yield CounterMetricFamily(
             "fleet_agent_messages_sent", "Messages sent to the depot", value=counters["messages_sent"]
         )
+        yield from _trigger_metrics(agent)
+
+
+def _trigger_metrics(agent: Agent) -> Iterator[Metric]:
+    triggers = agent.triggers
+    yield CounterMetricFamily(
+        "fleet_agent_triggers_fired",
+        "Trigger windows fired by the rules on the robot",
+        value=triggers.counters["fired"],
+    )
+    yield CounterMetricFamily(
+        "fleet_agent_trigger_bytes_sent",
+        "Bytes of trigger windows sent to the depot (each chunk once)",
+        value=triggers.counters["bytes_sent"],
+    )
+    yield CounterMetricFamily(
+        "fleet_agent_trigger_windows_over_budget",
+        "Trigger windows held on the robot: over a day's budget",
+        value=triggers.counters["over_budget"],
+    )
+    states = GaugeMetricFamily(
+        "fleet_agent_trigger_windows", "Trigger windows on the robot, by state", labels=["state"]
+    )
+    counts: dict[str, int] = {}
+    for window in list(triggers.windows.values()):
+        counts[window.state] = counts.get(window.state, 0) + 1
+    for state, count in sorted(counts.items()):
+        states.add_metric([state], count)
+    yield states
+    yield GaugeMetricFamily(
+        "fleet_agent_rules_version", "The rules version the robot runs (0: none)", value=agent.rules.version
+    )
+    refused = agent.rules.refused
+    yield GaugeMetricFamily(
+        "fleet_agent_rules_refused_version",
+        "A newer rules version this agent cannot read (0: none); it keeps the version it runs",
+        value=refused.version if refused else 0,
+    )
 
 
 def serve_metrics(agent: Agent, host: str, port: int) -> None:

@@ -32,6 +32,9 @@ class PullSpec:
     timeline: str | None
     start: str | None
     end: str | None
+    origin: str = "person"  # person | trigger (the depot's live rules found the event)
+    priority: str | None = None  # a trigger's: high | normal
+    event_id: str | None = None  # the event whose window this is
 
     @classmethod
     def of(cls, pull: dict[str, Any]) -> PullSpec:
@@ -43,6 +46,9 @@ class PullSpec:
             pull.get("timeline"),
             pull.get("start"),
             pull.get("end"),
+            str(pull.get("origin") or "person"),
+            pull.get("priority"),
+            pull.get("event_id"),
         )
 
 

@@ -12,6 +12,7 @@ from typing import TYPE_CHECKING, Any
 from services.agent.lanes import PullJob
 from services.agent.link import DepotRefused, LinkDown
 from services.agent.pulls import PullRefused, PullSpec, select_pull
+from services.agent.windows import TRIGGER_KIND as TRIGGER
 
 if TYPE_CHECKING:
     from services.agent.service import Agent
@@ -36,6 +37,9 @@ class Reports:
         sending: list[dict[str, Any]] = await link.call(link.api.pulls, state="sending")
         for pull in [*pending, *sending]:  # sending: taken by this robot before a restart
             spec = PullSpec.of(pull)
+            if spec.origin == TRIGGER and self.agent.spool.run(spec.run_id) is not None:
+                self.agent.triggers.take_depot_pull(spec)  # a window the depot's live rules fired
+                continue
             task = self.taken.get(spec.pull_id)
             if task is not None and not task.done():
                 continue
@@ -72,6 +76,8 @@ class Reports:
         await self._follow(spec, job)
         await self._progress(spec, "done", chunks=job.chunks_sent, nbytes=job.bytes_sent)
         log.info("pull %s done: %d chunks, %d bytes sent", spec.pull_id, job.chunks_sent, job.bytes_sent)
+        if spec.event_id is not None:
+            self.agent.triggers.pulled(spec.event_id)
 
     async def _follow(self, spec: PullSpec, job: PullJob) -> None:
         """Until the job is done (its chunks sent and the depot's holding them checked, which may take

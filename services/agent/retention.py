@@ -7,6 +7,8 @@ accepting data until the disk's hard limit (`agent_min_free_bytes`), where new d
 The disk nearly full (free space under twice `agent_min_free_bytes`) is pressure too.
 A confirmed run may still hold chunks the live rules kept on the robot (never pulled): those go
 with it at its age, or under pressure after every run without such chunks, and the log names them.
+A run holding a trigger's window the depot does not hold yet (waiting, sending, or held over its
+budget until a person pulls it) is kept as an unconfirmed one is.
 """
 
 from __future__ import annotations
@@ -14,7 +16,7 @@ from __future__ import annotations
 import datetime as dt
 import logging
 import shutil
-from collections.abc import Callable
+from collections.abc import Callable, Collection
 from dataclasses import dataclass
 
 from core.clock import utcnow
@@ -50,13 +52,15 @@ def enforce(
     now: dt.datetime | None = None,
     free_target: int = 0,
     disk_free: Callable[[], int] | None = None,
+    keep: Collection[str] = (),
 ) -> RetentionReport:
     """Delete what may go (re-runnable: each call looks at the spool as it is). Under pressure
     (the spool over `max_bytes`, or the disk's free space under `free_target`), confirmed runs go
-    oldest first until it is relieved."""
+    oldest first until it is relieved. `keep`: runs kept whatever their age (a trigger's window in
+    them the depot does not hold yet)."""
     now = now or utcnow()
     saved = state.runs()
-    runs = [run for run in spool.runs() if not spool.is_open(run)]
+    runs = [run for run in spool.runs() if not spool.is_open(run) and run.run_id not in keep]
     confirmed = sorted((run for run in runs if _confirmed(saved.get(run.run_id))), key=lambda run: run.last_data_at)
     deleted = [
         _delete(spool, state, run, saved[run.run_id], "age") for run in confirmed if now - run.last_data_at >= retain

@@ -323,8 +323,16 @@ class RunSender:
         """A lane per pull not yet written: the chunks of it the depot lacks."""
         for job in self.pulls:
             if job.written_at_check is None:
-                missing = await self._missing(job.entries, pulled=True)
-                self.lanes.append(Lane(Priority.PULL, entries=deque(missing), on_sent=job.count, job=job))
+                await self._queue_pull(job)
+
+    async def _queue_pull(self, job: PullJob) -> None:
+        """A lane of the chunks of `job` the depot lacks and no other pull's lane holds (two windows
+        that overlap, a person's pull of a window a trigger sends: each chunk goes once; the later
+        job is done once the depot holds all of its chunks, whoever sent them)."""
+        missing = await self._missing(job.entries, pulled=True)
+        queued = {e.meta.chunk_id for lane in self.lanes if lane.job is not None for e in lane.entries if e.meta}
+        missing = [e for e in missing if e.meta is not None and e.meta.chunk_id not in queued]
+        self.lanes.append(Lane(job.priority, entries=deque(missing), on_sent=job.count, job=job))
 
     async def _verify_pulls(self) -> None:
         """Pulls written before the previous check: done if the depot holds them, else sent again."""
@@ -334,7 +342,7 @@ class RunSender:
             missing = await self._missing(job.entries, pulled=True)
             if missing:
                 job.written_at_check = None
-                self.lanes.append(Lane(Priority.PULL, entries=deque(missing), on_sent=job.count, job=job))
+                await self._queue_pull(job)
             else:
                 self.pulls.remove(job)
                 await self._relearn_after_pull()

@@ -26,10 +26,12 @@ from services.agent.link import DepotLink, DepotRefused, LinkDown, default_api_u
 from services.agent.metrics import serve_metrics
 from services.agent.reports import REPORT_S, Reports
 from services.agent.retention import RetentionReport, enforce
+from services.agent.rules import AgentRules
 from services.agent.sender import Forwarding, RunSender
 from services.agent.settings import AgentSettings
 from services.agent.spool import Spool, store_infos
 from services.agent.state import AgentState, RunState
+from services.agent.triggers import TriggerObserver, Triggers
 from services.agent.watch import FileWatcher
 from services.ingest import grpc_handler
 from services.rrd.messages import Event, StreamStart
@@ -51,7 +53,9 @@ async def run_agent(settings: AgentSettings) -> None:
 class Agent:
     def __init__(self, settings: AgentSettings) -> None:
         self.settings = settings
-        self.spool = Spool(settings)
+        self.rules = AgentRules(settings.agent_spool)
+        observer = TriggerObserver(self.rules)
+        self.spool = Spool(settings, observer)
         self.state = AgentState(settings.agent_spool)
         token = settings.agent_token.get_secret_value() if settings.agent_token else None
         self.link = DepotLink(
@@ -79,6 +83,7 @@ class Agent:
         self.started_at = time.time()
         self.retention: RetentionReport | None = None
         self.reports = Reports(self)
+        self.triggers = Triggers(self, observer)
         self._tasks: set[asyncio.Task[None]] = set()
 
     # --- runs -----------------------------------------------------------------------------------
@@ -120,11 +125,13 @@ class Agent:
             retain=dt.timedelta(hours=self.settings.agent_retain_hours),
             max_bytes=self.settings.agent_max_bytes,
             free_target=2 * self.settings.agent_min_free_bytes,  # "nearly full": twice the hard limit
+            keep=self.triggers.protected_runs(),
         )
         for deletion in self.retention.deleted:
             self.runners.pop(deletion.run_id, None)
             self.senders.pop(deletion.run_id, None)
             self.run_states.pop(deletion.run_id, None)
+            self.triggers.forget_run(deletion.run_id)
             self._background(self.reports.forget_copy(deletion.run_id))
         return self.retention
 
@@ -159,6 +166,17 @@ class Agent:
                 log.exception("pulls and reports failed")
             await asyncio.sleep(self.settings.agent_pull_poll_s)
 
+    async def _rules_loop(self) -> None:
+        """Follow the depot's rules (the last copy is used while the depot does not answer)."""
+        while True:
+            try:
+                self.rules.take(await self.link.call(self.link.api.rules))
+            except (LinkDown, DepotRefused) as exc:
+                log.debug("rules not refreshed: %s", exc)
+            except Exception:  # never the end of the loop: said, and tried again
+                log.exception("refreshing the rules failed")
+            await asyncio.sleep(self.settings.agent_rules_poll_s)
+
     async def _discover_loop(self) -> None:
         beat = kept = 0.0
         while True:
@@ -191,6 +209,8 @@ class Agent:
             {"up": self.link.up, "since": self.link.since, "error": self.link.error, "refused": self.link.refused},
         )
         self.state.set_fact("counters", dict(self.forwarding.counters))
+        self.state.set_fact("rules", self.rules.status())
+        self.state.set_fact("triggers", dict(self.triggers.counters))
         if self.retention is not None:
             self.state.set_fact(
                 "retention",
@@ -251,6 +271,8 @@ class Agent:
             asyncio.create_task(self._discover_loop(), name="discover"),
             asyncio.create_task(self._report_loop(), name="pulls and reports"),
             asyncio.create_task(self._watch_link(), name="link watch"),
+            asyncio.create_task(self._rules_loop(), name="rules"),
+            asyncio.create_task(self.triggers.run(), name="triggers"),
         ]
         watcher = self._watcher()
         if watcher is not None:

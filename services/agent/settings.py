@@ -63,6 +63,14 @@ class AgentSettings(SharedSettings):
     agent_pull_progress_s: float = Field(
         1.0, gt=0, description="while a pull is sent, how often its chunks and bytes so far are reported (if changed)"
     )
+    agent_rules_poll_s: float = Field(
+        15.0,
+        gt=0,
+        description="how often the agent asks the depot whether its rules changed (triggers run on the robot)",
+    )
+    agent_trigger_max_bytes_per_day: int = Field(
+        0, ge=0, description="cap on the bytes all trigger windows send a day, over each trigger's own budget (0: none)"
+    )
     agent_durability: Durability = Field(
         Durability.INTERVAL, description="spool fsync: always | interval (group_commit_ms) | off"
     )

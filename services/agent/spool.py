@@ -27,6 +27,7 @@ from services.ingest.view import HotRunView
 from services.rrd import errors as rrd_errors
 from services.rrd.decoder import iter_events
 from services.rrd.messages import Event, StoreInfoMessage
+from services.rules.observe import ChunkObserver
 
 log = logging.getLogger("fleet.agent")
 
@@ -36,7 +37,8 @@ MAX_STREAMS = 64
 
 
 class Spool:
-    def __init__(self, settings: AgentSettings) -> None:
+    def __init__(self, settings: AgentSettings, observer: ChunkObserver | None = None) -> None:
+        """`observer`: what sees each spooled chunk (the robot's trigger rules)."""
         self.root = settings.agent_spool
         self.hot = HotStore(
             self.root / RUNS_DIR,
@@ -52,6 +54,7 @@ class Spool:
             close_after=dt.timedelta(seconds=settings.close_after_s),
             replay=ReplayHub(REPLAY_BYTES),
             secret_fields=SecretFields(settings.secret_fields),
+            observer=observer,
         )
         self._file_sources: dict[str, Source] = {}
 

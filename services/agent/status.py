@@ -9,7 +9,8 @@ from pathlib import Path
 from typing import Any
 
 from services.agent.spool import RUNS_DIR
-from services.agent.state import STATE_FILE, AgentState
+from services.agent.state import STATE_FILE, AgentState, PullState
+from services.agent.windows import TRIGGER_KIND
 from services.hot.store import RUN_FILE
 
 STALE_S = 10.0  # a heartbeat older than this: the agent is not running
@@ -59,5 +60,21 @@ def status_report(spool: Path) -> dict[str, Any]:
         "backlog_bytes": backlog,
         "spool_bytes": sum(r["local_bytes"] for r in runs),
         "runs": runs,
-        "pulls": [vars(p) for p in pulls.values()],
+        "pulls": [vars(p) for p in pulls.values() if p.spec.get("kind") != TRIGGER_KIND],
+        "rules": facts.get("rules", ({}, 0.0))[0],
+        "triggers": facts.get("triggers", ({}, 0.0))[0],
+        "windows": [_window(p) for p in pulls.values() if p.spec.get("kind") == TRIGGER_KIND],
+    }
+
+
+def _window(pull: PullState) -> dict[str, Any]:
+    spec = pull.spec
+    return {
+        "window": pull.pull_id,
+        "run": pull.run_id,
+        "event": (spec.get("event") or {}).get("kind"),
+        "state": pull.state,
+        "chunks_sent": pull.chunks_sent,
+        "bytes_sent": pull.bytes_sent,
+        "error": spec.get("error"),
     }

@@ -136,3 +136,17 @@ def _print(report: dict[str, Any]) -> None:
             f"  {run['run']}: {run['local_bytes']} B local, {run['sent_bytes']} B sent, {where}"
             f"{', open' if run['open'] else ''}{local}"
         )
+    rules = report.get("rules") or {}
+    if rules:
+        refused = (
+            f"; version {rules['refused_version']} refused: {rules['refused_why']}"
+            if rules.get("refused_version")
+            else ""
+        )
+        click.echo(f"rules: version {rules.get('version', 0)}, {rules.get('triggers', 0)} triggers{refused}")
+    for window in report.get("windows", []):
+        why = f" ({window['error']})" if window.get("error") else ""
+        click.echo(
+            f"  trigger window {window['window']} of {window['run']} ({window['event']}): {window['state']}, "
+            f"{window['bytes_sent']} B sent{why}"
+        )

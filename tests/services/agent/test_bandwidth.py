@@ -91,7 +91,8 @@ class SteppedRate:
 @pytest.mark.slow
 def test_the_measured_rate_holds_the_cap_in_real_time():
     cap, message = 1_000_000, 32 * 1024
-    per_sender = 1_000_000  # three senders: 3 MB in about 3 s
+    senders = len(Priority)
+    per_sender = 3_000_000 // senders  # 3 MB in about 3 s, one sender per priority
 
     async def main() -> float:
         bucket = TokenBucket(cap)
@@ -105,8 +106,8 @@ def test_the_measured_rate_holds_the_cap_in_real_time():
                 left -= message
 
         await asyncio.gather(*(sender(p) for p in Priority))
-        assert sum(bucket.sent_bytes.values()) == 3 * per_sender + int(cap * 0.25)
-        return 3 * per_sender / (time.monotonic() - began)
+        assert sum(bucket.sent_bytes.values()) == senders * per_sender + int(cap * 0.25)
+        return senders * per_sender / (time.monotonic() - began)
 
     achieved = asyncio.run(main())
     assert abs(achieved - cap) / cap < 0.10, f"{achieved:.0f} B/s against a cap of {cap}"
@@ -125,7 +126,7 @@ def test_the_rate_is_exact_in_virtual_time():
         for i, start in enumerate(done_at):
             sent = sum(100 for t in done_at[i:] if t < start + 2.0)
             assert sent <= 2 * 1000 + 250
-        assert bucket.sent_bytes == {Priority.LIVE: 10_000, Priority.BACKFILL: 0, Priority.PULL: 0}
+        assert bucket.sent_bytes == {Priority.LIVE: 10_000, Priority.TRIGGER: 0, Priority.BACKFILL: 0, Priority.PULL: 0}
 
     run_virtual(main)
 
@@ -179,7 +180,7 @@ def test_bad_requests_are_refused():
 # --- (b) priority ----------------------------------------------------------------------------
 
 
-def test_live_goes_before_queued_backfill_and_pulls_last():
+def test_live_goes_first_then_trigger_windows_then_backfill_and_pulls_last():
     async def main() -> None:
         bucket = TokenBucket(1000)
         order: list[str] = []
@@ -196,17 +197,23 @@ def test_live_goes_before_queued_backfill_and_pulls_last():
         began = now()
         # P1 took the full bucket (it was alone) and left it 250 in debt; the rest queue behind it.
         assert order == ["P1"]
-        assert bucket.waiting == {Priority.LIVE: 0, Priority.BACKFILL: 2000, Priority.PULL: 0}
+        assert bucket.waiting == {Priority.LIVE: 0, Priority.TRIGGER: 0, Priority.BACKFILL: 2000, Priority.PULL: 0}
         tasks.append(asyncio.create_task(send("P2", 100, Priority.PULL)))
         await asyncio.sleep(0.1)
+        tasks.append(asyncio.create_task(send("T1", 100, Priority.TRIGGER)))  # a high-priority trigger's window
         tasks.append(asyncio.create_task(send("L1", 500, Priority.LIVE)))
         await asyncio.gather(*tasks)
 
-        assert order == ["P1", "L1", "B1", "B2", "B3", "B4", "P2"]
+        assert order == ["P1", "L1", "T1", "B1", "B2", "B3", "B4", "P2"]
         # L1 waited only for the debt and a bucket's worth, as if no backfill were queued.
         assert finished["L1"] - began == pytest.approx(0.5, abs=1e-3)
         assert bucket.waiting == dict.fromkeys(Priority, 0)
-        assert bucket.sent_bytes == {Priority.LIVE: 500, Priority.BACKFILL: 2000, Priority.PULL: 600}
+        assert bucket.sent_bytes == {
+            Priority.LIVE: 500,
+            Priority.TRIGGER: 100,
+            Priority.BACKFILL: 2000,
+            Priority.PULL: 600,
+        }
 
     run_virtual(main)
 

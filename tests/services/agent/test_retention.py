@@ -211,3 +211,15 @@ def test_a_nearly_full_disk_frees_confirmed_runs_oldest_first_and_never_the_rest
     report = enforce(spool, state, retain=DAY, max_bytes=0, now=NOW, free_target=10**12, disk_free=disk_free)
     assert [d.run_id for d in report.deleted] == ["new"]
     assert on_disk(spool) == {"unsent"} and report.over_by == 10**12 - free - sizes["new"]
+
+
+def test_a_run_holding_a_trigger_window_the_depot_lacks_is_kept(spool: Spool, state: AgentState):
+    add_run(spool, "run-window", DAY * 2)
+    add_run(spool, "run-plain", DAY * 2)
+    confirm(state, "run-window")
+    confirm(state, "run-plain")
+    report = enforce(spool, state, retain=DAY, max_bytes=1, now=NOW, keep={"run-window"})  # old and over the cap
+    assert [d.run_id for d in report.deleted] == ["run-plain"]
+    assert on_disk(spool) == {"run-window"}
+    report = enforce(spool, state, retain=DAY, max_bytes=1, now=NOW)  # the window reached the depot
+    assert [d.run_id for d in report.deleted] == ["run-window"]

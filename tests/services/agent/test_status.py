@@ -19,8 +19,11 @@ from services.agent.settings import load_agent_settings
 from services.agent.spool import Spool
 from services.agent.state import AgentState, PullState, RunState
 from services.agent.status import STALE_S, status_report
+from services.agent.windows import HELD, Window
 from services.cli.agent import agent
 from services.rrd import iter_events
+from services.rules.evaluate import FoundEvent
+from services.rules.triggers import TriggerRule
 from tests.services.rrd.synthetic import write_recording
 
 
@@ -208,3 +211,27 @@ def test_status_of_a_folder_that_is_no_spool_is_one_line_and_fails(tmp_path: Pat
     as_json = invoke("--spool", str(tmp_path), "--json")
     assert as_json.exit_code == 1  # a script reading the JSON learns it failed too
     assert json.loads(as_json.stdout)["error"] == f"no agent state in {tmp_path}: is this the spool?"
+
+
+def test_the_rules_and_the_trigger_windows(state: AgentState, spool_dir: Path):
+    rule = TriggerRule(("hard_brake",), ("/camera/**",))
+    window = Window.fire("run-b", FoundEvent("hard_brake", "warn", "t", "sequence", 5, 5, "rule", "x", ""), rule, 2, 0)
+    window.state, window.error = HELD, "over budget: 10 bytes would take this trigger to 20 of its 15 a day"
+    window.save(state)
+    state.set_fact("rules", {"version": 2, "triggers": 1, "refused_version": 3, "refused_why": "line 4: unknown key"})
+    report = status_report(spool_dir)
+    assert [p["pull_id"] for p in report["pulls"]] == ["pull-1"]  # a window is no person's pull
+    assert report["windows"] == [
+        {
+            "window": window.pull_id,
+            "run": "run-b",
+            "event": "hard_brake",
+            "state": HELD,
+            "chunks_sent": 0,
+            "bytes_sent": 0,
+            "error": window.error,
+        }
+    ]
+    text = CliRunner().invoke(agent, ["status", "--spool", str(spool_dir)]).output
+    assert "rules: version 2, 1 triggers; version 3 refused: line 4: unknown key" in text
+    assert f"trigger window {window.pull_id} of run-b (hard_brake): held, 0 B sent (over budget:" in text
