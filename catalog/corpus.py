@@ -3,7 +3,9 @@
 
 A run's evaluation is replaced whole in one transaction (`replace_evaluation`): its rule- and
 robot-made events and its metrics go, the new ones come, so re-evaluating never doubles anything;
-people's events and tags are not touched. Event ids are derived from what the event is (run, origin,
+people's events and tags are not touched, nor are the events a robot's agent reported when it fired
+a trigger (origin rule, source robot: its rules found them on the robot, and their window may be on
+its way) unless the depot's own evaluation finds them too. Event ids are derived from what the event is (run, origin,
 kind, timeline, start, entity), so the same event found again (live, then sealed, then after a rules
 change) keeps its id: what was told of it once (webhooks) is not told again.
 """
@@ -12,17 +14,48 @@ from __future__ import annotations
 
 import datetime as dt
 import hashlib
+import re
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 
 import sqlalchemy as sa
 from sqlalchemy.orm import Session
 
-from catalog.models import Event, RulesVersion, RunEvaluation, RunMetric, RunTag
+from catalog.edge import AWAITED_STATES
+from catalog.models import Event, Pull, RulesVersion, RunEvaluation, RunMetric, RunTag
+from core.errors import BadParameterError
+from core.states import PullState
+from core.text import storable
 
 RULE, ROBOT, PERSON = "rule", "robot", "person"  # an event's origin
 MADE_BY_EVALUATION = (RULE, ROBOT)  # the origins a re-evaluation replaces
+REPORTED_BY_ROBOT = "robot"  # the source of a rule's event a robot's agent reported (origin rule)
 ROBOT_TAGGER = "robot"  # added_by of the tags a robot's `fleet` property gives
+
+# What an event may hold, checked the same wherever one comes from (a person, a robot's agent).
+SEVERITIES = ("info", "warn", "error")
+TIMELINE_TYPES = ("timestamp", "sequence", "duration")
+MAX_LABEL, MAX_NOTE = 1000, 10_000
+_KIND = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.:/-]{0,127}")
+_TIMELINE_CHARS = 256  # events.timeline
+
+
+def check_event_fields(kind: str, severity: str, timeline: str, label: str = "", note: str = "") -> None:
+    """An event's kind, severity, timeline name, label and note as the catalog takes them (422
+    naming the first field that is not)."""
+    if severity not in SEVERITIES:
+        raise BadParameterError("severity", f"{severity!r} is not one of {', '.join(SEVERITIES)}")
+    if not _KIND.fullmatch(kind):
+        raise BadParameterError("kind", f"{kind[:200]!r}: letters, digits and _ . : / -, 1 to 128 characters")
+    if len(label) > MAX_LABEL:
+        raise BadParameterError("label", f"{len(label)} characters: at most {MAX_LABEL}")
+    if len(note) > MAX_NOTE:
+        raise BadParameterError("note", f"{len(note)} characters: at most {MAX_NOTE}")
+    if not timeline or "\x00" in timeline or len(timeline) > _TIMELINE_CHARS:
+        raise BadParameterError("timeline", f"name one of the run's timelines (1 to {_TIMELINE_CHARS} characters)")
+    for name, text in (("timeline", timeline), ("label", label), ("note", note)):
+        if not storable(text):
+            raise BadParameterError(name, "holds a NUL character or an unpaired surrogate: send plain UTF-8 text")
 
 
 # --- the rules file's versions --------------------------------------------------------------------
@@ -108,14 +141,18 @@ def replace_evaluation(
     now: dt.datetime,
 ) -> list[Event]:
     """Replace the run's rule- and robot-made events, its metrics and its evaluation row. Returns
-    the events that are new (not held before under the same id): what webhooks are told of.
+    the events that are new (not held before under the same id), and those a robot's agent reported
+    that the depot finds now for the first time: what webhooks are told of.
 
     Only what differs is written (a live run is written every few seconds with mostly the same
-    values): an event held before keeps its row and when it was first recorded."""
+    values): an event held before keeps its row and when it was first recorded. An event a robot's
+    agent reported stays when this evaluation does not find it; when it does, it becomes the
+    evaluation's (its source the rule's)."""
     held = {
         e.id: e
         for e in session.scalars(sa.select(Event).where(Event.run_id == run_id, Event.origin.in_(MADE_BY_EVALUATION)))
     }
+    reported = {ident for ident, e in held.items() if _robot_reported(e)}
     rows: dict[str, Event] = {}
     for facts in events:
         row = _event_row(event_id(run_id, facts), run_id, robot_id, facts, rules_version, now)
@@ -128,8 +165,11 @@ def replace_evaluation(
             new.append(row)
         else:
             _update(before, row, _EVENT_FACTS)
-    for gone in held.values():
-        session.delete(gone)
+            if ident in reported and not _robot_reported(before):  # told of once the depot finds it too
+                new.append(before)
+    for ident, gone in held.items():
+        if ident not in reported:
+            session.delete(gone)
     _replace_metrics(session, run_id, robot_id, rules_version, metrics, now)
     evaluation = session.get(RunEvaluation, run_id)
     if evaluation is None:
@@ -142,6 +182,10 @@ def replace_evaluation(
     evaluation.evaluated_at = now
     session.flush()
     return new
+
+
+def _robot_reported(event: Event) -> bool:
+    return event.origin == RULE and event.source == REPORTED_BY_ROBOT
 
 
 _EVENT_FACTS = (
@@ -228,9 +272,19 @@ def evaluation_of(session: Session, run_id: str) -> RunEvaluation | None:
     return session.get(RunEvaluation, run_id)
 
 
-def add_event(session: Session, run_id: str, robot_id: str, facts: EventFacts, now: dt.datetime, new_id: str) -> Event:
-    """A person's event (an annotation): `new_id` is fresh, since two people may mark the same span."""
-    row = _event_row(new_id, run_id, robot_id, facts, None, now)
+def add_event(
+    session: Session,
+    run_id: str,
+    robot_id: str,
+    facts: EventFacts,
+    now: dt.datetime,
+    new_id: str,
+    rules_version: int | None = None,
+) -> Event:
+    """A person's event (an annotation: `new_id` is fresh, since two people may mark the same span),
+    or one a robot's agent reported (its id `event_id` of its facts, with the rules version that
+    found it)."""
+    row = _event_row(new_id, run_id, robot_id, facts, rules_version, now)
     session.add(row)
     session.flush()
     return row
@@ -331,6 +385,7 @@ class EventQuery:
     since: dt.datetime | None = None  # created at or after
     until: dt.datetime | None = None  # created before
     after: tuple[dt.datetime, str] | None = None  # the last (created_at, id) of the previous page
+    pending: bool = False  # only events whose window is asked of the robot and not at the depot yet
     limit: int = 100
 
 
@@ -352,6 +407,10 @@ def find_events(session: Session, query: EventQuery) -> list[Event]:
         select = select.where(Event.created_at >= query.since)
     if query.until is not None:
         select = select.where(Event.created_at < query.until)
+    if query.pending:
+        awaited = sa.exists().where(Pull.event_id == Event.id, Pull.state.in_(AWAITED_STATES))
+        done = sa.exists().where(Pull.event_id == Event.id, Pull.state == PullState.DONE)
+        select = select.where(awaited, ~done)
     if query.after is not None:
         created, ident = query.after
         select = select.where(

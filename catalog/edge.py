@@ -1,11 +1,13 @@
 """Catalog reads and writes of what the depot knows of robots' own tiers: pulls queued for their
-agents, and the copies of runs their agents report holding; and both as the JSON answers show them
-(shared by `GET /v1/runs/RUN` and the edge routes)."""
+agents (a person's, or a trigger's window around an event), and the copies of runs their agents
+report holding; both as the JSON answers show them (shared by `GET /v1/runs/RUN` and the edge
+routes), and where an event's window is (`event_data`, what every event answer says)."""
 
 from __future__ import annotations
 
 import datetime as dt
 import json
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -17,7 +19,10 @@ from core.clock import iso_utc
 from core.states import PullState
 
 OPEN_STATES = (PullState.PENDING, PullState.SENDING)  # what an agent may still be working on
+# An event whose pulls are in these states, none done, has its window still to come (`?pending=true`).
+AWAITED_STATES = (PullState.PENDING, PullState.SENDING, PullState.HELD)
 RUN_PAGE_PULLS = 10  # pulls a run's page shows
+PERSON, TRIGGER = "person", "trigger"  # a pull's origin
 
 
 def _locks_rows(session: Session) -> bool:
@@ -65,7 +70,26 @@ def _same(column: Any, value: str | None) -> sa.ColumnElement[bool]:
     return column.is_(None) if value is None else column == value  # type: ignore[no-any-return]
 
 
-def add_pull(session: Session, pull_id: str, ask: PullAsk, robot_id: str, requested_by: str, now: dt.datetime) -> Pull:
+@dataclass(frozen=True)
+class PullOrigin:
+    """Who a pull is for: a person's (no event, or the event they pulled) or a trigger's window
+    around an event, in the state the pull starts in (a trigger's, as its agent reports it)."""
+
+    origin: str = PERSON
+    event_id: str | None = None
+    priority: str | None = None
+    state: str = PullState.PENDING
+
+
+def add_pull(
+    session: Session,
+    pull_id: str,
+    ask: PullAsk,
+    robot_id: str,
+    requested_by: str,
+    now: dt.datetime,
+    made: PullOrigin = PullOrigin(),
+) -> Pull:
     pull = Pull(
         id=pull_id,
         run_id=ask.run_id,
@@ -75,13 +99,16 @@ def add_pull(session: Session, pull_id: str, ask: PullAsk, robot_id: str, reques
         timeline=ask.timeline,
         start=ask.start,
         end=ask.end,
-        state=PullState.PENDING,
+        state=made.state,
         requested_by=requested_by,
         requested_at=now,
         updated_at=now,
         chunks_sent=0,
         bytes_sent=0,
         error=None,
+        origin=made.origin,
+        event_id=made.event_id,
+        priority=made.priority,
     )
     session.add(pull)
     session.flush()
@@ -128,7 +155,102 @@ def pull_dict(pull: Pull) -> dict[str, Any]:
         "chunks_sent": pull.chunks_sent,
         "bytes_sent": pull.bytes_sent,
         "error": pull.error,
+        "origin": pull.origin,
+        "event_id": pull.event_id,
+        "priority": pull.priority,
     }
+
+
+# --- pulls of events ------------------------------------------------------------------------------
+
+
+def event_pulls(session: Session, event_ids: Sequence[str]) -> dict[str, list[Pull]]:
+    """The pulls of each of these events (one query), newest first; an event without any is left out."""
+    found: dict[str, list[Pull]] = {}
+    if not event_ids:
+        return found
+    query = (
+        sa.select(Pull)
+        .where(Pull.event_id.in_(list(dict.fromkeys(event_ids))))
+        .order_by(Pull.requested_at.desc(), Pull.id.desc())
+    )
+    for pull in session.scalars(query):
+        found.setdefault(str(pull.event_id), []).append(pull)
+    return found
+
+
+def trigger_pull_of(session: Session, event_id: str, *, run_id: str | None = None) -> Pull | None:
+    """The newest trigger pull of the event (of run `run_id`, if given), if there is one."""
+    query = sa.select(Pull).where(Pull.event_id == event_id, Pull.origin == TRIGGER)
+    if run_id is not None:
+        query = query.where(Pull.run_id == run_id)
+    return session.scalars(query.order_by(Pull.requested_at.desc(), Pull.id.desc()).limit(1)).first()
+
+
+def open_pull_of(session: Session, event_id: str) -> Pull | None:
+    """A pending or sending pull of the event (the oldest), if there is one."""
+    query = sa.select(Pull).where(Pull.event_id == event_id, Pull.state.in_(OPEN_STATES))
+    return session.scalars(query.order_by(Pull.requested_at, Pull.id).limit(1)).first()
+
+
+def pending_trigger_pulls(session: Session, run_id: str, timeline: str, include: list[str]) -> list[Pull]:
+    """The run's pending trigger pulls of this timeline and include, nothing excluded: those a new
+    window may widen (locked until the transaction ends, on Postgres), oldest first."""
+    query = sa.select(Pull).where(
+        Pull.run_id == run_id,
+        Pull.origin == TRIGGER,
+        Pull.state == PullState.PENDING,
+        Pull.timeline == timeline,
+        Pull.include == json.dumps(include),
+        Pull.exclude == json.dumps([]),
+    )
+    query = query.order_by(Pull.requested_at, Pull.id)
+    return list(session.scalars(query.with_for_update() if _locks_rows(session) else query))
+
+
+# Where an event's window is, best first: at the depot (a pull is done), on its way (a pull is
+# pending or sending), partly at the depot (a pull stopped after sending some), kept on the robot
+# over its trigger's budget (held), or only on the robot (every pull stopped before sending any).
+AT_DEPOT, ON_ITS_WAY, PARTLY_AT_DEPOT = "held", "pending", "partly held"
+OVER_BUDGET, ON_ROBOT = "held on robot: over budget", "on robot"
+DATA_STATES = (AT_DEPOT, ON_ITS_WAY, PARTLY_AT_DEPOT, OVER_BUDGET, ON_ROBOT)
+
+
+def data_state(pull: Pull) -> str:
+    if pull.state == PullState.DONE:
+        return AT_DEPOT
+    if pull.state in OPEN_STATES:
+        return ON_ITS_WAY
+    if pull.state == PullState.HELD:
+        return OVER_BUDGET
+    return PARTLY_AT_DEPOT if pull.chunks_sent > 0 else ON_ROBOT  # failed or cancelled
+
+
+def event_data(pulls: Sequence[Pull]) -> dict[str, Any] | None:
+    """What an event answer says of its window (`data`): None with no pull of it, else the best
+    state over its pulls and the pulls (newest first, as given)."""
+    if not pulls:
+        return None
+    return {
+        "state": min((data_state(p) for p in pulls), key=DATA_STATES.index),
+        "pulls": [
+            {
+                "id": p.id,
+                "origin": p.origin,
+                "state": p.state,
+                "chunks_sent": p.chunks_sent,
+                "bytes_sent": p.bytes_sent,
+                "error": p.error,
+            }
+            for p in pulls
+        ],
+    }
+
+
+def events_data(session: Session, event_ids: Sequence[str]) -> dict[str, dict[str, Any] | None]:
+    """`event_data` of each of these events, read in one query."""
+    found = event_pulls(session, event_ids)
+    return {ident: event_data(found.get(ident, [])) for ident in event_ids}
 
 
 # --- robot copies ---------------------------------------------------------------------------------

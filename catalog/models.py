@@ -193,7 +193,9 @@ class Dataset(Base):
 
 class Pull(Base):
     """A request that a robot's agent send the depot (part of) a run it holds: queued by an
-    engineer, polled by the agent, which reports its progress until done, failed or cancelled."""
+    engineer (`origin` person) or for a trigger's window around an event (`origin` trigger: by the
+    depot's live rules, or reported by the agent that fired it), polled by the agent, which reports
+    its progress until done, failed, cancelled or held (kept on the robot: over its budget)."""
 
     __tablename__ = "pulls"
 
@@ -205,13 +207,16 @@ class Pull(Base):
     timeline: Mapped[str | None] = mapped_column(Text)
     start: Mapped[str | None] = mapped_column(Text)  # as given: the agent reads it by the timeline's type
     end: Mapped[str | None] = mapped_column(Text)
-    state: Mapped[str] = mapped_column(String(16))  # pending | sending | done | failed | cancelled
-    requested_by: Mapped[str] = mapped_column(String(256))  # the token's subject, never the token
+    state: Mapped[str] = mapped_column(String(16))  # pending | sending | done | failed | cancelled | held
+    requested_by: Mapped[str] = mapped_column(String(256))  # the token's subject, "robot R" or "trigger KIND@V"
     requested_at: Mapped[dt.datetime] = mapped_column(DateTime(timezone=True))
     updated_at: Mapped[dt.datetime] = mapped_column(DateTime(timezone=True))
     chunks_sent: Mapped[int] = mapped_column(BigInteger, default=0)
     bytes_sent: Mapped[int] = mapped_column(BigInteger, default=0)
     error: Mapped[str | None] = mapped_column(Text)
+    origin: Mapped[str] = mapped_column(String(16), default="person", server_default="person")  # | trigger
+    event_id: Mapped[str | None] = mapped_column(String(32), index=True)  # the event whose window it brings
+    priority: Mapped[str | None] = mapped_column(String(8))  # high | normal (a trigger's pulls)
 
 
 class RobotCopy(Base):

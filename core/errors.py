@@ -248,4 +248,8 @@ class BadParameterError(InvalidArgumentError):
 
     def __init__(self, name: str, problem: str) -> None:
         super().__init__(f"parameter {name!r}: {problem}")
-        self.parameter = name
+        self.parameter, self.problem = name, problem
+
+    def within(self, part: str) -> BadParameterError:
+        """The same problem, named as a field of `part` of the request (`event.start`)."""
+        return BadParameterError(f"{part}.{self.parameter}", self.problem)

@@ -40,10 +40,13 @@ ARCHIVED_IN_STORE = "store"
 
 class PullState(StrEnum):
     """How far a robot's agent has got with a pull (`pulls.state`): pending until it starts sending,
-    then done or failed; cancelled by whoever asked, while pending or sending."""
+    then done or failed; cancelled by whoever asked, while pending or sending. Held: the agent keeps
+    the window on the robot (a trigger's window over its trigger's budget), until a person cancels it
+    (dismissed) or pulls it again."""
 
     PENDING = "pending"
     SENDING = "sending"
     DONE = "done"
     FAILED = "failed"
     CANCELLED = "cancelled"
+    HELD = "held"

@@ -314,11 +314,24 @@ class FleetClient:
 
     def events(self, **params: Any) -> dict[str, Any]:
         """`GET /v1/events` with its filters (kind, robot, run, severity, origin, source, since, until,
-        limit, cursor): `{events, next_cursor}`."""
+        pending, limit, cursor): `{events, next_cursor}`. `pending=True`: only events whose window is
+        asked of the robot and not at the depot yet."""
         return self._request("GET", "/v1/events", params={k: v for k, v in params.items() if v not in (None, [], ())})
 
     def event(self, event_id: str) -> dict[str, Any]:
         return self._request("GET", f"/v1/events/{event_id}")
+
+    def pull_event(self, event_id: str) -> dict[str, Any]:
+        """Ask the robot for the window of an event a trigger pulled (`POST /v1/events/EVENT/pull`,
+        write): the pull queued, or the pending or sending one of the event."""
+        pull: dict[str, Any] = self._request("POST", f"/v1/events/{event_id}/pull")["pull"]
+        return pull
+
+    def report_triggered(self, run_id: str, body: dict[str, Any]) -> dict[str, Any]:
+        """A robot's agent reports a trigger it fired (`POST /v1/runs/RUN/triggered`; body: pull_id,
+        rules_version, event, window, priority, state, chunks_sent, bytes_sent, error): `{event, pull}`,
+        the pull it reports progress on."""
+        return self._request("POST", f"/v1/runs/{run_id}/triggered", json=body)
 
     def run_events(self, run_id: str) -> list[dict[str, Any]]:
         events: list[dict[str, Any]] = self._request("GET", f"/v1/runs/{run_id}/events")["events"]

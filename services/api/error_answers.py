@@ -5,6 +5,8 @@ its status and the same {code, message} body."""
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
@@ -14,11 +16,23 @@ from core.errors import CATALOG_DOWN, CatalogUnavailableError, ErrorCode, FleetE
 
 
 async def _bad_parameter(_: Request, exc: RequestValidationError) -> JSONResponse:
-    problems = "; ".join(f"parameter {e['loc'][-1]!r}: {e['msg']}" for e in exc.errors())
+    problems = "; ".join(f"parameter {_named(e['loc'])!r}: {e['msg']}" for e in exc.errors())
     return JSONResponse(
         {"code": ErrorCode.INVALID_ARGUMENT.value, "message": problems},
         status_code=http_status(ErrorCode.INVALID_ARGUMENT),
     )
+
+
+def _named(loc: Sequence[str | int]) -> str | int:
+    """The parameter a problem is of: its name (`bytes`), or its path in a body of nested objects
+    (`event.start`, `window.include[0]`)."""
+    path = list(loc[1:]) if len(loc) > 1 and loc[0] in ("body", "query", "path", "header", "cookie") else list(loc)
+    if len(path) == 1:
+        return path[0]
+    named = ""
+    for part in path:
+        named += f"[{part}]" if isinstance(part, int) else (f".{part}" if named else str(part))
+    return named or str(loc[-1])
 
 
 async def _fleet_error(_: Request, exc: FleetError) -> JSONResponse:

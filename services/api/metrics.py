@@ -20,6 +20,7 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from services import __version__
 from services.auth.tokens import Auth
+from services.edge import triggers
 from services.ingest.service import IngestService
 
 CONTENT_TYPE = CONTENT_TYPE_PLAIN_0_0_4  # the text format every Prometheus server reads
@@ -74,9 +75,25 @@ class AuthCollector(Collector):
         yield family
 
 
+class TriggerCollector(Collector):
+    """Trigger pulls made in this process, by who queued them (robot: reported by the agent that
+    fired the trigger; depot: queued by the live rules), read at each scrape."""
+
+    def collect(self) -> Iterator[Metric]:
+        family = CounterMetricFamily(
+            "fleet_trigger_pulls",
+            "Trigger pulls made: windows around events asked of robots' agents, by who queued them",
+            labels=["origin"],
+        )
+        for origin in (triggers.DEPOT, triggers.ROBOT):
+            family.add_metric([origin], triggers.trigger_pulls_made[origin])
+        yield family
+
+
 def metrics_registry(ingest: IngestService | None, auth: Auth | None = None) -> CollectorRegistry:
     registry = CollectorRegistry(auto_describe=False)
     registry.register(IngestCollector(ingest))
+    registry.register(TriggerCollector())
     if auth is not None:
         registry.register(AuthCollector(auth))
     return registry

@@ -1,5 +1,5 @@
-"""`fleet events ls|view`, and `fleet runs annotate|tag|untag`: the events and tags of runs (over
-REST)."""
+"""`fleet events ls|view|pull`, and `fleet runs annotate|tag|untag`: the events and tags of runs,
+and where an event's window is (over REST)."""
 
 from __future__ import annotations
 
@@ -32,17 +32,19 @@ def events() -> None:
 @click.option("--since", help="recorded by the depot at or after (ISO-8601)")
 @click.option("--until", help="recorded by the depot before (ISO-8601)")
 @click.option("--source", help="`rule NAME@VERSION`, a person's name, or `robot`")
+@click.option("--pending", is_flag=True, help="only events whose window is asked of the robot, not at the depot yet")
 @click.option("--limit", type=int, default=100, show_default=True)
 @click.option("--cursor", help="`next_cursor` of the previous page")
 @click.option("--json", "as_json", is_flag=True, help="print JSON (the service's answer) instead of a table")
 def events_ls(api_url: str, as_json: bool, **filters: Any) -> None:
     """List events, newest first."""
+    filters["pending"] = filters["pending"] or None  # asked only when given
     with client(api_url) as fleet:
         page = fleet.events(**{k: list(v) if isinstance(v, tuple) else v for k, v in filters.items()})
     if as_json:
         click.echo(json.dumps(page, indent=2))
         return
-    table = Table("event", "run", "robot", "kind", "severity", "timeline", "start", "end", "source", "label")
+    table = Table("event", "run", "robot", "kind", "severity", "timeline", "start", "end", "source", "label", "data")
     table.box, table.padding = None, (0, 2)
     for e in page["events"]:
         table.add_row(
@@ -56,6 +58,7 @@ def events_ls(api_url: str, as_json: bool, **filters: Any) -> None:
             timeline_value(e["timeline_type"], e["end"]),
             e["source"],
             e["label"],
+            e["data"]["state"] if e.get("data") else "",
         )
     stdout_console().print(table)
     if page["next_cursor"]:
@@ -88,6 +91,23 @@ def events_view(api_url: str, event_id: str, open_viewer: bool, as_json: bool) -
     if rerun is None:
         raise click.ClickException("the Rerun viewer is not installed: pip install rerun-sdk")
     raise SystemExit(subprocess.call([rerun, event["viewer_url"]]))
+
+
+@events.command("pull")
+@api_option
+@click.argument("event_id")
+@click.option("--json", "as_json", is_flag=True, help="print the pull (the service's answer)")
+def events_pull(api_url: str, event_id: str, as_json: bool) -> None:
+    """Ask the robot for the window of an event a trigger pulled (one held on the robot over its
+    budget, or that failed): queued until its agent picks it up; a pull of the event still pending or
+    sending is answered instead."""
+    with client(api_url) as fleet:
+        pull = fleet.pull_event(event_id)
+    if as_json:
+        click.echo(json.dumps(pull, indent=2))
+        return
+    window = f"{pull['timeline']} {pull['start']}..{pull['end']}" if pull["timeline"] else "the whole run"
+    click.echo(f"{pull['id']}: {pull['state']}, for robot {pull['robot_id']}'s agent ({window} of {pull['run_id']})")
 
 
 @click.command("annotate")

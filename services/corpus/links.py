@@ -44,10 +44,11 @@ def padded(timeline_type: str, start: int, end: int) -> tuple[int, int]:
     return max(TIME_MIN, start - pad), min(TIME_MAX, end + pad)
 
 
-def event_answer(event: Event, viewer: Viewer) -> dict[str, Any]:
+def event_answer(event: Event, viewer: Viewer, data: dict[str, Any] | None = None) -> dict[str, Any]:
     """An event as every route answers it. `start`/`end` are the raw timeline values (ns since the
     epoch on a timestamp timeline); `start_iso`/`end_iso` the same as ISO-8601 on timestamp
-    timelines (None on others)."""
+    timelines (None on others). `data`: where its window's data is (`catalog.edge.event_data`:
+    None when no pull asked for it)."""
     on_clock = event.timeline_type == "timestamp"
     window = padded(event.timeline_type, event.range_start, event.range_end)
     return {
@@ -69,4 +70,5 @@ def event_answer(event: Event, viewer: Viewer) -> dict[str, Any]:
         "note": event.note,
         "created_at": iso_utc(event.created_at),
         "viewer_url": viewer.window_url(event.run_id, event.timeline, *window),
+        "data": data,
     }

@@ -18,6 +18,10 @@ sealed run.
 
 The running rules are re-read from the catalog every `flush_s`; a new version resets the hot runs'
 evaluators (each starts again from its file with its next chunk).
+
+Each new event a `[[trigger]]` of the running rules names gets a trigger pull, queued in the same
+transaction that writes it (`services.edge.triggers.queue_trigger_pulls`: the window around it, or a
+pending pull of the run widened to take it): the robot's agent sends that window's full data.
 """
 
 from __future__ import annotations
@@ -47,6 +51,7 @@ from services.corpus.evaluation import (
     wanted_rows,
     write_evaluation,
 )
+from services.edge.triggers import DEPOT, queue_trigger_pulls, trigger_pulls_made
 from services.hot.read import HotRuns
 from services.node import Node
 from services.rrd.chunk import ChunkMeta, chunk_meta
@@ -154,6 +159,7 @@ class LiveRules:
         self._overflowed: set[str] = set()  # runs whose chunks were dropped (from ingest's thread)
         self._lock = threading.Lock()
         self._thread: threading.Thread | None = None
+        self._pulls_queued = 0  # trigger pulls the flush under way queued; the worker's alone
 
     # --- the ChunkObserver: on ingest's thread, never blocking -------------------------------
 
@@ -331,8 +337,10 @@ class LiveRules:
         if not due:
             return
         now = self.node.clock()
+        self._pulls_queued = 0
         with session_scope(self.node.catalog, write=True) as session:
             written = [run for run in due if self._write(session, run, now)]
+        trigger_pulls_made[DEPOT] += self._pulls_queued
         for run in written:  # (the others' catalog rows are not there yet: the next tick)
             run.changed = False
             run.events_written, run.flushes_unwritten = len(run.events), 0
@@ -346,6 +354,9 @@ class LiveRules:
         evaluation = _so_far(run, properties_of(row))
         new = write_evaluation(session, run.run_id, row.robot_id, run.version, LIVE, evaluation, now, run.events)
         announce_events(session, new)
+        running = self._running
+        if new and running.version == run.version and running.rules.triggers:
+            self._pulls_queued += queue_trigger_pulls(session, row, new, running.rules.triggers, run.version, now)
         return True
 
 

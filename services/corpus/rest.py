@@ -1,26 +1,30 @@
-"""REST: the rules file (`/v1/rules`), events (`/v1/events`, `/v1/runs/{run}/events`) and run tags
-(`/v1/runs/{run}/tags`). Handlers parse the request and call one service function; errors are
-mapped once by the app (`FleetError` -> status)."""
+"""REST: the rules file (`/v1/rules`), events (`/v1/events`, `/v1/runs/{run}/events`), the
+triggers robots' agents fired (`/v1/runs/{run}/triggered`) and run tags (`/v1/runs/{run}/tags`).
+Handlers parse the request and call one service function; errors are mapped once by the app
+(`FleetError` -> status)."""
 
 from __future__ import annotations
 
 import secrets
 from typing import Annotated, Any
 
-from fastapi import APIRouter, Body, Depends, Query, Request
+from fastapi import APIRouter, Body, Depends, Query, Request, Response
 from fastapi.concurrency import run_in_threadpool
 from pydantic import BaseModel, ConfigDict, Field, StrictInt, StrictStr
 
+from catalog.edge import PullAsk
 from core.errors import BadParameterError
 from services.auth.depends import actor, require
 from services.auth.scopes import Principal, Scope
 from services.corpus import service
+from services.corpus import triggered as triggered_reports
 from services.corpus.links import Viewer
 from services.runs.links import lifetime, request_base
 from services.runs.service import parse_time
 
 router = APIRouter()
 Reader = Annotated[Principal, Depends(require(Scope.READ))]
+RulesReader = Annotated[Principal, Depends(require(Scope.INGEST, Scope.READ))]  # a robot's agent reads the rules
 Writer = Annotated[Principal, Depends(require(Scope.WRITE))]
 RULES_TYPES = ("text/plain", "application/toml")
 MAX_RULES_BODY = 2 * 1024 * 1024  # the rules language refuses more than half of this, naming the size
@@ -76,7 +80,7 @@ async def _rules_text(request: Request) -> str:
 @router.get("/v1/rules", summary="The running rules (or an older version): text, rules, who applied it and when")
 def rules(
     request: Request,
-    _: Reader,
+    _: RulesReader,
     version: Annotated[
         int | None, Query(description="an older version (see /v1/rules/history)", ge=1, le=MAX_VERSION)
     ] = None,
@@ -104,6 +108,9 @@ def events(
     source: Annotated[str | None, Query(description="`rule NAME@VERSION`, a person's name, or `robot`")] = None,
     since: Annotated[str | None, Query(description="recorded by the depot at or after (ISO-8601)")] = None,
     until: Annotated[str | None, Query(description="recorded by the depot before (ISO-8601)")] = None,
+    pending: Annotated[
+        bool, Query(description="only events whose window is asked of the robot and not at the depot yet")
+    ] = False,
     limit: Annotated[int, Query(description=f"1 to {service.MAX_LIMIT}")] = 100,
     cursor: Annotated[str | None, Query(description="`next_cursor` of the previous page")] = None,
 ) -> dict[str, Any]:
@@ -116,6 +123,7 @@ def events(
         source=source,
         since=parse_time("since", since),
         until=parse_time("until", until),
+        pending=pending,
         limit=limit,
         cursor=cursor,
     )
@@ -154,6 +162,86 @@ def annotate(request: Request, run_id: str, body: AnnotationBody, principal: Wri
     return service.annotate(
         state.catalog, viewer(request, principal), run_id, asked, actor(request, principal), state.node.clock(), new_id
     )
+
+
+# --- triggers a robot's agent fired ------------------------------------------------------------------
+
+Position = Annotated[StrictInt, Field(ge=-(2**63), le=2**63 - 1, description="on the event's timeline")]
+Count = Annotated[StrictInt, Field(ge=0, le=2**63 - 1)]
+
+
+class TriggeredEventBody(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    kind: str = Field(description="the [[event]] rule's name")
+    severity: str = Field(description=" | ".join(service.SEVERITIES))
+    timeline: str
+    timeline_type: str = Field(description="timestamp | sequence | duration")
+    start: Position
+    end: Position
+    label: str = ""
+
+
+class TriggeredWindowBody(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    timeline: str | None = Field(None, description="the window's timeline (the event's)")
+    start: str | None = Field(None, description="as a pull takes it: ns on a timestamp timeline")
+    end: str | None = None
+    include: list[str] = Field(default_factory=list, description="the trigger's entities: /a/b or /a/**")
+    exclude: list[str] = Field(default_factory=list)
+
+
+class TriggeredBody(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    pull_id: str = Field(description="chosen by the agent: 'pull-' and 12 lowercase hex digits")
+    rules_version: Annotated[StrictInt, Field(ge=1, le=MAX_VERSION, description="the rules that fired it")]
+    event: TriggeredEventBody
+    window: TriggeredWindowBody
+    priority: str = Field("normal", description="high | normal")
+    state: str = Field(description="pending | sending | held | done")
+    chunks_sent: Count = 0
+    bytes_sent: Count = 0
+    error: str | None = Field(None, description="why it is held (over budget: ...)")
+
+
+@router.post(
+    "/v1/runs/{run_id}/triggered",
+    status_code=201,
+    summary="A robot's agent reports a trigger it fired: the event, and the pull bringing its window home",
+    responses={200: {"description": "reported before (the same pull id), or the depot's pull of the event"}},
+)
+def triggered(
+    request: Request,
+    response: Response,
+    run_id: str,
+    body: TriggeredBody,
+    principal: Annotated[Principal, Depends(require(Scope.INGEST, Scope.WRITE))],
+) -> dict[str, Any]:
+    """`{"event": ..., "pull": ...}`: the event as `GET /v1/events/ID` answers it, and the pull the
+    agent reports progress on (`POST /v1/pulls/ID/progress`): the one it named, or the depot's own
+    pull of the same event if the depot fired first. A robot's ingest token reports on its own
+    robot's runs; 404 (retry later) for a run the catalog does not have yet."""
+    window = body.window
+    report = triggered_reports.Triggered(
+        pull_id=body.pull_id,
+        rules_version=body.rules_version,
+        event=triggered_reports.ReportedEvent(**body.event.model_dump()),
+        window=PullAsk(run_id, window.include, window.exclude, window.timeline, window.start, window.end),
+        priority=body.priority,
+        state=body.state,
+        chunks_sent=body.chunks_sent,
+        bytes_sent=body.bytes_sent,
+        error=body.error,
+    )
+    state = request.app.state
+    answer, created = triggered_reports.report_triggered(
+        state.catalog, viewer(request, principal), principal, run_id, report, state.node.clock()
+    )
+    if not created:
+        response.status_code = 200
+    return answer
 
 
 # --- tags -------------------------------------------------------------------------------------------

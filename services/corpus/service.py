@@ -20,25 +20,24 @@ import sqlalchemy.exc as sa_exc
 from sqlalchemy.orm import Session, sessionmaker
 
 from catalog import corpus
+from catalog import edge as edge_db
 from catalog.db import session_scope
+from catalog.models import Event
 from catalog.queries import require_run, run_timelines
 from core.clock import iso_utc
 from core.cursors import decode_cursor, encode_cursor
 from core.errors import BadParameterError, ConflictError, InvalidRulesError, NotFoundError
-from core.text import storable
 from services.corpus.links import Viewer, event_answer
 from services.rules.spec import RuleSet, parse_rules
 from services.runs.download import parse_time_value
 
-SEVERITIES = ("info", "warn", "error")
+SEVERITIES = corpus.SEVERITIES
 ORIGINS = (corpus.RULE, corpus.ROBOT, corpus.PERSON)
 MAX_LIMIT = 1000
 MAX_FILTER_VALUES = 32
 PERSON_KIND = "annotation"  # a person's event when they name no kind
-MAX_LABEL, MAX_NOTE = 1000, 10_000
 MAX_TAGS = 100  # in one request
 _TAG = re.compile(r"[^\s,]{1,128}")
-_KIND = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.:/-]{0,127}")
 
 # Told of each new rules version once it is recorded (the live evaluator takes the new set).
 RulesApplied = Callable[[RuleSet, int], None]
@@ -135,6 +134,7 @@ class EventFilter:
     source: str | None = None
     since: dt.datetime | None = None  # recorded at or after
     until: dt.datetime | None = None  # recorded before
+    pending: bool = False  # only events whose window is asked of the robot, not at the depot yet
     limit: int = 100
     cursor: str | None = None
 
@@ -166,6 +166,7 @@ class EventFilter:
             since=self.since,
             until=self.until,
             after=decode_cursor(self.cursor) if self.cursor else None,
+            pending=self.pending,
             limit=self.limit,
         )
 
@@ -175,7 +176,7 @@ def events_answer(catalog: sessionmaker[Session], viewer: Viewer, flt: EventFilt
     query = flt.query()
     with session_scope(catalog) as session:
         found = corpus.find_events(session, query)
-        events = [event_answer(e, viewer) for e in found]
+        events = _answers(session, found, viewer)
         last = (found[-1].created_at, found[-1].id) if len(found) == query.limit else None
     return {"events": events, "next_cursor": encode_cursor(*last) if last else None}
 
@@ -184,7 +185,7 @@ def run_events_answer(catalog: sessionmaker[Session], viewer: Viewer, run_id: st
     """Every event of a run, in timeline order (404 for an unknown run)."""
     with session_scope(catalog) as session:
         require_run(session, run_id)
-        return {"run": run_id, "events": [event_answer(e, viewer) for e in corpus.events_of_run(session, run_id)]}
+        return {"run": run_id, "events": _answers(session, corpus.events_of_run(session, run_id), viewer)}
 
 
 def one_event_answer(catalog: sessionmaker[Session], viewer: Viewer, event_id: str) -> dict[str, Any]:
@@ -192,7 +193,13 @@ def one_event_answer(catalog: sessionmaker[Session], viewer: Viewer, event_id: s
         found = corpus.get_event(session, event_id)
         if found is None:
             raise NotFoundError(f"no event {event_id!r}: list events with GET /v1/events or `fleet events ls`")
-        return event_answer(found, viewer)
+        return _answers(session, [found], viewer)[0]
+
+
+def _answers(session: Session, events: Sequence[Event], viewer: Viewer) -> list[dict[str, Any]]:
+    """Events as answers, each saying where its window's data is (its pulls read in one query)."""
+    data = edge_db.events_data(session, [e.id for e in events])
+    return [event_answer(e, viewer, data[e.id]) for e in events]
 
 
 # --- a person's events --------------------------------------------------------------------------------
@@ -247,19 +254,7 @@ def annotate(
 
 
 def _check_annotation(asked: Annotation) -> None:
-    if asked.severity not in SEVERITIES:
-        raise BadParameterError("severity", f"{asked.severity!r} is not one of {', '.join(SEVERITIES)}")
-    if not _KIND.fullmatch(asked.kind):
-        raise BadParameterError("kind", f"{asked.kind!r}: letters, digits and _ . : / -, 1 to 128 characters")
-    if len(asked.label) > MAX_LABEL:
-        raise BadParameterError("label", f"{len(asked.label)} characters: at most {MAX_LABEL}")
-    if len(asked.note) > MAX_NOTE:
-        raise BadParameterError("note", f"{len(asked.note)} characters: at most {MAX_NOTE}")
-    if not asked.timeline or "\x00" in asked.timeline:
-        raise BadParameterError("timeline", "name one of the run's timelines, e.g. log_time")
-    for name, text in (("timeline", asked.timeline), ("label", asked.label), ("note", asked.note)):
-        if not storable(text):
-            raise BadParameterError(name, "holds a NUL character or an unpaired surrogate: send plain UTF-8 text")
+    corpus.check_event_fields(asked.kind, asked.severity, asked.timeline, asked.label, asked.note)
 
 
 def _timeline_type(session: Session, run_id: str, name: str) -> str:

@@ -1,14 +1,17 @@
 """Pulls: an engineer asks that a robot's agent send (part of) a run it holds; the agent polls for
 its robot's pending pulls and reports its progress.
 
-States: pending -> sending -> done | failed, pending -> failed; a report of the state a pull is in
-already only updates its counters. Pending or sending -> cancelled by whoever may request pulls.
-A done, failed or cancelled pull takes no change (409 naming its state). Asking again for what a
-pending or sending pull of the same run already asks for answers that pull, not a twin.
+States: pending -> sending -> done | failed, pending -> failed; pending or sending -> held (the
+agent keeps the window on the robot: over its trigger's budget, `error` saying so); a report of the
+state a pull is in already only updates its counters. Pending or sending -> cancelled by whoever may
+request pulls, and held -> cancelled (a person dismisses it). A done, failed, cancelled or held pull
+takes no report (409 naming its state). Asking again for what a pending or sending pull of the same
+run already asks for answers that pull, not a twin.
 """
 
 from __future__ import annotations
 
+import datetime as dt
 import logging
 import secrets
 from dataclasses import dataclass
@@ -20,7 +23,7 @@ from catalog import edge as edge_queries
 from catalog import queries
 from catalog.db import session_scope
 from catalog.edge import PullAsk
-from catalog.models import Pull
+from catalog.models import Pull, Run
 from core.errors import BadParameterError, ConflictError, NotFoundError, PermissionDeniedError
 from core.ids import NAME_BYTES
 from core.states import PullState, Tier
@@ -32,12 +35,12 @@ log = logging.getLogger("fleet.edge")
 
 MAX_LIMIT = 1000
 MAX_ERROR_CHARS = 2000
-REPORTED = (PullState.SENDING, PullState.DONE, PullState.FAILED)  # what an agent reports
-_MOVES = {
-    PullState.PENDING: {PullState.SENDING, PullState.FAILED},
-    PullState.SENDING: {PullState.SENDING, PullState.DONE, PullState.FAILED},
+REPORTED = (PullState.SENDING, PullState.DONE, PullState.FAILED, PullState.HELD)  # what an agent reports
+MOVES = {
+    PullState.PENDING: {PullState.SENDING, PullState.FAILED, PullState.HELD},
+    PullState.SENDING: {PullState.SENDING, PullState.DONE, PullState.FAILED, PullState.HELD},
 }
-_FINAL = (PullState.DONE, PullState.FAILED, PullState.CANCELLED)
+FINAL = (PullState.DONE, PullState.FAILED, PullState.CANCELLED, PullState.HELD)
 
 
 def new_pull_id() -> str:
@@ -71,19 +74,26 @@ def request_pull(edge: Edge, ask: PullAsk, requested_by: str) -> tuple[dict[str,
     have; 409 for one that takes no data (cold or deleted)."""
     ask = check_ask(ask)
     with session_scope(edge.catalog, write=True) as session:
-        run = edge_queries.run_to_pull(session, ask.run_id)
-        if run is None:
-            raise queries.run_not_found(ask.run_id)
-        if run.tier in (Tier.COLD, Tier.DELETED):
-            fix = f"restore it first (fleet runs restore {run.id})" if run.tier == Tier.COLD else "nothing can be"
-            raise ConflictError(f"run {run.id!r} is {run.tier}: it takes no data, so no pull; {fix}")
-        if not run.robot_id:
-            raise ConflictError(f"run {run.id!r} names no robot: there is no agent to pull it from")
+        run = pullable_run(session, ask.run_id)
         twin = edge_queries.open_twin(session, ask)
         if twin is not None:
             return {"pull": edge_queries.pull_dict(twin)}, False
         pull = edge_queries.add_pull(session, new_pull_id(), ask, run.robot_id, requested_by, edge.clock())
         return {"pull": edge_queries.pull_dict(pull)}, True
+
+
+def pullable_run(session: Session, run_id: str) -> Run:
+    """The run a person pulls, locked until the transaction ends (on Postgres): 404 for a run the
+    catalog does not have; 409 for one that takes no data (cold or deleted) or names no robot."""
+    run = edge_queries.run_to_pull(session, run_id)
+    if run is None:
+        raise queries.run_not_found(run_id)
+    if run.tier in (Tier.COLD, Tier.DELETED):
+        fix = f"restore it first (fleet runs restore {run.id})" if run.tier == Tier.COLD else "nothing can be"
+        raise ConflictError(f"run {run.id!r} is {run.tier}: it takes no data, so no pull; {fix}")
+    if not run.robot_id:
+        raise ConflictError(f"run {run.id!r} names no robot: there is no agent to pull it from")
+    return run
 
 
 def run_pulls_answer(edge: Edge, run_id: str) -> dict[str, Any]:
@@ -136,23 +146,28 @@ def report_progress(edge: Edge, principal: Principal, pull_id: str, progress: Pr
         pull = _existing(session, pull_id)
         check_robot(bound, f"pull {pull_id!r}", pull.robot_id)
         _refuse_if_final(pull)
-        if progress.state not in _MOVES[PullState(pull.state)]:
+        if progress.state not in MOVES[PullState(pull.state)]:
             raise ConflictError(
-                f"pull {pull_id!r} is {pull.state}: it can go to {', '.join(sorted(_MOVES[PullState(pull.state)]))}, "
+                f"pull {pull_id!r} is {pull.state}: it can go to {', '.join(sorted(MOVES[PullState(pull.state)]))}, "
                 f"not {progress.state} (a pull is sending before it is done)"
             )
-        if progress.state != pull.state:  # the access line of a report is DEBUG (services/routine_logs.py)
-            log.info("pull %s of run %s: %s -> %s", pull_id, pull.run_id, pull.state, progress.state)
-        pull.state, pull.updated_at = progress.state, edge.clock()
-        pull.chunks_sent, pull.bytes_sent = progress.chunks_sent, progress.bytes_sent
-        pull.error = _plain(progress.error)
+        apply_progress(pull, progress, edge.clock())
         session.flush()
         return {"pull": edge_queries.pull_dict(pull)}
 
 
+def apply_progress(pull: Pull, progress: Progress, now: dt.datetime) -> None:
+    """A report's state and counters on the pull (the move checked by the caller)."""
+    if progress.state != pull.state:  # the access line of a report is DEBUG (services/routine_logs.py)
+        log.info("pull %s of run %s: %s -> %s", pull.id, pull.run_id, pull.state, progress.state)
+    pull.state, pull.updated_at = progress.state, now
+    pull.chunks_sent, pull.bytes_sent = progress.chunks_sent, progress.bytes_sent
+    pull.error = plain_error(progress.error)
+
+
 def cancel_pull(edge: Edge, pull_id: str) -> dict[str, Any]:
-    """`POST /v1/pulls/PULL/cancel`: a pending or sending pull is cancelled (again: as it is); a
-    done or failed one is a 409 naming its state."""
+    """`POST /v1/pulls/PULL/cancel`: a pending, sending or held pull is cancelled (again: as it
+    is); a done or failed one is a 409 naming its state."""
     with session_scope(edge.catalog, write=True) as session:
         pull = _existing(session, pull_id)
         if pull.state in (PullState.DONE, PullState.FAILED):
@@ -171,12 +186,12 @@ def _existing(session: Session, pull_id: str) -> Pull:
 
 
 def _refuse_if_final(pull: Pull) -> None:
-    if pull.state in _FINAL:
+    if pull.state in FINAL:
         stop = "stop sending it" if pull.state == PullState.CANCELLED else "it takes no more reports"
         raise ConflictError(f"pull {pull.id!r} is {pull.state}: {stop}")
 
 
-def _plain(error: str | None) -> str | None:
+def plain_error(error: str | None) -> str | None:
     """An agent's error message as the catalog keeps it: no NUL, at most MAX_ERROR_CHARS."""
     if error is None:
         return None

@@ -1,8 +1,8 @@
 """REST: what a robot's agent asks of the depot (`held`, its pulls, its copies) and what engineers
-ask of robots (pulls). Handlers parse, call one function of the edge package, and leave errors to
-the app's one mapping. Plain `def` handlers: FastAPI runs them on worker threads, so reading a
-sealed run's chunk index never blocks the event loop (`held`, which may ask the node that owns the
-run, is async and does its own work on a worker thread)."""
+ask of robots (pulls of runs, and of events' windows). Handlers parse, call one function of the
+edge package, and leave errors to the app's one mapping. Plain `def` handlers: FastAPI runs them
+on worker threads, so reading a sealed run's chunk index never blocks the event loop (`held`, which
+may ask the node that owns the run, is async and does its own work on a worker thread)."""
 
 from __future__ import annotations
 
@@ -18,7 +18,7 @@ from core.states import PullState
 from services.auth.depends import actor, require
 from services.auth.scopes import Principal, Scope
 from services.cluster import peer
-from services.edge import copies, held, pulls
+from services.edge import copies, held, pulls, triggers
 from services.edge.context import Edge
 from services.ingest.routing import asking_for, owner_elsewhere
 
@@ -86,6 +86,27 @@ def request_pull(
     return answer
 
 
+@router.post(
+    "/v1/events/{event_id}/pull",
+    status_code=202,
+    summary="Ask the robot for an event's window (the one its trigger asked for): queued for its agent",
+    responses={200: {"description": "a pull of the event was pending or sending already: that one"}},
+)
+def pull_event(
+    request: Request,
+    response: Response,
+    event_id: str,
+    principal: Annotated[Principal, Depends(require(Scope.WRITE))],
+) -> dict[str, Any]:
+    """A person's pull of the window the event's newest trigger pull asked for (one held on the
+    robot over its budget, or that failed). 409 for an event no trigger pulled: no window of it is
+    known (pull a window of its run instead)."""
+    answer, created = triggers.pull_event(_edge(request), event_id, actor(request, principal))
+    if not created:
+        response.status_code = 200
+    return answer
+
+
 @router.get("/v1/runs/{run_id}/pulls", summary="A run's pulls, newest first")
 def run_pulls(request: Request, run_id: str, _: Annotated[Principal, Depends(require(Scope.READ))]) -> dict[str, Any]:
     return pulls.run_pulls_answer(_edge(request), run_id)
@@ -104,7 +125,7 @@ def list_pulls(
 
 class ProgressBody(BaseModel):
     model_config = ConfigDict(extra="forbid")
-    state: str = Field(description="sending | done | failed")
+    state: str = Field(description="sending | done | failed | held")
     chunks_sent: Count
     bytes_sent: Count
     error: str | None = Field(None, description="why it failed (kept up to 2000 characters)")
@@ -117,13 +138,14 @@ def pull_progress(
     body: ProgressBody,
     principal: Annotated[Principal, Depends(require(Scope.INGEST, Scope.WRITE))],
 ) -> dict[str, Any]:
-    """pending -> sending -> done | failed, pending -> failed; the same state again updates the
-    counters. A done, failed or cancelled pull answers 409 naming its state."""
+    """pending -> sending -> done | failed, pending -> failed, pending or sending -> held (kept on
+    the robot: over its trigger's budget, `error` saying so); the same state again updates the
+    counters. A done, failed, cancelled or held pull answers 409 naming its state."""
     progress = pulls.Progress(body.state, body.chunks_sent, body.bytes_sent, body.error)
     return pulls.report_progress(_edge(request), principal, pull_id, progress)
 
 
-@router.post("/v1/pulls/{pull_id}/cancel", summary="Cancel a pending or sending pull")
+@router.post("/v1/pulls/{pull_id}/cancel", summary="Cancel a pending or sending pull, or dismiss a held one")
 def cancel_pull(
     request: Request, pull_id: str, _: Annotated[Principal, Depends(require(Scope.WRITE))]
 ) -> dict[str, Any]:

@@ -117,3 +117,38 @@ def test_0006_gives_every_application_already_catalogued_a_dataset(empty_catalog
         assert re.fullmatch(r"[0-9A-F]{16}[0-9a-f]{16}", entry_id), entry_id
         made = dt.datetime.fromtimestamp(int(entry_id[:16], 16) / 1e9, dt.UTC)  # a TUID: its time first
         assert before - dt.timedelta(seconds=1) <= made <= dt.datetime.now(dt.UTC)
+
+
+def test_0012_makes_every_pull_already_queued_a_persons(empty_catalog_url: str):
+    engine = create_engine(empty_catalog_url)
+    now = dt.datetime(2026, 11, 29, 8, 0, tzinfo=dt.UTC)
+    try:
+        _upgrade_to(engine, "0011")
+        with engine.begin() as conn:
+            conn.execute(
+                sa.text(
+                    "INSERT INTO pulls (id, run_id, robot_id, include, exclude, state, requested_by, requested_at, "
+                    "updated_at, chunks_sent, bytes_sent) VALUES ('pull-000000000001', 'run-1', 'robot-1', '[]', "
+                    "'[]', 'pending', 'alice', :now, :now, 0, 0)"
+                ),
+                {"now": now},
+            )
+        upgrade_catalog(engine)
+        with engine.connect() as conn:
+            found = conn.execute(sa.text("SELECT origin, event_id, priority FROM pulls")).all()
+        with engine.begin() as conn:  # a pull written without an origin is a person's
+            conn.execute(
+                sa.text(
+                    "INSERT INTO pulls (id, run_id, robot_id, include, exclude, state, requested_by, requested_at, "
+                    "updated_at, chunks_sent, bytes_sent) VALUES ('pull-000000000002', 'run-1', 'robot-1', '[]', "
+                    "'[]', 'held', 'x', :now, :now, 0, 0)"
+                ),
+                {"now": now},
+            )
+            added = conn.execute(sa.text("SELECT origin FROM pulls WHERE id = 'pull-000000000002'")).scalar()
+            with pytest.raises(sa.exc.DBAPIError), conn.begin_nested():  # never without one
+                conn.execute(sa.text("UPDATE pulls SET origin = NULL"))
+    finally:
+        engine.dispose()
+    assert [tuple(row) for row in found] == [("person", None, None)]
+    assert added == "person"

@@ -1,6 +1,7 @@
-"""`fleet rules apply|show|history`, `fleet runs annotate|tag|untag` and `fleet events ls|view`
-against a real `fleet serve` with auth on: the admin token found beside the service, a read token
-refused on writes in one line, and an event's signed viewer link opened with no header."""
+"""`fleet rules apply|show|history`, `fleet runs annotate|tag|untag` and `fleet events
+ls|view|pull` against a real `fleet serve` with auth on: the admin token found beside the service, a
+read token refused on writes in one line, an event's signed viewer link opened with no header, and
+the events whose window is still on the robot listed and pulled."""
 
 from __future__ import annotations
 
@@ -148,4 +149,38 @@ def test_tag_and_untag(depot: LiveServer, run_id: str):
     unknown = fleet(depot, "runs", "tag", "no-such-run", "x")
     assert unknown.returncode == 1 and "no run 'no-such-run'" in unknown.stderr
     as_reader = fleet(depot, "runs", "untag", run_id, "night-shift", token=read_token(depot))
+    assert as_reader.returncode == 1 and "needs the 'write' scope" in as_reader.stderr
+
+
+def test_events_waiting_for_their_window_and_pulling_one(depot: LiveServer, run_id: str):
+    body = {
+        "pull_id": "pull-00000000c11a",
+        "rules_version": 1,
+        "event": {"kind": "slow", "severity": "warn", "timeline": "frame", "timeline_type": "sequence",
+                  "start": 120, "end": 121},
+        "window": {"timeline": "frame", "start": "110", "end": "126", "include": ["/points/**"]},
+        "priority": "normal", "state": "held", "error": "over budget: 0 bytes left today",
+    }  # fmt: skip
+    reported = httpx.post(f"{depot.url}/v1/runs/{run_id}/triggered", json=body, headers=depot.headers, timeout=30)
+    assert reported.status_code == 201, reported.text
+    event_id = reported.json()["event"]["id"]
+    table = fleet(depot, "events", "ls", "--pending")
+    assert table.returncode == 0 and event_id in table.stdout and "held on robot: over budget" in table.stdout
+    waiting = json.loads(fleet(depot, "events", "ls", "--pending", "--json").stdout)["events"]
+    assert [e["id"] for e in waiting] == [event_id]  # the annotations and others: none waits for a window
+
+    pulled = fleet(depot, "events", "pull", event_id)
+    assert pulled.returncode == 0, pulled.stderr
+    pull_id = pulled.stdout.split(":")[0]
+    assert pulled.stdout.startswith("pull-") and "pending" in pulled.stdout and "frame 110..126" in pulled.stdout
+    again = json.loads(fleet(depot, "events", "pull", event_id, "--json").stdout)
+    assert again["id"] == pull_id and (again["origin"], again["event_id"]) == ("person", event_id)
+    shown = json.loads(fleet(depot, "events", "view", event_id, "--json").stdout)
+    assert shown["data"]["state"] == "pending" and shown["data"]["pulls"][0]["id"] == pull_id
+
+    made = fleet(depot, "runs", "annotate", run_id, "--timeline", "frame", "--start", "5", "--json")
+    annotation = json.loads(made.stdout)["id"]
+    refused = fleet(depot, "events", "pull", annotation)
+    assert refused.returncode == 1 and "pulled by no trigger" in refused.stderr
+    as_reader = fleet(depot, "events", "pull", event_id, token=read_token(depot))
     assert as_reader.returncode == 1 and "needs the 'write' scope" in as_reader.stderr

@@ -1,6 +1,7 @@
 """The corpus in the console (auth on, on each catalog): a run's events, metrics and tags on its
 page (events marked on the coverage, each opening the viewer at its window), tags and annotations
-edited with `write` and refused without it, and the Events page's filters and paging."""
+edited with `write` and refused without it, and the Events page's filters and paging, and where each
+event's window is, with a writer's button that pulls one left on the robot."""
 
 from __future__ import annotations
 
@@ -251,3 +252,71 @@ def test_the_events_page_filters_and_pages_like_the_api(console: Depot) -> None:
     assert browser.get("/console/events?cursor=not-one").status_code == 422
     # Without a session: to the login page.
     assert TestClient(console.app).get("/console/events", follow_redirects=False).status_code == 303
+
+
+def _held_event(console: Depot) -> str:
+    """A trigger the run's robot fired and held on the robot (over its budget); its event's id."""
+    body = {
+        "pull_id": "pull-00000000be1d",
+        "rules_version": 1,
+        "event": {"kind": "slow", "severity": "warn", "timeline": "frame", "timeline_type": "sequence",
+                  "start": 102, "end": 102},
+        "window": {"timeline": "frame", "start": "100", "end": "105", "include": ["/points/**"]},
+        "priority": "normal", "state": "held", "error": "over budget: 0 bytes left today",
+    }  # fmt: skip
+    reported = console.client.post(f"/v1/runs/{RUN}/triggered", json=body, headers=bearer(console.token("write")))
+    assert reported.status_code == 201, reported.text
+    return str(reported.json()["event"]["id"])
+
+
+def _data_cell(page: str, event_id: str) -> str:
+    row = re.search(rf'<tr data-event="{event_id}".*?</tr>', page, re.S)
+    assert row, f"no row of {event_id}"
+    return row.group(0)
+
+
+def test_the_events_page_says_where_a_window_is_and_a_writer_pulls_it(console: Depot) -> None:
+    event_id = _held_event(console)
+    reader = signed_in(console, "read")
+    row = _data_cell(reader.get("/console/events").text, event_id)
+    assert 'data-state="held on robot: over budget"' in row and "pull-00000000be1d: trigger, held" in row
+    assert "over budget: 0 bytes left today" in row and "Pull it" not in row  # no button for a reader
+    refused = reader.post(f"/console/events/{event_id}/pull", data={"csrf": csrf(reader.get("/console").text)})
+    assert refused.status_code == 403 and "write" in refused.text
+
+    alice = signed_in(console, "write", name="alice")
+    page = alice.get("/console/events?kind=slow")
+    row = _data_cell(page.text, event_id)
+    assert f'action="/console/events/{event_id}/pull"' in row
+    assert alice.post(f"/console/events/{event_id}/pull", data={"back": "/console/events"}).status_code == 403
+    token = csrf(page.text)
+    pulled = alice.post(
+        f"/console/events/{event_id}/pull",
+        data={"csrf": token, "back": "/console/events?kind=slow"},
+        follow_redirects=False,
+    )
+    assert pulled.status_code == 303 and pulled.headers["location"] == "/console/events?kind=slow&done=pulled"
+    after = alice.get(pulled.headers["location"])
+    assert 'id="notice"' in after.text
+    row = _data_cell(after.text, event_id)
+    assert 'data-state="pending"' in row and "alice" not in row and "Pull it" not in row
+    pulls = console.client.get(f"/v1/runs/{RUN}/pulls", headers=bearer(console.token("read"))).json()["pulls"]
+    assert (pulls[0]["origin"], pulls[0]["requested_by"], pulls[0]["event_id"]) == ("person", "alice", event_id)
+    again = alice.post(
+        f"/console/events/{event_id}/pull",
+        data={"csrf": token, "back": "https://elsewhere.example/"},
+        follow_redirects=False,
+    )
+    assert again.headers["location"] == "/console/events?done=pull-pending"  # never off the console's page
+    annotated = alice.post(f"/console/runs/{RUN}/annotate", data={"csrf": token, "timeline": "frame", "start": "101"})
+    assert annotated.status_code == 200
+    (annotation,) = [e["id"] for e in corpus_events(console) if e["origin"] == "person"]
+    no_window = alice.post(f"/console/events/{annotation}/pull", data={"csrf": token})
+    assert no_window.status_code == 409 and "pulled by no trigger" in no_window.text
+
+
+def corpus_events(console: Depot) -> list[dict[str, object]]:
+    found: list[dict[str, object]] = console.client.get("/v1/events", headers=bearer(console.token("read"))).json()[
+        "events"
+    ]
+    return found

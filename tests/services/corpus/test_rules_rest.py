@@ -115,15 +115,18 @@ def test_the_body_is_the_toml_file(depot: Depot):
     assert depot.client.get("/v1/rules", headers=bearer(token)).json()["version"] == 1
 
 
-def test_applying_needs_write_and_reading_needs_read(depot: Depot):
+def test_applying_needs_write_and_reading_needs_read_or_a_robots_token(depot: Depot):
     reader = sdk(depot, depot.token("read"))
     refused(lambda: reader.apply_rules(RULES), 403, "needs the 'write' scope")
+    sdk(depot, depot.token("write")).apply_rules(RULES)
     robot = sdk(depot, depot.token("ingest", robot="robot-7"))
-    refused(lambda: robot.rules(), 403, "needs the 'read' scope")
+    assert robot.rules() == reader.rules()  # a robot's agent reads the rules it evaluates
+    assert robot.rules(version=1)["version"] == 1
+    refused(lambda: robot.rules(version=2), 404, "no rules version 2")
+    refused(lambda: robot.apply_rules(MORE), 403, "needs the 'write' scope")
     refused(lambda: robot.rules_history(), 403, "needs the 'read' scope")
     for method, path in (("PUT", "/v1/rules"), ("GET", "/v1/rules"), ("GET", "/v1/rules/history")):
         assert depot.client.request(method, path, content=RULES).status_code == 401
-    assert reader.rules()["version"] is None
 
 
 def test_two_applies_at_once_one_is_told_to_apply_again(depot: Depot, monkeypatch):

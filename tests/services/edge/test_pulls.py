@@ -74,6 +74,9 @@ def test_a_pull_is_queued_for_the_runs_robot(edge: Edge, run: str, clock: Clock)
         "chunks_sent": 0,
         "bytes_sent": 0,
         "error": None,
+        "origin": "person",
+        "event_id": None,
+        "priority": None,
     }
     assert str(made["requested_at"]).startswith(clock.now.strftime("%Y-%m-%dT%H:%M"))
 
@@ -242,7 +245,7 @@ def test_only_the_pulls_robot_or_a_writer_reports_progress(edge: Edge, run: str)
 def test_progress_says_what_an_agent_may_report(edge: Edge, run: str):
     pull_id = str(pull(edge)["id"])
     for state in ("pending", "cancelled", "finished"):
-        with refused(BadParameterError, 422, "parameter 'state'", "is not one of sending, done, failed"):
+        with refused(BadParameterError, 422, "parameter 'state'", "is not one of sending, done, failed, held"):
             progress(edge, pull_id, state)
 
 
