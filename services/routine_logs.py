@@ -1,6 +1,6 @@
 """Routine requests logged at DEBUG: a robot's agent polls the depot for pulls every few seconds
-(FLEET_AGENT_PULL_POLL_S), reports a pull's progress and, after each FileSink write, its copy of
-the run. At INFO those would be a line per poll on both sides, drowning the lines that say what
+(FLEET_AGENT_PULL_POLL_S) and for its rules (FLEET_AGENT_RULES_POLL_S), reports a pull's progress
+and, after each FileSink write, its copy of the run. At INFO those would be a line per poll on both sides, drowning the lines that say what
 changed (a pull taken on or done, a run forwarded, a link down), which stay at INFO."""
 
 from __future__ import annotations
@@ -8,7 +8,7 @@ from __future__ import annotations
 import logging
 
 # Paths of the agent's routine calls, as access lines (depot) and request lines (agent) show them.
-ROUTINE_PATHS = ("/v1/pulls", "/robot-copy")
+ROUTINE_PATHS = ("/v1/pulls", "/robot-copy", "GET /v1/rules HTTP/", '/v1/rules "')
 # The loggers that write a line per routine event, and what marks one: uvicorn's access log (depot)
 # and httpx (the agent's calls) a line per request; watchfiles a line per FileSink write the agent
 # wakes up for ("1 change detected").

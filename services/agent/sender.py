@@ -320,33 +320,41 @@ class RunSender:
         self.wake.set()
 
     async def _plan_pulls(self) -> None:
-        """A lane per pull not yet written: the chunks of it the depot lacks."""
-        for job in self.pulls:
-            if job.written_at_check is None:
+        """A lane per pull not yet written and without one: the chunks of it the depot lacks."""
+        laned = {id(lane.job) for lane in self.lanes if lane.job is not None}
+        for job in list(self.pulls):  # (one the depot holds already is done and leaves the list)
+            if job.written_at_check is None and id(job) not in laned:
                 await self._queue_pull(job)
 
     async def _queue_pull(self, job: PullJob) -> None:
-        """A lane of the chunks of `job` the depot lacks and no other pull's lane holds (two windows
-        that overlap, a person's pull of a window a trigger sends: each chunk goes once; the later
-        job is done once the depot holds all of its chunks, whoever sent them)."""
+        """A lane of the chunks of `job` the depot lacks that nothing else sends: chunks the live
+        rules forward go with the run's own stream (live, backfill or a resend), and another pull's
+        lane may hold some (two windows that overlap, a person's pull of a window a trigger sends).
+        Each chunk goes once; the job is done once the depot holds all of its chunks, whoever sent them."""
         missing = await self._missing(job.entries, pulled=True)
+        if not missing:
+            await self._pull_done(job)  # the depot holds all of it already
+            return
         queued = {e.meta.chunk_id for lane in self.lanes if lane.job is not None for e in lane.entries if e.meta}
-        missing = [e for e in missing if e.meta is not None and e.meta.chunk_id not in queued]
-        self.lanes.append(Lane(job.priority, entries=deque(missing), on_sent=job.count, job=job))
+        mine = [e for e in missing if e.meta is not None and e.meta.chunk_id not in queued and not self._forwarded(e)]
+        if not mine:
+            job.written_at_check = self.checks  # sent by others: asked about at a later check
+            return
+        self.lanes.append(Lane(job.priority, entries=deque(mine), on_sent=job.count, job=job))
+
+    async def _pull_done(self, job: PullJob) -> None:
+        if job in self.pulls:
+            self.pulls.remove(job)
+        await self._relearn_after_pull()
+        job.done.set()
 
     async def _verify_pulls(self) -> None:
         """Pulls written before the previous check: done if the depot holds them, else sent again."""
         for job in list(self.pulls):
             if job.written_at_check is None or job.written_at_check >= self.checks - 1:
                 continue
-            missing = await self._missing(job.entries, pulled=True)
-            if missing:
-                job.written_at_check = None
-                await self._queue_pull(job)
-            else:
-                self.pulls.remove(job)
-                await self._relearn_after_pull()
-                job.done.set()
+            job.written_at_check = None
+            await self._queue_pull(job)  # done if the depot holds it all; else what it lacks sent again
 
     async def _relearn_after_pull(self) -> None:
         """A pull put chunks at the depot that were on the robot only: ask again what still is. Not
@@ -388,6 +396,9 @@ class RunSender:
     async def _pump(self, call: Any, generation: int) -> None:
         """Send lane by lane, highest priority first, until all is sent and the run stays quiet."""
         while True:
+            if self.wake.is_set():  # a pull (or a trigger's window) added while the run streams
+                self.wake.clear()
+                await self._plan_pulls()
             lane, entries = await asyncio.to_thread(self._next_batch)
             if lane is None:
                 run = self._run()
@@ -397,12 +408,10 @@ class RunSender:
                     return
                 seen = run.changes.count
                 if self._size() > self.sent_until or self.wake.is_set():
-                    self.wake.clear()
                     continue
                 await self._maybe_check()
                 with contextlib.suppress(TimeoutError):
                     await asyncio.wait_for(self._woken(run.changes, seen), min(LINGER_S, self.ctx.check_s))
-                self.wake.clear()
                 continue
             self.last_append = time.monotonic()
             requests = await asyncio.to_thread(self._read, entries)

@@ -149,7 +149,8 @@ class AgentState:
         self._write(
             "INSERT INTO pulls (pull_id, run_id, state, chunks_sent, bytes_sent, spec, updated_at) "
             "VALUES (?, ?, ?, ?, ?, ?, ?) ON CONFLICT (pull_id) DO UPDATE SET state = excluded.state, "
-            "chunks_sent = excluded.chunks_sent, bytes_sent = excluded.bytes_sent, updated_at = excluded.updated_at",
+            "chunks_sent = excluded.chunks_sent, bytes_sent = excluded.bytes_sent, spec = excluded.spec, "
+            "updated_at = excluded.updated_at",
             pull.pull_id,
             pull.run_id,
             pull.state,

@@ -344,24 +344,25 @@ class Triggers:
 
     async def _tell(self, window: Window) -> None:
         """A window fired here: the first report files the event and the window (the depot answers
-        with its own pull when it fired first: the same report goes on naming both). A window the
-        depot fired: its pull's progress. Pulls of the same window the depot queued: told the same."""
+        with its own pull when it fired first: progress then goes to that one). A window the depot
+        fired: its pull's progress. Other pulls of the same window the depot queued: told the same."""
         link = self.agent.link
-        if not window.from_depot:
+        targets = [window.depot_pull or window.pull_id]
+        if not window.from_depot and window.depot_pull in (None, window.pull_id):
             answer: dict[str, Any] = await link.call(link.api.report_triggered, window.run_id, window.report())
             window.depot_pull = str((answer.get("pull") or {}).get("id") or window.pull_id)
             window.event_id = (answer.get("event") or {}).get("id") or window.event_id
+            targets = [] if window.depot_pull == window.pull_id else [window.depot_pull]  # the report moved ours
         if window.state == WAITING:
             return
-        told = [window.pull_id] if window.from_depot else []
-        for pull_id in [*told, *window.also]:
+        for pull_id in [*targets, *window.also]:
             try:
                 await link.call(
                     link.api.pull_progress,
                     pull_id,
                     state=DEPOT_STATE[window.state],
-                    chunks_sent=window.chunks_sent if pull_id == window.pull_id else 0,
-                    bytes_sent=window.bytes_sent if pull_id == window.pull_id else 0,
+                    chunks_sent=window.chunks_sent if pull_id == window.depot_pull else 0,
+                    bytes_sent=window.bytes_sent if pull_id == window.depot_pull else 0,
                     error=window.error,
                 )
             except DepotRefused as exc:  # done or cancelled there already: nothing more to tell

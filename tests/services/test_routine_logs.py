@@ -46,10 +46,14 @@ def test_polls_and_reports_are_not_info_lines(kept: Kept):
     access.info(ACCESS, "127.0.0.1:5", "PUT", "/v1/runs/run-1/robot-copy", "1.1", 200)
     access.info(ACCESS, "127.0.0.1:5", "POST", "/v1/pulls/pull-1/progress", "1.1", 200)
     agent.info(REQUEST, "GET", "http://depot/v1/pulls?state=sending", "HTTP/1.1", 200, "OK")
+    access.info(ACCESS, "127.0.0.1:5", "GET", "/v1/rules", "1.1", 200)  # the rules poll
+    agent.info(REQUEST, "GET", "http://depot/v1/rules", "HTTP/1.1", 200, "OK")
     assert kept.lines == []  # DEBUG, and these loggers log INFO
     access.info(ACCESS, "127.0.0.1:5", "GET", "/v1/runs/run-1", "1.1", 200)
     access.warning(ACCESS, "127.0.0.1:5", "GET", "/v1/pulls", "1.1", 500)
-    assert [level for level, _ in kept.lines] == ["INFO", "WARNING"]
+    access.info(ACCESS, "127.0.0.1:5", "PUT", "/v1/rules", "1.1", 200)  # a person applying rules
+    access.info(ACCESS, "127.0.0.1:5", "GET", "/v1/rules/history", "1.1", 200)
+    assert [level for level, _ in kept.lines] == ["INFO", "WARNING", "INFO", "INFO"]
 
 
 def test_at_debug_they_are_shown_as_debug(kept: Kept):
