@@ -154,7 +154,7 @@ def main(argv: list[str] | None = None) -> None:
 
 def report(results: list[dict[str, Any]], args: argparse.Namespace) -> None:
     def median(name: str, key: str) -> float:
-        return statistics.median(r[key] for r in results if r["phase"] == name)
+        return float(statistics.median(float(r[key]) for r in results if r["phase"] == name))
 
     summary = {
         "agent_cpu_pct_peer": median("peer", "agent_cpu_pct"),
@@ -171,7 +171,7 @@ def report(results: list[dict[str, Any]], args: argparse.Namespace) -> None:
         ["brake -> window held at the depot, s", f"{summary['brake_to_held_s']:.2f}", "-"],
         [f"  of which after the window's end (+{AFTER_S} s), s", f"{summary['after_window_end_s']:.2f}", "-"],
     ]
-    print(format_table(["", "agent with triggers", "agent, summary only (peer)"], rows))
+    print(format_table(["", "agent with triggers", "agent, summary only (peer)"], rows, "lrr"))
 
 
 if __name__ == "__main__":

@@ -1,7 +1,8 @@
 """Routine requests logged at DEBUG: a robot's agent polls the depot for pulls every few seconds
 (FLEET_AGENT_PULL_POLL_S) and for its rules (FLEET_AGENT_RULES_POLL_S), reports a pull's progress
-and, after each FileSink write, its copy of the run. At INFO those would be a line per poll on both sides, drowning the lines that say what
-changed (a pull taken on or done, a run forwarded, a link down), which stay at INFO."""
+and, after each FileSink write, its copy of the run. At INFO those would be a line per poll on both
+sides, drowning the lines that say what changed (a pull taken on or done, a run forwarded, a link
+down), which stay at INFO."""
 
 from __future__ import annotations
 
