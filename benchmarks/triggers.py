@@ -30,6 +30,7 @@ import json
 import statistics
 import sys
 import tempfile
+import threading
 import time
 from pathlib import Path
 from typing import Any
@@ -63,18 +64,33 @@ POLL_S = 0.05
 HELD_TIMEOUT_S = 120.0
 
 
-def held_at(depot: FleetServer, run_id: str) -> float:
-    """When the depot's hard_brake event of the run first says its window is held (wall clock)."""
-    deadline = time.monotonic() + HELD_TIMEOUT_S
-    with httpx.Client(base_url=f"http://127.0.0.1:{depot.http_port}", timeout=10) as client:
-        while time.monotonic() < deadline:
-            answer = client.get(f"/v1/runs/{run_id}/events")
-            if answer.status_code == 200:
-                for event in answer.json()["events"]:
-                    if event["kind"] == "hard_brake" and (event.get("data") or {}).get("state") == "held":
-                        return time.time()
-            time.sleep(POLL_S)  # polling the depot, bounded by the deadline
-    raise SystemExit(f"the brake's window was not held at the depot after {HELD_TIMEOUT_S:g} s")
+class HeldWatch:
+    """On a thread from the robot's start: when the depot's hard_brake event of the run first says
+    its window is held (wall clock)."""
+
+    def __init__(self, depot: FleetServer, run_id: str) -> None:
+        self.depot, self.run_id = depot, run_id
+        self.at: float | None = None
+        self.thread = threading.Thread(target=self._watch, daemon=True)
+        self.thread.start()
+
+    def _watch(self) -> None:
+        deadline = time.monotonic() + HELD_TIMEOUT_S
+        with httpx.Client(base_url=f"http://127.0.0.1:{self.depot.http_port}", timeout=10) as client:
+            while time.monotonic() < deadline:
+                answer = client.get(f"/v1/runs/{self.run_id}/events")
+                if answer.status_code == 200:
+                    for event in answer.json()["events"]:
+                        if event["kind"] == "hard_brake" and (event.get("data") or {}).get("state") == "held":
+                            self.at = time.time()
+                            return
+                time.sleep(POLL_S)  # polling the depot, bounded by the deadline
+
+    def result(self) -> float:
+        self.thread.join()
+        if self.at is None:
+            raise SystemExit(f"the brake's window was not held at the depot after {HELD_TIMEOUT_S:g} s")
+        return self.at
 
 
 def set_rules(depot: FleetServer, text: str) -> None:
@@ -92,6 +108,7 @@ def phase(name: str, depot: FleetServer, args: argparse.Namespace, workdir: Path
         rules_poll_s="0.5",
         pull_poll_s="0.5",
     )
+    agent.workdir.mkdir()
     agent.start()
     try:
         time.sleep(2)  # the agent's first polls of the rules (every 0.5 s): it runs them before the robot starts
@@ -109,13 +126,14 @@ def phase(name: str, depot: FleetServer, args: argparse.Namespace, workdir: Path
         try:
             cpu0 = meter.cpu_s()
             log(f"{name} #{turn + 1}: streaming {args.seconds:g} s at {args.rate_hz:g} Hz ...")
+            watch = HeldWatch(depot, run_id) if name == "rules" else None
             robot.go()
             figures = robot.result()
             cpu = meter.cpu_s() - cpu0
             stream_s = figures["flushed"] - figures["start"]
             result = {"phase": name, "agent_cpu_s": cpu, "agent_cpu_pct": 100 * cpu / stream_s}
-            if name == "rules":
-                latency = held_at(depot, run_id) - float(figures["brake_wall"])
+            if watch is not None:
+                latency = watch.result() - float(figures["brake_wall"])
                 result |= {"brake_to_held_s": latency, "after_window_end_s": latency - AFTER_S}
             robot.finish()
             return result
@@ -138,7 +156,7 @@ def main(argv: list[str] | None = None) -> None:
         parser.error(f"--brake-at must leave the window's {AFTER_S} s after it within --seconds")
     with tempfile.TemporaryDirectory(prefix="fleet-triggers-bench-") as tmp:
         workdir = Path(tmp)
-        depot = FleetServer(workdir / "depot")
+        depot = FleetServer(workdir)
         depot.start()
         try:
             results = []

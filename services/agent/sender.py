@@ -44,6 +44,7 @@ BACKFILL_SPLIT_BYTES = 1 << 20  # a gap larger than this at reconnect is sent be
 LINGER_S = 5.0  # a closed run's stream stays open this long for more (a watched file still growing)
 BATCH_BYTES = 1 << 20  # read from the spool file at once
 SEALED = "warm"
+PULL_CONFIRM_S = 1.0  # a written pull is asked about this often until the depot holds all of it
 
 
 class Forwarding:
@@ -87,6 +88,7 @@ class RunSender:
         self.settled = False  # what was in flight at the last break was asked about
         self.streaming = False
         self.last_check = time.monotonic()
+        self.last_confirm = time.monotonic()
         self.checks = 0
         self.last_append = time.monotonic()
         self.pulls: list[PullJob] = []
@@ -381,7 +383,7 @@ class RunSender:
         await self._maybe_check()
         if self._size() <= self.sent_until and not self.wake.is_set():
             with contextlib.suppress(TimeoutError):
-                await asyncio.wait_for(self._woken(run.changes, seen), self.ctx.check_s)
+                await asyncio.wait_for(self._woken(run.changes, seen), self._wait_s(self.ctx.check_s))
         self.wake.clear()
         self.lanes.clear()
 
@@ -411,7 +413,9 @@ class RunSender:
                     continue
                 await self._maybe_check()
                 with contextlib.suppress(TimeoutError):
-                    await asyncio.wait_for(self._woken(run.changes, seen), min(LINGER_S, self.ctx.check_s))
+                    await asyncio.wait_for(
+                        self._woken(run.changes, seen), self._wait_s(min(LINGER_S, self.ctx.check_s))
+                    )
                 continue
             self.last_append = time.monotonic()
             requests = await asyncio.to_thread(self._read, entries)
@@ -503,9 +507,25 @@ class RunSender:
         starts += [lane.entries[0].offset for lane in self.lanes if lane.entries]
         return min(starts) if starts else None
 
+    def _wait_s(self, idle_s: float) -> float:
+        """How long to wait for more data: shorter while a written pull is to be confirmed."""
+        return min(idle_s, PULL_CONFIRM_S) if any(job.written_at_check is not None for job in self.pulls) else idle_s
+
+    async def _confirm_pulls(self) -> None:
+        """Every PULL_CONFIRM_S, written pulls the depot holds whole are done (a trigger's window
+        is known at the depot about a second after its last chunk, not at the next check). What it
+        still lacks is sent again only at a later check: it may be on its way."""
+        if time.monotonic() - self.last_confirm < PULL_CONFIRM_S:
+            return
+        self.last_confirm = time.monotonic()
+        for job in [job for job in self.pulls if job.written_at_check is not None]:
+            if not await self._missing(job.entries, pulled=True):
+                await self._pull_done(job)
+
     async def _maybe_check(self) -> None:
         """Every `check_s`: ask about what was sent before the previous check, and, for a closed run
         all held, whether the depot sealed it."""
+        await self._confirm_pulls()
         if time.monotonic() - self.last_check < self.ctx.check_s:
             return
         self.last_check = time.monotonic()
