@@ -14,7 +14,9 @@ import numpy as np
 import pytest
 import rerun as rr
 
+from services.agent.bandwidth import Priority
 from services.agent.link import Held
+from services.agent.pulls import PullSpec
 from services.agent.service import Agent
 from services.agent.settings import load_agent_settings
 from services.agent.windows import DONE, HELD, SENDING
@@ -139,3 +141,92 @@ def test_each_brake_fires_one_window_sent_within_its_budget(agent: Agent, tmp_pa
     if budget > 1:
         assert {w.state for w in agent.triggers.windows.values()} == {DONE}
         assert agent.triggers.protected_runs() == set()
+
+
+class Progress(Depot):
+    """The stand-in depot, also taking pull progress reports."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.progress: list[tuple[str, str]] = []
+
+    async def call(self, fn: Any, *args: Any, **kwargs: Any) -> Any:
+        if fn == "pull_progress":
+            self.progress.append((args[0], kwargs["state"]))
+            return {}
+        return await super().call(fn, *args, **kwargs)
+
+    @property
+    def api(self) -> Any:
+        class Api:
+            report_triggered = "report_triggered"
+            pull_progress = "pull_progress"
+
+        return Api()
+
+
+def test_a_window_the_depot_fired_is_sent_and_its_pull_told(agent: Agent, tmp_path: Path):
+    """An agent without the rules yet (they changed at the depot a moment ago): the depot's live rules
+    found the brake in the summary and queued its window; the agent serves it as a window."""
+    depot = Progress()
+    agent.link = depot  # type: ignore[assignment]
+    started: list[Any] = []
+    agent.sender_for = lambda run_id: type("S", (), {"add_pull": started.append})()  # type: ignore[method-assign]
+    path = tmp_path / "drive.rrd"
+    drive(path, 60, {20})
+    file_drive(agent, path)
+    start, end = START_NS + 10 * FRAME_NS, START_NS + 31 * FRAME_NS
+    pull = {
+        "id": "pull-00000000d3a0",
+        "run_id": "run-unit",
+        "include": ["/camera/**"],
+        "timeline": "sim_time",
+        "start": str(start),
+        "end": str(end),
+        "origin": "trigger",
+        "priority": "high",
+        "event_id": "ev-0000000000000001",
+    }
+    agent.triggers.take_depot_pull(PullSpec.of(pull))
+    agent.triggers.take_depot_pull(PullSpec.of(pull))  # polled again: the same window
+    run = asyncio.get_event_loop().run_until_complete
+    run(agent.triggers.tick())
+    (window,) = agent.triggers.windows.values()
+    assert window.from_depot and (window.start, window.end) == (start, end) and window.state == SENDING
+    assert [job.pull_id for job in started] == ["pull-00000000d3a0"]
+    assert started[0].priority == Priority.TRIGGER
+    assert depot.reports == []  # no event to file: the depot found it
+    assert depot.progress == [("pull-00000000d3a0", "sending")]
+    started[0].done.set()
+    run(agent.triggers.tick())
+    assert depot.progress[-1] == ("pull-00000000d3a0", "done") and window.state == DONE
+
+
+def test_a_depot_pull_of_a_window_the_robot_fired_sends_nothing_more(agent: Agent, tmp_path: Path):
+    agent.rules.take({"version": 1, "text": RULES.replace("BUDGET", "1000000000")})
+    depot = Progress()
+    agent.link = depot  # type: ignore[assignment]
+    started: list[Any] = []
+    agent.sender_for = lambda run_id: type("S", (), {"add_pull": started.append})()  # type: ignore[method-assign]
+    path = tmp_path / "drive.rrd"
+    drive(path, 60, {20})
+    file_drive(agent, path)
+    run = asyncio.get_event_loop().run_until_complete
+    run(agent.triggers.tick())
+    (mine,) = agent.triggers.windows.values()
+    overlapping = {  # the depot's own window of the same brake (its live rules found it too)
+        "id": "pull-00000000beef",
+        "run_id": "run-unit",
+        "include": ["/camera/**"],
+        "timeline": "sim_time",
+        "start": str(mine.start + FRAME_NS),
+        "end": str(mine.end),
+        "origin": "trigger",
+        "priority": "high",
+    }
+    agent.triggers.take_depot_pull(PullSpec.of(overlapping))
+    assert list(agent.triggers.windows) == [mine.pull_id] and mine.also == ["pull-00000000beef"]
+    assert len(started) == 1  # one window sent
+    started[0].done.set()
+    run(agent.triggers.tick())
+    assert ("pull-00000000beef", "done") in depot.progress  # told as the robot's own window is
