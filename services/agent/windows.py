@@ -18,6 +18,7 @@ from typing import Any
 from core.errors import FleetError
 from services.agent.pulls import PullSpec
 from services.agent.state import AgentState, PullState
+from services.edge.triggers import steps
 from services.rules.evaluate import FoundEvent
 from services.rules.triggers import TriggerRule
 from services.runs.download import parse_time_value
@@ -30,7 +31,6 @@ FAILED = "failed"  # its run left the spool, or the depot takes no data for it
 OPEN_STATES = (WAITING, SENDING, HELD)  # the robot keeps its run
 DEPOT_STATE = {WAITING: "pending", SENDING: "sending", HELD: "held", DONE: "done", FAILED: "failed"}
 TRIGGER_KIND = "trigger"  # the `kind` in a window's saved spec (a person's pull has none)
-NS = 1_000_000_000
 
 
 def new_pull_id() -> str:
@@ -43,8 +43,8 @@ def trigger_key(rule: TriggerRule) -> str:
 
 
 def window_bounds(event: FoundEvent, rule: TriggerRule) -> tuple[int, int]:
-    scale = 1 if event.timeline_type == "sequence" else NS
-    return event.start - round(rule.before_s * scale), event.end + round(rule.after_s * scale)
+    """As the depot bounds the windows it fires (services/edge/triggers.py): steps rounded up."""
+    return event.start - steps(rule.before_s, event.timeline_type), event.end + steps(rule.after_s, event.timeline_type)
 
 
 @dataclass

@@ -23,6 +23,8 @@ def test_window_bounds_by_timeline_type():
     assert window_bounds(found("timestamp", 100 * 10**9, 101 * 10**9), RULE) == (90 * 10**9, 106 * 10**9)
     assert window_bounds(found("duration", 100 * 10**9, 100 * 10**9), RULE) == (90 * 10**9, 105 * 10**9)
     assert window_bounds(found("sequence", 100, 102), RULE) == (90, 107)  # steps on a sequence timeline
+    halves = TriggerRule(("hard_brake",), ("/camera/**",), before_s=1.5, after_s=0.2)
+    assert window_bounds(found("sequence", 100, 100), halves) == (98, 101)  # rounded up, as the depot does
 
 
 def test_windows_survive_a_restart_and_a_persons_pull_is_not_one(tmp_path: Path):
