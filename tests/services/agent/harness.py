@@ -110,11 +110,11 @@ class AgentProcess:
 
 
 class Robot:
-    """robot.py in its own process, driven over stdin/stdout."""
+    """robot.py (or another `script`) in its own process, driven over stdin/stdout."""
 
-    def __init__(self, *args: str) -> None:
+    def __init__(self, *args: str, script: str = ROBOT) -> None:
         self.proc = subprocess.Popen(
-            [sys.executable, ROBOT, *args],
+            [sys.executable, script, *args],
             stdin=subprocess.PIPE,
             stdout=subprocess.PIPE,
             stderr=subprocess.PIPE,

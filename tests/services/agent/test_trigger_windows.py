@@ -165,9 +165,8 @@ class Progress(Depot):
         return Api()
 
 
-def test_a_window_the_depot_fired_is_sent_and_its_pull_told(agent: Agent, tmp_path: Path):
-    """An agent without the rules yet (they changed at the depot a moment ago): the depot's live rules
-    found the brake in the summary and queued its window; the agent serves it as a window."""
+def one_brake(agent: Agent, tmp_path: Path) -> tuple[Progress, list[Any]]:
+    """A drive with one brake filed into the spool; the stand-in depot, and the jobs senders get."""
     depot = Progress()
     agent.link = depot  # type: ignore[assignment]
     started: list[Any] = []
@@ -175,6 +174,13 @@ def test_a_window_the_depot_fired_is_sent_and_its_pull_told(agent: Agent, tmp_pa
     path = tmp_path / "drive.rrd"
     drive(path, 60, {20})
     file_drive(agent, path)
+    return depot, started
+
+
+def test_a_window_the_depot_fired_is_sent_and_its_pull_told(agent: Agent, tmp_path: Path):
+    """An agent without the rules yet (they changed at the depot a moment ago): the depot's live rules
+    found the brake in the summary and queued its window; the agent serves it as a window."""
+    depot, started = one_brake(agent, tmp_path)
     start, end = START_NS + 10 * FRAME_NS, START_NS + 31 * FRAME_NS
     pull = {
         "id": "pull-00000000d3a0",
@@ -204,13 +210,7 @@ def test_a_window_the_depot_fired_is_sent_and_its_pull_told(agent: Agent, tmp_pa
 
 def test_a_depot_pull_of_a_window_the_robot_fired_sends_nothing_more(agent: Agent, tmp_path: Path):
     agent.rules.take({"version": 1, "text": RULES.replace("BUDGET", "1000000000")})
-    depot = Progress()
-    agent.link = depot  # type: ignore[assignment]
-    started: list[Any] = []
-    agent.sender_for = lambda run_id: type("S", (), {"add_pull": started.append})()  # type: ignore[method-assign]
-    path = tmp_path / "drive.rrd"
-    drive(path, 60, {20})
-    file_drive(agent, path)
+    depot, started = one_brake(agent, tmp_path)
     run = asyncio.get_event_loop().run_until_complete
     run(agent.triggers.tick())
     (mine,) = agent.triggers.windows.values()

@@ -8,8 +8,6 @@ afterwards sends nothing, and of the second brings it home."""
 
 from __future__ import annotations
 
-import subprocess
-import sys
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -19,7 +17,7 @@ import pytest
 
 from services.runs.download import EntityFilter
 from services.runs.latest_at import ChunkEntry, select_chunks
-from tests.services.agent.harness import AgentProcess, Link, download, run_status
+from tests.services.agent.harness import AgentProcess, Link, Robot, download, run_status
 from tests.services.agent.test_agent_auth import ingest_token
 from tests.services.agent.test_summary_pull import recording_chunks
 from tests.services.ingest.live_server import LiveServer
@@ -59,24 +57,9 @@ def depot(tmp_path: Path) -> Iterator[LiveServer]:
     server.stop()
 
 
-class BrakeRobot:
-    def __init__(self, url: str, copy: Path, pauses: tuple[int, ...]) -> None:
-        args = [ROBOT, url, str(copy), RUN, str(FRAMES), ",".join(map(str, BRAKES)), ",".join(map(str, pauses))]
-        self.proc = subprocess.Popen(
-            [sys.executable, *args], stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
-        )
-
-    def expect(self, line: str) -> None:
-        assert self.proc.stdout is not None
-        got = self.proc.stdout.readline().strip()
-        if got != line:
-            _, err = self.proc.communicate(timeout=30)
-            raise AssertionError(f"robot said {got!r}, not {line!r}: {err[-2000:]}")
-
-    def go_on(self) -> None:
-        assert self.proc.stdin is not None
-        self.proc.stdin.write("\n")
-        self.proc.stdin.flush()
+def brake_robot(url: str, copy: Path, pauses: tuple[int, ...]) -> Robot:
+    brakes, stops = ",".join(map(str, BRAKES)), ",".join(map(str, pauses))
+    return Robot(url, str(copy), RUN, str(FRAMES), brakes, stops, script=ROBOT)
 
 
 def events(depot: LiveServer) -> list[dict[str, Any]]:
@@ -136,7 +119,7 @@ def test_a_hard_brake_brings_its_window_home(depot: LiveServer, tmp_path: Path):
     copy = tmp_path / "copy.rrd"
     try:
         wait_for(lambda: agent.status().get("rules", {}).get("version") == 1, 30, "the agent to hold the rules")
-        robot = BrakeRobot(agent.url, copy, pauses=(BRAKES[0] - 10, BRAKES[0] + 100, BRAKES[1] - 10))
+        robot = brake_robot(agent.url, copy, pauses=(BRAKES[0] - 10, BRAKES[0] + 100, BRAKES[1] - 10))
         robot.expect(f"AT {BRAKES[0] - 10}")
         link.cut()  # the uplink is lost just before the first brake
         robot.go_on()
