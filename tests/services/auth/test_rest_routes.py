@@ -96,7 +96,9 @@ TABLE = [
     Guarded("PUT", "/v1/runs/{run_id}/robot-copy", (INGEST, ADMIN), {"json": {"chunks": 0, "bytes": 0}}),
     Guarded("DELETE", "/v1/runs/{run_id}/robot-copy", (INGEST, ADMIN)),
     Guarded("PUT", "/v1/rules", (WRITE,), {"content": ""}),  # no content type: 422, nothing applied
-    Guarded("GET", "/v1/rules", (READ,)),
+    Guarded("GET", "/v1/rules", (INGEST, READ)),  # a robot's agent runs the triggers
+    Guarded("POST", "/v1/runs/{run_id}/triggered", (INGEST, WRITE), {"json": {}}),
+    Guarded("POST", "/v1/events/{event_id}/pull", (WRITE,)),
     Guarded("GET", "/v1/rules/history", (READ,)),
     Guarded("POST", "/v1/rules/backfill", (WRITE,)),
     Guarded("GET", "/v1/events", (READ,)),
