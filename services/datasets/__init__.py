@@ -1,0 +1,1 @@
+"""Datasets for training: snapshots of runs and their export."""
