@@ -49,6 +49,9 @@ class Reports:
                 await self._progress(spec, "failed", error=f"the robot no longer holds run {spec.run_id}")
                 continue
             self.taken[spec.pull_id] = asyncio.create_task(self._serve(spec), name=f"pull {spec.pull_id}")
+        if self.agent.triggers.held_pulls():  # a person may have dismissed a window held over budget
+            cancelled: list[dict[str, Any]] = await link.call(link.api.pulls, state="cancelled")
+            self.agent.triggers.dismissed({str(p["id"]) for p in cancelled})
 
     def robots(self) -> set[str]:
         """The robots whose runs this agent holds or has held (remembered across restarts)."""

@@ -299,6 +299,19 @@ class Triggers:
                 )
                 self._end(window, DONE, None)
 
+    def held_pulls(self) -> set[str]:
+        """The depot's ids of the windows held on the robot over their budget."""
+        return {w.depot_pull or w.pull_id for w in self.windows.values() if w.state == HELD}
+
+    def dismissed(self, cancelled: set[str]) -> None:
+        """Held windows a person cancelled at the depot: no longer kept for (retention may take their run)."""
+        for window in self.windows.values():
+            if window.state == HELD and (window.depot_pull or window.pull_id) in cancelled:
+                log.info("trigger window %s of run %s: dismissed at the depot", window.pull_id, window.run_id)
+                self._end(window, FAILED, "dismissed at the depot (its pull was cancelled)")
+                window.reported = window.reported_as()  # nothing to tell: the depot cancelled it
+                window.save(self.agent.state)
+
     def pulled(self, event_id: str) -> None:
         """A pull of an event's window is done (a person's, of a window held over budget): the
         depot holds it, so its run is no longer kept for it."""

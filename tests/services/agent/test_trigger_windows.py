@@ -19,7 +19,7 @@ from services.agent.link import Held
 from services.agent.pulls import PullSpec
 from services.agent.service import Agent
 from services.agent.settings import load_agent_settings
-from services.agent.windows import DONE, HELD, SENDING
+from services.agent.windows import DONE, FAILED, HELD, SENDING
 from services.rrd.decoder import iter_events
 
 FRAME_NS = 100_000_000
@@ -141,6 +141,15 @@ def test_each_brake_fires_one_window_sent_within_its_budget(agent: Agent, tmp_pa
     if budget > 1:
         assert {w.state for w in agent.triggers.windows.values()} == {DONE}
         assert agent.triggers.protected_runs() == set()
+    else:  # a person dismisses one held window at the depot (cancels its pull): no longer kept
+        told = len(depot.reports)
+        agent.triggers.dismissed({windows[0].pull_id})
+        assert [w.state for w in windows] == [FAILED, HELD]
+        assert agent.triggers.held_pulls() == {windows[1].pull_id}
+        agent.triggers.dismissed({w.pull_id for w in windows})
+        assert agent.triggers.protected_runs() == set()
+        run(agent.triggers.tick())
+        assert len(depot.reports) == told  # the depot cancelled them: nothing to tell it
 
 
 class Progress(Depot):
