@@ -78,6 +78,8 @@ def test_overlapping_windows_of_new_events_are_one_pending_pull(make_depot: Depo
         "timeline": first.timeline,
     }
     assert pull["include"] == ["/world/**", "/sensors/**"] and pull["robot_id"] == first.robot_id != ""
+    # counted once its transaction committed, just after the pull became visible
+    wait_for(lambda: triggers.trigger_pulls_made[triggers.DEPOT] == made_before + 1, timeout=10, what="the count")
     assert triggers.trigger_pulls_made[triggers.DEPOT] == made_before + 1
 
 
