@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import sqlalchemy as sa
 from sqlalchemy.orm import Session
 
-from catalog.models import DatasetEpisode, DatasetSnapshot, DatasetVersion, Run, RunLifecycle
+from catalog.models import DatasetEpisode, DatasetSnapshot, DatasetVersion, Event, Run, RunLifecycle
 from catalog.queries import insert_rows
 from core.errors import BadParameterError
 from core.states import Tier
@@ -118,6 +118,16 @@ def chunk_ids_of(episode: DatasetEpisode) -> list[bytes]:
     """The episode's chunk ids, in order."""
     data = episode.chunk_ids
     return [data[i : i + CHUNK_ID_BYTES] for i in range(0, len(data), CHUNK_ID_BYTES)]
+
+
+def window_events(session: Session, run_id: str, kinds: Sequence[str]) -> list[Event]:
+    """The run's events of these kinds, in timeline order (what a snapshot puts windows around)."""
+    query = (
+        sa.select(Event)
+        .where(Event.run_id == run_id, Event.kind.in_(list(kinds)))
+        .order_by(Event.range_start, Event.range_end, Event.id)
+    )
+    return list(session.scalars(query))
 
 
 def snapshots(session: Session) -> list[tuple[DatasetSnapshot, DatasetVersion | None]]:
