@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import datetime as dt
 
-from sqlalchemy import BigInteger, Boolean, Date, DateTime, Double, Index, MetaData, String, Text
+from sqlalchemy import BigInteger, Boolean, Date, DateTime, Double, Index, LargeBinary, MetaData, String, Text
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column
 
 from core.ids import ID_LENGTH
@@ -401,3 +401,58 @@ class WebhookDelivery(Base):
     last_error: Mapped[str | None] = mapped_column(Text)
     created_at: Mapped[dt.datetime] = mapped_column(DateTime(timezone=True))
     delivered_at: Mapped[dt.datetime | None] = mapped_column(DateTime(timezone=True))
+
+
+# --- dataset snapshots: a selection of runs resolved into an immutable list of episodes ----------
+
+
+class DatasetSnapshot(Base):
+    """A named dataset snapshot (`fleet datasets create NAME`), whose versions are its resolutions.
+    Not `Dataset`, which is a dataset of Rerun's catalog protocol (an application id)."""
+
+    __tablename__ = "dataset_snapshots"
+
+    name: Mapped[str] = mapped_column(String(64), primary_key=True)
+    created_by: Mapped[str] = mapped_column(String(256))  # who made its first version
+    created_at: Mapped[dt.datetime] = mapped_column(DateTime(timezone=True))
+
+
+class DatasetVersion(Base):
+    """One immutable version `NAME@VERSION`: the selection as given (canonical JSON), who resolved it
+    and when, the rules version running then, and what it came to."""
+
+    __tablename__ = "dataset_versions"
+
+    name: Mapped[str] = mapped_column(String(64), primary_key=True)
+    version: Mapped[int] = mapped_column(BigInteger, primary_key=True, autoincrement=False)
+    selection: Mapped[str] = mapped_column(Text)  # canonical JSON (sorted keys)
+    created_by: Mapped[str] = mapped_column(String(256))
+    created_at: Mapped[dt.datetime] = mapped_column(DateTime(timezone=True))
+    rules_version: Mapped[int | None] = mapped_column(BigInteger)  # None: no rules applied then
+    episodes: Mapped[int] = mapped_column(BigInteger)
+    runs: Mapped[int] = mapped_column(BigInteger)  # distinct runs with an episode
+    chunks: Mapped[int] = mapped_column(BigInteger)  # summed over episodes (a chunk two windows share counts twice)
+    bytes: Mapped[int] = mapped_column(BigInteger)  # as chunks
+    skipped: Mapped[str] = mapped_column(Text)  # JSON: [{"run", "why"}] runs the selection matched but could not read
+
+
+class DatasetEpisode(Base):
+    """An episode of a version: a run, whole (no range) or a window around one of its events, and
+    the chunks it reads."""
+
+    __tablename__ = "dataset_episodes"
+    __table_args__ = (Index("ix_dataset_episodes_run_id", "run_id"),)
+
+    name: Mapped[str] = mapped_column(String(64), primary_key=True)
+    version: Mapped[int] = mapped_column(BigInteger, primary_key=True, autoincrement=False)
+    episode: Mapped[int] = mapped_column(BigInteger, primary_key=True, autoincrement=False)  # 0, 1, ...
+    run_id: Mapped[str] = mapped_column(String(ID_LENGTH))
+    robot_id: Mapped[str] = mapped_column(String(ID_LENGTH))
+    split: Mapped[str | None] = mapped_column(String(32))
+    timeline: Mapped[str] = mapped_column(String(256))
+    range_start: Mapped[int | None] = mapped_column(BigInteger)  # inclusive; None (both): the whole run
+    range_end: Mapped[int | None] = mapped_column(BigInteger)  # inclusive
+    event_id: Mapped[str | None] = mapped_column(String(32))  # the event the window is around
+    chunk_ids: Mapped[bytes] = mapped_column(LargeBinary)  # the sorted 16-byte ids, concatenated
+    chunks: Mapped[int] = mapped_column(BigInteger)
+    bytes: Mapped[int] = mapped_column(BigInteger)  # the sum of their frames' lengths in the recording

@@ -176,6 +176,7 @@ _ARROW_TYPES: dict[type[Any], pa.DataType] = {
     sa.Text: pa.string(),
     sa.Boolean: pa.bool_(),
     sa.Float: pa.float64(),
+    sa.LargeBinary: pa.binary(),
 }  # (a table with a column of another type is inserted with executemany)
 
 

@@ -183,8 +183,10 @@ class FleetClient:
     def restore(self, run_id: str) -> dict[str, Any]:
         return self._request("POST", f"/v1/runs/{run_id}/restore")
 
-    def delete_run(self, run_id: str) -> dict[str, Any]:
-        return self._request("DELETE", f"/v1/runs/{run_id}")
+    def delete_run(self, run_id: str, force: bool = False) -> dict[str, Any]:
+        """Delete a sealed run now (admin). A run a dataset snapshot uses is refused (409 naming the
+        snapshots) unless `force`: its episodes then answer `missing`."""
+        return self._request("DELETE", f"/v1/runs/{run_id}", params={"force": "true"} if force else None)
 
     def whoami(self) -> dict[str, Any]:
         """Who the token stands for and what it may do (`GET /v1/whoami`)."""
@@ -350,6 +352,35 @@ class FleetClient:
     def untag(self, run_id: str, tags: list[str]) -> dict[str, Any]:
         """`DELETE /v1/runs/RUN/tags`: the run's tags after, and those `removed`."""
         return self._request("DELETE", f"/v1/runs/{run_id}/tags", params={"tag": tags})
+
+    # --- dataset snapshots ----------------------------------------------------------------------------
+
+    def create_dataset(self, name: str, **selection: Any) -> dict[str, Any]:
+        """Resolve a selection into the next version of dataset `name` (`POST /v1/datasets`; fields as
+        `GET /v1/runs` filters plus event_window, include, exclude, timeline, fps, split, seed): the
+        version's summary (`ref` NAME@N, episodes, runs, chunks, bytes, splits, skipped)."""
+        body = {"name": name, **{k: v for k, v in selection.items() if v not in (None, [], (), {})}}
+        return self._request("POST", "/v1/datasets", json=body, timeout=None)
+
+    def datasets(self) -> list[dict[str, Any]]:
+        """Every dataset snapshot with its latest version."""
+        found: list[dict[str, Any]] = self._request("GET", "/v1/datasets")["datasets"]
+        return found
+
+    def dataset(self, name: str) -> dict[str, Any]:
+        """A snapshot with its versions, newest first."""
+        return self._request("GET", f"/v1/datasets/{name}")
+
+    def dataset_version(
+        self, name: str, version: int, limit: int = 100, cursor: str | None = None, chunk_ids: bool = False
+    ) -> dict[str, Any]:
+        """One version: its selection and a page of episodes (`episodes_page`, `next_cursor`)."""
+        params: dict[str, Any] = {"limit": limit}
+        if cursor is not None:
+            params["cursor"] = cursor
+        if chunk_ids:
+            params["chunk_ids"] = "true"
+        return self._request("GET", f"/v1/datasets/{name}/{version}", params=params)
 
     def _events(self, method: str, url: str, **kwargs: Any) -> Iterator[dict[str, Any]]:
         try:

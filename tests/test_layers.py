@@ -22,7 +22,8 @@
     retention | runs | edge | webhooks
                                      promotion, archive, expiry | serving runs | robots' own tiers |
                                      telling endpoints of what happens, signed
-    corpus                           what rules make of runs: events, metrics; people's events and tags
+    corpus | datasets                what rules make of runs: events, metrics; people's events and tags |
+                                     dataset snapshots: selections resolved into immutable episodes
     api | redap | agent | console    the REST app and the gRPC port's front | the Rerun catalog
                                      server | `fleet agent`, on the robot | the web console
     server -> workers -> cli         the wiring; `fleet serve --workers N`; the command line
@@ -72,6 +73,7 @@ LAYERS: dict[str, int] = {
     "services.edge": 7,
     "services.webhooks": 7,
     "services.corpus": 8,
+    "services.datasets": 8,
     "services.api": 9,
     "services.redap": 9,
     "services.agent": 9,

@@ -8,6 +8,7 @@ import click
 
 from services import __version__
 from services.cli.agent import agent
+from services.cli.datasets import datasets
 from services.cli.db import db
 from services.cli.events import events, runs_annotate, runs_tag, runs_untag
 from services.cli.retention import catalog, retention
@@ -47,6 +48,7 @@ runs.add_command(runs_annotate)
 runs.add_command(runs_tag)
 runs.add_command(runs_untag)
 cli.add_command(webhooks)
+cli.add_command(datasets)
 
 
 def main() -> None:

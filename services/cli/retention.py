@@ -42,6 +42,13 @@ def plan(api_url: str, action: tuple[str, ...], as_json: bool) -> None:
         for a in actions:
             table.add_row(a["action"], a["run"], a["robot_id"], a["tier"], f"{a['bytes'] / 1e6:,.1f}", a["reason"])
         console.print(table)
+    kept = answer.get("kept", [])
+    if kept:
+        click.echo("kept past their policy:")
+        table = Table("run", "robot", "tier", "MB", "why", box=None, padding=(0, 2))
+        for k in kept:
+            table.add_row(k["run"], k["robot_id"], k["tier"], f"{k['bytes'] / 1e6:,.1f}", k["reason"])
+        console.print(table)
     if upcoming:
         click.echo("later:")
         table = Table("action", "run", "robot", "MB", "when", "why", box=None, padding=(0, 2))

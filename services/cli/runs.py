@@ -231,12 +231,14 @@ def runs_promote(api_url: str, run_id: str) -> None:
 @api_option
 @click.argument("run_id")
 @click.option("--yes", is_flag=True, help="do not ask for confirmation")
-def runs_rm(api_url: str, run_id: str, yes: bool) -> None:
-    """Delete a sealed run now: its objects first, then the run is marked deleted (a tombstone stays)."""
+@click.option("--force", is_flag=True, help="even a run a dataset snapshot uses (its episodes then answer missing)")
+def runs_rm(api_url: str, run_id: str, yes: bool, force: bool) -> None:
+    """Delete a sealed run now: its objects first, then the run is marked deleted (a tombstone stays).
+    A run a dataset snapshot uses is refused, naming the snapshots, unless --force."""
     if not yes:
         click.confirm(f"delete run {run_id} and all its data?", abort=True)
     with client(api_url) as fleet:
-        answer = fleet.delete_run(run_id)
+        answer = fleet.delete_run(run_id, force=force)
     click.echo(f"{run_id}: {answer['detail']}")
 
 

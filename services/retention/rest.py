@@ -110,8 +110,15 @@ def restore(request: Request, run_id: str, principal: Writer) -> dict[str, Any]:
 
 
 @router.delete("/v1/runs/{run_id}", summary="Delete a sealed run now (objects first; a tombstone stays)")
-def delete(request: Request, run_id: str, principal: Admin) -> dict[str, Any]:
-    return service.delete_now(_ctx(request), run_id, actor(request, principal))
+def delete(
+    request: Request,
+    run_id: str,
+    principal: Admin,
+    force: Annotated[
+        bool, Query(description="even a run a dataset snapshot uses (409 without): its episodes then answer missing")
+    ] = False,
+) -> dict[str, Any]:
+    return service.delete_now(_ctx(request), run_id, actor(request, principal), force)
 
 
 @router.post(

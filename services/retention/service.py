@@ -17,7 +17,7 @@ from typing import Any
 import sqlalchemy as sa
 from sqlalchemy.orm import Session, sessionmaker
 
-from catalog import queries
+from catalog import datasets, queries
 from catalog.db import session_scope
 from core.clock import aware, iso_utc
 from core.errors import ConflictError
@@ -33,6 +33,7 @@ log = logging.getLogger(__name__)
 
 PROMOTE, ARCHIVE, DELETE, RESTORE = "promote", "archive", "delete", "restore"
 ACTIONS = (PROMOTE, ARCHIVE, DELETE, RESTORE)
+KEEP = "keep"  # a run past its policy's deletion kept (pinned, or used by a dataset snapshot): the plan says why
 
 
 @dataclass
@@ -146,17 +147,25 @@ def overview(ctx: Retention, settings: Settings) -> dict[str, Any]:
 
 
 def plan_answer(ctx: Retention, kinds: list[str]) -> dict[str, Any]:
-    """`GET /v1/retention/plan`: what is due now and why, and (with promotions asked for) the hot
-    runs that are not due yet."""
+    """`GET /v1/retention/plan`: what is due now and why, (with promotions asked for) the hot runs
+    that are not due yet, and (with deletions asked for) the runs past their policy that are kept,
+    each with why (pinned, used by a dataset snapshot)."""
     coming = upcoming(ctx) if PROMOTE in kinds else []
-    return {"actions": [a.to_dict() for a in plan(ctx, kinds)], "upcoming": coming}
+    actions, kept = _planned(ctx, kinds)
+    return {"actions": [a.to_dict() for a in actions], "upcoming": coming, "kept": [k.to_dict() for k in kept]}
 
 
 def plan(ctx: Retention, kinds: Iterable[str] = ACTIONS) -> list[Action]:
     """What is due now, and why (oldest first within each kind)."""
+    return _planned(ctx, kinds)[0]
+
+
+def _planned(ctx: Retention, kinds: Iterable[str]) -> tuple[list[Action], list[Action]]:
+    """What is due now, and the runs past their policy's deletion that are kept (with why)."""
     kinds = set(kinds)
     now = ctx.clock()
     actions: list[Action] = []
+    kept: list[Action] = []
     if PROMOTE in kinds and ctx.ingest is not None:
         pressure = ctx.promote_below_free_bytes > 0 and ctx.hot_free_bytes() < ctx.promote_below_free_bytes
         for cand in promote.due_for_promotion(
@@ -166,18 +175,40 @@ def plan(ctx: Retention, kinds: Iterable[str] = ACTIONS) -> list[Action]:
             actions.append(Action(cand.run.run_id, PROMOTE, cand.reason, record.robot_id, Tier.HOT, record.bytes))
     if kinds & {ARCHIVE, DELETE, RESTORE}:
         with session_scope(ctx.catalog) as session:
-            for run, life in queries.sealed_runs(session, (Tier.WARM, Tier.COLD)):
-                action = _due(ctx, run, life, now, kinds)
+            sealed = queries.sealed_runs(session, (Tier.WARM, Tier.COLD))
+            expired = [run.id for run, _ in sealed if _expired(ctx, run, now)] if DELETE in kinds else []
+            used = datasets.snapshots_using(session, expired)  # asked only of the runs it could matter to
+            for run, life in sealed:
+                action = _due(ctx, run, life, now, kinds, used)
                 if action is not None:
                     actions.append(action)
-    return actions
+                if run.id in expired and (run.pinned or run.id in used):
+                    kept.append(_kept(ctx, run, used.get(run.id, [])))
+    return actions, kept
 
 
-def _due(ctx: Retention, run: Any, life: Any, now: dt.datetime, kinds: set[str]) -> Action | None:
+def _expired(ctx: Retention, run: Any, now: dt.datetime) -> bool:
+    """Past its policy's deletion age (whether or not it is kept)."""
+    policy = ctx.policies.for_run(run.robot_id, run.application_id)
+    return now - aware(run.ended_at or run.last_data_at) >= policy.delete_after
+
+
+def _kept(ctx: Retention, run: Any, used: list[str]) -> Action:
+    """Why a run past its policy's deletion stays: pinned (by whom), used by dataset snapshots."""
+    policy = ctx.policies.for_run(run.robot_id, run.application_id)
+    why = ([f"pinned by {run.pinned_by or 'someone'}"] if run.pinned else []) + (
+        [f"used by {datasets.describe_use(used)}"] if used else []
+    )
+    return Action(run.id, KEEP, "; ".join(why), run.robot_id, run.tier, run.bytes, policy.name)
+
+
+def _due(
+    ctx: Retention, run: Any, life: Any, now: dt.datetime, kinds: set[str], used: dict[str, list[str]]
+) -> Action | None:
     policy = ctx.policies.for_run(run.robot_id, run.application_id)
     age = now - aware(run.ended_at or run.last_data_at)
     common = {"robot_id": run.robot_id, "tier": run.tier, "bytes": run.bytes, "policy": policy.name}
-    if age >= policy.delete_after and DELETE in kinds and not run.pinned:
+    if age >= policy.delete_after and DELETE in kinds and not run.pinned and run.id not in used:
         return Action(
             run.id,
             DELETE,
@@ -228,6 +259,10 @@ def _execute(ctx: Retention, action: Action, now: dt.datetime) -> str:
     if action.action == ARCHIVE:
         return archive.archive(action.run_id, ctx.tiers, ctx.catalog, now, action.policy or "default")
     if action.action == DELETE:
+        with session_scope(ctx.catalog) as session:  # a snapshot made since the plan keeps it too
+            used = datasets.snapshots_using(session, [action.run_id]).get(action.run_id)
+        if used:
+            return f"kept: used by {datasets.describe_use(used)}"
         return archive.delete(action.run_id, ctx.tiers, ctx.catalog, now, "retention", action.policy)
     if action.action == RESTORE:
         return archive.advance_restore(action.run_id, ctx.tiers, ctx.catalog, now)
@@ -327,16 +362,23 @@ def promote_now(ctx: Retention, run_id: str, actor: str = "retention") -> dict[s
     return {"run": run_id, "tier": record.tier, "detail": f"sealed {record.chunks} chunks, {record.bytes} bytes"}
 
 
-def delete_now(ctx: Retention, run_id: str, actor: str) -> dict[str, Any]:
-    """Delete a sealed run asked for by a user (`DELETE /v1/runs/{run}`)."""
-    return {"run": run_id, "detail": delete_run(ctx, run_id, actor)}
+def delete_now(ctx: Retention, run_id: str, actor: str, force: bool = False) -> dict[str, Any]:
+    """Delete a sealed run asked for by a user (`DELETE /v1/runs/{run}`); `force`: even one a
+    dataset snapshot uses (whose episodes of it then answer `missing`)."""
+    return {"run": run_id, "detail": delete_run(ctx, run_id, actor, force)}
 
 
-def delete_run(ctx: Retention, run_id: str, actor: str) -> str:
+def delete_run(ctx: Retention, run_id: str, actor: str, force: bool = False) -> str:
     with session_scope(ctx.catalog) as session:
         run = queries.require_run(session, run_id)
         if run.tier == Tier.HOT:
             raise ConflictError(f"run {run_id!r} is still hot: delete it once it is sealed (promoted)")
         if run.pinned:
             raise ConflictError(f"run {run_id!r} is pinned: unpin it first (fleet runs pin --unpin)")
+        used = datasets.snapshots_using(session, [run_id]).get(run_id)
+    if used and not force:
+        raise ConflictError(
+            f"run {run_id!r} is used by {datasets.describe_use(used, most=20)}: delete it anyway with "
+            "force=true (`fleet runs rm --force`), and their episodes of it will answer missing"
+        )
     return archive.delete(run_id, ctx.tiers, ctx.catalog, ctx.clock(), actor, None)

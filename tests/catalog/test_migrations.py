@@ -152,3 +152,36 @@ def test_0012_makes_every_pull_already_queued_a_persons(empty_catalog_url: str):
         engine.dispose()
     assert [tuple(row) for row in found] == [("person", None, None)]
     assert added == "person"
+
+
+def test_0013_adds_the_snapshot_tables_and_takes_them_away_again(empty_catalog_url: str):
+    from alembic import command
+
+    engine = create_engine(empty_catalog_url)
+    tables = ("dataset_snapshots", "dataset_versions", "dataset_episodes")
+    try:
+        _upgrade_to(engine, "0012")
+        assert not set(tables) & set(sa.inspect(engine).get_table_names())
+        _upgrade_to(engine, "0013")
+        assert set(tables) <= set(sa.inspect(engine).get_table_names())
+        with engine.begin() as conn:  # an episode holds its chunk ids as bytes, and a whole run no range
+            conn.execute(
+                sa.text(
+                    "INSERT INTO dataset_episodes (name, version, episode, run_id, robot_id, split, timeline, "
+                    "range_start, range_end, event_id, chunk_ids, chunks, bytes) VALUES ('a', 1, 0, 'run-1', "
+                    "'robot-1', NULL, 'log_time', NULL, NULL, NULL, :ids, 2, 20)"
+                ),
+                {"ids": b"\x00" * 16 + b"\xff" * 16},
+            )
+            held = conn.execute(sa.text("SELECT chunk_ids FROM dataset_episodes")).scalar()
+        duckdb = engine.dialect.name == "duckdb"  # primary keys only there (and no reflection of indexes)
+        indexes = set() if duckdb else {i["name"] for i in sa.inspect(engine).get_indexes("dataset_episodes")}
+        with engine.begin() as conn:
+            config = alembic_config()
+            config.attributes["connection"] = conn
+            command.downgrade(config, "0012")
+        assert not set(tables) & set(sa.inspect(engine).get_table_names())
+    finally:
+        engine.dispose()
+    assert held is not None and bytes(held) == b"\x00" * 16 + b"\xff" * 16
+    assert indexes == (set() if duckdb else {"ix_dataset_episodes_run_id"})

@@ -47,6 +47,8 @@ class Guarded:
             .replace("{query_id}", "no-such-query")
             .replace("{event_id}", "no-such-event")
             .replace("{webhook_id}", "wh-000000000000")
+            .replace("{name}", "no-such-dataset")
+            .replace("{version}", "1")
         )
 
     def __str__(self) -> str:
@@ -111,6 +113,10 @@ TABLE = [
     Guarded("GET", "/v1/webhooks", (ADMIN,)),
     Guarded("DELETE", "/v1/webhooks/{webhook_id}", (ADMIN,)),
     Guarded("GET", "/v1/webhooks/{webhook_id}/deliveries", (ADMIN,)),
+    Guarded("POST", "/v1/datasets", (WRITE,), {"json": {"name": "from-the-table"}}),
+    Guarded("GET", "/v1/datasets", (READ,)),
+    Guarded("GET", "/v1/datasets/{name}", (READ,)),
+    Guarded("GET", "/v1/datasets/{name}/{version}", (READ,)),
 ]
 
 
