@@ -142,14 +142,14 @@ def test_each_brake_fires_one_window_sent_within_its_budget(agent: Agent, tmp_pa
         assert {w.state for w in agent.triggers.windows.values()} == {DONE}
         assert agent.triggers.protected_runs() == set()
     else:  # a person dismisses one held window at the depot (cancels its pull): no longer kept
-        told = len(depot.reports)
+        reported = len(depot.reports)
         agent.triggers.dismissed({windows[0].pull_id})
         assert [w.state for w in windows] == [FAILED, HELD]
         assert agent.triggers.held_pulls() == {windows[1].pull_id}
         agent.triggers.dismissed({w.pull_id for w in windows})
         assert agent.triggers.protected_runs() == set()
         run(agent.triggers.tick())
-        assert len(depot.reports) == told  # the depot cancelled them: nothing to tell it
+        assert len(depot.reports) == reported  # the depot cancelled them: nothing to tell it
 
 
 class Progress(Depot):
