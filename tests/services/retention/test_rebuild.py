@@ -188,7 +188,7 @@ def test_rebuilt_catalog_answers_as_before(
         assert answers(server, run_ids) == after
 
         # the rebuilt catalog is one retention can work with: nothing due again, restores work
-        assert get(server, "/v1/retention/plan") == {"actions": [], "upcoming": []}
+        assert get(server, "/v1/retention/plan") == {"actions": [], "upcoming": [], "kept": []}
         assert httpx.post(f"{server.url}/v1/runs/rec-image/restore", timeout=10).status_code == 202
         # the copy back from the cold store starts at once, in the background
         server.wait_for(
