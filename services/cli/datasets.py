@@ -14,9 +14,9 @@ from typing import Any
 import click
 from rich.table import Table
 
-from core.states import RunStatus, Tier
 from services.cli.client import api_option, client
 from services.cli.output import stdout_console
+from services.cli.runs import run_filters
 from services.datasets.selection import parse_split
 from services.datasets.service import parse_ref
 from services.runs.service import parse_properties
@@ -30,16 +30,7 @@ def datasets() -> None:
 @datasets.command("create")
 @api_option
 @click.argument("name")
-@click.option("--robot", multiple=True, help="robot id (repeatable)")
-@click.option("--application", multiple=True, help="application id (repeatable)")
-@click.option("--since", help="runs started at or after (ISO-8601)")
-@click.option("--until", help="runs started before (ISO-8601)")
-@click.option("--status", type=click.Choice([s.value for s in RunStatus]))
-@click.option("--tier", type=click.Choice([t.value for t in Tier]))
-@click.option("--entity", multiple=True, help="runs that have an entity: /a/b or /a/** (repeatable)")
-@click.option("--property", "prop", multiple=True, help="NAME.FIELD=VALUE, e.g. fleet.robot_id=robot-7")
-@click.option("--metric", multiple=True, help="NAME OP VALUE, OP one of > >= < <= = != (e.g. distance_m>100)")
-@click.option("--tag", multiple=True, help="runs with this tag (repeatable: all of them)")
+@run_filters
 @click.option(
     "--event",
     multiple=True,

@@ -11,8 +11,9 @@ import shlex
 import shutil
 import subprocess
 import sys
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import click
 from rich.console import Console
@@ -67,18 +68,32 @@ runs.add_command(runs_pull)
 runs.add_command(runs_pulls)
 
 
+F = TypeVar("F", bound=Callable[..., Any])
+
+RUN_FILTERS = (
+    click.option("--robot", multiple=True, help="robot id (repeatable)"),
+    click.option("--application", multiple=True, help="application id (repeatable)"),
+    click.option("--since", help="runs started at or after (ISO-8601)"),
+    click.option("--until", help="runs started before (ISO-8601)"),
+    click.option("--status", type=click.Choice([s.value for s in RunStatus])),
+    click.option("--tier", type=click.Choice([t.value for t in Tier])),
+    click.option("--entity", multiple=True, help="runs that have an entity: /a/b or /a/** (repeatable)"),
+    click.option("--property", "prop", multiple=True, help="NAME.FIELD=VALUE, e.g. fleet.robot_id=robot-7"),
+    click.option("--metric", multiple=True, help="NAME OP VALUE, OP one of > >= < <= = != (e.g. distance_m>100)"),
+    click.option("--tag", multiple=True, help="runs with this tag (repeatable: all of them)"),
+)
+
+
+def run_filters(command: F) -> F:
+    """The run filters `fleet runs ls` and `fleet datasets create` share (each adds its own --event)."""
+    for option in reversed(RUN_FILTERS):
+        command = option(command)
+    return command
+
+
 @runs.command("ls")
 @api_option
-@click.option("--robot", multiple=True, help="robot id (repeatable)")
-@click.option("--application", multiple=True, help="application id (repeatable)")
-@click.option("--since", help="started at or after (ISO-8601)")
-@click.option("--until", help="started before (ISO-8601)")
-@click.option("--status", type=click.Choice([s.value for s in RunStatus]))
-@click.option("--tier", type=click.Choice([t.value for t in Tier]))
-@click.option("--entity", multiple=True, help="has an entity: /a/b or /a/** (repeatable)")
-@click.option("--property", "prop", multiple=True, help="NAME.FIELD=VALUE, e.g. fleet.robot_id=robot-7")
-@click.option("--metric", multiple=True, help="NAME OP VALUE, OP one of > >= < <= = != (e.g. distance_m>100)")
-@click.option("--tag", multiple=True, help="has this tag (repeatable: all of them)")
+@run_filters
 @click.option("--event", multiple=True, help="has at least one event of this kind (repeatable)")
 @click.option("--sort", default="-started_at", show_default=True, help="-started_at, bytes, id, metric.NAME, ...")
 @click.option("--limit", type=int, default=100, show_default=True)
