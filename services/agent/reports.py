@@ -38,7 +38,9 @@ class Reports:
         for pull in [*pending, *sending]:  # sending: taken by this robot before a restart
             spec = PullSpec.of(pull)
             if spec.origin == TRIGGER and self.agent.spool.run(spec.run_id) is not None:
-                self.agent.triggers.take_depot_pull(spec)  # a window the depot's live rules fired
+                why = self.agent.triggers.take_depot_pull(spec)  # a window the depot's live rules fired
+                if why is not None:
+                    await self._progress(spec, "failed", error=why)
                 continue
             task = self.taken.get(spec.pull_id)
             if task is not None and not task.done():

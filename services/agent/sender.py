@@ -328,12 +328,14 @@ class RunSender:
             if job.written_at_check is None and id(job) not in laned:
                 await self._queue_pull(job)
 
-    async def _queue_pull(self, job: PullJob) -> None:
-        """A lane of the chunks of `job` the depot lacks that nothing else sends: chunks the live
-        rules forward go with the run's own stream (live, backfill or a resend), and another pull's
-        lane may hold some (two windows that overlap, a person's pull of a window a trigger sends).
-        Each chunk goes once; the job is done once the depot holds all of its chunks, whoever sent them."""
-        missing = await self._missing(job.entries, pulled=True)
+    async def _queue_pull(self, job: PullJob, missing: list[HotEntry] | None = None) -> None:
+        """A lane of the chunks of `job` the depot lacks (`missing`, asked here when not given) that
+        nothing else sends: chunks the live rules forward go with the run's own stream (live,
+        backfill or a resend), and another pull's lane may hold some (two windows that overlap, a
+        person's pull of a window a trigger sends). Each chunk goes once; the job is done once the
+        depot holds all of its chunks, whoever sent them."""
+        if missing is None:
+            missing = await self._missing(job.entries, pulled=True)
         if not missing:
             await self._pull_done(job)  # the depot holds all of it already
             return
@@ -350,13 +352,21 @@ class RunSender:
         await self._relearn_after_pull()
         job.done.set()
 
-    async def _verify_pulls(self) -> None:
-        """Pulls written before the previous check: done if the depot holds them, else sent again."""
-        for job in list(self.pulls):
-            if job.written_at_check is None or job.written_at_check >= self.checks - 1:
-                continue
-            job.written_at_check = None
-            await self._queue_pull(job)  # done if the depot holds it all; else what it lacks sent again
+    async def _settle_pulls(self, checking: bool) -> None:
+        """Written pulls the depot holds whole are done: asked every PULL_CONFIRM_S, so a trigger's
+        window is known at the depot about a second after its last chunk, not at the next check.
+        What one written before the previous check still lacks is sent again (at a check: sooner,
+        it may be on its way)."""
+        if not checking and time.monotonic() - self.last_confirm < PULL_CONFIRM_S:
+            return
+        self.last_confirm = time.monotonic()
+        for job in [job for job in self.pulls if job.written_at_check is not None]:
+            missing = await self._missing(job.entries, pulled=True)
+            if not missing:
+                await self._pull_done(job)
+            elif checking and job.written_at_check is not None and job.written_at_check < self.checks - 1:
+                job.written_at_check = None
+                await self._queue_pull(job, missing)
 
     async def _relearn_after_pull(self) -> None:
         """A pull put chunks at the depot that were on the robot only: ask again what still is. Not
@@ -511,26 +521,16 @@ class RunSender:
         """How long to wait for more data: shorter while a written pull is to be confirmed."""
         return min(idle_s, PULL_CONFIRM_S) if any(job.written_at_check is not None for job in self.pulls) else idle_s
 
-    async def _confirm_pulls(self) -> None:
-        """Every PULL_CONFIRM_S, written pulls the depot holds whole are done (a trigger's window
-        is known at the depot about a second after its last chunk, not at the next check). What it
-        still lacks is sent again only at a later check: it may be on its way."""
-        if time.monotonic() - self.last_confirm < PULL_CONFIRM_S:
-            return
-        self.last_confirm = time.monotonic()
-        for job in [job for job in self.pulls if job.written_at_check is not None]:
-            if not await self._missing(job.entries, pulled=True):
-                await self._pull_done(job)
-
     async def _maybe_check(self) -> None:
         """Every `check_s`: ask about what was sent before the previous check, and, for a closed run
-        all held, whether the depot sealed it."""
-        await self._confirm_pulls()
-        if time.monotonic() - self.last_check < self.ctx.check_s:
+        all held, whether the depot sealed it (written pulls: see `_settle_pulls`)."""
+        checking = time.monotonic() - self.last_check >= self.ctx.check_s
+        if checking:
+            self.last_check = time.monotonic()
+            self.checks += 1
+        await self._settle_pulls(checking)
+        if not checking:
             return
-        self.last_check = time.monotonic()
-        self.checks += 1
-        await self._verify_pulls()
         # what was written before this check (up to the first message a backfill has yet to send):
         # asked about at the next one, when it has surely reached the depot
         pending = self._backfill_pending()

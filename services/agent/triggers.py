@@ -102,12 +102,12 @@ class Triggers:
         """Runs with a window the depot does not hold yet: retention keeps them."""
         return {w.run_id for w in self.windows.values() if w.state in OPEN_STATES}
 
-    def take_depot_pull(self, pull: PullSpec) -> None:
+    def take_depot_pull(self, pull: PullSpec) -> str | None:
         """A window the depot's live rules fired, queued as a pull: a window this agent fired already
         answers it (told the same progress); else it is served as a window of its own, when the spool
-        holds its data to its end and within the day's budgets."""
+        holds its data to its end and within the day's budgets. Why it cannot be served, if it cannot."""
         if pull.pull_id in self.windows:
-            return
+            return None
         for window in self.windows.values():
             if window.from_depot:
                 continue
@@ -117,27 +117,19 @@ class Triggers:
                     window.also.append(pull.pull_id)
                     window.reported = None  # the new pull is told where the window stands
                     window.save(self.agent.state)
-                return
+                return None
         recording = self.agent.spool.recording(pull.run_id)
         kind = recording.timeline_types.get(pull.timeline or "") if recording is not None else None
+        if kind is None:
+            return f"run {pull.run_id} has no timeline {pull.timeline!r} on the robot"
         try:
-            if kind is None:
-                raise PullRefused(f"run {pull.run_id} has no timeline {pull.timeline!r} on the robot")
             window = Window.of_pull(pull, kind, *self.budget_of(list(pull.include)), time.time())
-        except (PullRefused, FleetError) as exc:
-            window = Window.of_pull(
-                PullSpec(
-                    pull.pull_id, pull.run_id, list(pull.include), [], pull.timeline, "0", "0", event_id=pull.event_id
-                ),
-                "sequence",
-                "depot",
-                None,
-                time.time(),
-            )
-            window.state, window.error = FAILED, str(exc)
+        except FleetError as exc:  # a window bound it cannot read
+            return str(exc)
         self.windows[window.pull_id] = window
         window.save(self.agent.state)
         log.info("trigger window %s of run %s: fired by the depot", window.pull_id, window.run_id)
+        return None
 
     # --- the loop -------------------------------------------------------------------------------
 
