@@ -7,7 +7,7 @@ from __future__ import annotations
 from typing import Annotated, Any
 
 from fastapi import APIRouter, Depends, Path, Query, Request
-from pydantic import BaseModel, ConfigDict, Field, StrictFloat, StrictInt
+from pydantic import BaseModel, ConfigDict, Field, Strict, StrictInt
 
 from services.auth.depends import actor, require
 from services.auth.scopes import Principal, Scope
@@ -20,7 +20,8 @@ router = APIRouter()
 Reader = Annotated[Principal, Depends(require(Scope.READ))]
 Writer = Annotated[Principal, Depends(require(Scope.WRITE))]
 MAX_VERSION = 2**63 - 1
-Seconds = StrictFloat | StrictInt
+# A number of seconds, frames per second or a fraction: an integer too big for a float is refused here
+Seconds = Annotated[float, Strict()]
 
 
 def sources(request: Request) -> Sources:
