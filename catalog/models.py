@@ -456,3 +456,32 @@ class DatasetEpisode(Base):
     chunk_ids: Mapped[bytes] = mapped_column(LargeBinary)  # the sorted 16-byte ids, concatenated
     chunks: Mapped[int] = mapped_column(BigInteger)
     bytes: Mapped[int] = mapped_column(BigInteger)  # the sum of their frames' lengths in the recording
+
+
+class DatasetExport(Base):
+    """A job writing a snapshot version in a training format (`fleet datasets export`): queued,
+    claimed by a depot process that beats a heartbeat while it runs it, done, failed or cancelled;
+    its progress, and the quality flags of each flagged or skipped episode (`report`, JSON)."""
+
+    __tablename__ = "dataset_exports"
+
+    id: Mapped[str] = mapped_column(String(32), primary_key=True)  # exp- and 12 hex digits
+    name: Mapped[str] = mapped_column(String(64))
+    version: Mapped[int] = mapped_column(BigInteger)
+    format: Mapped[str] = mapped_column(String(16))  # lerobot
+    spec: Mapped[str] = mapped_column(Text)  # JSON: what goes where, checks' limits, strict
+    target: Mapped[str] = mapped_column(Text)  # file:///PATH or s3://BUCKET/PREFIX
+    state: Mapped[str] = mapped_column(String(16))  # queued | running | done | failed | cancelled
+    episodes: Mapped[int] = mapped_column(BigInteger)
+    done: Mapped[int] = mapped_column(BigInteger)
+    frames: Mapped[int] = mapped_column(BigInteger)
+    skipped: Mapped[int] = mapped_column(BigInteger)
+    flagged: Mapped[int] = mapped_column(BigInteger)
+    bytes: Mapped[int] = mapped_column(BigInteger)  # written to the target
+    report: Mapped[str] = mapped_column(Text)  # JSON: [{"episode", "run", "exported_as", "frames", "flags"}]
+    error: Mapped[str | None] = mapped_column(Text)
+    created_by: Mapped[str] = mapped_column(String(256))
+    created_at: Mapped[dt.datetime] = mapped_column(DateTime(timezone=True))
+    updated_at: Mapped[dt.datetime] = mapped_column(DateTime(timezone=True))
+    node: Mapped[str | None] = mapped_column(String(256))  # the process running it
+    heartbeat_at: Mapped[dt.datetime | None] = mapped_column(DateTime(timezone=True))

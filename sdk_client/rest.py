@@ -382,6 +382,40 @@ class FleetClient:
             params["chunk_ids"] = "true"
         return self._request("GET", f"/v1/datasets/{name}/{version}", params=params)
 
+    def download_episode(self, name: str, version: int, episode: int, out: Path) -> int:
+        """The chunks one episode of NAME@VERSION reads, as an RRD file at `out`; bytes written."""
+        written = 0
+        try:
+            with self._http.stream(
+                "GET", f"/v1/datasets/{name}/{version}/episodes/{episode}/recording.rrd"
+            ) as response:
+                _check(response)
+                with open(out, "wb") as fh:
+                    for piece in response.iter_bytes():
+                        fh.write(piece)
+                        written += len(piece)
+        except httpx.TransportError as exc:
+            raise self._unreachable(exc) from exc
+        return written
+
+    def export_dataset(self, dataset: str, to: str, **options: Any) -> dict[str, Any]:
+        """Queue NAME@N's export by the depot into `to` (`POST /v1/exports`): the job."""
+        body = {"dataset": dataset, "to": to, **{k: v for k, v in options.items() if v is not None}}
+        return self._request("POST", "/v1/exports", json=body)
+
+    def exports(self, dataset: str | None = None, limit: int = 50) -> list[dict[str, Any]]:
+        """Export jobs, newest first (of NAME or NAME@N if given)."""
+        params: dict[str, Any] = {"limit": limit, **({"dataset": dataset} if dataset else {})}
+        found: list[dict[str, Any]] = self._request("GET", "/v1/exports", params=params)["exports"]
+        return found
+
+    def export(self, job_id: str) -> dict[str, Any]:
+        """One export job: state, progress, quality report."""
+        return self._request("GET", f"/v1/exports/{job_id}")
+
+    def cancel_export(self, job_id: str) -> dict[str, Any]:
+        return self._request("DELETE", f"/v1/exports/{job_id}")
+
     def _events(self, method: str, url: str, **kwargs: Any) -> Iterator[dict[str, Any]]:
         try:
             with self._http.stream(method, url, timeout=None, **kwargs) as response:

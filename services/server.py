@@ -30,6 +30,8 @@ from services.cluster.relay import Channels, peer_channel_options
 from services.compiled import compiled_summary
 from services.console import app as console
 from services.corpus.pipeline import BACKFILL_JOB, CorpusPipeline, corpus_pipeline
+from services.datasets import exports as dataset_exports
+from services.datasets.resolve import Sources as DatasetSources
 from services.facts.identity import SecretFields
 from services.hot.reserve import DiskReserve
 from services.hot.store import HotStore
@@ -39,7 +41,7 @@ from services.ingest.service import IngestService
 from services.node import Node
 from services.redap import grpc_handler as redap_handler
 from services.redap.depot import Depot
-from services.retention.schedule import Job, start_scheduler
+from services.retention.schedule import Job, node_name, start_scheduler
 from services.retention.service import Retention
 from services.routine_logs import quiet_routine_requests
 from services.runtime import freeze_startup_objects, tune_allocator
@@ -203,6 +205,18 @@ def webhook_jobs(hooks: Webhooks, ingest: IngestService) -> list[Job]:
     ]
 
 
+def export_job(node: Node, ingest: IngestService) -> Job:
+    """Dataset exports queued for the depot, run one at a time per process (`services.datasets.exports`)."""
+    settings = node.settings
+    sources = DatasetSources(node.catalog, node.tiers.warm, ingest, node.clock)
+    places = dataset_exports.Places(
+        tuple(settings.export_urls), settings.data_dir / "exports", settings.s3_endpoint_url, settings.s3_region
+    )
+    return Job(
+        dataset_exports.JOB, lambda _: dataset_exports.run_due(sources, places, node_name()), settings.export_interval_s
+    )
+
+
 def claim_ports(settings: Settings) -> tuple[socket.socket, socket.socket]:
     """Both ports, before any recovery work: a refused start is one line, quick, and changes nothing."""
     grpc_socket = listen_grpc(*split_addr(settings.grpc_addr))
@@ -317,6 +331,7 @@ async def serve(
             [
                 *webhook_jobs(app.state.webhooks, ingest),
                 Job(BACKFILL_JOB, lambda _: corpus.backfill.run(), settings.rules_backfill_interval_s),
+                export_job(node, ingest),
             ],
         )
         if settings.scheduler

@@ -342,6 +342,15 @@ class Settings(SharedSettings):
         24 * 3600.0, gt=0, description="a webhook delivery is retried with backoff this long, then given up"
     )
 
+    # dataset exports (docs/datasets.md)
+    export_urls: Annotated[list[str], NoDecode] = Field(
+        default_factory=list,
+        description="where the depot may write dataset exports: file:///PATH or s3://BUCKET/PREFIX URLs (a JSON "
+        "list or comma-separated); an export's target must be one of them or under one. None: the depot writes no "
+        "export (the command line still exports to a local folder)",
+    )
+    export_interval_s: float = Field(2.0, gt=0, description="how often the depot looks for a queued dataset export")
+
     @property
     def hot_dir(self) -> Path:
         return self.data_dir / "hot"
@@ -359,7 +368,7 @@ class Settings(SharedSettings):
             raise ValueError(f"{value!r} is not a rate such as 60/minute or 5/second") from exc
         return value
 
-    @field_validator("public_hosts", "cors_origins", "auth_previous_keys", mode="before")
+    @field_validator("public_hosts", "cors_origins", "auth_previous_keys", "export_urls", mode="before")
     @classmethod
     def _name_list(cls, value: Any) -> Any:
         return name_list(value)

@@ -19,6 +19,7 @@ from services.auth import rest as auth_rest
 from services.auth.ratelimit import RateLimits
 from services.corpus import backfill_rest
 from services.corpus import rest as corpus_rest
+from services.datasets import export_rest as dataset_exports_rest
 from services.datasets import rest as datasets_rest
 from services.edge import rest as edge_rest
 from services.edge.context import Edge
@@ -111,3 +112,4 @@ def _install_routes(
         app.include_router(corpus_rest.router)
         app.include_router(backfill_rest.router)  # answers 503 on a node without the corpus pipeline
         app.include_router(datasets_rest.router)
+        app.include_router(dataset_exports_rest.router)

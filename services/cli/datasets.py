@@ -14,6 +14,7 @@ from typing import Any
 import click
 from rich.table import Table
 
+from services.cli import dataset_exports
 from services.cli.client import api_option, client
 from services.cli.output import stdout_console
 from services.cli.runs import run_filters
@@ -198,3 +199,8 @@ def show(api_url: str, ref: str, limit: int, as_json: bool) -> None:
         console.print(f"skipped {skipped['run']}: {skipped['why']}", markup=False)
     if answer["next_cursor"]:
         click.echo(f"(more: --json, or GET /v1/datasets/{name}/{number}?cursor={answer['next_cursor']})")
+
+
+datasets.add_command(dataset_exports.export)
+datasets.add_command(dataset_exports.exports)
+datasets.add_command(dataset_exports.export_cancel)

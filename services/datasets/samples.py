@@ -9,7 +9,7 @@ only when a frame of the grid takes them, so memory holds the rows' bytes, not t
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -100,9 +100,15 @@ class Series:
         return np.searchsorted(self.times, grid, side="right") - 1
 
 
-def read_series(chunks: Iterable[tuple[ArrowMessage, ChunkMeta]], timeline: str, wanted: set[str]) -> dict[str, Series]:
+Observe = Callable[[str, np.ndarray, list[Any]], None]
+
+
+def read_series(
+    chunks: Iterable[tuple[ArrowMessage, ChunkMeta]], timeline: str, wanted: set[str], observe: Observe | None = None
+) -> dict[str, Series]:
     """The rows of the `wanted` entities on `timeline` (rows off it and static rows skipped), each
-    entity's in time order whatever the order of its chunks."""
+    entity's in time order whatever the order of its chunks. `observe` sees each chunk's rows as
+    they were logged (entity, times, values), before they are sorted."""
     pieces: dict[str, list[tuple[np.ndarray, list[Any]]]] = {}
     for msg, meta in chunks:
         if meta.is_static or meta.entity_path not in wanted:
@@ -119,7 +125,10 @@ def read_series(chunks: Iterable[tuple[ArrowMessage, ChunkMeta]], timeline: str,
         if values is None:
             continue
         keep = [i for i in range(len(times)) if has_time[i] and values[i] is not None]
-        pieces.setdefault(meta.entity_path, []).append((times[keep], [values[i] for i in keep]))
+        kept = (times[keep], [values[i] for i in keep])
+        if observe is not None:
+            observe(meta.entity_path, *kept)
+        pieces.setdefault(meta.entity_path, []).append(kept)
     out: dict[str, Series] = {}
     for entity, parts in pieces.items():
         times = np.concatenate([t for t, _ in parts]) if parts else np.zeros(0, dtype=np.int64)

@@ -92,6 +92,20 @@ class Features:
             }
         return {**out, **DEFAULT_FEATURES}
 
+    def as_json(self) -> dict[str, Any]:
+        """What `from_json` reads back (an export resumed keeps its first episode's features)."""
+        return {
+            "vectors": [[v.key, list(v.names)] for v in self.vectors],
+            "cameras": [[c.key, c.height, c.width, c.codec] for c in self.cameras],
+        }
+
+    @classmethod
+    def from_json(cls, data: dict[str, Any]) -> Features:
+        return cls(
+            [Vector(key, tuple(names)) for key, names in data["vectors"]],
+            [Camera(key, int(height), int(width), codec) for key, height, width, codec in data["cameras"]],
+        )
+
 
 def frames_table(
     vectors: Mapping[str, Any], *, episode: int, first_index: int, task_index: int, fps: int, count: int

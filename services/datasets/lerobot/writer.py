@@ -6,7 +6,7 @@ the `meta/` files from the records, so the same episodes always give the same fi
 from __future__ import annotations
 
 import json
-from collections.abc import Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -32,6 +32,8 @@ class Episode:
     length: int
     vectors: Mapping[str, np.ndarray]
     cameras: Mapping[str, Iterable[np.ndarray]] = field(default_factory=dict)
+    # what the record says of where the episode came from, asked once its videos are written
+    describe: Callable[[], Mapping[str, Any]] | None = None
 
 
 class LeRobotWriter:
@@ -93,6 +95,7 @@ class LeRobotWriter:
             "length": episode.length,
             "first_index": first_index,
             "stats": stats.as_json(feature_stats),
+            "source": dict(episode.describe()) if episode.describe is not None else None,
         }
         layout.write_json(self._record_path(episode.index), record)
         return record

@@ -49,6 +49,8 @@ class Guarded:
             .replace("{webhook_id}", "wh-000000000000")
             .replace("{name}", "no-such-dataset")
             .replace("{version}", "1")
+            .replace("{episode}", "0")
+            .replace("{job_id}", "exp-000000000000")
         )
 
     def __str__(self) -> str:
@@ -117,6 +119,11 @@ TABLE = [
     Guarded("GET", "/v1/datasets", (READ,)),
     Guarded("GET", "/v1/datasets/{name}", (READ,)),
     Guarded("GET", "/v1/datasets/{name}/{version}", (READ,)),
+    Guarded("GET", "/v1/datasets/{name}/{version}/episodes/{episode}/recording.rrd", (READ,)),
+    Guarded("POST", "/v1/exports", (WRITE,), {"json": {"dataset": "a@1", "to": "s3://b/c"}}),
+    Guarded("GET", "/v1/exports", (READ,)),
+    Guarded("GET", "/v1/exports/{job_id}", (READ,)),
+    Guarded("DELETE", "/v1/exports/{job_id}", (WRITE,)),
 ]
 
 

@@ -17,7 +17,8 @@ import pyarrow.parquet as pq
 import pytest
 import rerun as rr
 
-from services.datasets.export import ExportSpec, export_version
+from services.datasets.episodes import export_version
+from services.datasets.export import ExportSpec
 from services.datasets.lerobot import layout
 from services.datasets.resolve import Sources
 from tests.compat.lerobot_venv import lerobot_python
@@ -70,7 +71,8 @@ def sources(depot: Depot) -> Sources:
 def test_frames_equal_the_source_at_their_grid_times(depot: Depot, tmp_path: Path):
     snapshot(depot, tmp_path, ["run-a", "run-b"])
     root = tmp_path / "export"
-    info = export_version(sources(depot), "drives", 1, SPEC, root)
+    info = export_version(sources(depot), "drives", 1, SPEC, root).info
+    assert info is not None
     assert (info["total_episodes"], info["total_frames"]) == (2, 2 * FRAMES)
     assert info["features"]["observation.state"]["names"] == ["/joints[0]", "/joints[1]", "/joints[2]"]
     for episode in (0, 1):
@@ -88,7 +90,8 @@ def test_frames_equal_the_source_at_their_grid_times(depot: Depot, tmp_path: Pat
 def test_an_export_at_a_higher_rate_repeats_the_latest_sample(depot: Depot, tmp_path: Path):
     snapshot(depot, tmp_path, ["run-c"])
     root = tmp_path / "export"
-    info = export_version(sources(depot), "drives", 1, ExportSpec(("/joints",), (), (), "t", 20), root)
+    info = export_version(sources(depot), "drives", 1, ExportSpec(("/joints",), (), (), "t", 20), root).info
+    assert info is not None
     assert info["total_frames"] == 2 * FRAMES - 1  # 0.0, 0.05, ..., 2.9 s
     state = np.array(pq.read_table(root / layout.data_path(0)).column("observation.state").to_pylist())
     assert np.allclose(state, [joints(k // 2) for k in range(2 * FRAMES - 1)])
