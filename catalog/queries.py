@@ -423,5 +423,13 @@ def run_timelines(session: Session, run_id: str) -> list[RunTimeline]:
     return list(session.scalars(sa.select(RunTimeline).where(RunTimeline.run_id == run_id).order_by(RunTimeline.name)))
 
 
+def timeline_types(session: Session, run_ids: set[str]) -> dict[tuple[str, str], str]:
+    """(run id, timeline) -> its type (sequence, timestamp, duration), for a few runs (a page's)."""
+    query = sa.select(RunTimeline.run_id, RunTimeline.name, RunTimeline.type).where(
+        RunTimeline.run_id.in_(sorted(run_ids))
+    )
+    return {(run_id, name): kind for run_id, name, kind in session.execute(query).all()}
+
+
 def list_robots(session: Session) -> list[Robot]:
     return list(session.scalars(sa.select(Robot).order_by(Robot.id)))

@@ -19,8 +19,16 @@ def viewer_href(event: dict[str, Any]) -> str:
     """The console's web viewer on the event's run, showing the event's window padded by a few
     seconds (the viewer page signs the recording's link with that window)."""
     start, end = console_corpus.padded(event["timeline_type"], event["start"], event["end"])
-    query = urlencode({"timeline": event["timeline"], "start": str(start), "end": str(end)})
-    return f"{PREFIX}/runs/{quote(event['run_id'], safe='')}/viewer?{query}"
+    return window_href(event["run_id"], event["timeline"], start, end)
+
+
+def window_href(run_id: str, timeline: str | None = None, start: int | None = None, end: int | None = None) -> str:
+    """The console's web viewer on a run: its window `[start, end]` on `timeline` (inclusive), or
+    the whole run without one."""
+    run_viewer = f"{PREFIX}/runs/{quote(run_id, safe='')}/viewer"
+    if timeline is None or start is None or end is None:
+        return run_viewer
+    return f"{run_viewer}?{urlencode({'timeline': timeline, 'start': str(start), 'end': str(end)})}"
 
 
 def event_title(event: dict[str, Any]) -> str:
