@@ -25,11 +25,13 @@ from catalog.db import session_scope
 from catalog.queries import timeline_types
 from core.errors import InvalidArgumentError, NotFoundError
 from services.console.run_corpus import window_href
+from services.datasets import exports
 from services.console.web import PREFIX, Viewer, console_router, render
 from services.datasets import service
 from services.datasets.rest import MAX_VERSION, sources
 
 router = console_router()
+JOBS_SHOWN = 20  # export jobs of a version listed on its page
 PAGE = 50  # episodes on a page of a version's page
 VERSION = re.compile(r"[0-9]{1,19}")
 
@@ -72,7 +74,9 @@ def version_page(request: Request, name: str, version: str, principal: Viewer) -
         # A cursor of another version (or none at all): the version is shown, its episodes are not.
         answer = {**service.version_answer(found, name, number, PAGE), "episodes_page": [], "next_cursor": None}
         problem, status = exc.message, exc.http_status()
-    episodes = episode_views(request, answer["episodes_page"])
+    jobs = exports.jobs_answer(found, f"{name}@{number}", JOBS_SHOWN)["exports"]
+    flags = quality_of(jobs)
+    episodes = [{**e, "flags": flags.get(e["index"], [])} for e in episode_views(request, answer["episodes_page"])]
     next_cursor = answer["next_cursor"]
     return render(
         request,
@@ -85,9 +89,19 @@ def version_page(request: Request, name: str, version: str, principal: Viewer) -
         next_href=dataset_href(name, number, next_cursor) if next_cursor else None,
         first_href=dataset_href(name, number) if cursor else None,
         problem=problem,
+        jobs=jobs,
+        checked_by=next((j["id"] for j in jobs if j["state"] in ("done", "failed")), None),
         dataset_href=dataset_href,
         run_href=run_href,
     )
+
+
+def quality_of(jobs: list[dict[str, Any]]) -> dict[int, list[dict[str, Any]]]:
+    """Each episode's quality flags, as the latest export of the version that ended reported them."""
+    for job in jobs:  # newest first
+        if job["state"] in ("done", "failed"):
+            return {int(r["episode"]): r["flags"] for r in job["report"]}
+    return {}
 
 
 def version_number(name: str, text: str) -> int:

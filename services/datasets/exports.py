@@ -249,6 +249,7 @@ class _Run:
                 shutil.rmtree(self.staging, ignore_errors=True)
             log.info("export %s stopped: %s", self.row.id, self.state or "taken over by another process")
         except FleetError as exc:
+            self._beat()  # the episodes' report so far: why they could not be exported
             self._end(jobs.FAILED, str(exc))
         except Exception as exc:  # logged whole; the job says what kind of failure it was
             log.exception("export %s failed", self.row.id)

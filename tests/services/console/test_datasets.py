@@ -324,3 +324,27 @@ def test_hostile_text_in_a_selection_or_a_skipped_run_is_shown_never_run(console
     skipped_row = re.search(r'<table class="skipped">(.*?)</table>', second, re.S)
     assert skipped_row and "/console/runs/%3C%2Fpre%3E%3Cscript%3E" in skipped_row[1]
     assert 'id="created-by">&lt;/pre&gt;&lt;script&gt;' in second
+
+
+def test_a_version_lists_its_exports_and_each_episode_s_quality_flags(console: Depot, tmp_path: Path):
+    from services.datasets import exports
+    from services.datasets.export import ExportSpec
+    from services.datasets.quality import Limits
+    from services.datasets.resolve import Sources
+
+    alice = writer(console)
+    alice.create_dataset("flags", timeline="log_time")
+    staging = tmp_path / "allowed"
+    places = exports.Places((staging.as_uri(),), tmp_path / "staging")
+    request = exports.ExportRequest(
+        "flags", 1, "lerobot", (staging / "x").as_uri(),
+        ExportSpec(("/nowhere",), (), (), "t", 10), Limits(), strict=False,
+    )  # fmt: skip
+    state = console.app.state
+    found = Sources(state.catalog, state.node.tiers.warm, state.ingest, state.node.clock)
+    job = exports.create(found, places, request, "alice")
+    assert exports.run_due(found, places, "node") == job["id"]
+    text = signed_in(console).get("/console/datasets/flags/1").text
+    assert f'data-export="{job["id"]}" data-state="failed"' in text  # no episode has /nowhere
+    rows = {int(m.group(1)): m.group(5) for m in ROW.finditer(text)}
+    assert rows and all("missing_entity /nowhere" in body for body in rows.values())
