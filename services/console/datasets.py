@@ -8,8 +8,8 @@ functions `GET /v1/datasets...` answers with:
   run and its event and opening the web viewer at its window (a whole-run episode: the run).
 
 An unknown name or version is the console's 404 page; a cursor of another version is said on the
-version's page. Per-episode quality flags and the version's export jobs have marked places in
-`dataset_version.html` (the blocks `episode_quality` and `exports`), left empty here."""
+version's page. A version's page lists its export jobs with their progress, and each episode's
+quality flags as the latest export of the version that ended reported them."""
 
 from __future__ import annotations
 
@@ -25,9 +25,8 @@ from catalog.db import session_scope
 from catalog.queries import timeline_types
 from core.errors import InvalidArgumentError, NotFoundError
 from services.console.run_corpus import window_href
-from services.datasets import exports
 from services.console.web import PREFIX, Viewer, console_router, render
-from services.datasets import service
+from services.datasets import exports, service
 from services.datasets.rest import MAX_VERSION, sources
 
 router = console_router()

@@ -8,6 +8,7 @@ from __future__ import annotations
 import datetime as dt
 import json
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pyarrow.parquet as pq
@@ -178,7 +179,9 @@ def test_a_job_is_cancelled_and_a_strict_one_fails_naming_its_flags(exporting: t
         ({"dataset": "drives@9", "to": "PLACE", "observation": ["/joints"]}, "no dataset version drives@9"),
     ],
 )
-def test_a_bad_export_is_one_clear_refusal(exporting: tuple[Depot, Path], tmp_path: Path, body: dict, field: str):
+def test_a_bad_export_is_one_clear_refusal(
+    exporting: tuple[Depot, Path], tmp_path: Path, body: dict[str, Any], field: str
+) -> None:
     depot, place = exporting
     snapshot(depot, tmp_path, ["run-a"])
     sent = {"observation": ["/joints"], **body}
