@@ -7,6 +7,7 @@ from __future__ import annotations
 import contextlib
 import json
 from collections.abc import Iterator
+from pathlib import Path
 from typing import Any
 
 import click
@@ -48,7 +49,7 @@ def _run(monkeypatch: pytest.MonkeyPatch, fleet: FleetClient, *args: str) -> Any
     def same(api_url: str) -> Iterator[FleetClient]:
         yield fleet
 
-    for module in ("services.cli.datasets", "services.cli.runs"):
+    for module in ("services.cli.datasets", "services.cli.runs", "services.cli.dataset_exports"):
         monkeypatch.setattr(f"{module}.client", same)
     return CliRunner().invoke(cli, list(args), terminal_width=200)
 
@@ -87,3 +88,21 @@ def test_runs_rm_refuses_a_used_run_then_forces(depot: Depot, monkeypatch: pytes
     forced = _run(monkeypatch, admin, "runs", "rm", "run-a", "--yes", "--force")
     assert forced.exit_code == 0, forced.output
     assert writer(depot).dataset_version("picks", 1)["episodes_page"][0]["missing"] is True
+
+
+def test_export_to_a_folder_and_as_the_depot_s_job(depot: Depot, monkeypatch: pytest.MonkeyPatch, tmp_path: Path):
+    from tests.services.datasets.test_export import snapshot
+
+    snapshot(depot, tmp_path, ["run-a"])
+    alice = writer(depot)
+    options = ("--observation", "/joints", "--action", "/cmd", "--camera", "/camera/front=observation.images.front")
+    here = _run(monkeypatch, alice, "datasets", "export", "drives@1", "--to", str(tmp_path / "out"), *options)
+    assert here.exit_code == 0, here.output
+    assert "1 of 1 episodes exported, 30 frames" in here.output and "hot_run" in here.output
+    assert json.loads((tmp_path / "out" / "meta" / "info.json").read_text())["total_frames"] == 30
+    bad = _run(monkeypatch, alice, "datasets", "export", "drives@1", "--to", str(tmp_path / "x"), "--camera", "front")
+    assert bad.exit_code == 2 and "ENTITY=observation.images.NAME" in bad.output
+    refused = _run(monkeypatch, alice, "datasets", "export", "drives@1", "--to", "s3://b/p", *options)
+    assert "FLEET_EXPORT_URLS" in str(refused.exception)  # `fleet` prints it as one line (services.cli.main)
+    listed = _run(monkeypatch, alice, "datasets", "exports", "--json")
+    assert listed.exit_code == 0 and json.loads(listed.output) == []
