@@ -198,3 +198,32 @@ def test_a_depot_without_export_places_says_how_to_export(depot: Depot, tmp_path
     assert answer.status_code == 422 and "FLEET_EXPORT_URLS" in answer.json()["message"]
     reader = depot.client.post("/v1/exports", json=body, headers=bearer(depot.token("read")))
     assert reader.status_code == 403
+
+
+def test_a_depot_export_job_puts_the_dataset_into_s3(depot: Depot, tmp_path: Path, monkeypatch: pytest.MonkeyPatch):
+    """An S3 target (moto): every file under the prefix, meta/ included, as the folder export holds it."""
+    for name, value in (("AWS_ACCESS_KEY_ID", "testing"), ("AWS_SECRET_ACCESS_KEY", "testing")):
+        monkeypatch.setenv(name, value)
+    from moto import mock_aws
+
+    snapshot(depot, tmp_path, ["run-a"])
+    with mock_aws():
+        import boto3
+
+        s3 = boto3.client("s3", region_name="us-east-1")
+        s3.create_bucket(Bucket="datasets")
+        allowed = exports.Places(("s3://datasets/team",), tmp_path / "staging", region="us-east-1")
+        request = exports.ExportRequest("drives", 1, "lerobot", "s3://datasets/team/drives-1", SPEC, Limits(), False)
+        job = exports.create(sources(depot), allowed, request, "alice")
+        assert exports.run_due(sources(depot), allowed, "node") == job["id"]
+        assert writer(depot).export(job["id"])["state"] == "done"
+        keys = {o["Key"] for o in s3.list_objects_v2(Bucket="datasets", Prefix="team/drives-1/")["Contents"]}
+        export_version(sources(depot), "drives", 1, SPEC, tmp_path / "folder")
+        held = {
+            "team/drives-1/" + p.relative_to(tmp_path / "folder").as_posix()
+            for p in (tmp_path / "folder").rglob("*")
+            if p.is_file() and ".export" not in p.parts
+        }
+        assert keys == held and "team/drives-1/meta/info.json" in keys
+        info = s3.get_object(Bucket="datasets", Key="team/drives-1/meta/info.json")["Body"].read()
+        assert json.loads(info)["total_frames"] == FRAMES
