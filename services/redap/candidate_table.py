@@ -5,7 +5,8 @@ Rerun's servers answer them (names, types, nullability and `rerun:kind` metadata
 `chunk_byte_len` is the chunk's bytes as stored (its ArrowMsg, what the RRD manifest calls
 `chunk_byte_size`), `chunk_byte_size_uncompressed` its Arrow payload once decompressed (null when
 not known). No direct URLs are handed out: the columns are there, null, and clients fetch the
-chunks with FetchChunks."""
+chunks with FetchChunks. A snapshot episode's rows (`RUN~N`) name each chunk by an id of the episode's
+own (`chunks.episode_chunk_id`), their keys the chunk itself."""
 
 from __future__ import annotations
 
@@ -13,7 +14,7 @@ from collections.abc import Iterator, Mapping, Sequence
 
 import pyarrow as pa
 
-from services.redap.chunks import chunk_key
+from services.redap.chunks import EPISODE_SEPARATOR, chunk_key, episode_chunk_id
 from services.rrd.frames import MESSAGE_HEADER_SIZE
 from services.sealed.index import IndexRow
 
@@ -66,19 +67,21 @@ def _null_dictionary(field: pa.Field, length: int) -> pa.Array:
 
 def candidate_batch(
     schema: pa.Schema,
-    run_id: str,
+    segment_id: str,
     rows: Sequence[IndexRow],
     uncompressed: Mapping[bytes, int],
     timeline: str | None,
 ) -> pa.RecordBatch:
-    """The rows of one run's candidate chunks in `schema` (one of the two layouts above); the
-    timeline start column, whichever its name, holds each chunk's first time on `timeline`."""
+    """The rows of one segment's candidate chunks in `schema` (one of the two layouts above), keyed
+    for that segment (a run, or a snapshot's episode of one); the timeline start column, whichever
+    its name, holds each chunk's first time on `timeline`."""
     ids = [r.chunk_id or b"" for r in rows]
+    shown = [episode_chunk_id(segment_id, i) for i in ids] if EPISODE_SEPARATOR in segment_id else ids
     columns: dict[str, pa.Array] = {
-        "chunk_id": pa.array(ids, pa.binary(16)),
-        "chunk_segment_id": pa.array([run_id] * len(rows), pa.utf8()),
+        "chunk_id": pa.array(shown, pa.binary(16)),
+        "chunk_segment_id": pa.array([segment_id] * len(rows), pa.utf8()),
         "rerun_segment_layer": pa.array([LAYER] * len(rows), pa.utf8()),
-        "chunk_key": pa.array([chunk_key(run_id, r.offset, r.length, i) for r, i in zip(rows, ids, strict=True)]),
+        "chunk_key": pa.array([chunk_key(segment_id, r.offset, r.length, i) for r, i in zip(rows, ids, strict=True)]),
         "chunk_entity_path": pa.array([r.entity_path or "/" for r in rows], pa.utf8()),
         "chunk_is_static": pa.array([r.is_static for r in rows], pa.bool_()),
         "chunk_byte_len": pa.array([r.length - MESSAGE_HEADER_SIZE for r in rows], pa.uint64()),
@@ -98,11 +101,11 @@ def candidate_batch(
 
 def candidate_batches(
     schema: pa.Schema,
-    run_id: str,
+    segment_id: str,
     rows: Sequence[IndexRow],
     uncompressed: Mapping[bytes, int],
     timeline: str | None,
 ) -> Iterator[pa.RecordBatch]:
     """`candidate_batch` in parts of at most PART_ROWS rows."""
     for start in range(0, len(rows), PART_ROWS):
-        yield candidate_batch(schema, run_id, rows[start : start + PART_ROWS], uncompressed, timeline)
+        yield candidate_batch(schema, segment_id, rows[start : start + PART_ROWS], uncompressed, timeline)

@@ -1,5 +1,7 @@
 """Datasets and segments as the catalog holds them: a dataset is an application id (its entry id a
-TUID in the `datasets` table), a segment one of its runs."""
+TUID in the `datasets` table), a segment one of its runs; or a snapshot version (`snapshots.py`),
+a segment one of its episodes. The segment table's facts are read for a set of runs given as a
+condition on `Run` (`Runs`): an application's runs that hold data, or the runs a version reads."""
 
 from __future__ import annotations
 
@@ -14,13 +16,30 @@ from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from catalog import queries
-from catalog.models import Dataset, Run, RunEntity, RunMetric, RunTag, RunTimeline
+from catalog.models import Dataset, DatasetEpisode, Run, RunEntity, RunMetric, RunTag, RunTimeline
 from core.clock import aware
 from core.errors import NotFoundError
 from core.ids import possible_ids
 from core.states import Tier
 from services.redap.tuid import Tuid
 from services.rrd.manifest import PROPERTIES_ENTITY
+
+Runs = sa.ColumnElement[bool]  # which runs a dataset's segments are read from, as a condition on Run
+
+
+def application_runs(name: str) -> Runs:
+    """The runs of application `name` that hold data (deleted runs keep a tombstone row, not a segment)."""
+    return sa.and_(Run.application_id == name, Run.tier != Tier.DELETED)
+
+
+def version_runs(name: str, version: int) -> Runs:
+    """The runs snapshot version `name@version` reads, deleted since or not."""
+    listed = select(DatasetEpisode.run_id).where(DatasetEpisode.name == name, DatasetEpisode.version == version)
+    return Run.id.in_(listed)
+
+
+def _runs(runs: str | Runs) -> Runs:
+    return application_runs(runs) if isinstance(runs, str) else runs
 
 
 def dataset_by_entry(session: Session, entry: Tuid) -> Dataset:
@@ -41,11 +60,7 @@ def segment_run(session: Session, dataset: Dataset, segment_id: str) -> Run:
 
 def dataset_runs(session: Session, dataset: Dataset) -> list[Run]:
     """The dataset's runs that still hold data (deleted runs keep a tombstone row, not a segment)."""
-    return list(
-        session.scalars(
-            select(Run).where(Run.application_id == dataset.name, Run.tier != Tier.DELETED).order_by(Run.id)
-        )
-    )
+    return list(session.scalars(select(Run).where(application_runs(dataset.name)).order_by(Run.id)))
 
 
 # --- the segment table's rows, read in pages so a fleet's whole history is never in memory -----
@@ -69,6 +84,26 @@ class SegmentRow:
     timelines: dict[str, tuple[str, int, int]]  # name -> (type, min, max)
     metrics: dict[str, tuple[float | None, str | None]] = field(default_factory=dict)  # name -> (value, text)
     tags: list[str] = field(default_factory=list)  # sorted
+    episode: EpisodeFacts | None = None  # a snapshot's segment: the episode of the run it is
+
+    @property
+    def segment_id(self) -> str:
+        return self.episode.segment_id if self.episode is not None else self.run_id
+
+
+@dataclass(frozen=True)
+class EpisodeFacts:
+    """What the segment table shows of a snapshot's episode besides its run's facts."""
+
+    segment_id: str
+    index: int
+    split: str | None
+    timeline: str
+    start: int | None  # the window, inclusive (None: the whole run)
+    end: int | None
+    event_id: str | None
+    download: str  # the REST path of a download of exactly the episode's chunks
+    missing_why: str | None  # the run is deleted or gone: why
 
 
 # The columns a segment row is read from (not whole ORM objects: a page holds a thousand runs).
@@ -87,8 +122,8 @@ _SEGMENT_COLUMNS = (
 )
 
 
-def _segments(name: str) -> sa.Select[*tuple[Any, ...]]:
-    return select(*_SEGMENT_COLUMNS).where(Run.application_id == name, Run.tier != Tier.DELETED).order_by(Run.id)
+def _segments(runs: Runs) -> sa.Select[*tuple[Any, ...]]:
+    return select(*_SEGMENT_COLUMNS).where(runs).order_by(Run.id)
 
 
 def _properties(text: str | None) -> dict[str, Any]:
@@ -101,7 +136,7 @@ def _properties(text: str | None) -> dict[str, Any]:
 
 def segment_rows(session: Session, name: str, after: str | None, limit: int) -> list[SegmentRow]:
     """Up to `limit` segments of dataset `name` with ids after `after`, in id order."""
-    query = _segments(name).limit(limit)
+    query = _segments(application_runs(name)).limit(limit)
     if after is not None:
         query = query.where(Run.id > after)
     return _rows(session, session.execute(query).all())
@@ -110,7 +145,13 @@ def segment_rows(session: Session, name: str, after: str | None, limit: int) -> 
 def segment_rows_named(session: Session, name: str, run_ids: list[str]) -> list[SegmentRow]:
     """The segments of dataset `name` among `run_ids` (other datasets' runs, or none, left out)."""
     run_ids = possible_ids(run_ids)
-    return _rows(session, session.execute(_segments(name).where(Run.id.in_(run_ids))).all()) if run_ids else []
+    return runs_rows(session, application_runs(name), run_ids)
+
+
+def runs_rows(session: Session, runs: Runs, run_ids: list[str]) -> list[SegmentRow]:
+    """The rows of the runs among `run_ids` that `runs` holds, in id order."""
+    run_ids = possible_ids(run_ids)
+    return _rows(session, session.execute(_segments(runs).where(Run.id.in_(run_ids))).all()) if run_ids else []
 
 
 def _timelines(session: Session, run_ids: list[str]) -> dict[str, dict[str, tuple[str, int, int]]]:
@@ -174,16 +215,11 @@ def _rows(session: Session, runs: Sequence[sa.Row[Any]]) -> list[SegmentRow]:
     ]
 
 
-def property_pages(session: Session, name: str, page: int) -> Iterator[list[dict[str, Any]]]:
-    """The recording properties of every segment of dataset `name`, `page` runs at a time."""
+def property_pages(session: Session, runs: str | Runs, page: int) -> Iterator[list[dict[str, Any]]]:
+    """The recording properties of every run of `runs` (an application id: its runs), `page` runs at a time."""
     after = ""
     while True:
-        query = (
-            select(Run.id, Run.properties)
-            .where(Run.application_id == name, Run.tier != Tier.DELETED, Run.id > after)
-            .order_by(Run.id)
-            .limit(page)
-        )
+        query = select(Run.id, Run.properties).where(_runs(runs), Run.id > after).order_by(Run.id).limit(page)
         found = session.execute(query).all()
         if not found:
             return
@@ -191,13 +227,13 @@ def property_pages(session: Session, name: str, page: int) -> Iterator[list[dict
         after = found[-1][0]
 
 
-def timeline_types(session: Session, name: str) -> dict[str, str]:
-    """Each timeline of the segments of dataset `name` and its type (sequence, timestamp, duration): the
-    type most of them log it with, should runs disagree."""
+def timeline_types(session: Session, runs: str | Runs) -> dict[str, str]:
+    """Each timeline of the runs (an application id: its runs) and its type (sequence, timestamp,
+    duration): the type most of them log it with, should runs disagree."""
     query = (
         select(RunTimeline.name, RunTimeline.type, sa.func.count())
         .join(Run, Run.id == RunTimeline.run_id)
-        .where(Run.application_id == name, Run.tier != Tier.DELETED)
+        .where(_runs(runs))
         .group_by(RunTimeline.name, RunTimeline.type)
     )
     best: dict[str, tuple[int, str]] = {}
@@ -207,23 +243,24 @@ def timeline_types(session: Session, name: str) -> dict[str, str]:
     return {name: kind for name, (_, kind) in best.items()}
 
 
-def metric_kinds(session: Session, name: str) -> dict[str, bool]:
-    """Each metric some segment of dataset `name` has, and whether any run holds it as text."""
+def metric_kinds(session: Session, runs: str | Runs) -> dict[str, bool]:
+    """Each metric some run has (an application id: its runs), and whether any run holds it as text."""
     query = (
         select(RunMetric.name, sa.func.count(RunMetric.text_value))
         .join(Run, Run.id == RunMetric.run_id)
-        .where(Run.application_id == name, Run.tier != Tier.DELETED)
+        .where(_runs(runs))
         .group_by(RunMetric.name)
     )
     return {metric: texts > 0 for metric, texts in session.execute(query)}
 
 
-def property_archetypes(session: Session, name: str) -> dict[str, set[str]]:
-    """The archetypes logged on each property entity (`/__properties...`) of dataset `name`'s segments."""
+def property_archetypes(session: Session, runs: str | Runs) -> dict[str, set[str]]:
+    """The archetypes logged on each property entity (`/__properties...`) of the runs (an
+    application id: its runs)."""
     query = (
         select(RunEntity.path, RunEntity.archetypes)
         .join(Run, Run.id == RunEntity.run_id)
-        .where(Run.application_id == name, Run.tier != Tier.DELETED)
+        .where(_runs(runs))
         .where(RunEntity.path.startswith(PROPERTIES_ENTITY, autoescape=True))
         .distinct()
     )

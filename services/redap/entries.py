@@ -1,5 +1,6 @@
-"""The catalog: the server's version, who the caller is, the datasets (one per application id) and
-the `__entries` system table that Rerun's viewer shows as the server's landing page."""
+"""The catalog: the server's version, who the caller is, the datasets (one per application id, and
+one per snapshot version, `snapshots.py`) and the `__entries` system table that Rerun's viewer
+shows as the server's landing page."""
 
 from __future__ import annotations
 
@@ -8,6 +9,7 @@ import platform
 import re
 from collections.abc import Iterator
 from dataclasses import dataclass
+from typing import NoReturn
 from urllib.parse import quote
 
 import pyarrow as pa
@@ -19,14 +21,14 @@ from catalog import queries
 from catalog.db import session_scope
 from catalog.models import Dataset
 from core.clock import aware
-from core.errors import InvalidArgumentError, NotFoundError
+from core.errors import InvalidArgumentError, NotFoundError, UnimplementedError
 from core.ids import new_entry_id
 from services.auth.scopes import Principal, Scope
 from services.redap.dataframe import dataframe_part, schema_proto
-from services.redap.datasets import dataset_by_entry
 from services.redap.depot import Depot
 from services.redap.pb import cloud_pb2
-from services.redap.tuid import Tuid
+from services.redap.snapshots import SnapshotVersion, find_dataset, snapshot_versions
+from services.redap.tuid import Tuid, epoch_ns
 from services.rrd.pb import common_pb2
 
 CRATE_NAME = "fleet-telemetry"  # the package's name, where Rerun's servers name their crate
@@ -68,6 +70,7 @@ class Entry:
     kind: int  # a cloud_pb2.EntryKind
     created_at: dt.datetime
     updated_at: dt.datetime
+    snapshot: bool = False  # a snapshot version's
 
     def details(self) -> cloud_pb2.EntryDetails:
         return cloud_pb2.EntryDetails(
@@ -83,12 +86,6 @@ def _timestamp(value: dt.datetime) -> Timestamp:
     stamp = Timestamp()
     stamp.FromDatetime(aware(value))
     return stamp
-
-
-def epoch_ns(moment: dt.datetime) -> int:
-    """Nanoseconds since the epoch, exactly (a float's 53 bits would round today's times)."""
-    delta = aware(moment) - dt.datetime(1970, 1, 1, tzinfo=dt.UTC)
-    return (delta.days * 86400 + delta.seconds) * 10**9 + delta.microseconds * 1000
 
 
 def depot_url(depot: Depot, path: str) -> str:
@@ -138,9 +135,11 @@ def who_am_i(depot: Depot, principal: Principal) -> cloud_pb2.WhoAmIResponse:
 
 
 def catalog_entries(depot: Depot) -> list[Entry]:
-    """Every entry: the datasets, then the system table (updated when a dataset last was)."""
+    """Every entry: the applications' datasets, the snapshot versions, then the system table
+    (updated when a dataset last was)."""
     with session_scope(depot.catalog) as session:
         datasets = [_dataset_entry(d) for d in queries.datasets(session)]
+        datasets += [_snapshot_entry(v) for v in snapshot_versions(session)]
     updated = max([ENTRIES_TABLE_CREATED, *(d.updated_at for d in datasets)])
     table = Entry(ENTRIES_TABLE_ID, ENTRIES_TABLE, cloud_pb2.ENTRY_KIND_TABLE, ENTRIES_TABLE_CREATED, updated)
     return [*datasets, table]
@@ -154,6 +153,11 @@ def _dataset_entry(dataset: Dataset) -> Entry:
         aware(dataset.created_at),
         aware(dataset.updated_at),
     )
+
+
+def _snapshot_entry(version: SnapshotVersion) -> Entry:
+    at = version.created_at  # never updated
+    return Entry(version.entry_id, version.entry_name, cloud_pb2.ENTRY_KIND_DATASET, at, at, snapshot=True)
 
 
 def wanted_kinds(entry_filter: cloud_pb2.EntryFilter) -> frozenset[int]:
@@ -186,26 +190,49 @@ def find_entries(
     depot: Depot, principal: Principal, request: cloud_pb2.FindEntriesRequest
 ) -> cloud_pb2.FindEntriesResponse:
     kinds = wanted_kinds(request.filter)
-    found = [e.details() for e in catalog_entries(depot) if _matches(e, request.filter, kinds)]
-    return cloud_pb2.FindEntriesResponse(entries=found)
+    found = [e for e in catalog_entries(depot) if _matches(e, request.filter, kinds)]
+    if request.filter.HasField("name") and any(e.snapshot for e in found):
+        found = [e for e in found if e.snapshot]  # an application named as a version is: the version's name
+    return cloud_pb2.FindEntriesResponse(entries=[e.details() for e in found])
 
 
 def read_dataset_entry(depot: Depot, principal: Principal, entry: Tuid) -> cloud_pb2.ReadDatasetEntryResponse:
     if entry == ENTRIES_TABLE_ID:
         raise NotFoundError(f"entry {entry} is the {ENTRIES_TABLE} table, not a dataset: read it with ReadTableEntry")
     with session_scope(depot.catalog) as session:
-        found = _dataset_entry(dataset_by_entry(session, entry))
+        dataset = find_dataset(session, entry)
+        if isinstance(dataset, SnapshotVersion):
+            found = _snapshot_entry(dataset)
+            path = f"/v1/datasets/{quote(dataset.name, safe='')}/{dataset.version}"
+        else:
+            found = _dataset_entry(dataset)
+            path = f"/v1/runs?application={quote(found.name, safe='')}"
     answer = cloud_pb2.DatasetEntry(
         details=found.details(),
         dataset_handle=common_pb2.DatasetHandle(
             entry_id=entry.entry_id(),
             dataset_kind=common_pb2.DATASET_KIND_RECORDING,
             store_kind=common_pb2.STORE_KIND_RECORDING,  # what clients before dataset kinds read
-            dataset_url=depot_url(depot, f"/v1/runs?application={quote(found.name, safe='')}"),  # required by the SDK
+            dataset_url=depot_url(depot, path),  # required by the SDK
         ),
     )
     answer.dataset_details.SetInParent()  # present though empty: Rerun's viewer refuses an entry without
     return cloud_pb2.ReadDatasetEntryResponse(dataset=answer)
+
+
+def refuse_write(depot: Depot, principal: Principal, entry: Tuid | None, rpc: str) -> NoReturn:
+    """A write to an entry (register, unregister, delete, update, segment properties, maintenance):
+    FAILED_PRECONDITION for a snapshot version, which never changes; the depot serves no writes to
+    other entries either (UNIMPLEMENTED)."""
+    if entry is not None and entry != ENTRIES_TABLE_ID:
+        with session_scope(depot.catalog) as session:
+            try:
+                found = find_dataset(session, entry)
+            except NotFoundError:
+                found = None
+        if isinstance(found, SnapshotVersion):
+            raise found.immutable(rpc)
+    raise UnimplementedError(f"this depot does not serve {rpc}: its datasets are written by ingest")
 
 
 # --- the __entries system table --------------------------------------------------------------

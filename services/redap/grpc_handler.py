@@ -1,7 +1,8 @@
 """gRPC `rerun.cloud.v1alpha1.RerunCloudService`: parse the call (its token, its
 `x-rerun-entry-id`, its client version), call a service function off the event loop, and map
 errors to gRPC statuses. The answers are built in `entries`, `segments`, `manifest`, `chunks` and
-`query`."""
+`query`. Writes to an entry are refused (`entries.refuse_write`): a snapshot version's as
+FAILED_PRECONDITION, the others as UNIMPLEMENTED."""
 
 from __future__ import annotations
 
@@ -23,7 +24,9 @@ from services.redap.clients import check_client
 from services.redap.depot import Depot
 from services.redap.pb import cloud_pb2, cloud_pb2_grpc
 from services.redap.tuid import Tuid
+from services.rrd import errors as rrd_errors
 from services.rrd.pb import common_pb2
+from services.rrd.protowire import last_field
 
 log = logging.getLogger(__name__)
 
@@ -317,10 +320,70 @@ def _parsed_after_auth(name: str, handler: grpc.RpcMethodHandler, server: Catalo
     return grpc.unary_stream_rpc_method_handler(stream_call, None, handler.response_serializer)
 
 
+# Writes to an entry, named by the x-rerun-entry-id header (or by the body's `id`, field 1, for
+# the calls of clients from before that header that took one): refused without reading the rest.
+WRITE_CALLS = frozenset(
+    {
+        "DeleteEntry",
+        "UpdateEntry",
+        "UpdateDatasetEntry",
+        "RegisterWithDataset",
+        "UnregisterFromDataset",
+        "SetSegmentProperties",
+        "DeleteSegmentProperties",
+        "DoMaintenance",
+    }
+)
+BODY_ID_CALLS = frozenset({"DeleteEntry", "UpdateEntry", "UpdateDatasetEntry"})
+STREAMING_CALLS = frozenset({"UnregisterFromDataset"})
+
+
+def body_entry_id(raw: bytes) -> Tuid | None:
+    """The entry a request's `EntryId id = 1` names, if it has one; INVALID_ARGUMENT if malformed."""
+    try:
+        found = last_field(raw, 1)
+        entry = common_pb2.EntryId.FromString(raw[found[1] : found[2]]) if found is not None else None
+    except (rrd_errors.RrdError, DecodeError) as exc:
+        raise InvalidArgumentError(
+            f"the request is not a valid protobuf ({exc}): send it as Rerun's clients do"
+        ) from None
+    return Tuid.from_proto(entry.id) if entry is not None and entry.HasField("id") else None
+
+
+def _refused_write(name: str, server: CatalogServer) -> grpc.RpcMethodHandler:
+    """A write to an entry: the caller's token checked (read scope: it learns only whether the entry
+    is a snapshot version), then refused by `entries.refuse_write`."""
+
+    async def refuse(raw: bytes, context: grpc.aio.ServicerContext) -> NoReturn:
+        try:
+            principal = await server._caller(context, Scope.READ)
+            entry = header_entry_id(context.invocation_metadata())
+            if entry is None and name in BODY_ID_CALLS:
+                entry = body_entry_id(raw)
+            await asyncio.to_thread(entries.refuse_write, server.depot, principal, entry, name)
+        except FleetError as exc:
+            await _abort(context, exc)
+        except grpc.aio.AbortError:
+            raise
+        except Exception:
+            await _internal(context)
+        raise AssertionError("not reached: refuse_write raises")
+
+    if name in STREAMING_CALLS:
+
+        async def refuse_stream(raw: bytes, context: grpc.aio.ServicerContext) -> AsyncIterator[bytes]:
+            await refuse(raw, context)
+            yield b""  # not reached: a generator, as grpc.aio wants of a streaming method
+
+        return grpc.unary_stream_rpc_method_handler(refuse_stream, request_deserializer=None, response_serializer=None)
+    return grpc.unary_unary_rpc_method_handler(refuse, request_deserializer=None, response_serializer=None)
+
+
 def served_handlers(catalog_server: CatalogServer) -> dict[str, grpc.RpcMethodHandler]:
     """Every RPC of the service, by name: those `CatalogServer` answers, each request parsed after
-    its token is checked; the others refused as unimplemented without reading them. FetchChunks
-    answers bytes it built itself (the stored chunk messages, never parsed and serialized again)."""
+    its token is checked; the others refused as unimplemented without reading them; writes to an
+    entry refused (`WRITE_CALLS`). FetchChunks answers bytes it built itself (the stored chunk
+    messages, never parsed and serialized again)."""
     taken = _Handlers()
     cloud_pb2_grpc.add_RerunCloudServiceServicer_to_server(catalog_server, taken)  # type: ignore[no-untyped-call]
     generated = dict(taken.handlers)
@@ -329,10 +392,11 @@ def served_handlers(catalog_server: CatalogServer) -> dict[str, grpc.RpcMethodHa
         request_deserializer=cloud_pb2.FetchChunksRequest.FromString,
         response_serializer=None,
     )
-    return {
+    served = {
         name: _parsed_after_auth(name, handler, catalog_server) if name in vars(CatalogServer) else _unimplemented(name)
         for name, handler in generated.items()
     }
+    return {**served, **{name: _refused_write(name, catalog_server) for name in sorted(WRITE_CALLS)}}
 
 
 def add_to_server(server: grpc.aio.Server, catalog_server: CatalogServer) -> None:

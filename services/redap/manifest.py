@@ -1,5 +1,7 @@
 """Opening a segment: its RRD manifest (the sealed footer's, or the hot run's chunk index) with
-chunk keys, and its assets.
+chunk keys, and its assets. A snapshot's segment (an episode, `snapshots.py`) is its run's manifest
+cut to the episode's chunks: its rows, and the Sorbet schema's columns of the entities they hold;
+its store id and chunk keys name the segment, so the chunks fetched are the segment's.
 
 Answered as Rerun's own server answers a recording with a footer: the footer manifest's columns
 (every field nullable, as it serves them) plus `chunk_key` (binary), the footer's Sorbet schema
@@ -14,20 +16,26 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterator
+from dataclasses import dataclass
 
 import lz4.block
 import pyarrow as pa
+import pyarrow.compute as pc
 from google.protobuf.message import DecodeError
 
+from catalog.datasets import chunk_ids_of
 from catalog.db import session_scope
-from core.errors import InternalError, InvalidArgumentError, UnavailableError
+from core.errors import InternalError, InvalidArgumentError, NotFoundError, UnavailableError
 from services.auth.scopes import Principal
 from services.hot.read import HotRecording
-from services.redap.chunks import chunk_keys
-from services.redap.datasets import dataset_by_entry, segment_run
+from services.redap import snapshots
+from services.redap.chunks import EPISODE_SEPARATOR, chunk_keys, episode_chunk_id
+from services.redap.datasets import segment_run
 from services.redap.depot import Depot
 from services.redap.pb import cloud_pb2
 from services.redap.recordings import open_recording
+from services.redap.schema import narrowed
+from services.redap.snapshots import SnapshotVersion, find_dataset
 from services.redap.tuid import Tuid
 from services.rrd.chunk_index import STORE_INFO
 from services.rrd.decoder import decode_message
@@ -53,19 +61,30 @@ SORBET_VERSION = ".".join(map(str, CURRENT_VERSION)).encode()
 PART_BYTES = 16 * 1024 * 1024
 
 
+@dataclass(frozen=True)
+class Segment:
+    """What a segment reads: a run, or of a run a snapshot episode's chunks."""
+
+    run_id: str
+    segment_id: str
+    chunk_ids: frozenset[bytes] | None = None
+
+
 def rrd_manifest(
     depot: Depot, principal: Principal, entry: Tuid, request: cloud_pb2.GetRrdManifestRequest
 ) -> Iterator[cloud_pb2.GetRrdManifestResponse]:
-    run_id = _segment(depot, entry, request.segment_id.id if request.HasField("segment_id") else "")
+    segment = find_segment(depot, entry, request.segment_id.id if request.HasField("segment_id") else "")
+    run_id = segment.run_id
     for _ in range(2):  # a hot run sealed (its file removed) while its manifest was read is read again
         recording = open_recording(depot, run_id)
         try:
             if recording.hot is None:
                 assert recording.store is not None
-                return served_manifest(run_id, sealed_manifest(run_id, recording.store, recording.key, recording.size))
+                found = sealed_manifest(run_id, recording.store, recording.key, recording.size)
+                return served_manifest(segment.segment_id, found, segment.chunk_ids)
             manifest = hot_manifest(run_id, recording.hot)
             if recording.hot.path.exists():
-                return served_manifest(run_id, manifest)
+                return served_manifest(segment.segment_id, manifest, segment.chunk_ids)
         finally:
             recording.close()
     raise UnavailableError(f"run {run_id!r} is being sealed right now: try again in a moment")
@@ -77,20 +96,30 @@ def assets(
     """No asset dataset: an empty stream, which Rerun's clients read as "this dataset has no
     assets" (one response naming an asset dataset is what a server with assets sends)."""
     if request.HasField("segment_id") and request.segment_id.id:
-        _segment(depot, entry, request.segment_id.id)
+        find_segment(depot, entry, request.segment_id.id)
     else:
         with session_scope(depot.catalog) as session:
-            dataset_by_entry(session, entry)
+            find_dataset(session, entry)
     return iter(())
 
 
-def _segment(depot: Depot, entry: Tuid, segment_id: str) -> str:
-    """The run a segment of the dataset names (NOT_FOUND if it is none of the dataset's)."""
+def find_segment(depot: Depot, entry: Tuid, segment_id: str) -> Segment:
+    """What a segment of the dataset reads (NOT_FOUND if it is none of the dataset's, or if a
+    snapshot's episode reads a run deleted since, saying so)."""
     if not segment_id:
-        raise InvalidArgumentError("name the segment: segment_id is a run id, as the segment table lists them")
+        raise InvalidArgumentError(
+            "name the segment: segment_id is a run id (of a snapshot: an episode's), as the segment table lists them"
+        )
     with session_scope(depot.catalog) as session:
-        run_id: str = segment_run(session, dataset_by_entry(session, entry), segment_id).id
-    return run_id
+        dataset = find_dataset(session, entry)
+        if isinstance(dataset, SnapshotVersion):
+            episode = snapshots.episode_of(session, dataset, segment_id)
+            missing = snapshots.missing_why(session, dataset, episode)
+            if missing is not None:
+                raise NotFoundError(missing)
+            return Segment(episode.run_id, segment_id, frozenset(chunk_ids_of(episode)))
+        run_id: str = segment_run(session, dataset, segment_id).id
+    return Segment(run_id, run_id)
 
 
 # --- the manifests --------------------------------------------------------------------------------
@@ -140,20 +169,33 @@ def hot_manifest(run_id: str, hot: HotRecording) -> log_msg_pb2.RrdManifest:
     return build_manifest(store, entries)
 
 
-def served_manifest(run_id: str, manifest: log_msg_pb2.RrdManifest) -> Iterator[cloud_pb2.GetRrdManifestResponse]:
-    """The manifest as clients get it: nullable columns plus `chunk_key`, in parts of whole rows."""
+def served_manifest(
+    segment_id: str, manifest: log_msg_pb2.RrdManifest, chunk_ids: frozenset[bytes] | None = None
+) -> Iterator[cloud_pb2.GetRrdManifestResponse]:
+    """The manifest as clients get it: nullable columns plus `chunk_key`, in parts of whole rows;
+    with `chunk_ids`, only those chunks (a snapshot's episode), its store id naming the segment."""
     table = read_manifest(manifest)
+    sorbet = read_sorbet_schema(manifest)
+    store_id = manifest.store_id
+    if chunk_ids is not None:
+        ids = table.column("chunk_id")
+        table = table.filter(pc.is_in(ids, value_set=pa.array(sorted(chunk_ids), ids.type)))
+        entities = set(table.column("chunk_entity_path").to_pylist())
+        sorbet = narrowed(sorbet, entities, {f.name for f in sorbet})
+        store_id = common_pb2.StoreId()
+        store_id.CopyFrom(manifest.store_id)
+        store_id.recording_id = segment_id
+    ids = table.column("chunk_id").to_pylist()
     keys = chunk_keys(
-        run_id,
-        table.column("chunk_byte_offset").to_pylist(),
-        table.column("chunk_byte_size").to_pylist(),
-        table.column("chunk_id").to_pylist(),
+        segment_id, table.column("chunk_byte_offset").to_pylist(), table.column("chunk_byte_size").to_pylist(), ids
     )
+    if EPISODE_SEPARATOR in segment_id:  # a window's chunks go by ids of its own (chunks.py)
+        shown = pa.array([episode_chunk_id(segment_id, i) for i in ids], table.schema.field("chunk_id").type)
+        table = table.set_column(table.schema.get_field_index("chunk_id"), table.schema.field("chunk_id"), shown)
     fields = [f.with_nullable(True) for f in table.schema] + [pa.field("chunk_key", pa.binary())]
     table = table.combine_chunks()
     columns = [column.chunk(0) if column.num_chunks else pa.array([], column.type) for column in table.columns]
     served = pa.RecordBatch.from_arrays([*columns, pa.array(keys, pa.binary())], schema=pa.schema(fields))
-    sorbet = read_sorbet_schema(manifest)
     # Hashed again as Rerun hashes it: footers sealed before the depot did so carry another hash.
     sha256 = schema_sha256(sorbet)
     sorbet = sorbet.with_metadata({**(sorbet.metadata or {}), VERSION_KEY: SORBET_VERSION})
@@ -161,7 +203,7 @@ def served_manifest(run_id: str, manifest: log_msg_pb2.RrdManifest) -> Iterator[
     for part in _parts(served):
         yield cloud_pb2.GetRrdManifestResponse(
             rrd_manifest=log_msg_pb2.RrdManifest(
-                store_id=manifest.store_id,
+                store_id=store_id,
                 sorbet_schema=sorbet_proto,
                 sorbet_schema_sha256=sha256,
                 data=part,

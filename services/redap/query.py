@@ -4,10 +4,13 @@ indexes; the client fetches the chunks and resolves the rows itself.
 
 Both candidate calls become one `Plan` (contents, segments, and what in time), checked as Rerun's
 own server checks it (the same calls are refused, with messages naming the field), then answered a
-run at a time, in parts of bounded size. Segments are runs: an explicit list selects the runs named
-(an unknown id selects nothing, as the protocol says, so a filter on segment ids never fails); a
-run that cannot be read now (cold and not restored) fails a query naming it, and is left out of
-one over every segment. Requests name entities as `/world/points` or `world/points`, alike."""
+segment at a time, in parts of bounded size. Segments are runs, or a snapshot version's episodes
+(`snapshots.py`: each the chunks of its run it reads, and nothing else: the plan selects among
+them as among a run's): an explicit list selects the segments named (an unknown id selects nothing,
+as the protocol says, so a filter on segment ids never fails); a segment that cannot be read now
+(its run cold and not restored, or deleted since a snapshot listed it) fails a query naming it, and
+is left out of one over every segment. Requests name entities as `/world/points` or
+`world/points`, alike."""
 
 from __future__ import annotations
 
@@ -20,9 +23,8 @@ import sqlalchemy as sa
 from sqlalchemy.orm import Session
 
 from catalog.db import session_scope
-from catalog.models import Dataset, Run, RunTimeline
+from catalog.models import Run, RunTimeline
 from core.errors import InvalidArgumentError, UnimplementedError
-from core.states import Tier
 from services.auth.scopes import Principal
 from services.redap.candidate_table import candidate_batches, find_chunks_schema, query_dataset_schema
 from services.redap.candidates import (
@@ -36,11 +38,12 @@ from services.redap.candidates import (
     select,
 )
 from services.redap.dataframe import dataframe_part, schema_proto
-from services.redap.datasets import dataset_by_entry
+from services.redap.datasets import Runs, application_runs
 from services.redap.depot import Depot
 from services.redap.pb import cloud_pb2
 from services.redap.schema import merge_schemas
-from services.redap.sources import IndexedRecordingSource, dataset_sources, run_chunks, run_schema
+from services.redap.snapshots import SnapshotVersion, episode_page, episode_sources, find_dataset
+from services.redap.sources import DatasetView, SegmentSource, dataset_sources, run_chunks, segment_schema
 from services.redap.tuid import Tuid
 
 log = logging.getLogger(__name__)
@@ -68,16 +71,6 @@ class Plan:
         return self.mode if self.segments is None or segment in self.segments else None
 
 
-@dataclass(frozen=True)
-class DatasetView:
-    """A dataset as one query sees it: its timelines (from the catalog) and its runs' sources."""
-
-    name: str
-    timelines: frozenset[str]
-    sources: list[IndexedRecordingSource]
-    empty: bool  # the dataset holds no run (any timeline may be named of it)
-
-
 # --- the three calls ---------------------------------------------------------------------------
 
 
@@ -85,11 +78,11 @@ def dataset_schema(depot: Depot, principal: Principal, entry: Tuid) -> cloud_pb2
     """The merge of the dataset's runs' schemas (runs that cannot be read now left out)."""
     view = _dataset(depot, entry)
     schemas = []
-    for source in view.sources:
-        if source.unreadable is not None:
-            log.info("dataset %s: schema without run %s (%s)", view.name, source.run_id, source.unreadable)
+    for segment in view.segments:
+        if segment.source.unreadable is not None:
+            log.info("dataset %s: schema without %s (%s)", view.name, segment.segment_id, segment.source.unreadable)
             continue
-        schemas.append(run_schema(depot, source))
+        schemas.append(segment_schema(depot, segment))
     return cloud_pb2.GetDatasetSchemaResponse(schema=schema_proto(merge_schemas(schemas)))
 
 
@@ -118,22 +111,22 @@ def query_dataset(
 
 
 def _dataset(depot: Depot, entry: Tuid, only: frozenset[str] | None = None) -> DatasetView:
-    """The dataset and its runs (`only` those named, when a query names its segments)."""
+    """The dataset and its segments (`only` those named, when a query names its segments)."""
     with session_scope(depot.catalog) as session:
-        dataset = dataset_by_entry(session, entry)
+        dataset = find_dataset(session, entry)
+        if isinstance(dataset, SnapshotVersion):
+            segments = episode_sources(depot, session, dataset, only)
+            empty = not episode_page(session, dataset, -1, 1)
+            return DatasetView(dataset.entry_name, _timelines(session, dataset.runs), segments, empty)
         sources = dataset_sources(depot, session, dataset, depot.clock(), only)
-        held = sa.select(Run.id).where(Run.application_id == dataset.name, Run.tier != Tier.DELETED).limit(1)
+        held = sa.select(Run.id).where(application_runs(dataset.name)).limit(1)
         empty = session.scalar(held) is None
-        return DatasetView(dataset.name, _timelines(session, dataset), sources, empty)
+        segments = [SegmentSource(source.run_id, source) for source in sources]
+        return DatasetView(dataset.name, _timelines(session, application_runs(dataset.name)), segments, empty)
 
 
-def _timelines(session: Session, dataset: Dataset) -> frozenset[str]:
-    query = (
-        sa.select(RunTimeline.name)
-        .join(Run, Run.id == RunTimeline.run_id)
-        .where(Run.application_id == dataset.name, Run.tier != Tier.DELETED)
-        .distinct()
-    )
+def _timelines(session: Session, runs: Runs) -> frozenset[str]:
+    query = sa.select(RunTimeline.name).join(Run, Run.id == RunTimeline.run_id).where(runs).distinct()
     return frozenset(session.scalars(query))
 
 
@@ -146,19 +139,20 @@ def _check_timeline(view: DatasetView, timeline: str | None) -> None:
 def _candidates(
     depot: Depot, view: DatasetView, plan: Plan, schema: pa.Schema, timeline: str | None
 ) -> Iterator[pa.RecordBatch]:
-    """Each selected run's candidate rows, a run at a time; one empty part when none is found (as
-    Rerun's server answers: the client learns the columns either way)."""
+    """Each selected segment's candidate rows, a segment at a time; one empty part when none is
+    found (as Rerun's server answers: the client learns the columns either way)."""
     sent = False
-    for source in view.sources:
-        mode = plan.mode_for(source.run_id)
+    for segment in view.segments:
+        mode = plan.mode_for(segment.segment_id)
         if mode is None:
             continue
+        source = segment.source
         if source.unreadable is not None and plan.segments is None:
-            log.info("dataset %s: query without run %s (%s)", view.name, source.run_id, source.unreadable)
+            log.info("dataset %s: query without %s (%s)", view.name, segment.segment_id, source.unreadable)
             continue
-        found = run_chunks(depot, source)  # an explicitly named run that cannot be read fails the query
-        rows = select(found.rows, plan.contents, mode)
-        for batch in candidate_batches(schema, source.run_id, rows, found.uncompressed, timeline):
+        found = run_chunks(depot, source)  # an explicitly named segment that cannot be read fails the query
+        rows = select(segment.rows(found), plan.contents, mode)
+        for batch in candidate_batches(schema, segment.segment_id, rows, found.uncompressed, timeline):
             sent = True
             yield batch
     if not sent:

@@ -154,3 +154,20 @@ def merge_schemas(schemas: Iterable[pa.Schema]) -> pa.Schema:
         for field in schema:
             fields[field.name] = _merge_field(fields[field.name], field) if field.name in fields else field
     return pa.schema(list(fields.values()))
+
+
+def narrowed(schema: pa.Schema, entities: set[str], timelines: set[str]) -> pa.Schema:
+    """A run's schema as some of its chunks hold it (a snapshot's episode): the controls, the
+    timelines among `timelines`, and the columns of the entities among `entities`."""
+    kept = []
+    for field in schema:
+        kind = _kind(field)
+        if kind == _INDEX:
+            keep = field.name in timelines
+        elif kind == _CONTROL:
+            keep = True
+        else:
+            keep = rerun_key(field, "entity_path", b"/").decode() in entities
+        if keep:
+            kept.append(field)
+    return pa.schema(kept, metadata=schema.metadata)

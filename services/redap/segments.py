@@ -1,4 +1,5 @@
-"""A dataset's segment table: one row per run, with Rerun's columns and the fleet's.
+"""A dataset's segment table: one row per run (a snapshot version's: per episode), with Rerun's
+columns and the fleet's.
 
 Columns, named and typed as Rerun's own server does (the golden tests compare):
 - `rerun_segment_id`, `rerun_layer_names`, `rerun_storage_urls`, `rerun_last_updated_at`,
@@ -12,9 +13,16 @@ Columns, named and typed as Rerun's own server does (the golden tests compare):
   (list<float64>, or list<utf8> for a metric some run holds as text) and `property:depot:tags`
   (list<utf8>, sorted), so a client filters segments on them as on any property column
   (`array_has(col("property:depot:tags"), lit("night-shift"))`, `col("property:depot:metric:distance_m")[0] > 100`);
-- per timeline, `TIMELINE:start` and `TIMELINE:end` with their `rerun:index*` metadata.
+- per timeline, `TIMELINE:start` and `TIMELINE:end` with their `rerun:index*` metadata;
+- of a snapshot version (`snapshots.py`), a row per episode, with its run's columns as above and the
+  episode's facts: `property:depot:episode` (its number), `:run_id`, `:split`, `:timeline`,
+  `:window_start`, `:window_end` (null for a whole run), `:event_id`, `:missing` and `:missing_why`
+  (its run deleted since); its `rerun_num_chunks` and `rerun_size_bytes` are the episode's, its
+  timeline's columns its window (within the run's range), `rerun_storage_urls` the download of
+  exactly its chunks.
 
-Everything comes from catalog rows (runs, run_timelines, run_entities, run_metrics, run_tags): no run file is opened.
+Everything comes from catalog rows (runs, run_timelines, run_entities, run_metrics, run_tags, the
+snapshot's episodes): no run file is opened.
 """
 
 from __future__ import annotations
@@ -29,15 +37,17 @@ import pyarrow as pa
 from sqlalchemy.orm import Session
 
 from catalog.db import session_scope
+from catalog.models import Dataset
 from core.errors import InvalidArgumentError
 from services.auth.scopes import Principal
-from services.redap import datasets
+from services.redap import datasets, snapshots
 from services.redap.dataframe import dataframe_part, schema_proto
-from services.redap.datasets import SegmentRow, dataset_by_entry
+from services.redap.datasets import EpisodeFacts, Runs, SegmentRow
 from services.redap.depot import Depot
-from services.redap.entries import depot_url, epoch_ns
+from services.redap.entries import depot_url
 from services.redap.pb import cloud_pb2
-from services.redap.tuid import Tuid
+from services.redap.snapshots import SnapshotVersion
+from services.redap.tuid import Tuid, epoch_ns
 from services.rrd.manifest import PROPERTIES_ENTITY
 
 LAYER = "base"  # Rerun's name for a segment's first layer; a run is one recording, one layer
@@ -66,10 +76,11 @@ def _strings() -> pa.DataType:
 
 def _fixed_columns(depot: Depot) -> list[Column]:
     def storage_url(row: SegmentRow) -> list[str]:
-        return [depot_url(depot, f"/v1/runs/{row.run_id}/recording.rrd")]
+        path = row.episode.download if row.episode is not None else f"/v1/runs/{row.run_id}/recording.rrd"
+        return [depot_url(depot, path)]
 
     return [
-        Column(pa.field("rerun_segment_id", pa.utf8(), nullable=False), lambda row: row.run_id),
+        Column(pa.field("rerun_segment_id", pa.utf8(), nullable=False), lambda row: row.segment_id),
         Column(pa.field("rerun_layer_names", _strings(), nullable=False), lambda row: [LAYER]),
         Column(pa.field("rerun_storage_urls", _strings(), nullable=False), storage_url),
         Column(
@@ -171,10 +182,10 @@ def _property_column(prop: str, component: str, kinds: set[str], archetypes: set
     return Column(_property_field(prop, component, item, archetypes), value)
 
 
-def recording_property_columns(session: Session, name: str) -> list[Column]:
-    """A column per property component any segment of dataset `name` holds."""
+def recording_property_columns(session: Session, runs: Runs) -> list[Column]:
+    """A column per property component any of the runs holds."""
     kinds: dict[tuple[str, str], set[str]] = {}
-    for page in datasets.property_pages(session, name, PAGE_ROWS):
+    for page in datasets.property_pages(session, runs, PAGE_ROWS):
         for properties in page:
             for prop, values in properties.items():
                 if not isinstance(values, dict) or prop == DEPOT_PROPERTY:  # the depot's own column names win
@@ -182,7 +193,7 @@ def recording_property_columns(session: Session, name: str) -> list[Column]:
                 for component, value in values.items():
                     seen = kinds.setdefault((prop, component), set())
                     seen.update(_kind(item) for item in _items(value) or ())
-    archetypes = datasets.property_archetypes(session, name)
+    archetypes = datasets.property_archetypes(session, runs)
     return [
         _property_column(prop, component, found, archetypes.get(property_entity(prop), set()))
         for (prop, component), found in kinds.items()
@@ -228,10 +239,33 @@ def _metric_column(metric: str, text: bool) -> Column:
     return Column(_property_field(DEPOT_PROPERTY, f"{METRIC_PREFIX}{metric}", item, set()), cell)
 
 
-def corpus_columns(session: Session, name: str) -> list[Column]:
-    """The dataset's metrics, a column each, and the runs' tags."""
+def corpus_columns(session: Session, runs: Runs) -> list[Column]:
+    """The runs' metrics, a column each, and their tags."""
     tags = Column(_property_field(DEPOT_PROPERTY, "tags", pa.utf8(), set()), lambda row: row.tags or None)
-    return [tags, *(_metric_column(metric, text) for metric, text in datasets.metric_kinds(session, name).items())]
+    return [tags, *(_metric_column(metric, text) for metric, text in datasets.metric_kinds(session, runs).items())]
+
+
+def _episode_column(component: str, item: pa.DataType, value: Callable[[EpisodeFacts], Any]) -> Column:
+    def cell(row: SegmentRow) -> Cell:
+        found = value(row.episode) if row.episode is not None else None
+        return None if found is None else [found]
+
+    return Column(_property_field(DEPOT_PROPERTY, component, item, set()), cell)
+
+
+def episode_columns() -> list[Column]:
+    """What a snapshot version says of each of its episodes."""
+    return [
+        _episode_column("episode", pa.int64(), lambda e: e.index),
+        _depot_column("run_id", pa.utf8(), lambda row: row.run_id),
+        _episode_column("split", pa.utf8(), lambda e: e.split),
+        _episode_column("timeline", pa.utf8(), lambda e: e.timeline),
+        _episode_column("window_start", pa.int64(), lambda e: e.start),
+        _episode_column("window_end", pa.int64(), lambda e: e.end),
+        _episode_column("event_id", pa.utf8(), lambda e: e.event_id),
+        _episode_column("missing", pa.bool_(), lambda e: e.missing_why is not None),
+        _episode_column("missing_why", pa.utf8(), lambda e: e.missing_why),
+    ]
 
 
 # --- timeline columns ------------------------------------------------------------------------
@@ -250,10 +284,10 @@ def _timeline_column(timeline: str, kind: str, marker: str) -> Column:
     return Column(pa.field(f"{timeline}:{marker}", INDEX_TYPES[kind], nullable=True, metadata=metadata), value)
 
 
-def timeline_columns(session: Session, name: str) -> list[Column]:
+def timeline_columns(session: Session, runs: Runs) -> list[Column]:
     return [
         _timeline_column(timeline, kind, marker)
-        for timeline, kind in datasets.timeline_types(session, name).items()
+        for timeline, kind in datasets.timeline_types(session, runs).items()
         if kind in INDEX_TYPES
         for marker in ("start", "end")
     ]
@@ -292,20 +326,31 @@ class SegmentTable:
         return pa.RecordBatch.from_arrays(arrays, schema=self.schema)
 
 
-def segment_table(session: Session, name: str, depot: Depot, *, properties: bool = True) -> SegmentTable:
-    """Dataset `name`'s segment table: Rerun's columns, the property columns (the recording's
-    and the depot's) sorted by name, then the timelines' sorted by name. `properties=False` leaves
-    the recording's properties out (reading them means reading every run's row)."""
-    found = recording_property_columns(session, name) if properties else []
-    props = sorted([*found, *depot_columns(), *corpus_columns(session, name)], key=lambda c: c.name)
-    timelines = sorted(timeline_columns(session, name), key=lambda c: c.name)
+def segment_table(
+    session: Session, runs: Runs, depot: Depot, *, properties: bool = True, episodes: bool = False
+) -> SegmentTable:
+    """The segment table of a dataset whose segments are of these runs: Rerun's columns, the
+    property columns (the recording's, the depot's, with `episodes` a snapshot's) sorted by name,
+    then the timelines' sorted by name. `properties=False` leaves the recording's properties out
+    (reading them means reading every run's row)."""
+    found = recording_property_columns(session, runs) if properties else []
+    ours = [*depot_columns(), *corpus_columns(session, runs), *(episode_columns() if episodes else [])]
+    props = sorted([*found, *ours], key=lambda c: c.name)
+    timelines = sorted(timeline_columns(session, runs), key=lambda c: c.name)
     return SegmentTable([*_fixed_columns(depot), *props, *timelines])
+
+
+def _table(
+    session: Session, dataset: Dataset | SnapshotVersion, depot: Depot, *, properties: bool = True
+) -> SegmentTable:
+    if isinstance(dataset, SnapshotVersion):
+        return segment_table(session, dataset.runs, depot, properties=properties, episodes=True)
+    return segment_table(session, datasets.application_runs(dataset.name), depot, properties=properties)
 
 
 def table_schema(depot: Depot, principal: Principal, entry: Tuid) -> cloud_pb2.GetSegmentTableSchemaResponse:
     with session_scope(depot.catalog) as session:
-        dataset = dataset_by_entry(session, entry)
-        table = segment_table(session, dataset.name, depot)
+        table = _table(session, snapshots.find_dataset(session, entry), depot)
     return cloud_pb2.GetSegmentTableSchemaResponse(schema=schema_proto(table.schema))
 
 
@@ -325,7 +370,7 @@ def _wanted(request: cloud_pb2.ScanSegmentTableRequest) -> tuple[list[str] | Non
 
 
 def _row_pages(depot: Depot, name: str, only: list[str] | None, skip: frozenset[str]) -> Iterator[list[SegmentRow]]:
-    """The rows to scan, a page at a time, each page read in a short transaction of its own."""
+    """An application's rows to scan, a page at a time, each page read in a short transaction of its own."""
     if only is not None:
         for start in range(0, len(only), PAGE_ROWS):
             with session_scope(depot.catalog) as session:
@@ -339,6 +384,27 @@ def _row_pages(depot: Depot, name: str, only: list[str] | None, skip: frozenset[
             return
         yield [row for row in rows if row.run_id not in skip]
         after = rows[-1].run_id
+
+
+def _episode_pages(
+    depot: Depot, version: SnapshotVersion, only: list[str] | None, skip: frozenset[str]
+) -> Iterator[list[SegmentRow]]:
+    """A snapshot version's rows to scan (its episodes, in order), a page at a time."""
+    if only is not None:
+        for start in range(0, len(only), PAGE_ROWS):
+            with session_scope(depot.catalog) as session:
+                named = snapshots.episodes_named(session, version, only[start : start + PAGE_ROWS])
+                yield snapshots.episode_rows(session, version, named)
+        return
+    after = -1
+    while True:
+        with session_scope(depot.catalog) as session:
+            page = snapshots.episode_page(session, version, after, PAGE_ROWS)
+            rows = snapshots.episode_rows(session, version, page)
+        if not rows:
+            return
+        yield [row for row in rows if row.segment_id not in skip]
+        after = max(row.episode.index for row in rows if row.episode is not None)
 
 
 def _parts(batch: pa.RecordBatch) -> Iterator[pa.RecordBatch]:
@@ -356,14 +422,17 @@ def scan(
     with no rows is one empty part (its columns still say what it holds)."""
     asked = list(request.columns)
     with session_scope(depot.catalog) as session:
-        name = dataset_by_entry(session, entry).name
-        table = segment_table(session, name, depot, properties=False)
+        dataset = snapshots.find_dataset(session, entry)
+        table = _table(session, dataset, depot, properties=False)
         if not asked or not set(asked) <= table.names:  # the recording's properties are asked for (or unknown)
-            table = segment_table(session, name, depot)
+            table = _table(session, dataset, depot)
+        version = dataset if isinstance(dataset, SnapshotVersion) else None
+        name = dataset.name
     table = table.project(asked)
     only, skip = _wanted(request)
+    pages = _episode_pages(depot, version, only, skip) if version is not None else _row_pages(depot, name, only, skip)
     sent = False
-    for rows in _row_pages(depot, name, only, skip):
+    for rows in pages:
         if rows:
             for part in _parts(table.batch(rows)):
                 sent = True

@@ -1,5 +1,6 @@
 """A dataset's runs as a query reads them: where each run's chunks are (this node's hot file, or the
-sealed `recording.rrd` in the warm store), its chunk index rows, and its Sorbet schema.
+sealed `recording.rrd` in the warm store), its chunk index rows, and its Sorbet schema. A segment
+(`SegmentSource`) is a run, or of a run the chunks a snapshot's episode reads.
 
 A sealed run is read from its `chunks.parquet` and the footer of its `recording.rrd` (the schema,
 and each chunk's size once decompressed), and kept in a bounded cache under the recording's digest:
@@ -26,7 +27,7 @@ from core.states import Tier
 from services.hot.read import HotRecording
 from services.redap.cache import WeightedLru
 from services.redap.depot import Depot
-from services.redap.schema import merge_schemas, rerun_order
+from services.redap.schema import merge_schemas, narrowed, rerun_order
 from services.rrd.footer import read_footer
 from services.rrd.manifest import read_manifest, read_sorbet_schema, sorbet_schema
 from services.rrd.pb import common_pb2, log_msg_pb2
@@ -80,6 +81,32 @@ def clear_caches() -> None:
 # --- which runs, and where ---------------------------------------------------------------------
 
 
+@dataclass(frozen=True)
+class SegmentSource:
+    """A segment as a query reads it: a run (an application's segment), or of a run only the chunks
+    a snapshot's episode reads (`chunk_ids`)."""
+
+    segment_id: str
+    source: IndexedRecordingSource
+    chunk_ids: frozenset[bytes] | None = None
+
+    def rows(self, found: RunChunks) -> tuple[IndexRow, ...]:
+        """The segment's rows of its run's chunks."""
+        if self.chunk_ids is None:
+            return found.rows
+        return tuple(r for r in found.rows if r.chunk_id in self.chunk_ids)
+
+
+@dataclass(frozen=True)
+class DatasetView:
+    """A dataset as one query sees it: its timelines (from the catalog) and its segments' sources."""
+
+    name: str
+    timelines: frozenset[str]
+    segments: list[SegmentSource]
+    empty: bool  # the dataset holds no segment (any timeline may be named of it)
+
+
 def dataset_sources(
     depot: Depot, session: Session, dataset: Dataset, now: dt.datetime, only: frozenset[str] | None = None
 ) -> list[IndexedRecordingSource]:
@@ -87,7 +114,11 @@ def dataset_sources(
     query = sa.select(Run).where(Run.application_id == dataset.name, Run.tier != Tier.DELETED)
     if only is not None:
         query = query.where(Run.id.in_(sorted(possible_ids(only))))
-    runs = list(session.scalars(query.order_by(Run.id)))
+    return run_sources(depot, session, list(session.scalars(query.order_by(Run.id))), now)
+
+
+def run_sources(depot: Depot, session: Session, runs: list[Run], now: dt.datetime) -> list[IndexedRecordingSource]:
+    """Where each of `runs` can be read now, or why not."""
     ids = [run.id for run in runs]
     lives = {life.run_id: life for life in session.scalars(sa.select(RunLifecycle).where(RunLifecycle.run_id.in_(ids)))}
     recordings = {
@@ -133,6 +164,16 @@ def run_chunks(depot: Depot, source: IndexedRecordingSource) -> RunChunks:
     )
     _schemas.put((store.url, prefix, source.digest), found.schema)
     return found
+
+
+def segment_schema(depot: Depot, segment: SegmentSource) -> pa.Schema:
+    """The segment's Sorbet schema: its run's, or for an episode the columns of the entities and
+    timelines its chunks hold."""
+    if segment.chunk_ids is None:
+        return run_schema(depot, segment.source)
+    found = run_chunks(depot, segment.source)
+    rows = segment.rows(found)
+    return narrowed(found.schema, {r.entity_path or "/" for r in rows}, {t.name for r in rows for t in r.timelines})
 
 
 def run_schema(depot: Depot, source: IndexedRecordingSource) -> pa.Schema:

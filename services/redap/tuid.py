@@ -4,14 +4,23 @@ counter (`18EA6CA8C3020B3029d1569232672548`)."""
 
 from __future__ import annotations
 
+import datetime as dt
 import re
 from dataclasses import dataclass
 
+from core.clock import aware
 from core.errors import InvalidArgumentError
 from services.rrd.pb import common_pb2
 
 _TEXT = re.compile(r"^[0-9A-Fa-f]{32}$")
 _MASK = (1 << 64) - 1
+EPOCH = dt.datetime(1970, 1, 1, tzinfo=dt.UTC)
+
+
+def epoch_ns(moment: dt.datetime) -> int:
+    """Nanoseconds since the epoch, exactly (a float's 53 bits would round today's times)."""
+    delta = aware(moment) - EPOCH
+    return (delta.days * 86400 + delta.seconds) * 10**9 + delta.microseconds * 1000
 
 
 @dataclass(frozen=True, order=True)

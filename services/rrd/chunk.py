@@ -26,7 +26,7 @@ from services.rrd.layout import (
 )
 from services.rrd.lz4_prefix import PrefixTooShort
 from services.rrd.messages import ArrowMessage, Compression, chunk_id_str, tuid_proto
-from services.rrd.pb import log_msg_pb2
+from services.rrd.pb import common_pb2, log_msg_pb2
 from services.rrd.value_checks import values_valid
 
 CHUNK_ID_KEY = b"rerun:id"
@@ -403,3 +403,32 @@ def with_batch(msg: ArrowMessage, batch: pa.RecordBatch, chunk_id: bytes | None 
         len(ipc),
         pb.payload,
     )
+
+
+def with_chunk_id(raw: bytes, chunk_id: bytes, recording_id: str | None = None) -> bytes:
+    """A stored ArrowMsg (`raw`, its protobuf) naming its chunk `chunk_id`: the Arrow schema's
+    `rerun:id` and the message's `chunk_id` say so, the record batch messages after the schema are
+    copied byte for byte (no value is read or re-encoded), the payload LZ4-compressed again. With
+    `recording_id`, the message's store id names that recording. NotAChunkError if the payload is
+    no IPC stream beginning with a schema."""
+    pb = log_msg_pb2.ArrowMsg.FromString(raw)
+    ipc = pb.payload
+    if pb.compression == int(Compression.LZ4):
+        with limits.holding(pb.uncompressed_size):
+            ipc = lz4.block.decompress(pb.payload, uncompressed_size=pb.uncompressed_size)
+    found = split_ipc(ipc)
+    if found is None:
+        raise errors.NotAChunkError("the chunk's payload is no Arrow IPC stream", 0)
+    _, rest = found
+    schema = pa.ipc.read_schema(pa.py_buffer(ipc[:rest]))
+    metadata = {k: v for k, v in (schema.metadata or {}).items() if k != LEGACY_CHUNK_ID_KEY}
+    named = schema.with_metadata({**metadata, CHUNK_ID_KEY: chunk_id_str(chunk_id).encode()})
+    ipc = named.serialize().to_pybytes() + ipc[rest:]
+    pb.payload = lz4.block.compress(ipc, store_size=False)
+    pb.compression = int(Compression.LZ4)  # type: ignore[assignment]
+    pb.uncompressed_size = len(ipc)
+    pb.chunk_id.CopyFrom(tuid_proto(chunk_id))
+    if recording_id is not None:
+        pb.store_id.kind = common_pb2.STORE_KIND_RECORDING
+        pb.store_id.recording_id = recording_id
+    return pb.SerializeToString()

@@ -38,10 +38,12 @@ class BigRedap(Redap):
 
 
 class CatalogGrpc:
-    """`CatalogServer` on a grpc.aio server on 127.0.0.1 (a free port), its loop on a thread."""
+    """`CatalogServer` on a grpc.aio server on 127.0.0.1 (a free port), its loop on a thread; with
+    `auth`, the depot's token checks (auth off otherwise)."""
 
-    def __init__(self, depot: Depot) -> None:
+    def __init__(self, depot: Depot, auth: Auth | None = None) -> None:
         self.depot = depot
+        self.auth = auth
         self.loop = asyncio.new_event_loop()
         self.thread = threading.Thread(target=self.loop.run_forever, name="catalog-grpc", daemon=True)
         self.server: grpc.aio.Server | None = None
@@ -50,7 +52,7 @@ class CatalogGrpc:
     async def _start(self) -> None:
         options = [("grpc.max_receive_message_length", MAX_MESSAGE), ("grpc.max_send_message_length", MAX_MESSAGE)]
         self.server = grpc.aio.server(options=options)
-        auth = Auth(enabled=False, keys=None, catalog=None)
+        auth = self.auth or Auth(enabled=False, keys=None, catalog=None)
         grpc_handler.add_to_server(self.server, grpc_handler.CatalogServer(self.depot, auth))
         self.port = self.server.add_insecure_port("127.0.0.1:0")
         await self.server.start()
