@@ -13,7 +13,7 @@ writer making the same dataset.
 3. Ours: `fleet datasets export bench@1 --to DIR --observation /joints --action /cmd --camera
    /camera/front=observation.images.front --video-codec CODEC`, a child process: each episode
    downloaded from the depot as its chunks, sampled, its images decoded and encoded to MP4. Its wall
-   time, CPU (user + system) and peak RSS (the child's, from wait4); frames/s; source MB/s (the
+   time, CPU (user + system, wait4) and peak RSS (its VmHWM, polled every 50 ms); frames/s; source MB/s (the
    snapshot's bytes over the wall time).
 4. Peer: LeRobot's own writer (`LeRobotDataset.create`, `add_frame`, `save_episode`, `finalize`,
    the same codec) in the cached lerobot venv (`tests/compat/lerobot_venv.py`), given the same frames
@@ -27,12 +27,14 @@ the episode: run it at two lengths to see.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import io
 import json
 import os
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from pathlib import Path
 from typing import Any
@@ -76,21 +78,51 @@ def record(path: Path, run: int, args: argparse.Namespace) -> None:
 
 
 def measured(argv: list[str], env: dict[str, str]) -> dict[str, float]:
-    """Run a child to its end: wall s, CPU s (user + system) and peak RSS (MB), from wait4."""
+    """Run a child to its end: wall s, CPU s (user + system, from wait4) and peak RSS (MB: its VmHWM,
+    read until it exits; wait4's ru_maxrss would count this process's pages, kept across exec)."""
     started = time.perf_counter()
     child = subprocess.Popen(argv, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    held: dict[str, bytes] = {}
+    peak_kb = 0
+    stop = threading.Event()
+
+    def drain(name: str, pipe: Any) -> None:
+        held[name] = pipe.read()
+
+    def watch() -> None:
+        nonlocal peak_kb
+        while not stop.wait(0.05):
+            with contextlib.suppress(OSError, ValueError):
+                peak_kb = max(peak_kb, status_kb(child.pid, "VmHWM"))
+
+    threads = [
+        threading.Thread(target=drain, args=("out", child.stdout), daemon=True),
+        threading.Thread(target=drain, args=("err", child.stderr), daemon=True),
+        threading.Thread(target=watch, daemon=True),
+    ]
+    for thread in threads:
+        thread.start()
     _, status, usage = os.wait4(child.pid, 0)
     wall = time.perf_counter() - started
-    out, err = child.stdout.read() if child.stdout else b"", child.stderr.read() if child.stderr else b""
     child.returncode = os.waitstatus_to_exitcode(status)
+    stop.set()
+    for thread in threads:
+        thread.join()
     if child.returncode != 0:
-        raise SystemExit(f"{argv[0]} failed ({child.returncode}):\n{err.decode(errors='replace')[-3000:]}")
+        raise SystemExit(f"{argv[0]} failed ({child.returncode}):\n{held['err'].decode(errors='replace')[-3000:]}")
     return {
         "wall_s": wall,
         "cpu_s": usage.ru_utime + usage.ru_stime,
-        "peak_mb": usage.ru_maxrss * 1024 / MB,
-        "stdout": out.decode(errors="replace"),  # type: ignore[dict-item]
+        "peak_mb": peak_kb * 1024 / MB,
+        "stdout": held["out"].decode(errors="replace"),  # type: ignore[dict-item]
     }
+
+
+def status_kb(pid: int, field: str) -> int:
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith(field + ":"):
+            return int(line.split()[1])
+    raise ValueError(field)
 
 
 def ours(depot: FleetServer, out: Path, args: argparse.Namespace) -> dict[str, Any]:

@@ -27,6 +27,7 @@ from services.runs.download import EntityFilter
 from services.runs.indexed import IndexedRecording
 
 TIME_TYPES = ("timestamp", "duration")
+CAMERA_SLICE_FRAMES = 32
 STATE, ACTION = "observation.state", "action"
 
 
@@ -176,10 +177,11 @@ def _filled(values: list[Any]) -> list[Any] | None:
 
 
 def camera_slices(episode: EpisodePlan, entity: str, quality: EpisodeQuality) -> Iterator[sampling.SampledSlice]:
-    rows = episode.rows[entity]
-    return sampling.GridSampler(rows, episode.timeline, sampling.reader(episode.recording), quality).slices(
-        episode.grid
-    )
+    """The camera's rows on the grid, in slices of CAMERA_SLICE_FRAMES: an image is large, so a slice
+    holds about a second of them."""
+    read = sampling.reader(episode.recording)
+    sampler = sampling.GridSampler(episode.rows[entity], episode.timeline, read, quality)
+    return sampler.slices(episode.grid, CAMERA_SLICE_FRAMES)
 
 
 def frames(episode: EpisodePlan, entity: str, camera: Camera, quality: EpisodeQuality) -> Iterator[np.ndarray]:

@@ -30,6 +30,17 @@ def vector_stats(values: np.ndarray) -> Stats:
     return out
 
 
+def stats_sample(rgb: np.ndarray, target: int = 150, threshold: int = 300) -> np.ndarray:
+    """A frame as image statistics take it: every k-th pixel of a frame 300 pixels or more on a side,
+    k bringing its longer side near 150 (as LeRobot samples its images), so a sample of 100 frames
+    stays a few MB at any resolution."""
+    height, width = rgb.shape[:2]
+    if max(height, width) < threshold:
+        return rgb.copy()
+    step = int(max(height, width) / target)
+    return np.ascontiguousarray(rgb[::step, ::step])
+
+
 def image_stats(frames: np.ndarray) -> Stats:
     """`frames`: (n, H, W, 3) uint8, a sample of an episode's frames: per channel, in [0, 1]."""
     channels = np.moveaxis(frames.astype(np.float64) / 255.0, -1, 0).reshape(frames.shape[-1], -1)

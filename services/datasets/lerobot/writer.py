@@ -156,5 +156,5 @@ def _sampled(frames: Iterable[np.ndarray], every: int, sample: list[np.ndarray])
     """`frames` passed on, every `every`-th kept in `sample` (at most IMAGE_STATS_FRAMES)."""
     for i, rgb in enumerate(frames):
         if i % every == 0 and len(sample) < IMAGE_STATS_FRAMES:
-            sample.append(rgb)
+            sample.append(stats.stats_sample(rgb))
         yield rgb
