@@ -134,3 +134,16 @@ def test_lerobot_loads_the_export(depot: Depot, tmp_path: Path):
             f["action"], np.add(joints(f["frame"]), 0.25)
         )
         assert abs(f["images"]["observation.images.front"] - grey(f["frame"])) < 4
+
+
+def test_an_av1_export_decodes_to_the_source_images(depot: Depot, tmp_path: Path):
+    snapshot(depot, tmp_path, ["run-h"])
+    root = tmp_path / "av1"
+    spec = ExportSpec(("/joints",), (), (("/camera/front", "observation.images.front"),), "t", 10, "av1")
+    info = export_version(sources(depot), "drives", 1, spec, root).info
+    assert info is not None and info["features"]["observation.images.front"]["info"]["video.codec"] == "av1"
+    with av.open(str(root / layout.video_path("observation.images.front", 0))) as video:
+        stream = video.streams.video[0]
+        assert stream.codec_context.name in ("libdav1d", "av1", "libaom-av1")
+        means = [f.to_ndarray(format="rgb24").mean() for f in video.decode(stream)]
+    assert len(means) == FRAMES and all(abs(m - grey(i)) < 4 for i, m in enumerate(means))
