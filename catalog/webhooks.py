@@ -124,13 +124,21 @@ def delivery_id(webhook_id: str, occurrence_id: str) -> str:
 
 
 def enqueue(
-    session: Session, occurrence: str, occurrence_id: str, payload: dict[str, Any], *, now: dt.datetime | None = None
+    session: Session,
+    occurrence: str,
+    occurrence_id: str,
+    payload: dict[str, Any],
+    *,
+    now: dt.datetime | None = None,
+    hooks: list[WebhookRecord] | None = None,
 ) -> int:
     """One pending delivery of `occurrence` (its id `occurrence_id`, what it is about `payload`) to
     each webhook subscribed to it, in the caller's transaction; how many were added. The same
-    occurrence enqueued again adds nothing."""
+    occurrence enqueued again adds nothing. `hooks`: the webhooks as the caller read them in this
+    transaction (one read for many occurrences)."""
     now = now or utcnow()
-    targets = [hook for hook in webhooks(session) if subscribes(hook.subscriptions, occurrence)]
+    listed = webhooks(session) if hooks is None else hooks
+    targets = [hook for hook in listed if subscribes(hook.subscriptions, occurrence)]
     if not targets:
         return 0
     ids = {hook.id: delivery_id(hook.id, occurrence_id) for hook in targets}

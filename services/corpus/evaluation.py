@@ -217,8 +217,13 @@ def evaluate_run(
 def announce_events(session: Session, new_events: Sequence[Event]) -> None:
     """Webhooks told of each new event (`event:KIND`), in the writer's transaction: at most once
     each, as an event found again (live, sealed, after a rules change) keeps its id."""
+    if not new_events:
+        return
+    hooks = webhooks.webhooks(session)  # read once for all of them: a live flush may bring many
+    if not hooks:
+        return
     for event in new_events:
-        webhooks.enqueue(session, EVENT_PREFIX + event.kind, event.id, event_payload(event))
+        webhooks.enqueue(session, EVENT_PREFIX + event.kind, event.id, event_payload(event), hooks=hooks)
 
 
 def event_payload(event: Event) -> dict[str, Any]:
