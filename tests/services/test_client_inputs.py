@@ -25,7 +25,7 @@ from google.protobuf.descriptor import Descriptor
 from services.api import peer
 from services.auth.tokens import Auth
 from services.ingest.grpc_handler import MessageProxy
-from services.redap.grpc_handler import CatalogServer
+from services.redap.grpc_handler import STREAMING_CALLS, WRITE_CALLS, CatalogServer
 from services.redap.pb import cloud_pb2
 from services.rrd.pb import common_pb2, log_msg_pb2, sdk_comms_pb2
 from services.server import add_services
@@ -355,6 +355,35 @@ def check_peer(method: str, streaming: bool) -> Callable[[Node], None]:
     return check
 
 
+NEVER = {Code.UNKNOWN, Code.INTERNAL, Code.OK}
+ENTRY_WRITE_ANSWERS = {Code.INVALID_ARGUMENT, Code.UNIMPLEMENTED, Code.NOT_FOUND, Code.FAILED_PRECONDITION}
+
+
+def check_entry_write(method: str) -> Callable[[Node], None]:
+    """A write to an entry that Rerun's protocol has and this depot refuses (a snapshot version never
+    changes; other entries' writes are not served): the token first, then whatever the body or the
+    entry header holds is one refusal, never a failure."""
+    streaming = method in STREAMING_CALLS
+
+    def check(node: Node) -> None:
+        path = CLOUD_PATH + method
+        assert node.call(path, GARBAGE, None, streaming=streaming)[0] == Code.UNAUTHENTICATED
+        assert node.call(path, GARBAGE, node.ingest, streaming=streaming)[0] == Code.PERMISSION_DENIED
+        headers: list[list[tuple[str, str]]] = [
+            [],
+            [("x-rerun-entry-id", "zzz")],
+            [("x-rerun-entry-id", "0" * 32)],
+            [("x-rerun-entry-id", "f" * 4000)],
+        ]
+        for metadata in headers:
+            for body in (b"", GARBAGE, b"\x0a\x03\x0a\x01\xff"):
+                code, details = node.call(path, body, node.read, streaming=streaming, metadata=metadata)
+                assert code in ENTRY_WRITE_ANSWERS and code not in NEVER, (method, metadata, body, code, details)
+        node.alive()
+
+    return check
+
+
 HANDWRITTEN: dict[str, Callable[[Node], None]] = {
     PROXY_PATH + "WriteMessages": check_write_messages,
     PROXY_PATH + "ReadMessages": check_read_messages,
@@ -362,6 +391,7 @@ HANDWRITTEN: dict[str, Callable[[Node], None]] = {
     LEGACY_PATH + "ReadMessages": check_legacy,
     PEER_PATH + "ReadHot": check_peer("ReadHot", streaming=True),
     PEER_PATH + "Held": check_peer("Held", streaming=False),
+    **{CLOUD_PATH + name: check_entry_write(name) for name in WRITE_CALLS if name not in CLOUD.methods_by_name},
 }
 
 
