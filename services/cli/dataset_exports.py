@@ -113,7 +113,7 @@ def export(api_url: str, ref: str, target: str, fmt: str, detach: bool, as_json:
             if job["state"] == "failed":
                 raise SystemExit(1)
             return
-        fps = options["fps"] or default_fps(json.dumps(fleet.dataset_version(name, number, limit=1)["selection"]))
+        fps = options["fps"] or default_fps(fleet.dataset_version(name, number, limit=1)["selection"])
         spec = ExportSpec(
             tuple(options["observation"]),
             tuple(options["action"]),

@@ -8,7 +8,9 @@ from __future__ import annotations
 import json
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 from catalog import datasets as queries
 from catalog import queries as run_queries
@@ -55,21 +57,38 @@ def version_episodes(sources: Sources, name: str, version: int) -> Iterator[Epis
         after = infos[-1].episode
 
 
+@dataclass(frozen=True)
+class _Located:
+    """Where an episode's chunks are: its run, the chunk ids it lists, the run's properties."""
+
+    run: RunRef
+    wanted: set[bytes]
+    properties: dict[str, Any]
+
+
+def _locate(sources: Sources, name: str, version: int, episode: int) -> _Located:
+    with session_scope(sources.catalog) as session:
+        row = session.get(DatasetEpisode, (name, version, episode))
+        if row is None:
+            raise NotFoundError(
+                f"{queries.ref(name, version)} has no episode {episode}: `fleet datasets show {name}@{version}`"
+            )
+        run = run_queries.get_run(session, row.run_id)
+        tier = run.tier if run is not None else "deleted"
+        properties = json.loads(run.properties or "{}") if run is not None else {}
+        return _Located(RunRef(row.run_id, row.robot_id, tier), set(queries.chunk_ids_of(row)), properties)
+
+
 def episode_opener(sources: Sources, name: str, version: int) -> OpenEpisode:
     @contextmanager
     def open_episode(info: EpisodeInfo) -> Iterator[OpenedEpisode]:
-        with session_scope(sources.catalog) as session:
-            row = session.get(DatasetEpisode, (name, version, info.episode))
-            run = run_queries.get_run(session, info.run_id)
-            wanted = set(queries.chunk_ids_of(row)) if row is not None else set()
-            tier, robot = (run.tier, run.robot_id) if run is not None else ("deleted", "")
-            properties = json.loads(run.properties or "{}") if run is not None else {}
-        opened = open_run(sources, RunRef(info.run_id, robot, tier))
+        located = _locate(sources, name, version, info.episode)
+        opened = open_run(sources, located.run)
         if isinstance(opened, Skipped):
             raise Unreadable(f"its run {info.run_id} cannot be read: {opened.why}")
         try:
-            rows = [r for r in opened.index() if r.chunk_id in wanted]
-            yield OpenedEpisode(opened, rows, hot=opened.hot is not None, properties=properties)
+            rows = [r for r in opened.index() if r.chunk_id in located.wanted]
+            yield OpenedEpisode(opened, rows, hot=opened.hot is not None, properties=located.properties)
         finally:
             opened.close()
 
@@ -102,15 +121,8 @@ def episode_recording(sources: Sources, name: str, version: int, episode: int) -
     """The chunks an episode reads, as one RRD stream (its run's recording info first): exactly the
     snapshot's chunks, whatever the run holds now. Opened before the first piece is asked for, so a
     missing episode or an unreadable run is an error, not a broken stream."""
-    with session_scope(sources.catalog) as session:
-        row = session.get(DatasetEpisode, (name, version, episode))
-        if row is None:
-            raise NotFoundError(
-                f"{queries.ref(name, version)} has no episode {episode}: `fleet datasets show {name}@{version}`"
-            )
-        run = run_queries.get_run(session, row.run_id)
-        wanted = set(queries.chunk_ids_of(row))
-        ref = RunRef(row.run_id, row.robot_id, run.tier if run is not None else "deleted")
+    located = _locate(sources, name, version, episode)
+    ref, wanted = located.run, located.wanted
     opened = open_run(sources, ref)
     if isinstance(opened, Skipped):
         raise ConflictError(f"episode {episode} reads run {ref.id}, which cannot be read now: {opened.why}")

@@ -79,6 +79,19 @@ class ExportSpec:
             "codec": self.codec,
         }
 
+    @classmethod
+    def from_json(cls, data: Mapping[str, Any]) -> ExportSpec:
+        """What `as_json` wrote (keys it does not write are left alone)."""
+        return cls(
+            tuple(data["observation"]),
+            tuple(data["action"]),
+            tuple((entity, key) for entity, key in data["cameras"]),
+            data["task"],
+            int(data["fps"]),
+            data["codec"],
+            data["task_property"],
+        )
+
 
 @dataclass(frozen=True)
 class EpisodeInfo:

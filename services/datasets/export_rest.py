@@ -6,6 +6,7 @@ from. Handlers parse and call one service function; errors are mapped once by th
 from __future__ import annotations
 
 import asyncio
+import json
 from typing import Annotated, Any
 
 from fastapi import APIRouter, Depends, Path, Query, Request
@@ -57,7 +58,7 @@ def create(request: Request, body: ExportBody, principal: Writer) -> dict[str, A
     FLEET_EXPORT_URLS; `fleet datasets export NAME@N --to DIR` exports to a folder of your own."""
     name, version = exports.parse_version(body.dataset)
     src = sources(request)
-    fps = body.fps if body.fps is not None else exports.default_fps(version_row(src, name, version)[1])
+    fps = body.fps if body.fps is not None else exports.default_fps(json.loads(version_row(src, name, version)[1]))
     spec = ExportSpec(
         tuple(body.observation),
         tuple(body.action),

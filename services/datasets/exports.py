@@ -32,6 +32,7 @@ from core.clock import iso_utc
 from core.errors import BadParameterError, ConflictError, FleetError, NotFoundError
 from services.datasets.episodes import export_version, version_row
 from services.datasets.export import ExportSpec, Progress, refuse_flagged
+from services.datasets.lerobot.writer import PROGRESS_DIR
 from services.datasets.quality import Limits
 from services.datasets.resolve import Sources
 from services.datasets.service import parse_ref
@@ -45,7 +46,6 @@ STALE_S = 60.0  # a running job whose heartbeat is older was left by a process t
 BEAT_S = 5.0
 FORMATS = ("lerobot",)
 MAX_LIMIT = 200
-PROGRESS_DIR = ".export"
 
 
 @dataclass(frozen=True)
@@ -105,9 +105,9 @@ def check_target(target: str, allowed: tuple[str, ...]) -> str:
     raise BadParameterError("to", f"{target[:200]!r} is not under a place this depot writes: {', '.join(allowed)}")
 
 
-def default_fps(selection: str) -> int:
-    """The snapshot's rate as whole frames per second (10 if it named none)."""
-    fps = json.loads(selection).get("fps")
+def default_fps(selection: dict[str, Any]) -> int:
+    """The snapshot's rate (its selection's `fps`) as whole frames per second (10 if it named none)."""
+    fps = selection.get("fps")
     if fps is None:
         return 10
     if float(fps) != int(fps):
@@ -260,16 +260,7 @@ class _Run:
 
     def _export(self) -> None:
         options = json.loads(self.row.spec)
-        spec = ExportSpec(
-            tuple(options["observation"]),
-            tuple(options["action"]),
-            tuple((entity, key) for entity, key in options["cameras"]),
-            options["task"],
-            int(options["fps"]),
-            options["codec"],
-            options["task_property"],
-        )
-        limits = Limits(float(options["frozen_s"]), int(options["min_frames"]))
+        spec, limits = ExportSpec.from_json(options), Limits.from_json(options)
         if options["strict"]:
             checked = export_version(self.sources, self.row.name, self.row.version, spec, None, self._seen, limits)
             refuse_flagged(checked.reports)

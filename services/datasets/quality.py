@@ -12,6 +12,7 @@ export is strict, which refuses if any episode has a flag.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -41,6 +42,10 @@ class Limits:
 
     def as_json(self) -> dict[str, Any]:
         return {"frozen_s": self.frozen_s, "min_frames": self.min_frames}
+
+    @classmethod
+    def from_json(cls, data: Mapping[str, Any]) -> Limits:
+        return cls(float(data["frozen_s"]), int(data["min_frames"]))
 
 
 @dataclass(frozen=True)
