@@ -485,3 +485,48 @@ class DatasetExport(Base):
     updated_at: Mapped[dt.datetime] = mapped_column(DateTime(timezone=True))
     node: Mapped[str | None] = mapped_column(String(256))  # the process running it
     heartbeat_at: Mapped[dt.datetime | None] = mapped_column(DateTime(timezone=True))
+
+
+class Import(Base):
+    """One upload, RRD or MCAP, from its first byte to its end: receiving, converting (MCAP), filed or
+    failed with why. An MCAP import keeps its file's content digest (its identity: conversion makes
+    fresh chunk ids each time) and the digest of its data section up to `data_end` (where its summary
+    begins), which says whether a later bag extends it. A failed MCAP's original waits in the
+    quarantine prefix until `quarantine_until`."""
+
+    __tablename__ = "imports"
+
+    id: Mapped[str] = mapped_column(String(32), primary_key=True)  # imp- and 12 hex digits
+    kind: Mapped[str] = mapped_column(String(8))  # rrd | mcap
+    state: Mapped[str] = mapped_column(String(16))  # receiving | converting | filed | failed
+    name: Mapped[str] = mapped_column(String(256))  # the file's name as the client gave it, or ""
+    bytes: Mapped[int] = mapped_column(BigInteger)  # received
+    robot_id: Mapped[str | None] = mapped_column(String(ID_LENGTH))
+    run_ids: Mapped[str] = mapped_column(Text)  # JSON list: the runs it filed into
+    application_id: Mapped[str | None] = mapped_column(String(256))
+    chunks_new: Mapped[int] = mapped_column(BigInteger)
+    chunks_duplicate: Mapped[int] = mapped_column(BigInteger)
+    reason: Mapped[str | None] = mapped_column(Text)  # why it failed, or what it was (already held)
+    digest: Mapped[str | None] = mapped_column(String(64))  # sha256 of an MCAP file
+    head_digest: Mapped[str | None] = mapped_column(String(64))  # sha256 of its first HEAD_BYTES
+    data_end: Mapped[int | None] = mapped_column(BigInteger)  # where its summary section begins
+    data_digest: Mapped[str | None] = mapped_column(String(64))  # sha256 of its bytes before data_end
+    held_by: Mapped[str | None] = mapped_column(String(32))  # the import that already held this file
+    converter: Mapped[str | None] = mapped_column(String(64))  # the rerun CLI version that converted it
+    quarantine_key: Mapped[str | None] = mapped_column(Text)
+    quarantine_until: Mapped[dt.datetime | None] = mapped_column(DateTime(timezone=True))
+    node: Mapped[str | None] = mapped_column(String(256))
+    created_by: Mapped[str] = mapped_column(String(256))
+    created_at: Mapped[dt.datetime] = mapped_column(DateTime(timezone=True))
+    updated_at: Mapped[dt.datetime] = mapped_column(DateTime(timezone=True))
+
+
+class McapDigest(Base):
+    """An MCAP file the depot holds or is converting, by content digest: one row per file, so two
+    uploads of one bag at once cannot both file it (the second insert fails)."""
+
+    __tablename__ = "mcap_digests"
+
+    digest: Mapped[str] = mapped_column(String(64), primary_key=True)
+    import_id: Mapped[str] = mapped_column(String(32))
+    run_id: Mapped[str] = mapped_column(String(ID_LENGTH))

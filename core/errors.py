@@ -14,6 +14,8 @@ import sqlalchemy.exc as sa_exc
 class ErrorCode(enum.Enum):
     INVALID_ARGUMENT = "INVALID_ARGUMENT"
     INVALID_RRD = "INVALID_RRD"
+    INVALID_MCAP = "INVALID_MCAP"
+    CONVERSION_LIMIT = "CONVERSION_LIMIT"
     UNSUPPORTED_RRD_VERSION = "UNSUPPORTED_RRD_VERSION"
     MESSAGE_TOO_LARGE = "MESSAGE_TOO_LARGE"
     NOT_FOUND = "NOT_FOUND"
@@ -38,6 +40,8 @@ class ErrorCode(enum.Enum):
 _STATUS: dict[ErrorCode, tuple[int, str]] = {
     ErrorCode.INVALID_ARGUMENT: (422, "INVALID_ARGUMENT"),
     ErrorCode.INVALID_RRD: (400, "INVALID_ARGUMENT"),
+    ErrorCode.INVALID_MCAP: (400, "INVALID_ARGUMENT"),
+    ErrorCode.CONVERSION_LIMIT: (413, "RESOURCE_EXHAUSTED"),
     ErrorCode.UNSUPPORTED_RRD_VERSION: (400, "INVALID_ARGUMENT"),
     ErrorCode.MESSAGE_TOO_LARGE: (413, "RESOURCE_EXHAUSTED"),
     ErrorCode.NOT_FOUND: (404, "NOT_FOUND"),
@@ -112,6 +116,18 @@ class InvalidRulesError(InvalidArgumentError):
     def to_dict(self) -> dict[str, str]:
         answer: dict[str, object] = {**super().to_dict(), "problems": self.problems}
         return answer  # type: ignore[return-value]
+
+
+class InvalidMcapError(FleetError):
+    """An MCAP upload the depot cannot read or the Rerun CLI cannot convert."""
+
+    code = ErrorCode.INVALID_MCAP
+
+
+class ConversionLimitError(FleetError):
+    """A conversion that went past its time, memory or output limit."""
+
+    code = ErrorCode.CONVERSION_LIMIT
 
 
 class NotFoundError(FleetError):

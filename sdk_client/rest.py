@@ -36,6 +36,9 @@ class ServiceError(FleetError):
             self.code = ErrorCode.INTERNAL
 
 
+MCAP_MAGIC = b"\x89MCAP0\r\n"
+
+
 class FleetClient:
     """The service's REST API. With a `token`, every request carries `Authorization: Bearer TOKEN`;
     the token is kept in that header only, never logged or shown."""
@@ -60,8 +63,21 @@ class FleetClient:
     def __exit__(self, *_: object) -> None:
         self.close()
 
-    def upload(self, path: Path, on_progress: Callable[[int], None] | None = None) -> dict[str, Any]:
-        """Stream an .rrd file to `POST /v1/uploads` (constant memory); returns the service's report."""
+    def upload(
+        self,
+        path: Path,
+        on_progress: Callable[[int], None] | None = None,
+        *,
+        run_id: str | None = None,
+        application: str | None = None,
+        robot: str | None = None,
+    ) -> dict[str, Any]:
+        """Stream an .rrd or MCAP file to `POST /v1/uploads` (constant memory); returns the
+        service's report, with the import it made. An MCAP file is converted by the depot before it
+        answers, so its answer may take a while: no read timeout. `run_id`, `application` and
+        `robot` apply to MCAP files."""
+        with open(path, "rb") as fh:
+            mcap = fh.read(len(MCAP_MAGIC)) == MCAP_MAGIC
 
         def pieces() -> Iterator[bytes]:
             with open(path, "rb") as fh:
@@ -70,9 +86,41 @@ class FleetClient:
                     if on_progress is not None:
                         on_progress(len(piece))
 
+        asked = {"run_id": run_id, "application": application, "robot": robot}
+        params = {"name": path.name, **{k: v for k, v in asked.items() if v is not None}}
         return self._request(
-            "POST", "/v1/uploads", content=pieces(), headers={"Content-Type": "application/vnd.rerun.rrd"}
+            "POST",
+            "/v1/uploads",
+            content=pieces(),
+            params=params,
+            headers={"Content-Type": "application/octet-stream" if mcap else "application/vnd.rerun.rrd"},
+            timeout=httpx.Timeout(60.0, read=None) if mcap else httpx.USE_CLIENT_DEFAULT,
         )
+
+    def imports(self, **params: Any) -> dict[str, Any]:
+        """Uploads newest first (`GET /v1/imports`: state, kind, robot, limit, before)."""
+        return self._request("GET", "/v1/imports", params={k: v for k, v in params.items() if v is not None})
+
+    def import_(self, import_id: str) -> dict[str, Any]:
+        return self._request("GET", f"/v1/imports/{import_id}")
+
+    def retry_import(self, import_id: str) -> dict[str, Any]:
+        """Convert a failed MCAP import again from its quarantined original (`POST .../retry`)."""
+        return self._request("POST", f"/v1/imports/{import_id}/retry", timeout=httpx.Timeout(60.0, read=None))
+
+    def import_original(self, import_id: str, out: Path) -> int:
+        """A failed import's quarantined original, written to `out` (admin); bytes written."""
+        written = 0
+        try:
+            with self._http.stream("GET", f"/v1/imports/{import_id}/original") as response:
+                _check(response)
+                with open(out, "wb") as fh:
+                    for piece in response.iter_bytes():
+                        fh.write(piece)
+                        written += len(piece)
+        except httpx.TransportError as exc:
+            raise self._unreachable(exc) from exc
+        return written
 
     def runs(self, **params: Any) -> dict[str, Any]:
         """`GET /v1/runs` with its filters (robot, application, since, until, status, tier, entity,

@@ -35,6 +35,7 @@ from services.datasets.resolve import Sources as DatasetSources
 from services.facts.identity import SecretFields
 from services.hot.reserve import DiskReserve
 from services.hot.store import HotStore
+from services.imports.records import Ledger, purge_quarantine, recover_interrupted
 from services.ingest import grpc_handler
 from services.ingest.replay import ReplayHub
 from services.ingest.service import IngestService
@@ -217,6 +218,15 @@ def export_job(node: Node, ingest: IngestService) -> Job:
     )
 
 
+async def _recover_imports(node: Node) -> None:
+    """Uploads this node was receiving or converting when it stopped, failed saying so (a catalog
+    that does not answer yet leaves them for the next start: nothing else waits on them)."""
+    try:
+        await asyncio.to_thread(recover_interrupted, Ledger.of(node), node.settings.data_dir / "imports")
+    except Exception as exc:
+        log.warning("interrupted imports not checked at start (%s: %s)", type(exc).__name__, exc)
+
+
 def claim_ports(settings: Settings) -> tuple[socket.socket, socket.socket]:
     """Both ports, before any recovery work: a refused start is one line, quick, and changes nothing."""
     grpc_socket = listen_grpc(*split_addr(settings.grpc_addr))
@@ -322,6 +332,7 @@ async def serve(
     await asyncio.to_thread(reserve.ensure)
     housekeeping = asyncio.create_task(_housekeeping(ingest, reserve, settings.catalog_flush_s))
     heartbeat = asyncio.create_task(_heartbeat(node.ownership)) if node.ownership is not None else None
+    await _recover_imports(node)
     scheduler = (
         start_scheduler(
             retention,
@@ -332,6 +343,9 @@ async def serve(
                 *webhook_jobs(app.state.webhooks, ingest),
                 Job(BACKFILL_JOB, lambda _: corpus.backfill.run(), settings.rules_backfill_interval_s),
                 export_job(node, ingest),
+                Job(
+                    "imports.quarantine", lambda _: purge_quarantine(node.catalog, node.tiers.warm, node.clock()), 3600
+                ),
             ],
         )
         if settings.scheduler

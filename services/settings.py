@@ -351,6 +351,21 @@ class Settings(SharedSettings):
     )
     export_interval_s: float = Field(2.0, gt=0, description="how often the depot looks for a queued dataset export")
 
+    # imports: MCAP uploads converted by the Rerun CLI (docs/mcap.md)
+    rerun_cli: str | None = Field(
+        None, description="the `rerun` executable that converts MCAP uploads (default: the installed rerun-sdk's)"
+    )
+    mcap_timeout_s: float = Field(3600.0, gt=0, description="a conversion of one MCAP file may take this long")
+    mcap_memory_mb: int = Field(
+        4096, ge=64, description="memory (MiB, resident and not file-backed) a conversion may use; past it, it fails"
+    )
+    mcap_max_output_ratio: float = Field(
+        20.0, gt=0, description="a converted recording may be this many times its MCAP file's size (at least 256 MiB)"
+    )
+    import_quarantine_days: float = Field(
+        14.0, gt=0, description="a failed MCAP upload's original is kept this long for an admin and for a retry"
+    )
+
     @property
     def hot_dir(self) -> Path:
         return self.data_dir / "hot"

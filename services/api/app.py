@@ -23,7 +23,7 @@ from services.datasets import export_rest as dataset_exports_rest
 from services.datasets import rest as datasets_rest
 from services.edge import rest as edge_rest
 from services.edge.context import Edge
-from services.ingest import rest as ingest_rest
+from services.imports import rest as imports_rest
 from services.ingest.service import IngestService
 from services.node import Node
 from services.retention import rest as retention_rest
@@ -105,7 +105,7 @@ def _install_routes(
     if retention is not None:
         app.include_router(retention_rest.router)
     if ingest is not None:
-        app.include_router(ingest_rest.router)
+        app.include_router(imports_rest.router)
         app.include_router(runs_rest.router)
         app.include_router(nodes_rest.router)
         app.include_router(edge_rest.router)

@@ -11,6 +11,7 @@ from services.cli.agent import agent
 from services.cli.datasets import datasets
 from services.cli.db import db
 from services.cli.events import events, runs_annotate, runs_tag, runs_untag
+from services.cli.imports import imports
 from services.cli.retention import catalog, retention
 from services.cli.rrd import rrd
 from services.cli.rules import rules
@@ -33,6 +34,7 @@ cli.add_command(serve)
 cli.add_command(rrd)
 cli.add_command(db)
 cli.add_command(upload)
+cli.add_command(imports)
 cli.add_command(runs)
 cli.add_command(download)
 cli.add_command(view)

@@ -17,12 +17,23 @@ from services.cli.output import transfer_progress
 
 @click.command()
 @click.argument("files", nargs=-1, required=True, type=click.Path(exists=True, dir_okay=False, path_type=Path))
+@click.option(
+    "--run-id", help="MCAP files: the run to file them as (default: their metadata's, else from their digest)"
+)
+@click.option("--application", help="MCAP files: their application id (default: mcap)")
+@click.option(
+    "--robot", help="MCAP files: their robot, with a write token (default: the token's, else their metadata's)"
+)
 @api_option
-def upload(files: tuple[Path, ...], api_url: str) -> None:
-    """Upload .rrd FILES. Chunks the service already holds (received live) are skipped, so
-    uploading the same file again is harmless; a file that shares no chunk with a run that already
-    has data (rerun-sdk 0.23's second recording beside a live stream) is warned about. With auth
-    on: a `write` token, or a robot's `ingest` token for that robot's runs."""
+def upload(
+    files: tuple[Path, ...], run_id: str | None, application: str | None, robot: str | None, api_url: str
+) -> None:
+    """Upload .rrd or MCAP FILES (ROS 2 bags, Foxglove recordings: the depot converts them with
+    Rerun's own loader). Chunks the service already holds (received live) are skipped, and an MCAP
+    file it holds is filed once, so uploading the same file again is harmless; a file that shares no
+    chunk with a run that already has data (rerun-sdk 0.23's second recording beside a live stream)
+    is warned about. With auth on: a `write` token, or a robot's `ingest` token for that robot's
+    runs. `fleet imports ls` lists uploads and why one failed."""
     from sdk_client.rest import ServiceError
 
     console = Console(stderr=True)
@@ -34,7 +45,13 @@ def upload(files: tuple[Path, ...], api_url: str) -> None:
         for path in files:
             task = progress.add_task(path.name, total=os.path.getsize(path))
             try:
-                report = fleet.upload(path, functools.partial(_advance, progress, task))
+                report = fleet.upload(
+                    path,
+                    functools.partial(_advance, progress, task),
+                    run_id=run_id,
+                    application=application,
+                    robot=robot,
+                )
             except ServiceError as exc:
                 if exc.status == 401:
                     raise  # no file would go: one line about the token, not one per file
@@ -44,14 +61,26 @@ def upload(files: tuple[Path, ...], api_url: str) -> None:
                 continue
             finally:
                 progress.remove_task(task)
-            click.echo(
-                f"{path}: runs {', '.join(report['runs']) or '-'}: {report['chunks_new']} new chunks "
-                f"({report['bytes_new']:,} bytes), {report['chunks_duplicate']} already held"
-            )
+            click.echo(f"{path}: {summary(report)}")
             for warning in report.get("warnings", []):
                 progress.console.print(f"Warning: {path}: {warning}", style="yellow", markup=False, soft_wrap=True)
     if failed:
         raise SystemExit(1)
+
+
+def summary(report: dict[str, Any]) -> str:
+    """One line of what an upload filed."""
+    runs = ", ".join(report["runs"]) or "-"
+    imported = report.get("import") or {}
+    if report.get("already_held"):
+        return f"run {runs}: already held (import {imported.get('held_by', '?')}), nothing new"
+    line = (
+        f"runs {runs}: {report['chunks_new']} new chunks ({report['bytes_new']:,} bytes), "
+        f"{report['chunks_duplicate']} already held"
+    )
+    if imported.get("kind") == "mcap":
+        line += f" (MCAP converted, import {imported['id']})"
+    return line
 
 
 def kept_note(accepted: dict[str, Any]) -> str:

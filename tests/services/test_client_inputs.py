@@ -439,4 +439,4 @@ def test_only_the_upload_route_reads_a_raw_body() -> None:
         if "request.stream()" in p.read_text() or "request.body()" in p.read_text()
     )
     # each reader's hostile bodies: the uploads' here, the rules file's in tests/services/corpus/test_hostile.py
-    assert readers == ["corpus/rest.py", "ingest/rest.py"], f"a new route reads a raw body: test it ({readers})"
+    assert readers == ["corpus/rest.py", "imports/rest.py"], f"a new route reads a raw body: test it ({readers})"

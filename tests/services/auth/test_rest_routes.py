@@ -51,6 +51,7 @@ class Guarded:
             .replace("{version}", "1")
             .replace("{episode}", "0")
             .replace("{job_id}", "exp-000000000000")
+            .replace("{import_id}", "imp-000000000000")
         )
 
     def __str__(self) -> str:
@@ -79,6 +80,10 @@ TABLE = [
     Guarded("POST", "/v1/catalog/rebuild", (ADMIN,)),
     Guarded("POST", "/v1/catalog/scrub-secrets", (ADMIN,), {"params": {"dry_run": "true"}}),
     Guarded("POST", "/v1/uploads", (INGEST, WRITE)),
+    Guarded("GET", "/v1/imports", (READ,)),
+    Guarded("GET", "/v1/imports/{import_id}", (READ,)),
+    Guarded("POST", "/v1/imports/{import_id}/retry", (WRITE,)),
+    Guarded("GET", "/v1/imports/{import_id}/original", (ADMIN,)),
     Guarded("GET", "/v1/robots", (READ,)),
     Guarded("GET", "/v1/nodes", (READ,)),
     Guarded("GET", "/v1/runs", (READ,)),
