@@ -65,6 +65,22 @@ class AgentCollector(Collector):
             "fleet_agent_messages_sent", "Messages sent to the depot", value=counters["messages_sent"]
         )
         yield from _trigger_metrics(agent)
+        yield from _bag_metrics(agent)
+
+
+def _bag_metrics(agent: Agent) -> Iterator[Metric]:
+    if agent.bags is None:
+        return
+    counts = agent.bags.counts
+    states = GaugeMetricFamily(
+        "fleet_agent_bags", "Watched MCAP files (rosbag2 bags): pending, uploaded, failed", labels=["state"]
+    )
+    for state in ("pending", "uploaded", "failed"):
+        states.add_metric([state], getattr(counts, state))
+    yield states
+    yield CounterMetricFamily(
+        "fleet_agent_bag_uploaded_bytes", "Bytes of MCAP files uploaded to the depot", value=counts.bytes_uploaded
+    )
 
 
 def _trigger_metrics(agent: Agent) -> Iterator[Metric]:

@@ -20,6 +20,7 @@ from typing import Any
 
 import grpc
 
+from services.agent.bagsend import BagSender, depot_client
 from services.agent.bandwidth import RateSchedule, TokenBucket
 from services.agent.files import FileProgress
 from services.agent.link import DepotLink, DepotRefused, LinkDown, default_api_url
@@ -58,12 +59,8 @@ class Agent:
         self.spool = Spool(settings, observer)
         self.state = AgentState(settings.agent_spool)
         token = settings.agent_token.get_secret_value() if settings.agent_token else None
-        self.link = DepotLink(
-            settings.agent_depot,
-            settings.agent_api_url or default_api_url(settings.agent_depot),
-            token,
-            max_message_size=settings.max_message_size,
-        )
+        api_url = settings.agent_api_url or default_api_url(settings.agent_depot)
+        self.link = DepotLink(settings.agent_depot, api_url, token, max_message_size=settings.max_message_size)
         self.schedule = RateSchedule.from_config(settings.agent_bandwidth_rules, settings.agent_bandwidth)
         self.bucket = TokenBucket(self.schedule)
         self.forwarding = Forwarding(
@@ -84,6 +81,19 @@ class Agent:
         self.retention: RetentionReport | None = None
         self.reports = Reports(self)
         self.triggers = Triggers(self, observer)
+        # MCAP files (rosbag2 bags) in the watched folders: uploaded whole, each once
+        self.bags = (
+            BagSender(
+                settings.agent_watch,
+                self.state,
+                depot_client(api_url, token),
+                bucket=self.bucket,
+                idle_s=settings.agent_bag_idle_s,
+                on_answer=self.link.mark_up,
+            )
+            if settings.agent_watch
+            else None
+        )
         self._tasks: set[asyncio.Task[None]] = set()
 
     # --- runs -----------------------------------------------------------------------------------
@@ -211,6 +221,8 @@ class Agent:
         self.state.set_fact("counters", dict(self.forwarding.counters))
         self.state.set_fact("rules", self.rules.status())
         self.state.set_fact("triggers", dict(self.triggers.counters))
+        if self.bags is not None:
+            self.state.set_fact("bags", self.bags.counts.as_dict())
         if self.retention is not None:
             self.state.set_fact(
                 "retention",
@@ -277,7 +289,9 @@ class Agent:
         watcher = self._watcher()
         if watcher is not None:
             tasks.append(asyncio.create_task(watcher.run(), name="watch files"))
-            log.info("watching %s for .rrd files", ", ".join(map(str, self.settings.agent_watch)))
+            log.info("watching %s for .rrd and .mcap files", ", ".join(map(str, self.settings.agent_watch)))
+        if self.bags is not None:
+            tasks.append(asyncio.create_task(self.bags.run(), name="upload bags"))
         try:
             await asyncio.gather(*tasks)
         finally:
@@ -288,5 +302,7 @@ class Agent:
                     await task
             await server.stop(grace=2)
             await self.link.close()
+            if self.bags is not None:
+                await self.bags.client.aclose()
             self.spool.close()
             self.state.close()

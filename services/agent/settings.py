@@ -50,9 +50,17 @@ class AgentSettings(SharedSettings):
         default_factory=list, description="entities never forwarded live; wins over agent_live_include"
     )
     agent_watch: Annotated[list[Path], NoDecode] = Field(
-        default_factory=list, description="folders where the robot writes .rrd files (FileSink) for the agent to send"
+        default_factory=list,
+        description="folders where the robot writes .rrd files (FileSink) and .mcap files (rosbag2) "
+        "for the agent to send",
     )
     agent_file_idle_s: float = Field(30.0, gt=0, description="a watched file that stops growing this long is complete")
+    agent_bag_idle_s: float = Field(
+        30.0,
+        gt=0,
+        description="a watched .mcap file (rosbag2 or lone) that does not change this long is closed and uploaded, "
+        "unless its metadata.yaml or next split and its footer said so sooner",
+    )
     agent_check_s: float = Field(
         30.0, gt=0, description="how often the agent asks the depot which of the chunks it sent it holds"
     )

@@ -2,9 +2,10 @@
 
 The spool's run files are the data; this holds where forwarding stands for each run (how far the
 depot is known to hold it, and how far it is known to be sealed there), the progress of watched
-files, the pulls being served and the link's state. Every write is its own transaction (WAL mode),
-so a kill -9 at any moment leaves the last state written: at worst the agent asks the depot again
-about chunks it had already learnt it holds, never forgets one it has not.
+files, the MCAP files uploaded (or refused), the pulls being served and the link's state. Every
+write is its own transaction (WAL mode), so a kill -9 at any moment leaves the last state written:
+at worst the agent asks the depot again about chunks it had already learnt it holds, never forgets
+one it has not.
 """
 
 from __future__ import annotations
@@ -41,6 +42,18 @@ CREATE TABLE IF NOT EXISTS pulls (
     updated_at REAL NOT NULL
 );
 CREATE TABLE IF NOT EXISTS facts (key TEXT PRIMARY KEY, value TEXT NOT NULL, updated_at REAL NOT NULL);
+CREATE TABLE IF NOT EXISTS bags (
+    path TEXT PRIMARY KEY,
+    run_id TEXT NOT NULL,
+    application TEXT NOT NULL,
+    inode INTEGER NOT NULL,  -- the file as it was sent (or refused): another inode, size or mtime is sent again
+    size INTEGER NOT NULL,
+    mtime_ns INTEGER NOT NULL,
+    state TEXT NOT NULL,  -- uploaded | failed
+    import_id TEXT,  -- the depot's id of the import (uploaded)
+    error TEXT,  -- the depot's refusal (failed)
+    updated_at REAL NOT NULL
+);
 """
 
 
@@ -63,6 +76,22 @@ class PullState:
     spec: dict[str, Any] = field(default_factory=dict)
     chunks_sent: int = 0
     bytes_sent: int = 0
+
+
+@dataclass
+class BagRecord:
+    """A watched MCAP file the depot took (`uploaded`) or refused (`failed`), as it was then: the
+    same file unchanged is not sent again, across restarts; changed, it is."""
+
+    path: str
+    run_id: str
+    application: str
+    inode: int
+    size: int
+    mtime_ns: int
+    state: str  # uploaded | failed
+    import_id: str | None = None
+    error: str | None = None
 
 
 class AgentState:
@@ -162,6 +191,43 @@ class AgentState:
 
     def forget_pull(self, pull_id: str) -> None:
         self._write("DELETE FROM pulls WHERE pull_id = ?", pull_id)
+
+    # --- watched MCAP files (rosbag2 bags) --------------------------------------------------------
+
+    def bags(self) -> dict[str, BagRecord]:
+        try:
+            rows = self._all(
+                "SELECT path, run_id, application, inode, size, mtime_ns, state, import_id, error FROM bags"
+            )
+        except sqlite3.OperationalError as exc:
+            # A read-only handle (`fleet agent status`) on a state file an older agent wrote, which
+            # has no such table yet: it has no bags. Anything else is a real fault.
+            if "no such table" not in str(exc):
+                raise
+            return {}
+        return {row[0]: BagRecord(*row) for row in rows}
+
+    def save_bag(self, bag: BagRecord) -> None:
+        self._write(
+            "INSERT INTO bags (path, run_id, application, inode, size, mtime_ns, state, import_id, error, updated_at) "
+            "VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?) ON CONFLICT (path) DO UPDATE SET run_id = excluded.run_id, "
+            "application = excluded.application, inode = excluded.inode, size = excluded.size, "
+            "mtime_ns = excluded.mtime_ns, state = excluded.state, import_id = excluded.import_id, "
+            "error = excluded.error, updated_at = excluded.updated_at",
+            bag.path,
+            bag.run_id,
+            bag.application,
+            bag.inode,
+            bag.size,
+            bag.mtime_ns,
+            bag.state,
+            bag.import_id,
+            bag.error,
+            time.time(),
+        )
+
+    def forget_bag(self, path: str) -> None:
+        self._write("DELETE FROM bags WHERE path = ?", path)
 
     # --- facts (the link's state, the running agent's heartbeat) -----------------------------------
 

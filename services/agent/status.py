@@ -9,7 +9,7 @@ from pathlib import Path
 from typing import Any
 
 from services.agent.spool import RUNS_DIR
-from services.agent.state import STATE_FILE, AgentState, PullState
+from services.agent.state import STATE_FILE, AgentState, BagRecord, PullState
 from services.agent.windows import TRIGGER_KIND
 from services.hot.store import RUN_FILE
 
@@ -25,6 +25,7 @@ def status_report(spool: Path) -> dict[str, Any]:
         facts = state.facts()
         saved = state.runs()
         pulls = state.pulls()
+        bags = state.bags()
     finally:
         state.close()
     heartbeat = float(facts["agent"][1]) if "agent" in facts else 0.0
@@ -64,6 +65,22 @@ def status_report(spool: Path) -> dict[str, Any]:
         "rules": facts.get("rules", ({}, 0.0))[0],
         "triggers": facts.get("triggers", ({}, 0.0))[0],
         "windows": [_window(p) for p in pulls.values() if p.spec.get("kind") == TRIGGER_KIND],
+        "bags": _bags(bags, facts.get("bags", ({}, 0.0))[0]),
+    }
+
+
+def _bags(records: dict[str, BagRecord], live: dict[str, Any]) -> dict[str, Any]:
+    """The watched MCAP files: how many wait, were uploaded or refused, and each refusal. The
+    counts are the running agent's (it alone knows which files are still being written); with no
+    heartbeat, those of the state file."""
+    failed = [r for r in records.values() if r.state == "failed"]
+    return {
+        "pending": int(live.get("pending", 0)),
+        "uploaded": int(live.get("uploaded", sum(r.state == "uploaded" for r in records.values()))),
+        "failed": int(live.get("failed", len(failed))),
+        "uploading": live.get("uploading"),
+        "error": live.get("error"),
+        "failures": [{"path": r.path, "run": r.run_id, "error": r.error} for r in sorted(failed, key=lambda r: r.path)],
     }
 
 

@@ -100,7 +100,8 @@ def _check_ports(settings: AgentSettings) -> None:
 @click.pass_context
 def status(ctx: click.Context, spool: Path | None, as_json: bool) -> None:
     """Per run: bytes on the robot, sent, not yet confirmed at the depot, kept on the robot only; the
-    link and the backlog. Works whether the agent runs or not (give the same --spool)."""
+    link and the backlog; the watched MCAP files (bags) uploaded, pending, failed. Works whether the
+    agent runs or not (give the same --spool)."""
     from services.agent.settings import load_agent_settings
     from services.agent.status import status_report
 
@@ -150,3 +151,10 @@ def _print(report: dict[str, Any]) -> None:
             f"  trigger window {window['window']} of {window['run']} ({window['event']}): {window['state']}, "
             f"{window['bytes_sent']} B sent{why}"
         )
+    bags = report.get("bags") or {}
+    if any(bags.get(k) for k in ("pending", "uploaded", "failed")):
+        now = f"; uploading {bags['uploading']}" if bags.get("uploading") else ""
+        why = f"; {bags['error']}" if bags.get("error") else ""
+        click.echo(f"bags: {bags['pending']} pending, {bags['uploaded']} uploaded, {bags['failed']} failed{now}{why}")
+        for failure in bags.get("failures", []):
+            click.echo(f"  failed {failure['path']} (run {failure['run']}): {failure['error']}")

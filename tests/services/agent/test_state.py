@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from services.agent.state import STATE_FILE, AgentState, PullState, RunState, run_state_dict
+from services.agent.state import STATE_FILE, AgentState, BagRecord, PullState, RunState, run_state_dict
 
 
 @pytest.fixture
@@ -29,6 +29,7 @@ def state(spool: Path) -> Iterator[AgentState]:
 def test_a_new_state_makes_its_folder_and_file_and_is_empty(state: AgentState, spool: Path):
     assert (spool / STATE_FILE).is_file()
     assert state.runs() == {} and state.file_progress() == {} and state.pulls() == {} and state.facts() == {}
+    assert state.bags() == {}
 
 
 def test_runs_round_trip_and_upsert(state: AgentState):
@@ -91,6 +92,41 @@ def test_pulls_round_trip_and_upsert_keeps_their_spec(state: AgentState):
     assert list(state.pulls()) == ["pull-2"]
 
 
+def test_bags_remember_what_was_sent_or_refused_upsert_and_forget(state: AgentState):
+    sent = BagRecord("/bags/b/b_0.mcap", "b", "rosbag2", 12, 4096, 1_700_000_000_123_456_789, "uploaded", "imp-1")
+    refused = BagRecord("/bags/x.mcap", "x", "mcap", 13, 10, 5, "failed", error="400 INVALID_ARGUMENT: bad")
+    state.save_bag(sent)
+    state.save_bag(refused)
+    assert state.bags() == {sent.path: sent, refused.path: refused}  # nanoseconds kept whole
+    grown = BagRecord(sent.path, "b", "rosbag2", 12, 8192, 1_700_000_100_000_000_000, "uploaded", "imp-2")
+    state.save_bag(grown)  # the file grew and was sent again: the row is replaced
+    retried = BagRecord(refused.path, "x", "mcap", 14, 20, 6, "uploaded", "imp-3")
+    state.save_bag(retried)  # a refused file that changed and was taken: no error left
+    assert state.bags() == {sent.path: grown, refused.path: retried}
+    state.forget_bag(sent.path)
+    state.forget_bag(sent.path)  # forgetting what is not there is harmless
+    assert list(state.bags()) == [refused.path]
+
+
+def test_a_readonly_handle_on_a_state_without_bags_has_none(spool: Path):
+    spool.mkdir()
+    db = sqlite3.connect(spool / STATE_FILE)  # what an agent from before bags wrote
+    db.execute("CREATE TABLE facts (key TEXT PRIMARY KEY, value TEXT NOT NULL, updated_at REAL NOT NULL)")
+    db.commit()
+    db.close()
+    reader = AgentState(spool, readonly=True)
+    try:
+        assert reader.bags() == {}
+    finally:
+        reader.close()
+    writer = AgentState(spool)  # the new agent adds the table on start
+    try:
+        writer.save_bag(BagRecord("/a.mcap", "a", "mcap", 1, 2, 3, "uploaded"))
+        assert list(writer.bags()) == ["/a.mcap"]
+    finally:
+        writer.close()
+
+
 def test_facts_hold_any_json_value_with_when_it_was_written(state: AgentState):
     before = time.time()
     state.set_fact("link", {"up": False, "error": "connection refused", "refused": None})
@@ -112,9 +148,12 @@ def test_the_state_survives_reopening(spool: Path):
     state.save_file("/f.rrd", {"offset": 99})
     state.save_pull(pull)
     state.set_fact("agent", {"started_at": 1.0})
+    bag = BagRecord("/bags/a.mcap", "a", "mcap", 1, 2, 3, "uploaded", "imp-1")
+    state.save_bag(bag)
     state.close()
     reopened = AgentState(spool)  # a restart: the schema is there already
     try:
+        assert reopened.bags() == {bag.path: bag}
         assert reopened.runs() == {"run-a": run}
         assert reopened.file_progress() == {"/f.rrd": {"offset": 99}}
         assert reopened.pulls() == {"pull-1": pull}

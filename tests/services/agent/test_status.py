@@ -17,7 +17,7 @@ from click.testing import CliRunner
 from services.agent import state as state_module
 from services.agent.settings import load_agent_settings
 from services.agent.spool import Spool
-from services.agent.state import AgentState, PullState, RunState
+from services.agent.state import AgentState, BagRecord, PullState, RunState
 from services.agent.status import STALE_S, status_report
 from services.agent.windows import HELD, Window
 from services.cli.agent import agent
@@ -235,3 +235,30 @@ def test_the_rules_and_the_trigger_windows(state: AgentState, spool_dir: Path):
     text = CliRunner().invoke(agent, ["status", "--spool", str(spool_dir)]).output
     assert "rules: version 2, 1 triggers; version 3 refused: line 4: unknown key" in text
     assert f"trigger window {window.pull_id} of run-b (hard_brake): held, 0 B sent (over budget:" in text
+
+
+def test_the_bags_pending_uploaded_and_failed(state: AgentState, spool_dir: Path):
+    assert status_report(spool_dir)["bags"] == {
+        "pending": 0,
+        "uploaded": 0,
+        "failed": 0,
+        "uploading": None,
+        "error": None,
+        "failures": [],
+    }
+    assert "bags:" not in invoke("--spool", str(spool_dir)).stdout  # no line for an agent with no bags
+    state.save_bag(BagRecord("/bags/a/a_0.mcap", "a", "rosbag2", 1, 100, 1, "uploaded", "imp-1"))
+    state.save_bag(BagRecord("/bags/a/a_1.mcap", "a", "rosbag2", 2, 100, 1, "uploaded", "imp-2"))
+    state.save_bag(BagRecord("/bags/x.mcap", "x", "mcap", 3, 10, 1, "failed", error="400 INVALID_ARGUMENT: bad"))
+    stopped = status_report(spool_dir)["bags"]  # no running agent has said more: the state file's counts
+    assert (stopped["pending"], stopped["uploaded"], stopped["failed"]) == (0, 2, 1)
+    assert stopped["failures"] == [{"path": "/bags/x.mcap", "run": "x", "error": "400 INVALID_ARGUMENT: bad"}]
+    live = {"pending": 2, "uploaded": 2, "failed": 1, "uploading": "/bags/b/b_0.mcap", "error": "ConnectError"}
+    state.set_fact("bags", {**live, "bytes_uploaded": 200, "uploads": 2})
+    report = status_report(spool_dir)["bags"]
+    assert {k: report[k] for k in live} == live
+    lines = invoke("--spool", str(spool_dir)).stdout.splitlines()
+    assert lines[-2:] == [
+        "bags: 2 pending, 2 uploaded, 1 failed; uploading /bags/b/b_0.mcap; ConnectError",
+        "  failed /bags/x.mcap (run x): 400 INVALID_ARGUMENT: bad",
+    ]
