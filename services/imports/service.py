@@ -139,11 +139,11 @@ class Importer:
             )
         except FleetError as exc:
             await asyncio.to_thread(self._fail, import_id, received, exc, original, digest)
-            return Filed(exc.http_status(), {**exc.to_dict(), "import": self._summary(import_id)}, exc.headers())
+            return Filed(exc.http_status(), {**exc.to_dict(), "import": self._summary(import_id, False)}, exc.headers())
         if isinstance(outcome, Held):
             await asyncio.to_thread(self._held, import_id, received, digest, outcome)
             body = {"runs": [outcome.run_id], "chunks_new": 0, "chunks_duplicate": 0, "bytes_new": 0}
-            body |= {"already_held": True, "import": self._summary(import_id, held_by=outcome.import_id)}
+            body |= {"already_held": True, "import": self._summary(import_id, True, held_by=outcome.import_id)}
             return Filed(200, body, {})
         filed = await self._file(outcome, authorization)
         if filed.status < 400:
@@ -152,7 +152,7 @@ class Importer:
         else:
             reason = str(filed.body.get("message") or "the converted recording was refused")
             await asyncio.to_thread(self._fail_filing, import_id, received, reason, filed.report, original, digest)
-        filed.body.update({"already_held": False, "import": self._summary(import_id, extends=outcome.extends)})
+        filed.body.update({"already_held": False, "import": self._summary(import_id, False, extends=outcome.extends)})
         return filed
 
     async def _file(self, outcome: Converted, authorization: str | None) -> Filed:
@@ -220,8 +220,10 @@ class Importer:
                 out.write(piece)
         return hasher.hexdigest()
 
-    def _summary(self, import_id: str, **more: Any) -> dict[str, Any]:
-        return {"id": import_id, "kind": "mcap", **{k: v for k, v in more.items() if v is not None}}
+    def _summary(self, import_id: str, already_held: bool, **more: Any) -> dict[str, Any]:
+        """The import an MCAP upload made, as its answer names it."""
+        found = {k: v for k, v in more.items() if v is not None}
+        return {"id": import_id, "kind": "mcap", "already_held": already_held, **found}
 
     async def _best_effort(self, fn: Any, *args: Any) -> Any:
         """A catalog write an RRD upload does not wait on if the catalog fails: logged, not raised."""

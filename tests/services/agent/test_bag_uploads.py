@@ -43,7 +43,6 @@ def uploads_logged(agent: AgentProcess) -> int:
     return agent.log.read_text().count("INFO:     fleet.agent: uploading ")
 
 
-@pytest.mark.xfail(strict=False, reason="needs the depot's MCAP upload")
 def test_the_agent_uploads_a_rosbag2_bag_and_a_lone_mcap_file_once(depot: LiveServer, tmp_path: Path):
     token = ingest_token(depot, ROBOT)
     watched = tmp_path / "recordings"
