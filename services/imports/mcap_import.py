@@ -32,6 +32,7 @@ from services.settings import Settings
 log = logging.getLogger(__name__)
 
 MIN_OUTPUT_BYTES = 256 << 20
+SLOWEST_BYTES_PER_S = 2e6
 DEFAULT_APPLICATION = "mcap"
 
 
@@ -56,8 +57,12 @@ class Converter:
         )
 
     def limits(self, size: int) -> convert.Limits:
+        """A file's limits: its output at most `output_ratio` times its size, its time at most
+        FLEET_MCAP_TIMEOUT_S and no more than a minute plus 2 MB/s (the CLI converts hundreds of MB/s;
+        some corrupt files make it spin without end)."""
         output = max(MIN_OUTPUT_BYTES, int(size * self.output_ratio))
-        return convert.Limits(self.timeout_s, self.memory_bytes, output)
+        timeout = min(self.timeout_s, 60.0 + size / SLOWEST_BYTES_PER_S)
+        return convert.Limits(timeout, self.memory_bytes, output)
 
     def folder(self, import_id: str) -> Path:
         folder = self.staging / import_id

@@ -46,8 +46,20 @@ def column_name(*parts: str | None) -> str:
     return name.translate(_UNSAFE_CHARS).lstrip("_")
 
 
+# Rerun's short archetype names drop only its own prefixes: `rerun.archetypes.Points3D` is Points3D,
+# while an importer's `sensor_msgs.msg.Imu` stays whole (its dots made `_` by column_name).
+_ARCHETYPE_PREFIXES = ("rerun.blueprint.archetypes.", "rerun.archetypes.", "rerun.")
+
+
+def archetype_short_name(archetype: str) -> str:
+    for prefix in _ARCHETYPE_PREFIXES:
+        if archetype.startswith(prefix):
+            return archetype[len(prefix) :]
+    return archetype
+
+
 def _descriptor_parts(comp: ComponentMeta) -> tuple[str | None, str]:
-    archetype_short = comp.archetype.rsplit(".", 1)[-1] if comp.archetype else None
+    archetype_short = archetype_short_name(comp.archetype) if comp.archetype else None
     field_name = comp.component.rsplit(":", 1)[-1]
     return archetype_short, field_name
 

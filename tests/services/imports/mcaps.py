@@ -4,6 +4,7 @@ a recording written further (the same first chunks, then more), and hostile file
 from __future__ import annotations
 
 import json
+import zlib
 from pathlib import Path
 
 from mcap.reader import make_reader
@@ -21,12 +22,13 @@ def json_mcap(
     metadata: dict[str, dict[str, str]] | None = None,
     chunk_size: int = 64 * 1024,
     first: int = 0,
+    compression: CompressionType = CompressionType.ZSTD,
 ) -> Path:
     """`messages` messages on each topic, the k-th with value k/2 at T0 + k*10 ms; metadata records first.
     With chunk_size=1 every message is a chunk of its own, so a file of more messages begins with
     exactly the bytes of one of fewer (up to its DataEnd record), as a recording written further."""
     with open(path, "wb") as f:
-        writer = Writer(f, chunk_size=chunk_size, compression=CompressionType.ZSTD)
+        writer = Writer(f, chunk_size=chunk_size, compression=compression)
         writer.start(profile="", library="fleet-tests")
         for name, values in (metadata or {}).items():
             writer.add_metadata(name, values)
@@ -70,4 +72,22 @@ def bomb(path: Path, inflated: int) -> Path:
         writer.add_message(channel, log_time=T0, data=data, publish_time=T0)
         del data
         writer.finish()
+    return path
+
+
+def hostile_record(source_messages: int, path: Path) -> Path:
+    """A valid uncompressed MCAP whose first chunk's first record claims 2 GiB, with the chunk's
+    CRC made to match: only a walk of the records inside the chunk finds it."""
+    json_mcap(path, source_messages, compression=CompressionType.NONE)
+    data = bytearray(path.read_bytes())
+    with open(path, "rb") as f:
+        first = make_reader(f).get_summary().chunk_indexes[0]  # type: ignore[union-attr]
+    header = first.chunk_start_offset + 9
+    compression_len = int.from_bytes(data[header + 28 : header + 32], "little")
+    records = header + 32 + compression_len + 8
+    records_len = int.from_bytes(data[records - 8 : records], "little")
+    data[records + 1 : records + 9] = (2 << 30).to_bytes(8, "little")
+    crc = zlib.crc32(bytes(data[records : records + records_len]))
+    data[header + 24 : header + 28] = crc.to_bytes(4, "little")
+    path.write_bytes(bytes(data))
     return path

@@ -12,7 +12,7 @@ from mcap.reader import make_reader
 from core.errors import ConversionLimitError, InvalidMcapError
 from services.imports.mcap_file import MAGIC, check_chunks, digests_at, inspect, is_mcap
 from services.imports.mcap_tail import write_tail
-from tests.services.imports.mcaps import bomb, corrupt, json_mcap, truncated
+from tests.services.imports.mcaps import bomb, corrupt, hostile_record, json_mcap, truncated
 
 
 def test_a_file_is_told_by_its_magic_and_its_facts_read(tmp_path: Path) -> None:
@@ -58,6 +58,8 @@ def test_a_corrupt_chunk_is_found_by_its_crc_and_a_chunk_too_big_by_its_size(tmp
         check_chunks(bad, 1 << 20)
     with pytest.raises(ConversionLimitError, match="FLEET_MCAP_MEMORY_MB"):
         check_chunks(bomb(tmp_path / "bomb.mcap", 4 << 20), 1 << 20)
+    with pytest.raises(InvalidMcapError, match="claims 2,147,483,648 bytes"):
+        check_chunks(hostile_record(100, tmp_path / "claims.mcap"), 1 << 20)
 
 
 def test_the_tail_holds_exactly_the_messages_after_a_held_copy(tmp_path: Path) -> None:
