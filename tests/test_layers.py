@@ -19,9 +19,10 @@
     node                             what the sides of one node share: settings, catalog, stores,
                                      clock, auth
     analytics                        extraction at promotion, SQL over what was extracted
-    retention | runs | edge | webhooks
+    retention | runs | edge | webhooks | imports
                                      promotion, archive, expiry | serving runs | robots' own tiers |
-                                     telling endpoints of what happens, signed
+                                     telling endpoints of what happens, signed | uploads (RRD,
+                                     MCAP) as imports
     corpus | datasets                what rules make of runs: events, metrics; people's events and tags |
                                      dataset snapshots: selections resolved into immutable episodes
     api | redap | agent | console    the REST app and the gRPC port's front | the Rerun catalog
@@ -72,6 +73,7 @@ LAYERS: dict[str, int] = {
     "services.runs": 7,
     "services.edge": 7,
     "services.webhooks": 7,
+    "services.imports": 7,
     "services.corpus": 8,
     "services.datasets": 8,
     "services.api": 9,

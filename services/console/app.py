@@ -8,13 +8,26 @@ from fastapi import FastAPI
 from fastapi.responses import FileResponse, RedirectResponse
 from fastapi.staticfiles import StaticFiles
 
-from services.console import datasets, events, interventions, login, overview, run, run_edits, runs, sql, viewer
+from services.console import (
+    datasets,
+    events,
+    imports,
+    interventions,
+    login,
+    overview,
+    run,
+    run_edits,
+    runs,
+    sql,
+    viewer,
+)
 from services.console.web import PREFIX, static_dir
 
 FAVICON = "favicon.svg"
 FAVICON_CACHE = {"Cache-Control": "public, max-age=86400"}
 ROUTERS = tuple(
-    module.router for module in (login, overview, runs, run, run_edits, viewer, sql, interventions, events, datasets)
+    module.router
+    for module in (login, overview, runs, run, run_edits, viewer, sql, interventions, events, datasets, imports)
 )
 
 

@@ -30,6 +30,8 @@ def ledger(request: Request) -> Ledger:
 
 
 def importer(request: Request) -> Importer:
+    """The importer of this app's node (its ingest service, auth, ledger, converter): what the
+    upload, retry and the console's Retry button use."""
     state = request.app.state
     settings = state.node.settings
     return Importer(
@@ -108,8 +110,14 @@ async def retry(request: Request, import_id: ImportId, _: Writer) -> Any:
 
 @router.get("/v1/imports/{import_id}/original", summary="A failed MCAP import's original file, from quarantine")
 async def original(request: Request, import_id: ImportId, _: Admin) -> Response:
-    key, size, name = await asyncio.to_thread(records.quarantined, ledger(request), import_id)
-    reader = RangeReader(ledger(request).warm, key, size)
+    return await original_download(ledger(request), import_id)
+
+
+async def original_download(found: Ledger, import_id: str) -> StreamingResponse:
+    """A failed import's quarantined original as a download (an attachment named after its file);
+    NOT_FOUND if it keeps none. The REST route and the console's link both answer with it."""
+    key, size, name = await asyncio.to_thread(records.quarantined, found, import_id)
+    reader = RangeReader(found.warm, key, size)
 
     async def pieces() -> Any:
         while piece := await asyncio.to_thread(reader.read, 8 << 20):
