@@ -71,9 +71,9 @@ def claim(factory: sessionmaker[Session], digest: str, import_id: str, run_id: s
     except DBAPIError:
         with session_scope(factory) as session:
             found = holder(session, digest)
-        if found is None:
-            raise
-        return found.import_id
+            if found is None:
+                raise
+            return found.import_id
     return None
 
 

@@ -7,6 +7,7 @@ worker threads; the event loop only moves bytes and messages.
 from __future__ import annotations
 
 import asyncio
+import errno
 import hashlib
 import json
 import logging
@@ -19,7 +20,14 @@ from starlette.requests import ClientDisconnect
 
 from catalog import imports as rows
 from catalog.db import session_scope
-from core.errors import BadParameterError, ConflictError, FleetError, PermissionDeniedError
+from core.errors import (
+    BadParameterError,
+    ConflictError,
+    FleetError,
+    InsufficientStorageError,
+    PermissionDeniedError,
+    UnavailableError,
+)
 from services.auth.scopes import Principal
 from services.auth.tokens import Auth
 from services.imports import mcap_import
@@ -101,15 +109,23 @@ class Importer:
         if principal.robot is not None and ask.robot is not None and ask.robot != principal.robot:
             raise PermissionDeniedError(f"this token files runs of robot {principal.robot} only, not of {ask.robot!r}")
         asked = Asked(ask.run_id, ask.application, principal.robot or ask.robot)
-        import_id = await asyncio.to_thread(self.ledger.start, "mcap", ask.name or "upload.mcap", who, asked.robot)
+        try:
+            import_id = await asyncio.to_thread(self.ledger.start, "mcap", ask.name or "upload.mcap", who, asked.robot)
+        except Exception as exc:
+            raise UnavailableError(
+                f"the catalog does not answer ({type(exc).__name__}): an MCAP upload needs it to be filed once; "
+                "send it again in a few seconds"
+            ) from None
         original = self.converter.folder(import_id) / "original.mcap"
         try:
             received, digest = await _receive(pieces, original)
-        except Exception as exc:  # the client went away, or the disk failed: nothing was filed
-            await asyncio.to_thread(self._fail, import_id, original.stat().st_size if original.exists() else 0, exc)
-            if isinstance(exc, ClientDisconnect):
+        except Exception as exc:  # the client went away, or the disk failed: nothing was filed or kept
+            refusal = _receive_failure(exc)
+            size = original.stat().st_size if original.exists() else 0
+            await self._best_effort(self._fail, import_id, size, refusal or exc)
+            if refusal is None:
                 return Filed(CLIENT_GONE, {"error": {"code": "CLIENT_GONE"}}, {})
-            raise
+            raise refusal from None
         return await self._convert_and_file(import_id, original, received, digest, asked, authorization)
 
     async def retry(self, import_id: str, authorization: str | None) -> Filed:
@@ -137,21 +153,23 @@ class Importer:
             outcome = await asyncio.to_thread(
                 mcap_import.prepare, self.ledger, self.converter, import_id, original, digest, asked
             )
-        except FleetError as exc:
-            await asyncio.to_thread(self._fail, import_id, received, exc, original, digest)
-            return Filed(exc.http_status(), {**exc.to_dict(), "import": self._summary(import_id, False)}, exc.headers())
+        except Exception as exc:
+            refusal = exc if isinstance(exc, FleetError) else _unexpected(import_id, exc)
+            await self._best_effort(self._fail, import_id, received, refusal, original, digest)
+            refused: dict[str, Any] = {**refusal.to_dict(), "import": self._summary(import_id, False)}
+            return Filed(refusal.http_status(), refused, refusal.headers())
         if isinstance(outcome, Held):
-            await asyncio.to_thread(self._held, import_id, received, digest, outcome)
-            body = {"runs": [outcome.run_id], "chunks_new": 0, "chunks_duplicate": 0, "bytes_new": 0}
+            await self._best_effort(self._held, import_id, received, digest, outcome)
+            body: dict[str, Any] = {"runs": [outcome.run_id], "chunks_new": 0, "chunks_duplicate": 0, "bytes_new": 0}
             body |= {"already_held": True, "import": self._summary(import_id, True, held_by=outcome.import_id)}
             return Filed(200, body, {})
         filed = await self._file(outcome, authorization)
         if filed.status < 400:
-            await asyncio.to_thread(self.ledger.filed, import_id, received, filed.report)
+            await self._best_effort(self.ledger.filed, import_id, received, filed.report)
             await asyncio.to_thread(mcap_import.cleanup, self.converter, import_id)
         else:
             reason = str(filed.body.get("message") or "the converted recording was refused")
-            await asyncio.to_thread(self._fail_filing, import_id, received, reason, filed.report, original, digest)
+            await self._best_effort(self._fail_filing, import_id, received, reason, filed.report, original, digest)
         filed.body.update({"already_held": False, "import": self._summary(import_id, False, extends=outcome.extends)})
         return filed
 
@@ -226,7 +244,8 @@ class Importer:
         return {"id": import_id, "kind": "mcap", "already_held": already_held, **found}
 
     async def _best_effort(self, fn: Any, *args: Any) -> Any:
-        """A catalog write an RRD upload does not wait on if the catalog fails: logged, not raised."""
+        """Bookkeeping an upload's answer does not wait on if the catalog fails: logged, not raised
+        (the import row may then be stale; the data it names is filed or not as the answer says)."""
         try:
             return await asyncio.to_thread(fn, *args)
         except Exception as exc:
@@ -269,6 +288,24 @@ async def _receive(pieces: AsyncIterator[bytes], target: Path) -> tuple[int, str
                 pending.clear()
         await asyncio.to_thread(flush, f, bytes(pending))
     return received, hasher.hexdigest()
+
+
+def _receive_failure(exc: BaseException) -> FleetError | None:
+    """What to answer when an MCAP body could not be kept: None if its client went away."""
+    if isinstance(exc, ClientDisconnect):
+        return None
+    if isinstance(exc, OSError) and exc.errno == errno.ENOSPC:
+        return InsufficientStorageError("the depot's disk is full: the MCAP file could not be kept; send it later")
+    return UnavailableError(f"the MCAP file could not be kept ({type(exc).__name__}): send it again")
+
+
+def _unexpected(import_id: str, exc: BaseException) -> FleetError:
+    """A failure that is not the file's (the catalog, the disk): logged whole, answered 503."""
+    log.error("import %s failed unexpectedly", import_id, exc_info=exc)
+    return UnavailableError(
+        f"the depot could not file the MCAP upload ({type(exc).__name__}): send it again; "
+        f"`fleet imports show {import_id}` says how it ended"
+    )
 
 
 def _json_list(text: str) -> list[str]:
