@@ -15,7 +15,7 @@ import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import click
 from rich.console import Console
@@ -24,19 +24,11 @@ from rich.table import Table
 
 from services.cli.client import api_option, client
 from services.cli.output import stdout_console
-from services.datasets.export import (
-    EpisodeInfo,
-    EpisodeReport,
-    ExportResult,
-    ExportSpec,
-    OpenedEpisode,
-    export_episodes,
-    refuse_flagged,
-)
-from services.datasets.export import Progress as ExportProgress
-from services.datasets.exports import default_fps, parse_version
-from services.datasets.local import open_rrd_file
-from services.datasets.quality import Limits
+
+if TYPE_CHECKING:  # the export's modules (Arrow, PyAV, the catalog) load when a command needs them
+    from services.datasets.export import EpisodeInfo, EpisodeReport, ExportResult, ExportSpec, OpenedEpisode
+    from services.datasets.export import Progress as ExportProgress
+    from services.datasets.quality import Limits
 
 POLL_S = 1.0
 PAGE = 1000
@@ -88,6 +80,10 @@ def cameras_of(items: tuple[str, ...]) -> tuple[tuple[str, str], ...]:
 def export(api_url: str, ref: str, target: str, fmt: str, detach: bool, as_json: bool, **options: Any) -> None:
     """Export version NAME@N as a LeRobot v3.0 dataset: `--observation /joints/** --action /cmd/**
     --camera /camera/front=observation.images.front --task "pick the box" --to DIR`."""
+    from services.datasets.export import ExportSpec
+    from services.datasets.exports import default_fps, parse_version
+    from services.datasets.quality import Limits
+
     name, number = parse_version(ref)
     cameras = cameras_of(options["camera"])
     limits = Limits(options["frozen_s"], options["min_frames"])
@@ -131,6 +127,8 @@ def export_here(
     fleet: Any, name: str, number: int, spec: ExportSpec, root: Path, limits: Limits, strict: bool
 ) -> ExportResult:
     """The export written under `root` by this process (resumed if it was killed there)."""
+    from services.datasets.export import export_episodes, refuse_flagged
+
     spec.check()
     total = int(fleet.dataset_version(name, number, limit=1)["episodes"])
     opener = _opener(fleet, name, number, spec)
@@ -159,6 +157,8 @@ def _with_progress(title: str, total: int, body: Any) -> ExportResult:
 
 
 def _episodes(fleet: Any, name: str, number: int) -> Iterator[EpisodeInfo]:
+    from services.datasets.export import EpisodeInfo
+
     cursor: str | None = None
     while True:
         page = fleet.dataset_version(name, number, limit=PAGE, cursor=cursor)
@@ -173,7 +173,8 @@ def _opener(fleet: Any, name: str, number: int, spec: ExportSpec) -> Any:
     @contextmanager
     def open_episode(info: EpisodeInfo) -> Iterator[OpenedEpisode]:
         from sdk_client.rest import ServiceError
-        from services.datasets.export import Unreadable
+        from services.datasets.export import OpenedEpisode, Unreadable
+        from services.datasets.local import open_rrd_file
 
         with tempfile.TemporaryDirectory(prefix="fleet-episode-") as folder:
             path = Path(folder) / "episode.rrd"
@@ -207,6 +208,8 @@ def _print_reports(result: ExportResult, as_json: bool) -> None:
 def _flag_table(reports: list[EpisodeReport] | list[dict[str, Any]]) -> None:
     if not reports:
         return
+    from services.datasets.export import EpisodeReport
+
     table = Table("episode", "run", "exported", "check", "entity", "detail", box=None, padding=(0, 2))
     for r in reports:
         found = r.as_json() if isinstance(r, EpisodeReport) else r

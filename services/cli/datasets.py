@@ -18,9 +18,6 @@ from services.cli import dataset_exports
 from services.cli.client import api_option, client
 from services.cli.output import stdout_console
 from services.cli.runs import run_filters
-from services.datasets.selection import parse_split
-from services.datasets.service import parse_ref
-from services.runs.service import parse_properties
 
 
 @click.group()
@@ -94,6 +91,9 @@ def selection_body(
     kinds = [*window_event, *(event if before is not None or after is not None else ())]
     if windowed and not kinds:
         raise click.UsageError("--before/--after put windows around events: name their kind with --event KIND")
+    from services.datasets.selection import parse_split  # the service's parsers load only when used
+    from services.runs.service import parse_properties
+
     body: dict[str, Any] = {
         "robot": list(robot),
         "application": list(application),
@@ -151,6 +151,8 @@ def ls(api_url: str, as_json: bool) -> None:
 @click.option("--json", "as_json", is_flag=True, help="print the service's JSON answer")
 def show(api_url: str, ref: str, limit: int, as_json: bool) -> None:
     """NAME: its versions; NAME@N: that version's selection and episodes."""
+    from services.datasets.service import parse_ref
+
     name, number = parse_ref(ref)
     with client(api_url) as fleet:
         answer = fleet.dataset(name) if number is None else fleet.dataset_version(name, number, limit=limit)

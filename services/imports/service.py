@@ -11,7 +11,7 @@ import errno
 import hashlib
 import json
 import logging
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Coroutine
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -79,7 +79,10 @@ class Importer:
     async def _rrd(
         self, pieces: AsyncIterator[bytes], principal: Principal, who: str, authorization: str | None, name: str
     ) -> Filed:
-        import_id = await self._best_effort(self.ledger.start, "rrd", name, who, principal.robot)
+        """An `.rrd` body filed as it arrives. Its import row is written beside it, never in its way:
+        the upload neither waits for the catalog to start it nor to end it (a catalog outage must not
+        stop uploads), so the answer names the import only if its row was written by then."""
+        started = _background(self._best_effort(self.ledger.start, "rrd", name, who, principal.robot))
         decoder = RrdDecoder(max_message_size=self.max_message_size, max_chunk_bytes=self.max_chunk_bytes)
         received = 0
 
@@ -94,14 +97,20 @@ class Importer:
 
         source = self.ingest.open_source(live=False, robot=principal.robot)
         filed = await file_events(self.ingest, self.auth, source, authorization, events())
-        if import_id is not None:
-            if filed.status < 400:
-                await self._best_effort(self.ledger.filed, import_id, received, filed.report)
-            else:
-                reason = str(filed.body.get("message") or filed.body.get("error", {}).get("code", "refused"))
-                await self._best_effort(self.ledger.failed, import_id, received, reason, filed.report)
+        _background(self._end_rrd(started, received, filed))
+        if started.done() and (import_id := started.result()) is not None:
             filed.body.update({"import": {"id": import_id, "kind": "rrd"}})
         return filed
+
+    async def _end_rrd(self, started: asyncio.Task[Any], received: int, filed: Filed) -> None:
+        import_id = await started
+        if import_id is None:
+            return
+        if filed.status < 400:
+            await self._best_effort(self.ledger.filed, import_id, received, filed.report)
+        else:
+            reason = str(filed.body.get("message") or filed.body.get("error", {}).get("code", "refused"))
+            await self._best_effort(self.ledger.failed, import_id, received, reason, filed.report)
 
     async def _mcap(
         self, pieces: AsyncIterator[bytes], principal: Principal, who: str, authorization: str | None, ask: UploadAsk
@@ -288,6 +297,16 @@ async def _receive(pieces: AsyncIterator[bytes], target: Path) -> tuple[int, str
                 pending.clear()
         await asyncio.to_thread(flush, f, bytes(pending))
     return received, hasher.hexdigest()
+
+
+_BOOKKEEPING: set[asyncio.Task[Any]] = set()  # tasks under way, held so they are not collected
+
+
+def _background(work: Coroutine[Any, Any, Any]) -> asyncio.Task[Any]:
+    task = asyncio.create_task(work)
+    _BOOKKEEPING.add(task)
+    task.add_done_callback(_BOOKKEEPING.discard)
+    return task
 
 
 def _receive_failure(exc: BaseException) -> FleetError | None:
