@@ -110,9 +110,13 @@ class FleetClient:
 
     def import_original(self, import_id: str, out: Path) -> int:
         """A failed import's quarantined original, written to `out` (admin); bytes written."""
+        return self._save(f"/v1/imports/{import_id}/original", out)
+
+    def _save(self, url: str, out: Path) -> int:
+        """The body of a GET of `url`, streamed into the file `out`; bytes written."""
         written = 0
         try:
-            with self._http.stream("GET", f"/v1/imports/{import_id}/original") as response:
+            with self._http.stream("GET", url) as response:
                 _check(response)
                 with open(out, "wb") as fh:
                     for piece in response.iter_bytes():
@@ -432,19 +436,7 @@ class FleetClient:
 
     def download_episode(self, name: str, version: int, episode: int, out: Path) -> int:
         """The chunks one episode of NAME@VERSION reads, as an RRD file at `out`; bytes written."""
-        written = 0
-        try:
-            with self._http.stream(
-                "GET", f"/v1/datasets/{name}/{version}/episodes/{episode}/recording.rrd"
-            ) as response:
-                _check(response)
-                with open(out, "wb") as fh:
-                    for piece in response.iter_bytes():
-                        fh.write(piece)
-                        written += len(piece)
-        except httpx.TransportError as exc:
-            raise self._unreachable(exc) from exc
-        return written
+        return self._save(f"/v1/datasets/{name}/{version}/episodes/{episode}/recording.rrd", out)
 
     def export_dataset(self, dataset: str, to: str, **options: Any) -> dict[str, Any]:
         """Queue NAME@N's export by the depot into `to` (`POST /v1/exports`): the job."""

@@ -11,49 +11,21 @@ complete only after the install and an import succeeded. 0.4.4 is the newest ler
 
 from __future__ import annotations
 
-import fcntl
-import shutil
-import subprocess
-import sys
 from pathlib import Path
 
-from tests.compat.sdk_venvs import cache_root
+from tests.compat.tool_venvs import ToolVenv
 
-READY_MARK = ".fleet-tool-ready"
 NAME = "lerobot-0.4.4"
 REQUIREMENTS = ["lerobot==0.4.4", "torch==2.10.0", "torchvision==0.25.0"]  # pinned: the resolver stays put
 IMPORT = "from lerobot.datasets.lerobot_dataset import LeRobotDataset"
 
 
-def venv_dir() -> Path:
-    return cache_root().parent / "tool-venvs" / NAME
+VENV = ToolVenv(NAME, tuple(REQUIREMENTS), IMPORT, timeout_s=1800)
 
 
 def lerobot_python() -> Path:
     """The venv's python (created if missing)."""
-    root = venv_dir()
-    if not (root / READY_MARK).exists():
-        root.parent.mkdir(parents=True, exist_ok=True)
-        with open(root.parent / f"{NAME}.lock", "w") as lock:
-            fcntl.flock(lock, fcntl.LOCK_EX)  # another worker or CI's step may be creating it
-            if not (root / READY_MARK).exists():
-                _create(root)
-    return root / "bin" / "python"
-
-
-def _create(root: Path) -> None:
-    shutil.rmtree(root, ignore_errors=True)  # a creation that was interrupted
-    _run([sys.executable, "-m", "venv", str(root)])
-    python = str(root / "bin" / "python")
-    _run([python, "-m", "pip", "install", "--quiet", "--disable-pip-version-check", *REQUIREMENTS])
-    _run([python, "-c", IMPORT])
-    (root / READY_MARK).write_text(" ".join(REQUIREMENTS) + "\n")
-
-
-def _run(cmd: list[str]) -> None:
-    done = subprocess.run(cmd, capture_output=True, text=True, timeout=1800, check=False)
-    if done.returncode != 0:
-        raise RuntimeError(f"{' '.join(cmd)} failed ({done.returncode}):\n{done.stdout[-2000:]}{done.stderr[-2000:]}")
+    return VENV.python()
 
 
 if __name__ == "__main__":
