@@ -19,6 +19,7 @@ Timelines are set with exact integers (numpy ns values), so min/max are known to
 from __future__ import annotations
 
 import json
+import os
 import struct
 import subprocess
 import sys
@@ -108,10 +109,13 @@ def walk_frames(data: bytes) -> tuple[list[Frame], int | None]:
 
 
 def start_scene(scene: str, out_dir: Path) -> subprocess.Popen[bytes]:
+    """A scene's recording, its chunks cut only where it flushes or by size: the SDK's batcher also
+    flushes on a timer (every few ms), which on a loaded machine fires mid-scene and adds a chunk."""
     return subprocess.Popen(
         [sys.executable, str(Path(__file__).resolve()), scene, str(out_dir)],
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
+        env={**os.environ, "RERUN_FLUSH_TICK_SECS": "3600"},
     )
 
 
