@@ -210,9 +210,7 @@ def export_job(node: Node, ingest: IngestService) -> Job:
     """Dataset exports queued for the depot, run one at a time per process (`services.datasets.exports`)."""
     settings = node.settings
     sources = DatasetSources(node.catalog, node.tiers.warm, ingest, node.clock)
-    places = dataset_exports.Places(
-        tuple(settings.export_urls), settings.data_dir / "exports", settings.s3_endpoint_url, settings.s3_region
-    )
+    places = dataset_exports.Places.of(settings)
     return Job(
         dataset_exports.JOB, lambda _: dataset_exports.run_due(sources, places, node_name()), settings.export_interval_s
     )

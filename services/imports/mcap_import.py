@@ -26,7 +26,7 @@ from core.ids import check_id
 from services.imports import convert
 from services.imports.mcap_file import RUN_KEYS, McapFacts, check_chunks, digests_at, inspect
 from services.imports.mcap_tail import write_tail
-from services.imports.records import Ledger
+from services.imports.records import Ledger, run_ids_of
 from services.settings import Settings
 
 log = logging.getLogger(__name__)
@@ -209,8 +209,8 @@ def _refuse_earlier_copy(ledger: Ledger, facts: McapFacts, asked: Asked, run_id:
 
 
 def _first_run(row: Import) -> str:
-    runs = json.loads(row.run_ids)
-    return str(runs[0]) if runs else ""
+    runs = run_ids_of(row)
+    return runs[0] if runs else ""
 
 
 def cleanup(converter: Converter, import_id: str) -> None:

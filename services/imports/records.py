@@ -100,6 +100,11 @@ class Ledger:
             return found
 
 
+def run_ids_of(row: Import) -> list[str]:
+    """The runs an import filed into (a JSON list in its row)."""
+    return [str(r) for r in json.loads(row.run_ids)]
+
+
 def _counts(report: dict[str, Any]) -> dict[str, Any]:
     return {
         "run_ids": json.dumps(sorted(str(r) for r in report.get("runs") or [])),
@@ -122,7 +127,7 @@ def import_json(row: Import) -> dict[str, Any]:
         "name": row.name,
         "bytes": row.bytes,
         "robot": row.robot_id,
-        "runs": json.loads(row.run_ids),
+        "runs": run_ids_of(row),
         "application": row.application_id,
         "chunks_new": row.chunks_new,
         "chunks_duplicate": row.chunks_duplicate,

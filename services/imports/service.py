@@ -25,6 +25,7 @@ from core.errors import (
     ConflictError,
     FleetError,
     InsufficientStorageError,
+    InvalidMcapError,
     PermissionDeniedError,
     UnavailableError,
 )
@@ -33,7 +34,7 @@ from services.auth.tokens import Auth
 from services.imports import mcap_import
 from services.imports.mcap_file import MAGIC, is_mcap
 from services.imports.mcap_import import Asked, Converted, Converter, Held
-from services.imports.records import Ledger
+from services.imports.records import Ledger, run_ids_of
 from services.imports.uploads import CLIENT_GONE, Filed, file_events
 from services.ingest.service import IngestService
 from services.rrd.decoder import RrdDecoder
@@ -83,20 +84,16 @@ class Importer:
         the upload neither waits for the catalog to start it nor to end it (a catalog outage must not
         stop uploads), so the answer names the import only if its row was written by then."""
         started = _background(self._best_effort(self.ledger.start, "rrd", name, who, principal.robot))
-        decoder = RrdDecoder(max_message_size=self.max_message_size, max_chunk_bytes=self.max_chunk_bytes)
         received = 0
 
-        async def events() -> AsyncIterator[Event]:
+        async def counted() -> AsyncIterator[bytes]:
             nonlocal received
             async for piece in pieces:
                 received += len(piece)
-                for event in decoder.feed(piece):
-                    yield event
-            for event in decoder.finish():
-                yield event
+                yield piece
 
         source = self.ingest.open_source(live=False, robot=principal.robot)
-        filed = await file_events(self.ingest, self.auth, source, authorization, events())
+        filed = await file_events(self.ingest, self.auth, source, authorization, self._events(counted()))
         _background(self._end_rrd(started, received, filed))
         if started.done() and (import_id := started.result()) is not None:
             filed.body.update({"import": {"id": import_id, "kind": "rrd"}})
@@ -148,7 +145,7 @@ class Importer:
             )
         original = self.converter.folder(import_id) / "original.mcap"
         digest = await asyncio.to_thread(self._fetch, row.quarantine_key, original)
-        runs = _json_list(row.run_ids)
+        runs = run_ids_of(row)
         asked = Asked(runs[0] if runs else None, row.application_id, row.robot_id)
         await asyncio.to_thread(
             self.ledger.update, import_id, state=rows.RECEIVING, reason=None, node=self.ledger.node_id
@@ -177,45 +174,49 @@ class Importer:
             await self._best_effort(self.ledger.filed, import_id, received, filed.report)
             await asyncio.to_thread(mcap_import.cleanup, self.converter, import_id)
         else:
-            reason = str(filed.body.get("message") or "the converted recording was refused")
-            await self._best_effort(self._fail_filing, import_id, received, reason, filed.report, original, digest)
+            refused_by_ingest = InvalidMcapError(
+                str(filed.body.get("message") or "the converted recording was refused")
+            )
+            await self._best_effort(self._fail, import_id, received, refused_by_ingest, original, digest, filed.report)
         filed.body.update({"already_held": False, "import": self._summary(import_id, False, extends=outcome.extends)})
         return filed
 
     async def _file(self, outcome: Converted, authorization: str | None) -> Filed:
-        decoder = RrdDecoder(max_message_size=self.max_message_size, max_chunk_bytes=self.max_chunk_bytes)
-
-        async def events() -> AsyncIterator[Event]:
+        async def pieces() -> AsyncIterator[bytes]:
             with open(outcome.recording, "rb") as f:
                 while piece := await asyncio.to_thread(f.read, READ_BYTES):
-                    for event in decoder.feed(piece):
-                        yield event
-            for event in decoder.finish():
-                yield event
+                    yield piece
 
         source = self.ingest.open_source(live=False, robot=outcome.robot)
-        return await file_events(self.ingest, self.auth, source, authorization, events())
+        return await file_events(self.ingest, self.auth, source, authorization, self._events(pieces()))
+
+    async def _events(self, pieces: AsyncIterator[bytes]) -> AsyncIterator[Event]:
+        """The RRD messages of a body, decoded as its pieces come (an upload's, or a converted bag's)."""
+        decoder = RrdDecoder(max_message_size=self.max_message_size, max_chunk_bytes=self.max_chunk_bytes)
+        async for piece in pieces:
+            for event in decoder.feed(piece):
+                yield event
+        for event in decoder.finish():
+            yield event
 
     # --- on worker threads ----------------------------------------------------------------------
 
     def _fail(
-        self, import_id: str, received: int, exc: BaseException, original: Path | None = None, digest: str | None = None
+        self,
+        import_id: str,
+        received: int,
+        exc: BaseException,
+        original: Path | None = None,
+        digest: str | None = None,
+        report: dict[str, Any] | None = None,
     ) -> None:
-        """The import failed before anything was filed: why, the original kept (unless the failure
-        was another import's doing), the digest released."""
+        """The import failed: why (and what of it was kept, `report`), the original kept in
+        quarantine (unless the failure was another import's doing), the digest released."""
         reason = exc.message if isinstance(exc, FleetError) else f"{type(exc).__name__}: {exc}"
-        self.ledger.failed(import_id, received, reason)
+        self.ledger.failed(import_id, received, reason, report)
         self._release(import_id, digest)
         if original is not None and original.exists() and not isinstance(exc, ConflictError):
             self.ledger.quarantine(import_id, original, self.ledger.row(import_id).name)
-        mcap_import.cleanup(self.converter, import_id)
-
-    def _fail_filing(
-        self, import_id: str, received: int, reason: str, report: dict[str, Any], original: Path, digest: str
-    ) -> None:
-        self.ledger.failed(import_id, received, reason, report)
-        self._release(import_id, digest)
-        self.ledger.quarantine(import_id, original, self.ledger.row(import_id).name)
         mcap_import.cleanup(self.converter, import_id)
 
     def _held(self, import_id: str, received: int, digest: str, held: Held) -> None:
@@ -325,7 +326,3 @@ def _unexpected(import_id: str, exc: BaseException) -> FleetError:
         f"the depot could not file the MCAP upload ({type(exc).__name__}): send it again; "
         f"`fleet imports show {import_id}` says how it ended"
     )
-
-
-def _json_list(text: str) -> list[str]:
-    return [str(v) for v in json.loads(text)]
