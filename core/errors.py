@@ -7,8 +7,13 @@ it through `http_status()` / `grpc_status()` and nowhere else.
 from __future__ import annotations
 
 import enum
+import functools
+from typing import TYPE_CHECKING
 
-import sqlalchemy.exc as sa_exc
+if TYPE_CHECKING:
+    import sqlalchemy.exc as sa_exc
+
+    CatalogDown = tuple[type[sa_exc.OperationalError], type[sa_exc.InterfaceError], type[sa_exc.TimeoutError]]
 
 
 class ErrorCode(enum.Enum):
@@ -208,10 +213,25 @@ class UnavailableError(FleetError):
     code = ErrorCode.UNAVAILABLE
 
 
-# Errors of the catalog database itself (down, restarting, overloaded, past its statement or
-# connect deadline: Postgres' QueryCanceled is an OperationalError), as opposed to a record it
-# refuses. Not the caller's mistake nor a fault of the depot: UNAVAILABLE on every surface.
-CATALOG_DOWN = (sa_exc.OperationalError, sa_exc.InterfaceError, sa_exc.TimeoutError)
+@functools.cache
+def _catalog_down() -> CatalogDown:
+    import sqlalchemy.exc as sa_exc  # here: a CLI command that never opens a catalog does not load it
+
+    return (sa_exc.OperationalError, sa_exc.InterfaceError, sa_exc.TimeoutError)
+
+
+if TYPE_CHECKING:
+    # Errors of the catalog database itself (down, restarting, overloaded, past its statement or
+    # connect deadline: Postgres' QueryCanceled is an OperationalError), as opposed to a record it
+    # refuses. Not the caller's mistake nor a fault of the depot: UNAVAILABLE on every surface.
+    CATALOG_DOWN: CatalogDown
+
+
+def __getattr__(name: str) -> object:
+    """CATALOG_DOWN, made on first use (module attribute lookup, PEP 562)."""
+    if name == "CATALOG_DOWN":
+        return _catalog_down()
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 class CatalogUnavailableError(UnavailableError):
@@ -224,7 +244,7 @@ def as_fleet_error(exc: BaseException) -> FleetError | None:
     not answer, None for anything else (a fault of the depot, answered INTERNAL)."""
     if isinstance(exc, FleetError):
         return exc
-    if isinstance(exc, CATALOG_DOWN):
+    if isinstance(exc, _catalog_down()):
         return CatalogUnavailableError()
     return None
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import json
 import os
 import shutil
 import subprocess
@@ -29,14 +30,51 @@ os.environ["FLEET_WORKERS"] = "1"
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
-    """Against a compiled build (FLEET_COMPILE=1), tests that patch a function inside a compiled
-    module are skipped: calls within that module go straight to the compiled function."""
+    """The longest files run first, and against a compiled build (FLEET_COMPILE=1) tests that
+    patch a function inside a compiled module are skipped: calls within that module go straight
+    to the compiled function."""
+    heavy_first(items)
     compiled = set(compiled_modules())
     for item in items:
         marker = item.get_closest_marker("interpreted")
         patched = compiled & set(marker.args) if marker is not None else set()
         if patched:
             item.add_marker(pytest.mark.skip(reason=f"patches inside {', '.join(sorted(patched))}, compiled here"))
+
+
+def heavy_first(items: list[pytest.Item]) -> None:
+    """Order the test files longest first, each file's tests in their own order: the workers (`-n 3
+    --dist loadfile`, a file at a time, handed out in this order) start on the long files and end
+    on short ones together, rather than one worker going on alone through a long file the others
+    finished long before. How long a file takes is what `tests/durations.json` recorded (written by
+    a run with FLEET_TEST_DURATIONS=PATH); files it does not list (new ones) come last, in their
+    own order. The same order in every worker, as xdist requires."""
+    recorded = recorded_durations()
+    position = {item.nodeid: n for n, item in enumerate(items)}
+    items.sort(key=lambda item: (-recorded.get(item.nodeid.split("::")[0], 0.0), position[item.nodeid]))
+
+
+def recorded_durations() -> dict[str, float]:
+    path = Path(__file__).parent / "durations.json"
+    return {str(k): float(v) for k, v in json.loads(path.read_text()).items()} if path.exists() else {}
+
+
+_file_seconds: dict[str, float] = {}
+
+
+def pytest_runtest_logreport(report: pytest.TestReport) -> None:
+    """Each test's setup, call and teardown time, summed by file (for FLEET_TEST_DURATIONS)."""
+    file = report.nodeid.split("::")[0]
+    _file_seconds[file] = _file_seconds.get(file, 0.0) + report.duration
+
+
+def pytest_sessionfinish(session: pytest.Session) -> None:
+    """With FLEET_TEST_DURATIONS=PATH, write the seconds each test file took (on the controller,
+    which sees every worker's reports): `tests/durations.json` is such a file, from a CI run."""
+    target = os.environ.get("FLEET_TEST_DURATIONS")
+    if target and not hasattr(session.config, "workerinput") and _file_seconds:
+        rounded = {file: round(seconds, 1) for file, seconds in sorted(_file_seconds.items())}
+        Path(target).write_text(json.dumps(rounded, indent=1) + "\n")
 
 
 def find_rerun() -> str | None:

@@ -74,7 +74,12 @@ class ServerProcess:
             log = files.enter_context(open(self.log, "ab"))
             errors = files.enter_context(open(self.errors_log, "ab")) if self.errors_log else subprocess.STDOUT
             self._proc = subprocess.Popen(self.argv, env=self.env, stdout=log, stderr=errors)
-        self.wait_until(self.ready, timeout, "an answer")
+        try:
+            self.wait_until(self.ready, timeout, "an answer")
+        except BaseException:
+            if self.running:  # one that never answered in time is not left running behind the failure
+                self.kill()
+            raise
         return self
 
     def wait_until(self, condition: Callable[[], bool], timeout: float, what: str) -> None:

@@ -183,16 +183,23 @@ def check_chunks(path: Path, max_chunk_bytes: int) -> None:
     try:
         with open(path, "rb") as f:
             summary = make_reader(f).get_summary()
+            size = path.stat().st_size
             for index in summary.chunk_indexes if summary is not None else ():
-                _check_chunk(f, index, max_chunk_bytes)
+                _check_chunk(f, size, index, max_chunk_bytes)
     except FleetError:
         raise
     except Exception as exc:  # a codec's own error on hostile bytes: zstd, lz4, struct
         raise InvalidMcapError(f"a chunk of the file cannot be read ({type(exc).__name__}: {str(exc)[:200]})") from None
 
 
-def _check_chunk(f: BinaryIO, index: ChunkIndex, max_chunk_bytes: int) -> None:
+def _check_chunk(f: BinaryIO, size: int, index: ChunkIndex, max_chunk_bytes: int) -> None:
     at = index.chunk_start_offset
+    if not len(MAGIC) <= at < at + index.chunk_length <= size:
+        # before reading it: a read of the length an index claims allocates all of it at once
+        raise InvalidMcapError(
+            f"the chunk index points at bytes {at:,} to {at + index.chunk_length:,}, outside the file's "
+            f"{size:,} bytes: the file is corrupt"
+        )
     if index.uncompressed_size > max_chunk_bytes:
         raise ConversionLimitError(
             f"the chunk at byte {at} inflates to {index.uncompressed_size:,} bytes: more than a conversion may use "

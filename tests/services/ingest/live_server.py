@@ -55,7 +55,9 @@ class LiveServer:
     def proc(self) -> subprocess.Popen[bytes]:
         return self.process.proc
 
-    def start(self, timeout: float = 60) -> LiveServer:
+    def start(self, timeout: float = 120) -> LiveServer:
+        """Start `fleet serve` and wait for its /healthz; the bound is for a CI machine the whole suite
+        loads (a start takes 3-6 s of CPU, several starts at once share two cores)."""
         self.process.env = {
             **os.environ,
             "FLEET_DATA_DIR": str(self.data_dir),
