@@ -14,6 +14,12 @@ if TYPE_CHECKING:
     import sqlalchemy.exc as sa_exc
 
     CatalogDown = tuple[type[sa_exc.OperationalError], type[sa_exc.InterfaceError], type[sa_exc.TimeoutError]]
+    # Errors of the catalog database itself (down, restarting, overloaded, past its statement or
+    # connect deadline: Postgres' QueryCanceled is an OperationalError), as opposed to a record it
+    # refuses. Not the caller's mistake nor a fault of the depot: UNAVAILABLE on every surface.
+    # Made on first use (`__getattr__` below): a CLI command that never opens a catalog does not
+    # load SQLAlchemy.
+    CATALOG_DOWN: CatalogDown
 
 
 class ErrorCode(enum.Enum):
@@ -215,16 +221,9 @@ class UnavailableError(FleetError):
 
 @functools.cache
 def _catalog_down() -> CatalogDown:
-    import sqlalchemy.exc as sa_exc  # here: a CLI command that never opens a catalog does not load it
+    import sqlalchemy.exc as sa_exc
 
     return (sa_exc.OperationalError, sa_exc.InterfaceError, sa_exc.TimeoutError)
-
-
-if TYPE_CHECKING:
-    # Errors of the catalog database itself (down, restarting, overloaded, past its statement or
-    # connect deadline: Postgres' QueryCanceled is an OperationalError), as opposed to a record it
-    # refuses. Not the caller's mistake nor a fault of the depot: UNAVAILABLE on every surface.
-    CATALOG_DOWN: CatalogDown
 
 
 def __getattr__(name: str) -> object:

@@ -51,7 +51,7 @@ def heavy_first(items: list[pytest.Item]) -> None:
     own order. The same order in every worker, as xdist requires."""
     recorded = recorded_durations()
     position = {item.nodeid: n for n, item in enumerate(items)}
-    items.sort(key=lambda item: (-recorded.get(item.nodeid.split("::")[0], 0.0), position[item.nodeid]))
+    items.sort(key=lambda item: (-recorded.get(_file_of(item.nodeid), 0.0), position[item.nodeid]))
 
 
 def recorded_durations() -> dict[str, float]:
@@ -64,8 +64,12 @@ _file_seconds: dict[str, float] = {}
 
 def pytest_runtest_logreport(report: pytest.TestReport) -> None:
     """Each test's setup, call and teardown time, summed by file (for FLEET_TEST_DURATIONS)."""
-    file = report.nodeid.split("::")[0]
+    file = _file_of(report.nodeid)
     _file_seconds[file] = _file_seconds.get(file, 0.0) + report.duration
+
+
+def _file_of(nodeid: str) -> str:
+    return nodeid.split("::")[0]
 
 
 def pytest_sessionfinish(session: pytest.Session) -> None:
