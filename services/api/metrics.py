@@ -8,8 +8,10 @@ asked for over REST) are counted by an ASGI middleware, by route template, as th
 
 from __future__ import annotations
 
+import asyncio
 import time
 from collections.abc import Iterator
+from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
 from prometheus_client import CollectorRegistry, Counter, Histogram, generate_latest
@@ -99,9 +101,16 @@ def metrics_registry(ingest: IngestService | None, auth: Auth | None = None) -> 
     return registry
 
 
-def exposition(registry: CollectorRegistry) -> bytes:
-    """HELP and TYPE lines, then the samples, for every metric of the registry."""
-    return generate_latest(registry)
+# A scrape's own thread: in the loop's default executor it would wait behind every catalog call of
+# a burst of streams opening (200 at once kept a scrape waiting over 10 s, Prometheus's default
+# scrape timeout), and scrapes are what operators read exactly then.
+_SCRAPES = ThreadPoolExecutor(max_workers=1, thread_name_prefix="metrics-scrape")
+
+
+async def exposition(registry: CollectorRegistry) -> bytes:
+    """HELP and TYPE lines, then the samples, for every metric of the registry (off the event loop,
+    on the scrapes' own thread)."""
+    return await asyncio.get_running_loop().run_in_executor(_SCRAPES, generate_latest, registry)
 
 
 class RequestMetrics:

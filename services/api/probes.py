@@ -4,7 +4,6 @@ the host, their figures added up)."""
 
 from __future__ import annotations
 
-import asyncio
 import os
 from pathlib import Path
 from typing import Annotated, Any
@@ -46,7 +45,7 @@ def _install_metrics(app: FastAPI, registry: CollectorRegistry) -> None:
     async def metrics(_: Annotated[Principal, Depends(require(Scope.READ))], local: bool = False) -> Response:
         """Prometheus text exposition (HELP and TYPE for every metric). With several workers on the
         host (`fleet serve --workers N`), their figures added up; `local=true`: this worker's only."""
-        own = await asyncio.to_thread(prometheus.exposition, registry)
+        own = await prometheus.exposition(registry)
         siblings: list[Path] = app.state.sibling_sockets
         if local or not siblings:
             return Response(own, media_type=prometheus.CONTENT_TYPE)
