@@ -5,6 +5,7 @@ from __future__ import annotations
 import datetime as dt
 import json
 import uuid
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -367,6 +368,12 @@ def recent_jobs(session: Session, limit: int = 20) -> list[JobExecution]:
 
 def get_run(session: Session, run_id: str) -> Run | None:
     return session.get(Run, run_id) if is_id(run_id) else None
+
+
+def get_runs(session: Session, run_ids: Iterable[str]) -> dict[str, Run]:
+    """The rows of those of `run_ids` the catalog holds, in one query."""
+    wanted = [run_id for run_id in run_ids if is_id(run_id)]
+    return {run.id: run for run in session.scalars(sa.select(Run).where(Run.id.in_(wanted)))} if wanted else {}
 
 
 def run_not_found(run_id: str) -> NotFoundError:

@@ -22,6 +22,7 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from services import __version__
 from services.auth.tokens import Auth
+from services.corpus.live import LiveRules
 from services.edge import triggers
 from services.ingest.service import IngestService
 
@@ -57,6 +58,32 @@ class IngestCollector(Collector):
         for key, value in ingest.totals.items():
             help_text = INGEST_TOTALS_HELP.get(key, f"Ingest total {key.replace('_', ' ')}")
             yield CounterMetricFamily(f"fleet_ingest_{key}", help_text, value=value)
+
+
+class LiveRulesCollector(Collector):
+    """What the running rules cost this node as hot runs' chunks arrive (services/corpus/live.py),
+    read at each scrape; nothing when the node runs no live rules."""
+
+    def __init__(self, ingest: IngestService | None) -> None:
+        self.ingest = ingest
+
+    def collect(self) -> Iterator[Metric]:
+        live = self.ingest.observer if self.ingest is not None else None
+        if not isinstance(live, LiveRules):
+            return
+        yield CounterMetricFamily(
+            "fleet_live_rules_cpu_seconds",
+            "CPU time the live rules' worker spent evaluating hot runs' chunks and writing their results",
+            value=live.cpu_s,
+        )
+        yield CounterMetricFamily(
+            "fleet_live_rules_chunks", "Chunks of hot runs evaluated by the live rules", value=live.evaluated_chunks
+        )
+        yield CounterMetricFamily(
+            "fleet_live_rules_dropped_chunks",
+            "Chunks not evaluated live because the rules' queue was full (their runs are evaluated again at sealing)",
+            value=live.dropped_chunks,
+        )
 
 
 class AuthCollector(Collector):
@@ -96,6 +123,7 @@ def metrics_registry(ingest: IngestService | None, auth: Auth | None = None) -> 
     registry = CollectorRegistry(auto_describe=False)
     registry.register(IngestCollector(ingest))
     registry.register(TriggerCollector())
+    registry.register(LiveRulesCollector(ingest))
     if auth is not None:
         registry.register(AuthCollector(auth))
     return registry

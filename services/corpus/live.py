@@ -40,6 +40,7 @@ from sqlalchemy.orm import Session
 from catalog import queries
 from catalog.corpus import current_rules
 from catalog.db import session_scope
+from catalog.models import Run
 from core.states import Tier
 from services.corpus.evaluation import (
     LIVE,
@@ -149,6 +150,8 @@ class LiveRules:
         self.flush_s = flush_s
         self.max_runs = max_runs
         self.dropped_chunks = 0  # chunks not evaluated live because the queue was full
+        self.evaluated_chunks = 0  # chunks fed to a run's evaluator (the worker's alone)
+        self.cpu_s = 0.0  # the worker's CPU time: evaluating and writing (the rules' cost to the node)
         self.queue_chunks = queue_chunks
         self._queue: deque[object] = deque()  # chunks, then hand-overs and the stop, in order
         self._wake = threading.Event()  # a hand-over or the stop: take the queue now
@@ -223,6 +226,7 @@ class LiveRules:
 
     def _work(self) -> None:
         next_tick = time.monotonic() + self.flush_s
+        cpu_before = time.thread_time() - self.cpu_s
         while True:
             self._wake.wait(min(BATCH_S, max(0.0, next_tick - time.monotonic())))
             self._wake.clear()  # (what is queued before a later set is taken below)
@@ -238,6 +242,7 @@ class LiveRules:
             if time.monotonic() >= next_tick:
                 self._tick()
                 next_tick = time.monotonic() + self.flush_s
+            self.cpu_s = time.thread_time() - cpu_before
 
     def _take(self, item: object) -> None:
         if isinstance(item, _Chunk):
@@ -273,6 +278,7 @@ class LiveRules:
             return  # read from its file when the evaluator started
         run.seen.add(chunk.meta.chunk_id)
         run.evaluator.add(chunk.msg, chunk.meta)
+        self.evaluated_chunks += 1
         run.changed = True
 
     def _new_run(self, run_id: str, robot_id: str, *, changed: bool) -> HotRun:
@@ -339,14 +345,14 @@ class LiveRules:
         now = self.node.clock()
         self._pulls_queued = 0
         with session_scope(self.node.catalog, write=True) as session:
-            written = [run for run in due if self._write(session, run, now)]
+            rows = queries.get_runs(session, [run.run_id for run in due])  # one query for them all
+            written = [run for run in due if self._write(session, run, rows.get(run.run_id), now)]
         trigger_pulls_made[DEPOT] += self._pulls_queued
         for run in written:  # (the others' catalog rows are not there yet: the next tick)
             run.changed = False
             run.events_written, run.flushes_unwritten = len(run.events), 0
 
-    def _write(self, session: Session, run: HotRun, now: dt.datetime) -> bool:
-        row = queries.get_run(session, run.run_id)
+    def _write(self, session: Session, run: HotRun, row: Run | None, now: dt.datetime) -> bool:
         if row is None:
             return False
         if row.tier != Tier.HOT:

@@ -14,7 +14,9 @@ from sqlalchemy.orm import Session
 
 from catalog import webhooks
 from catalog.db import session_scope
+from catalog.models import Run
 from catalog.webhooks import WebhookRecord
+from services.api.metrics import LiveRulesCollector
 from services.corpus import evaluation, live
 from services.corpus.backfill import Pace, due_runs
 from services.corpus.evaluation import COLD_NOTE
@@ -70,6 +72,9 @@ def test_a_run_has_its_values_while_hot_and_final_ones_once_sealed(make_depot: D
     evaluated = depot.evaluation(run_id)
     assert evaluated is not None and (evaluated.state, evaluated.rules_version) == ("live", version)
     assert sorted(live_values()["intervention"]) == expect.expected_interventions()  # type: ignore[index]
+    cost = {family.name: family.samples[0].value for family in LiveRulesCollector(depot.ingest).collect()}
+    assert cost["fleet_live_rules_chunks"] == depot.corpus.live.evaluated_chunks > 0
+    assert cost["fleet_live_rules_cpu_seconds"] > 0 and cost["fleet_live_rules_dropped_chunks"] == 0
 
     asyncio.run(depot.ingest.end_source(source))
     depot.seal(run_id)
@@ -249,9 +254,9 @@ def test_a_hot_run_whose_metrics_alone_move_is_written_every_few_flushes(make_de
     writes: list[str] = []
     write = live_rules._write
 
-    def counted(session: Session, run: live.HotRun, now: dt.datetime) -> bool:
+    def counted(session: Session, run: live.HotRun, row: Run | None, now: dt.datetime) -> bool:
         writes.append(run.run_id)
-        return write(session, run, now)
+        return write(session, run, row, now)
 
     monkeypatch.setattr(live_rules, "_write", counted)
 
