@@ -127,6 +127,20 @@ def event_id(run_id: str, facts: EventFacts) -> str:
     return "ev-" + hashlib.sha256(key.encode()).hexdigest()[:16]
 
 
+@dataclass(frozen=True)
+class EvaluationFacts:
+    """One run's evaluation as `replace_evaluations` writes it."""
+
+    run_id: str
+    robot_id: str
+    rules_version: int
+    state: str
+    events: Sequence[EventFacts]
+    metrics: Sequence[MetricFacts]
+    capped: bool
+    note: str | None
+
+
 def replace_evaluation(
     session: Session,
     *,
@@ -140,22 +154,56 @@ def replace_evaluation(
     note: str | None,
     now: dt.datetime,
 ) -> list[Event]:
-    """Replace the run's rule- and robot-made events, its metrics and its evaluation row. Returns
+    """One run's `replace_evaluations`."""
+    facts = EvaluationFacts(run_id, robot_id, rules_version, state, events, metrics, capped, note)
+    return replace_evaluations(session, [facts], now)
+
+
+def replace_evaluations(session: Session, evaluations: Sequence[EvaluationFacts], now: dt.datetime) -> list[Event]:
+    """Replace each run's rule- and robot-made events, its metrics and its evaluation row. Returns
     the events that are new (not held before under the same id), and those a robot's agent reported
     that the depot finds now for the first time: what webhooks are told of.
 
     Only what differs is written (a live run is written every few seconds with mostly the same
     values): an event held before keeps its row and when it was first recorded. An event a robot's
     agent reported stays when this evaluation does not find it; when it does, it becomes the
-    evaluation's (its source the rule's)."""
-    held = {
-        e.id: e
-        for e in session.scalars(sa.select(Event).where(Event.run_id == run_id, Event.origin.in_(MADE_BY_EVALUATION)))
-    }
+    evaluation's (its source the rule's). What the runs hold is read in one query per table for
+    all of them (the live rules write every hot run that changed at once)."""
+    run_ids = [facts.run_id for facts in evaluations]
+    if len(set(run_ids)) != len(run_ids):
+        raise ValueError("one evaluation per run")
+    held_events: dict[str, dict[str, Event]] = {run_id: {} for run_id in run_ids}
+    for event in session.scalars(
+        sa.select(Event).where(Event.run_id.in_(run_ids), Event.origin.in_(MADE_BY_EVALUATION))
+    ):
+        held_events[event.run_id][event.id] = event
+    held_metrics: dict[str, dict[str, RunMetric]] = {run_id: {} for run_id in run_ids}
+    for metric in session.scalars(sa.select(RunMetric).where(RunMetric.run_id.in_(run_ids))):
+        held_metrics[metric.run_id][metric.name] = metric
+    rows = session.scalars(sa.select(RunEvaluation).where(RunEvaluation.run_id.in_(run_ids)))
+    held_evaluations = {row.run_id: row for row in rows}
+    new: list[Event] = []
+    for facts in evaluations:
+        new += _replace_events(session, facts, held_events[facts.run_id], now)
+        _replace_metrics(session, facts, held_metrics[facts.run_id], now)
+        evaluation = held_evaluations.get(facts.run_id)
+        if evaluation is None:
+            evaluation = RunEvaluation(run_id=facts.run_id)
+            session.add(evaluation)
+        evaluation.rules_version = facts.rules_version
+        evaluation.state = facts.state
+        evaluation.events_capped = facts.capped
+        evaluation.note = facts.note
+        evaluation.evaluated_at = now
+    session.flush()
+    return new
+
+
+def _replace_events(session: Session, facts: EvaluationFacts, held: dict[str, Event], now: dt.datetime) -> list[Event]:
     reported = {ident for ident, e in held.items() if _robot_reported(e)}
     rows: dict[str, Event] = {}
-    for facts in events:
-        row = _event_row(event_id(run_id, facts), run_id, robot_id, facts, rules_version, now)
+    for event in facts.events:
+        row = _event_row(event_id(facts.run_id, event), facts.run_id, facts.robot_id, event, facts.rules_version, now)
         rows.setdefault(row.id, row)  # two identical findings are one event
     new: list[Event] = []
     for ident, row in rows.items():
@@ -170,17 +218,6 @@ def replace_evaluation(
     for ident, gone in held.items():
         if ident not in reported:
             session.delete(gone)
-    _replace_metrics(session, run_id, robot_id, rules_version, metrics, now)
-    evaluation = session.get(RunEvaluation, run_id)
-    if evaluation is None:
-        evaluation = RunEvaluation(run_id=run_id)
-        session.add(evaluation)
-    evaluation.rules_version = rules_version
-    evaluation.state = state
-    evaluation.events_capped = capped
-    evaluation.note = note
-    evaluation.evaluated_at = now
-    session.flush()
     return new
 
 
@@ -215,23 +252,15 @@ def _update(held: object, fresh: object, fields: Sequence[str]) -> bool:
     return changed
 
 
-def _replace_metrics(
-    session: Session,
-    run_id: str,
-    robot_id: str,
-    rules_version: int,
-    metrics: Sequence[MetricFacts],
-    now: dt.datetime,
-) -> None:
-    held = {m.name: m for m in session.scalars(sa.select(RunMetric).where(RunMetric.run_id == run_id))}
-    for m in metrics:
+def _replace_metrics(session: Session, facts: EvaluationFacts, held: dict[str, RunMetric], now: dt.datetime) -> None:
+    for m in facts.metrics:
         fresh = RunMetric(
-            run_id=run_id,
+            run_id=facts.run_id,
             name=m.name,
-            robot_id=robot_id,
+            robot_id=facts.robot_id,
             value=m.value,
             text_value=m.text_value,
-            rules_version=rules_version,
+            rules_version=facts.rules_version,
             computed_at=now,
         )
         before = held.pop(m.name, None)

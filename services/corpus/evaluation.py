@@ -173,12 +173,30 @@ def write_evaluation(
     state: str,
     evaluation: Evaluation,
     now: dt.datetime,
-    events: Iterable[FoundEvent] | None = None,
 ) -> list[Event]:
-    """Replace the run's rule- and robot-made events and metrics with `evaluation`'s (`events`:
-    the events to write instead of its own, for a live run's events so far). Returns the new ones."""
-    return corpus_db.replace_evaluation(
-        session,
+    """Replace the run's rule- and robot-made events and metrics with `evaluation`'s. Returns the
+    new ones."""
+    return write_evaluations(session, [evaluation_facts(run_id, robot_id, version, state, evaluation)], now)
+
+
+def write_evaluations(
+    session: Session, evaluations: Sequence[corpus_db.EvaluationFacts], now: dt.datetime
+) -> list[Event]:
+    """`write_evaluation` of several runs at once (one query per table for all of them)."""
+    return corpus_db.replace_evaluations(session, evaluations, now)
+
+
+def evaluation_facts(
+    run_id: str,
+    robot_id: str,
+    version: int,
+    state: str,
+    evaluation: Evaluation,
+    events: Iterable[FoundEvent] | None = None,
+) -> corpus_db.EvaluationFacts:
+    """What the catalog keeps of `evaluation` (`events`: the events to write instead of its own, for
+    a live run's events so far)."""
+    return corpus_db.EvaluationFacts(
         run_id=run_id,
         robot_id=robot_id,
         rules_version=version,
@@ -187,7 +205,6 @@ def write_evaluation(
         metrics=[corpus_db.MetricFacts(m.name, m.value, m.text_value) for m in evaluation.metrics],
         capped=evaluation.capped,
         note=evaluation.note,
-        now=now,
     )
 
 

@@ -38,19 +38,20 @@ from cachetools import FIFOCache
 from sqlalchemy.orm import Session
 
 from catalog import queries
-from catalog.corpus import current_rules
+from catalog.corpus import EvaluationFacts, current_rules
 from catalog.db import session_scope
-from catalog.models import Run
+from catalog.models import Event, Run
 from core.states import Tier
 from services.corpus.evaluation import (
     LIVE,
     NO_RULES_VERSION,
     RunningRules,
     announce_events,
+    evaluation_facts,
     properties_of,
     running_rules,
     wanted_rows,
-    write_evaluation,
+    write_evaluations,
 )
 from services.edge.triggers import DEPOT, queue_trigger_pulls, trigger_pulls_made
 from services.hot.read import HotRuns
@@ -162,7 +163,6 @@ class LiveRules:
         self._overflowed: set[str] = set()  # runs whose chunks were dropped (from ingest's thread)
         self._lock = threading.Lock()
         self._thread: threading.Thread | None = None
-        self._pulls_queued = 0  # trigger pulls the flush under way queued; the worker's alone
 
     # --- the ChunkObserver: on ingest's thread, never blocking -------------------------------
 
@@ -343,31 +343,40 @@ class LiveRules:
         if not due:
             return
         now = self.node.clock()
-        self._pulls_queued = 0
         with session_scope(self.node.catalog, write=True) as session:
             rows = queries.get_runs(session, [run.run_id for run in due])  # one query for them all
-            written = [run for run in due if self._write(session, run, rows.get(run.run_id), now)]
-        trigger_pulls_made[DEPOT] += self._pulls_queued
-        for run in written:  # (the others' catalog rows are not there yet: the next tick)
+            # (a run without its catalog row yet waits for the next tick; one sealed meanwhile is
+            # evaluated at its next seal: the data that came after it)
+            written = [run for run in due if run.run_id in rows]
+            hot = [(run, rows[run.run_id]) for run in written if rows[run.run_id].tier == Tier.HOT]
+            new = write_evaluations(session, [_so_far(run, row) for run, row in hot], now)
+            announce_events(session, new)
+            pulls = self._queue_trigger_pulls(session, hot, new, now)
+        trigger_pulls_made[DEPOT] += pulls
+        for run in written:
             run.changed = False
             run.events_written, run.flushes_unwritten = len(run.events), 0
 
-    def _write(self, session: Session, run: HotRun, row: Run | None, now: dt.datetime) -> bool:
-        if row is None:
-            return False
-        if row.tier != Tier.HOT:
-            return True  # data that came after the run was sealed: evaluated at its next seal
-        evaluation = _so_far(run, properties_of(row))
-        new = write_evaluation(session, run.run_id, row.robot_id, run.version, LIVE, evaluation, now, run.events)
-        announce_events(session, new)
+    def _queue_trigger_pulls(
+        self, session: Session, hot: list[tuple[HotRun, Run]], new: list[Event], now: dt.datetime
+    ) -> int:
+        """A trigger pull for each new event a `[[trigger]]` of the running rules names."""
         running = self._running
-        if new and running.version == run.version and running.rules.triggers:
-            self._pulls_queued += queue_trigger_pulls(session, row, new, running.rules.triggers, run.version, now)
-        return True
+        if not new or not running.rules.triggers:
+            return 0
+        by_run: dict[str, list[Event]] = {}
+        for event in new:
+            by_run.setdefault(event.run_id, []).append(event)
+        pulls = 0
+        for run, row in hot:
+            if run.run_id in by_run and run.version == running.version:
+                pulls += queue_trigger_pulls(session, row, by_run[run.run_id], running.rules.triggers, run.version, now)
+        return pulls
 
 
-def _so_far(run: HotRun, properties: dict[str, dict[str, object]]) -> Evaluation:
+def _so_far(run: HotRun, row: Run) -> EvaluationFacts:
     """A hot run's evaluation as it stands: its complete events and its metrics so far."""
     evaluator = run.evaluator
-    metrics = evaluator.metrics_so_far(dict(properties))
-    return Evaluation(list(run.events), metrics, False, None, evaluator.in_order)
+    metrics = evaluator.metrics_so_far(dict(properties_of(row)))
+    evaluation = Evaluation(list(run.events), metrics, False, None, evaluator.in_order)
+    return evaluation_facts(run.run_id, row.robot_id, run.version, LIVE, evaluation)

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import datetime as dt
 
+import pytest
 from sqlalchemy.orm import Session, sessionmaker
 
 from catalog import corpus
@@ -121,3 +122,25 @@ def test_replacing_writes_only_what_differs_and_keeps_when_an_event_was_first_re
         assert aware(events[200]) == NOW and aware(events[300]) == later  # recorded when first found
         metrics = {m.name: (m.value, aware(m.computed_at)) for m in corpus.metrics_of(session, "run-1")}
         assert metrics == {"a": (1.0, NOW), "c": (3.0, later)}  # an unchanged value is not written again
+
+
+def test_several_runs_replaced_at_once_each_keep_their_own(catalog: sessionmaker[Session]) -> None:
+    def facts(run_id: str, starts: list[int], value: float) -> corpus.EvaluationFacts:
+        events = [_rule_event(s) for s in starts]
+        return corpus.EvaluationFacts(run_id, "r1", 1, "live", events, [MetricFacts("a", value, None)], False, None)
+
+    with session_scope(catalog, write=True) as session:
+        new = corpus.replace_evaluations(session, [facts("run-1", [100], 1.0), facts("run-2", [100, 200], 2.0)], NOW)
+        assert sorted((e.run_id, e.range_start) for e in new) == [("run-1", 100), ("run-2", 100), ("run-2", 200)]
+    with session_scope(catalog, write=True) as session:
+        # run-1 finds one more; run-2 loses one: neither touches the other's rows.
+        new = corpus.replace_evaluations(session, [facts("run-1", [100, 300], 1.5), facts("run-2", [200], 2.0)], NOW)
+        assert [(e.run_id, e.range_start) for e in new] == [("run-1", 300)]
+    with session_scope(catalog) as session:
+        assert [e.range_start for e in corpus.events_of_run(session, "run-1")] == [100, 300]
+        assert [e.range_start for e in corpus.events_of_run(session, "run-2")] == [200]
+        assert [m.value for m in corpus.metrics_of(session, "run-1")] == [1.5]
+        assert [m.value for m in corpus.metrics_of(session, "run-2")] == [2.0]
+        assert {corpus.evaluation_of(session, r).state for r in ("run-1", "run-2")} == {"live"}  # type: ignore[union-attr]
+    with session_scope(catalog, write=True) as session, pytest.raises(ValueError, match="one evaluation per run"):
+        corpus.replace_evaluations(session, [facts("run-1", [], 0.0), facts("run-1", [], 0.0)], NOW)

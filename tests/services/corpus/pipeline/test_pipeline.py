@@ -13,8 +13,9 @@ import pytest
 from sqlalchemy.orm import Session
 
 from catalog import webhooks
+from catalog.corpus import EvaluationFacts
 from catalog.db import session_scope
-from catalog.models import Run
+from catalog.models import Event
 from catalog.webhooks import WebhookRecord
 from services.api.metrics import LiveRulesCollector
 from services.corpus import evaluation, live
@@ -252,13 +253,13 @@ def test_a_hot_run_whose_metrics_alone_move_is_written_every_few_flushes(make_de
     live_rules = depot.corpus.live
     live_rules.reload_rules()
     writes: list[str] = []
-    write = live_rules._write
+    write = evaluation.write_evaluations
 
-    def counted(session: Session, run: live.HotRun, row: Run | None, now: dt.datetime) -> bool:
-        writes.append(run.run_id)
-        return write(session, run, row, now)
+    def counted(session: Session, facts: list[EvaluationFacts], now: dt.datetime) -> list[Event]:
+        writes.extend(f.run_id for f in facts)
+        return write(session, facts, now)
 
-    monkeypatch.setattr(live_rules, "_write", counted)
+    monkeypatch.setattr(live, "write_evaluations", counted)
 
     def take_queued() -> None:
         while live_rules._queue:
