@@ -1,6 +1,9 @@
 """Benchmark: serving a run as .rrd over HTTP, next to `rerun rrd filter` on the same local file.
 
-    .venv/bin/python benchmarks/serve.py [--repeat 5] [--json]
+    .venv/bin/python benchmarks/serve.py [--repeat 5] [--json] [--tier hot|warm]
+
+`--tier warm` serves the run from the warm tier in a real S3 server instead, beside the store's own
+GET (benchmarks/serve_warm.py says how).
 
 Uploads benchmarks/data/big.rrd (>= 200 MB, made by benchmarks/codec.py) into a fresh `fleet serve`,
 then times `GET /v1/runs/RUN/recording.rrd` whole and filtered to one entity (time to first byte,
@@ -35,6 +38,7 @@ ROOT = Path(__file__).resolve().parents[1]
 # would stand in for the catalog package.
 sys.path[:] = [str(ROOT), *(p for p in sys.path if p not in (str(ROOT), str(ROOT / "benchmarks")))]
 
+from benchmarks import serve_warm  # noqa: E402
 from benchmarks.codec import MB, ensure_recording, find_rerun_binary, format_table, log  # noqa: E402
 from benchmarks.ingest import FleetServer  # noqa: E402
 from services.hot.read import HotRecording  # noqa: E402
@@ -120,6 +124,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--repeat", type=int, default=5)
     parser.add_argument("--rerun", help="the rerun executable (default: the native binary of rerun-sdk)")
     parser.add_argument("--json", action="store_true")
+    serve_warm.add_arguments(parser)
     args = parser.parse_args(argv)
 
     info = ensure_recording(
@@ -134,6 +139,13 @@ def main(argv: list[str] | None = None) -> None:
     entities = sorted(e.path for e in store.entities.values() if not e.path.startswith("/__properties"))
     chosen = max(entities, key=lambda p: store.entities[p].bytes)  # the heaviest entity
     others = [p for p in store.entities if p != chosen]
+    if args.tier == "warm":
+        warm = serve_warm.run_warm(source, run_id, chosen, args.repeat)
+        if args.json:
+            print(json.dumps(warm, indent=2))
+        else:
+            serve_warm.print_warm(warm, args.repeat)
+        return
     rerun_bin, _ = find_rerun_binary(args.rerun)
     curl = shutil.which("curl")
     if curl is None:

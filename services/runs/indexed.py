@@ -29,6 +29,7 @@ from services.rrd.frames import MESSAGE_HEADER_SIZE, STREAM_HEADER_SIZE, decode_
 from services.rrd.messages import ArrowMessage, Event, StreamStart
 from services.runs.download import FLUSH_BYTES, EntityFilter, TimeWindow, encode_run
 from services.runs.latest_at import ChunkEntry, pick_rows, select_chunks
+from services.storage import readahead
 from services.storage.objectstore import ObjectStore
 
 GAP_BYTES = 64 * 1024  # neighbouring messages closer than this are fetched in one read
@@ -63,6 +64,7 @@ class IndexedRecording:
     store: ObjectStore | None = None
     key: str = ""  # of the sealed recording in `store`
     close: Callable[[], None] = _nothing
+    read_ahead: int = 1  # reads under way at once (a store's: each waits for its first byte)
 
     def chunk_row(self, chunk_id: bytes) -> IndexRow | None:
         """Where the chunk with this id is in the recording (None: not in it); the index is read
@@ -96,7 +98,7 @@ def open_sealed_object(
     def read(offset: int, length: int) -> bytes:
         return store.get_range(key, offset, length)
 
-    return IndexedRecording(read, size, index, store=store, key=key)
+    return IndexedRecording(read, size, index, store=store, key=key, read_ahead=readahead.DEPTH)
 
 
 def stream_indexed(
@@ -248,8 +250,12 @@ def read_events(recording: IndexedRecording, rows: Iterable[IndexRow]) -> Iterat
     """The stream's start, then the messages of `rows` (decoded, their payloads left as they are:
     views of what was read)."""
     yield StreamStart(0, 0, decode_stream_header(recording.read(0, STREAM_HEADER_SIZE), 0))
-    for start, end, group in _reads(rows):
-        data = memoryview(recording.read(start, end - start))
+
+    def read(plan: tuple[int, int, list[IndexRow]]) -> bytes:
+        return recording.read(plan[0], plan[1] - plan[0])
+
+    for (start, _, group), got in readahead.read_ahead(_reads(rows), read, recording.read_ahead):
+        data = memoryview(got)
         for row in group:
             at = row.offset - start
             kind, length = decode_message_header(data, at)

@@ -1,0 +1,207 @@
+"""`benchmarks/serve.py --tier warm`: a sealed run served from the warm store, beside the store itself.
+
+A real S3 server (SeaweedFS on loopback, as in benchmarks/analytics.py) holds the warm tier of a
+fresh `fleet serve`. big.rrd is uploaded, then sealed into the warm tier (`POST .../promote`, timed
+beside a boto3 multipart upload of the same file: the store's own write speed). Then, each best of
+--repeat, with curl for both sides so that the client is the same native one:
+
+- `whole`: `GET /v1/runs/RUN/recording.rrd` against one plain GET of the sealed object (a presigned
+  URL to the store): target >= 0.8x;
+- `entity`: the same download filtered to the heaviest entity (bytes out, MB/s over them);
+- for context, the object read by 8 MiB ranged GETs one after another (boto3), what a reader that
+  does not read ahead gets.
+
+Memory: the server's peak RSS (VmHWM) before and after the downloads.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import shutil
+import subprocess
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import httpx
+
+from benchmarks.analytics import AWS, BUCKET, PREFIX, s3_client, seaweedfs, wait_for_bucket
+from benchmarks.codec import MB, format_table, log
+from benchmarks.ingest import FleetServer, proc_status_kb
+
+WARM_TARGET = 0.8  # of one plain GET stream of the same object
+PROMOTE_TARGET = 0.9  # of a multipart put of the same bytes
+
+
+class WarmServer(FleetServer):
+    """`fleet serve` with its warm tier in the SeaweedFS at `endpoint`."""
+
+    def __init__(self, workdir: Path, endpoint: str) -> None:
+        super().__init__(workdir)
+        self.extra = {
+            **AWS,
+            "FLEET_WARM_URL": f"s3://{BUCKET}/{PREFIX}",
+            "FLEET_S3_ENDPOINT_URL": endpoint,
+            "FLEET_SCHEDULER": "false",
+        }
+
+    def argv_env(self) -> tuple[list[str], dict[str, str]]:
+        argv, env = super().argv_env()
+        return argv, {**env, **self.extra}
+
+    def peak_rss_mb(self) -> float:
+        return proc_status_kb(self.pid, "VmHWM") / 1024
+
+
+def curl_seconds(curl: str, url: str) -> tuple[float, int]:
+    """(seconds to the last byte, bytes) of one GET by curl, the body dropped."""
+    start = time.perf_counter()
+    done = subprocess.run(
+        [curl, "-sSf", "-o", os.devnull, "-w", "%{size_download}", url], check=True, capture_output=True, text=True
+    )
+    return time.perf_counter() - start, int(done.stdout)
+
+
+def ranged_seconds(client: Any, key: str, size: int, piece: int = 8 * 1024 * 1024) -> float:
+    start = time.perf_counter()
+    for offset in range(0, size, piece):
+        end = min(offset + piece, size) - 1
+        client.get_object(Bucket=BUCKET, Key=key, Range=f"bytes={offset}-{end}")["Body"].read()
+    return time.perf_counter() - start
+
+
+def sealed_key(client: Any, run_id: str) -> str:
+    pages = client.get_paginator("list_objects_v2").paginate(Bucket=BUCKET, Prefix=f"{PREFIX}/")
+    keys = [o["Key"] for page in pages for o in page.get("Contents", []) if o["Key"].endswith("/recording.rrd")]
+    mine = [k for k in keys if f"/{run_id}/" in k]
+    if len(mine) != 1:
+        raise SystemExit(f"sealed object of run {run_id} not found in the warm store: {keys}")
+    return str(mine[0])
+
+
+def run_warm(source: Path, run_id: str, chosen: str, repeat: int) -> dict[str, Any]:
+    curl = shutil.which("curl")
+    if curl is None:
+        raise SystemExit("--tier warm times downloads with curl: install it")
+    size = source.stat().st_size
+    workdir = Path(tempfile.mkdtemp(prefix="serve-warm-bench-"))
+    results: dict[str, Any] = {"run_bytes": size, "entity": chosen}
+    try:
+        with seaweedfs(workdir / "seaweedfs") as endpoint:
+            client = s3_client(endpoint)
+            wait_for_bucket(client)
+            start = time.perf_counter()
+            client.upload_file(str(source), BUCKET, "bench-multipart/recording.rrd")
+            results["multipart_put_s"] = time.perf_counter() - start
+            client.delete_object(Bucket=BUCKET, Key="bench-multipart/recording.rrd")
+            server = WarmServer(workdir / "fleet", endpoint)
+            (workdir / "fleet").mkdir()
+            server.start()
+            try:
+                results |= _serve(server, client, curl, source, run_id, chosen, repeat)
+            finally:
+                server.stop()
+    finally:
+        shutil.rmtree(workdir, ignore_errors=True)
+    return results
+
+
+def _serve(
+    server: WarmServer, client: Any, curl: str, source: Path, run_id: str, chosen: str, repeat: int
+) -> dict[str, Any]:
+    base = f"http://127.0.0.1:{server.http_port}"
+    log(f"uploading {source} ({source.stat().st_size / MB:.1f} MB) ...")
+    with open(source, "rb") as fh:
+        answer = httpx.post(f"{base}/v1/uploads", content=fh, timeout=600).json()
+    assert answer["runs"] == [run_id], answer
+    rss_before = server.peak_rss_mb()
+    log("promoting it to the warm tier ...")
+    start = time.perf_counter()
+    promoted = httpx.post(f"{base}/v1/runs/{run_id}/promote", timeout=3600)
+    promote_s = time.perf_counter() - start
+    if promoted.status_code != 200:
+        raise SystemExit(f"promote: HTTP {promoted.status_code}: {promoted.text[:500]}")
+    rss_promoted = server.peak_rss_mb()
+    key = sealed_key(client, run_id)
+    size = client.head_object(Bucket=BUCKET, Key=key)["ContentLength"]
+    presigned = client.generate_presigned_url("get_object", Params={"Bucket": BUCKET, "Key": key}, ExpiresIn=900)
+    url = f"{base}/v1/runs/{run_id}/recording.rrd"
+    log("timing downloads ...")
+    timed = {
+        "ours_whole": lambda: curl_seconds(curl, url),
+        "ours_entity": lambda: curl_seconds(curl, str(httpx.URL(url, params={"include": chosen}))),
+        "store_get": lambda: curl_seconds(curl, presigned),
+        "store_ranged_8mib": lambda: (ranged_seconds(client, key, size), size),
+    }
+    out: dict[str, Any] = {
+        "promote_s": promote_s,
+        "sealed_bytes": size,
+        "rss_mb": {"before_promote": rss_before, "after_promote": rss_promoted},
+    }
+    for name, once in timed.items():
+        runs = [once() for _ in range(repeat)]
+        best = min(r[0] for r in runs)
+        out[name] = {"seconds": best, "bytes_out": runs[0][1], "mb_s": runs[0][1] / MB / best}
+    out["rss_mb"]["after_downloads"] = server.peak_rss_mb()
+    return out
+
+
+def print_warm(results: dict[str, Any], repeat: int) -> None:
+    store = results["store_get"]["mb_s"]
+    size = results["sealed_bytes"]
+    promote_mb_s = size / MB / results["promote_s"]
+    multipart_mb_s = results["run_bytes"] / MB / results["multipart_put_s"]
+    rss = results["rss_mb"]
+    print(
+        f"warm tier on SeaweedFS (loopback): sealed run {size / MB:.1f} MB; best of {repeat}; curl on both "
+        f"sides; load average {os.getloadavg()[0]:.2f} at the end"
+    )
+    rows = []
+    for name, label in (
+        ("ours_whole", "GET recording.rrd (whole)"),
+        ("ours_entity", f"GET recording.rrd?include={results['entity']}"),
+        ("store_get", "store: one GET of the object"),
+        ("store_ranged_8mib", "store: 8 MiB ranged GETs in sequence"),
+    ):
+        r = results[name]
+        ratio = r["mb_s"] / store
+        verdict = "-"
+        if name == "ours_whole":
+            verdict = "met" if ratio >= WARM_TARGET else "MISSED"
+        rows.append(
+            [label, f"{r['bytes_out'] / MB:.1f}", f"{r['seconds']:.2f}", f"{r['mb_s']:.0f}", f"{ratio:.2f}x", verdict]
+        )
+    promote_ratio = promote_mb_s / multipart_mb_s
+    rows.append(
+        [
+            "promotion (POST .../promote)",
+            f"{size / MB:.1f}",
+            f"{results['promote_s']:.2f}",
+            f"{promote_mb_s:.0f}",
+            f"{promote_ratio:.2f}x of multipart put ({multipart_mb_s:.0f} MB/s)",
+            "met" if promote_ratio >= PROMOTE_TARGET else "MISSED",
+        ]
+    )
+    print(
+        format_table(
+            ["step", "MB", "seconds", "MB/s", "vs the store", f"target (>= {WARM_TARGET}x, >= {PROMOTE_TARGET}x)"],
+            rows,
+            "lrrrll",
+        )
+    )
+    print(
+        f"server peak RSS: {rss['before_promote']:.0f} MB after the upload, {rss['after_promote']:.0f} MB after "
+        f"promotion, {rss['after_downloads']:.0f} MB after the downloads"
+    )
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--tier",
+        choices=("hot", "warm"),
+        default="hot",
+        help="hot: the run as uploaded, beside rerun rrd filter (default); warm: sealed into SeaweedFS, beside "
+        "the store's own GET",
+    )

@@ -1,0 +1,74 @@
+"""Ranged reads under way at once, handed on in order, bounded, and cancelled when the reader stops."""
+
+from __future__ import annotations
+
+import threading
+
+import pytest
+
+from services.storage.readahead import pieces, read_ahead
+
+
+class Reads:
+    """A read that waits until `together` reads are under way (proving they overlap), and counts."""
+
+    def __init__(self, together: int) -> None:
+        self.together = threading.Barrier(together, timeout=10)
+        self.lock = threading.Lock()
+        self.started: list[int] = []
+        self.running = self.most = 0
+
+    def __call__(self, plan: int) -> str:
+        with self.lock:
+            self.started.append(plan)
+            self.running += 1
+            self.most = max(self.most, self.running)
+        if plan < self.together.parties:  # the first reads meet: they were under way at once
+            self.together.wait()
+        with self.lock:
+            self.running -= 1
+        return f"data {plan}"
+
+
+def test_reads_overlap_up_to_the_depth_and_come_back_in_order() -> None:
+    reads = Reads(together=4)
+    got = list(read_ahead(range(20), reads, depth=4))
+    assert got == [(plan, f"data {plan}") for plan in range(20)]
+    assert reads.most == 4  # never more than the depth at once (and the barrier saw four)
+
+
+def test_depth_one_reads_on_the_callers_thread_one_after_another() -> None:
+    threads: set[str] = set()
+
+    def read(plan: int) -> int:
+        threads.add(threading.current_thread().name)
+        return plan * 2
+
+    assert [data for _, data in read_ahead(range(5), read, depth=1)] == [0, 2, 4, 6, 8]
+    assert threads == {threading.current_thread().name}
+
+
+def test_a_reader_that_stops_early_leaves_the_rest_unread() -> None:
+    reads = Reads(together=1)
+    stream = read_ahead(range(1000), reads, depth=3)
+    assert next(stream) == (0, "data 0")
+    stream.close()
+    assert len(reads.started) <= 3  # what was asked ahead, not the other 997
+
+
+def test_a_failed_read_is_raised_where_its_data_would_be() -> None:
+    def read(plan: int) -> int:
+        if plan == 2:
+            raise OSError("store down")
+        return plan
+
+    stream = read_ahead(range(5), read, depth=3)
+    assert [next(stream), next(stream)] == [(0, 0), (1, 1)]
+    with pytest.raises(OSError, match="store down"):
+        next(stream)
+
+
+def test_pieces_cover_the_range_with_a_small_first_one() -> None:
+    assert list(pieces(0, 25, first=3, piece=10)) == [(0, 3), (3, 10), (13, 10), (23, 2)]
+    assert list(pieces(5, 7, first=3, piece=10)) == [(5, 2)]
+    assert list(pieces(0, 0, first=3, piece=10)) == []
