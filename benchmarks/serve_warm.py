@@ -55,13 +55,18 @@ class WarmServer(FleetServer):
         return proc_status_kb(self.pid, "VmHWM") / 1024
 
 
-def curl_seconds(curl: str, url: str) -> tuple[float, int]:
-    """(seconds to the last byte, bytes) of one GET by curl, the body dropped."""
+def curl_seconds(curl: str, url: str) -> tuple[float, int, float | None]:
+    """(seconds to the last byte, bytes, seconds to the response's first byte) of one GET by curl,
+    the body dropped."""
     start = time.perf_counter()
     done = subprocess.run(
-        [curl, "-sSf", "-o", os.devnull, "-w", "%{size_download}", url], check=True, capture_output=True, text=True
+        [curl, "-sSf", "-o", os.devnull, "-w", "%{size_download} %{time_starttransfer}", url],
+        check=True,
+        capture_output=True,
+        text=True,
     )
-    return time.perf_counter() - start, int(done.stdout)
+    size, first = done.stdout.split()
+    return time.perf_counter() - start, int(size), float(first)
 
 
 def ranged_seconds(client: Any, key: str, size: int, piece: int = 8 * 1024 * 1024) -> float:
@@ -133,7 +138,7 @@ def _serve(
         "ours_whole": lambda: curl_seconds(curl, url),
         "ours_entity": lambda: curl_seconds(curl, str(httpx.URL(url, params={"include": chosen}))),
         "store_get": lambda: curl_seconds(curl, presigned),
-        "store_ranged_8mib": lambda: (ranged_seconds(client, key, size), size),
+        "store_ranged_8mib": lambda: (ranged_seconds(client, key, size), size, None),
     }
     out: dict[str, Any] = {
         "promote_s": promote_s,
@@ -143,7 +148,13 @@ def _serve(
     for name, once in timed.items():
         runs = [once() for _ in range(repeat)]
         best = min(r[0] for r in runs)
-        out[name] = {"seconds": best, "bytes_out": runs[0][1], "mb_s": runs[0][1] / MB / best}
+        firsts = [r[2] for r in runs if r[2] is not None]
+        out[name] = {
+            "seconds": best,
+            "bytes_out": runs[0][1],
+            "mb_s": runs[0][1] / MB / best,
+            "first_byte_s": min(firsts) if firsts else None,
+        }
     out["rss_mb"]["after_downloads"] = server.peak_rss_mb()
     return out
 
@@ -170,15 +181,16 @@ def print_warm(results: dict[str, Any], repeat: int) -> None:
         verdict = "-"
         if name == "ours_whole":
             verdict = "met" if ratio >= WARM_TARGET else "MISSED"
-        rows.append(
-            [label, f"{r['bytes_out'] / MB:.1f}", f"{r['seconds']:.2f}", f"{r['mb_s']:.0f}", f"{ratio:.2f}x", verdict]
-        )
+        first = "-" if r["first_byte_s"] is None else f"{r['first_byte_s'] * 1000:.0f}"
+        figures = [f"{r['bytes_out'] / MB:.1f}", f"{r['seconds']:.2f}", first, f"{r['mb_s']:.0f}", f"{ratio:.2f}x"]
+        rows.append([label, *figures, verdict])
     promote_ratio = promote_mb_s / multipart_mb_s
     rows.append(
         [
             "promotion (POST .../promote)",
             f"{size / MB:.1f}",
             f"{results['promote_s']:.2f}",
+            "-",
             f"{promote_mb_s:.0f}",
             f"{promote_ratio:.2f}x of multipart put ({multipart_mb_s:.0f} MB/s)",
             "met" if promote_ratio >= PROMOTE_TARGET else "MISSED",
@@ -186,9 +198,17 @@ def print_warm(results: dict[str, Any], repeat: int) -> None:
     )
     print(
         format_table(
-            ["step", "MB", "seconds", "MB/s", "vs the store", f"target (>= {WARM_TARGET}x, >= {PROMOTE_TARGET}x)"],
+            [
+                "step",
+                "MB",
+                "seconds",
+                "first byte ms",
+                "MB/s",
+                "vs the store",
+                f"target (>= {WARM_TARGET}x, >= {PROMOTE_TARGET}x)",
+            ],
             rows,
-            "lrrrll",
+            "lrrrrll",
         )
     )
     print(

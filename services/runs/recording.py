@@ -42,6 +42,7 @@ class RecordingDownload:
     etag: str
     filename: str
     warnings: list[str] = field(default_factory=list)  # filters that match no entity of the run
+    size: int | None = None  # the body's bytes, when known before it is sent (a sealed run whole)
 
 
 def recording_download(
@@ -67,6 +68,7 @@ def recording_download(
     filters = json.dumps([sorted(entities.include), sorted(entities.exclude), query.blueprint, repr(window)])
     etag = f'"{run_id}-{size}-{hashlib.sha256(filters.encode()).hexdigest()[:16]}"'
     body: Iterator[bytes | memoryview] | AsyncIterator[bytes]
+    known_size = None
     if hot is not None and query.follow:  # waits for the run on the event loop, not in a thread of its own
         body = download.follow_run(hot, entities, blueprint=query.blueprint)
     elif hot is not None:
@@ -74,8 +76,9 @@ def recording_download(
     else:
         assert found is not None  # not hot: located sealed above
         body = sealed.stream_sealed(found, entities, blueprint=query.blueprint, window=window)
+        known_size = found.size if sealed.whole_object(entities, query.blueprint, window) else None
     warnings = entities.unmatched(_entity_paths(hot, found)) if entities.include or entities.exclude else []
-    return RecordingDownload(body, etag, f"{run_id}.rrd", warnings)
+    return RecordingDownload(body, etag, f"{run_id}.rrd", warnings, known_size)
 
 
 def _entity_paths(hot: HotRecording | None, found: SealedRecording | None) -> set[str]:

@@ -164,6 +164,8 @@ async def recording(
             "Content-Disposition": f'attachment; filename="{found.filename}"',
             "ETag": found.etag,
             **warnings_header(found.warnings),
+            # (a client shows progress; the server sends the body as it is, without chunked framing)
+            **({"Content-Length": str(found.size)} if found.size is not None else {}),
         },
     )
 

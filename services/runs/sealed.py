@@ -21,10 +21,15 @@ def indexed_recording(sealed: SealedRecording) -> IndexedRecording:
     return open_sealed_object(sealed.store, sealed.key, sealed.size, lambda: sealed.rows)
 
 
+def whole_object(entities: EntityFilter, blueprint: bool, window: TimeWindow | None) -> bool:
+    """Whether the download is the sealed object itself (nothing filtered out)."""
+    return not entities.include and not entities.exclude and blueprint and window is None
+
+
 def stream_sealed(
     sealed: SealedRecording, entities: EntityFilter, *, blueprint: bool = True, window: TimeWindow | None = None
 ) -> Iterator[bytes | memoryview]:
-    if not entities.include and not entities.exclude and blueprint and window is None:
+    if whole_object(entities, blueprint, window):
         # The sealed object is already the answer: read by ranges, several under way at once.
         def read(piece: tuple[int, int]) -> bytes:
             return sealed.store.get_range(sealed.key, *piece)

@@ -15,7 +15,7 @@ from collections.abc import Callable, Generator, Iterable, Iterator
 from concurrent.futures import Future, ThreadPoolExecutor
 from typing import TypeVar
 
-PIECE_BYTES = 8 * 1024 * 1024  # a whole object is read in ranges of this size
+PIECE_BYTES = 16 * 1024 * 1024  # a whole object is read in ranges of this size
 DEPTH = 4  # reads under way at once for one download
 # Shared by every download of the process: a download's own reads never wait on each other (the
 # caller waits for them, outside the pool), so a busy pool only queues them.

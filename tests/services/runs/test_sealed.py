@@ -335,6 +335,10 @@ def test_warm_download_headers(tiers: Tiers, make_node: NodeFactory, runs: dict[
         assert response.headers["content-type"] == "application/octet-stream"
         assert run_id in response.headers["etag"]
     assert whole.headers["etag"] == again.headers["etag"] != one.headers["etag"]
+    # The whole object's size is known before it is sent (a client can show progress); a filtered
+    # download's is not.
+    assert int(whole.headers["content-length"]) == len(whole.content) > 1_000_000
+    assert "content-length" not in one.headers
 
 
 @pytest.mark.parametrize("start", [12, 22])
