@@ -25,6 +25,7 @@ from pydantic_settings import (
 from services.policies import Policies, Policy, PolicyOverride
 from services.rrd.decoder import DEFAULT_MAX_MESSAGE_SIZE
 from services.rrd.limits import DEFAULT_DECOMPRESS_BUDGET_BYTES, DEFAULT_MAX_CHUNK_BYTES
+from services.storage.objectstore import PART_BYTES, UPLOAD_CONCURRENCY
 
 
 class Durability(enum.StrEnum):
@@ -159,6 +160,19 @@ class Settings(SharedSettings):
     cold_url: str = Field("", description="file:///PATH or s3://bucket/prefix (default: data dir/cold)")
     s3_endpoint_url: str | None = Field(None, description="S3-compatible endpoint; credentials from AWS_*")
     s3_region: str | None = Field(None, description="S3 region (default: from AWS_* settings)")
+    s3_part_bytes: int = Field(
+        PART_BYTES,
+        ge=5 * 1024 * 1024,
+        le=5 * 1024**3,
+        description="parts of a multipart upload to S3 (objects larger than this are sent in parts), in bytes; "
+        "S3 takes 5 MiB to 5 GiB",
+    )
+    s3_upload_concurrency: int = Field(
+        UPLOAD_CONCURRENCY,
+        ge=1,
+        le=64,
+        description="parts of one upload sent at once; an upload holds up to this many parts in memory",
+    )
     cold_storage_class: str = Field(
         "",
         description="archive by moving warm objects to this S3 storage class "

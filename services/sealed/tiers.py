@@ -20,7 +20,7 @@ from services.facts.sealed import SealedInfo, SealedLookup
 from services.sealed.index import CHUNK, from_parquet
 from services.sealed.write import INDEX, RUN_JSON
 from services.settings import Settings
-from services.storage.objectstore import ObjectStore, open_store, supports_archive
+from services.storage.objectstore import ObjectStore, Uploads, open_store, supports_archive
 
 RUN_JSON_FORMAT = 1
 # Storage classes whose objects cannot be read until restored; the others (STANDARD_IA,
@@ -44,8 +44,13 @@ class Tiers:
 
 
 def open_tiers(settings: Settings) -> Tiers:
-    warm = open_store(settings.warm_url, endpoint_url=settings.s3_endpoint_url, region=settings.s3_region)
-    cold = open_store(settings.cold_url, endpoint_url=settings.s3_endpoint_url, region=settings.s3_region)
+    uploads = Uploads(settings.s3_part_bytes, settings.s3_upload_concurrency)
+    warm = open_store(
+        settings.warm_url, endpoint_url=settings.s3_endpoint_url, region=settings.s3_region, uploads=uploads
+    )
+    cold = open_store(
+        settings.cold_url, endpoint_url=settings.s3_endpoint_url, region=settings.s3_region, uploads=uploads
+    )
     if settings.cold_storage_class and not supports_archive(warm):
         raise InvalidArgumentError(
             f"FLEET_COLD_STORAGE_CLASS={settings.cold_storage_class} needs an s3:// warm store "

@@ -14,6 +14,19 @@ from core.errors import NotFoundError, UnavailableError
 
 _SAFE_KEY = re.compile(r"^[A-Za-z0-9._\-/=]+$")  # "=": Hive partitions (robot_id=R/)
 
+# A multipart upload holds up to `concurrency` parts of `part_bytes` in memory at once
+# (FLEET_S3_PART_BYTES, FLEET_S3_UPLOAD_CONCURRENCY): 64 MiB by default.
+PART_BYTES = 16 * 1024 * 1024
+UPLOAD_CONCURRENCY = 4
+
+
+@dataclass(frozen=True)
+class Uploads:
+    """How a store sends a large object: in parts of `part_bytes`, `concurrency` at once."""
+
+    part_bytes: int = PART_BYTES
+    concurrency: int = UPLOAD_CONCURRENCY
+
 
 class ObjectNotFoundError(NotFoundError):
     """Caught where a missing object is an answer, not a failure (rebuild, archive)."""
@@ -103,7 +116,9 @@ def check_key(key: str) -> str:
     return key
 
 
-def open_store(url: str, *, endpoint_url: str | None = None, region: str | None = None) -> ObjectStore:
+def open_store(
+    url: str, *, endpoint_url: str | None = None, region: str | None = None, uploads: Uploads | None = None
+) -> ObjectStore:
     """The store behind `url`: `file:///path` or `s3://bucket/prefix` (boto3 is imported only for S3)."""
     parsed = urlparse(url)
     if parsed.scheme == "file":
@@ -113,5 +128,5 @@ def open_store(url: str, *, endpoint_url: str | None = None, region: str | None 
     if parsed.scheme == "s3":
         from services.storage.s3 import S3Store
 
-        return S3Store(url, endpoint_url=endpoint_url, region=region)
+        return S3Store(url, endpoint_url=endpoint_url, region=region, uploads=uploads)
     raise StorageError(f"unsupported store URL {url!r}: use file:///PATH or s3://BUCKET/PREFIX")

@@ -12,9 +12,8 @@ from botocore.config import Config
 from botocore.exceptions import BotoCoreError, ClientError
 
 from core.errors import ConflictError
-from services.storage.objectstore import ObjectInfo, ObjectNotFoundError, StorageError, check_key
+from services.storage.objectstore import ObjectInfo, ObjectNotFoundError, StorageError, Uploads, check_key
 
-MULTIPART_BYTES = 64 * 1024 * 1024
 # Verified by the server on every put and part. SHA-256 needs no extra package (CRC32C and
 # CRC64NVME need awscrt); a multipart object gets a composite checksum ("...-N"), which is enough:
 # each part was verified on arrival and the completion names every part's checksum.
@@ -22,7 +21,10 @@ CHECKSUM_ALGORITHM = "SHA256"
 
 
 class S3Store:
-    def __init__(self, url: str, *, endpoint_url: str | None = None, region: str | None = None) -> None:
+    def __init__(
+        self, url: str, *, endpoint_url: str | None = None, region: str | None = None, uploads: Uploads | None = None
+    ) -> None:
+        uploads = uploads or Uploads()
         parsed = urlparse(url)
         if not parsed.netloc:
             raise StorageError(f"{url!r} names no bucket: use s3://BUCKET/PREFIX")
@@ -35,9 +37,20 @@ class S3Store:
         self._client: Any = self._session.client(
             "s3",
             endpoint_url=endpoint_url,
-            config=Config(retries={"max_attempts": 3, "mode": "standard"}, connect_timeout=5, read_timeout=60),
+            config=Config(
+                retries={"max_attempts": 3, "mode": "standard"},
+                connect_timeout=5,
+                read_timeout=60,
+                # Downloads keep several ranged reads under way (services/storage/readahead.py: up to
+                # 32 at once in a process), uploads several parts: each needs a connection of its own.
+                max_pool_connections=32 + uploads.concurrency,
+            ),
         )
-        self._transfer = TransferConfig(multipart_threshold=MULTIPART_BYTES, multipart_chunksize=MULTIPART_BYTES)
+        self._transfer = TransferConfig(
+            multipart_threshold=uploads.part_bytes,
+            multipart_chunksize=uploads.part_bytes,
+            max_concurrency=uploads.concurrency,
+        )
 
     def access(self) -> dict[str, Any]:
         """Credentials, region and endpoint, for other readers of this store (analytics SQL)."""
@@ -72,7 +85,7 @@ class S3Store:
                     Bucket=self.bucket, Key=self._key(key), Body=body, ChecksumAlgorithm=CHECKSUM_ALGORITHM
                 )
                 sent = len(body)
-            else:  # multipart above MULTIPART_BYTES
+            else:  # multipart above the part size
                 reader = _Counting(data)
                 self._client.upload_fileobj(
                     reader,

@@ -41,8 +41,7 @@ from services.sealed.index import CHUNK, IndexRow, from_parquet
 from services.sealed.read import locate_sealed
 from services.sealed.tiers import Tiers, parse_run_json
 from services.sealed.write import INDEX, RECORDING, RUN_JSON
-from services.storage import s3
-from services.storage.objectstore import ObjectInfo, ObjectStore, StorageError, open_store
+from services.storage.objectstore import ObjectInfo, ObjectStore, StorageError, Uploads, open_store
 from tests.services.ingest import feeding
 from tests.services.retention.conftest import Clock, Node, NodeFactory, listing, log_run
 from tests.services.rrd.recordings import rerun_rrd_ok
@@ -684,8 +683,8 @@ def test_a_failed_late_data_promotion_is_completed(
 def test_a_large_recording_is_uploaded_in_parts_and_checked(
     tiers: Tiers, make_node: NodeFactory, monkeypatch: pytest.MonkeyPatch, tmp_path: Path
 ):
-    monkeypatch.setattr(s3, "MULTIPART_BYTES", 5 * 1024 * 1024)  # S3's smallest part: a 14 MB run takes 3
-    warm = open_store(tiers.warm.url, region="us-east-1")
+    part = 5 * 1024 * 1024  # S3's smallest part: a 14 MB run takes 3
+    warm = open_store(tiers.warm.url, region="us-east-1", uploads=Uploads(part_bytes=part, concurrency=2))
     original = log_run(tmp_path / "large.rrd", RUN, entities=4, frames=10, points=30000, robot=ROBOT, text=False)
     clock = Clock()
     node = make_node(Tiers(warm, tiers.cold), clock=clock, promote_after_s=PROMOTE_AFTER_S)
@@ -694,4 +693,4 @@ def test_a_large_recording_is_uploaded_in_parts_and_checked(
     assert [o.ok for o in promote_now(node)] == [True]
     prefix, recording, _ = assert_warm(node, set(chunk_ids(original)))
     etag = warm.head(f"{prefix}/{RECORDING}").etag
-    assert etag is not None and etag.endswith(f"-{-(-len(recording) // s3.MULTIPART_BYTES)}")  # one MD5 per part
+    assert etag is not None and etag.endswith(f"-{-(-len(recording) // part)}")  # one MD5 per part

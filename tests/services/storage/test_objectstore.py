@@ -10,7 +10,10 @@ from pathlib import Path
 
 import pytest
 
+from services.sealed.tiers import open_tiers
+from services.settings import load_settings
 from services.storage.objectstore import ObjectNotFoundError, ObjectStore, StorageError, check_key, open_store
+from services.storage.s3 import S3Store
 from tests.services.storage.s3_backends import REGION, S3_BACKENDS, s3_target_for
 
 
@@ -69,3 +72,18 @@ def test_unsafe_keys_are_refused(key: str):
 def test_unknown_scheme():
     with pytest.raises(StorageError, match="file:///PATH or s3://BUCKET/PREFIX"):
         open_store("ftp://x/y")
+
+
+def test_s3_uploads_take_the_part_size_and_concurrency_of_the_settings(monkeypatch: pytest.MonkeyPatch) -> None:
+    """What an upload holds in memory is set by FLEET_S3_PART_BYTES x FLEET_S3_UPLOAD_CONCURRENCY."""
+    monkeypatch.setenv("FLEET_S3_PART_BYTES", str(8 * 1024 * 1024))
+    monkeypatch.setenv("FLEET_S3_UPLOAD_CONCURRENCY", "3")
+    monkeypatch.setenv("FLEET_WARM_URL", "s3://fleet/warm")
+    monkeypatch.setenv("AWS_DEFAULT_REGION", "us-east-1")
+    tiers = open_tiers(load_settings())
+    assert isinstance(tiers.warm, S3Store)
+    transfer = tiers.warm._transfer
+    assert (transfer.multipart_chunksize, transfer.max_request_concurrency) == (8 * 1024 * 1024, 3)
+    monkeypatch.setenv("FLEET_S3_PART_BYTES", "1024")
+    with pytest.raises(ValueError, match="s3_part_bytes"):
+        load_settings()

@@ -14,7 +14,7 @@ import boto3
 import pytest
 
 from services.storage import s3
-from services.storage.objectstore import ObjectNotFoundError, StorageError, open_store
+from services.storage.objectstore import ObjectNotFoundError, StorageError, Uploads, open_store
 from tests.services.storage.s3_backends import BUCKET, REGION, S3Target
 
 PART = 5 * 1024 * 1024  # S3's smallest part
@@ -22,8 +22,7 @@ SIZES = {"single": 10_000, "multipart": 2 * PART + 123}  # a multipart body is g
 
 
 def _open(target: S3Target, monkeypatch: pytest.MonkeyPatch) -> s3.S3Store:
-    monkeypatch.setattr(s3, "MULTIPART_BYTES", PART)
-    store = open_store(target.url, endpoint_url=target.endpoint_url, region=REGION)
+    store = open_store(target.url, endpoint_url=target.endpoint_url, region=REGION, uploads=Uploads(part_bytes=PART))
     assert isinstance(store, s3.S3Store)
     return store
 
