@@ -230,23 +230,43 @@ class LiveRules:
         while True:
             self._wake.wait(min(BATCH_S, max(0.0, next_tick - time.monotonic())))
             self._wake.clear()  # (what is queued before a later set is taken below)
+            chunks: list[_Chunk] = []  # taken together: each run's evaluated as one batch
             while self._queue:
                 item = self._queue.popleft()
+                if isinstance(item, _Chunk):
+                    chunks.append(item)
+                    if len(chunks) < self.queue_chunks:  # (a queue that never empties: bounded batches)
+                        continue
+                self._add_batch(chunks)  # what came before a hand-over or the stop, first
+                chunks = []
                 if item is _STOP:
                     self._flush()
                     return
-                try:
-                    self._take(item)
-                except Exception:  # one bad chunk or run stops nothing else
-                    log.exception("live rules could not evaluate a chunk")
+                if not isinstance(item, _Chunk):
+                    try:
+                        self._take(item)
+                    except Exception:  # one run's failure stops nothing else
+                        log.exception("live rules could not take %s", type(item).__name__)
+            self._add_batch(chunks)
             if time.monotonic() >= next_tick:
                 self._tick()
                 next_tick = time.monotonic() + self.flush_s
             self.cpu_s = time.thread_time() - cpu_before
 
+    def _add_batch(self, chunks: list[_Chunk]) -> None:
+        """Chunks taken off the queue together, each run's in the order they came."""
+        by_run: dict[str, list[_Chunk]] = {}
+        for chunk in chunks:
+            by_run.setdefault(chunk.run_id, []).append(chunk)
+        for run_chunks in by_run.values():
+            try:
+                self._add(run_chunks)
+            except Exception:  # one bad chunk or run stops nothing else
+                log.exception("live rules could not evaluate the chunks of run %s", run_chunks[0].run_id)
+
     def _take(self, item: object) -> None:
         if isinstance(item, _Chunk):
-            self._add(item)
+            self._add([item])
         elif isinstance(item, _Started):
             self._gave_up.pop(item.run_id, None)
             self._keep(self._new_run(item.run_id, item.robot_id, changed=False))  # nothing in its file to read
@@ -266,20 +286,25 @@ class LiveRules:
         except Exception as exc:  # the catalog is down: the next tick writes what changed
             log.warning("live rules not written (%s: %s); retrying", type(exc).__name__, exc)
 
-    def _add(self, chunk: _Chunk) -> None:
-        if chunk.run_id in self._gave_up:
+    def _add(self, chunks: list[_Chunk]) -> None:
+        """Chunks of one run, in order, to its evaluator (those it was fed already skipped)."""
+        first = chunks[0]
+        if first.run_id in self._gave_up:
             return
-        run = self._runs.get(chunk.run_id)
+        run = self._runs.get(first.run_id)
         if run is None:
-            run = self._open(chunk)
+            run = self._open(first)
         else:
-            self._runs.move_to_end(chunk.run_id)
-        if chunk.meta.chunk_id in run.seen:
-            return  # read from its file when the evaluator started
-        run.seen.add(chunk.meta.chunk_id)
-        run.evaluator.add(chunk.msg, chunk.meta)
-        self.evaluated_chunks += 1
-        run.changed = True
+            self._runs.move_to_end(first.run_id)
+        fresh = []
+        for chunk in chunks:
+            if chunk.meta.chunk_id not in run.seen:  # (else read from its file when the evaluator started)
+                run.seen.add(chunk.meta.chunk_id)
+                fresh.append((chunk.msg, chunk.meta))
+        if fresh:
+            run.evaluator.add_many(fresh)
+            self.evaluated_chunks += len(fresh)
+            run.changed = True
 
     def _new_run(self, run_id: str, robot_id: str, *, changed: bool) -> HotRun:
         running = self._running

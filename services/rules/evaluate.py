@@ -115,6 +115,36 @@ class _Condition:
 
 
 @dataclass
+class _Read:
+    """What the rules read of one chunk."""
+
+    path: str
+    kind: str | None  # robots' events kind of the entity (under /events/**)
+    numeric: list[EventRule]
+    texts: list[EventRule]
+    scalar_stats: bool
+    columns: dict[str, Any]
+    index: Index
+    values: np.ndarray | None  # the first instance of each row's Scalars, when read
+    reads_text: bool
+    reads_path: bool
+
+    @property
+    def scalars_only(self) -> bool:
+        return self.values is not None and not self.reads_text and not self.reads_path
+
+    def joins(self, other: _Read) -> bool:
+        """Whether `other` can be evaluated in one with this read: the same entity's Scalars alone,
+        on the same timelines."""
+        return (
+            self.scalars_only
+            and other.scalars_only
+            and other.path == self.path
+            and {n: t for n, (t, _, _) in other.index.items()} == {n: t for n, (t, _, _) in self.index.items()}
+        )
+
+
+@dataclass
 class _Totals:
     events: list[FoundEvent] = field(default_factory=list)
     dropped: dict[str, int] = field(default_factory=dict)  # rule (or robot kind) -> events not kept
@@ -140,9 +170,34 @@ class RunEvaluator:
 
     def add(self, msg: ArrowMessage, meta: ChunkMeta) -> None:
         """Evaluate one chunk of the run's recording (a static chunk or one no rule reads: nothing)."""
+        read = self._read(msg, meta)
+        if read is not None:
+            self._evaluate(read)
+
+    def add_many(self, chunks: Iterable[tuple[ArrowMessage, ChunkMeta]]) -> None:
+        """`add` each of `chunks`, in order, but the Scalars of consecutive chunks of one entity that
+        only numeric rules and metrics read are evaluated together: a batch of one-row chunks costs
+        one pass of the conditions, not one per chunk (the live worker's batches)."""
+        group: list[_Read] = []
+        for msg, meta in chunks:
+            read = self._read(msg, meta)
+            if read is None:
+                continue
+            if group and not group[-1].joins(read):
+                self._evaluate_scalars(group)
+                group = []
+            if read.scalars_only:
+                group.append(read)
+            else:
+                self._evaluate(read)
+        if group:
+            self._evaluate_scalars(group)
+
+    def _read(self, msg: ArrowMessage, meta: ChunkMeta) -> _Read | None:
+        """What the rules read of one chunk (None: nothing), its order on their timelines checked."""
         path = meta.entity_path
         if meta.is_static or not self.wants(path):
-            return
+            return None
         rules, kind = self.rules.rules_for(path), robot_kind(path)
         names = meta.component_names
         numeric = [r for r in rules.events if r.when in NUMERIC]
@@ -151,31 +206,53 @@ class RunEvaluator:
         reads_text = TEXT in names and bool(texts or kind)
         reads_path = TRANSLATION in names and rules.path_length
         if not (reads_scalars or reads_text or reads_path):
-            return
+            return None
         try:
             batch = validated_batch(msg, meta)  # its values are read: never out of bounds
         except InvalidChunkError as exc:
             log.warning("rules skip %s", exc)  # ingest refuses such chunks; one stored before did not
-            return
+            return None
         columns, index = data_columns(batch, meta), index_columns(batch, meta)
         if reads_scalars and numeric:
             self._check_order(path, SCALARS, {r.timeline for r in numeric}, meta)
         if reads_path:
             self._check_order(path, TRANSLATION, {LOG_TIME}, meta)
-        if reads_scalars:
-            values = first_floats(columns[SCALARS])
-            self._numeric(path, numeric, values, index)
-            if rules.scalar_stats:
-                self._scalar_stats(path, values, index)
-        if reads_text:
+        values = first_floats(columns[SCALARS]) if reads_scalars else None
+        return _Read(
+            path, kind, numeric, texts, rules.scalar_stats, columns, index, values, reads_text, bool(reads_path)
+        )
+
+    def _evaluate(self, read: _Read) -> None:
+        path, index, columns = read.path, read.index, read.columns
+        if read.values is not None:
+            self._numeric(path, read.numeric, read.values, index)
+            if read.scalar_stats:
+                self._scalar_stats(path, read.values, index)
+        if read.reads_text:
             text, level = first_texts(columns[TEXT]), columns.get(LEVEL)
             levels: list[str | None] = first_texts(level) if level is not None else [None] * len(text)
-            for rule in texts:
+            for rule in read.texts:
                 self._text(rule, text, levels, index)
-            if kind is not None:
-                self._robot_events(kind, text, levels, index)
-        if reads_path:
+            if read.kind is not None:
+                self._robot_events(read.kind, text, levels, index)
+        if read.reads_path:
             self._path(path, columns[TRANSLATION], index)
+
+    def _evaluate_scalars(self, group: list[_Read]) -> None:
+        """Scalars-only reads of one entity, on the same timelines, evaluated as one."""
+        if len(group) == 1:
+            self._evaluate(group[0])
+            return
+        first = group[0]
+        values = np.concatenate([r.values for r in group if r.values is not None])
+        index: Index = {}
+        for name, (kind, _, _) in first.index.items():
+            times = np.concatenate([r.index[name][1] for r in group])
+            has_time = np.concatenate([r.index[name][2] for r in group])
+            index[name] = (kind, times, has_time)
+        self._numeric(first.path, first.numeric, values, index)
+        if first.scalar_stats:
+            self._scalar_stats(first.path, values, index)
 
     def take_closed(self) -> list[FoundEvent]:
         """The events found since the last call whose range is complete (live use)."""

@@ -414,3 +414,35 @@ def test_no_rules_find_only_robot_events(scene_chunks, scene):
     assert evaluation.metrics == []
     assert {e.origin for e in evaluation.events} == {"robot"}
     assert len(evaluation.events) == sum(len(rows) for rows in ROBOT_EVENTS.values())
+
+
+@pytest.mark.parametrize("batch", [1, 3, 7, 10_000])
+def test_chunks_added_in_batches_give_what_chunks_added_one_by_one_give(rules, scene_chunks, scene, batch):
+    one_by_one = RunEvaluator(rules, max_events=10_000)
+    for msg, meta in scene_chunks:
+        one_by_one.add(msg, meta)
+    batched = RunEvaluator(rules, max_events=10_000)
+    taken: list[FoundEvent] = []
+    for start in range(0, len(scene_chunks), batch):
+        batched.add_many(scene_chunks[start : start + batch])
+        taken += batched.take_closed()
+    result = batched.finish(properties(scene))
+    assert result == one_by_one.finish(properties(scene)) == evaluate(rules, scene_chunks, scene)
+    assert set(taken) <= set(result.events)
+
+
+def test_one_entitys_consecutive_scalar_chunks_are_evaluated_as_one(rules, scene_chunks, scene, monkeypatch):
+    by_entity = sorted(scene_chunks, key=lambda c: c[1].entity_path)  # each entity's chunks together, in order
+    calls: list[int] = []
+    numeric = RunEvaluator._numeric
+
+    def counted(self: RunEvaluator, path: str, found: list[object], values: np.ndarray, index: object) -> None:
+        calls.append(len(values))
+        numeric(self, path, found, values, index)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(RunEvaluator, "_numeric", counted)
+    batched = RunEvaluator(rules, max_events=10_000)
+    batched.add_many(by_entity)
+    assert batched.finish(properties(scene)) == evaluate(rules, scene_chunks, scene)
+    engaged = [meta for _, meta in scene_chunks if meta.entity_path == "/autonomy/engaged"]
+    assert len(engaged) > 1 and sum(meta.num_rows for meta in engaged) in calls  # its chunks in one call
