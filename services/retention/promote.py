@@ -1,13 +1,14 @@
 """Promotion hot -> warm: a closed run sealed, uploaded, verified, switched in the catalog, removed.
 
-Steps, each safe to repeat: (1) seal the hot file into `recording.rrd` + `chunks.parquet` in the
-run's hot folder; (2) upload them under `ROBOT/YYYY-MM-DD/RUN/` (same keys every time, so a retry
-overwrites rather than orphans); (3) check what the store holds against what was sealed; (4) switch
-the catalog to warm in one transaction, which puts `run.json` (built from the rows it wrote) before
-it commits; (5) remove the hot files. A crash before (4) commits leaves the run hot, and the next
-promotion redoes (1)-(3) over the same keys; a crash after (4) leaves a hot copy whose chunks are
-all sealed, which its next promotion finds so and removes without sealing again (so does a late
-upload that brought nothing new).
+Steps, each safe to repeat: (1) seal the hot file into `recording.rrd` + `chunks.parquet`, and (2)
+upload them under `ROBOT/YYYY-MM-DD/RUN/` (same keys every time, so a retry overwrites rather than
+orphans): the recording is sealed straight into the store as it is made, without a local copy
+(`services/sealed/upload.py`), and the store keeps it only once whole; (3) check what the store
+holds against what was sealed; (4) switch the catalog to warm in one transaction, which puts
+`run.json` (built from the rows it wrote) before it commits; (5) remove the hot files. A crash
+before (4) commits leaves the run hot, and the next promotion redoes (1)-(3) over the same keys; a
+crash after (4) leaves a hot copy whose chunks are all sealed, which its next promotion finds so and
+removes without sealing again (so does a late upload that brought nothing new).
 Whether a run was sealed before is asked of the catalog here, not at ingest: ingest files data even
 while the catalog does not answer.
 """
@@ -43,7 +44,8 @@ from services.node import Node
 from services.rrd.decoder import iter_events
 from services.rrd.messages import Event
 from services.sealed.tiers import Tiers, run_prefix, write_run_json
-from services.sealed.write import INDEX, RECORDING, SealedRun, seal
+from services.sealed.upload import seal_to_store
+from services.sealed.write import INDEX, RECORDING, SealedRun
 from services.storage.objectstore import RangeReader, StorageError
 
 log = logging.getLogger(__name__)
@@ -232,16 +234,17 @@ def _drop_hot_copy(run: HotRunView, ingest: IngestService, node: Node, adds_to: 
 
 
 def _check_room(run: HotRunView, tiers: Tiers, base_size: int, reserve_bytes: int) -> None:
-    """Sealing writes the recording once more on the hot disk (twice when the warm store is a folder
-    on that disk): refuse before starting rather than fill the disk the catalog lives on."""
-    need = run.size + base_size
+    """Sealing late data downloads the sealed recording to the hot disk first, and a warm store that
+    is a folder on that disk takes the new recording there: refuse before starting rather than fill
+    the disk the catalog lives on. (An S3 warm store takes the sealed recording as it is made.)"""
+    need = base_size
     warm_root = getattr(tiers.warm, "root", None)
     if (
         isinstance(warm_root, Path)
         and warm_root.exists()
         and os.stat(warm_root).st_dev == os.stat(run.directory).st_dev
     ):
-        need *= 2
+        need += run.size + base_size
     free = shutil.disk_usage(run.directory).free
     if free - need < reserve_bytes:
         raise InsufficientStorageError(
@@ -272,15 +275,17 @@ def _seal_and_switch(
         sources.append(iter(iter_events(base)))
     sources.append(read_events(run.path, run.size))
     analytics = Extractor(run.run_id)
-    sealed = seal(sources, workdir / RECORDING, run.run_id, now, analytics.add, node.secret_fields)  # (1)
+    filed = run.record(node.default_robot)  # sealing keeps the robot and date the run was filed under
+    prefix = prefix or run_prefix(filed.robot_id, filed.date, run.run_id)
+    # (1) and (2): sealed straight into the store, the upload with checksums the store verifies
+    sealed, _ = seal_to_store(
+        tiers.warm, f"{prefix}/{RECORDING}", sources, run.run_id, now, analytics.add, node.secret_fields
+    )
     record = _sealed_record(run, adds_to, sealed, node.default_robot)
-    prefix = prefix or run_prefix(record.robot_id, record.date, run.run_id)
     objects = [
         ObjectRecord(RECORDING, f"{prefix}/{RECORDING}", Tier.WARM, sealed.recording_size, sealed.recording_sha256),
         ObjectRecord(INDEX, f"{prefix}/{INDEX}", Tier.WARM, len(sealed.index), sealed.index_sha256),
     ]
-    with open(sealed.recording, "rb") as fh:  # (2) checked by the store against what was sent
-        tiers.warm.put(objects[0].key, fh)
     tiers.warm.put(objects[1].key, sealed.index)
     objects += write_analytics(tiers.warm, analytics, record.robot_id, record.date.isoformat())
     for obj in objects:  # (3)

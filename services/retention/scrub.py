@@ -128,13 +128,15 @@ def _scrub_one(
         what = f"secret-like fields in {len(found)} property chunks ({', '.join(sorted(set(found)))})"
         if dry_run:
             return ScrubStep(run_id, "found", what + ": run without --dry-run to seal it again without them")
-        sealed = seal([_stripped(base, secret_fields)], Path(tmp) / RECORDING, run_id, ctx.clock(), None, secret_fields)
+        # Sealed to a local file first: the upload happens below, once the run is known to be warm still.
+        with open(Path(tmp) / RECORDING, "wb") as out:
+            sealed = seal([_stripped(base, secret_fields)], out, run_id, ctx.clock(), None, secret_fields)
         with session_scope(ctx.catalog, write=True) as session:
             run = session.get(Run, run_id)
             life = session.get(RunLifecycle, run_id)
             if run is None or run.tier != Tier.WARM or life is None or life.prefix != prefix:
                 return ScrubStep(run_id, "skipped", "it changed tier while being read: scrub again")
-            with open(sealed.recording, "rb") as fh:
+            with open(Path(tmp) / RECORDING, "rb") as fh:
                 ctx.tiers.warm.put(f"{prefix}/{RECORDING}", fh)
             ctx.tiers.warm.put(f"{prefix}/{INDEX}", sealed.index)
             objects = queries.run_objects(session, run_id)
