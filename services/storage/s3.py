@@ -51,6 +51,9 @@ class S3Store:
             multipart_chunksize=uploads.part_bytes,
             max_concurrency=uploads.concurrency,
         )
+        # Parts read ahead of a stream being uploaded (a run sealed into the store as it is made):
+        # s3transfer's default holds 10 whatever the concurrency.
+        self._transfer.max_in_memory_upload_chunks = uploads.concurrency
 
     def access(self) -> dict[str, Any]:
         """Credentials, region and endpoint, for other readers of this store (analytics SQL)."""
