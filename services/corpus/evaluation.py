@@ -176,14 +176,7 @@ def write_evaluation(
 ) -> list[Event]:
     """Replace the run's rule- and robot-made events and metrics with `evaluation`'s. Returns the
     new ones."""
-    return write_evaluations(session, [evaluation_facts(run_id, robot_id, version, state, evaluation)], now)
-
-
-def write_evaluations(
-    session: Session, evaluations: Sequence[corpus_db.EvaluationFacts], now: dt.datetime
-) -> list[Event]:
-    """`write_evaluation` of several runs at once (one query per table for all of them)."""
-    return corpus_db.replace_evaluations(session, evaluations, now)
+    return corpus_db.replace_evaluations(session, [evaluation_facts(run_id, robot_id, version, state, evaluation)], now)
 
 
 def evaluation_facts(

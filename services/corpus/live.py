@@ -38,7 +38,7 @@ from cachetools import FIFOCache
 from sqlalchemy.orm import Session
 
 from catalog import queries
-from catalog.corpus import EvaluationFacts, current_rules
+from catalog.corpus import EvaluationFacts, current_rules, replace_evaluations
 from catalog.db import session_scope
 from catalog.models import Event, Run
 from core.states import Tier
@@ -51,7 +51,6 @@ from services.corpus.evaluation import (
     properties_of,
     running_rules,
     wanted_rows,
-    write_evaluations,
 )
 from services.edge.triggers import DEPOT, queue_trigger_pulls, trigger_pulls_made
 from services.hot.read import HotRuns
@@ -374,7 +373,7 @@ class LiveRules:
             # evaluated at its next seal: the data that came after it)
             written = [run for run in due if run.run_id in rows]
             hot = [(run, rows[run.run_id]) for run in written if rows[run.run_id].tier == Tier.HOT]
-            new = write_evaluations(session, [_so_far(run, row) for run, row in hot], now)
+            new = replace_evaluations(session, [_so_far(run, row) for run, row in hot], now)
             announce_events(session, new)
             pulls = self._queue_trigger_pulls(session, hot, new, now)
         trigger_pulls_made[DEPOT] += pulls

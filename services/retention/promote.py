@@ -278,7 +278,7 @@ def _seal_and_switch(
     filed = run.record(node.default_robot)  # sealing keeps the robot and date the run was filed under
     prefix = prefix or run_prefix(filed.robot_id, filed.date, run.run_id)
     # (1) and (2): sealed straight into the store, the upload with checksums the store verifies
-    sealed, _ = seal_to_store(
+    sealed = seal_to_store(
         tiers.warm, f"{prefix}/{RECORDING}", sources, run.run_id, now, analytics.add, node.secret_fields
     )
     record = _sealed_record(run, adds_to, sealed, node.default_robot)

@@ -19,7 +19,7 @@ from services.facts.identity import DEFAULT_SECRETS, SecretFields
 from services.rrd.chunk import ChunkMeta
 from services.rrd.messages import ArrowMessage, Event
 from services.sealed.write import SealedRun, seal
-from services.storage.objectstore import ObjectInfo, ObjectStore, StorageError
+from services.storage.objectstore import ObjectStore
 from services.storage.pipe import Pipe
 
 PIPE_BYTES = 16 * 1024 * 1024  # sealed, waiting for the upload to take it (which holds its parts)
@@ -34,9 +34,9 @@ def seal_to_store(
     on_chunk: Callable[[ArrowMessage, ChunkMeta], None] | None = None,
     secret_fields: SecretFields = DEFAULT_SECRETS,
     pipe_bytes: int = PIPE_BYTES,
-) -> tuple[SealedRun, ObjectInfo]:
+) -> SealedRun:
     """`seal` written into `key` of `store` as it is made (at most `pipe_bytes` waiting for the
-    upload); the stored object's size is checked against what was sealed."""
+    upload). What the store holds is checked by the caller, with the run's other objects."""
     pipe = Pipe(pipe_bytes)
 
     def make() -> SealedRun:
@@ -51,14 +51,9 @@ def seal_to_store(
     with ThreadPoolExecutor(max_workers=1, thread_name_prefix="seal") as sealing:
         made = sealing.submit(make)
         try:
-            info = store.put(key, cast(BinaryIO, pipe))
+            store.put(key, cast(BinaryIO, pipe))
         except BaseException:
             pipe.abandon()  # the sealing's next write raises: it stops
             made.exception()  # (waited for; the upload's error is the one raised)
             raise
-        sealed = made.result()
-    if info.size != sealed.recording_size:
-        raise StorageError(
-            f"{store.url}/{key} holds {info.size} bytes after upload, {sealed.recording_size} were sealed"
-        )
-    return sealed, info
+        return made.result()

@@ -19,7 +19,8 @@ PIECE_BYTES = 16 * 1024 * 1024  # a whole object is read in ranges of this size
 DEPTH = 4  # reads under way at once for one download
 # Shared by every download of the process: a download's own reads never wait on each other (the
 # caller waits for them, outside the pool), so a busy pool only queues them.
-_READS = ThreadPoolExecutor(max_workers=32, thread_name_prefix="store-read")
+READ_THREADS = 32
+_READS = ThreadPoolExecutor(max_workers=READ_THREADS, thread_name_prefix="store-read")
 
 Plan = TypeVar("Plan")
 Data = TypeVar("Data")

@@ -13,6 +13,7 @@ from botocore.exceptions import BotoCoreError, ClientError
 
 from core.errors import ConflictError
 from services.storage.objectstore import ObjectInfo, ObjectNotFoundError, StorageError, Uploads, check_key
+from services.storage.readahead import READ_THREADS
 
 # Verified by the server on every put and part. SHA-256 needs no extra package (CRC32C and
 # CRC64NVME need awscrt); a multipart object gets a composite checksum ("...-N"), which is enough:
@@ -41,9 +42,9 @@ class S3Store:
                 retries={"max_attempts": 3, "mode": "standard"},
                 connect_timeout=5,
                 read_timeout=60,
-                # Downloads keep several ranged reads under way (services/storage/readahead.py: up to
-                # 32 at once in a process), uploads several parts: each needs a connection of its own.
-                max_pool_connections=32 + uploads.concurrency,
+                # Downloads keep several ranged reads under way (up to READ_THREADS at once in a
+                # process), uploads several parts: each needs a connection of its own.
+                max_pool_connections=READ_THREADS + uploads.concurrency,
             ),
         )
         self._transfer = TransferConfig(

@@ -35,7 +35,8 @@ def recording(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 def test_the_stored_object_is_the_sealed_recording(recording: Path, tmp_path: Path) -> None:
     store = LocalStore((tmp_path / "warm").as_uri())
-    sealed, info = seal_to_store(store, KEY, [iter(iter_events(recording))], "run-1", NOW)
+    sealed = seal_to_store(store, KEY, [iter(iter_events(recording))], "run-1", NOW)
+    info = store.head(KEY)
     local = io.BytesIO()
     again = seal([iter(iter_events(recording))], local, "run-1", NOW)  # the same sealing into memory
     stored = store.get_range(KEY)

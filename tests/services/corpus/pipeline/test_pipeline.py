@@ -12,7 +12,7 @@ from collections import Counter
 import pytest
 from sqlalchemy.orm import Session
 
-from catalog import webhooks
+from catalog import corpus, webhooks
 from catalog.corpus import EvaluationFacts
 from catalog.db import session_scope
 from catalog.models import Event
@@ -253,13 +253,13 @@ def test_a_hot_run_whose_metrics_alone_move_is_written_every_few_flushes(make_de
     live_rules = depot.corpus.live
     live_rules.reload_rules()
     writes: list[str] = []
-    write = evaluation.write_evaluations
+    write = corpus.replace_evaluations
 
     def counted(session: Session, facts: list[EvaluationFacts], now: dt.datetime) -> list[Event]:
         writes.extend(f.run_id for f in facts)
         return write(session, facts, now)
 
-    monkeypatch.setattr(live, "write_evaluations", counted)
+    monkeypatch.setattr(live, "replace_evaluations", counted)
 
     def take_queued() -> None:
         while live_rules._queue:
