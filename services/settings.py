@@ -25,7 +25,7 @@ from pydantic_settings import (
 from services.policies import Policies, Policy, PolicyOverride
 from services.rrd.decoder import DEFAULT_MAX_MESSAGE_SIZE
 from services.rrd.limits import DEFAULT_DECOMPRESS_BUDGET_BYTES, DEFAULT_MAX_CHUNK_BYTES
-from services.storage.objectstore import PART_BYTES, UPLOAD_CONCURRENCY
+from services.storage.objectstore import PART_BYTES, PRESIGNED_TTL_MAX_S, UPLOAD_CONCURRENCY
 
 
 class Durability(enum.StrEnum):
@@ -34,6 +34,14 @@ class Durability(enum.StrEnum):
     ALWAYS = "always"
     INTERVAL = "interval"
     OFF = "off"
+
+
+class DirectReads(enum.StrEnum):
+    """How catalog clients read sealed runs' chunks: through the depot (FetchChunks), or from the
+    warm bucket by presigned ranged GETs the catalog server hands out."""
+
+    OFF = "off"
+    PRESIGNED = "presigned"
 
 
 class AuthMode(enum.StrEnum):
@@ -172,6 +180,19 @@ class Settings(SharedSettings):
         ge=1,
         le=64,
         description="parts of one upload sent at once; an upload holds up to this many parts in memory",
+    )
+    direct_reads: DirectReads = Field(
+        DirectReads.OFF,
+        description="off | presigned: catalog clients (Rerun's SDK) read sealed runs' chunks straight from the "
+        "s3:// warm bucket by presigned ranged GETs, not through the depot (docs/catalog-server.md)",
+    )
+    direct_url_ttl_s: int = Field(
+        600, ge=60, le=PRESIGNED_TTL_MAX_S, description="presigned chunk URLs last this long (at most 15 minutes)"
+    )
+    direct_reads_endpoint_url: str | None = Field(
+        None,
+        description="the S3 endpoint presigned URLs name, when clients reach the bucket by another address than "
+        "the depot (default: s3_endpoint_url)",
     )
     cold_storage_class: str = Field(
         "",
@@ -438,6 +459,16 @@ class Settings(SharedSettings):
             self.warm_url = (data / "warm").as_uri()
         if not self.cold_url:
             self.cold_url = (data / "cold").as_uri()
+        return self
+
+    @model_validator(mode="after")
+    def _direct_reads_need_s3(self) -> Settings:
+        # after _embedded_defaults: the default warm store is a folder
+        if self.direct_reads == DirectReads.PRESIGNED and not self.warm_url.startswith("s3://"):
+            raise ValueError(
+                f"direct_reads=presigned needs an s3:// warm_url ({self.warm_url} cannot presign URLs): "
+                "set FLEET_WARM_URL=s3://BUCKET/PREFIX or FLEET_DIRECT_READS=off"
+            )
         return self
 
 

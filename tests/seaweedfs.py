@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import shutil
 import socket
 import sys
@@ -46,14 +47,26 @@ def weed_binary() -> str:
 
 
 READY_PROBE = "fleet-ready-probe"
+# Without an S3 config SeaweedFS takes its identity from AWS_* of its environment (the tests set
+# test/test). A signed-only server has one of its own, whose secret no other string of a test holds:
+# a test can look for it where it must not be.
+ACCESS_KEY, SECRET_KEY, SIGNED_ONLY_SECRET_KEY = "test", "test", "weed-secret-key-of-the-tests"
+IDENTITY = {
+    "name": "depot",
+    "credentials": [{"accessKey": ACCESS_KEY, "secretKey": SIGNED_ONLY_SECRET_KEY}],
+    "actions": ["Admin", "Read", "Write", "List", "Tagging"],
+}
 
 
 class SeaweedFS:
     """`weed server` with S3 on free loopback ports. It can be stopped and started again on the same
     ports and data, so clients configured with its endpoint see an outage rather than a new server."""
 
-    def __init__(self, data_dir: Path) -> None:
+    def __init__(self, data_dir: Path, signed_only: bool = False) -> None:
+        """`signed_only`: requests must be signed with the test credentials (an identity in the S3
+        config), as on a real bucket; otherwise anonymous requests are served too."""
         self.data_dir = data_dir
+        self.secret_key = SIGNED_ONLY_SECRET_KEY if signed_only else SECRET_KEY
         data_dir.mkdir(parents=True, exist_ok=True)
         self.s3, self.master, self.volume, self.filer = (_port_pair() for _ in range(4))
         # no Iceberg or Lance listeners (fixed default ports); a quick raft election on a restart
@@ -72,6 +85,10 @@ class SeaweedFS:
             f"-filer.port={self.filer}",
             "-master.electionTimeout=1s",
         ]
+        if signed_only:
+            config = data_dir.parent / f"{data_dir.name}-s3.json"
+            config.write_text(json.dumps({"identities": [IDENTITY]}))
+            argv.append(f"-s3.config={config}")
         self.process = ServerProcess(
             argv, log=data_dir.parent / f"{data_dir.name}-weed.log", name="weed", ready=answers_http(self.endpoint)
         )
@@ -109,15 +126,15 @@ class SeaweedFS:
             "s3",
             endpoint_url=self.endpoint,
             region_name="us-east-1",
-            aws_access_key_id="test",
-            aws_secret_access_key="test",
+            aws_access_key_id=ACCESS_KEY,
+            aws_secret_access_key=self.secret_key,
         )
 
 
 @contextmanager
-def seaweedfs(data_dir: Path, timeout: float = 60) -> Iterator[str]:
+def seaweedfs(data_dir: Path, timeout: float = 60, signed_only: bool = False) -> Iterator[str]:
     """Start `weed server` with S3 on free loopback ports; yields the S3 endpoint URL."""
-    server = SeaweedFS(data_dir).start(timeout)
+    server = SeaweedFS(data_dir, signed_only).start(timeout)
     try:
         yield server.endpoint
     finally:

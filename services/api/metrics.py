@@ -25,6 +25,7 @@ from services.auth.tokens import Auth
 from services.corpus.live import LiveRules
 from services.edge import triggers
 from services.ingest.service import IngestService
+from services.redap import served
 
 CONTENT_TYPE = CONTENT_TYPE_PLAIN_0_0_4  # the text format every Prometheus server reads
 
@@ -119,11 +120,35 @@ class TriggerCollector(Collector):
         yield family
 
 
+class CatalogChunksCollector(Collector):
+    """Chunks the catalog server served, by how: through this process (FetchChunks), or handed out
+    as presigned URLs into the warm bucket for the client to read (FLEET_DIRECT_READS=presigned)."""
+
+    def collect(self) -> Iterator[Metric]:
+        chunks = CounterMetricFamily(
+            "fleet_catalog_chunks_served",
+            "Chunks served to catalog clients, by how: depot (FetchChunks) or direct (read from the bucket by a "
+            "presigned URL)",
+            labels=["how"],
+        )
+        sizes = CounterMetricFamily(
+            "fleet_catalog_chunk_bytes_served",
+            "Bytes of chunks served to catalog clients, by how (as chunks_served)",
+            labels=["how"],
+        )
+        for how in served.HOW:
+            chunks.add_metric([how], served.served[(how, "chunks")])
+            sizes.add_metric([how], served.served[(how, "bytes")])
+        yield chunks
+        yield sizes
+
+
 def metrics_registry(ingest: IngestService | None, auth: Auth | None = None) -> CollectorRegistry:
     registry = CollectorRegistry(auto_describe=False)
     registry.register(IngestCollector(ingest))
     registry.register(TriggerCollector())
     registry.register(LiveRulesCollector(ingest))
+    registry.register(CatalogChunksCollector())
     if auth is not None:
         registry.register(AuthCollector(auth))
     return registry

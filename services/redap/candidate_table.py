@@ -4,9 +4,11 @@ Rerun's servers answer them (names, types, nullability and `rerun:kind` metadata
 
 `chunk_byte_len` is the chunk's bytes as stored (its ArrowMsg, what the RRD manifest calls
 `chunk_byte_size`), `chunk_byte_size_uncompressed` its Arrow payload once decompressed (null when
-not known). No direct URLs are handed out: the columns are there, null, and clients fetch the
-chunks with FetchChunks. A snapshot episode's rows (`RUN~N`) name each chunk by an id of the episode's
-own (`chunks.episode_chunk_id`), their keys the chunk itself."""
+not known). The direct URL columns are null (clients fetch the chunks with FetchChunks) unless a
+segment's rows are read from the bucket (`direct.py`): then each row names its recording's presigned
+URL and when it expires, dictionary-encoded (one value per segment). A snapshot episode's rows
+(`RUN~N`) name each chunk by an id of the episode's own (`chunks.episode_chunk_id`), their keys the
+chunk itself."""
 
 from __future__ import annotations
 
@@ -15,6 +17,7 @@ from collections.abc import Iterator, Mapping, Sequence
 import pyarrow as pa
 
 from services.redap.chunks import EPISODE_SEPARATOR, chunk_key, episode_chunk_id
+from services.redap.direct import DirectUrl
 from services.rrd.frames import MESSAGE_HEADER_SIZE
 from services.sealed.index import IndexRow
 
@@ -65,16 +68,29 @@ def _null_dictionary(field: pa.Field, length: int) -> pa.Array:
     return pa.DictionaryArray.from_arrays(pa.nulls(length, pa.int32()), pa.array([], field.type.value_type))
 
 
+def _direct_columns(direct: DirectUrl | None, length: int) -> dict[str, pa.Array]:
+    if direct is None:
+        return {field.name: _null_dictionary(field, length) for field in DIRECT_URL_FIELDS}
+    same = pa.array([0] * length, pa.int32())  # every row: the one recording's URL
+    return {
+        "rerun_layer_direct_url": pa.DictionaryArray.from_arrays(same, pa.array([direct.url], pa.utf8())),
+        "rerun_layer_direct_url_expires_at": pa.DictionaryArray.from_arrays(
+            same, pa.array([direct.expires_at_ns], pa.int64())
+        ),
+    }
+
+
 def candidate_batch(
     schema: pa.Schema,
     segment_id: str,
     rows: Sequence[IndexRow],
     uncompressed: Mapping[bytes, int],
     timeline: str | None,
+    direct: DirectUrl | None = None,
 ) -> pa.RecordBatch:
     """The rows of one segment's candidate chunks in `schema` (one of the two layouts above), keyed
     for that segment (a run, or a snapshot's episode of one); the timeline start column, whichever
-    its name, holds each chunk's first time on `timeline`."""
+    its name, holds each chunk's first time on `timeline`; `direct`: the URL its rows are read from."""
     ids = [r.chunk_id or b"" for r in rows]
     shown = [episode_chunk_id(segment_id, i) for i in ids] if EPISODE_SEPARATOR in segment_id else ids
     columns: dict[str, pa.Array] = {
@@ -86,16 +102,12 @@ def candidate_batch(
         "chunk_is_static": pa.array([r.is_static for r in rows], pa.bool_()),
         "chunk_byte_len": pa.array([r.length - MESSAGE_HEADER_SIZE for r in rows], pa.uint64()),
         "chunk_byte_size_uncompressed": pa.array([uncompressed.get(i) for i in ids], pa.uint64()),
+        **_direct_columns(direct, len(rows)),
     }
     starts = pa.array([_timeline_start(r, timeline) for r in rows], pa.int64())
     arrays = []
     for field in schema:
-        if field.name in columns:
-            arrays.append(columns[field.name])
-        elif isinstance(field.type, pa.DictionaryType):
-            arrays.append(_null_dictionary(field, len(rows)))
-        else:
-            arrays.append(starts)
+        arrays.append(columns.get(field.name, starts))
     return pa.RecordBatch.from_arrays(arrays, schema=schema)
 
 
@@ -105,7 +117,8 @@ def candidate_batches(
     rows: Sequence[IndexRow],
     uncompressed: Mapping[bytes, int],
     timeline: str | None,
+    direct: DirectUrl | None = None,
 ) -> Iterator[pa.RecordBatch]:
     """`candidate_batch` in parts of at most PART_ROWS rows."""
     for start in range(0, len(rows), PART_ROWS):
-        yield candidate_batch(schema, segment_id, rows[start : start + PART_ROWS], uncompressed, timeline)
+        yield candidate_batch(schema, segment_id, rows[start : start + PART_ROWS], uncompressed, timeline, direct)

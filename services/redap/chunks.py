@@ -42,6 +42,7 @@ from services.redap.dataframe import read_dataframe_part
 from services.redap.depot import Depot
 from services.redap.pb import cloud_pb2
 from services.redap.recordings import open_recording
+from services.redap.served import count_served
 from services.rrd import errors as rrd_errors
 from services.rrd import limits
 from services.rrd.chunk import with_chunk_id
@@ -220,6 +221,7 @@ def _responses(wanted: list[ChunkLocation], runs: dict[str, IndexedRecording]) -
     try:
         for read in _reads(wanted, runs):
             data = memoryview(read.recording.read(read.offset, read.end - read.offset))
+            count_served("depot", len(read.chunks), read.end - read.offset)
             for location in read.chunks:
                 message: bytes | memoryview = _arrow_message(read.recording, location, data, read.offset)
                 if location.episode:

@@ -26,6 +26,7 @@ from catalog.db import session_scope
 from catalog.models import Run, RunTimeline
 from core.errors import InvalidArgumentError, UnimplementedError
 from services.auth.scopes import Principal
+from services.redap import direct as direct_reads
 from services.redap.candidate_table import candidate_batches, find_chunks_schema, query_dataset_schema
 from services.redap.candidates import (
     Contents,
@@ -42,6 +43,7 @@ from services.redap.datasets import Runs, application_runs
 from services.redap.depot import Depot
 from services.redap.pb import cloud_pb2
 from services.redap.schema import merge_schemas
+from services.redap.served import count_served
 from services.redap.snapshots import SnapshotVersion, episode_page, episode_sources, find_dataset
 from services.redap.sources import DatasetView, SegmentSource, dataset_sources, run_chunks, segment_schema
 from services.redap.tuid import Tuid
@@ -92,7 +94,8 @@ def find_chunks(
     plan = find_chunks_plan(request)
     view = _dataset(depot, entry, plan.segments)
     _check_timeline(view, plan.timeline)
-    for batch in _candidates(depot, view, plan, find_chunks_schema(), plan.timeline):
+    direct = direct_reads.wanted_by_find_chunks(request)
+    for batch in _candidates(depot, view, plan, find_chunks_schema(), plan.timeline, direct):
         yield cloud_pb2.FindChunksResponse(data=dataframe_part(batch))
 
 
@@ -103,7 +106,8 @@ def query_dataset(
     view = _dataset(depot, entry, plan.segments)
     _check_timeline(view, plan.timeline)
     timeline = plan.timeline or _start_column_timeline(request.scan_parameters.columns, view.timelines)
-    for batch in _candidates(depot, view, plan, query_dataset_schema(timeline), timeline):
+    direct = direct_reads.wanted_by_query_dataset(request)
+    for batch in _candidates(depot, view, plan, query_dataset_schema(timeline), timeline, direct):
         yield cloud_pb2.QueryDatasetResponse(data=dataframe_part(batch))
 
 
@@ -137,10 +141,11 @@ def _check_timeline(view: DatasetView, timeline: str | None) -> None:
 
 
 def _candidates(
-    depot: Depot, view: DatasetView, plan: Plan, schema: pa.Schema, timeline: str | None
+    depot: Depot, view: DatasetView, plan: Plan, schema: pa.Schema, timeline: str | None, direct: bool
 ) -> Iterator[pa.RecordBatch]:
     """Each selected segment's candidate rows, a segment at a time; one empty part when none is
-    found (as Rerun's server answers: the client learns the columns either way)."""
+    found (as Rerun's server answers: the client learns the columns either way). `direct`: the
+    client takes URLs to read a whole sealed run's chunks from the bucket (`direct.py`)."""
     sent = False
     for segment in view.segments:
         mode = plan.mode_for(segment.segment_id)
@@ -152,7 +157,10 @@ def _candidates(
             continue
         found = run_chunks(depot, source)  # an explicitly named segment that cannot be read fails the query
         rows = select(segment.rows(found), plan.contents, mode)
-        for batch in candidate_batches(schema, segment.segment_id, rows, found.uncompressed, timeline):
+        url = direct_reads.direct_url(depot, source) if direct and segment.chunk_ids is None and rows else None
+        if url is not None:
+            count_served("direct", len(rows), sum(r.length for r in rows))
+        for batch in candidate_batches(schema, segment.segment_id, rows, found.uncompressed, timeline, url):
             sent = True
             yield batch
     if not sent:

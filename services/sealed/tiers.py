@@ -46,7 +46,11 @@ class Tiers:
 def open_tiers(settings: Settings) -> Tiers:
     uploads = Uploads(settings.s3_part_bytes, settings.s3_upload_concurrency)
     warm = open_store(
-        settings.warm_url, endpoint_url=settings.s3_endpoint_url, region=settings.s3_region, uploads=uploads
+        settings.warm_url,
+        endpoint_url=settings.s3_endpoint_url,
+        region=settings.s3_region,
+        uploads=uploads,
+        presign_endpoint_url=settings.direct_reads_endpoint_url,
     )
     cold = open_store(
         settings.cold_url, endpoint_url=settings.s3_endpoint_url, region=settings.s3_region, uploads=uploads

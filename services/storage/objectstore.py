@@ -7,7 +7,7 @@ import datetime as dt
 import re
 from collections.abc import Iterator
 from dataclasses import dataclass
-from typing import BinaryIO, Protocol
+from typing import BinaryIO, Protocol, TypeGuard
 from urllib.parse import urlparse
 
 from core.errors import NotFoundError, UnavailableError
@@ -83,6 +83,24 @@ def supports_archive(store: ObjectStore) -> bool:
     return hasattr(store, "set_storage_class") and hasattr(store, "restore")
 
 
+# The longest a presigned read may last: a URL that leaks is good for this long at most.
+PRESIGNED_TTL_MAX_S = 15 * 60
+
+
+class PresigningStore(ObjectStore, Protocol):
+    """A store that can hand out a URL to read one object without credentials (S3's presigned GET),
+    so that a client reads it from the bucket, not through the depot."""
+
+    def presigned_get(self, key: str, expires_s: int) -> str:
+        """A URL good for GET (with any Range) of `key` alone, for `expires_s` seconds (at most
+        PRESIGNED_TTL_MAX_S). It carries a signature, never a secret key."""
+        ...
+
+
+def supports_presigned(store: ObjectStore) -> TypeGuard[PresigningStore]:
+    return hasattr(store, "presigned_get")
+
+
 class RangeReader:
     """An object read as a file, in ranged pieces: lets a copy between stores run in constant memory."""
 
@@ -117,9 +135,16 @@ def check_key(key: str) -> str:
 
 
 def open_store(
-    url: str, *, endpoint_url: str | None = None, region: str | None = None, uploads: Uploads | None = None
+    url: str,
+    *,
+    endpoint_url: str | None = None,
+    region: str | None = None,
+    uploads: Uploads | None = None,
+    presign_endpoint_url: str | None = None,
 ) -> ObjectStore:
-    """The store behind `url`: `file:///path` or `s3://bucket/prefix` (boto3 is imported only for S3)."""
+    """The store behind `url`: `file:///path` or `s3://bucket/prefix` (boto3 is imported only for S3).
+    `presign_endpoint_url`: the endpoint an S3 store's presigned URLs name (default: `endpoint_url`),
+    for clients that reach the bucket by another address than the depot does."""
     parsed = urlparse(url)
     if parsed.scheme == "file":
         from services.storage.local import LocalStore
@@ -128,5 +153,7 @@ def open_store(
     if parsed.scheme == "s3":
         from services.storage.s3 import S3Store
 
-        return S3Store(url, endpoint_url=endpoint_url, region=region, uploads=uploads)
+        return S3Store(
+            url, endpoint_url=endpoint_url, region=region, uploads=uploads, presign_endpoint_url=presign_endpoint_url
+        )
     raise StorageError(f"unsupported store URL {url!r}: use file:///PATH or s3://BUCKET/PREFIX")

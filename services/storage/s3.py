@@ -12,7 +12,14 @@ from botocore.config import Config
 from botocore.exceptions import BotoCoreError, ClientError
 
 from core.errors import ConflictError
-from services.storage.objectstore import ObjectInfo, ObjectNotFoundError, StorageError, Uploads, check_key
+from services.storage.objectstore import (
+    PRESIGNED_TTL_MAX_S,
+    ObjectInfo,
+    ObjectNotFoundError,
+    StorageError,
+    Uploads,
+    check_key,
+)
 from services.storage.readahead import READ_THREADS
 
 # Verified by the server on every put and part. SHA-256 needs no extra package (CRC32C and
@@ -23,7 +30,13 @@ CHECKSUM_ALGORITHM = "SHA256"
 
 class S3Store:
     def __init__(
-        self, url: str, *, endpoint_url: str | None = None, region: str | None = None, uploads: Uploads | None = None
+        self,
+        url: str,
+        *,
+        endpoint_url: str | None = None,
+        region: str | None = None,
+        uploads: Uploads | None = None,
+        presign_endpoint_url: str | None = None,
     ) -> None:
         uploads = uploads or Uploads()
         parsed = urlparse(url)
@@ -55,6 +68,8 @@ class S3Store:
         # Parts read ahead of a stream being uploaded (a run sealed into the store as it is made):
         # s3transfer's default holds 10 whatever the concurrency.
         self._transfer.max_in_memory_upload_chunks = uploads.concurrency
+        self._presign_endpoint_url = presign_endpoint_url or endpoint_url
+        self._presigner: Any = None
 
     def access(self) -> dict[str, Any]:
         """Credentials, region and endpoint, for other readers of this store (analytics SQL)."""
@@ -121,6 +136,25 @@ class S3Store:
             raise self._error(key, exc) from exc
         except BotoCoreError as exc:
             raise StorageError(f"cannot read {key!r} from {self.url}: {exc}") from exc
+
+    def presigned_get(self, key: str, expires_s: int) -> str:
+        """A SigV4 query-signed GET of `key` (signed offline: no call to the store). Only the host
+        is signed, so a client may add its own Range header."""
+        if not 0 < expires_s <= PRESIGNED_TTL_MAX_S:
+            raise ValueError(f"a presigned URL lasts 1 to {PRESIGNED_TTL_MAX_S} s, not {expires_s}")
+        if self._presigner is None:
+            # A client of its own: the endpoint clients reach, and SigV4 (botocore's default for
+            # presigning S3 is not SigV4 in every region); it addresses buckets as the depot's does.
+            self._presigner = self._session.client(
+                "s3",
+                endpoint_url=self._presign_endpoint_url,
+                region_name=self._client.meta.region_name,
+                config=Config(signature_version="s3v4"),
+            )
+        url: str = self._presigner.generate_presigned_url(
+            "get_object", Params={"Bucket": self.bucket, "Key": self._key(key)}, ExpiresIn=expires_s
+        )
+        return url
 
     def head(self, key: str) -> ObjectInfo:
         try:
