@@ -147,6 +147,7 @@ def seaweedfs(data_dir: Path, timeout: float = 60) -> Iterator[str]:
                 "-s3",
                 f"-s3.port={s3}",
                 "-s3.port.iceberg=0",
+                "-s3.port.lance=0",
                 f"-master.port={master}",
                 f"-volume.port={volume}",
                 f"-filer.port={filer}",

@@ -22,6 +22,7 @@ from services.ingest.routing import asking_for, owner_down, owner_elsewhere
 from services.rrd.frames import MessageKind, encode_message_header
 from services.runs import links, service
 from services.runs.recording import RecordingQuery, recording_download
+from services.runs.sending import in_slices
 from services.runs.service import RunFilter, parse_properties, parse_time
 
 router = APIRouter()
@@ -158,7 +159,7 @@ async def recording(
         raise OwnerDownError(run_id, down.node_id, down.peer_addr) from None
     followed = follow and isinstance(found.body, AsyncIterator)  # a hot run: as long as it is live
     return StreamingResponse(
-        until_grant_ends(request, principal, found.body) if followed else found.body,
+        in_slices(until_grant_ends(request, principal, found.body) if followed else found.body),
         media_type="application/octet-stream",
         headers={
             "Content-Disposition": f'attachment; filename="{found.filename}"',

@@ -1,7 +1,8 @@
 """Serving a sealed run (warm, or cold once restored) with ranged reads planned from its chunk index.
 
-An unfiltered download is the sealed object itself, copied through (several ranges read at once:
-`services.storage.readahead`); any other is planned from
+An unfiltered download is the sealed object itself, copied through: one GET stream read a few
+pieces ahead of the sender where the store streams (S3), else several ranges read at once
+(`services.storage.readahead`); any other is planned from
 `chunks.parquet` like a hot run's from its index (`services.runs.indexed`), reading only the
 messages it keeps.
 """
@@ -13,7 +14,8 @@ from collections.abc import Iterator
 from services.runs.download import FLUSH_BYTES, EntityFilter, TimeWindow
 from services.runs.indexed import IndexedRecording, open_sealed_object, stream_indexed
 from services.sealed.read import SealedRecording
-from services.storage.readahead import pieces, read_ahead
+from services.storage.objectstore import StorageError, StreamingStore, supports_streaming
+from services.storage.readahead import pieces, read_ahead, stream_ahead
 
 
 def indexed_recording(sealed: SealedRecording) -> IndexedRecording:
@@ -26,11 +28,35 @@ def whole_object(entities: EntityFilter, blueprint: bool, window: TimeWindow | N
     return not entities.include and not entities.exclude and blueprint and window is None
 
 
+STREAM_ATTEMPTS = 3  # a stream that breaks off is taken up again where it stopped, this many times
+
+
+def stream_resumed(store: StreamingStore, key: str, size: int) -> Iterator[bytes]:
+    """The object's bytes by one stream, opened again from where it stopped if it breaks off (a
+    store's connection reset mid-way does not cut a download short)."""
+    offset, failures = 0, 0
+    while offset < size:
+        try:
+            for piece in store.stream(key, offset, size - offset):
+                offset += len(piece)
+                yield piece
+            if offset < size:
+                raise StorageError(f"{key!r} ended after {offset} of {size} bytes")
+        except StorageError:
+            failures += 1
+            if failures >= STREAM_ATTEMPTS:
+                raise
+
+
 def stream_sealed(
     sealed: SealedRecording, entities: EntityFilter, *, blueprint: bool = True, window: TimeWindow | None = None
 ) -> Iterator[bytes | memoryview]:
     if whole_object(entities, blueprint, window):
-        # The sealed object is already the answer: read by ranges, several under way at once.
+        # The sealed object is already the answer.
+        if supports_streaming(sealed.store):
+            yield from stream_ahead(stream_resumed(sealed.store, sealed.key, sealed.size))
+            return
+
         def read(piece: tuple[int, int]) -> bytes:
             return sealed.store.get_range(sealed.key, *piece)
 

@@ -14,7 +14,7 @@ from pathlib import Path
 from typing import BinaryIO
 from urllib.parse import urlparse
 
-from services.storage.objectstore import ObjectInfo, ObjectNotFoundError, check_key
+from services.storage.objectstore import STREAM_PIECE_BYTES, ObjectInfo, ObjectNotFoundError, check_key
 
 
 class LocalStore:
@@ -54,6 +54,22 @@ class LocalStore:
                 return fh.read() if length is None else fh.read(length)
         except FileNotFoundError:
             raise ObjectNotFoundError(f"no object {key!r} in {self.url}") from None
+
+    def stream(self, key: str, start: int = 0, length: int | None = None) -> Iterator[bytes]:
+        try:
+            fh = open(self._path(key), "rb")  # noqa: SIM115 (closed when the stream ends or is dropped)
+        except FileNotFoundError:
+            raise ObjectNotFoundError(f"no object {key!r} in {self.url}") from None
+        with fh:
+            fh.seek(start)
+            left = length
+            while left is None or left > 0:
+                piece = fh.read(STREAM_PIECE_BYTES if left is None else min(left, STREAM_PIECE_BYTES))
+                if not piece:
+                    return
+                if left is not None:
+                    left -= len(piece)
+                yield piece
 
     def head(self, key: str) -> ObjectInfo:
         try:

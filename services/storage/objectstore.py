@@ -83,6 +83,23 @@ def supports_archive(store: ObjectStore) -> bool:
     return hasattr(store, "set_storage_class") and hasattr(store, "restore")
 
 
+# Pieces of a streamed read (`StreamingStore.stream`): what a download hands on at a time.
+STREAM_PIECE_BYTES = 4 * 1024 * 1024
+
+
+class StreamingStore(ObjectStore, Protocol):
+    """A store that reads a range as one stream (S3: one GET), not in ranged reads of its own."""
+
+    def stream(self, key: str, start: int = 0, length: int | None = None) -> Iterator[bytes]:
+        """The bytes of `key` from `start` (`length` of them, to the end when None), in pieces of
+        at most STREAM_PIECE_BYTES, read as the caller takes them."""
+        ...
+
+
+def supports_streaming(store: ObjectStore) -> TypeGuard[StreamingStore]:
+    return hasattr(store, "stream")
+
+
 # The longest a presigned read may last: a URL that leaks is good for this long at most.
 PRESIGNED_TTL_MAX_S = 15 * 60
 

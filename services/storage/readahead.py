@@ -10,10 +10,14 @@ size of the run.
 
 from __future__ import annotations
 
+import contextlib
+import queue
+import threading
 from collections import deque
 from collections.abc import Callable, Generator, Iterable, Iterator
 from concurrent.futures import Future, ThreadPoolExecutor
-from typing import TypeVar
+from dataclasses import dataclass
+from typing import Any, TypeVar
 
 PIECE_BYTES = 16 * 1024 * 1024  # a whole object is read in ranges of this size
 DEPTH = 4  # reads under way at once for one download
@@ -49,6 +53,59 @@ def read_ahead(
     finally:
         for _, future in pending:
             future.cancel()
+
+
+_DONE = object()
+
+
+def stream_ahead(source: Iterable[Data], depth: int = DEPTH) -> Generator[Data, None, None]:
+    """`source`'s items in order, read on a thread of their own up to `depth` items ahead of the
+    caller (a stream being sent while the next pieces arrive). An error of `source` is raised in
+    its place; when the caller stops, the thread stops at its next item and `source` is closed."""
+    ready: queue.Queue[Any] = queue.Queue(maxsize=depth)
+    stopping = threading.Event()
+
+    def offer(item: object) -> bool:
+        """Put `item` when there is room; False once the caller has stopped."""
+        while not stopping.is_set():
+            try:
+                ready.put(item, timeout=0.5)  # wakes now and then to see whether the caller stopped
+                return True
+            except queue.Full:
+                continue
+        return False
+
+    def produce() -> None:
+        items = iter(source)
+        try:
+            for item in items:
+                if not offer(item):
+                    return
+            offer(_DONE)
+        except BaseException as exc:  # handed to the caller, which raises it
+            offer(_Failed(exc))
+        finally:
+            close = getattr(items, "close", None)
+            if close is not None:
+                close()
+
+    producer = threading.Thread(target=produce, name="store-stream", daemon=True)
+    producer.start()
+    try:
+        while (item := ready.get()) is not _DONE:
+            if isinstance(item, _Failed):
+                raise item.error
+            yield item
+    finally:
+        stopping.set()
+        with contextlib.suppress(queue.Empty):
+            while True:  # frees the producer if it waits to put
+                ready.get_nowait()
+
+
+@dataclass(frozen=True)
+class _Failed:
+    error: BaseException
 
 
 def pieces(start: int, end: int, first: int, piece: int = PIECE_BYTES) -> Iterator[tuple[int, int]]:

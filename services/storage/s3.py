@@ -14,6 +14,7 @@ from botocore.exceptions import BotoCoreError, ClientError
 from core.errors import ConflictError
 from services.storage.objectstore import (
     PRESIGNED_TTL_MAX_S,
+    STREAM_PIECE_BYTES,
     ObjectInfo,
     ObjectNotFoundError,
     StorageError,
@@ -126,7 +127,7 @@ class S3Store:
         return info
 
     def get_range(self, key: str, start: int = 0, length: int | None = None) -> bytes:
-        wanted = f"bytes={start}-" if length is None else f"bytes={start}-{start + length - 1}"
+        wanted = _range(start, length)
         if length == 0:
             return b""
         try:
@@ -136,6 +137,25 @@ class S3Store:
             raise self._error(key, exc) from exc
         except BotoCoreError as exc:
             raise StorageError(f"cannot read {key!r} from {self.url}: {exc}") from exc
+
+    def stream(self, key: str, start: int = 0, length: int | None = None) -> Iterator[bytes]:
+        """One GET of the range, its body read in pieces: the store sends it as it sends any object
+        (a whole download read this way costs SeaweedFS a third less CPU than ranged GETs of 16 MiB)."""
+        if length == 0:
+            return
+        ranged = {} if start == 0 and length is None else {"Range": _range(start, length)}
+        try:
+            body = self._client.get_object(Bucket=self.bucket, Key=self._key(key), **ranged)["Body"]
+        except ClientError as exc:
+            raise self._error(key, exc) from exc
+        except BotoCoreError as exc:
+            raise StorageError(f"cannot read {key!r} from {self.url}: {exc}") from exc
+        try:
+            yield from body.iter_chunks(STREAM_PIECE_BYTES)
+        except BotoCoreError as exc:  # the connection broke mid-way (urllib3's errors come wrapped)
+            raise StorageError(f"reading {key!r} from {self.url} broke off: {exc}") from exc
+        finally:
+            body.close()
 
     def presigned_get(self, key: str, expires_s: int) -> str:
         """A SigV4 query-signed GET of `key` (signed offline: no call to the store). Only the host
@@ -228,6 +248,10 @@ class S3Store:
 
 
 FleetErrorLike = ObjectNotFoundError | StorageError | ConflictError
+
+
+def _range(start: int, length: int | None) -> str:
+    return f"bytes={start}-" if length is None else f"bytes={start}-{start + length - 1}"
 
 
 class _Counting:

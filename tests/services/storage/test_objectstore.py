@@ -12,7 +12,15 @@ import pytest
 
 from services.sealed.tiers import open_tiers
 from services.settings import load_settings
-from services.storage.objectstore import ObjectNotFoundError, ObjectStore, StorageError, check_key, open_store
+from services.storage.objectstore import (
+    STREAM_PIECE_BYTES,
+    ObjectNotFoundError,
+    ObjectStore,
+    StorageError,
+    check_key,
+    open_store,
+    supports_streaming,
+)
 from services.storage.s3 import S3Store
 from tests.services.storage.s3_backends import REGION, S3_BACKENDS, s3_target_for
 
@@ -45,6 +53,19 @@ def test_ranges(store: ObjectStore):
     assert store.get_range("a/b.bin", 0, 0) == b""
     with pytest.raises(ObjectNotFoundError):
         store.get_range("a/missing.bin", 0, 10)
+
+
+def test_a_stream_reads_what_ranges_read_in_bounded_pieces(store: ObjectStore):
+    data = os.urandom(2 * STREAM_PIECE_BYTES + 12_345)
+    store.put("a/big.bin", io.BytesIO(data))
+    assert supports_streaming(store)
+    pieces = list(store.stream("a/big.bin"))
+    assert b"".join(pieces) == data and max(len(p) for p in pieces) <= STREAM_PIECE_BYTES
+    assert b"".join(store.stream("a/big.bin", 100, 50)) == data[100:150]
+    assert b"".join(store.stream("a/big.bin", len(data) - 10)) == data[-10:]
+    assert b"".join(store.stream("a/big.bin", 5, 0)) == b""
+    with pytest.raises(ObjectNotFoundError):
+        b"".join(store.stream("a/missing.bin"))
 
 
 def test_put_from_a_file_and_replace(store: ObjectStore):

@@ -3,10 +3,12 @@
 from __future__ import annotations
 
 import threading
+from collections.abc import Iterator
 
 import pytest
 
-from services.storage.readahead import pieces, read_ahead
+from services.storage.readahead import pieces, read_ahead, stream_ahead
+from tests.waiting import wait_for
 
 
 class Reads:
@@ -72,3 +74,52 @@ def test_pieces_cover_the_range_with_a_small_first_one() -> None:
     assert list(pieces(0, 25, first=3, piece=10)) == [(0, 3), (3, 10), (13, 10), (23, 2)]
     assert list(pieces(5, 7, first=3, piece=10)) == [(5, 2)]
     assert list(pieces(0, 0, first=3, piece=10)) == []
+
+
+# --- a stream read ahead on a thread of its own ---------------------------------------------------
+
+
+class Source:
+    """A stream of numbered pieces that records how far it was read and whether it was closed."""
+
+    def __init__(self, count: int, fail_at: int | None = None) -> None:
+        self.count, self.fail_at = count, fail_at
+        self.made = 0
+        self.closed = threading.Event()
+
+    def __iter__(self) -> Iterator[int]:
+        try:
+            for n in range(self.count):
+                if n == self.fail_at:
+                    raise OSError("the store broke off")
+                self.made = n + 1
+                yield n
+        finally:
+            self.closed.set()
+
+
+def test_a_stream_comes_in_order_read_no_further_ahead_than_the_depth() -> None:
+    source = Source(50)
+    stream = stream_ahead(source, depth=3)
+    assert next(stream) == 0
+    # the producer fills the queue and stops: at most depth pieces waiting, one in its hand
+    wait_for(lambda: source.made >= 4, 10, "the producer to read ahead")
+    assert source.made <= 1 + 3 + 1
+    assert [0, *stream] == list(range(50))
+    assert source.closed.is_set()
+
+
+def test_a_stream_error_is_raised_where_its_piece_would_be() -> None:
+    stream = stream_ahead(Source(10, fail_at=4), depth=2)
+    assert [next(stream) for _ in range(4)] == [0, 1, 2, 3]
+    with pytest.raises(OSError, match="broke off"):
+        next(stream)
+
+
+def test_a_reader_that_stops_early_stops_the_stream_and_closes_it() -> None:
+    source = Source(10_000)
+    stream = stream_ahead(source, depth=2)
+    assert next(stream) == 0
+    stream.close()
+    assert source.closed.wait(10), "the source was left open"
+    assert source.made < 10  # stopped near where the reader stopped, not read to its end
