@@ -28,6 +28,7 @@ from tests.seaweedfs import ACCESS_KEY, SIGNED_ONLY_SECRET_KEY, seaweedfs
 from tests.services.ingest.live_server import LiveServer
 from tests.services.redap.client import Redap
 from tests.services.redap.golden import EVERYTHING, time_range
+from tests.services.redap.test_reader_e2e import _comparable
 
 pytestmark = [pytest.mark.sdk, pytest.mark.s3server, pytest.mark.slow]
 
@@ -127,19 +128,6 @@ def _served(server: LiveServer, how: str) -> float:
         if line.startswith(f'fleet_catalog_chunks_served_total{{how="{how}"}}'):
             return float(line.split()[-1])
     raise AssertionError(f"no fleet_catalog_chunks_served_total for {how}")
-
-
-def _comparable(table: pa.Table) -> list[str]:
-    table = table.drop([c for c in table.column_names if c == "rerun_segment_id"])
-    table = pa.table(
-        {
-            name: column.cast(pa.int64()) if pa.types.is_temporal(column.type) else column
-            for name, column in zip(table.column_names, table.columns, strict=True)
-        }
-    )
-    rows = sorted(repr(sorted(row.items())) for row in table.to_pylist())
-    assert rows, "a comparison over no rows proves nothing"
-    return rows
 
 
 def test_the_sdk_reads_a_sealed_run_from_the_bucket_not_through_the_depot(
