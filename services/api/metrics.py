@@ -25,7 +25,7 @@ from services.auth.tokens import Auth
 from services.corpus.live import LiveRules
 from services.edge import triggers
 from services.ingest.service import IngestService
-from services.redap import served
+from services.runs import served
 
 CONTENT_TYPE = CONTENT_TYPE_PLAIN_0_0_4  # the text format every Prometheus server reads
 

@@ -42,13 +42,13 @@ from services.redap.dataframe import read_dataframe_part
 from services.redap.depot import Depot
 from services.redap.pb import cloud_pb2
 from services.redap.recordings import open_recording
-from services.redap.served import count_served
 from services.rrd import errors as rrd_errors
 from services.rrd import limits
 from services.rrd.chunk import with_chunk_id
 from services.rrd.frames import MESSAGE_HEADER_SIZE, MessageKind, decode_message_header
 from services.rrd.protowire import fields
 from services.runs.indexed import IndexedRecording
+from services.runs.served import count_served
 
 RUN_URL_PREFIX = "fleet:"
 READ_BYTES = 8 * 1024 * 1024  # adjacent chunks are read together up to this

@@ -43,10 +43,10 @@ from services.redap.datasets import Runs, application_runs
 from services.redap.depot import Depot
 from services.redap.pb import cloud_pb2
 from services.redap.schema import merge_schemas
-from services.redap.served import count_served
 from services.redap.snapshots import SnapshotVersion, episode_page, episode_sources, find_dataset
 from services.redap.sources import DatasetView, SegmentSource, dataset_sources, run_chunks, segment_schema
 from services.redap.tuid import Tuid
+from services.runs.served import count_served
 
 log = logging.getLogger(__name__)
 
