@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import datetime as dt
 
-from sqlalchemy import BigInteger, Boolean, Date, DateTime, Double, Index, LargeBinary, MetaData, String, Text
+from sqlalchemy import BigInteger, Boolean, Date, DateTime, Double, Index, LargeBinary, MetaData, String, Text, func
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column
 
 from core.ids import ID_LENGTH
@@ -43,7 +43,7 @@ class Run(Base):
 
     id: Mapped[str] = mapped_column(String(ID_LENGTH), primary_key=True)
     robot_id: Mapped[str] = mapped_column(String(ID_LENGTH), index=True)
-    application_id: Mapped[str] = mapped_column(Text, index=True)
+    application_id: Mapped[str] = mapped_column(Text)
     date: Mapped[dt.date] = mapped_column(Date, index=True)  # UTC date of the run's start
     status: Mapped[str] = mapped_column(String(16), index=True)  # a core.states.RunStatus
     tier: Mapped[str] = mapped_column(String(16), index=True)  # a core.states.Tier
@@ -59,6 +59,17 @@ class Run(Base):
     pinned_by: Mapped[str | None] = mapped_column(String(256))
     created_at: Mapped[dt.datetime] = mapped_column(DateTime(timezone=True))
     updated_at: Mapped[dt.datetime] = mapped_column(DateTime(timezone=True))
+
+
+# What a million runs need on Postgres (migration 0016, BENCHMARKS.md "A catalog of a million runs"):
+# the orders runs are listed in (by start, newest first; by start within a robot; by size) and what
+# retention's plan reads (runs by tier and end, within an application its policy names). A run's
+# start is its `started_at`, else when the catalog first saw it: the expression `GET /v1/runs` sorts by.
+Index("ix_runs_started", func.coalesce(Run.started_at, Run.created_at), Run.id)
+Index("ix_runs_robot_started", Run.robot_id, func.coalesce(Run.started_at, Run.created_at), Run.id)
+Index("ix_runs_bytes", Run.bytes, Run.id)
+Index("ix_runs_tier_end", Run.tier, func.coalesce(Run.ended_at, Run.last_data_at))
+Index("ix_runs_application_tier_end", Run.application_id, Run.tier, func.coalesce(Run.ended_at, Run.last_data_at))
 
 
 class RunEntity(Base):
@@ -97,7 +108,7 @@ class RunLifecycle(Base):
     promoted_at: Mapped[dt.datetime] = mapped_column(DateTime(timezone=True))
     archived_at: Mapped[dt.datetime | None] = mapped_column(DateTime(timezone=True))
     archive_mode: Mapped[str | None] = mapped_column(String(32))  # core.states.ARCHIVED_IN_STORE or a storage class
-    restore_state: Mapped[str | None] = mapped_column(String(16))  # a core.states.RestoreState
+    restore_state: Mapped[str | None] = mapped_column(String(16), index=True)  # a core.states.RestoreState
     restore_requested_at: Mapped[dt.datetime | None] = mapped_column(DateTime(timezone=True))
     restore_until: Mapped[dt.datetime | None] = mapped_column(DateTime(timezone=True))
     deleted_at: Mapped[dt.datetime | None] = mapped_column(DateTime(timezone=True))
@@ -122,6 +133,7 @@ class RetentionEvent(Base):
     """What happened to a run and why: promote, archive, restore, pin, unpin, expire, delete."""
 
     __tablename__ = "retention_events"
+    __table_args__ = (Index("ix_retention_events_occurred_at", "occurred_at", "id"),)  # the latest first
 
     id: Mapped[str] = mapped_column(String(32), primary_key=True)
     run_id: Mapped[str] = mapped_column(String(ID_LENGTH), index=True)
@@ -137,6 +149,7 @@ class JobExecution(Base):
     keeps its first name, `job_runs`."""
 
     __tablename__ = "job_runs"
+    __table_args__ = (Index("ix_job_runs_started_at", "started_at", "id"),)  # the latest first
 
     id: Mapped[str] = mapped_column(String(32), primary_key=True)
     job: Mapped[str] = mapped_column(String(64), index=True)
@@ -343,7 +356,8 @@ class RunMetric(Base):
     """One value per run and metric rule: a number (`value`) or, for a property metric, text."""
 
     __tablename__ = "run_metrics"
-    __table_args__ = (Index("ix_run_metrics_name", "name"),)
+    # by name, then value: a metric's runs in the order of its values (a filter, a sort)
+    __table_args__ = (Index("ix_run_metrics_name_value", "name", "value", "run_id"),)
 
     run_id: Mapped[str] = mapped_column(String(ID_LENGTH), primary_key=True)
     name: Mapped[str] = mapped_column(String(256), primary_key=True)

@@ -19,12 +19,13 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from catalog import datasets, queries
 from catalog.db import session_scope
+from catalog.models import Run
 from core.clock import aware, iso_utc
 from core.errors import ConflictError
 from core.states import ARCHIVED_IN_STORE, RestoreState, RunStatus, Tier
 from services.ingest.service import IngestService
 from services.node import Node
-from services.policies import Policies
+from services.policies import Policies, Policy
 from services.retention import archive, promote
 from services.sealed.tiers import Tiers, write_run_json
 from services.settings import Settings
@@ -175,7 +176,7 @@ def _planned(ctx: Retention, kinds: Iterable[str]) -> tuple[list[Action], list[A
             actions.append(Action(cand.run.run_id, PROMOTE, cand.reason, record.robot_id, Tier.HOT, record.bytes))
     if kinds & {ARCHIVE, DELETE, RESTORE}:
         with session_scope(ctx.catalog) as session:
-            sealed = queries.sealed_runs(session, (Tier.WARM, Tier.COLD))
+            sealed = queries.sealed_runs(session, (Tier.WARM, Tier.COLD), may_be_due(ctx.policies, now))
             expired = [run.id for run, _ in sealed if _expired(ctx, run, now)] if DELETE in kinds else []
             used = datasets.snapshots_using(session, expired)  # asked only of the runs it could matter to
             for run, life in sealed:
@@ -185,6 +186,35 @@ def _planned(ctx: Retention, kinds: Iterable[str]) -> tuple[list[Action], list[A
                 if run.id in expired and (run.pinned or run.id in used):
                     kept.append(_kept(ctx, run, used.get(run.id, [])))
     return actions, kept
+
+
+def may_be_due(policies: Policies, now: dt.datetime) -> sa.ColumnElement[bool]:
+    """A condition on a sealed run that holds for every run the plan can archive or delete, or
+    keep past its deletion: warm past its policy's archive age, or past its deletion age. Each
+    policy's runs are named as `Policies.for_run` chooses (an override for the robot, else one for
+    the application, else the default). Every arm names the tiers it is about, so that Postgres
+    reads each from `ix_runs_tier_end` (tier, end) rather than every run of a robot or application."""
+    robots = sorted({o.robot for o in policies.overrides if o.robot is not None})
+    applications = sorted({o.application for o in policies.overrides if o.application is not None})
+    outsider = "\x00"  # a robot id no override names (no run's robot id holds a NUL)
+    others = [Run.robot_id.not_in(robots)] if robots else []
+    governed = [(Run.robot_id == robot, policies.for_run(robot, "")) for robot in robots]
+    governed += [
+        (sa.and_(Run.application_id == application, *others), policies.for_run(outsider, application))
+        for application in applications
+    ]
+    unnamed = [*others, *([Run.application_id.not_in(applications)] if applications else [])]
+    governed.append((sa.and_(sa.true(), *unnamed), policies.default))
+    return sa.or_(*(sa.and_(runs, past) for runs, policy in governed for past in _past_age(policy, now)))
+
+
+def _past_age(policy: Policy, now: dt.datetime) -> list[sa.ColumnElement[bool]]:
+    """Sealed past `policy`'s deletion age; warm past its archive age (when it archives at all)."""
+    end = queries.run_end()
+    deletion = sa.and_(Run.tier.in_((Tier.WARM, Tier.COLD)), end <= now - policy.delete_after)
+    if policy.cold_days <= 0:
+        return [deletion]
+    return [deletion, sa.and_(Run.tier == Tier.WARM, end <= now - policy.archive_after)]
 
 
 def _expired(ctx: Retention, run: Any, now: dt.datetime) -> bool:

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import sqlalchemy as sa
-from sqlalchemy.orm import aliased
+from sqlalchemy.orm import Session, aliased
 
 from catalog.models import Event, Run, RunMetric, RunTag
 from core.errors import BadParameterError
@@ -104,28 +104,60 @@ def sort_metric(sort: str) -> str | None:
     return name
 
 
-def join_metric(query: sa.Select[Any], name: str) -> tuple[sa.Select[Any], sa.ColumnElement[float | None]]:
-    """`query` joined to the run's value of metric `name` (NULL where it has none), and that value."""
+def metric_sorted(
+    session: Session,
+    query: sa.Select[Any],
+    name: str,
+    descending: bool,
+    after: tuple[float | None, str] | None,
+    limit: int,
+) -> list[tuple[Run, float | None]]:
+    """Up to `limit` runs of `query` (a select of Run) with their value of metric `name`, in that
+    order (runs without a value last, either way), then run id; from the cursor `after` on (the
+    last row's value and run id). Read as two queries, the runs with a value in its order, then the
+    others by id: one query ordering an outer join of every run to its metric would sort all of
+    them, where these walk an index (run_metrics by name and value; the run ids) and stop at `limit`."""
+    rows: list[tuple[Run, float | None]] = []
+    if after is None or after[0] is not None:
+        rows = _with_value(session, query, name, descending, after, limit)
+    if len(rows) < limit:
+        last_id = after[1] if after is not None and after[0] is None else None
+        rows += [(run, None) for run in _without_value(session, query, name, descending, last_id, limit - len(rows))]
+    return rows
+
+
+def _with_value(
+    session: Session,
+    query: sa.Select[Any],
+    name: str,
+    descending: bool,
+    after: tuple[float | None, str] | None,
+    limit: int,
+) -> list[tuple[Run, float | None]]:
     metric = aliased(RunMetric, name="sort_metric")
-    joined = query.outerjoin(metric, sa.and_(metric.run_id == Run.id, metric.name == name))
-    return joined, metric.value.expression
+    value = metric.value
+    joined = query.join(metric, sa.and_(metric.run_id == Run.id, metric.name == name)).where(value.is_not(None))
+    if after is not None:
+        last_value, last_id = after
+        later_id = Run.id < last_id if descending else Run.id > last_id
+        beyond = value < last_value if descending else value > last_value
+        # The first condition bounds the index range; the second is the cursor's exact condition.
+        reached = value <= last_value if descending else value >= last_value
+        joined = joined.where(reached, sa.or_(beyond, sa.and_(value == last_value, later_id)))
+    order = (value.desc(), Run.id.desc()) if descending else (value.asc(), Run.id.asc())
+    found = session.execute(joined.add_columns(value).order_by(*order).limit(limit))
+    return [(run, number) for run, number in found]
 
 
-def after_cursor(
-    key: sa.ColumnElement[Any], last_value: float | None, last_id: str, descending: bool
-) -> sa.ColumnElement[bool]:
-    """Rows after (last_value, last_id) in the order `key` (nulls last either way), then run id."""
-    later_id = Run.id < last_id if descending else Run.id > last_id
-    if last_value is None:  # already among the runs without the metric
-        return sa.and_(key.is_(None), later_id)
-    beyond = key < last_value if descending else key > last_value
-    return sa.or_(beyond, sa.and_(key == last_value, later_id), key.is_(None))
-
-
-def order(key: sa.ColumnElement[Any], descending: bool) -> tuple[Any, Any]:
-    if descending:
-        return key.desc().nulls_last(), Run.id.desc()
-    return key.asc().nulls_last(), Run.id.asc()
+def _without_value(
+    session: Session, query: sa.Select[Any], name: str, descending: bool, last_id: str | None, limit: int
+) -> list[Run]:
+    """The runs of `query` that have no value of metric `name` (no row, or a text metric), by id."""
+    valued = sa.exists().where(RunMetric.run_id == Run.id, RunMetric.name == name, RunMetric.value.is_not(None))
+    rest = query.where(~valued)
+    if last_id is not None:
+        rest = rest.where(Run.id < last_id if descending else Run.id > last_id)
+    return list(session.scalars(rest.order_by(Run.id.desc() if descending else Run.id.asc()).limit(limit)))
 
 
 def cursor_value(value: Any) -> float | None:

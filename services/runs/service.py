@@ -214,8 +214,7 @@ def list_runs(session: Session, flt: RunFilter) -> tuple[list[Run], str | None]:
         query = query.where(corpus_filters.tag_condition(tag))
     for kind in flt.event:
         query = query.where(corpus_filters.event_condition(kind))
-    query, key, order = _ordered(query, flt)
-    rows = list(session.execute(query.add_columns(key).order_by(*order).limit(flt.limit + 1)))
+    rows = _page(session, query, flt)
     runs = [row[0] for row in rows[: flt.limit]]
     next_cursor = None
     if len(rows) > flt.limit:
@@ -224,23 +223,30 @@ def list_runs(session: Session, flt: RunFilter) -> tuple[list[Run], str | None]:
     return runs, next_cursor
 
 
-def _ordered(query: sa.Select[Any], flt: RunFilter) -> tuple[sa.Select[Any], sa.ColumnElement[Any], tuple[Any, Any]]:
-    """`query` from the cursor on in the filter's sort, with the sort's key and order."""
+def _page(session: Session, query: sa.Select[Any], flt: RunFilter) -> list[tuple[Run, Any]]:
+    """Up to `flt.limit` + 1 runs of `query` from the cursor on in the filter's sort, each with its
+    sort key (what the next cursor carries)."""
     descending = flt.sort.startswith("-")
     sorted_metric = corpus_filters.sort_metric(flt.sort)
     if sorted_metric is not None:  # nulls (runs without the metric) last, either way
-        query, key = corpus_filters.join_metric(query, sorted_metric)
-        if flt.cursor:
-            query = query.where(corpus_filters.after_cursor(key, *_decode_cursor(flt.cursor, flt.sort), descending))
-        return query, key, corpus_filters.order(key, descending)
+        after = _decode_cursor(flt.cursor, flt.sort) if flt.cursor else None
+        return corpus_filters.metric_sorted(session, query, sorted_metric, descending, after, flt.limit + 1)
     key = _sort_key(flt.sort)
     if flt.cursor:
         last_value, last_id = _decode_cursor(flt.cursor, flt.sort)
+        # The first condition bounds the index range (the key is never null); the second is exact.
         if descending:
-            query = query.where(sa.or_(key < last_value, sa.and_(key == last_value, Run.id < last_id)))
+            query = query.where(
+                key <= last_value, sa.or_(key < last_value, sa.and_(key == last_value, Run.id < last_id))
+            )
         else:
-            query = query.where(sa.or_(key > last_value, sa.and_(key == last_value, Run.id > last_id)))
-    return query, key, ((key.desc(), Run.id.desc()) if descending else (key.asc(), Run.id.asc()))
+            query = query.where(
+                key >= last_value, sa.or_(key > last_value, sa.and_(key == last_value, Run.id > last_id))
+            )
+    order = (key.desc(), Run.id.desc()) if descending else (key.asc(), Run.id.asc())
+    return [
+        (run, value) for run, value in session.execute(query.add_columns(key).order_by(*order).limit(flt.limit + 1))
+    ]
 
 
 def list_robots(session: Session) -> list[tuple[Robot, int]]:
