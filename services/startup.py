@@ -74,8 +74,10 @@ def split_addr(addr: str) -> tuple[str, int]:
 
 def listen(host: str, port: int, what: str, setting: str) -> socket.socket:
     """A listening socket for one of the two ports, bound here (not by uvicorn or gRPC) so that a
-    refusal is one line of ours, quick, and before anything else has changed."""
-    sock = socket.socket(_family(host), socket.SOCK_STREAM)
+    refusal is one line of ours, quick, and before anything else has changed. Made as a TCP socket
+    by name: asyncio turns Nagle off (TCP_NODELAY) only on connections of such a socket, and with it
+    on, each answer on a kept-alive connection waited ~40 ms for the client's delayed ACK."""
+    sock = socket.socket(_family(host), socket.SOCK_STREAM, socket.IPPROTO_TCP)
     try:
         # SO_REUSEADDR (as uvicorn sets it) lets a restart bind despite TIME_WAIT connections, but
         # never while another socket listens there. No SO_REUSEPORT: a second server must fail.
