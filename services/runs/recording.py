@@ -61,7 +61,9 @@ def recording_download(
         types, size = hot.timeline_types, hot.size
     else:  # 404 naming the run, 409 for a cold run not restored, 410 for a deleted one
         found = locate_sealed(catalog, warm, run_id, utcnow())
-        types, size = found.timeline_types(), found.size
+        # (its chunk index is read only when a time window needs the run's timelines)
+        windowed = query.timeline is not None or query.start is not None or query.end is not None
+        types, size = found.timeline_types() if windowed else {}, found.size
     window = download.window_from_query(types, query.timeline, query.start, query.end, query.latest_at, query.exact)
     if query.follow and window is not None:
         raise BadParameterError("follow", "follow=true streams what comes next: it takes no time window")

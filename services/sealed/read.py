@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import datetime as dt
 from dataclasses import dataclass
+from functools import cached_property
 
 from sqlalchemy.orm import Session, sessionmaker
 
@@ -23,10 +24,16 @@ from services.storage.objectstore import ObjectStore
 
 @dataclass(frozen=True)
 class SealedRecording:
+    """A sealed run's recording in a store. Its chunk index (`rows`) is read on first use: a whole
+    download needs none of it, and a run of many GB has tens of thousands of rows to parse."""
+
     store: ObjectStore
     prefix: str
     size: int  # of recording.rrd
-    rows: list[IndexRow]
+
+    @cached_property
+    def rows(self) -> list[IndexRow]:
+        return from_parquet(self.store.get_range(f"{self.prefix}/{INDEX}"))
 
     @property
     def key(self) -> str:
@@ -80,5 +87,4 @@ def readable_prefix(run: Run, life: RunLifecycle, now: dt.datetime) -> str:
 
 
 def open_sealed(store: ObjectStore, prefix: str) -> SealedRecording:
-    rows = from_parquet(store.get_range(f"{prefix}/{INDEX}"))
-    return SealedRecording(store, prefix, store.head(f"{prefix}/{RECORDING}").size, rows)
+    return SealedRecording(store, prefix, store.head(f"{prefix}/{RECORDING}").size)

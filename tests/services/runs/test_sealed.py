@@ -223,8 +223,10 @@ def test_unfiltered_warm_download_is_the_sealed_object(tiers: Tiers, make_node: 
     node, run_id = _node(make_node, tiers, runs["wide"])
     prefix = _promote(node, run_id)
     stored = tiers.warm.get_range(f"{prefix}/{RECORDING}")
-    served = b"".join(stream_sealed(open_sealed(tiers.warm, prefix), EntityFilter()))
+    counting = CountingStore(tiers.warm)
+    served = b"".join(stream_sealed(open_sealed(counting, prefix), EntityFilter()))
     assert served == stored and len(stored) > 1_000_000
+    assert not any(key.endswith(INDEX) for key, *_ in counting.reads)  # the chunk index is not needed
     client = TestClient(_app(node))
     response = client.get(f"/v1/runs/{run_id}/recording.rrd")
     assert response.status_code == 200 and response.content == stored
