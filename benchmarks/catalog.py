@@ -129,24 +129,34 @@ def chunk_ids(response: bytes) -> list[bytes]:
     return ids
 
 
+def fetch_chunks_call(channel: grpc.Channel) -> Any:
+    """FetchChunks on `channel`, its answers as bytes (the client's own decoding is not what is measured)."""
+    return channel.unary_stream(
+        SERVICE + "FetchChunks",
+        request_serializer=cloud_pb2.FetchChunksRequest.SerializeToString,
+        response_deserializer=None,
+    )
+
+
+def segment_manifest(channel: grpc.Channel, segment: str, metadata: list[tuple[str, str]]) -> pa.Table:
+    """The segment's RRD manifest, by GetRrdManifest, as one table."""
+    get_manifest = channel.unary_stream(
+        SERVICE + "GetRrdManifest",
+        request_serializer=cloud_pb2.GetRrdManifestRequest.SerializeToString,
+        response_deserializer=cloud_pb2.GetRrdManifestResponse.FromString,
+    )
+    request = cloud_pb2.GetRrdManifestRequest(segment_id=common_pb2.SegmentId(id=segment))
+    parts = list(get_manifest(request, metadata=metadata, timeout=600))
+    return pa.concat_tables([read_manifest(p.rrd_manifest) for p in parts])
+
+
 def open_segment(port: int, entry: str, segment: str, batch_bytes: int) -> dict[str, Any]:
     """GetRrdManifest, then every chunk with FetchChunks: what opening the segment in the viewer asks."""
     metadata = [*CLIENT_VERSION, ("x-rerun-entry-id", entry)]
     with grpc.insecure_channel(f"127.0.0.1:{port}", options=CHANNEL_OPTIONS) as channel:
-        get_manifest = channel.unary_stream(
-            SERVICE + "GetRrdManifest",
-            request_serializer=cloud_pb2.GetRrdManifestRequest.SerializeToString,
-            response_deserializer=cloud_pb2.GetRrdManifestResponse.FromString,
-        )
-        fetch = channel.unary_stream(
-            SERVICE + "FetchChunks",
-            request_serializer=cloud_pb2.FetchChunksRequest.SerializeToString,
-            response_deserializer=None,  # bytes: the client's own decoding is not what is measured
-        )
+        fetch = fetch_chunks_call(channel)
         start = time.perf_counter()
-        request = cloud_pb2.GetRrdManifestRequest(segment_id=common_pb2.SegmentId(id=segment))
-        parts = list(get_manifest(request, metadata=metadata, timeout=600))
-        manifest = pa.concat_tables([read_manifest(p.rrd_manifest) for p in parts])
+        manifest = segment_manifest(channel, segment, metadata)
         manifest_s = time.perf_counter() - start
         wanted = set(manifest.column("chunk_id").to_pylist())
         sizes = manifest.column("chunk_byte_size").to_pylist()
