@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import shutil
 import socket
 import sys
@@ -50,10 +51,13 @@ READY_PROBE = "fleet-ready-probe"
 # Without an S3 config SeaweedFS takes its identity from AWS_* of its environment (the tests set
 # test/test). A signed-only server has one of its own, whose secret no other string of a test holds:
 # a test can look for it where it must not be.
-ACCESS_KEY, SECRET_KEY, SIGNED_ONLY_SECRET_KEY = "test", "test", "weed-secret-key-of-the-tests"
+# Its key id differs too, and it starts without AWS_* in its environment: an identity taken from
+# there besides (a test's test/test) would answer for the same key with another secret.
+ACCESS_KEY, SECRET_KEY = "test", "test"
+SIGNED_ONLY_ACCESS_KEY, SIGNED_ONLY_SECRET_KEY = "signed-only", "weed-secret-key-of-the-tests"
 IDENTITY = {
     "name": "depot",
-    "credentials": [{"accessKey": ACCESS_KEY, "secretKey": SIGNED_ONLY_SECRET_KEY}],
+    "credentials": [{"accessKey": SIGNED_ONLY_ACCESS_KEY, "secretKey": SIGNED_ONLY_SECRET_KEY}],
     "actions": ["Admin", "Read", "Write", "List", "Tagging"],
 }
 
@@ -66,6 +70,7 @@ class SeaweedFS:
         """`signed_only`: requests must be signed with the test credentials (an identity in the S3
         config), as on a real bucket; otherwise anonymous requests are served too."""
         self.data_dir = data_dir
+        self.access_key = SIGNED_ONLY_ACCESS_KEY if signed_only else ACCESS_KEY
         self.secret_key = SIGNED_ONLY_SECRET_KEY if signed_only else SECRET_KEY
         data_dir.mkdir(parents=True, exist_ok=True)
         self.s3, self.master, self.volume, self.filer = (_port_pair() for _ in range(4))
@@ -89,8 +94,13 @@ class SeaweedFS:
             config = data_dir.parent / f"{data_dir.name}-s3.json"
             config.write_text(json.dumps({"identities": [IDENTITY]}))
             argv.append(f"-s3.config={config}")
+        env = {k: v for k, v in os.environ.items() if not k.startswith("AWS_")} if signed_only else None
         self.process = ServerProcess(
-            argv, log=data_dir.parent / f"{data_dir.name}-weed.log", name="weed", ready=answers_http(self.endpoint)
+            argv,
+            log=data_dir.parent / f"{data_dir.name}-weed.log",
+            name="weed",
+            ready=answers_http(self.endpoint),
+            env=env,
         )
 
     @property
@@ -126,7 +136,7 @@ class SeaweedFS:
             "s3",
             endpoint_url=self.endpoint,
             region_name="us-east-1",
-            aws_access_key_id=ACCESS_KEY,
+            aws_access_key_id=self.access_key,
             aws_secret_access_key=self.secret_key,
         )
 

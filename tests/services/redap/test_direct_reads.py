@@ -24,7 +24,7 @@ import pytest
 from services.redap.dataframe import read_dataframe_part
 from services.redap.pb import cloud_pb2
 from services.redap.tuid import Tuid
-from tests.seaweedfs import ACCESS_KEY, SIGNED_ONLY_SECRET_KEY, seaweedfs
+from tests.seaweedfs import SIGNED_ONLY_ACCESS_KEY, SIGNED_ONLY_SECRET_KEY, seaweedfs
 from tests.services.ingest.live_server import LiveServer
 from tests.services.redap.client import Redap
 from tests.services.redap.golden import EVERYTHING, time_range
@@ -74,7 +74,7 @@ def bucket(tmp_path_factory: pytest.TempPathFactory) -> Iterator[str]:
             "s3",
             endpoint_url=endpoint,
             region_name="us-east-1",
-            aws_access_key_id=ACCESS_KEY,
+            aws_access_key_id=SIGNED_ONLY_ACCESS_KEY,
             aws_secret_access_key=SIGNED_ONLY_SECRET_KEY,
         ).create_bucket(Bucket=BUCKET)
         yield endpoint
@@ -85,9 +85,8 @@ def depot(robot_file: Path, bucket: str, tmp_path_factory: pytest.TempPathFactor
     """`fleet serve` with auth on and direct reads, the robot's run uploaded and sealed into the
     bucket; yields it and a read token."""
     saved = {k: os.environ.get(k) for k in ("AWS_ACCESS_KEY_ID", "AWS_SECRET_ACCESS_KEY", "AWS_DEFAULT_REGION")}
-    os.environ.update(
-        AWS_ACCESS_KEY_ID=ACCESS_KEY, AWS_SECRET_ACCESS_KEY=SIGNED_ONLY_SECRET_KEY, AWS_DEFAULT_REGION="us-east-1"
-    )
+    os.environ.update(AWS_ACCESS_KEY_ID=SIGNED_ONLY_ACCESS_KEY, AWS_DEFAULT_REGION="us-east-1")
+    os.environ["AWS_SECRET_ACCESS_KEY"] = SIGNED_ONLY_SECRET_KEY
     server = LiveServer(
         tmp_path_factory.mktemp("depot") / "data",
         auth="on",
