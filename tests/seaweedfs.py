@@ -109,7 +109,11 @@ class SeaweedFS:
 
     def start(self, timeout: float = 60) -> SeaweedFS:
         self.process.start(timeout)
-        self._wait_for_buckets(timeout)
+        try:
+            self._wait_for_buckets(timeout)
+        except BaseException:
+            self.stop()  # a server that never became ready is not left running
+            raise
         return self
 
     def _wait_for_buckets(self, timeout: float) -> None:
