@@ -9,6 +9,7 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 
 import sqlalchemy as sa
+from sqlalchemy.orm import Session
 
 PG_ADMIN_URL = os.environ.get("FLEET_TEST_PG_URL", "postgresql+psycopg://postgres@127.0.0.1:5432/test")
 
@@ -54,3 +55,25 @@ def temporary_database(prefix: str, *, template: str | None = None) -> Iterator[
         with admin.connect() as conn:
             conn.execute(sa.text(f'DROP DATABASE IF EXISTS "{name}" WITH (FORCE)'))
         admin.dispose()
+
+
+@contextmanager
+def index_only_session(url: str) -> Iterator[Session]:
+    """A session on the Postgres catalog at `url`, migrated, in a transaction rolled back afterwards,
+    where the planner may neither scan a table whole nor sort: a statement that cannot be answered
+    from an index then shows it in its plan."""
+    from catalog.db import create_engine, upgrade
+
+    engine = create_engine(url)
+    upgrade(engine)
+    with engine.connect() as conn:
+        outer = conn.begin()
+        conn.exec_driver_sql("SET LOCAL enable_seqscan = off")
+        conn.exec_driver_sql("SET LOCAL enable_sort = off")
+        session = Session(bind=conn, join_transaction_mode="rollback_only")
+        try:
+            yield session
+        finally:
+            session.close()
+            outer.rollback()
+            engine.dispose()

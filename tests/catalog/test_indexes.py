@@ -17,6 +17,7 @@ from catalog.db import alembic_config, create_engine
 from catalog.db import upgrade as upgrade_catalog
 from catalog.models import Run
 from core.states import Tier
+from tests.postgres import index_only_session
 
 NEW = {
     "runs": {
@@ -74,21 +75,9 @@ def test_0016_indexes_postgres_and_leaves_the_embedded_catalog_with_primary_keys
 
 @pytest.fixture
 def pg_session(postgres_url: str) -> Iterator[Session]:
-    """A session on a migrated Postgres catalog, in a transaction rolled back afterwards, where the
-    planner may not scan a table whole or sort: a query that cannot read an index then shows it."""
-    engine = create_engine(postgres_url)
-    upgrade_catalog(engine)
-    with engine.connect() as conn:
-        outer = conn.begin()
-        conn.exec_driver_sql("SET LOCAL enable_seqscan = off")
-        conn.exec_driver_sql("SET LOCAL enable_sort = off")
-        session = Session(bind=conn, join_transaction_mode="rollback_only")
-        try:
-            yield session
-        finally:
-            session.close()
-            outer.rollback()
-            engine.dispose()
+    """A session on a migrated Postgres catalog where a query that cannot read an index shows it."""
+    with index_only_session(postgres_url) as session:
+        yield session
 
 
 def _plan(session: Session, query: sa.Select[Any]) -> str:

@@ -14,36 +14,25 @@ import sqlalchemy as sa
 from sqlalchemy.orm import Session, sessionmaker
 
 from catalog import queries
-from catalog.db import create_engine, session_scope, upgrade
+from catalog.db import session_scope
 from catalog.models import Robot
 from services.runs import fleet
 from services.runs.service import RunFilter, list_runs
 from tests.catalog.records import run_record
+from tests.postgres import index_only_session
 
 AT = dt.datetime(2026, 12, 5, 12, 0, tzinfo=dt.UTC)
 
 
 @pytest.fixture
 def planner(postgres_url: str) -> Iterator[Session]:
-    """A session on a migrated Postgres catalog holding a few runs, in a transaction rolled back
-    afterwards, where the planner may neither scan a table whole nor sort: a statement that cannot
-    be answered from an index then shows it in its plan."""
-    engine = create_engine(postgres_url)
-    upgrade(engine)
-    with engine.connect() as conn:
-        outer = conn.begin()
-        session = Session(bind=conn, join_transaction_mode="rollback_only")
+    """A session on a migrated Postgres catalog holding a few runs, where a statement that cannot be
+    answered from an index shows it in its plan (`tests.postgres.index_only_session`)."""
+    with index_only_session(postgres_url) as session:
         for n in range(3):
             queries.save_run(session, run_record(f"run-{n}", AT - dt.timedelta(hours=n), bytes=n), AT)
         session.flush()
-        conn.exec_driver_sql("SET LOCAL enable_seqscan = off")
-        conn.exec_driver_sql("SET LOCAL enable_sort = off")
-        try:
-            yield session
-        finally:
-            session.close()
-            outer.rollback()
-            engine.dispose()
+        yield session
 
 
 def _plans(session: Session, call: Callable[[], Any]) -> list[str]:
