@@ -52,11 +52,12 @@ back the warm copy's space; the SDK's file beside its uploaded hot copy), so 2 x
    (`RecordingStream.save`), then `POST /v1/uploads` of it by curl to another fresh `fleet serve`,
    once everything above is done and removed.
 
-The server is restarted (same data, same ports) before the whole download, the windows, archive
-and restore, so that each step's peak RSS is a fresh server's plus what the step itself needs, not
-what earlier steps left in its heap (`--one-server`: one process throughout, as in production,
-where that drift shows). Not before promotion: a server that starts with a hot run holds all of
-its messages in memory while it recovers it (services/hot/store.py): 1.2 GB for a 1 GB run.
+The server is restarted (same data, same ports) before promotion, the whole download, the windows,
+archive and restore, so that each step's peak RSS is a fresh server's plus what the step itself
+needs, not what earlier steps left in its heap (`--one-server`: one process throughout, as in
+production, where that drift shows). The restart before promotion recovers the hot run from disk,
+as a node does after a crash: its RSS at start shows what that costs (a few messages, whatever the
+run's size).
 
 For each step: MB, seconds, MB/s, the store's raw MB/s and the ratio where there is one, the
 server's CPU seconds, its RSS at the step's start, its peak during the step (VmHWM reset at the
@@ -179,7 +180,7 @@ class Depot:
             count = lambda n: done.__setitem__(0, done[0] + n)  # noqa: E731
             self.client.upload_file(str(hot), SCRATCH, "put", Config=TRANSFER, Callback=count)
         steps.drop_bucket(self.client, SCRATCH)
-        # No restart here: a server starting with a hot run reads all of it into memory first.
+        restart = self.fresh()  # the hot run recovered from disk, as after a crash
         with Step("promotion", self.server.pid, size, self.stored()) as st:
             answer = httpx.post(f"{self.base}/v1/runs/{self.run_id}/promote", timeout=LIMIT_S)
         if answer.status_code != 200:
@@ -187,7 +188,11 @@ class Depot:
         key = sealed_key(self.client, self.run_id)
         sealed = int(self.client.head_object(Bucket=BUCKET, Key=key)["ContentLength"])
         hot_left = steps.tree_bytes(self.server.data_dir / "hot")
-        self.out.append(st.result(sealed, size / MB / raw.seconds, detail=answer.json()["detail"], hot_left=hot_left))
+        self.out.append(
+            st.result(
+                sealed, size / MB / raw.seconds, detail=answer.json()["detail"], hot_left=hot_left, restart=restart
+            )
+        )
         return key, sealed
 
     def download(self, key: str, sealed: int) -> None:

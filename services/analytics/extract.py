@@ -1,7 +1,9 @@
 """Analytics tables extracted from a run's chunks: scalars, text logs and transforms, as Parquet.
 
 One pass over the chunks (the same pass that seals the run); only chunks holding one of these
-archetypes are decoded. Every table has `run_id`, `entity`, `log_time` and one column per other
+archetypes are decoded. Sealing writes each table to a Parquet file as its rows come, SPILL_ROWS at
+a time, so its memory does not grow with the run (`Extractor(spill_dir=...)`); queries over a hot
+run keep them in memory. Every table has `run_id`, `entity`, `log_time` and one column per other
 timeline of the run (named after it; `timeline_NAME` if the name is taken). Robot and date are
 not stored in the files: they are the Hive partition (`robot_id=R/date=D/`) the file lies in.
 """
@@ -10,7 +12,6 @@ from __future__ import annotations
 
 import io
 import logging
-from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -57,12 +58,18 @@ def _interesting(meta: ChunkMeta) -> bool:
     return SCALARS in names or TEXT in names or TRANSLATION in names or QUATERNION in names or AXIS_ANGLE in names
 
 
-@dataclass
-class Extractor:
-    """Collects the analytics rows of one run, chunk by chunk."""
+# Rows of a table held before they go to its file: a copy of them, and the chunks their columns came
+# from (their values are slices of the chunk's buffers until the copy), a few MB.
+SPILL_ROWS = 1 << 16
 
-    run_id: str
-    batches: dict[str, list[pa.Table]] = field(default_factory=lambda: {t: [] for t in TABLES})
+
+class Extractor:
+    """Collects the analytics rows of one run, chunk by chunk: in memory (`tables()`), or written to
+    Parquet files in `spill_dir` as they come (`files()`)."""
+
+    def __init__(self, run_id: str, spill_dir: Path | None = None) -> None:
+        self.run_id = run_id
+        self._tables = {t: _TableRows(spill_dir / f"{t}.parquet" if spill_dir else None) for t in TABLES}
 
     def add(self, msg: ArrowMessage, meta: ChunkMeta) -> None:
         if meta.is_static or not _interesting(meta) or meta.entity_path.startswith("/__properties"):
@@ -81,6 +88,10 @@ class Extractor:
             self._text_logs(meta.entity_path, columns[TEXT], columns.get(LEVEL), times)
         if TRANSLATION in columns or QUATERNION in columns or AXIS_ANGLE in columns:
             self._transforms(meta.entity_path, columns, times)
+
+    def append(self, table: str, rows: pa.Table) -> None:
+        """Rows of one of the TABLES, as extraction makes them."""
+        self._tables[table].add(rows)
 
     def _scalars(self, entity: str, column: pa.Array, times: dict[str, pa.Array]) -> None:
         values = pc.list_flatten(column)
@@ -150,18 +161,91 @@ class Extractor:
             clash = name in FIXED_COLUMNS[table] or name in PARTITION_COLUMNS
             column = f"timeline_{name}" if clash and name != LOG_TIME else name
             columns[column] = values.take(taken)
-        self.batches[table].append(pa.table(columns))
+        self.append(table, pa.table(columns))
 
     def tables(self) -> dict[str, pa.Table]:
         """Each non-empty table, its per-chunk pieces unified (runs may add timelines as they go)."""
-        return {
-            name: pa.concat_tables(parts, promote_options="permissive") for name, parts in self.batches.items() if parts
-        }
+        tables = {name: rows.table() for name, rows in self._tables.items()}
+        return {name: table for name, table in tables.items() if table is not None}
+
+    def files(self) -> dict[str, Path]:
+        """Each non-empty table's Parquet file, finished (spilling extractors only)."""
+        files = {name: rows.finish() for name, rows in self._tables.items()}
+        return {name: path for name, path in files.items() if path is not None}
 
 
-def extract_file(run_id: str, path: Path, size: int) -> Extractor:
+class _TableRows:
+    """One table's rows: held, or written to `path` SPILL_ROWS at a time. A piece whose columns differ
+    from the file's (a timeline that appeared later) starts a part file of its own; `finish` merges
+    the parts into one file with every column, a row group at a time."""
+
+    def __init__(self, path: Path | None) -> None:
+        self.path = path
+        self._held: list[pa.Table] = []
+        self._held_rows = 0
+        self._parts: list[Path] = []
+        self._writer: pq.ParquetWriter | None = None
+
+    def add(self, rows: pa.Table) -> None:
+        self._held.append(rows)
+        self._held_rows += rows.num_rows
+        if self.path is not None and self._held_rows >= SPILL_ROWS:
+            self._spill()
+
+    def table(self) -> pa.Table | None:
+        return pa.concat_tables(self._held, promote_options="permissive") if self._held else None
+
+    def _spill(self) -> None:
+        assert self.path is not None
+        table = pa.concat_tables(self._held, promote_options="permissive").combine_chunks()  # a copy
+        self._held, self._held_rows = [], 0
+        if self._writer is None or not self._writer.schema.equals(table.schema):
+            self._close_part()
+            part = self.path.with_name(f"{self.path.stem}.part{len(self._parts)}")
+            self._parts.append(part)
+            self._writer = pq.ParquetWriter(part, table.schema, compression="zstd")
+        self._writer.write_table(table)
+
+    def _close_part(self) -> None:
+        if self._writer is not None:
+            self._writer.close()
+            self._writer = None
+
+    def finish(self) -> Path | None:
+        assert self.path is not None, "files() is for an Extractor with a spill_dir"
+        if self._held:
+            self._spill()
+        self._close_part()
+        if not self._parts:
+            return None
+        if len(self._parts) == 1:
+            self._parts[0].replace(self.path)
+        else:
+            _merge(self._parts, self.path)
+        self._parts = []
+        return self.path
+
+
+def _merge(parts: list[Path], path: Path) -> None:
+    """Parquet files of one table, with columns that differ, as one file with all of them (nulls
+    where a part lacks one), in order."""
+    schema = pa.unify_schemas([pq.read_schema(p) for p in parts], promote_options="permissive")
+    with pq.ParquetWriter(path, schema, compression="zstd") as writer:
+        for part in parts:
+            for batch in pq.ParquetFile(part).iter_batches():
+                columns = [
+                    batch.column(f.name).cast(f.type)
+                    if f.name in batch.schema.names
+                    else pa.nulls(batch.num_rows, f.type)
+                    for f in schema
+                ]
+                writer.write_table(pa.Table.from_arrays(columns, schema=schema))
+            part.unlink()
+
+
+def extract_file(run_id: str, path: Path, size: int, spill_dir: Path | None = None) -> Extractor:
     """The analytics rows of a hot run's file, its first `size` bytes (the recording's chunks)."""
-    extractor = Extractor(run_id)
+    extractor = Extractor(run_id, spill_dir)
     for event in read_events(path, size):
         if isinstance(event, ArrowMessage) and event.store_id.kind == StoreKind.RECORDING:
             extractor.add(event, chunk_meta(event))

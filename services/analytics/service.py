@@ -8,6 +8,7 @@ import decimal
 import functools
 import io
 import json
+import tempfile
 import threading
 from collections.abc import Iterable
 from dataclasses import dataclass, field
@@ -250,9 +251,10 @@ def extract_hot_run(ctx: Analytics, ingest: IngestService, run_id: str) -> list[
     run = ingest.hot_run(run_id)
     if run is None:
         raise queries.run_not_found(run_id)
-    extractor = extract_file(run_id, run.path, run.size)
     record = run.record(ctx.node.default_robot)
-    objects = write_analytics(ctx.warm, extractor, record.robot_id, record.date.isoformat())
+    with tempfile.TemporaryDirectory(prefix="fleet-analytics-") as spill:
+        files = extract_file(run_id, run.path, run.size, Path(spill)).files()
+        objects = write_analytics(ctx.warm, files, run_id, record.robot_id, record.date.isoformat())
     with session_scope(ctx.catalog, write=True) as session:  # the catalog lists each run's one copy
         stale = queries.replace_analytics(session, run_id, objects)
     for key in stale:  # written before under another robot or date

@@ -30,7 +30,7 @@ import logging
 import os
 import struct
 import zlib
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -237,37 +237,105 @@ class HotIndexWriter:
     # --- recovery ---------------------------------------------------------------------------
 
     @classmethod
-    def recover(cls, directory: Path, events: Sequence[Event]) -> HotIndexWriter:
+    def recover(cls, directory: Path, events: Iterable[Event]) -> HotIndexWriter:
         """The index of a run file reopened after a restart (`events`: every whole message it still
-        holds): the records that match those messages are kept, the rest cut, and the messages
-        they lack indexed again."""
+        holds, read as they come, none kept): the records that match those messages are kept, the
+        rest cut, and the messages they lack indexed again."""
         path = directory / INDEX_FILE
-        frames = [e for e in events if not isinstance(e, StreamStart)]
-        start = frames[0].offset if frames else STREAM_HEADER_SIZE
-        kept, cut_at, next_layout = _matching_records(path, frames)
-        if cut_at is None:
+        matcher = _RecordMatcher(path)
+        start: int | None = None
+        lacking: list[_Unindexed] = []
+        for event in events:
+            if isinstance(event, StreamStart):
+                continue
+            if start is None:
+                start = event.offset
+            if not lacking and matcher.matches(event):
+                continue
+            if lacking and lacking[-1].unreadable:
+                continue  # the index stops at an unreadable chunk: what follows is read from the file
+            lacking.append(_Unindexed.of(event))
+        start = STREAM_HEADER_SIZE if start is None else start
+        if matcher.cut_at is None:
             writer = cls.create(directory, start)
         else:
             fd = os.open(path, os.O_WRONLY | os.O_APPEND)
-            os.ftruncate(fd, cut_at)
-            covered = frames[kept - 1].offset + _frame_length(frames[kept - 1]) if kept else start
-            writer = cls(path, fd, covered, cut_at, next_layout)
-        if kept < len(frames):
-            log.info("hot run %s: indexing %d messages its chunk index lacks", directory.name, len(frames) - kept)
-            writer._index_events(frames[kept:])
+            os.ftruncate(fd, matcher.cut_at)
+            writer = cls(path, fd, matcher.covered or start, matcher.cut_at, matcher.next_layout)
+        if lacking:
+            log.info("hot run %s: indexing %d messages its chunk index lacks", directory.name, len(lacking))
+            writer._index_lacking(lacking)
         return writer
 
-    def _index_events(self, events: Sequence[Event]) -> None:
-        for event in events:
-            store_kind = _store_kind(event)
-            meta = None
-            if isinstance(event, ArrowMessage):
-                try:
-                    meta = chunk_meta(event)
-                except rrd_errors.RrdError as exc:
-                    self.stop(f"its chunk at byte {event.offset} is unreadable ({exc})")
-                    return
-            self.add(int(getattr(event, "kind", MessageKind.END)), store_kind, event.offset, _frame_length(event), meta)
+    def _index_lacking(self, lacking: Sequence[_Unindexed]) -> None:
+        for item in lacking:
+            if item.unreadable:
+                self.stop(item.unreadable)
+                return
+            self.add(item.kind, item.store_kind, item.offset, item.length, item.meta)
+
+
+@dataclass(frozen=True)
+class _Unindexed:
+    """A message of a recovered run file that its index lacks: what indexing it takes, without its
+    bytes (a recovered run is read once, as it streams by)."""
+
+    kind: int
+    store_kind: StoreKind
+    offset: int
+    length: int
+    meta: ChunkMeta | None
+    unreadable: str = ""  # why its chunk cannot be indexed
+
+    @classmethod
+    def of(cls, event: Event) -> _Unindexed:
+        kind, store_kind, length = (
+            int(getattr(event, "kind", MessageKind.END)),
+            _store_kind(event),
+            _frame_length(event),
+        )
+        if not isinstance(event, ArrowMessage):
+            return cls(kind, store_kind, event.offset, length, None)
+        try:
+            return cls(kind, store_kind, event.offset, length, chunk_meta(event))
+        except rrd_errors.RrdError as exc:
+            return cls(
+                kind, store_kind, event.offset, length, None, f"its chunk at byte {event.offset} is unreadable ({exc})"
+            )
+
+
+class _RecordMatcher:
+    """Walks an index file's records beside the run file's messages, in step, while they match."""
+
+    def __init__(self, path: Path) -> None:
+        try:
+            data = path.read_bytes()
+        except OSError:
+            data = b""
+        self.cut_at: int | None = None  # where the file is cut after the matching records (None: start anew)
+        self.covered = 0  # the end of the last message matched
+        self.next_layout = 0
+        self._records: Iterator[tuple[int, bytes]] | None = None
+        if data.startswith(MAGIC):
+            self.cut_at = len(MAGIC)
+            self._records = index_records(data)
+
+    def matches(self, event: Event) -> bool:
+        """Whether the next record describes `event`; once one does not, none is looked at again."""
+        if self._records is None:
+            return False
+        for end, payload in self._records:
+            if payload[:1] == b"L":
+                if len(payload) < _LAYOUT.size:
+                    break
+                self.next_layout = max(self.next_layout, _LAYOUT.unpack_from(payload)[1] + 1)
+                continue
+            if not _describes(payload, event):
+                break
+            self.cut_at, self.covered = end, event.offset + _frame_length(event)
+            return True
+        self._records = None
+        return False
 
 
 def _frame_length(event: Event) -> int:
@@ -278,29 +346,6 @@ def _store_kind(event: Event) -> StoreKind:
     if isinstance(event, StoreInfoMessage | ArrowMessage):
         return event.store_id.kind
     return StoreKind.BLUEPRINT
-
-
-def _matching_records(path: Path, frames: Sequence[Event]) -> tuple[int, int | None, int]:
-    """(how many records describe `frames` from the first on, where the file is cut after them
-    (None: start a new file), the next free layout id)."""
-    try:
-        data = path.read_bytes()
-    except OSError:
-        return 0, None, 0
-    if not data.startswith(MAGIC):
-        return 0, None, 0
-    kept, cut_at, next_layout = 0, len(MAGIC), 0
-    for end, payload in index_records(data):
-        kind = payload[:1]
-        if kind == b"L":
-            if len(payload) < _LAYOUT.size:
-                break
-            next_layout = max(next_layout, _LAYOUT.unpack_from(payload)[1] + 1)
-            continue
-        if kept >= len(frames) or not _describes(payload, frames[kept]):
-            break
-        kept, cut_at = kept + 1, end
-    return kept, cut_at, next_layout
 
 
 def _describes(payload: bytes, event: Event) -> bool:

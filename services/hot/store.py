@@ -146,30 +146,26 @@ class HotRun:
         return cls(directory, fd, len(header), robot, HotIndexWriter.create(directory, len(header)))
 
     @classmethod
-    def recover(cls, directory: Path) -> tuple[HotRun, list[Event]]:
+    def recover(cls, directory: Path) -> HotRun:
         """Reopen a run after a restart: every whole message is kept, a torn tail is cut off, and
-        the chunk index made to match what is kept."""
+        the chunk index made to match what is kept. The file is read once as it streams by, so a
+        run of any size recovers in the memory of a few messages."""
         path = directory / RUN_FILE
-        events: list[Event] = []
-        good = 0
-        try:
-            for event in iter_events(path):
-                events.append(event)
-                good = _end_of(event)
-        except rrd_errors.TruncatedError:
-            pass  # a crash cut the last message: everything before it is kept
-        except rrd_errors.RrdError as exc:
-            log.error(
-                "hot run %s is damaged at byte %d (%s): keeping what precedes it", directory.name, exc.offset, exc
-            )
+        messages = _WholeMessages(path)
+        index = HotIndexWriter.recover(directory, messages)
         size = path.stat().st_size
-        if good < size:
-            log.warning("hot run %s: cut a torn tail of %d bytes at byte %d", directory.name, size - good, good)
-            os.truncate(path, good)
+        if messages.good < size:
+            log.warning(
+                "hot run %s: cut a torn tail of %d bytes at byte %d",
+                directory.name,
+                size - messages.good,
+                messages.good,
+            )
+            os.truncate(path, messages.good)
         fd = os.open(path, os.O_WRONLY | os.O_APPEND)
         robot_file = directory / ROBOT_FILE
         robot = robot_file.read_text().strip() or None if robot_file.is_file() else None
-        return cls(directory, fd, good, robot, HotIndexWriter.recover(directory, events)), events
+        return cls(directory, fd, messages.good, robot, index)
 
     def append(
         self, kind: int, raw: Buffer, store_kind: StoreKind = StoreKind.RECORDING, meta: ChunkMeta | None = None
@@ -284,10 +280,10 @@ class HotStore:
         self.runs[run_id] = run
         return run
 
-    def recover(self, directory: Path) -> tuple[HotRun, list[Event]]:
-        run, events = HotRun.recover(directory)
+    def recover(self, directory: Path) -> HotRun:
+        run = HotRun.recover(directory)
         self.runs[run.run_id] = run
-        return run, events
+        return run
 
     def check_space(self, incoming: int) -> None:
         """Refuse new data before the disk fills (INSUFFICIENT_STORAGE: HTTP 507, gRPC RESOURCE_EXHAUSTED).
@@ -346,3 +342,27 @@ class HotStore:
         for run in self.runs.values():
             run.close()
         self.runs.clear()
+
+
+class _WholeMessages:
+    """The events of a run file up to its first torn or damaged message; `good` is where the last
+    whole one ends once they have been read."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        self.good = 0
+
+    def __iter__(self) -> Iterator[Event]:
+        try:
+            for event in iter_events(self.path):
+                self.good = _end_of(event)  # decoded: whole
+                yield event
+        except rrd_errors.TruncatedError:
+            pass  # a crash cut the last message: everything before it is kept
+        except rrd_errors.RrdError as exc:
+            log.error(
+                "hot run %s is damaged at byte %d (%s): keeping what precedes it",
+                self.path.parent.name,
+                exc.offset,
+                exc,
+            )

@@ -37,7 +37,7 @@ from services.cluster.relay import Channels
 from services.facts.identity import IDENTITY_PROPERTY, ROBOT_FIELD, SecretFields, check_robot, read_property_chunk
 from services.facts.run import LOG_TIME, RunFacts, check_chunk_names, store_key
 from services.facts.sealed import SealedInfo, SealedLookup
-from services.hot.read import HotRecording
+from services.hot.read import HotRecording, read_events
 from services.hot.store import HotStore
 from services.ingest.catalog_sync import CatalogSync
 from services.ingest.replay import ReplayHub
@@ -645,11 +645,11 @@ class IngestService:
         recovered = []
         self.hot.sweep()
         for directory in self.hot.existing():
-            hot, events = self.hot.recover(directory)
+            hot = self.hot.recover(directory)
             mtime = dt.datetime.fromtimestamp(hot.path.stat().st_mtime, dt.UTC)
             run = self.runs[hot.run_id] = IngestRun(hot, mtime, self.secret_fields)
             run.robot_id = hot.robot  # the robot of the token that started it, if its messages name none
-            for event in events:
+            for event in read_events(hot.path, hot.size):  # read again as it streams: none kept
                 run.replay(event, mtime)
             # No stream survives a restart (the SDK never reconnects): what follows comes by upload.
             run.last_data_at, run.status, run.ended_at = mtime, RunStatus.CLOSED, mtime

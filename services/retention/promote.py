@@ -274,7 +274,7 @@ def _seal_and_switch(
         download_warm(tiers, f"{prefix}/{RECORDING}", base)
         sources.append(iter(iter_events(base)))
     sources.append(read_events(run.path, run.size))
-    analytics = Extractor(run.run_id)
+    analytics = Extractor(run.run_id, spill_dir=workdir)  # written to files there as the rows come
     filed = run.record(node.default_robot)  # sealing keeps the robot and date the run was filed under
     prefix = prefix or run_prefix(filed.robot_id, filed.date, run.run_id)
     # (1) and (2): sealed straight into the store, the upload with checksums the store verifies
@@ -287,7 +287,7 @@ def _seal_and_switch(
         ObjectRecord(INDEX, f"{prefix}/{INDEX}", Tier.WARM, len(sealed.index), sealed.index_sha256),
     ]
     tiers.warm.put(objects[1].key, sealed.index)
-    objects += write_analytics(tiers.warm, analytics, record.robot_id, record.date.isoformat())
+    objects += write_analytics(tiers.warm, analytics.files(), run.run_id, record.robot_id, record.date.isoformat())
     for obj in objects:  # (3)
         held = tiers.warm.head(obj.key).size
         if held != obj.size:

@@ -8,7 +8,9 @@ file), so whoever selects chunks (downloads, the catalog server) treats both ali
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from dataclasses import dataclass
+from typing import Any
 
 from services.rrd.chunk import ChunkMeta
 from services.rrd.messages import StoreKind
@@ -60,6 +62,16 @@ class IndexRow:
     @property
     def end(self) -> int:
         return self.offset + self.length
+
+
+class IndexRows(list[IndexRow]):
+    """A run's index rows, in file order, with what readers work out from them once (`derived`, by
+    a key each reader owns), kept as long as the rows are: a sealed run's parsed index is cached
+    and asked for window after window, and planning one goes over every row."""
+
+    def __init__(self, rows: Iterable[IndexRow] = ()) -> None:
+        super().__init__(rows)
+        self.derived: dict[str, Any] = {}
 
 
 def store_kind_name(kind: StoreKind) -> str:

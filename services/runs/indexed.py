@@ -16,14 +16,14 @@ no chunk id, gets it appended, as in any download).
 from __future__ import annotations
 
 import os
-from collections.abc import Callable, Iterable, Iterator, Mapping
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from functools import cached_property
 
 from core.errors import UnavailableError
 from services.hot.read import HotRecording
 from services.rrd.chunk import ChunkMeta, chunk_meta
-from services.rrd.chunk_index import BLUEPRINT_ACTIVATION, CHUNK, STORE_INFO, IndexRow
+from services.rrd.chunk_index import BLUEPRINT_ACTIVATION, CHUNK, STORE_INFO, IndexRow, IndexRows
 from services.rrd.decoder import decode_message
 from services.rrd.frames import MESSAGE_HEADER_SIZE, STREAM_HEADER_SIZE, decode_message_header, decode_stream_header
 from services.rrd.messages import ArrowMessage, Event, StreamStart
@@ -110,8 +110,9 @@ def stream_indexed(
     keep: set[bytes] | None = None
     picks: dict[bytes, set[int]] = {}
     if window is not None:  # planned over every chunk before the first is read
-        rows = list(rows)
-        keep, picks = plan_window(recording, rows, entities, window)
+        listed = rows if isinstance(rows, IndexRows) else IndexRows(rows)  # the plan is kept with them
+        keep, picks = plan_window(recording, listed, entities, window)
+        rows = _PlanIndex.of(listed).candidates(entities, keep)
     yield from encode_run(
         read_events(recording, choose_rows(rows, entities, blueprint, keep)),
         entities,
@@ -167,13 +168,67 @@ def _checked(hot: HotRecording, rows: Iterable[IndexRow]) -> Iterator[IndexRow]:
         raise UnavailableError(f"run {hot.path.parent.name!r} was sealed while it was being read: try again")
 
 
+@dataclass
+class _PlanIndex:
+    """A run's index rows arranged for planning windows: positions of the chunks of each entity, of
+    the rows every download keeps, and each chunk's entry on a timeline once it was needed. Kept
+    with a sealed run's cached index (`IndexRows.derived`), so a window of a run of many GB goes over
+    the chunks of the entities it asks for, not over every row of the run."""
+
+    rows: Sequence[IndexRow]
+    by_entity: dict[str, list[int]]  # recording chunks
+    blueprint_chunks: list[int]
+    others: list[int]  # store infos and blueprint activations
+    entries: dict[str, dict[int, ChunkEntry]] = field(default_factory=dict)  # timeline -> position -> entry
+
+    @classmethod
+    def of(cls, rows: Iterable[IndexRow]) -> _PlanIndex:
+        derived = rows.derived if isinstance(rows, IndexRows) else None
+        found = derived.get("window_plan") if derived is not None else None
+        if isinstance(found, _PlanIndex):
+            return found
+        listed = rows if isinstance(rows, Sequence) else list(rows)
+        by_entity: dict[str, list[int]] = {}
+        blueprint_chunks, others = [], []
+        for i, row in enumerate(listed):
+            if row.kind != CHUNK:
+                others.append(i)
+            elif row.store_kind == "recording":
+                by_entity.setdefault(row.entity_path or "", []).append(i)
+            else:
+                blueprint_chunks.append(i)
+        plan = cls(listed, by_entity, blueprint_chunks, others)
+        if derived is not None:
+            derived["window_plan"] = plan
+        return plan
+
+    def chunks(self, entities: EntityFilter) -> list[int]:
+        """Positions of the chunks a window of these entities chooses from (blueprints' too), in order."""
+        chosen = [i for entity, positions in self.by_entity.items() if entities(entity) for i in positions]
+        return sorted(chosen + self.blueprint_chunks)
+
+    def entries_on(self, timeline: str, positions: list[int]) -> list[ChunkEntry]:
+        known = self.entries.setdefault(timeline, {})
+        for i in positions:
+            if i not in known:
+                known[i] = _entry(self.rows[i], timeline)
+        return [known[i] for i in positions]
+
+    def candidates(self, entities: EntityFilter, keep: set[bytes]) -> list[IndexRow]:
+        """The rows a download of the chunks in `keep` chooses from (`choose_rows`), in file order."""
+        kept = [i for i in self.chunks(entities) if self.rows[i].chunk_id in keep]
+        return [self.rows[i] for i in sorted(self.others + kept)]
+
+
 def plan_window(
-    recording: IndexedRecording, rows: list[IndexRow], entities: EntityFilter, window: TimeWindow
+    recording: IndexedRecording, rows: Iterable[IndexRow], entities: EntityFilter, window: TimeWindow
 ) -> tuple[set[bytes], dict[bytes, set[int]]]:
     """The chunk ids a windowed download keeps, and for an exact one the latest-at rows of each chunk:
     only the candidate chunks are read (ranged reads), and with an index from before per-component
     ranges also the chunks whose ranges matter."""
-    chunks = [r for r in rows if r.kind == CHUNK and (r.store_kind != "recording" or entities(r.entity_path or ""))]
+    plan = _PlanIndex.of(rows)
+    positions = plan.chunks(entities)
+    chunks = [plan.rows[i] for i in positions]
 
     def read(ids: set[bytes]) -> Iterator[tuple[ArrowMessage, ChunkMeta]]:
         for event in read_events(recording, [r for r in chunks if r.chunk_id in ids]):
@@ -185,7 +240,7 @@ def plan_window(
         return [ChunkEntry.of_meta(metas[e.chunk_id], True, window.timeline) for e in entries if e.chunk_id in metas]
 
     keep, candidates = select_chunks(
-        [_entry(r, window.timeline) for r in chunks], window.bounds, window.latest_at, resolve
+        plan.entries_on(window.timeline, positions), window.bounds, window.latest_at, resolve
     )
     picks = pick_rows(read(candidates), window.timeline, window.bounds[0]) if window.exact and candidates else {}
     return keep, picks

@@ -18,7 +18,8 @@ from catalog.models import Run, RunLifecycle
 from core.clock import aware
 from core.errors import ConflictError, GoneError
 from core.states import RestoreState, Tier
-from services.sealed.index import CHUNK, IndexRow, from_parquet
+from services.rrd.chunk_index import IndexRows
+from services.sealed.index import CHUNK, from_parquet
 from services.sealed.tiers import readable_when_cold
 from services.sealed.write import INDEX, RECORDING
 from services.storage.objectstore import ObjectStore
@@ -27,7 +28,7 @@ from services.storage.objectstore import ObjectStore
 # windows asked one after another (a viewer, a dataset export) parse its index once. A run of 5 GB
 # has about 3,000 rows, which take 60 us each to parse.
 CACHED_INDEX_ROWS = 30_000
-_indexes: LRUCache[tuple[str, str, int, str], list[IndexRow]] = LRUCache(CACHED_INDEX_ROWS, getsizeof=len)
+_indexes: LRUCache[tuple[str, str, int, str], IndexRows] = LRUCache(CACHED_INDEX_ROWS, getsizeof=len)
 _indexes_lock = threading.Lock()
 
 
@@ -42,12 +43,12 @@ class SealedRecording:
     version: str = ""  # what tells this recording from one sealed again under the prefix (etag, time)
 
     @cached_property
-    def rows(self) -> list[IndexRow]:
+    def rows(self) -> IndexRows:
         key = (self.store.url, self.prefix, self.size, self.version)
         with _indexes_lock:
             found = _indexes.get(key) if self.version else None
         if found is None:
-            found = from_parquet(self.store.get_range(f"{self.prefix}/{INDEX}"))
+            found = IndexRows(from_parquet(self.store.get_range(f"{self.prefix}/{INDEX}")))
             if self.version and len(found) <= CACHED_INDEX_ROWS:
                 with _indexes_lock:
                     _indexes[key] = found
@@ -58,7 +59,13 @@ class SealedRecording:
         return f"{self.prefix}/{RECORDING}"
 
     def timeline_types(self) -> dict[str, str]:
-        return {t.name: t.type for r in self.rows if r.kind == CHUNK for t in r.timelines}
+        rows = self.rows
+        types: dict[str, str] | None = rows.derived.get("timeline_types")
+        if types is None:
+            types = rows.derived["timeline_types"] = {
+                t.name: t.type for r in rows if r.kind == CHUNK for t in r.timelines
+            }
+        return dict(types)
 
 
 def _when(value: dt.datetime | None) -> str:

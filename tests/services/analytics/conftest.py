@@ -6,8 +6,10 @@ from __future__ import annotations
 import datetime as dt
 import json
 import os
+import shutil
 import subprocess
 import sys
+import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -121,9 +123,11 @@ def write_scalars(
     store: ObjectStore, robot: str, date: str, run_id: str, values: list[float], entity: str = "/battery"
 ) -> str:
     """Write one run's `scalars` file the way promotion does (write_analytics); returns its key."""
-    extractor = Extractor(run_id)
     n = len(values)
-    extractor.batches["scalars"].append(
+    spill = Path(tempfile.mkdtemp(prefix="scalars-"))
+    extractor = Extractor(run_id, spill)
+    extractor.append(
+        "scalars",
         pa.table(
             {
                 "run_id": pa.array([run_id] * n),
@@ -134,9 +138,10 @@ def write_scalars(
                 "frame": pa.array(range(n), pa.int64()),
                 "log_time": pa.array([START_2026_03_01_NS + i for i in range(n)], pa.timestamp("ns")),
             }
-        )
+        ),
     )
-    (written,) = write_analytics(store, extractor, robot, date)
+    (written,) = write_analytics(store, extractor.files(), run_id, robot, date)
+    shutil.rmtree(spill)
     return written.key
 
 

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import os
 import struct
+import tracemalloc
 import zlib
 from pathlib import Path
 
@@ -47,7 +48,7 @@ def recording_store(rec: Recording) -> StoreId:
 def reopened(hot_store: HotStore, run: HotRun) -> HotRun:
     """The run after a restart (its file closed, then recovered from disk)."""
     hot_store.forget(run)
-    recovered, _ = hot_store.recover(run.directory)
+    recovered = hot_store.recover(run.directory)
     return recovered
 
 
@@ -132,7 +133,7 @@ def test_a_torn_tail_is_trimmed_from_the_file_and_its_index(hot_store: HotStore,
     hot_store.forget(run)
     # The crash: the last chunk was only half written, though its index record made it to disk.
     os.truncate(run.path, last.offset + last.length // 2)
-    recovered, _ = hot_store.recover(run.directory)
+    recovered = hot_store.recover(run.directory)
     assert recovered.size == last.offset
     assert len((run.directory / INDEX_FILE).read_bytes()) < len(index_before)
     index = read_hot_index(recovered.path, recovered.size)
@@ -148,7 +149,7 @@ def test_an_index_behind_its_file_is_completed(hot_store: HotStore, recordings: 
     data = path.read_bytes()
     hot_store.forget(run)
     path.write_bytes(data[: len(data) // 2])  # a crash (or a lost page) took its second half
-    recovered, _ = hot_store.recover(run.directory)
+    recovered = hot_store.recover(run.directory)
     index = read_hot_index(recovered.path, recovered.size)
     assert index.from_index == len(index.entries)
     assert entry_keys(index.entries) == entry_keys(expected_entries(recovered.path))
@@ -175,7 +176,7 @@ def test_a_missing_or_damaged_index_is_rebuilt(hot_store: HotStore, recordings: 
     expected = entry_keys(expected_entries(run.path))
     # Before recovery, a reader still gets the whole truth (from the file where the index fails).
     assert entry_keys(read_hot_index(run.path, run.size).entries) == expected
-    recovered, _ = hot_store.recover(run.directory)
+    recovered = hot_store.recover(run.directory)
     index = read_hot_index(recovered.path, recovered.size)
     assert index.from_index == len(index.entries)
     assert entry_keys(index.entries) == expected
@@ -251,3 +252,27 @@ def test_chunk_records_are_the_documented_bytes(tmp_path: Path, recordings: dict
     writer.close()
     if scene == "optimized":
         assert explicit, "no record with a component of its own: the explicit form went untested"
+
+
+def test_recovering_a_run_holds_a_few_of_its_messages_not_all(hot_store: HotStore, recordings: dict[str, Recording]):
+    """A restart with a big run still hot reads its file as it streams: the run's size in memory
+    would be 1.2 GB for a 1 GB run, and more than the machine has for a 50 GB one."""
+    run = hot_store.create("run-big", DEFAULT_VERSION)
+    while run.size < 24 << 20:
+        append_recording(run, recordings["large"].path)
+    index_file = run.directory / INDEX_FILE
+    index_before = index_file.read_bytes()
+    hot_store.forget(run)
+    # Half the index lost too, so that recovery also indexes what the rest of the file holds.
+    index_file.write_bytes(index_before[: len(index_before) // 2])
+    tracemalloc.start()
+    try:
+        recovered = hot_store.recover(run.directory)
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    assert recovered.size == run.size
+    assert peak < run.size // 3, f"recovering a {run.size}-byte run took {peak} bytes"
+    index = read_hot_index(recovered.path, recovered.size)
+    assert index.from_index == len(index.entries)  # the half it lacked indexed again
+    assert entry_keys(index.entries) == entry_keys(expected_entries(recovered.path))

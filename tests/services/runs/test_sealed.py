@@ -26,8 +26,11 @@ from services.retention import archive
 from services.retention.service import PROMOTE, plan, run_plan
 from services.rrd import ArrowMessage, StoreKind, iter_events
 from services.rrd.chunk import chunk_meta, read_chunk
+from services.rrd.manifest import is_property_entity
+from services.runs import indexed
 from services.runs.download import EntityFilter, TimeWindow
 from services.runs.sealed import stream_sealed
+from services.sealed import read
 from services.sealed.read import open_sealed
 from services.sealed.tiers import Tiers
 from services.sealed.write import INDEX, RECORDING
@@ -217,6 +220,34 @@ def test_exact_window_reads_only_the_candidate_chunks(
     # (served), with the older index also the chunk before it (read to learn its ranges)
     assert recording_reads <= (5 if old_index else 4) * e3_chunk + 64 * 1024, (recording_reads, e3_chunk)
     assert recording_reads < 0.1 * size, (recording_reads, size)
+
+
+def test_windows_asked_one_after_another_are_planned_from_the_cached_index(
+    tiers: Tiers, make_node: NodeFactory, runs: dict[str, Path], monkeypatch: pytest.MonkeyPatch
+):
+    """A sealed run's parsed index is kept with what planning worked out from it: the next window
+    looks at the chunks of the entities it asks for once, and then not again (a run of many GB has
+    tens of thousands of rows), and plans what a fresh index plans."""
+    node, run_id = _node(make_node, tiers, runs["chunky"])
+    prefix = _promote(node, run_id)
+    looked_at: list[bytes] = []
+    entry = indexed._entry
+    monkeypatch.setattr(indexed, "_entry", lambda row, timeline: looked_at.append(row.chunk_id) or entry(row, timeline))
+    e3, e4 = EntityFilter(include=["/world/e3"]), EntityFilter(include=["/world/e4"])
+    first = b"".join(stream_sealed(open_sealed(tiers.warm, prefix), e3, window=TimeWindow("frame", 15, 16)))
+    sealed = open_sealed(tiers.warm, prefix)
+    e3_chunks = {r.chunk_id for r in sealed.rows if r.entity_path == "/world/e3"}
+    properties = {r.chunk_id for r in sealed.rows if is_property_entity(r.entity_path or "")}
+    assert set(looked_at) == e3_chunks | properties and len(looked_at) == len(e3_chunks | properties)
+    looked_at.clear()
+    again = b"".join(stream_sealed(open_sealed(tiers.warm, prefix), e3, window=TimeWindow("frame", 15, 16)))
+    later = b"".join(stream_sealed(open_sealed(tiers.warm, prefix), e3, window=TimeWindow("frame", 20, 24)))
+    assert looked_at == [] and again == first
+    b"".join(stream_sealed(open_sealed(tiers.warm, prefix), e4, window=TimeWindow("frame", 15, 16)))
+    assert {r.entity_path for r in sealed.rows if r.chunk_id in set(looked_at)} == {"/world/e4"}
+    read._indexes.clear()  # planned from a fresh parse
+    fresh = b"".join(stream_sealed(open_sealed(tiers.warm, prefix), e3, window=TimeWindow("frame", 20, 24)))
+    assert _ids(fresh) == _ids(later) and _rows(fresh) == _rows(later)
 
 
 def test_unfiltered_warm_download_is_the_sealed_object(tiers: Tiers, make_node: NodeFactory, runs: dict[str, Path]):
