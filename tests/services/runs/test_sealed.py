@@ -26,9 +26,11 @@ from services.retention import archive
 from services.retention.service import PROMOTE, plan, run_plan
 from services.rrd import ArrowMessage, StoreKind, iter_events
 from services.rrd.chunk import chunk_meta, read_chunk
+from services.rrd.chunk_index import IndexRow
 from services.rrd.manifest import is_property_entity
 from services.runs import indexed
 from services.runs.download import EntityFilter, TimeWindow
+from services.runs.latest_at import ChunkEntry
 from services.runs.sealed import stream_sealed
 from services.sealed import read
 from services.sealed.read import open_sealed
@@ -232,7 +234,12 @@ def test_windows_asked_one_after_another_are_planned_from_the_cached_index(
     prefix = _promote(node, run_id)
     looked_at: list[bytes] = []
     entry = indexed._entry
-    monkeypatch.setattr(indexed, "_entry", lambda row, timeline: looked_at.append(row.chunk_id) or entry(row, timeline))
+
+    def counted(row: IndexRow, timeline: str) -> ChunkEntry:
+        looked_at.append(row.chunk_id or b"")
+        return entry(row, timeline)
+
+    monkeypatch.setattr(indexed, "_entry", counted)
     e3, e4 = EntityFilter(include=["/world/e3"]), EntityFilter(include=["/world/e4"])
     first = b"".join(stream_sealed(open_sealed(tiers.warm, prefix), e3, window=TimeWindow("frame", 15, 16)))
     sealed = open_sealed(tiers.warm, prefix)
