@@ -250,7 +250,7 @@ class HotIndexWriter:
                 continue
             if start is None:
                 start = event.offset
-            if not lacking and matcher.matches(event):
+            if matcher.matches(event):  # False for good after the first message the index lacks
                 continue
             if lacking and lacking[-1].unreadable:
                 continue  # the index stops at an unreadable chunk: what follows is read from the file

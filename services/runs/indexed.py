@@ -110,9 +110,9 @@ def stream_indexed(
     keep: set[bytes] | None = None
     picks: dict[bytes, set[int]] = {}
     if window is not None:  # planned over every chunk before the first is read
-        listed = rows if isinstance(rows, IndexRows) else IndexRows(rows)  # the plan is kept with them
-        keep, picks = plan_window(recording, listed, entities, window)
-        rows = _PlanIndex.of(listed).candidates(entities, keep)
+        plan = _PlanIndex.of(rows)
+        keep, picks, positions = _plan_window(recording, plan, entities, window)
+        rows = plan.candidates(positions, keep)
     yield from encode_run(
         read_events(recording, choose_rows(rows, entities, blueprint, keep)),
         entities,
@@ -178,7 +178,7 @@ class _PlanIndex:
     rows: Sequence[IndexRow]
     by_entity: dict[str, list[int]]  # recording chunks
     blueprint_chunks: list[int]
-    others: list[int]  # store infos and blueprint activations
+    others: list[int]  # every row that is not a chunk (store infos, blueprint activations)
     entries: dict[str, dict[int, ChunkEntry]] = field(default_factory=dict)  # timeline -> position -> entry
 
     @classmethod
@@ -214,9 +214,10 @@ class _PlanIndex:
                 known[i] = _entry(self.rows[i], timeline)
         return [known[i] for i in positions]
 
-    def candidates(self, entities: EntityFilter, keep: set[bytes]) -> list[IndexRow]:
-        """The rows a download of the chunks in `keep` chooses from (`choose_rows`), in file order."""
-        kept = [i for i in self.chunks(entities) if self.rows[i].chunk_id in keep]
+    def candidates(self, chunks: list[int], keep: set[bytes]) -> list[IndexRow]:
+        """The rows a download of the chunks in `keep` (of those at `chunks`) chooses from
+        (`choose_rows`), in file order."""
+        kept = [i for i in chunks if self.rows[i].chunk_id in keep]
         return [self.rows[i] for i in sorted(self.others + kept)]
 
 
@@ -226,7 +227,14 @@ def plan_window(
     """The chunk ids a windowed download keeps, and for an exact one the latest-at rows of each chunk:
     only the candidate chunks are read (ranged reads), and with an index from before per-component
     ranges also the chunks whose ranges matter."""
-    plan = _PlanIndex.of(rows)
+    keep, picks, _ = _plan_window(recording, _PlanIndex.of(rows), entities, window)
+    return keep, picks
+
+
+def _plan_window(
+    recording: IndexedRecording, plan: _PlanIndex, entities: EntityFilter, window: TimeWindow
+) -> tuple[set[bytes], dict[bytes, set[int]], list[int]]:
+    """`plan_window`, and the positions of the chunks it chose from."""
     positions = plan.chunks(entities)
     chunks = [plan.rows[i] for i in positions]
 
@@ -243,7 +251,7 @@ def plan_window(
         plan.entries_on(window.timeline, positions), window.bounds, window.latest_at, resolve
     )
     picks = pick_rows(read(candidates), window.timeline, window.bounds[0]) if window.exact and candidates else {}
-    return keep, picks
+    return keep, picks, positions
 
 
 def _entry(row: IndexRow, timeline: str) -> ChunkEntry:
