@@ -81,6 +81,23 @@ def pytest_sessionfinish(session: pytest.Session) -> None:
         Path(target).write_text(json.dumps(rounded, indent=1) + "\n")
 
 
+@pytest.fixture(autouse=True)
+def no_realtime_threads() -> Iterator[None]:
+    """A test leaves no thread of the test process under real-time scheduling: everything the
+    process starts after (a `fleet serve`, Chromium) would inherit it, and one busy thread at
+    SCHED_FIFO 99 starves the whole machine (SVT-AV1 run as root did that to the LeRobot export)."""
+    yield
+    realtime = (os.SCHED_FIFO, os.SCHED_RR)
+    found = []
+    for tid in os.listdir("/proc/self/task") if os.path.isdir("/proc/self/task") else ():
+        with contextlib.suppress(OSError):  # the thread ended
+            if os.sched_getscheduler(int(tid)) in realtime:
+                os.sched_setscheduler(int(tid), os.SCHED_OTHER, os.sched_param(0))
+                found.append(tid)
+    if found:
+        pytest.fail(f"threads {', '.join(found)} of the test process were left under real-time scheduling")
+
+
 def find_rerun() -> str | None:
     """The `rerun` CLI installed next to this Python (the venv's), else the one on PATH."""
     candidate = Path(sys.executable).parent / "rerun"

@@ -4,6 +4,7 @@ setting, so its decoder seeks cheaply), frame i stamped exactly i / fps."""
 from __future__ import annotations
 
 import os
+import threading
 from collections.abc import Iterable
 from fractions import Fraction
 from pathlib import Path
@@ -13,6 +14,32 @@ import numpy as np
 
 CODECS = {"h264": "libx264", "av1": "libsvtav1"}  # LeRobot's name -> the encoder
 CRF = "30"
+REALTIME = (getattr(os, "SCHED_FIFO", -1), getattr(os, "SCHED_RR", -1))
+
+
+class _NoRealtimeThreads:
+    """SVT-AV1 run as root starts its threads under SCHED_FIFO at priority 99 and leaves the thread
+    that opened it there too: a busy encoder (or the server thread after it) then starves every other
+    process on the machine. Each check puts the threads it has not seen yet back to SCHED_OTHER."""
+
+    def __init__(self) -> None:
+        self.enabled = hasattr(os, "sched_getscheduler") and os.sched_getscheduler(0) not in REALTIME
+        self.seen: set[int] = set()
+
+    def check(self) -> None:
+        if not self.enabled:  # a process put under real-time scheduling on purpose keeps it
+            return
+        try:
+            threads = {int(tid) for tid in os.listdir("/proc/self/task")}
+        except OSError:
+            return
+        for tid in (threads - self.seen) | {threading.get_native_id()}:
+            try:
+                if os.sched_getscheduler(tid) in REALTIME:
+                    os.sched_setscheduler(tid, os.SCHED_OTHER, os.sched_param(0))
+            except OSError:  # the thread ended
+                continue
+        self.seen = threads
 
 
 class VideoWriter:
@@ -35,20 +62,24 @@ class VideoWriter:
         self.stream.width, self.stream.height, self.stream.pix_fmt = width, height, "yuv420p"
         self.stream.time_base = Fraction(1, fps)
         self.frames = 0
+        self.realtime = _NoRealtimeThreads()
 
     def add(self, rgb: np.ndarray) -> None:
         frame = av.VideoFrame.from_ndarray(np.ascontiguousarray(rgb, dtype=np.uint8), format="rgb24")
         frame.pts, frame.time_base = self.frames, Fraction(1, self.fps)
         self.container.mux(self.stream.encode(frame))
+        self.realtime.check()
         self.frames += 1
 
     def close(self) -> None:
         self.container.mux(self.stream.encode(None))
         self.container.close()
+        self.realtime.check()
         self.temporary.replace(self.path)
 
     def abort(self) -> None:
         self.container.close()
+        self.realtime.check()
         self.temporary.unlink(missing_ok=True)
 
 
