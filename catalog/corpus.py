@@ -21,6 +21,7 @@ from dataclasses import dataclass
 import sqlalchemy as sa
 from sqlalchemy.orm import Session
 
+from catalog import dataset_columns as columns
 from catalog.edge import AWAITED_STATES
 from catalog.models import Event, Pull, RulesVersion, RunEvaluation, RunMetric, RunTag
 from core.errors import BadParameterError
@@ -253,6 +254,12 @@ def _update(held: object, fresh: object, fields: Sequence[str]) -> bool:
 
 
 def _replace_metrics(session: Session, facts: EvaluationFacts, held: dict[str, RunMetric], now: dt.datetime) -> None:
+    columns.recount_metrics(
+        session,
+        facts.run_id,
+        columns.metric_items((m.name, m.text_value) for m in held.values()),
+        columns.metric_items((m.name, m.text_value) for m in facts.metrics),
+    )
     for m in facts.metrics:
         fresh = RunMetric(
             run_id=facts.run_id,

@@ -204,6 +204,22 @@ class Dataset(Base):
     updated_at: Mapped[dt.datetime] = mapped_column(DateTime(timezone=True))  # a run was added
 
 
+class DatasetColumn(Base):
+    """Something a run of a dataset (an application id) has held that the dataset's segment table
+    makes a column of, and how many of its runs have held it: a recording property's component with
+    a kind of value, an archetype on a property entity, a timeline with its type, a metric as a number
+    or as text. Counted as runs are written (`catalog.dataset_columns`), so the table's schema is read
+    from here instead of from every run; never counted down, so a deleted run's columns stay."""
+
+    __tablename__ = "dataset_columns"
+
+    application_id: Mapped[str] = mapped_column(Text, primary_key=True)
+    kind: Mapped[str] = mapped_column(String(16), primary_key=True)  # property | archetype | timeline | metric
+    name: Mapped[str] = mapped_column(Text, primary_key=True)
+    detail: Mapped[str] = mapped_column(Text, primary_key=True)
+    runs: Mapped[int] = mapped_column(BigInteger)
+
+
 class Pull(Base):
     """A request that a robot's agent send the depot (part of) a run it holds: queued by an
     engineer (`origin` person) or for a trigger's window around an event (`origin` trigger: by the

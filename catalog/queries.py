@@ -5,7 +5,7 @@ from __future__ import annotations
 import datetime as dt
 import json
 import uuid
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -13,6 +13,7 @@ import pyarrow as pa
 import sqlalchemy as sa
 from sqlalchemy.orm import Session
 
+from catalog import dataset_columns as columns
 from catalog.models import (
     Base,
     Dataset,
@@ -22,6 +23,7 @@ from catalog.models import (
     Run,
     RunEntity,
     RunLifecycle,
+    RunMetric,
     RunObject,
     RunTimeline,
 )
@@ -95,6 +97,8 @@ def save_run(session: Session, record: RunRecord, now: dt.datetime) -> None:
             now,
         )
         return
+    held_by = columns.counted_in(run.application_id, run.tier)  # where the run's items were counted
+    held_properties = run.properties
     run.robot_id = record.robot_id
     run.application_id = record.application_id
     run.date = record.date
@@ -108,8 +112,13 @@ def save_run(session: Session, record: RunRecord, now: dt.datetime) -> None:
     run.properties = properties_json(record.properties)
     run.updated_at = now
     session.flush()
-    session.execute(sa.delete(RunEntity).where(RunEntity.run_id == record.id))
-    session.execute(sa.delete(RunTimeline).where(RunTimeline.run_id == record.id))
+    held_entities = session.execute(
+        sa.delete(RunEntity).where(RunEntity.run_id == record.id).returning(RunEntity.path, RunEntity.archetypes)
+    ).all()
+    held_timelines = session.execute(
+        sa.delete(RunTimeline).where(RunTimeline.run_id == record.id).returning(RunTimeline.name, RunTimeline.type)
+    ).all()
+    _recount_columns(session, record, held_by, held_properties, held_entities, held_timelines)
     # One multi-row statement each (not one per row): a flush rewrites every live run.
     if record.entities:
         insert_rows(
@@ -138,6 +147,32 @@ def save_run(session: Session, record: RunRecord, now: dt.datetime) -> None:
                 for t in record.timelines
             ],
         )
+
+
+def _recount_columns(
+    session: Session,
+    record: RunRecord,
+    held_by: str | None,
+    held_properties: str | None,
+    held_entities: Sequence[sa.Row[str, str]],
+    held_timelines: Sequence[sa.Row[str, str]],
+) -> None:
+    """Count, in its dataset's columns, what the run holds now and did not, and what it held and
+    does not (its metrics are counted where they are written)."""
+    now_in = columns.counted_in(record.application_id, record.tier)
+    fresh = columns.timeline_items((t.name, t.type) for t in record.timelines)
+    fresh |= columns.archetype_items((e.path, e.archetypes) for e in record.entities)
+    held = columns.timeline_items((name, kind) for name, kind in held_timelines)
+    held |= columns.archetype_items((path, columns.json_names(archetypes)) for path, archetypes in held_entities)
+    if held_by != now_in or held_properties != properties_json(record.properties):
+        fresh |= columns.property_items(record.properties)
+        held |= columns.property_items(columns.json_object(held_properties))
+    if held_by != now_in:  # moved to another dataset, or deleted: its metrics move too
+        metrics = columns.metric_items(
+            session.execute(sa.select(RunMetric.name, RunMetric.text_value).where(RunMetric.run_id == record.id))
+        )
+        fresh, held = fresh | metrics, held | metrics
+    columns.recount(session, (held_by, held), (now_in, fresh))
 
 
 def insert_rows(session: Session, model: type[Base], rows: list[dict[str, Any]]) -> None:
@@ -202,12 +237,29 @@ def dataset_entry_id(session: Session, name: str) -> str | None:
     return dataset.entry_id if dataset is not None else None
 
 
+def mark_deleted(session: Session, run_id: str, now: dt.datetime) -> bool:
+    """Make run `run_id` a tombstone (a deleted run is no segment of its dataset: its columns are
+    no longer counted there); False if it already was one (a concurrent delete made it)."""
+    dataset, items = columns.run_items(session, run_id)
+    changed = session.execute(
+        sa.update(Run)
+        .where(Run.id == run_id, Run.tier != Tier.DELETED)
+        .values(tier=Tier.DELETED, updated_at=now)
+        .execution_options(synchronize_session="fetch")
+    )
+    if not getattr(changed, "rowcount", 0):
+        return False
+    columns.count(session, dataset, items, -1)
+    return True
+
+
 def remove_hot_run(session: Session, run_id: str) -> None:
     """Remove a run that never left the hot tier (ingest dropped it), and its robot if it has no
     other run; a sealed run is left alone."""
     run = session.get(Run, run_id)
     if run is None or run.tier != Tier.HOT or session.get(RunLifecycle, run_id) is not None:
         return
+    columns.uncount_run(session, run_id)
     session.execute(sa.delete(RunEntity).where(RunEntity.run_id == run_id))
     session.execute(sa.delete(RunTimeline).where(RunTimeline.run_id == run_id))
     robot_id = run.robot_id

@@ -6,7 +6,7 @@ condition on `Run` (`Runs`): an application's runs that hold data, or the runs a
 from __future__ import annotations
 
 import datetime as dt
-import json
+import itertools
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -16,6 +16,7 @@ from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from catalog import queries
+from catalog.dataset_columns import dataset_columns, json_names, json_object, property_items, property_key
 from catalog.models import Dataset, DatasetEpisode, Run, RunEntity, RunMetric, RunTag, RunTimeline
 from core.clock import aware
 from core.errors import NotFoundError
@@ -126,14 +127,6 @@ def _segments(runs: Runs) -> sa.Select[*tuple[Any, ...]]:
     return select(*_SEGMENT_COLUMNS).where(runs).order_by(Run.id)
 
 
-def _properties(text: str | None) -> dict[str, Any]:
-    try:
-        found = json.loads(text or "{}")
-    except ValueError:  # a row no writer of the catalog makes; shown without properties
-        return {}
-    return found if isinstance(found, dict) else {}
-
-
 def segment_rows(session: Session, name: str, after: str | None, limit: int) -> list[SegmentRow]:
     """Up to `limit` segments of dataset `name` with ids after `after`, in id order."""
     query = _segments(application_runs(name)).limit(limit)
@@ -206,7 +199,7 @@ def _rows(session: Session, runs: Sequence[sa.Row[Any]]) -> list[SegmentRow]:
             run.chunks,
             run.bytes,
             aware(run.updated_at),
-            _properties(run.properties),
+            json_object(run.properties),
             timelines[run.id],
             metrics[run.id],
             tags[run.id],
@@ -223,13 +216,30 @@ def property_pages(session: Session, runs: str | Runs, page: int) -> Iterator[li
         found = session.execute(query).all()
         if not found:
             return
-        yield [_properties(text) for _, text in found]
+        yield [json_object(text) for _, text in found]
         after = found[-1][0]
 
 
+def property_kinds(session: Session, runs: str | Runs, page: int) -> dict[tuple[str, str], set[str]]:
+    """Each (property, component) the runs hold (an application id: its runs, as counted in its
+    dataset's columns), with the kinds of value they hold in it."""
+    if isinstance(runs, str):
+        return dataset_columns(session, runs).properties
+    kinds: dict[tuple[str, str], set[str]] = {}
+    for properties in itertools.chain.from_iterable(property_pages(session, runs, page)):
+        for _, name, kind in property_items(properties):
+            held = kinds.setdefault(property_key(name), set())
+            if kind:
+                held.add(kind)
+    return kinds
+
+
 def timeline_types(session: Session, runs: str | Runs) -> dict[str, str]:
-    """Each timeline of the runs (an application id: its runs) and its type (sequence, timestamp,
-    duration): the type most of them log it with, should runs disagree."""
+    """Each timeline of the runs (an application id: its runs, as counted in its dataset's columns)
+    and its type (sequence, timestamp, duration): the type most of them log it with, should runs
+    disagree."""
+    if isinstance(runs, str):
+        return dataset_columns(session, runs).timelines
     query = (
         select(RunTimeline.name, RunTimeline.type, sa.func.count())
         .join(Run, Run.id == RunTimeline.run_id)
@@ -244,7 +254,10 @@ def timeline_types(session: Session, runs: str | Runs) -> dict[str, str]:
 
 
 def metric_kinds(session: Session, runs: str | Runs) -> dict[str, bool]:
-    """Each metric some run has (an application id: its runs), and whether any run holds it as text."""
+    """Each metric some run has (an application id: its runs, as counted in its dataset's columns),
+    and whether any run holds it as text."""
+    if isinstance(runs, str):
+        return dataset_columns(session, runs).metrics
     query = (
         select(RunMetric.name, sa.func.count(RunMetric.text_value))
         .join(Run, Run.id == RunMetric.run_id)
@@ -256,7 +269,9 @@ def metric_kinds(session: Session, runs: str | Runs) -> dict[str, bool]:
 
 def property_archetypes(session: Session, runs: str | Runs) -> dict[str, set[str]]:
     """The archetypes logged on each property entity (`/__properties...`) of the runs (an
-    application id: its runs)."""
+    application id: its runs, as counted in its dataset's columns)."""
+    if isinstance(runs, str):
+        return dataset_columns(session, runs).archetypes
     query = (
         select(RunEntity.path, RunEntity.archetypes)
         .join(Run, Run.id == RunEntity.run_id)
@@ -266,13 +281,5 @@ def property_archetypes(session: Session, runs: str | Runs) -> dict[str, set[str
     )
     found: dict[str, set[str]] = {}
     for path, archetypes in session.execute(query):
-        found.setdefault(path, set()).update(_names(archetypes))
+        found.setdefault(path, set()).update(json_names(archetypes))
     return found
-
-
-def _names(text: str | None) -> list[str]:
-    try:
-        listed = json.loads(text or "[]")
-    except ValueError:
-        return []
-    return [name for name in listed if isinstance(name, str)] if isinstance(listed, list) else []

@@ -36,6 +36,7 @@ from typing import Any
 import pyarrow as pa
 from sqlalchemy.orm import Session
 
+from catalog.dataset_columns import property_values
 from catalog.db import session_scope
 from catalog.models import Dataset
 from core.errors import InvalidArgumentError
@@ -131,25 +132,6 @@ def _property_field(prop: str, component: str, item: pa.DataType, archetypes: se
 NONFINITE = {"NaN": math.nan, "Infinity": math.inf, "-Infinity": -math.inf}  # how the catalog writes them
 
 
-def _items(value: Any) -> list[Any] | None:
-    """A property's values as a list: the catalog keeps a one-value property as the value."""
-    if value is None:
-        return None
-    return value if isinstance(value, list) else [value]
-
-
-def _kind(item: Any) -> str:
-    if isinstance(item, bool):
-        return "bool"
-    if isinstance(item, int):
-        return "int"
-    if isinstance(item, float):
-        return "float"
-    if isinstance(item, str):
-        return "nonfinite" if item in NONFINITE else "str"
-    return "other"  # structs and nested lists: shown as JSON text
-
-
 def item_type(kinds: set[str]) -> pa.DataType:
     """The Arrow type of a property's values from the kinds of values the runs hold."""
     if kinds == {"bool"}:
@@ -176,27 +158,20 @@ def _property_column(prop: str, component: str, kinds: set[str], archetypes: set
 
     def value(row: SegmentRow) -> Cell:
         values = row.properties.get(prop)
-        found = _items(values.get(component)) if isinstance(values, dict) else None
+        found = property_values(values.get(component)) if isinstance(values, dict) else None
         return None if found is None else [_convert(v, item) for v in found]
 
     return Column(_property_field(prop, component, item, archetypes), value)
 
 
-def recording_property_columns(session: Session, runs: Runs) -> list[Column]:
-    """A column per property component any of the runs holds."""
-    kinds: dict[tuple[str, str], set[str]] = {}
-    for page in datasets.property_pages(session, runs, PAGE_ROWS):
-        for properties in page:
-            for prop, values in properties.items():
-                if not isinstance(values, dict) or prop == DEPOT_PROPERTY:  # the depot's own column names win
-                    continue
-                for component, value in values.items():
-                    seen = kinds.setdefault((prop, component), set())
-                    seen.update(_kind(item) for item in _items(value) or ())
+def recording_property_columns(session: Session, runs: str | Runs) -> list[Column]:
+    """A column per property component any of the runs holds (the depot's own column names win)."""
+    kinds = datasets.property_kinds(session, runs, PAGE_ROWS)
     archetypes = datasets.property_archetypes(session, runs)
     return [
         _property_column(prop, component, found, archetypes.get(property_entity(prop), set()))
         for (prop, component), found in kinds.items()
+        if prop != DEPOT_PROPERTY
     ]
 
 
@@ -239,7 +214,7 @@ def _metric_column(metric: str, text: bool) -> Column:
     return Column(_property_field(DEPOT_PROPERTY, f"{METRIC_PREFIX}{metric}", item, set()), cell)
 
 
-def corpus_columns(session: Session, runs: Runs) -> list[Column]:
+def corpus_columns(session: Session, runs: str | Runs) -> list[Column]:
     """The runs' metrics, a column each, and their tags."""
     tags = Column(_property_field(DEPOT_PROPERTY, "tags", pa.utf8(), set()), lambda row: row.tags or None)
     return [tags, *(_metric_column(metric, text) for metric, text in datasets.metric_kinds(session, runs).items())]
@@ -284,7 +259,7 @@ def _timeline_column(timeline: str, kind: str, marker: str) -> Column:
     return Column(pa.field(f"{timeline}:{marker}", INDEX_TYPES[kind], nullable=True, metadata=metadata), value)
 
 
-def timeline_columns(session: Session, runs: Runs) -> list[Column]:
+def timeline_columns(session: Session, runs: str | Runs) -> list[Column]:
     return [
         _timeline_column(timeline, kind, marker)
         for timeline, kind in datasets.timeline_types(session, runs).items()
@@ -327,7 +302,7 @@ class SegmentTable:
 
 
 def segment_table(
-    session: Session, runs: Runs, depot: Depot, *, properties: bool = True, episodes: bool = False
+    session: Session, runs: str | Runs, depot: Depot, *, properties: bool = True, episodes: bool = False
 ) -> SegmentTable:
     """The segment table of a dataset whose segments are of these runs: Rerun's columns, the
     property columns (the recording's, the depot's, with `episodes` a snapshot's) sorted by name,
@@ -345,7 +320,7 @@ def _table(
 ) -> SegmentTable:
     if isinstance(dataset, SnapshotVersion):
         return segment_table(session, dataset.runs, depot, properties=properties, episodes=True)
-    return segment_table(session, datasets.application_runs(dataset.name), depot, properties=properties)
+    return segment_table(session, dataset.name, depot, properties=properties)
 
 
 def table_schema(depot: Depot, principal: Principal, entry: Tuid) -> cloud_pb2.GetSegmentTableSchemaResponse:

@@ -178,7 +178,7 @@ def delete(
         removed += 1
     with session_scope(catalog, write=True) as session:
         run, life = _load(session, run_id)
-        run.tier, run.updated_at = Tier.DELETED, now
+        queries.mark_deleted(session, run_id, now)
         life.deleted_at, life.deleted_by, life.deleted_policy = now, actor, policy
         life.restore_state = life.restore_requested_at = life.restore_until = None
         queries.replace_objects(session, run_id, [])

@@ -72,7 +72,10 @@ def save(
         for run_id, columns in (later or {}).items():
             run = queries.require_run(session, run_id)
             for column, value in columns.items():
-                setattr(run, column, value)
+                if (column, value) == ("tier", "deleted"):  # as retention deletes a run
+                    queries.mark_deleted(session, run_id, now)
+                else:
+                    setattr(run, column, value)
 
 
 def entry_of(depot: Depot, name: str) -> Tuid:

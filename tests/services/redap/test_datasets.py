@@ -30,7 +30,10 @@ def save(session: Session, *records: RunRecord, tiers: dict[str, str] | None = N
     for run_id, tier in (tiers or {}).items():  # retention moves runs on; their rows say where they are
         run = queries.get_run(session, run_id)
         assert run is not None
-        run.tier = tier
+        if tier == "deleted":  # as retention deletes a run
+            queries.mark_deleted(session, run_id, NOW)
+        else:
+            run.tier = tier
     session.flush()
 
 
