@@ -16,8 +16,10 @@
    each sort, the second page by cursor; a run's page (`run_answer`, a different run each time);
    `fleet runs ls --robot R` (the REST app in-process, as the CLI asks, auth off); the segment table
    of the `inspection` dataset (`services.redap.segments.scan`: the first part, and the whole scan
-   `--scan-repeat` times); the console's overview (`services.runs.fleet.overview`); the retention
-   plan (`services.retention.service.plan_answer`, every action).
+   `--scan-repeat` times); the console's overview (`services.runs.fleet.overview`, after the
+   fleet totals job has counted once, as a running depot's has) and that job's count
+   (`services.runs.totals.count`, once a minute); the retention plan
+   (`services.retention.service.plan_answer`, every action).
 3. Per query: one call to warm up, whose SQL is captured (a `before_cursor_execute` listener), then
    `--repeat` calls timed: p50 and p95 in ms. "SQL" is the database alone for the statements of
    one call: on Postgres the sum of their `EXPLAIN (ANALYZE, BUFFERS)` planning and execution times,

@@ -32,7 +32,7 @@ from services.redap.depot import Depot
 from services.redap.pb import cloud_pb2
 from services.redap.tuid import Tuid
 from services.retention.service import ACTIONS, Retention, plan_answer
-from services.runs import fleet
+from services.runs import fleet, totals
 from services.runs import rest as runs_rest
 from services.runs.service import RunFilter, run_answer, runs_answer
 from services.sealed.tiers import Tiers
@@ -67,6 +67,7 @@ class Scene:
             node = _node(Path(folder), catalog, now)
             app = create_app(node)
             app.include_router(runs_rest.router)  # a node with ingest has them; this one serves reads only
+            totals.count_job(catalog, now)  # as a running depot's job has (the overview reads its count)
             with session_scope(catalog) as session:
                 run_ids = _sample_runs(session)
                 entry = Tuid.parse(catalog_queries.dataset_entry_id(session, DATASET) or "")
@@ -144,6 +145,14 @@ def _runs_ls(scene: Scene) -> Callable[[int], Any]:
     return call
 
 
+def _count_totals(scene: Scene) -> Callable[[int], Any]:
+    def call(_: int) -> Any:
+        with session_scope(scene.node.catalog) as session:
+            return totals.count(session)
+
+    return call
+
+
 def _retention_plan(scene: Scene) -> Callable[[int], Any]:
     ctx = Retention(node=scene.node, policies=policies())
     return lambda _: plan_answer(ctx, list(ACTIONS))
@@ -182,6 +191,7 @@ def queries(scene: Scene) -> list[Query]:
         Query("redap ScanSegmentTable, first part", _scan(scene, whole=False)),
         Query("redap ScanSegmentTable, whole (a quarter of the runs)", _scan(scene, whole=True), whole_scan=True),
         Query("console overview", lambda _: fleet.overview(scene.node, None, now=scene.now)),
+        Query("fleet totals job (once a minute)", _count_totals(scene)),
         Query("retention plan (every action)", _retention_plan(scene)),
     ]
     return found

@@ -204,6 +204,19 @@ class Dataset(Base):
     updated_at: Mapped[dt.datetime] = mapped_column(DateTime(timezone=True))  # a run was added
 
 
+class FleetTotals(Base):
+    """Whole-fleet sums the console's overview shows (runs and bytes per robot and tier, objects and
+    bytes per store tier), as a job last counted them: at a million runs counting them takes seconds,
+    too long for each page view (`services.runs.totals`)."""
+
+    __tablename__ = "fleet_totals"
+
+    name: Mapped[str] = mapped_column(String(64), primary_key=True)
+    computed_at: Mapped[dt.datetime] = mapped_column(DateTime(timezone=True))
+    runs: Mapped[int] = mapped_column(BigInteger)  # runs counted, deleted ones included
+    body: Mapped[str] = mapped_column(Text)  # JSON
+
+
 class DatasetColumn(Base):
     """Something a run of a dataset (an application id) has held that the dataset's segment table
     makes a column of, and how many of its runs have held it: a recording property's component with

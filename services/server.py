@@ -45,6 +45,7 @@ from services.redap.depot import Depot
 from services.retention.schedule import Job, node_name, start_scheduler
 from services.retention.service import Retention
 from services.routine_logs import quiet_routine_requests
+from services.runs import totals
 from services.runtime import freeze_startup_objects, tune_allocator
 from services.sealed.tiers import open_tiers, sealed_lookup
 from services.settings import Settings
@@ -341,6 +342,7 @@ async def serve(
                 *webhook_jobs(app.state.webhooks, ingest),
                 Job(BACKFILL_JOB, lambda _: corpus.backfill.run(), settings.rules_backfill_interval_s),
                 export_job(node, ingest),
+                Job("fleet.totals", lambda _: totals.count_job(node.catalog, node.clock()), totals.COUNT_INTERVAL_S),
                 Job(
                     "imports.quarantine", lambda _: purge_quarantine(node.catalog, node.tiers.warm, node.clock()), 3600
                 ),

@@ -15,20 +15,20 @@ import sqlalchemy as sa
 from sqlalchemy.orm import InstrumentedAttribute, Session, aliased
 
 from catalog.db import is_embedded, session_scope
-from catalog.models import JobExecution, RetentionEvent, Robot, Run, RunObject
+from catalog.models import JobExecution, RetentionEvent, Robot, Run
 from core.clock import aware, iso_utc, utcnow
 from core.states import RunStatus, Tier
 from services.hot.store import HotStore
 from services.ingest.service import IngestService
 from services.ingest.view import HotRunView
 from services.node import Node
+from services.runs import totals
 from services.runs.service import run_summary
 
 DAYS = 14  # runs per robot per day: this many days, today included
 RECENT = 10  # retention jobs and events shown
 FAILURES = 5  # failed jobs shown even when older than the recent ones
 LIVE_LIMIT = 50  # live runs listed
-TIERS = (Tier.HOT, Tier.WARM, Tier.COLD)
 
 
 def _started() -> sa.ColumnElement[dt.datetime]:
@@ -74,14 +74,11 @@ def last_runs(session: Session, unlisted: list[str]) -> dict[str, Run]:
     return last
 
 
-def robots(session: Session) -> list[dict[str, Any]]:
-    """Every robot with its run count (deleted runs not counted) and its last run (by start)."""
-    counts: dict[str, int] = {
-        robot_id: int(n)
-        for robot_id, n in session.execute(
-            sa.select(Run.robot_id, sa.func.count()).where(Run.tier != Tier.DELETED).group_by(Run.robot_id)
-        ).all()
-    }
+def robots(session: Session, counts: dict[str, int] | None = None) -> list[dict[str, Any]]:
+    """Every robot with its run count (deleted runs not counted; `counts` as `totals` has them, else
+    counted now) and its last run (by start)."""
+    if counts is None:
+        counts = totals.count(session).robots
     seen: dict[str, Robot | None] = {robot.id: robot for robot in session.scalars(sa.select(Robot))}
     last = last_runs(session, sorted(set(counts) - set(seen)))
     for robot_id in counts:
@@ -122,35 +119,6 @@ def runs_per_day(session: Session, today: dt.date, days: int = DAYS) -> dict[str
         "totals": totals,
         "max": max((n for c in counts.values() for n in c), default=0),
     }
-
-
-def tier_totals(session: Session) -> list[dict[str, Any]]:
-    """Runs and their recordings' bytes in each tier (as the runs' catalog rows say), deleted runs
-    as a count of tombstones."""
-    found = {
-        tier: (int(n), int(size or 0))
-        for tier, n, size in session.execute(
-            sa.select(Run.tier, sa.func.count(), sa.func.sum(Run.bytes)).group_by(Run.tier)
-        ).all()
-    }
-    out = [{"tier": str(t), "runs": found.get(t, (0, 0))[0], "bytes": found.get(t, (0, 0))[1]} for t in TIERS]
-    out.append({"tier": str(Tier.DELETED), "runs": found.get(Tier.DELETED, (0, 0))[0], "bytes": None})
-    return out
-
-
-def object_totals(session: Session) -> list[dict[str, Any]]:
-    """What the object stores hold by the catalog's records: objects and bytes in the warm and the
-    cold tier (recordings, chunk indexes, run.json, analytics tables)."""
-    found = {
-        tier: (int(n), int(size or 0))
-        for tier, n, size in session.execute(
-            sa.select(RunObject.tier, sa.func.count(), sa.func.sum(RunObject.size)).group_by(RunObject.tier)
-        ).all()
-    }
-    return [
-        {"tier": str(t), "objects": found.get(t, (0, 0))[0], "bytes": found.get(t, (0, 0))[1]}
-        for t in (Tier.WARM, Tier.COLD)
-    ]
 
 
 def _job(job: JobExecution) -> dict[str, Any]:
@@ -284,11 +252,13 @@ def overview(node: Node, ingest: IngestService | None, *, now: dt.datetime | Non
     hot runs and disk from `ingest`, when it has one)."""
     now = now or utcnow()
     with session_scope(node.catalog) as session:
+        counted = totals.totals(session, now)
         answer: dict[str, Any] = {
-            "robots": robots(session),
+            "robots": robots(session, counted.robots),
             "per_day": runs_per_day(session, now.astimezone(dt.UTC).date()),
-            "tiers": tier_totals(session),
-            "objects": object_totals(session),
+            "tiers": counted.tiers,
+            "objects": counted.objects,
+            "totals_counted_at": counted.counted_at,  # None: counted for this answer
             "jobs": recent_jobs(session),
             "failures": failed_jobs(session),
             "events": recent_events(session),

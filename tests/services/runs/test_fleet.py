@@ -13,7 +13,7 @@ from catalog import queries
 from catalog.db import create_engine, session_scope
 from catalog.models import Robot
 from catalog.queries import ObjectRecord
-from services.runs import fleet
+from services.runs import fleet, totals
 from tests.catalog.records import run_record
 from tests.services.nodes import node_of
 
@@ -101,13 +101,15 @@ def test_runs_per_day(fleet_rows: Session):
 
 
 def test_tier_and_object_totals(fleet_rows: Session):
-    tiers = {t["tier"]: t for t in fleet.tier_totals(fleet_rows)}
-    assert [t["tier"] for t in fleet.tier_totals(fleet_rows)] == ["hot", "warm", "cold", "deleted"]
+    counted = totals.count(fleet_rows)
+    tiers = {t["tier"]: t for t in counted.tiers}
+    assert [t["tier"] for t in counted.tiers] == ["hot", "warm", "cold", "deleted"]
     assert tiers["hot"] == {"tier": "hot", "runs": 2, "bytes": 70}
     assert tiers["warm"] == {"tier": "warm", "runs": 2, "bytes": 1300}
     assert tiers["cold"] == {"tier": "cold", "runs": 1, "bytes": 200}
     assert tiers["deleted"] == {"tier": "deleted", "runs": 1, "bytes": None}
-    assert fleet.object_totals(fleet_rows) == [
+    assert counted.runs == 6 and counted.robots == {"robot-a": 3, "robot-b": 2}
+    assert counted.objects == [
         {"tier": "warm", "objects": 4, "bytes": 1315},
         {"tier": "cold", "objects": 2, "bytes": 204},
     ]
@@ -174,3 +176,4 @@ def test_overview_answer(fresh_catalog_url: str, tmp_path: Path):
     assert [r["id"] for r in answer["live"]] == ["a-2"] and answer["hot_disk"] is None
     assert answer["per_day"]["totals"][-2:] == [1, 1]
     assert answer["jobs"] == [] and answer["failures"] == [] and answer["events"] == []
+    assert answer["totals_counted_at"] is None  # a small fleet: counted for the answer
