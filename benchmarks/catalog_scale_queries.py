@@ -35,6 +35,7 @@ from services.retention.service import ACTIONS, Retention, plan_answer
 from services.runs import fleet, totals
 from services.runs import rest as runs_rest
 from services.runs.service import RunFilter, run_answer, runs_answer
+from services.runtime import freeze_startup_objects
 from services.sealed.tiers import Tiers
 from services.settings import Durability, load_settings
 from services.storage.objectstore import open_store
@@ -75,6 +76,7 @@ class Scene:
                 warnings.simplefilter("ignore")
                 from fastapi.testclient import TestClient
             with TestClient(app) as client:
+                freeze_startup_objects()  # as `fleet serve` does once started: later collections skip them
                 yield cls(node, now, client, run_ids, entry)
 
 

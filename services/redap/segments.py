@@ -53,6 +53,7 @@ from services.rrd.manifest import PROPERTIES_ENTITY
 
 LAYER = "base"  # Rerun's name for a segment's first layer; a run is one recording, one layer
 PAGE_ROWS = 1000  # runs read from the catalog at a time
+FIRST_PAGE_ROWS = 100  # the first page: the table's first part goes out before a whole page is read
 PART_BYTES = 4 << 20  # a response's table is cut below this many bytes
 DEPOT_PROPERTY = "depot"  # the property entity the depot's own facts are shown under
 METRIC_PREFIX = "metric:"  # a run metric's component under the depot's property entity
@@ -352,13 +353,14 @@ def _row_pages(depot: Depot, name: str, only: list[str] | None, skip: frozenset[
                 yield datasets.segment_rows_named(session, name, only[start : start + PAGE_ROWS])
         return
     after: str | None = None
+    page = FIRST_PAGE_ROWS
     while True:
         with session_scope(depot.catalog) as session:
-            rows = datasets.segment_rows(session, name, after, PAGE_ROWS)
+            rows = datasets.segment_rows(session, name, after, page)
         if not rows:
             return
         yield [row for row in rows if row.run_id not in skip]
-        after = rows[-1].run_id
+        after, page = rows[-1].run_id, PAGE_ROWS
 
 
 def _episode_pages(
@@ -371,15 +373,15 @@ def _episode_pages(
                 named = snapshots.episodes_named(session, version, only[start : start + PAGE_ROWS])
                 yield snapshots.episode_rows(session, version, named)
         return
-    after = -1
+    after, size = -1, FIRST_PAGE_ROWS
     while True:
         with session_scope(depot.catalog) as session:
-            page = snapshots.episode_page(session, version, after, PAGE_ROWS)
+            page = snapshots.episode_page(session, version, after, size)
             rows = snapshots.episode_rows(session, version, page)
         if not rows:
             return
         yield [row for row in rows if row.segment_id not in skip]
-        after = max(row.episode.index for row in rows if row.episode is not None)
+        after, size = max(row.episode.index for row in rows if row.episode is not None), PAGE_ROWS
 
 
 def _parts(batch: pa.RecordBatch) -> Iterator[pa.RecordBatch]:

@@ -326,7 +326,8 @@ def test_an_unknown_or_repeated_column_is_invalid(depot: Depot, columns: list[st
 def test_a_large_dataset_comes_in_bounded_parts(depot: Depot, monkeypatch: pytest.MonkeyPatch):
     save(depot, *(record(f"run-{i:02}", properties={"notes": {"text": "x" * 2000}}) for i in range(12)))
     whole = scan(depot, entry_of(depot, "nav"))
-    monkeypatch.setattr(segments, "PAGE_ROWS", 5)  # runs read from the catalog at a time
+    monkeypatch.setattr(segments, "FIRST_PAGE_ROWS", 2)  # the first page, read before the first part goes
+    monkeypatch.setattr(segments, "PAGE_ROWS", 5)  # runs read from the catalog at a time after it
     monkeypatch.setattr(segments, "PART_BYTES", 5000)  # about two runs' notes
     parts = scan_parts(depot, entry_of(depot, "nav"))
     assert len(parts) >= 6 and max(p.num_rows for p in parts) <= 3
