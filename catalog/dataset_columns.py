@@ -16,9 +16,11 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import sqlalchemy as sa
+from sqlalchemy import event
 from sqlalchemy.dialects.postgresql import insert
 from sqlalchemy.orm import Session
 
+from catalog.db import locks_rows
 from catalog.models import DatasetColumn, Run, RunEntity, RunMetric, RunTimeline
 from core.states import Tier
 
@@ -91,14 +93,33 @@ def metric_items(metrics: Iterable[tuple[str, str | None]]) -> set[Item]:
     return {(METRIC, name, "number" if text is None else "text") for name, text in metrics}
 
 
+MAX_NAME = 1000  # characters: a longer property or entity name is no column (an index key holds ~2,700 bytes)
+PENDING = "fleet.dataset_column_changes"  # the session's changes to the counts, applied as it commits
+
+
 def count(session: Session, application_id: str | None, items: set[Item], step: int) -> None:
-    """`step` (1 or -1) more runs of `application_id` hold each of `items`."""
+    """`step` (1 or -1) more runs of `application_id` hold each of `items`: applied to the counts
+    when the session commits (`apply_pending`), all of a transaction's together in one order, so two
+    nodes' transactions never hold each other's count rows crosswise."""
     if not application_id or not items:
         return
-    if step > 0:
+    pending: dict[tuple[str, str, str, str], int] = session.info.setdefault(PENDING, {})
+    for kind, name, detail in items:
+        if len(name) <= MAX_NAME and len(detail) <= MAX_NAME:
+            key = (application_id, kind, name, detail)
+            pending[key] = pending.get(key, 0) + step
+
+
+@event.listens_for(Session, "before_commit")
+def apply_pending(session: Session) -> None:
+    """Apply the session's changes to the counts: what is added in one upsert, then what is taken
+    away, each in the order of its keys."""
+    pending: dict[tuple[str, str, str, str], int] = session.info.pop(PENDING, {})
+    added = [(key, n) for key, n in sorted(pending.items()) if n > 0]
+    if added:
         rows = [
-            {"application_id": application_id, "kind": kind, "name": name, "detail": detail, "runs": step}
-            for kind, name, detail in sorted(items)  # one order for every writer: no deadlock between two
+            {"application_id": app, "kind": kind, "name": name, "detail": detail, "runs": n}
+            for (app, kind, name, detail), n in added
         ]
         statement = insert(DatasetColumn).values(rows)
         session.execute(
@@ -107,16 +128,21 @@ def count(session: Session, application_id: str | None, items: set[Item], step: 
                 set_={"runs": DatasetColumn.runs + statement.excluded.runs},
             )
         )
-        return
-    listed = sa.or_(
-        *(
-            sa.and_(DatasetColumn.kind == kind, DatasetColumn.name == name, DatasetColumn.detail == detail)
-            for kind, name, detail in sorted(items)
-        )
-    )
-    mine = DatasetColumn.application_id == application_id
-    session.execute(sa.update(DatasetColumn).where(mine, listed).values(runs=DatasetColumn.runs + step))
-    session.execute(sa.delete(DatasetColumn).where(mine, listed, DatasetColumn.runs <= 0))
+    for (app, kind, name, detail), n in sorted(pending.items()):
+        if n < 0:
+            key = sa.and_(
+                DatasetColumn.application_id == app,
+                DatasetColumn.kind == kind,
+                DatasetColumn.name == name,
+                DatasetColumn.detail == detail,
+            )
+            session.execute(sa.update(DatasetColumn).where(key).values(runs=DatasetColumn.runs + n))
+            session.execute(sa.delete(DatasetColumn).where(key, DatasetColumn.runs <= 0))
+
+
+@event.listens_for(Session, "after_rollback")
+def _forget_pending(session: Session) -> None:
+    session.info.pop(PENDING, None)
 
 
 def recount(session: Session, before: tuple[str | None, set[Item]], after: tuple[str | None, set[Item]]) -> None:
@@ -138,7 +164,9 @@ def counted_in(application_id: str | None, tier: str | None) -> str | None:
 
 def run_items(session: Session, run_id: str) -> tuple[str | None, set[Item]]:
     """The dataset run `run_id` is counted in, and the items it holds, read from the catalog."""
-    run = session.execute(sa.select(Run.application_id, Run.tier, Run.properties).where(Run.id == run_id)).first()
+    query = sa.select(Run.application_id, Run.tier, Run.properties).where(Run.id == run_id)
+    # its row locked first on Postgres: a concurrent writer of the run waits until this one commits
+    run = session.execute(query.with_for_update() if locks_rows(session) else query).first()
     if run is None:
         return None, set()
     # each read whole before the next statement: DuckDB drops a result the connection has not read
@@ -161,7 +189,8 @@ def uncount_run(session: Session, run_id: str) -> None:
 def recount_metrics(session: Session, run_id: str, before: set[Item], after: set[Item]) -> None:
     """A run's metrics were replaced: count the difference in its dataset."""
     if before != after:
-        run = session.execute(sa.select(Run.application_id, Run.tier).where(Run.id == run_id)).first()
+        query = sa.select(Run.application_id, Run.tier).where(Run.id == run_id)
+        run = session.execute(query.with_for_update() if locks_rows(session) else query).first()
         if run is not None:
             dataset = counted_in(run.application_id, run.tier)
             recount(session, (dataset, before), (dataset, after))
@@ -178,6 +207,7 @@ class DatasetColumns:
 
 
 def dataset_columns(session: Session, application_id: str) -> DatasetColumns:
+    apply_pending(session)  # what this transaction changed, read back in it
     found = DatasetColumns()
     best: dict[str, tuple[int, str]] = {}
     query = sa.select(DatasetColumn.kind, DatasetColumn.name, DatasetColumn.detail, DatasetColumn.runs).where(
@@ -200,7 +230,9 @@ def dataset_columns(session: Session, application_id: str) -> DatasetColumns:
 
 def refill(session: Session, page: int = 10_000) -> int:
     """Count every run's items again from the runs themselves (a catalog filled some other way
-    than by its writers: an upgrade, a bulk load); the runs read (deleted ones are not)."""
+    than by its writers: an upgrade, a bulk load, `fleet db recount`); the runs read (deleted ones
+    are not)."""
+    session.info.pop(PENDING, None)
     session.execute(sa.delete(DatasetColumn))
     counts: dict[tuple[str, Item], int] = {}
 

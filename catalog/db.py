@@ -109,6 +109,11 @@ def _embedded_catalog_locked(context: sa.engine.ExceptionContext) -> None:
         ) from None
 
 
+def locks_rows(session: Session) -> bool:
+    """Postgres locks rows read for update; the embedded catalog has one writer and no such clause."""
+    return session.get_bind().dialect.name == "postgresql"
+
+
 def is_embedded(engine: sa.Engine) -> bool:
     return engine.dialect.name == "duckdb"
 

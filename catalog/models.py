@@ -221,8 +221,9 @@ class DatasetColumn(Base):
     """Something a run of a dataset (an application id) has held that the dataset's segment table
     makes a column of, and how many of its runs have held it: a recording property's component with
     a kind of value, an archetype on a property entity, a timeline with its type, a metric as a number
-    or as text. Counted as runs are written (`catalog.dataset_columns`), so the table's schema is read
-    from here instead of from every run; never counted down, so a deleted run's columns stay."""
+    or as text. Counted as runs are written, moved, scrubbed and deleted (`catalog.dataset_columns`),
+    so the table's schema is read from here instead of from every run; a row whose count reaches
+    zero goes."""
 
     __tablename__ = "dataset_columns"
 

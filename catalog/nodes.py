@@ -15,6 +15,7 @@ import sqlalchemy as sa
 from sqlalchemy.dialects.postgresql import insert
 from sqlalchemy.orm import Session
 
+from catalog.db import locks_rows
 from catalog.models import DepotNode, RunOwner
 
 
@@ -41,11 +42,6 @@ class NodeRow:
     runs_owned: int
 
 
-def _locks_rows(session: Session) -> bool:
-    """Postgres locks rows read for update; the embedded catalog has one writer and no such clause."""
-    return session.get_bind().dialect.name == "postgresql"
-
-
 def _utc(value: dt.datetime) -> dt.datetime:
     return value.replace(tzinfo=dt.UTC) if value.tzinfo is None else value.astimezone(dt.UTC)
 
@@ -60,7 +56,7 @@ def db_now(session: Session) -> dt.datetime:
 def heartbeat(session: Session, node_id: str, peer_addr: str, version: str, started_at: dt.datetime) -> dt.datetime:
     """Say this node is alive now (and where it is reached); returns the catalog's time."""
     now = db_now(session)
-    row = session.get(DepotNode, node_id, with_for_update=_locks_rows(session))
+    row = session.get(DepotNode, node_id, with_for_update=locks_rows(session))
     if row is None:
         session.execute(
             insert(DepotNode)
@@ -87,7 +83,7 @@ def claim(session: Session, run_id: str, node_id: str, lease: dt.timedelta) -> C
     session.execute(
         insert(RunOwner).values(run_id=run_id, node_id=node_id, epoch=1, since=now).on_conflict_do_nothing()
     )
-    row = session.get(RunOwner, run_id, with_for_update=_locks_rows(session), populate_existing=True)
+    row = session.get(RunOwner, run_id, with_for_update=locks_rows(session), populate_existing=True)
     assert row is not None
     if row.node_id == node_id:
         row.since = now  # claimed again just now: not idle (see `release`)
@@ -104,7 +100,7 @@ def claim(session: Session, run_id: str, node_id: str, lease: dt.timedelta) -> C
 def holds(session: Session, run_id: str, node_id: str, epoch: int) -> bool:
     """Whether `node_id` still owns the run with this epoch (locked until the transaction ends, so a
     takeover waits for a sealing commit that checked it)."""
-    row = session.get(RunOwner, run_id, with_for_update=_locks_rows(session), populate_existing=True)
+    row = session.get(RunOwner, run_id, with_for_update=locks_rows(session), populate_existing=True)
     return row is not None and row.node_id == node_id and row.epoch == epoch
 
 
@@ -112,7 +108,7 @@ def release(session: Session, run_id: str, node_id: str, epoch: int, *, idle_for
     """Give the run up (sealed, or nothing of it is hot here); False if it was not ours any more.
     `idle_for`: only if it was not claimed (again) within that long, so that a source that just
     claimed the run and has not filed its first chunk yet keeps it."""
-    row = session.get(RunOwner, run_id, with_for_update=_locks_rows(session), populate_existing=True)
+    row = session.get(RunOwner, run_id, with_for_update=locks_rows(session), populate_existing=True)
     if row is None or row.node_id != node_id or row.epoch != epoch:
         return False
     if idle_for is not None and _utc(row.since) >= db_now(session) - idle_for:

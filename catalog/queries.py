@@ -14,6 +14,7 @@ import sqlalchemy as sa
 from sqlalchemy.orm import Session
 
 from catalog import dataset_columns as columns
+from catalog.db import locks_rows
 from catalog.models import (
     Base,
     Dataset,
@@ -81,7 +82,7 @@ def save_run(session: Session, record: RunRecord, now: dt.datetime) -> None:
         session.add(Robot(id=record.robot_id, created_at=now, last_seen_at=record.last_data_at))
     elif robot.last_seen_at is None or aware(robot.last_seen_at) < record.last_data_at:
         robot.last_seen_at = record.last_data_at
-    run = session.get(Run, record.id)
+    run = session.get(Run, record.id, with_for_update=locks_rows(session))  # its columns counted from what it held
     if run is None:
         if record.application_id:  # a new run of the dataset (made with its first run)
             ensure_dataset(session, record.application_id, now).updated_at = now
@@ -235,6 +236,14 @@ def datasets(session: Session) -> list[Dataset]:
 def dataset_entry_id(session: Session, name: str) -> str | None:
     dataset = session.get(Dataset, name)
     return dataset.entry_id if dataset is not None else None
+
+
+def replace_properties(session: Session, run: Run, properties: dict[str, Any]) -> None:
+    """A filed run's properties rewritten (a scrub takes secret fields out): its dataset's columns follow."""
+    dataset = columns.counted_in(run.application_id, run.tier)
+    held = columns.property_items(columns.json_object(run.properties))
+    run.properties = properties_json(properties)
+    columns.recount(session, (dataset, held), (dataset, columns.property_items(properties)))
 
 
 def mark_deleted(session: Session, run_id: str, now: dt.datetime) -> bool:

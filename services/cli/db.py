@@ -53,3 +53,24 @@ def current(catalog_url: str | None) -> None:
         click.echo(f"catalog at {current_revision(engine) or '(empty)'}, this release needs {head_revision()}")
     finally:
         engine.dispose()
+
+
+@db.command()
+@_url_option
+def recount(catalog_url: str | None) -> None:
+    """Count again what the catalog counts as runs are written (the columns of each dataset's segment
+    table), from the runs themselves: after a rolling upgrade, whose nodes of the older release
+    wrote runs without counting them."""
+    from sqlalchemy.orm import Session
+
+    from catalog.dataset_columns import refill
+    from catalog.db import check_schema
+
+    engine = _engine(catalog_url)
+    try:
+        check_schema(engine)
+        with Session(engine) as session, session.begin():
+            runs = refill(session)
+    finally:
+        engine.dispose()
+    click.echo(f"counted the dataset columns of {runs:,} runs again")

@@ -144,7 +144,7 @@ def _scrub_one(
             objects[INDEX].size, objects[INDEX].sha256 = len(sealed.index), sealed.index_sha256
             run.bytes = sealed.recording_size
             # read again through the strip: a field made secret after the run was filed leaves its row too
-            run.properties = queries.properties_json(sealed.facts.properties)
+            queries.replace_properties(session, run, sealed.facts.properties)
             detail = f"{what} removed; {len(sealed.chunk_ids)} chunks sealed again"
             queries.add_event(session, run_id, "scrub", ctx.clock(), actor, None, detail)
             session.flush()

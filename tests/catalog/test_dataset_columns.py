@@ -7,11 +7,13 @@ from __future__ import annotations
 import datetime as dt
 from typing import Any
 
+import pytest
 import sqlalchemy as sa
-from sqlalchemy.orm import Session
+from sqlalchemy.orm import Session, sessionmaker
 
 from catalog import corpus, queries
-from catalog.dataset_columns import PROPERTIES_ENTITY, dataset_columns, refill
+from catalog.dataset_columns import PROPERTIES_ENTITY, apply_pending, dataset_columns, refill
+from catalog.db import session_scope
 from catalog.models import DatasetColumn
 from catalog.queries import EntityRecord, TimelineRecord
 from services.rrd import manifest
@@ -78,7 +80,7 @@ def fill(session: Session) -> None:
         session, [metrics("run-1", ("distance_m", 3.0, None)), metrics("run-2", ("sw", None, "2.3"))], NOW
     )
     corpus.replace_evaluations(session, [metrics("run-1", ("distance_m", 4.0, None), ("stops", 2.0, None))], NOW)
-    session.flush()
+    apply_pending(session)  # as the transaction's commit would
 
 
 def test_what_the_writers_count_is_what_counting_the_runs_again_gives(session: Session):
@@ -118,7 +120,7 @@ def test_a_column_goes_when_no_run_of_the_dataset_holds_it(session: Session):
     assert dataset_columns(session, "nav").properties == {("fleet", "site"): {"str"}}
     assert dataset_columns(session, "arm").properties == {("fleet", "site"): {"int"}, ("fleet", "dock"): {"str"}}
     assert queries.mark_deleted(session, "run-2", NOW) and not queries.mark_deleted(session, "run-2", NOW)
-    assert dataset_columns(session, "arm").properties == {}
+    assert dataset_columns(session, "arm").properties == {}  # (reading applies what is pending)
     written = counted(session)
     refill(session)
     assert counted(session) == written
@@ -141,3 +143,27 @@ def test_metrics_move_with_their_run_and_go_with_it(session: Session):
 
 def test_the_property_entity_is_the_one_the_recordings_use():
     assert PROPERTIES_ENTITY == manifest.PROPERTIES_ENTITY
+
+
+def test_a_scrubbed_property_leaves_the_columns(session: Session):
+    save(session, "run-1", properties={"fleet": {"site": "a", "token": "s3cr3t"}})
+    run = queries.require_run(session, "run-1")
+    queries.replace_properties(session, run, {"fleet": {"site": "a"}})
+    assert dataset_columns(session, "nav").properties == {("fleet", "site"): {"str"}}
+
+
+def test_counts_are_written_as_the_transaction_commits_and_dropped_with_a_rollback(
+    catalog: sessionmaker[Session],
+):
+    with session_scope(catalog, write=True) as session:
+        save(session, "run-1", timelines=[TimelineRecord("t", "sequence", 0, 1)])
+        assert counted(session) == {}  # held by the session until it commits
+    with session_scope(catalog) as session:
+        assert counted(session) == {("nav", "timeline", "t", "sequence"): 1}
+    with pytest.raises(RuntimeError), session_scope(catalog, write=True) as session:
+        save(session, "run-2", timelines=[TimelineRecord("u", "sequence", 0, 1)])
+        raise RuntimeError("the writer fails")
+    with session_scope(catalog, write=True) as session:
+        save(session, "run-3")  # a later transaction on the same connection pool: nothing of run-2's
+    with session_scope(catalog) as session:
+        assert counted(session) == {("nav", "timeline", "t", "sequence"): 1}

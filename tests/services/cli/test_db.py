@@ -30,3 +30,37 @@ def test_db_upgrade_bad_url_is_one_line():
     result = _fleet("db", "upgrade", "--catalog-url", "mysql://x/y")
     assert result.returncode == 1
     assert result.stderr.strip().count("\n") == 0 and "postgresql+psycopg" in result.stderr
+
+
+@pytest.mark.slow
+def test_db_recount_counts_runs_written_without_counting(tmp_path: Path):
+    """A run an older release wrote (no count) is in its dataset's columns once `fleet db recount` ran."""
+    import datetime as dt
+
+    import sqlalchemy as sa
+    from sqlalchemy.orm import Session
+
+    from catalog.dataset_columns import dataset_columns
+    from catalog.db import create_engine
+    from catalog.models import DatasetColumn
+    from catalog.queries import TimelineRecord, save_run
+    from tests.catalog.records import run_record
+
+    url = f"duckdb:///{tmp_path / 'c.duckdb'}"
+    assert _fleet("db", "recount", "--catalog-url", url).returncode == 1  # not at head: says to upgrade
+    assert _fleet("db", "upgrade", "--catalog-url", url).returncode == 0
+    engine = create_engine(url)
+    with Session(engine) as session, session.begin():
+        record = run_record("run-1", timelines=[TimelineRecord("frame", "sequence", 0, 9)])
+        save_run(session, record, dt.datetime.now(dt.UTC))
+        session.info.clear()  # as an older release writes it: nothing counted
+        session.execute(sa.delete(DatasetColumn))
+    engine.dispose()  # the embedded catalog: one process at a time
+    recount = _fleet("db", "recount", "--catalog-url", url)
+    assert recount.returncode == 0 and "of 1 runs again" in recount.stdout, recount.stderr
+    engine = create_engine(url)
+    try:
+        with Session(engine) as session:
+            assert dataset_columns(session, "nav").timelines == {"frame": "sequence"}
+    finally:
+        engine.dispose()
