@@ -105,9 +105,13 @@ def count(session: Session, application_id: str | None, items: set[Item], step: 
         return
     pending: dict[tuple[str, str, str, str], int] = session.info.setdefault(PENDING, {})
     for kind, name, detail in items:
-        if len(name) <= MAX_NAME and len(detail) <= MAX_NAME:
+        if indexable((kind, name, detail)):
             key = (application_id, kind, name, detail)
             pending[key] = pending.get(key, 0) + step
+
+
+def indexable(item: Item) -> bool:
+    return len(item[1]) <= MAX_NAME and len(item[2]) <= MAX_NAME
 
 
 @event.listens_for(Session, "before_commit")
@@ -238,7 +242,7 @@ def refill(session: Session, page: int = 10_000) -> int:
 
     def add(application_id: str | None, items: set[Item]) -> None:
         for item in items:
-            if application_id:
+            if application_id and indexable(item):
                 counts[(application_id, item)] = counts.get((application_id, item), 0) + 1
 
     counted = Run.tier != Tier.DELETED
@@ -273,7 +277,7 @@ def refill(session: Session, page: int = 10_000) -> int:
     ]
     for kind, query in grouped:
         for application_id, name, detail, runs in session.execute(query):
-            if application_id:
+            if application_id and len(name) <= MAX_NAME:
                 shown = ("number" if detail else "text") if kind == METRIC else str(detail)
                 counts[(application_id, (kind, name, shown))] = (
                     counts.get((application_id, (kind, name, shown)), 0) + runs

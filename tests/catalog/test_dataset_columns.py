@@ -167,3 +167,18 @@ def test_counts_are_written_as_the_transaction_commits_and_dropped_with_a_rollba
         save(session, "run-3")  # a later transaction on the same connection pool: nothing of run-2's
     with session_scope(catalog) as session:
         assert counted(session) == {("nav", "timeline", "t", "sequence"): 1}
+
+
+def test_a_name_too_long_for_an_index_key_is_no_column(session: Session):
+    long = "x" * 3000  # over what a Postgres index key holds
+    save(
+        session,
+        "run-1",
+        properties={"fleet": {long: 1, "site": "a"}},
+        timelines=[TimelineRecord(long, "sequence", 0, 1), TimelineRecord("t", "sequence", 0, 1)],
+    )
+    assert dataset_columns(session, "nav").properties == {("fleet", "site"): {"str"}}
+    assert dataset_columns(session, "nav").timelines == {"t": "sequence"}
+    written = counted(session)
+    refill(session)
+    assert counted(session) == written
