@@ -22,7 +22,6 @@ RUN_CLASSES = (("services/ingest/run.py", "IngestRun"), ("services/facts/run.py"
 ALLOWED = {
     ("services/retention/scrub.py", "objects[RECORDING].size"): "a catalog ObjectRecord",
     ("services/retention/scrub.py", "objects[INDEX].size"): "a catalog ObjectRecord",
-    ("services/retention/scrub.py", "run.properties"): "the catalog's Run row",
     ("services/agent/files.py", "p.size"): "a watched file's progress",
 }
 
