@@ -6,7 +6,9 @@ import ctypes
 import ctypes.util
 import gc
 import logging
+import os
 import sys
+from collections.abc import Iterable
 
 log = logging.getLogger(__name__)
 
@@ -44,3 +46,32 @@ def freeze_startup_objects() -> int:
     gc.collect()
     gc.freeze()
     return gc.get_freeze_count()
+
+
+REALTIME = (getattr(os, "SCHED_FIFO", -1), getattr(os, "SCHED_RR", -1))
+
+
+def process_threads() -> set[int]:
+    """The ids of this process's threads (none where /proc does not list them)."""
+    try:
+        return {int(tid) for tid in os.listdir("/proc/self/task")}
+    except OSError:
+        return set()
+
+
+def drop_realtime(threads: Iterable[int]) -> list[int]:
+    """Put each of `threads` (this process's) that runs under real-time scheduling back to
+    SCHED_OTHER; the ones moved. A library may ask for real-time priority for its threads (SVT-AV1
+    run as root asks SCHED_FIFO 99): one busy thread at that priority starves the whole machine,
+    and every process the thread starts after inherits it."""
+    if not hasattr(os, "sched_getscheduler"):
+        return []
+    moved = []
+    for tid in threads:
+        try:
+            if os.sched_getscheduler(tid) in REALTIME:
+                os.sched_setscheduler(tid, os.SCHED_OTHER, os.sched_param(0))
+                moved.append(tid)
+        except OSError:  # the thread ended
+            continue
+    return moved

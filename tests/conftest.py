@@ -17,6 +17,7 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from catalog.db import create_engine, upgrade
 from services.compiled import compiled_modules
+from services.runtime import drop_realtime, process_threads
 from tests.postgres import database_name, temporary_database
 from tests.services.rrd.recordings import SCENES, Recording, cut_mid_arrow, generate_scenes, rerun_rrd
 
@@ -87,15 +88,9 @@ def no_realtime_threads() -> Iterator[None]:
     process starts after (a `fleet serve`, Chromium) would inherit it, and one busy thread at
     SCHED_FIFO 99 starves the whole machine (SVT-AV1 run as root did that to the LeRobot export)."""
     yield
-    realtime = (os.SCHED_FIFO, os.SCHED_RR)
-    found = []
-    for tid in os.listdir("/proc/self/task") if os.path.isdir("/proc/self/task") else ():
-        with contextlib.suppress(OSError):  # the thread ended
-            if os.sched_getscheduler(int(tid)) in realtime:
-                os.sched_setscheduler(int(tid), os.SCHED_OTHER, os.sched_param(0))
-                found.append(tid)
+    found = drop_realtime(process_threads())
     if found:
-        pytest.fail(f"threads {', '.join(found)} of the test process were left under real-time scheduling")
+        pytest.fail(f"threads {', '.join(map(str, found))} of the test process were left under real-time scheduling")
 
 
 def find_rerun() -> str | None:

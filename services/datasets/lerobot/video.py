@@ -12,9 +12,10 @@ from pathlib import Path
 import av
 import numpy as np
 
+from services.runtime import REALTIME, drop_realtime, process_threads
+
 CODECS = {"h264": "libx264", "av1": "libsvtav1"}  # LeRobot's name -> the encoder
 CRF = "30"
-REALTIME = (getattr(os, "SCHED_FIFO", -1), getattr(os, "SCHED_RR", -1))
 
 
 class _NoRealtimeThreads:
@@ -29,16 +30,8 @@ class _NoRealtimeThreads:
     def check(self) -> None:
         if not self.enabled:  # a process put under real-time scheduling on purpose keeps it
             return
-        try:
-            threads = {int(tid) for tid in os.listdir("/proc/self/task")}
-        except OSError:
-            return
-        for tid in (threads - self.seen) | {threading.get_native_id()}:
-            try:
-                if os.sched_getscheduler(tid) in REALTIME:
-                    os.sched_setscheduler(tid, os.SCHED_OTHER, os.sched_param(0))
-            except OSError:  # the thread ended
-                continue
+        threads = process_threads()
+        drop_realtime((threads - self.seen) | {threading.get_native_id()})
         self.seen = threads
 
 
