@@ -74,11 +74,9 @@ def last_runs(session: Session, unlisted: list[str]) -> dict[str, Run]:
     return last
 
 
-def robots(session: Session, counts: dict[str, int] | None = None) -> list[dict[str, Any]]:
-    """Every robot with its run count (deleted runs not counted; `counts` as `totals` has them, else
-    counted now) and its last run (by start)."""
-    if counts is None:
-        counts = totals.count(session).robots
+def robots(session: Session, counts: dict[str, int]) -> list[dict[str, Any]]:
+    """Every robot with its run count (deleted runs not counted: `counts`, as `totals` has them) and
+    its last run (by start)."""
     seen: dict[str, Robot | None] = {robot.id: robot for robot in session.scalars(sa.select(Robot))}
     last = last_runs(session, sorted(set(counts) - set(seen)))
     for robot_id in counts:
