@@ -574,3 +574,23 @@ class McapDigest(Base):
     digest: Mapped[str] = mapped_column(String(64), primary_key=True)
     import_id: Mapped[str] = mapped_column(String(32))
     run_id: Mapped[str] = mapped_column(String(ID_LENGTH))
+
+
+class LakehouseRun(Base):
+    """A run's rows in the lakehouse's Iceberg tables (`services.lakehouse`): `wanted` counts the
+    changes of its analytics files (sealed, extracted again, deleted), `synced` the change the tables
+    hold; the sync job copies a run while `pending`. One row per run ever sent there."""
+
+    __tablename__ = "lakehouse_runs"
+
+    run_id: Mapped[str] = mapped_column(String(ID_LENGTH), primary_key=True)
+    wanted: Mapped[int] = mapped_column(BigInteger)
+    synced: Mapped[int] = mapped_column(BigInteger)
+    pending: Mapped[bool] = mapped_column(Boolean)
+    synced_at: Mapped[dt.datetime | None] = mapped_column(DateTime(timezone=True))
+    rows: Mapped[int] = mapped_column(BigInteger, default=0)  # rows the tables hold for it, all tables
+
+
+# What the sync job reads: the few pending runs among all (Postgres; the embedded catalog keeps
+# primary keys only, see migration 0003).
+Index("ix_lakehouse_runs_pending", LakehouseRun.run_id, postgresql_where=LakehouseRun.pending)

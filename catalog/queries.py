@@ -14,6 +14,7 @@ import sqlalchemy as sa
 from sqlalchemy.orm import Session
 
 from catalog import dataset_columns as columns
+from catalog import lakehouse
 from catalog.db import locks_rows
 from catalog.models import (
     Base,
@@ -259,6 +260,7 @@ def mark_deleted(session: Session, run_id: str, now: dt.datetime) -> bool:
     if not getattr(changed, "rowcount", 0):
         return False
     columns.count(session, dataset, items, -1)
+    lakehouse.queue(session, run_id)  # its rows leave the lakehouse's tables
     return True
 
 
@@ -309,6 +311,7 @@ def record_promotion(
 
 
 def replace_objects(session: Session, run_id: str, objects: list[ObjectRecord]) -> None:
+    _queue_if_analytics_change(session, run_id, [o for o in objects if o.name.startswith(lakehouse.ANALYTICS)])
     session.execute(sa.delete(RunObject).where(RunObject.run_id == run_id))
     if objects:
         session.execute(
@@ -349,6 +352,7 @@ def analytics_keys(session: Session, run_id: str) -> set[str]:
 def replace_analytics(session: Session, run_id: str, objects: list[ObjectRecord]) -> set[str]:
     """Record a run's analytics files (written before it is sealed); returns the keys they replace."""
     old = analytics_keys(session, run_id)
+    _queue_if_analytics_change(session, run_id, objects)
     session.execute(sa.delete(RunObject).where(RunObject.run_id == run_id, RunObject.name.like("analytics/%")))
     if objects:
         session.execute(
@@ -359,6 +363,17 @@ def replace_analytics(session: Session, run_id: str, objects: list[ObjectRecord]
             ],
         )
     return old - {o.key for o in objects}
+
+
+def _queue_if_analytics_change(session: Session, run_id: str, objects: list[ObjectRecord]) -> None:
+    """The lakehouse copies a run again when its analytics files change (`catalog.lakehouse`)."""
+    held = session.execute(
+        sa.select(RunObject.key, RunObject.sha256).where(
+            RunObject.run_id == run_id, RunObject.name.like(f"{lakehouse.ANALYTICS}%")
+        )
+    ).all()
+    if {(key, sha) for key, sha in held} != {(o.key, o.sha256) for o in objects}:
+        lakehouse.queue(session, run_id)
 
 
 def pin_state(session: Session, run_id: str) -> tuple[bool, str | None]:

@@ -20,6 +20,7 @@ from services.cluster.ownership import Ownership
 from services.cluster.relay import Channels
 from services.facts.identity import SecretFields
 from services.hot.store import HotStore
+from services.lakehouse.tables import Lakehouse
 from services.sealed.tiers import Tiers
 from services.settings import Settings
 from services.storage.objectstore import ObjectStore
@@ -41,6 +42,8 @@ class Node:
     # Both None on a node that files every run itself (one node, or an embedded catalog).
     ownership: Ownership | None = None
     channels: Channels | None = None
+    # The Iceberg tables outside engines read (FLEET_LAKEHOUSE); None when turned off.
+    lakehouse: Lakehouse | None = None
 
 
 class OnNode:

@@ -39,6 +39,8 @@ from services.imports.records import Ledger, purge_quarantine, recover_interrupt
 from services.ingest import grpc_handler
 from services.ingest.replay import ReplayHub
 from services.ingest.service import IngestService
+from services.lakehouse import sync as lakehouse_sync
+from services.lakehouse.tables import open_lakehouse
 from services.node import Node
 from services.redap import grpc_handler as redap_handler
 from services.redap.depot import Depot
@@ -92,10 +94,11 @@ def open_node(settings: Settings, peer_addr: str | None = None) -> Node:
     and channels to the other nodes."""
     catalog = sessionmaker(create_engine(settings.catalog_url, settings.catalog_timeout_s))
     ownership = Ownership(catalog, node_id(settings), peer_addr, settings.lease_s, __version__) if peer_addr else None
+    tiers = open_tiers(settings)
     return Node(
         settings=settings,
         catalog=catalog,
-        tiers=open_tiers(settings),
+        tiers=tiers,
         hot=HotStore(
             settings.hot_dir,
             durability=settings.durability,
@@ -107,6 +110,7 @@ def open_node(settings: Settings, peer_addr: str | None = None) -> Node:
         secret_fields=SecretFields(settings.secret_fields),
         ownership=ownership,
         channels=Channels(peer_channel_options(settings.max_message_size)) if ownership else None,
+        lakehouse=open_lakehouse(settings.catalog_url, tiers.warm) if settings.lakehouse else None,
     )
 
 
@@ -204,6 +208,22 @@ def webhook_jobs(hooks: Webhooks, ingest: IngestService) -> list[Job]:
         Job("webhooks", lambda _: deliver_due(hooks), every),
         # a silence is seen within a quarter of FLEET_SILENT_AFTER_S (at most 30 s) of its start
         Job("robot.silent", lambda _: silent_pass(hooks, ingest.hot_runs()), silent_check_s),
+    ]
+
+
+def lakehouse_jobs(node: Node) -> list[Job]:
+    """Sealed runs' rows copied to the lakehouse's Iceberg tables (`services.lakehouse.sync`)."""
+    lake = node.lakehouse
+    if lake is None:
+        return []
+    return [
+        Job(
+            lakehouse_sync.JOB,
+            lambda _: lakehouse_sync.sync(
+                lake, node.catalog, node.tiers.warm, node.clock, batches=lakehouse_sync.JOB_BATCHES
+            ),
+            node.settings.lakehouse_sync_s,
+        )
     ]
 
 
@@ -343,6 +363,7 @@ async def serve(
                 Job(BACKFILL_JOB, lambda _: corpus.backfill.run(), settings.rules_backfill_interval_s),
                 export_job(node, ingest),
                 Job("fleet.totals", lambda _: totals.count_job(node.catalog, node.clock()), totals.COUNT_INTERVAL_S),
+                *lakehouse_jobs(node),
                 Job(
                     "imports.quarantine", lambda _: purge_quarantine(node.catalog, node.tiers.warm, node.clock()), 3600
                 ),

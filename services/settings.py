@@ -243,6 +243,12 @@ class Settings(SharedSettings):
     promote_interval_s: float = Field(30.0, gt=0, description="how often the promotion job runs")
     retention_interval_s: float = Field(600.0, gt=0, description="how often archive, restore and expiry jobs run")
     scheduler: bool = Field(True, description="run the retention jobs inside fleet serve")
+    lakehouse: bool = Field(
+        True,
+        description="keep the analytics tables as Iceberg tables under the warm store's lakehouse/ prefix, "
+        "cataloged in the catalog database, for outside engines (docs/lakehouse.md)",
+    )
+    lakehouse_sync_s: float = Field(30.0, gt=0, description="how often sealed runs' rows are copied to the lakehouse")
     sql_max_rows: int = Field(100_000, gt=0, description="most rows a SQL answer may have")
     sql_timeout_s: float = Field(
         30.0, gt=0, description="a SQL query taking longer from its arrival (queue included) is stopped"

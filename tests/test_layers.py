@@ -8,11 +8,12 @@
     sdk_client, catalog, settings    the client (core only, so it ships without the server); the
                                      catalog (core only); the depot's Settings and the
                                      base it shares with the agent's
-    auth | hot | cluster | facts | rules | migrations
+    auth | hot | cluster | facts | rules | lakehouse | migrations
                                      tokens, scopes, signed links | the hot tier | run ownership
                                      among nodes | what a run is, learnt from its messages | the
                                      rules language, what it makes of a run's chunks | the
-                                     catalog's schema migrations
+                                     analytics tables as Iceberg tables | the catalog's schema
+                                     migrations
     ingest | sealed                  streams and uploads into the hot tier, owning the live runs |
                                      the sealed-run format (recording, chunk index, run.json) and
                                      its tiers
@@ -65,6 +66,7 @@ LAYERS: dict[str, int] = {
     "services.cluster": 3,
     "services.facts": 3,
     "services.rules": 3,
+    "services.lakehouse": 3,
     "services.ingest": 4,
     "services.sealed": 4,
     "services.node": 5,

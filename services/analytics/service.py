@@ -32,6 +32,8 @@ from services.analytics.extract import TABLES, extract_file
 from services.analytics.pool import Prepared, SqlPool
 from services.analytics.store import write_analytics
 from services.ingest.service import IngestService
+from services.lakehouse import scan as lakehouse_scan
+from services.lakehouse.sync import copy_now
 from services.node import Node, OnNode
 
 FORMATS = {
@@ -72,7 +74,9 @@ class Analytics(OnNode):
 
     @property
     def root(self) -> str:
-        return sql.analytics_root(self.warm.url)
+        """Where the tables' files are: the lakehouse's folder, or the per-run files' without one."""
+        lake = self.node.lakehouse
+        return lakehouse_scan.root(lake) if lake is not None else sql.analytics_root(self.warm.url)
 
     @property
     def pool(self) -> SqlPool:
@@ -158,21 +162,27 @@ def analytics_files(session: Session, root: str, tables: Iterable[str]) -> dict[
 def prepare(ctx: Analytics, named: set[str]) -> Prepared:
     """The catalog rows and analytics file lists of the views a query names (only those: a snapshot
     copies a whole table, and binding an analytics view reads the footer of each of its files)."""
+    tables = [t for t in TABLES if t in named]
+    lake = ctx.node.lakehouse
     with session_scope(ctx.catalog) as session:
-        return Prepared(
-            analytics_files(session, ctx.root, [t for t in TABLES if t in named]),
-            catalog_tables(session, [t for t in SQL_CATALOG_TABLES if t in named]),
-        )
+        files = analytics_files(session, ctx.root, tables) if lake is None else {}
+        rows = catalog_tables(session, [t for t in SQL_CATALOG_TABLES if t in named])
+    if lake is not None:  # the Iceberg tables' files as of their current snapshots
+        files = {table: lakehouse_scan.data_files(lake, table) for table in tables}
+    return Prepared(files, rows)
 
 
 def request(ctx: Analytics, text: str) -> dict[str, Any]:
     """What a worker is told: the query, where the files are, the S3 access, and the server's own
     strings it must keep out of answers and errors."""
     s3 = ctx.s3_access()
-    hidden = [ctx.root, ctx.root.removesuffix("/analytics"), ctx.warm.url, ctx.pool.workdir, str(Path.home())]
+    root = ctx.root
+    hidden = [root, root.rsplit("/", 1)[0], ctx.warm.url, ctx.pool.workdir, str(Path.home())]
     if s3 is not None:
         hidden += [s3.key_id, s3.secret, s3.session_token or "", s3.endpoint or ""]
-    return {"query": text, "root": ctx.root, "s3": dataclasses.asdict(s3) if s3 else None, "hidden": hidden}
+    layout = sql.ICEBERG if ctx.node.lakehouse is not None else sql.PER_RUN
+    s3_access = dataclasses.asdict(s3) if s3 else None
+    return {"query": text, "root": root, "layout": layout, "s3": s3_access, "hidden": hidden}
 
 
 async def query(ctx: Analytics, text: str) -> pa.Table:
@@ -259,4 +269,5 @@ def extract_hot_run(ctx: Analytics, ingest: IngestService, run_id: str) -> list[
         stale = queries.replace_analytics(session, run_id, objects)
     for key in stale:  # written before under another robot or date
         ctx.warm.delete(key)
+    copy_now(ctx.node.lakehouse, ctx.catalog, ctx.warm, ctx.clock, [run_id])
     return [{"table": o.name.removeprefix("analytics/"), "key": o.key, "bytes": o.size} for o in objects]

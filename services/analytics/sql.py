@@ -78,6 +78,8 @@ MEMORY_UNITS = {
     "gib": 2**30,
     "tib": 2**40,
 }
+LOG_TIME = "log_time"
+PER_RUN, ICEBERG = "per-run", "iceberg"  # how the analytics tables' files are laid out
 NEUTRAL_ROOT = "analytics"  # what answers and errors call the analytics folder
 
 
@@ -259,9 +261,10 @@ def sandbox(
     catalog: dict[str, pa.Table],
     s3: S3Access | None,
     files: dict[str, list[str]],
+    layout: str = "per-run",
 ) -> Iterator[duckdb.DuckDBPyConnection]:
-    """`con` with the given catalog tables and analytics views (`files`: table -> its files), locked
-    down: only those files are readable afterwards."""
+    """`con` with the given catalog tables and analytics views (`files`: table -> its files, laid
+    out as `layout` says), locked down: only those files are readable afterwards."""
     try:
         # the view is bound when created and again by the query: parse each footer (and HEAD each
         # file) once; the database lives for one query, so nothing cached can go stale
@@ -273,7 +276,7 @@ def sandbox(
             con.register(f"_catalog_{name}", table)
             con.execute(f"CREATE VIEW {name} AS SELECT * FROM _catalog_{name}")
         for table, paths in files.items():
-            analytics_view(con, table, paths)
+            analytics_view(con, table, paths, layout)
         readable = sorted({p for paths in files.values() for p in paths})
         con.execute("SET allowed_directories = []")
         con.execute("SET allowed_paths = ?", [readable])
@@ -284,20 +287,29 @@ def sandbox(
         con.close()
 
 
-def analytics_view(con: duckdb.DuckDBPyConnection, table: str, paths: list[str]) -> None:
+def analytics_view(con: duckdb.DuckDBPyConnection, table: str, paths: list[str], layout: str = PER_RUN) -> None:
     """`table` over exactly these Parquet files (binding it reads each file's footer, for its columns);
-    a table with no file is an empty view with the documented columns."""
+    a table with no file is an empty view with the documented columns. PER_RUN: a file per run
+    under `robot_id=R/date=D/`; ICEBERG: the lakehouse table's data files, which hold robot and date,
+    and `log_time` to the microsecond beside its exact `log_time_ns` (the view's `log_time`)."""
     if paths:
         listed = ", ".join("'" + p.replace("'", "''") + "'" for p in paths)
-        try:
-            con.execute(
-                f"CREATE VIEW {table} AS SELECT * FROM read_parquet([{listed}], hive_partitioning = true, "
+        if layout == ICEBERG:
+            source = (
+                f"SELECT * REPLACE (make_timestamp_ns(log_time_ns) AS {LOG_TIME}) "
+                f"FROM read_parquet([{listed}], union_by_name = true)"
+            )
+        else:
+            source = (
+                f"SELECT * FROM read_parquet([{listed}], hive_partitioning = true, "
                 "union_by_name = true, hive_types = {'robot_id': VARCHAR, 'date': DATE})"
             )
+        try:
+            con.execute(f"CREATE VIEW {table} AS {source}")
             return
         except duckdb.Error as exc:
             raise StorageError(f"cannot read the {table} table: {first_line(exc)}") from None
-    from services.analytics.extract import FIXED_COLUMNS, LOG_TIME  # here: numpy is slow to import in a worker
+    from services.analytics.extract import FIXED_COLUMNS  # here: numpy is slow to import in a worker
 
     columns = ", ".join(f"NULL::{_COLUMN_TYPES.get(c, 'DOUBLE')} AS {c}" for c in FIXED_COLUMNS[table])
     con.execute(
@@ -375,9 +387,10 @@ class Scrubber:
     hidden: tuple[str, ...]
 
     def text(self, value: str) -> str:
-        value = re.sub(r"[^\s'\"()\[\],]*/analytics/", f"{NEUTRAL_ROOT}/", value)  # any form of a file's path
+        value = re.sub(r"[^\s'\"()\[\],]*/(analytics|lakehouse)/", f"{NEUTRAL_ROOT}/", value)  # a file's path
         for secret in sorted((h for h in self.hidden if len(h.strip("/")) >= 3), key=len, reverse=True):
-            value = value.replace(secret, NEUTRAL_ROOT if secret.endswith("/analytics") else "[hidden]")
+            neutral = secret.endswith(("/analytics", "/lakehouse"))
+            value = value.replace(secret, NEUTRAL_ROOT if neutral else "[hidden]")
         return value
 
     def plan(self, value: str) -> str:

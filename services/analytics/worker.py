@@ -5,7 +5,7 @@ private HOME), so nothing DuckDB could read of its process reveals a credential 
 It imports DuckDB while idle, then talks over stdin/stdout in length-prefixed frames:
 
     worker -> server  {}                                               (ready, after its imports)
-    server -> worker  {"query", "root", "limits", "s3", "hidden"}      (JSON)
+    server -> worker  {"query", "root", "layout", "limits", "s3", "hidden"}      (JSON)
     worker -> server  {"tables": [views the query names]} | {"error"}  (JSON; the query is checked)
     server -> worker  {"files": {table: [file, ...]}, "catalog": [name, ...]}, then one Arrow IPC
                       stream per catalog table
@@ -103,7 +103,8 @@ def _serve(con: Any, request: dict[str, Any], baseline: int, scrub: Any, inp: IO
     catalog = {name: pa.ipc.open_stream(read_frame(inp)).read_all() for name in plan["catalog"]}
     s3 = sql.S3Access(**request["s3"]) if request.get("s3") else None
     explain = sql.is_explain(con, request["query"])
-    with sql.sandbox(con, request["root"], catalog, s3, plan["files"]) as sandboxed:
+    layout = request.get("layout", sql.PER_RUN)
+    with sql.sandbox(con, request["root"], catalog, s3, plan["files"], layout) as sandboxed:
         answer = sql.run(sandboxed, request["query"], limits, limits.memory_bytes // 2)
     return scrub.table(answer) if explain else answer  # plans name the files read
 

@@ -10,9 +10,7 @@ read from the chunk index kept beside its file, as the file stands (cached per s
 from __future__ import annotations
 
 import datetime as dt
-import io
 import logging
-import os
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 
@@ -34,7 +32,7 @@ from services.rrd.pb import common_pb2, log_msg_pb2
 from services.sealed.index import CHUNK, IndexRow, from_parquet
 from services.sealed.read import readable_prefix
 from services.sealed.write import INDEX, RECORDING
-from services.storage.objectstore import ObjectStore
+from services.storage.objectstore import ObjectFile, ObjectStore
 
 log = logging.getLogger(__name__)
 
@@ -236,34 +234,3 @@ def _read_hot(run_id: str, hot: HotRecording) -> RunChunks:
         uncompressed[meta.chunk_id] = meta.uncompressed_size
         rows.append(entry.row)
     return RunChunks(run_id, tuple(rows), uncompressed, rerun_order(sorbet_schema(metas)))
-
-
-class ObjectFile(io.RawIOBase):
-    """An object of a store read as a seekable file, by ranged reads: what reading a footer from
-    the end of a recording takes, without fetching the recording."""
-
-    def __init__(self, store: ObjectStore, key: str, size: int) -> None:
-        self._store, self._key, self._size = store, key, size
-        self._position = 0
-
-    def readable(self) -> bool:
-        return True
-
-    def seekable(self) -> bool:
-        return True
-
-    def seek(self, offset: int, whence: int = os.SEEK_SET) -> int:
-        base = {os.SEEK_SET: 0, os.SEEK_CUR: self._position, os.SEEK_END: self._size}[whence]
-        self._position = max(0, base + offset)
-        return self._position
-
-    def tell(self) -> int:
-        return self._position
-
-    def read(self, size: int = -1) -> bytes:
-        end = self._size if size is None or size < 0 else min(self._size, self._position + size)
-        if end <= self._position:
-            return b""
-        data = self._store.get_range(self._key, self._position, end - self._position)
-        self._position += len(data)
-        return data

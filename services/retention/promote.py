@@ -40,6 +40,7 @@ from services.facts.sealed import SealedInfo
 from services.hot.read import read_events
 from services.ingest.service import IngestService
 from services.ingest.view import HotRunView
+from services.lakehouse.sync import copy_now
 from services.node import Node
 from services.rrd.decoder import iter_events
 from services.rrd.messages import Event
@@ -307,6 +308,7 @@ def _seal_and_switch(
     for key in stale:  # analytics written earlier under another robot or date: one copy per run
         tiers.warm.delete(key)
     shutil.rmtree(left.folder, ignore_errors=True)  # (5)
+    copy_now(node.lakehouse, catalog, tiers.warm, node.clock, [run.run_id])  # its rows in the Iceberg tables
     log.info("promoted run %s: %s", run.run_id, detail)
     return record
 

@@ -24,6 +24,7 @@ from core.clock import aware, iso_utc
 from core.errors import ConflictError
 from core.states import ARCHIVED_IN_STORE, RestoreState, RunStatus, Tier
 from services.ingest.service import IngestService
+from services.lakehouse.sync import copy_now
 from services.node import Node
 from services.policies import Policies, Policy
 from services.retention import archive, promote
@@ -293,7 +294,7 @@ def _execute(ctx: Retention, action: Action, now: dt.datetime) -> str:
             used = datasets.snapshots_using(session, [action.run_id]).get(action.run_id)
         if used:
             return f"kept: used by {datasets.describe_use(used)}"
-        return archive.delete(action.run_id, ctx.tiers, ctx.catalog, now, "retention", action.policy)
+        return _delete(ctx, action.run_id, now, "retention", action.policy)
     if action.action == RESTORE:
         return archive.advance_restore(action.run_id, ctx.tiers, ctx.catalog, now)
     raise ValueError(f"unknown action {action.action!r}")
@@ -411,4 +412,11 @@ def delete_run(ctx: Retention, run_id: str, actor: str, force: bool = False) -> 
             f"run {run_id!r} is used by {datasets.describe_use(used, most=20)}: delete it anyway with "
             "force=true (`fleet runs rm --force`), and their episodes of it will answer missing"
         )
-    return archive.delete(run_id, ctx.tiers, ctx.catalog, ctx.clock(), actor, None)
+    return _delete(ctx, run_id, ctx.clock(), actor, None)
+
+
+def _delete(ctx: Retention, run_id: str, now: dt.datetime, actor: str, policy: str | None) -> str:
+    """Delete a sealed run (`archive.delete`), then its rows from the lakehouse's tables."""
+    done = archive.delete(run_id, ctx.tiers, ctx.catalog, now, actor, policy)
+    copy_now(ctx.node.lakehouse, ctx.catalog, ctx.tiers.warm, ctx.clock, [run_id])
+    return done

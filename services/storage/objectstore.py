@@ -4,6 +4,8 @@
 from __future__ import annotations
 
 import datetime as dt
+import io
+import os
 import re
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -174,3 +176,34 @@ def open_store(
             url, endpoint_url=endpoint_url, region=region, uploads=uploads, presign_endpoint_url=presign_endpoint_url
         )
     raise StorageError(f"unsupported store URL {url!r}: use file:///PATH or s3://BUCKET/PREFIX")
+
+
+class ObjectFile(io.RawIOBase):
+    """An object of a store read as a seekable file, by ranged reads: what reading a footer from
+    the end of a recording takes, without fetching the recording."""
+
+    def __init__(self, store: ObjectStore, key: str, size: int) -> None:
+        self._store, self._key, self._size = store, key, size
+        self._position = 0
+
+    def readable(self) -> bool:
+        return True
+
+    def seekable(self) -> bool:
+        return True
+
+    def seek(self, offset: int, whence: int = os.SEEK_SET) -> int:
+        base = {os.SEEK_SET: 0, os.SEEK_CUR: self._position, os.SEEK_END: self._size}[whence]
+        self._position = max(0, base + offset)
+        return self._position
+
+    def tell(self) -> int:
+        return self._position
+
+    def read(self, size: int = -1) -> bytes:
+        end = self._size if size is None or size < 0 else min(self._size, self._position + size)
+        if end <= self._position:
+            return b""
+        data = self._store.get_range(self._key, self._position, end - self._position)
+        self._position += len(data)
+        return data

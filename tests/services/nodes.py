@@ -15,6 +15,7 @@ from services.auth.bootstrap import open_auth
 from services.facts.identity import SecretFields
 from services.hot.store import HotStore
 from services.ingest.service import IngestService
+from services.lakehouse.tables import Lakehouse
 from services.node import Node
 from services.sealed.tiers import Tiers, sealed_lookup
 from services.settings import Durability, Settings, load_settings
@@ -37,6 +38,7 @@ def node_of(
     default_robot: str | None = None,
     secret_fields: SecretFields | None = None,
     min_free_bytes: int = 0,
+    lakehouse: Lakehouse | None = None,
 ) -> Node:
     """A node over `catalog`: its hot tier in `root`/hot, its stores `tiers` (else folders under
     `root`), `settings` (else those of a data dir `root`/data) and the auth they say."""
@@ -51,6 +53,7 @@ def node_of(
         default_robot=default_robot or settings.default_robot,
         secret_fields=secret_fields or SecretFields(settings.secret_fields),
         clock=clock,
+        lakehouse=lakehouse,
     )
 
 

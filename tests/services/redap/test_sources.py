@@ -4,7 +4,6 @@ unreadable."""
 
 from __future__ import annotations
 
-import io
 from collections.abc import Iterator
 from dataclasses import replace
 from pathlib import Path
@@ -78,13 +77,3 @@ def test_a_hot_run_is_read_from_its_file(node: DepotNode, points: Path):
         assert int.from_bytes(data[row.offset : row.offset + 8], "little") == 2
         assert int.from_bytes(data[row.offset + 8 : row.offset + 16], "little") == row.length - 16
     assert {r.entity_path for r in found.rows} == {"/__properties", "/world/points", "/world/sparse"}
-
-
-def test_an_object_reads_as_a_seekable_file(node: DepotNode):
-    node.tiers.warm.put("x/object", io.BytesIO(b"0123456789"))
-    handle = sources.ObjectFile(node.tiers.warm, "x/object", 10)
-    assert handle.seek(0, io.SEEK_END) == 10
-    assert handle.seek(-4, io.SEEK_END) == 6 and handle.read(2) == b"67" and handle.tell() == 8
-    assert handle.read() == b"89" and handle.read(5) == b""
-    handle.seek(1)
-    assert handle.read(3) == b"123"
