@@ -32,9 +32,7 @@ def upgrade() -> None:
         sa.PrimaryKeyConstraint("run_id", name=op.f("pk_lakehouse_runs")),
     )
     if op.get_bind().dialect.name != "duckdb":  # the embedded catalog keeps primary keys only (0003)
-        op.create_index(
-            "ix_lakehouse_runs_pending", "lakehouse_runs", ["run_id"], postgresql_where=sa.text("pending")
-        )
+        op.create_index("ix_lakehouse_runs_pending", "lakehouse_runs", ["run_id"], postgresql_where=sa.text("pending"))
 
 
 def downgrade() -> None:
