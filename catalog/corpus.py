@@ -22,6 +22,7 @@ import sqlalchemy as sa
 from sqlalchemy.orm import Session
 
 from catalog import dataset_columns as columns
+from catalog import lakehouse
 from catalog.edge import AWAITED_STATES
 from catalog.models import Event, Pull, RulesVersion, RunEvaluation, RunMetric, RunTag
 from core.errors import BadParameterError
@@ -196,6 +197,7 @@ def replace_evaluations(session: Session, evaluations: Sequence[EvaluationFacts]
         evaluation.events_capped = facts.capped
         evaluation.note = facts.note
         evaluation.evaluated_at = now
+    lakehouse.queue_sealed(session, run_ids)
     session.flush()
     return new
 
@@ -322,6 +324,7 @@ def add_event(
     found it)."""
     row = _event_row(new_id, run_id, robot_id, facts, rules_version, now)
     session.add(row)
+    lakehouse.queue_sealed(session, [run_id])
     session.flush()
     return row
 
@@ -382,6 +385,8 @@ def add_tags(session: Session, run_id: str, tags: Iterable[str], who: str, now: 
     held = {t.tag for t in tags_of(session, run_id)}
     added = [tag for tag in dict.fromkeys(tags) if tag not in held]
     session.add_all(RunTag(run_id=run_id, tag=tag, added_by=who, added_at=now) for tag in added)
+    if added:
+        lakehouse.queue_sealed(session, [run_id])
     session.flush()
     return added
 
@@ -392,6 +397,8 @@ def remove_tags(session: Session, run_id: str, tags: Iterable[str]) -> list[str]
     held = [t for t in tags_of(session, run_id) if t.tag in wanted]
     for tag in held:
         session.delete(tag)
+    if held:
+        lakehouse.queue_sealed(session, [run_id])
     session.flush()
     return [t.tag for t in held]
 
@@ -402,6 +409,7 @@ def sync_robot_tags(session: Session, run_id: str, tags: Iterable[str], now: dt.
     for held in tags_of(session, run_id):
         if held.added_by == ROBOT_TAGGER and held.tag not in wanted:
             session.delete(held)
+            lakehouse.queue_sealed(session, [run_id])
     add_tags(session, run_id, sorted(wanted), ROBOT_TAGGER, now)
 
 

@@ -578,8 +578,9 @@ class McapDigest(Base):
 
 class LakehouseRun(Base):
     """A run's rows in the lakehouse's Iceberg tables (`services.lakehouse`): `wanted` counts the
-    changes of its analytics files (sealed, extracted again, deleted), `synced` the change the tables
-    hold; the sync job copies a run while `pending`. One row per run ever sent there."""
+    changes writers marked (its sealing, analytics files, metrics, events, tags, tier, deletion),
+    `synced` the change the tables hold; `telemetry`: its analytics files changed too (their rows
+    are copied again, not only its catalog rows). One row per run ever sent there."""
 
     __tablename__ = "lakehouse_runs"
 
@@ -587,8 +588,9 @@ class LakehouseRun(Base):
     wanted: Mapped[int] = mapped_column(BigInteger)
     synced: Mapped[int] = mapped_column(BigInteger)
     pending: Mapped[bool] = mapped_column(Boolean)
+    telemetry: Mapped[bool] = mapped_column(Boolean)
     synced_at: Mapped[dt.datetime | None] = mapped_column(DateTime(timezone=True))
-    rows: Mapped[int] = mapped_column(BigInteger, default=0)  # rows the tables hold for it, all tables
+    rows: Mapped[int] = mapped_column(BigInteger, default=0)  # telemetry rows the tables hold for it
 
 
 # What the sync job reads: the few pending runs among all (Postgres; the embedded catalog keeps

@@ -260,7 +260,7 @@ def mark_deleted(session: Session, run_id: str, now: dt.datetime) -> bool:
     if not getattr(changed, "rowcount", 0):
         return False
     columns.count(session, dataset, items, -1)
-    lakehouse.queue(session, run_id)  # its rows leave the lakehouse's tables
+    lakehouse.queue(session, run_id, telemetry=True)  # its rows leave the lakehouse's tables
     return True
 
 
@@ -326,6 +326,7 @@ def replace_objects(session: Session, run_id: str, objects: list[ObjectRecord]) 
 def add_event(
     session: Session, run_id: str, action: str, now: dt.datetime, actor: str, policy: str | None, detail: str = ""
 ) -> None:
+    lakehouse.queue(session, run_id)  # its tier or pin changed: so does its row in the lakehouse's runs
     session.add(
         RetentionEvent(
             id=uuid.uuid4().hex,
@@ -373,7 +374,7 @@ def _queue_if_analytics_change(session: Session, run_id: str, objects: list[Obje
         )
     ).all()
     if {(key, sha) for key, sha in held} != {(o.key, o.sha256) for o in objects}:
-        lakehouse.queue(session, run_id)
+        lakehouse.queue(session, run_id, telemetry=True)
 
 
 def pin_state(session: Session, run_id: str) -> tuple[bool, str | None]:

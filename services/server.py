@@ -39,6 +39,7 @@ from services.imports.records import Ledger, purge_quarantine, recover_interrupt
 from services.ingest import grpc_handler
 from services.ingest.replay import ReplayHub
 from services.ingest.service import IngestService
+from services.lakehouse import maintenance
 from services.lakehouse import sync as lakehouse_sync
 from services.lakehouse.tables import open_lakehouse
 from services.node import Node
@@ -212,18 +213,23 @@ def webhook_jobs(hooks: Webhooks, ingest: IngestService) -> list[Job]:
 
 
 def lakehouse_jobs(node: Node) -> list[Job]:
-    """Sealed runs' rows copied to the lakehouse's Iceberg tables (`services.lakehouse.sync`)."""
+    """The lakehouse's jobs: sealed runs' rows copied to its Iceberg tables (`services.lakehouse.sync`),
+    and their upkeep (`services.lakehouse.maintenance`)."""
     lake = node.lakehouse
     if lake is None:
         return []
+    settings, warm = node.settings, node.tiers.warm
+    keep = dt.timedelta(seconds=settings.lakehouse_keep_s)
+
+    def sync(_: object) -> lakehouse_sync.SyncReport:
+        return lakehouse_sync.sync(lake, node.catalog, warm, node.clock, batches=lakehouse_sync.JOB_BATCHES)
+
+    def upkeep(_: object) -> maintenance.MaintenanceReport:
+        return maintenance.maintain(lake, warm, node.clock(), keep)
+
     return [
-        Job(
-            lakehouse_sync.JOB,
-            lambda _: lakehouse_sync.sync(
-                lake, node.catalog, node.tiers.warm, node.clock, batches=lakehouse_sync.JOB_BATCHES
-            ),
-            node.settings.lakehouse_sync_s,
-        )
+        Job(lakehouse_sync.JOB, sync, settings.lakehouse_sync_s),
+        Job(maintenance.JOB, upkeep, settings.lakehouse_maintenance_s),
     ]
 
 

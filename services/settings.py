@@ -249,6 +249,15 @@ class Settings(SharedSettings):
         "cataloged in the catalog database, for outside engines (docs/lakehouse.md)",
     )
     lakehouse_sync_s: float = Field(30.0, gt=0, description="how often sealed runs' rows are copied to the lakehouse")
+    lakehouse_maintenance_s: float = Field(
+        3600.0, gt=0, description="how often the lakehouse's small files are compacted and old snapshots expired"
+    )
+    lakehouse_keep_s: float = Field(
+        86_400.0,
+        ge=600,
+        description="how long the lakehouse keeps a snapshot (time travel; a deleted run's rows stay in "
+        "older snapshots' files until they expire)",
+    )
     sql_max_rows: int = Field(100_000, gt=0, description="most rows a SQL answer may have")
     sql_timeout_s: float = Field(
         30.0, gt=0, description="a SQL query taking longer from its arrival (queue included) is stopped"

@@ -4,9 +4,10 @@ Revision ID: 0019
 Revises: 0018
 Create Date: 2026-11-30
 
-The lakehouse (`services.lakehouse`) copies each sealed run's analytics rows into Iceberg tables
-that outside engines read. Writers of a run's analytics files (sealing, extraction, deletion) mark
-its row pending in their own transaction; the sync job copies pending runs and clears the mark.
+The lakehouse (`services.lakehouse`) copies each run's analytics rows and catalog rows (run, metrics,
+events, tags) into Iceberg tables that outside engines read. Writers that change them (sealing,
+extraction, the rules, people's tags and events, archive, deletion) mark the run pending in their own
+transaction; the sync job copies pending runs and clears the mark.
 """
 
 from __future__ import annotations
@@ -27,6 +28,7 @@ def upgrade() -> None:
         sa.Column("wanted", sa.BigInteger(), nullable=False),
         sa.Column("synced", sa.BigInteger(), nullable=False),
         sa.Column("pending", sa.Boolean(), nullable=False),
+        sa.Column("telemetry", sa.Boolean(), nullable=False),
         sa.Column("synced_at", sa.DateTime(timezone=True), nullable=True),
         sa.Column("rows", sa.BigInteger(), nullable=False),
         sa.PrimaryKeyConstraint("run_id", name=op.f("pk_lakehouse_runs")),

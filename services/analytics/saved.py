@@ -18,11 +18,11 @@ import pyarrow as pa
 from catalog import saved_queries
 from catalog.db import session_scope
 from catalog.saved_queries import CHARTS, SavedQueryRecord
+from catalog.sql_tables import CATALOG_TABLES, CORPUS_TABLES
 from core.errors import FleetError, InvalidArgumentError
 from services.analytics import service
-from services.analytics.corpus_tables import CORPUS_TABLES
 from services.analytics.extract import FIXED_COLUMNS, LOG_TIME, PARTITION_COLUMNS
-from services.analytics.service import CATALOG_TABLES, Analytics
+from services.analytics.service import Analytics
 
 MAX_SHOWN = 1_000  # rows of an answer shown on a page (the download has them all)
 MAX_POINTS = 1_000  # points of a line chart

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import dataclasses
-import datetime as dt
 import decimal
 import functools
 import io
@@ -23,11 +22,11 @@ from sqlalchemy.orm import Session
 
 from catalog import queries
 from catalog.db import session_scope
-from catalog.models import Robot, Run, RunEntity, RunObject, RunTimeline
+from catalog.models import Run, RunObject
+from catalog.sql_tables import SQL_CATALOG_TABLES, catalog_tables
 from core.errors import InvalidArgumentError
 from core.states import Tier
 from services.analytics import sql
-from services.analytics.corpus_tables import CORPUS_TABLES
 from services.analytics.extract import TABLES, extract_file
 from services.analytics.pool import Prepared, SqlPool
 from services.analytics.store import write_analytics
@@ -42,8 +41,6 @@ FORMATS = {
     "arrow": "application/vnd.apache.arrow.stream",
     "parquet": "application/vnd.apache.parquet",
 }
-CATALOG_TABLES = {"robots": Robot, "runs": Run, "run_entities": RunEntity, "run_timelines": RunTimeline}
-SQL_CATALOG_TABLES = (*CATALOG_TABLES, *CORPUS_TABLES)  # every table the server hands a worker
 
 
 @dataclass
@@ -95,48 +92,6 @@ class Analytics(OnNode):
             pool, self._pool = self._pool, None
         if pool is not None:
             pool.close()
-
-
-def catalog_tables(session: Session, names: Iterable[str] = SQL_CATALOG_TABLES) -> dict[str, pa.Table]:
-    """The catalog as Arrow tables (the same on Postgres and DuckDB): what the SQL views show."""
-    out = {}
-    for name in names:
-        columns = _sql_columns(name)
-        rows = session.execute(sa.select(*(column for _, column in columns))).all()
-        out[name] = pa.table(
-            {
-                label: pa.array([_plain(row[i]) for row in rows], _arrow_type(column.type))
-                for i, (label, column) in enumerate(columns)
-            }
-        )
-    return out
-
-
-def _sql_columns(name: str) -> tuple[tuple[str, Any], ...]:
-    """A catalog table's columns as SQL names them: all of a model's, or the corpus tables' choice."""
-    if name in CORPUS_TABLES:
-        return CORPUS_TABLES[name]
-    return tuple((c.name, c) for c in CATALOG_TABLES[name].__table__.columns)
-
-
-def _arrow_type(column_type: Any) -> pa.DataType:
-    if isinstance(column_type, sa.DateTime):
-        return pa.timestamp("us", tz="UTC")
-    if isinstance(column_type, sa.Date):
-        return pa.date32()
-    if isinstance(column_type, sa.Boolean):
-        return pa.bool_()
-    if isinstance(column_type, sa.Integer):  # BigInteger included
-        return pa.int64()
-    if isinstance(column_type, sa.Float):  # Double included
-        return pa.float64()
-    return pa.string()
-
-
-def _plain(value: Any) -> Any:
-    if isinstance(value, dt.datetime) and value.tzinfo is None:
-        return value.replace(tzinfo=dt.UTC)  # DuckDB hands back UTC without a zone
-    return value
 
 
 def analytics_files(session: Session, root: str, tables: Iterable[str]) -> dict[str, list[str]]:

@@ -18,6 +18,7 @@ from pyiceberg.partitioning import PartitionField, PartitionSpec
 from pyiceberg.schema import Schema
 from pyiceberg.transforms import IdentityTransform
 from pyiceberg.types import (
+    BooleanType,
     DateType,
     DoubleType,
     IcebergType,
@@ -26,10 +27,19 @@ from pyiceberg.types import (
     NestedField,
     StringType,
     TimestampType,
+    TimestamptzType,
 )
+
+from catalog.sql_tables import arrow_type, sql_columns
 
 NAMESPACE = "fleet"
 TELEMETRY = ("scalars", "text_logs", "transforms")
+# The catalog's tables a run has rows in, as the depot's SQL shows them (`catalog.sql_tables`), with
+# the column naming the run and the columns each is partitioned by.
+CATALOG = ("runs", "run_metrics", "events", "run_tags")
+RUN_COLUMN = {"runs": "id", "run_metrics": "run_id", "events": "run_id", "run_tags": "run_id"}
+_CATALOG_PARTITIONS = {"runs": ("robot_id", "date"), "run_metrics": ("robot_id",), "events": ("robot_id",)}
+TABLES = TELEMETRY + CATALOG
 LOG_TIME = "log_time"
 LOG_TIME_NS = "log_time_ns"
 # A fleet's timelines are few; past this many columns a table takes no new timeline (its rows keep
@@ -51,22 +61,38 @@ _VALUES: dict[str, tuple[tuple[str, IcebergType], ...]] = {
 
 
 def fixed_columns(table: str) -> tuple[str, ...]:
-    return tuple(name for name, _ in (*_HEAD, *_VALUES[table], *_TAIL))
+    return tuple(name for name, _ in _fields(table))
+
+
+def _fields(table: str) -> tuple[tuple[str, IcebergType], ...]:
+    if table in TELEMETRY:
+        return (*_HEAD, *_VALUES[table], *_TAIL)
+    return tuple((label, _ICEBERG[str(arrow_type(column.type))]) for label, column in sql_columns(table))
+
+
+_ICEBERG: dict[str, IcebergType] = {
+    "string": StringType(),
+    "int64": LongType(),
+    "double": DoubleType(),
+    "bool": BooleanType(),
+    "date32[day]": DateType(),
+    "timestamp[us, tz=UTC]": TimestamptzType(),
+}
 
 
 def schema(table: str) -> Schema:
-    """The table's schema as created (timeline columns are added to it as runs bring them)."""
-    fields = (*_HEAD, *_VALUES[table], *_TAIL)
+    """The table's schema as created (timeline columns are added to telemetry tables as runs bring
+    them; a catalog table gains the columns a catalog migration adds)."""
     return Schema(
-        *(NestedField(i, name, kind, required=False) for i, (name, kind) in enumerate(fields, start=1)),
+        *(NestedField(i, name, kind, required=False) for i, (name, kind) in enumerate(_fields(table), start=1)),
     )
 
 
 def partition_spec(table: str) -> PartitionSpec:
     ids = {name: i for i, name in enumerate(fixed_columns(table), start=1)}
+    by = ("robot_id", "date") if table in TELEMETRY else _CATALOG_PARTITIONS.get(table, ())
     return PartitionSpec(
-        PartitionField(ids["robot_id"], 1000, IdentityTransform(), "robot_id"),
-        PartitionField(ids["date"], 1001, IdentityTransform(), "date"),
+        *(PartitionField(ids[name], 1000 + i, IdentityTransform(), name) for i, name in enumerate(by)),
     )
 
 

@@ -28,7 +28,8 @@ from sqlalchemy.orm import Session, sessionmaker
 from catalog import lakehouse as marks
 from catalog.db import session_scope
 from catalog.lakehouse import PendingRun
-from services.lakehouse.schemas import MAX_COLUMNS, TELEMETRY, iceberg_rows
+from catalog.sql_tables import catalog_tables, sql_columns
+from services.lakehouse.schemas import CATALOG, MAX_COLUMNS, RUN_COLUMN, TELEMETRY, iceberg_rows
 from services.lakehouse.tables import Lakehouse
 from services.storage.objectstore import ObjectFile, ObjectStore
 
@@ -67,11 +68,9 @@ def sync(
             batch = marks.pending(session, BATCH_RUNS, only)
         if not batch:
             break
-        rows = copy_batch(lake, warm, batch)
+        rows = copy_batch(lake, catalog, warm, batch)
         with session_scope(catalog, write=True) as session:
-            still = sum(
-                not marks.done(session, run.run_id, run.wanted, rows.get(run.run_id, 0), clock()) for run in batch
-            )
+            still = sum(not marks.done(session, run.run_id, run.wanted, rows.get(run.run_id), clock()) for run in batch)
         total = SyncReport(
             total.runs + sum(not r.gone for r in batch),
             total.removed + sum(r.gone for r in batch),
@@ -105,47 +104,81 @@ def copy_now(
         log.warning("lakehouse: runs %s left for the next sync (%s: %s)", ", ".join(run_ids), type(exc).__name__, exc)
 
 
-def copy_batch(lake: Lakehouse, warm: ObjectStore, batch: list[PendingRun]) -> dict[str, int]:
-    """Replace the batch's rows in every table; returns each run's row count, all tables."""
-    rows = {run.run_id: 0 for run in batch}
-    for name in TELEMETRY:
-        for run_id, n in replace_rows(lake, name, warm, batch).items():
+def copy_batch(
+    lake: Lakehouse, catalog: sessionmaker[Session], warm: ObjectStore, batch: list[PendingRun]
+) -> dict[str, int]:
+    """Replace the batch's rows in every table: its catalog rows as the catalog holds them now, and
+    the telemetry of runs whose analytics files changed (or that are gone); returns those runs'
+    telemetry row counts, all tables."""
+    telemetry = [run for run in batch if run.telemetry or run.gone]
+    rows = {run.run_id: 0 for run in telemetry}
+    for name in TELEMETRY if telemetry else ():
+        for run_id, n in replace_rows(lake, name, warm, telemetry).items():
             rows[run_id] += n
+    ids = [run.run_id for run in batch]
+    for name in CATALOG:
+        _replace_catalog_rows(lake, catalog, name, ids)
     return rows
 
 
+def _replace_catalog_rows(lake: Lakehouse, catalog: sessionmaker[Session], name: str, ids: list[str]) -> None:
+    """The runs' rows of catalog table `name`, as the catalog holds them now, in place of the old."""
+    column = RUN_COLUMN[name]
+    with session_scope(catalog) as session:
+        held = catalog_tables(session, [name], {name: dict(sql_columns(name))[column].in_(ids)})[name]
+
+    def pieces(columns: set[str]) -> Iterator[pa.Table]:
+        if held.num_rows:
+            yield held.select([c for c in held.column_names if c in columns])
+
+    _replace(lake, name, column, ids, pieces)
+
+
 def replace_rows(lake: Lakehouse, name: str, warm: ObjectStore, batch: list[PendingRun]) -> dict[str, int]:
-    """One commit on table `name`: the batch's runs' rows deleted, then their files' rows appended."""
-    sources = [(run, run.files[name]) for run in batch if name in run.files]
+    """One commit on telemetry table `name`: the batch's runs' rows deleted, then their files' rows
+    appended; returns each run's rows."""
+    sources = [(run, run.files[name]) for run in batch if name in run.files and not run.gone]
     _add_columns(lake, name, warm, sources)
-    ids = [run.run_id for run in batch]
+    counts: dict[str, int] = {}
+
+    def pieces(columns: set[str]) -> Iterator[pa.Table]:
+        counts.clear()
+        for run, key in sources:
+            for piece in _pieces(warm, key, run, name, columns):
+                counts[run.run_id] = counts.get(run.run_id, 0) + piece.num_rows
+                yield piece
+
+    _replace(lake, name, "run_id", [run.run_id for run in batch], pieces)
+    return counts
+
+
+def _replace(
+    lake: Lakehouse, name: str, column: str, ids: list[str], pieces: Callable[[set[str]], Iterator[pa.Table]]
+) -> None:
+    """One commit on table `name`: rows whose `column` is one of `ids` deleted, then `pieces` (given
+    the table's columns, made again for each attempt) appended; a commit lost to another writer is
+    made again on the table as that writer left it."""
     for attempt in range(COMMIT_ATTEMPTS):
         table = lake.table(name)
-        counts = dict.fromkeys(ids, 0)
         try:
             with table.transaction() as tx, warnings.catch_warnings():
                 warnings.simplefilter("ignore")  # "Delete operation did not match any records": a new run
-                tx.delete(In("run_id", ids))  # type: ignore[call-arg,arg-type]  # pydantic model: mypy misreads it
-                if sources:
-                    with tx.update_snapshot().merge_append() as append:
-                        columns = set(tx.table_metadata.schema().column_names)
-                        for run, key in sources:
-                            for piece in _pieces(warm, key, run, name, columns):
-                                counts[run.run_id] += piece.num_rows
-                                for data_file in _dataframe_to_data_files(
-                                    table_metadata=tx.table_metadata,
-                                    write_uuid=uuid.uuid4(),  # names its files: one per piece, never reused
-                                    df=piece,
-                                    io=table.io,
-                                ):
-                                    append.append_data_file(data_file)
-            return counts
+                tx.delete(In(column, ids))  # type: ignore[call-arg,arg-type]  # pydantic model: mypy misreads it
+                with tx.update_snapshot().merge_append() as append:
+                    for piece in pieces(set(tx.table_metadata.schema().column_names)):
+                        for data_file in _dataframe_to_data_files(
+                            table_metadata=tx.table_metadata,
+                            write_uuid=uuid.uuid4(),  # names its files: one per piece, never reused
+                            df=piece,
+                            io=table.io,
+                        ):
+                            append.append_data_file(data_file)
+            return
         except (CommitFailedException, ValidationException) as exc:
             if attempt == COMMIT_ATTEMPTS - 1:
                 raise
             log.info("lakehouse %s: commit lost to another writer (%s), trying again", name, exc)
             time.sleep(0.05 * 2**attempt)
-    raise AssertionError("unreachable")
 
 
 def _pieces(warm: ObjectStore, key: str, run: PendingRun, name: str, columns: set[str]) -> Iterator[pa.Table]:

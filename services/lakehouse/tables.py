@@ -20,7 +20,7 @@ from pyiceberg.exceptions import NamespaceAlreadyExistsError, NoSuchTableError, 
 from pyiceberg.table import Table
 from sqlalchemy.exc import IntegrityError
 
-from services.lakehouse.schemas import NAMESPACE, TELEMETRY, partition_spec, schema
+from services.lakehouse.schemas import NAMESPACE, TABLES, partition_spec, schema
 from services.storage.objectstore import ObjectStore
 
 CATALOG_NAME = "fleet"
@@ -66,7 +66,7 @@ class Lakehouse:
             return table
 
     def tables(self) -> dict[str, Table]:
-        return {name: self.table(name) for name in TELEMETRY}
+        return {name: self.table(name) for name in TABLES}
 
     def close(self) -> None:
         self.catalog.engine.dispose()

@@ -156,3 +156,46 @@ def test_two_syncs_at_once_leave_one_copy(
     assert not errors
     counts = pc.value_counts(scalars(lake)["run_id"]).to_pylist()
     assert sorted((c["values"], c["counts"]) for c in counts) == [(f"run-{i}", 10) for i in range(4)]
+
+
+def mirrored(lake: Lakehouse, catalog: sessionmaker[Session], name: str) -> tuple[list[dict], list[dict]]:
+    """Table `name`'s rows in the lakehouse and in the catalog, in one order."""
+    from catalog.sql_tables import catalog_tables
+
+    with session_scope(catalog) as session:
+        held = catalog_tables(session, [name])[name].to_pylist()
+    copied = lake.table(name).scan().to_arrow().to_pylist()
+    key = lambda row: sorted((k, str(v)) for k, v in row.items())  # noqa: E731
+    return sorted(copied, key=key), sorted(held, key=key)
+
+
+def test_catalog_rows_follow_tags_events_metrics_and_deletion(
+    catalog: sessionmaker[Session], tiers: Tiers, lake: Lakehouse
+) -> None:
+    from catalog import corpus
+    from catalog.corpus import EvaluationFacts, EventFacts, MetricFacts
+
+    seal(catalog, tiers, "run-a", [1.0])
+    seal(catalog, tiers, "run-b", [2.0])
+    with session_scope(catalog, write=True) as session:
+        corpus.add_tags(session, "run-a", ["night-shift", "dock-2"], "alice", now())
+        bump = EventFacts("bump", "warn", "log_time", "timestamp", 5, 9, "person", "alice", "a bump")
+        corpus.add_event(session, "run-a", "robot-1", bump, now(), "ev-0000000000000001")
+        metric = MetricFacts("distance_m", 12.5, None)
+        evaluation = EvaluationFacts("run-b", "robot-1", 1, "final", [], [metric], False, None)
+        corpus.replace_evaluations(session, [evaluation], now())
+    sync(lake, catalog, tiers)
+    for name in ("runs", "run_tags", "events", "run_metrics"):
+        copied, held = mirrored(lake, catalog, name)
+        assert copied == held and held, name
+    with session_scope(catalog, write=True) as session:
+        corpus.remove_tags(session, "run-a", ["dock-2"])
+        queries.mark_deleted(session, "run-b", now())
+    report = sync(lake, catalog, tiers)
+    assert report.removed == 1
+    for name in ("runs", "run_tags", "events", "run_metrics"):
+        copied, held = mirrored(lake, catalog, name)
+        assert copied == held, name
+    assert [r["tag"] for r in mirrored(lake, catalog, "run_tags")[0]] == ["night-shift"]
+    assert {r["id"]: r["tier"] for r in mirrored(lake, catalog, "runs")[0]} == {"run-a": "warm", "run-b": "deleted"}
+    assert "run-b" not in scalars(lake)["run_id"].to_pylist()
