@@ -8,6 +8,7 @@ import datetime as dt
 import threading
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import pyarrow as pa
 import pyarrow.compute as pc
@@ -158,7 +159,9 @@ def test_two_syncs_at_once_leave_one_copy(
     assert sorted((c["values"], c["counts"]) for c in counts) == [(f"run-{i}", 10) for i in range(4)]
 
 
-def mirrored(lake: Lakehouse, catalog: sessionmaker[Session], name: str) -> tuple[list[dict], list[dict]]:
+def mirrored(
+    lake: Lakehouse, catalog: sessionmaker[Session], name: str
+) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
     """Table `name`'s rows in the lakehouse and in the catalog, in one order."""
     from catalog.sql_tables import catalog_tables
 
