@@ -66,9 +66,10 @@ class SeaweedFS:
     """`weed server` with S3 on free loopback ports. It can be stopped and started again on the same
     ports and data, so clients configured with its endpoint see an outage rather than a new server."""
 
-    def __init__(self, data_dir: Path, signed_only: bool = False) -> None:
+    def __init__(self, data_dir: Path, signed_only: bool = False, identities: tuple[dict[str, Any], ...] = ()) -> None:
         """`signed_only`: requests must be signed with the test credentials (an identity in the S3
-        config), as on a real bucket; otherwise anonymous requests are served too."""
+        config), as on a real bucket; otherwise anonymous requests are served too. `identities`:
+        more of them (SeaweedFS's S3 config form), such as an analyst's read-only key."""
         self.data_dir = data_dir
         self.access_key = SIGNED_ONLY_ACCESS_KEY if signed_only else ACCESS_KEY
         self.secret_key = SIGNED_ONLY_SECRET_KEY if signed_only else SECRET_KEY
@@ -92,7 +93,7 @@ class SeaweedFS:
         ]
         if signed_only:
             config = data_dir.parent / f"{data_dir.name}-s3.json"
-            config.write_text(json.dumps({"identities": [IDENTITY]}))
+            config.write_text(json.dumps({"identities": [IDENTITY, *identities]}))
             argv.append(f"-s3.config={config}")
         env = {k: v for k, v in os.environ.items() if not k.startswith("AWS_")} if signed_only else None
         self.process = ServerProcess(

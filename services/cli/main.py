@@ -8,6 +8,7 @@ import click
 
 from services import __version__
 from services.cli.agent import agent
+from services.cli.analytics import analytics
 from services.cli.datasets import datasets
 from services.cli.db import db
 from services.cli.events import events, runs_annotate, runs_tag, runs_untag
@@ -41,6 +42,7 @@ cli.add_command(view)
 cli.add_command(retention)
 cli.add_command(catalog)
 cli.add_command(sql)
+cli.add_command(analytics)
 cli.add_command(tokens)
 cli.add_command(agent)
 rules.add_command(backfill)
