@@ -70,7 +70,8 @@ catalog = SqlCatalog("fleet", **{
 })
 out = {"pyiceberg": {}, "duckdb": {}}
 con = duckdb.connect()
-for module, name in ((duckdb_extension_httpfs, "httpfs"), (duckdb_extension_avro, "avro"), (duckdb_extension_iceberg, "iceberg")):
+wheels = ((duckdb_extension_httpfs, "httpfs"), (duckdb_extension_avro, "avro"), (duckdb_extension_iceberg, "iceberg"))
+for module, name in wheels:
     con.execute(f"LOAD '{next(Path(module.__file__).parent.glob('extensions/*/' + name + '.duckdb_extension'))}'")
 host = cfg["endpoint"].removeprefix("http://")
 con.execute(f"CREATE SECRET (TYPE s3, KEY_ID '{cfg['key']}', SECRET '{cfg['secret']}', ENDPOINT '{host}', "
@@ -80,8 +81,8 @@ for name in ("scalars", "text_logs", "runs"):
     column = "id" if name == "runs" else "run_id"
     rows = table.scan(selected_fields=(column,)).to_arrow()[column].to_pylist()
     out["pyiceberg"][name] = {r: rows.count(r) for r in set(rows)}
-    found = con.execute(f"SELECT {column}, count(*) FROM iceberg_scan('{table.metadata_location}') GROUP BY 1").fetchall()
-    out["duckdb"][name] = dict(found)
+    scan = f"iceberg_scan('{table.metadata_location}')"
+    out["duckdb"][name] = dict(con.execute(f"SELECT {column}, count(*) FROM {scan} GROUP BY 1").fetchall())
 try:
     catalog.drop_table(("fleet", "scalars"))
     out["drop"] = "dropped"
