@@ -294,16 +294,16 @@ def analytics_view(con: duckdb.DuckDBPyConnection, table: str, paths: list[str],
     and `log_time` to the microsecond beside its exact `log_time_ns` (the view's `log_time`)."""
     if paths:
         listed = ", ".join("'" + p.replace("'", "''") + "'" for p in paths)
+        # Both layouts keep files under robot_id=R/date=D/ (Iceberg's identity partitions name their
+        # folders so): a filter on robot or date skips the other folders' files unopened.
+        files = (
+            f"read_parquet([{listed}], hive_partitioning = true, union_by_name = true, "
+            "hive_types = {'robot_id': VARCHAR, 'date': DATE})"
+        )
         if layout == ICEBERG:
-            source = (
-                f"SELECT * REPLACE (make_timestamp_ns(log_time_ns) AS {LOG_TIME}) "
-                f"FROM read_parquet([{listed}], union_by_name = true)"
-            )
+            source = f"SELECT * REPLACE (make_timestamp_ns(log_time_ns) AS {LOG_TIME}) FROM {files}"
         else:
-            source = (
-                f"SELECT * FROM read_parquet([{listed}], hive_partitioning = true, "
-                "union_by_name = true, hive_types = {'robot_id': VARCHAR, 'date': DATE})"
-            )
+            source = f"SELECT * FROM {files}"
         try:
             con.execute(f"CREATE VIEW {table} AS {source}")
             return

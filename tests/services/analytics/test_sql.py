@@ -474,6 +474,35 @@ def test_filters_on_robot_and_date_read_only_those_partitions(
     assert sql_rows(client, both) == [{"n": 6, "total": 6.0 + 9.0}]
 
 
+@pytest.mark.slow
+@ON_BOTH_CATALOGS
+def test_through_the_lakehouse_answers_and_pruning_are_the_same(
+    local: ObjectStore, blank: sessionmaker[Session], tmp_path: Path
+):
+    """The same files copied into the lakehouse's Iceberg tables (as `fleet analytics migrate` does):
+    SQL reads their data files, one per run, and skips other robots' and days' folders as before."""
+    from catalog import lakehouse as marks
+    from services.lakehouse.sync import sync
+    from services.lakehouse.tables import open_lakehouse
+
+    before = sql_rows(sql_app(tmp_path / "per-run", local, blank), "SELECT * FROM scalars ORDER BY run_id, frame")
+    url = blank.kw["bind"].url.render_as_string(hide_password=False)
+    lake = open_lakehouse(url, local)
+    try:
+        with session_scope(blank, write=True) as session:
+            assert marks.queue_all(session) == 12
+        assert sync(lake, blank, local, lambda: dt.datetime.now(dt.UTC)).runs == 12
+        node = node_of(tmp_path, blank, tiers=Tiers(local, local), lakehouse=lake)
+        client = TestClient(create_app(node, analytics=opened(Analytics(node, Limits()))))
+        after = sql_rows(client, "SELECT * FROM scalars ORDER BY run_id, frame")
+        assert [{k: v for k, v in row.items() if k != "log_time_ns"} for row in after] == before
+        assert files_read(client, "SELECT count(*) FROM scalars") == 12
+        assert files_read(client, "SELECT count(*) FROM scalars WHERE robot_id = 'robot-2'") == 4
+        assert files_read(client, "SELECT count(*) FROM scalars WHERE date = DATE '2026-03-02'") == 6
+    finally:
+        lake.close()
+
+
 # --- over S3: a real server (SeaweedFS) ---------------------------------------------------------
 
 
