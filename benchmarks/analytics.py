@@ -412,6 +412,39 @@ def fill_catalog(catalog_url: str, fleet: list[FleetRun], with_others: bool) -> 
         engine.dispose()
 
 
+def migrate_to_lakehouse(workdir: Path, endpoint: str) -> dict[str, float]:
+    """The runs' files copied into the lakehouse's Iceberg tables, as `fleet analytics migrate` does
+    (runs the tables hold already are skipped): the tables SQL reads by default."""
+    from sqlalchemy.orm import sessionmaker
+
+    from catalog import lakehouse as marks
+    from catalog.db import create_engine, session_scope
+    from services.lakehouse.sync import sync
+    from services.lakehouse.tables import open_lakehouse
+    from services.sealed.tiers import open_tiers
+    from services.settings import load_settings
+
+    for name, value in AWS.items():
+        os.environ.setdefault(name, value)
+    settings = load_settings(
+        data_dir=workdir / "fleet-data", warm_url=f"s3://{BUCKET}/{PREFIX}", s3_endpoint_url=endpoint
+    )
+    engine = create_engine(settings.catalog_url)
+    warm = open_tiers(settings).warm
+    lake = open_lakehouse(settings.catalog_url, warm)
+    try:
+        catalog = sessionmaker(engine)
+        with session_scope(catalog, write=True) as session:
+            marked = marks.queue_all(session)
+        start = time.perf_counter()
+        report = sync(lake, catalog, warm, lambda: dt.datetime.now(dt.UTC))
+        took = time.perf_counter() - start
+    finally:
+        lake.close()
+        engine.dispose()
+    return {"runs": report.runs, "marked_now": marked, "rows": report.rows, "seconds": round(took, 1)}
+
+
 def stored_totals(endpoint: str) -> dict[str, int]:
     """Files and bytes under the scalars table, as listed by the store."""
     client = s3_client(endpoint)
@@ -429,10 +462,11 @@ def stored_totals(endpoint: str) -> dict[str, int]:
 class AnalyticsServer(FleetServer):
     """`fleet serve` on the warm store in SeaweedFS, its catalog prepared beforehand."""
 
-    def __init__(self, workdir: Path, endpoint: str, threads: int, memory_limit: str) -> None:
+    def __init__(self, workdir: Path, endpoint: str, threads: int, memory_limit: str, lakehouse: bool) -> None:
         super().__init__(workdir)
         self.extra = {
             **AWS,
+            "FLEET_LAKEHOUSE": str(lakehouse).lower(),
             "FLEET_WARM_URL": f"s3://{BUCKET}/{PREFIX}",
             "FLEET_S3_ENDPOINT_URL": endpoint,
             "FLEET_SCHEDULER": "false",
@@ -488,12 +522,18 @@ def direct_setup(endpoint: str, threads: int, memory_limit: str) -> duckdb.DuckD
     return con
 
 
-def direct_query(con: duckdb.DuckDBPyConnection) -> pa.Table:
+def direct_query(con: duckdb.DuckDBPyConnection, lakehouse: bool) -> pa.Table:
+    """The query over the files the depot reads: the lakehouse table's data files, or each run's."""
+    files = LAKEHOUSE_FILES if lakehouse else RUN_FILES
     source = (
-        f"read_parquet('s3://{BUCKET}/{PREFIX}/analytics/scalars/*/*/*.parquet', hive_partitioning = true, "
+        f"read_parquet('s3://{BUCKET}/{PREFIX}/{files}', hive_partitioning = true, "
         "union_by_name = true, hive_types = {'robot_id': VARCHAR, 'date': DATE})"
     )
     return con.execute(QUERY.replace("FROM scalars", f"FROM {source}")).to_arrow_table()
+
+
+RUN_FILES = "analytics/scalars/*/*/*.parquet"
+LAKEHOUSE_FILES = "lakehouse/fleet/scalars/data/*/*/*.parquet"
 
 
 def same_answer(ours: pa.Table, theirs: pa.Table) -> str:
@@ -539,7 +579,7 @@ def measure(endpoint: str, server: AnalyticsServer, args: argparse.Namespace) ->
         con = direct_setup(endpoint, args.threads, args.memory_limit)
         setup = time.perf_counter() - start
         start = time.perf_counter()
-        answers["duckdb"] = direct_query(con)
+        answers["duckdb"] = direct_query(con, not args.no_lakehouse)
         query = time.perf_counter() - start
         cpu = time.process_time() - cpu
         results["duckdb_setup"].append(setup)
@@ -548,7 +588,7 @@ def measure(endpoint: str, server: AnalyticsServer, args: argparse.Namespace) ->
         said = f"duckdb set-up {setup:.3f} s + query {query:.3f} s ({cpu:.2f} CPU s)"
         if previous is not None:
             start = time.perf_counter()
-            direct_query(previous)
+            direct_query(previous, not args.no_lakehouse)
             warm = time.perf_counter() - start
             previous.close()
             results["duckdb_warm"].append(warm)
@@ -613,7 +653,8 @@ def breakdown(workdir: Path, endpoint: str, args: argparse.Namespace) -> dict[st
             )
             con = duckdb.connect(":memory:", config={"threads": args.threads, "memory_limit": args.memory_limit})
             start = time.perf_counter()
-            with sql.sandbox(con, ctx.root, prepared.catalog, ctx.s3_access(), prepared.files) as box:
+            layout = sql.ICEBERG if ctx.node.lakehouse is not None else sql.PER_RUN
+            with sql.sandbox(con, ctx.root, prepared.catalog, ctx.s3_access(), prepared.files, layout) as box:
                 steps.setdefault(
                     "in this process: sandbox set-up (LOAD, secret, CREATE VIEW: reads every footer)", []
                 ).append(time.perf_counter() - start)
@@ -660,6 +701,11 @@ def main(argv: list[str] | None = None) -> None:
         help="each run also has a text_logs and a transforms file (small), as runs that log those do",
     )
     parser.add_argument("--breakdown", action="store_true", help="then time the endpoint's steps one by one")
+    parser.add_argument(
+        "--no-lakehouse",
+        action="store_true",
+        help="FLEET_LAKEHOUSE=false: the depot and DuckDB read each run's Parquet file, not the Iceberg table's",
+    )
     parser.add_argument("--json", action="store_true")
     args = parser.parse_args(argv)
     if args.runs < args.robots or args.rows < args.runs or args.repeat < 1:
@@ -687,6 +733,8 @@ def main(argv: list[str] | None = None) -> None:
         "duckdb": duckdb.__version__,
         "load_average_1m_at_start": round(os.getloadavg()[0], 2),
     }
+    for name, value in AWS.items():  # SeaweedFS takes them as its identity; every client here signs with them
+        os.environ.setdefault(name, value)
     try:
         with seaweedfs(workdir / "seaweedfs") as endpoint:
             client = s3_client(endpoint)
@@ -711,7 +759,12 @@ def main(argv: list[str] | None = None) -> None:
                 sidecar.write_text(json.dumps({"params": params, "totals": totals}, indent=2))
                 log(f"generated in {totals['generate_s']} s")
             report["data"] = totals
-            server = AnalyticsServer(workdir, endpoint, args.threads, args.memory_limit)
+            report["lakehouse"] = not args.no_lakehouse
+            if not args.no_lakehouse:
+                log("copying the runs into the lakehouse (fleet analytics migrate)")
+                report["migrate"] = migrate_to_lakehouse(workdir, endpoint)
+                log(f"migrated: {report['migrate']}")
+            server = AnalyticsServer(workdir, endpoint, args.threads, args.memory_limit, not args.no_lakehouse)
             try:
                 server.start()
                 log(f"timing {QUERY!r}: best of {args.repeat} after a warm-up")

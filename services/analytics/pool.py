@@ -70,7 +70,8 @@ _ERRORS: dict[str, type[FleetError]] = {
 class Prepared:
     """What a query needs from the server once the worker said which views it names."""
 
-    files: dict[str, list[str]] = field(default_factory=dict)  # analytics table -> its files
+    # analytics table -> its files, in groups of files with the same columns (`sql.analytics_view`)
+    files: dict[str, list[list[str]]] = field(default_factory=dict)
     catalog: dict[str, pa.Table] = field(default_factory=dict)  # catalog view -> its rows
 
 

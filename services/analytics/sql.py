@@ -260,11 +260,11 @@ def sandbox(
     root: str,
     catalog: dict[str, pa.Table],
     s3: S3Access | None,
-    files: dict[str, list[str]],
+    files: dict[str, list[list[str]]],
     layout: str = "per-run",
 ) -> Iterator[duckdb.DuckDBPyConnection]:
-    """`con` with the given catalog tables and analytics views (`files`: table -> its files, laid
-    out as `layout` says), locked down: only those files are readable afterwards."""
+    """`con` with the given catalog tables and analytics views (`files`: table -> its files in
+    groups, laid out as `layout` says), locked down: only those files are readable afterwards."""
     try:
         # the view is bound when created and again by the query: parse each footer (and HEAD each
         # file) once; the database lives for one query, so nothing cached can go stale
@@ -275,9 +275,9 @@ def sandbox(
         for name, table in catalog.items():
             con.register(f"_catalog_{name}", table)
             con.execute(f"CREATE VIEW {name} AS SELECT * FROM _catalog_{name}")
-        for table, paths in files.items():
-            analytics_view(con, table, paths, layout)
-        readable = sorted({p for paths in files.values() for p in paths})
+        for table, groups in files.items():
+            analytics_view(con, table, groups, layout)
+        readable = sorted({p for groups in files.values() for group in groups for p in group})
         con.execute("SET allowed_directories = []")
         con.execute("SET allowed_paths = ?", [readable])
         con.execute("SET enable_external_access = false")
@@ -287,23 +287,26 @@ def sandbox(
         con.close()
 
 
-def analytics_view(con: duckdb.DuckDBPyConnection, table: str, paths: list[str], layout: str = PER_RUN) -> None:
-    """`table` over exactly these Parquet files (binding it reads each file's footer, for its columns);
-    a table with no file is an empty view with the documented columns. PER_RUN: a file per run
-    under `robot_id=R/date=D/`; ICEBERG: the lakehouse table's data files, which hold robot and date,
+def analytics_view(
+    con: duckdb.DuckDBPyConnection, table: str, groups: list[list[str]], layout: str = PER_RUN
+) -> None:
+    """`table` over exactly these Parquet files; a table with no file is an empty view with the
+    documented columns. PER_RUN: one group of a file per run under `robot_id=R/date=D/`, whose
+    columns differ (binding the view reads every footer). ICEBERG: the lakehouse table's data files
+    in groups with the same columns (binding reads one footer per group), which hold robot and date,
     and `log_time` to the microsecond beside its exact `log_time_ns` (the view's `log_time`)."""
-    if paths:
-        listed = ", ".join("'" + p.replace("'", "''") + "'" for p in paths)
+    if any(groups):
         # Both layouts keep files under robot_id=R/date=D/ (Iceberg's identity partitions name their
         # folders so): a filter on robot or date skips the other folders' files unopened.
-        files = (
-            f"read_parquet([{listed}], hive_partitioning = true, union_by_name = true, "
-            "hive_types = {'robot_id': VARCHAR, 'date': DATE})"
-        )
+        options = "hive_partitioning = true, hive_types = {'robot_id': VARCHAR, 'date': DATE}"
         if layout == ICEBERG:
-            source = f"SELECT * REPLACE (make_timestamp_ns(log_time_ns) AS {LOG_TIME}) FROM {files}"
+            parts = " UNION ALL BY NAME ".join(
+                f"SELECT * FROM read_parquet([{_listed(group)}], {options})" for group in groups if group
+            )
+            source = f"SELECT * REPLACE (make_timestamp_ns(log_time_ns) AS {LOG_TIME}) FROM ({parts})"
         else:
-            source = f"SELECT * FROM {files}"
+            paths = [p for group in groups for p in group]
+            source = f"SELECT * FROM read_parquet([{_listed(paths)}], union_by_name = true, {options})"
         try:
             con.execute(f"CREATE VIEW {table} AS {source}")
             return
@@ -316,6 +319,10 @@ def analytics_view(con: duckdb.DuckDBPyConnection, table: str, paths: list[str],
         f"CREATE VIEW {table} AS SELECT {columns}, NULL::TIMESTAMP_NS AS {LOG_TIME}, "
         "NULL::VARCHAR AS robot_id, NULL::DATE AS date WHERE false"
     )
+
+
+def _listed(paths: list[str]) -> str:
+    return ", ".join("'" + p.replace("'", "''") + "'" for p in paths)
 
 
 def _s3(con: duckdb.DuckDBPyConnection, s3: S3Access | None, root: str) -> None:

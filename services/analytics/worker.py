@@ -7,7 +7,7 @@ It imports DuckDB while idle, then talks over stdin/stdout in length-prefixed fr
     worker -> server  {}                                               (ready, after its imports)
     server -> worker  {"query", "root", "layout", "limits", "s3", "hidden"}      (JSON)
     worker -> server  {"tables": [views the query names]} | {"error"}  (JSON; the query is checked)
-    server -> worker  {"files": {table: [file, ...]}, "catalog": [name, ...]}, then one Arrow IPC
+    server -> worker  {"files": {table: [[file, ...], ...]}, "catalog": [name, ...]}, then one Arrow IPC
                       stream per catalog table
     worker -> server  {"rows": n} + the answer as Arrow IPC  |  {"error": {"code", "message"}}
 

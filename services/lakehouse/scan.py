@@ -16,12 +16,16 @@ from cachetools import LRUCache
 from core.errors import UnavailableError
 from services.lakehouse.tables import Lakehouse
 
-_plans: LRUCache[tuple[str, str], tuple[str, ...]] = LRUCache(maxsize=64)  # (table, metadata file) -> files
+# (table, metadata file) -> its data files, in groups of files with the same columns
+_plans: LRUCache[tuple[str, str], tuple[tuple[str, ...], ...]] = LRUCache(maxsize=64)
 _lock = threading.Lock()
 
 
-def data_files(lake: Lakehouse, name: str) -> list[str]:
-    """Table `name`'s data files now, as DuckDB names them (a path, or an s3:// URL)."""
+def data_files(lake: Lakehouse, name: str) -> list[list[str]]:
+    """Table `name`'s data files now, as DuckDB names them (a path, or an s3:// URL), in groups of
+    files that hold the same columns (as the manifests' column counts say): a reader binds one
+    footer per group instead of every file's. Nearly every file of a table is in one group; a file
+    the manifests give no counts for is a group of its own."""
     table = lake.table(name)
     key = (name, table.metadata_location)
     with _lock:
@@ -34,10 +38,14 @@ def data_files(lake: Lakehouse, name: str) -> list[str]:
                 "the depot reads copy-on-write tables only (rewrite it with copy-on-write deletes, or "
                 "compact it with `fleet analytics compact`)"
             )
-        found = tuple(_duckdb_path(task.file.file_path) for task in tasks)
+        groups: dict[object, list[str]] = {}
+        for task in tasks:
+            columns = frozenset(task.file.value_counts or ()) or task.file.file_path
+            groups.setdefault(columns, []).append(_duckdb_path(task.file.file_path))
+        found = tuple(tuple(group) for group in groups.values())
         with _lock:
             _plans[key] = found
-    return list(found)
+    return [list(group) for group in found]
 
 
 def _duckdb_path(location: str) -> str:

@@ -9,6 +9,7 @@ memory only: neither the catalog's rows nor the tables' metadata hold them.
 
 from __future__ import annotations
 
+import logging
 import threading
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -74,6 +75,9 @@ class Lakehouse:
 
 def open_lakehouse(catalog_url: str, warm: ObjectStore) -> Lakehouse:
     """The lakehouse of the depot whose catalog is at `catalog_url` and warm tier is `warm`."""
+    # pyiceberg warns of each commit it makes again after another writer's: routine with many nodes,
+    # and the sync says so itself (services.lakehouse.sync)
+    logging.getLogger("pyiceberg.table").setLevel(logging.ERROR)
     warehouse = f"{warm.url.rstrip('/')}/{PREFIX}"
     properties = {"uri": sql_catalog_uri(catalog_url), "warehouse": warehouse, **file_io_properties(warm)}
     return Lakehouse(SqlCatalog(CATALOG_NAME, **properties), warehouse)
