@@ -5,7 +5,6 @@ that changed a file first."""
 from __future__ import annotations
 
 import datetime as dt
-from collections.abc import Iterator
 from pathlib import Path
 
 import pyarrow.compute as pc
@@ -13,10 +12,10 @@ import pytest
 from sqlalchemy.orm import Session, sessionmaker
 
 from catalog import queries
-from catalog.db import create_engine, session_scope
+from catalog.db import session_scope
 from services.lakehouse import maintenance
 from services.lakehouse import sync as lake_sync
-from services.lakehouse.tables import Lakehouse, open_lakehouse
+from services.lakehouse.tables import Lakehouse
 from services.sealed.tiers import Tiers
 from services.storage.objectstore import open_store
 from tests.services.lakehouse.test_sync import now, scalars, seal
@@ -25,20 +24,6 @@ from tests.services.lakehouse.test_sync import now, scalars, seal
 @pytest.fixture
 def tiers(tmp_path: Path) -> Tiers:
     return Tiers(open_store((tmp_path / "warm").as_uri()), open_store((tmp_path / "cold").as_uri()))
-
-
-@pytest.fixture
-def catalog(fresh_catalog_url: str) -> Iterator[sessionmaker[Session]]:
-    engine = create_engine(fresh_catalog_url)
-    yield sessionmaker(engine)
-    engine.dispose()
-
-
-@pytest.fixture
-def lake(fresh_catalog_url: str, tiers: Tiers) -> Iterator[Lakehouse]:
-    opened = open_lakehouse(fresh_catalog_url, tiers.warm)
-    yield opened
-    opened.close()
 
 
 def seal_each(catalog: sessionmaker[Session], tiers: Tiers, lake: Lakehouse, runs: int) -> None:

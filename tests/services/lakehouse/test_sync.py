@@ -16,7 +16,7 @@ import pytest
 from sqlalchemy.orm import Session, sessionmaker
 
 from catalog import queries
-from catalog.db import create_engine, session_scope
+from catalog.db import session_scope
 from catalog.queries import ObjectRecord
 from core.states import Tier
 from services.lakehouse import sync as lake_sync
@@ -58,20 +58,6 @@ def tiers(request: pytest.FixtureRequest, tmp_path: Path, monkeypatch: pytest.Mo
     endpoint = request.getfixturevalue("seaweed_endpoint")
     warm = open_store(f"s3://{BUCKET}/{tmp_path.name}", endpoint_url=endpoint, region=REGION)
     return Tiers(warm, warm)
-
-
-@pytest.fixture
-def catalog(fresh_catalog_url: str) -> Iterator[sessionmaker[Session]]:
-    engine = create_engine(fresh_catalog_url)
-    yield sessionmaker(engine)
-    engine.dispose()
-
-
-@pytest.fixture
-def lake(fresh_catalog_url: str, tiers: Tiers) -> Iterator[Lakehouse]:
-    opened = open_lakehouse(fresh_catalog_url, tiers.warm)
-    yield opened
-    opened.close()
 
 
 def now() -> dt.datetime:
