@@ -245,6 +245,7 @@ def replace_properties(session: Session, run: Run, properties: dict[str, Any]) -
     held = columns.property_items(columns.json_object(run.properties))
     run.properties = properties_json(properties)
     columns.recount(session, (dataset, held), (dataset, columns.property_items(properties)))
+    lakehouse.queue(session, run.id)  # the lakehouse's copy of its row too
 
 
 def mark_deleted(session: Session, run_id: str, now: dt.datetime) -> bool:

@@ -19,7 +19,7 @@ from urllib.parse import urlparse
 from pyiceberg.catalog.sql import SqlCatalog
 from pyiceberg.exceptions import NamespaceAlreadyExistsError, NoSuchTableError, TableAlreadyExistsError
 from pyiceberg.table import Table
-from sqlalchemy.exc import IntegrityError
+from sqlalchemy.exc import DBAPIError, IntegrityError
 
 from services.lakehouse.schemas import NAMESPACE, TABLES, partition_spec, schema
 from services.storage.objectstore import ObjectStore
@@ -34,12 +34,29 @@ TABLE_PROPERTIES = {"commit.manifest-merge.enabled": "true", "write.parquet.comp
 
 @dataclass
 class Lakehouse:
-    """The Iceberg catalog and where its tables live; the tables are made on first use."""
+    """The Iceberg catalog and where its tables live. The catalog is opened on first use (opening it
+    connects to the database: a depot starts, and says so in /readyz, while its database is down),
+    the tables are made on first use."""
 
-    catalog: SqlCatalog
+    properties: dict[str, Any] = field(repr=False)  # pyiceberg's catalog and file IO settings
     warehouse: str
+    _catalog: SqlCatalog | None = field(default=None, init=False, repr=False)
     _made: set[str] = field(default_factory=set, init=False, repr=False)
     _lock: threading.Lock = field(default_factory=threading.Lock, init=False, repr=False)
+
+    @property
+    def catalog(self) -> SqlCatalog:
+        with self._lock:
+            for attempt in range(3):
+                if self._catalog is not None:
+                    break
+                try:  # makes pyiceberg's two tables if they are missing
+                    self._catalog = SqlCatalog(CATALOG_NAME, **self.properties)
+                except DBAPIError:
+                    if attempt == 2:  # another node made them at the same moment: found on the next try
+                        raise
+            assert self._catalog is not None
+            return self._catalog
 
     def table(self, name: str) -> Table:
         """The table as its latest commit left it (made with its schema and partitions if new)."""
@@ -48,11 +65,12 @@ class Lakehouse:
                 return self.catalog.load_table((NAMESPACE, name))
             except NoSuchTableError:
                 self._made.discard(name)  # dropped by hand: made again below
+        catalog = self.catalog
         with self._lock:
             for attempt in range(3):
                 try:
-                    self.catalog.create_namespace_if_not_exists(NAMESPACE)
-                    table = self.catalog.create_table_if_not_exists(
+                    catalog.create_namespace_if_not_exists(NAMESPACE)
+                    table = catalog.create_table_if_not_exists(
                         (NAMESPACE, name),
                         schema(name),
                         location=f"{self.warehouse}/{NAMESPACE}/{name}",
@@ -70,7 +88,9 @@ class Lakehouse:
         return {name: self.table(name) for name in TABLES}
 
     def close(self) -> None:
-        self.catalog.engine.dispose()
+        with self._lock:
+            if self._catalog is not None:
+                self._catalog.engine.dispose()
 
 
 def open_lakehouse(catalog_url: str, warm: ObjectStore) -> Lakehouse:
@@ -80,7 +100,7 @@ def open_lakehouse(catalog_url: str, warm: ObjectStore) -> Lakehouse:
     logging.getLogger("pyiceberg.table").setLevel(logging.ERROR)
     warehouse = f"{warm.url.rstrip('/')}/{PREFIX}"
     properties = {"uri": sql_catalog_uri(catalog_url), "warehouse": warehouse, **file_io_properties(warm)}
-    return Lakehouse(SqlCatalog(CATALOG_NAME, **properties), warehouse)
+    return Lakehouse(properties, warehouse)
 
 
 def sql_catalog_uri(catalog_url: str) -> str:

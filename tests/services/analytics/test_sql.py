@@ -499,6 +499,13 @@ def test_through_the_lakehouse_answers_and_pruning_are_the_same(
         assert files_read(client, "SELECT count(*) FROM scalars") == 12
         assert files_read(client, "SELECT count(*) FROM scalars WHERE robot_id = 'robot-2'") == 4
         assert files_read(client, "SELECT count(*) FROM scalars WHERE date = DATE '2026-03-02'") == 6
+        # the Iceberg metadata is the server's to read: never reachable from a query, never named
+        metadata = lake.table("scalars").metadata_location
+        for query in (f"SELECT * FROM iceberg_scan('{metadata}')", f"SELECT * FROM read_json('{metadata}')"):
+            refused = post(client, query)
+            assert refused.status_code == 400 and refused.json()["code"] == "SQL_NOT_ALLOWED", refused.text
+        plan = post(client, "EXPLAIN ANALYZE SELECT count(*) FROM scalars WHERE robot_id = 'robot-2'")
+        assert plan.status_code == 200 and "lakehouse" not in plan.text and str(tmp_path) not in plan.text
     finally:
         lake.close()
 
