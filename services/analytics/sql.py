@@ -287,9 +287,7 @@ def sandbox(
         con.close()
 
 
-def analytics_view(
-    con: duckdb.DuckDBPyConnection, table: str, groups: list[list[str]], layout: str = PER_RUN
-) -> None:
+def analytics_view(con: duckdb.DuckDBPyConnection, table: str, groups: list[list[str]], layout: str = PER_RUN) -> None:
     """`table` over exactly these Parquet files; a table with no file is an empty view with the
     documented columns. PER_RUN: one group of a file per run under `robot_id=R/date=D/`, whose
     columns differ (binding the view reads every footer). ICEBERG: the lakehouse table's data files
