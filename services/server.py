@@ -42,6 +42,7 @@ from services.ingest.service import IngestService
 from services.lakehouse import maintenance
 from services.lakehouse import sync as lakehouse_sync
 from services.lakehouse.tables import open_lakehouse
+from services.mcp_server import http as mcp_http
 from services.node import Node
 from services.redap import grpc_handler as redap_handler
 from services.redap.depot import Depot
@@ -337,6 +338,7 @@ async def serve(
     )
     app = create_app(node, ingest, retention, analytics)
     console.install(app)
+    assistants = mcp_http.install(app)  # /mcp: the MCP server for AI assistants (docs/mcp.md)
     app.state.rules_backfill = corpus.backfill  # POST /v1/rules/backfill
     catalog_server = redap_handler.CatalogServer(Depot(node, ingest), node.auth)
     # other nodes read the hot runs this one owns
@@ -380,7 +382,8 @@ async def serve(
     )
     freeze_startup_objects()
     try:
-        await http.serve(sockets=http_sockets)
+        async with assistants:
+            await http.serve(sockets=http_sockets)
     finally:
         if scheduler is not None:
             scheduler.shutdown(wait=True)
