@@ -26,8 +26,10 @@
                                      MCAP) as imports
     corpus | datasets                what rules make of runs: events, metrics; people's events and tags |
                                      dataset snapshots: selections resolved into immutable episodes
-    api | redap | agent | console    the REST app and the gRPC port's front | the Rerun catalog
-                                     server | `fleet agent`, on the robot | the web console
+    api | redap | agent | console | mcp_server
+                                     the REST app and the gRPC port's front | the Rerun catalog
+                                     server | `fleet agent`, on the robot | the web console | the
+                                     MCP server for AI assistants
     server -> workers -> cli         the wiring; `fleet serve --workers N`; the command line
 
 A line is a layer (`->` starts the next one). The same table is drawn in docs/architecture.md ("The
@@ -82,6 +84,7 @@ LAYERS: dict[str, int] = {
     "services.redap": 9,
     "services.agent": 9,
     "services.console": 9,
+    "services.mcp_server": 9,
     "services.server": 10,
     "services.workers": 11,
     "services.cli": 12,

@@ -13,6 +13,7 @@ from services.cli.datasets import datasets
 from services.cli.db import db
 from services.cli.events import events, runs_annotate, runs_tag, runs_untag
 from services.cli.imports import imports
+from services.cli.mcp import mcp
 from services.cli.retention import catalog, retention
 from services.cli.rrd import rrd
 from services.cli.rules import rules
@@ -43,6 +44,7 @@ cli.add_command(retention)
 cli.add_command(catalog)
 cli.add_command(sql)
 cli.add_command(analytics)
+cli.add_command(mcp)
 cli.add_command(tokens)
 cli.add_command(agent)
 rules.add_command(backfill)

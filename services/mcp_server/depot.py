@@ -16,7 +16,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import httpx
-from mcp.server.mcpserver.exceptions import ToolError
+from mcp.server.fastmcp.exceptions import ToolError
 
 MAX_ANSWER_BYTES = 64 * 1024  # what a model reads of one answer at most
 MAX_ITEMS = 100  # list items in one answer at most

@@ -10,12 +10,12 @@ from __future__ import annotations
 
 from collections.abc import AsyncIterator
 from contextlib import AbstractAsyncContextManager, asynccontextmanager
+from typing import Any
 
 import anyio.to_thread
 import httpx
 from fastapi import FastAPI
-from mcp.server.mcpserver import Context
-from mcp.server.transport_security import TransportSecuritySettings
+from mcp.server.fastmcp import Context
 from starlette.responses import JSONResponse
 from starlette.routing import Route
 from starlette.types import ASGIApp, Receive, Scope, Send
@@ -33,26 +33,21 @@ def install(app: FastAPI) -> AbstractAsyncContextManager[object]:
     manager: `async with install(app): ...`)."""
 
     @asynccontextmanager
-    async def connect(ctx: Context) -> AsyncIterator[DepotApi]:
-        headers = ctx.headers or {}
-        token = headers.get("authorization", "")
+    async def connect(ctx: Context[Any, Any, Any]) -> AsyncIterator[DepotApi]:
+        request = ctx.request_context.request  # the HTTP request that carried this call
+        token = request.headers.get("authorization", "") if request is not None else ""
         transport = httpx.ASGITransport(app=app)
         async with httpx.AsyncClient(
             transport=transport, base_url="http://depot", headers={"Authorization": token} if token else {}
         ) as client:
             yield DepotApi(client)
 
-    server = build_server(connect)
-    # Bearer tokens are not ambient credentials a rebinding page could use: the Host check is off so
-    # the depot answers under whatever name it is reached by.
-    security = TransportSecuritySettings(enable_dns_rebinding_protection=False)
-    mcp_app = server.streamable_http_app(
-        streamable_http_path=PATH, stateless_http=True, json_response=True, transport_security=security
-    )
+    server = build_server(connect, streamable_http_path=PATH, stateless_http=True, json_response=True)
+    mcp_app = server.streamable_http_app()
     for route in mcp_app.routes:
         if isinstance(route, Route) and route.path == PATH:
             app.router.routes.insert(0, Route(PATH, endpoint=_Authenticated(route.endpoint, app), methods=None))
-    running: AbstractAsyncContextManager[object] = mcp_app.router.lifespan_context(mcp_app)
+    running: AbstractAsyncContextManager[object] = server.session_manager.run()
     return running
 
 

@@ -13,8 +13,9 @@ from collections.abc import Callable
 from contextlib import AbstractAsyncContextManager
 from typing import Annotated, Any
 
-from mcp.server.mcpserver import Context, MCPServer
-from mcp.server.mcpserver.exceptions import ToolError
+from mcp.server.fastmcp import Context, FastMCP
+from mcp.server.fastmcp.exceptions import ToolError
+from mcp.server.transport_security import TransportSecuritySettings
 from mcp.types import ToolAnnotations
 from pydantic import Field
 
@@ -22,7 +23,7 @@ from core.ids import is_id
 from services import __version__
 from services.mcp_server.depot import DepotApi, bounded
 
-Connect = Callable[[Context], AbstractAsyncContextManager[DepotApi]]
+Connect = Callable[[Context[Any, Any, Any]], AbstractAsyncContextManager[DepotApi]]
 
 INSTRUCTIONS = """\
 A fleet telemetry depot: robots' recordings (Rerun runs), filed by robot and day, with events
@@ -32,21 +33,25 @@ run_logs, a signal with scalar_series; give people viewer_link's URL to look for
 Times are ISO-8601 (UTC) unless a tool says otherwise. Answers are cut to a bounded size and say so
 ("truncated")."""
 
-READ = ToolAnnotations(read_only_hint=True, open_world_hint=False)
-WRITE = ToolAnnotations(read_only_hint=False, destructive_hint=False, idempotent_hint=True, open_world_hint=False)
+READ = ToolAnnotations(readOnlyHint=True, openWorldHint=False)
+WRITE = ToolAnnotations(readOnlyHint=False, destructiveHint=False, idempotentHint=True, openWorldHint=False)
 LEVELS = ("TRACE", "DEBUG", "INFO", "WARN", "ERROR", "CRITICAL")
 
 RunId = Annotated[str, Field(description="a run id, as find_runs answers it", max_length=128)]
 Limit = Annotated[int, Field(ge=1, le=100, description="most items to answer")]
 
 
-def build_server(connect: Connect) -> MCPServer:
-    """The MCP server whose tools reach the depot through `connect` (the caller's REST API)."""
-    server = MCPServer("fleet-depot", version=__version__, instructions=INSTRUCTIONS)
+def build_server(connect: Connect, **http: Any) -> FastMCP[Any]:
+    """The MCP server whose tools reach the depot through `connect` (the caller's REST API); `http`:
+    its streamable HTTP settings, when served over HTTP."""
+    # Bearer tokens are not ambient credentials a rebinding page could use: no Host check, so the
+    # depot answers under whatever name it is reached by.
+    security = TransportSecuritySettings(enable_dns_rebinding_protection=False)
+    server = FastMCP(f"fleet-depot {__version__}", instructions=INSTRUCTIONS, transport_security=security, **http)
 
     @server.tool(annotations=READ)
     async def find_runs(
-        ctx: Context,
+        ctx: Context[Any, Any, Any],
         robot: Annotated[list[str] | None, Field(description="robot ids (any of them)")] = None,
         application: Annotated[list[str] | None, Field(description="application ids (any of them)")] = None,
         since: Annotated[str | None, Field(description="started at or after, ISO-8601")] = None,
@@ -82,7 +87,7 @@ def build_server(connect: Connect) -> MCPServer:
             return bounded(await api.call("GET", "/v1/runs", params=params))
 
     @server.tool(annotations=READ)
-    async def get_run(ctx: Context, run_id: RunId) -> dict[str, Any]:
+    async def get_run(ctx: Context[Any, Any, Any], run_id: RunId) -> dict[str, Any]:
         """One run's details: robot, application, times, tier, entities (what was logged), timelines,
         properties, metrics, tags and event counts."""
         async with connect(ctx) as api:
@@ -90,7 +95,7 @@ def build_server(connect: Connect) -> MCPServer:
 
     @server.tool(annotations=READ)
     async def list_events(
-        ctx: Context,
+        ctx: Context[Any, Any, Any],
         kind: Annotated[list[str] | None, Field(description="event kinds (e.g. intervention)")] = None,
         robot: Annotated[list[str] | None, Field(description="robot ids")] = None,
         run: Annotated[list[str] | None, Field(description="run ids")] = None,
@@ -115,7 +120,7 @@ def build_server(connect: Connect) -> MCPServer:
 
     @server.tool(annotations=READ)
     async def run_logs(
-        ctx: Context,
+        ctx: Context[Any, Any, Any],
         run_id: RunId,
         around: Annotated[str, Field(description="the moment, ISO-8601 (an event's start, say)")],
         before_s: Annotated[float, Field(ge=0, le=3600, description="seconds before it")] = 30.0,
@@ -143,7 +148,7 @@ def build_server(connect: Connect) -> MCPServer:
 
     @server.tool(annotations=READ)
     async def scalar_series(
-        ctx: Context,
+        ctx: Context[Any, Any, Any],
         run_id: RunId,
         entity: Annotated[str, Field(description="the entity path, e.g. /battery", max_length=512)],
         start: Annotated[str | None, Field(description="from, ISO-8601 (default: the run's start)")] = None,
@@ -172,7 +177,7 @@ def build_server(connect: Connect) -> MCPServer:
 
     @server.tool(annotations=READ)
     async def sql(
-        ctx: Context,
+        ctx: Context[Any, Any, Any],
         query: Annotated[str, Field(description="one read-only SELECT (DuckDB dialect)", max_length=20_000)],
         max_rows: Annotated[int, Field(ge=1, le=500)] = 100,
     ) -> dict[str, Any]:
@@ -185,7 +190,7 @@ def build_server(connect: Connect) -> MCPServer:
 
     @server.tool(annotations=READ)
     async def viewer_link(
-        ctx: Context,
+        ctx: Context[Any, Any, Any],
         run_id: RunId,
         start: Annotated[str | None, Field(description="window start, ISO-8601 (on log_time)")] = None,
         end: Annotated[str | None, Field(description="window end, ISO-8601")] = None,
@@ -205,7 +210,7 @@ def build_server(connect: Connect) -> MCPServer:
 
     @server.tool(annotations=WRITE)
     async def tag_run(
-        ctx: Context,
+        ctx: Context[Any, Any, Any],
         run_id: RunId,
         tags: Annotated[list[str], Field(min_length=1, max_length=20, description="tags to add, e.g. night-shift")],
     ) -> dict[str, Any]:
@@ -215,7 +220,7 @@ def build_server(connect: Connect) -> MCPServer:
 
     @server.tool(annotations=WRITE)
     async def annotate_run(
-        ctx: Context,
+        ctx: Context[Any, Any, Any],
         run_id: RunId,
         start: Annotated[str, Field(description="ISO-8601 on log_time")],
         end: Annotated[str | None, Field(description="ISO-8601; none: an instant")] = None,
@@ -237,7 +242,7 @@ def build_server(connect: Connect) -> MCPServer:
 
     @server.tool(annotations=WRITE)
     async def request_pull(
-        ctx: Context,
+        ctx: Context[Any, Any, Any],
         run_id: RunId,
         start: Annotated[str | None, Field(description="window start, ISO-8601 (on log_time)")] = None,
         end: Annotated[str | None, Field(description="window end, ISO-8601")] = None,
@@ -253,7 +258,7 @@ def build_server(connect: Connect) -> MCPServer:
             return bounded(await api.call("POST", f"/v1/runs/{_run(run_id)}/pull", body=body))
 
     @server.resource("fleet://runs/{run_id}", mime_type="application/json")
-    async def run_summary(run_id: str, ctx: Context) -> dict[str, Any]:
+    async def run_summary(run_id: str, ctx: Context[Any, Any, Any]) -> dict[str, Any]:
         """A run's summary: robot, application, times, tier, size, metrics, tags and event counts."""
         async with connect(ctx) as api:
             run = await api.call("GET", f"/v1/runs/{_run(run_id)}")
