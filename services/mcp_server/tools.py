@@ -57,6 +57,11 @@ def build_server(connect: Connect, **http: Any) -> FastMCP[Any]:
         since: Annotated[str | None, Field(description="started at or after, ISO-8601")] = None,
         until: Annotated[str | None, Field(description="started before, ISO-8601")] = None,
         tier: Annotated[str | None, Field(description="hot | warm | cold | deleted")] = None,
+        status: Annotated[str | None, Field(description="live | closed")] = None,
+        entity: Annotated[list[str] | None, Field(description="has an entity: /world/** or an exact path")] = None,
+        prop: Annotated[
+            list[str] | None, Field(description="recording properties NAME.FIELD=VALUE, e.g. fleet.site=dock-2")
+        ] = None,
         metric: Annotated[
             list[str] | None, Field(description="run metric conditions, all must hold: e.g. distance_m>100")
         ] = None,
@@ -68,15 +73,21 @@ def build_server(connect: Connect, **http: Any) -> FastMCP[Any]:
             "-started_at"
         ),
         limit: Limit = 20,
+        cursor: Annotated[str | None, Field(description="next_cursor of the previous answer: its next page")] = None,
     ) -> dict[str, Any]:
-        """Find runs (recordings) by robot, application, time, tier, metrics, tags and event kinds.
-        Answers each run's id, robot, times, size and tier; get_run gives one run's details."""
+        """Find runs (recordings) by robot, application, time, tier, entities, properties, metrics,
+        tags and event kinds. Answers each run's id, robot, times, size and tier, and next_cursor
+        when there are more; get_run gives one run's details."""
         params = {
             "robot": robot,
             "application": application,
             "since": since,
             "until": until,
             "tier": tier,
+            "status": status,
+            "entity": entity,
+            "property": prop,
+            "cursor": cursor,
             "metric": metric,
             "tag": tag,
             "event": event,

@@ -134,6 +134,12 @@ def test_an_assistant_finds_the_run_reads_its_logs_and_opens_it(depot: Depot, tr
             bad, found = await call(client, "find_runs", robot=["robot-2"], event=["bump"])
             assert not bad, found
             assert [r["id"] for r in found["result"]["runs"]] == [HIDDEN]
+            bad, page = await call(client, "find_runs", prop=["fleet.robot_id=robot-2"], tier="warm", limit=1)
+            assert not bad and len(page["result"]["runs"]) == 1 and page["result"]["next_cursor"], page
+            bad, rest = await call(
+                client, "find_runs", prop=["fleet.robot_id=robot-2"], cursor=page["result"]["next_cursor"]
+            )
+            assert not bad and len(rest["result"]["runs"]) == 1, rest  # robot-2's other run
             bad, events = await call(client, "list_events", kind=["bump"])
             assert not bad and [e["run_id"] for e in events["result"]["events"]] == [HIDDEN], events
             window = 0.0005  # half a millisecond each side of the event
