@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from collections.abc import AsyncIterator
 from contextlib import AbstractAsyncContextManager, asynccontextmanager
+from contextvars import ContextVar
 from typing import Any
 
 import anyio.to_thread
@@ -25,6 +26,10 @@ from services.mcp_server.depot import DepotApi
 from services.mcp_server.tools import build_server
 
 PATH = "/mcp"
+# The Authorization header of the MCP request being answered: the SDK runs a stateless request's
+# handlers in tasks started from the request's own (contextvars go with them), where a resource's
+# handler has no request object to read it from.
+_CALLER: ContextVar[str] = ContextVar("mcp_caller", default="")
 SURFACE = "mcp"  # how refusals of its tokens are counted
 
 
@@ -33,9 +38,8 @@ def install(app: FastAPI) -> AbstractAsyncContextManager[object]:
     manager: `async with install(app): ...`)."""
 
     @asynccontextmanager
-    async def connect(ctx: Context[Any, Any, Any]) -> AsyncIterator[DepotApi]:
-        request = ctx.request_context.request  # the HTTP request that carried this call
-        token = request.headers.get("authorization", "") if request is not None else ""
+    async def connect(_: Context[Any, Any, Any]) -> AsyncIterator[DepotApi]:
+        token = _CALLER.get()  # set by _Authenticated for the request this call came with
         transport = httpx.ASGITransport(app=app)
         async with httpx.AsyncClient(
             transport=transport, base_url="http://depot", headers={"Authorization": token} if token else {}
@@ -68,4 +72,8 @@ class _Authenticated:
                 scope, receive, send
             )
             return
-        await self.inner(scope, receive, send)
+        reset = _CALLER.set(f"Bearer {token}" if token else "")
+        try:
+            await self.inner(scope, receive, send)
+        finally:
+            _CALLER.reset(reset)

@@ -22,6 +22,7 @@ import pytest
 from mcp import ClientSession
 from mcp.client.stdio import StdioServerParameters, stdio_client
 from mcp.client.streamable_http import streamablehttp_client
+from pydantic import AnyUrl
 
 from tests.services.analytics.conftest import log_with_sdk
 from tests.services.ingest.live_server import LiveServer
@@ -150,6 +151,13 @@ def test_an_assistant_finds_the_run_reads_its_logs_and_opens_it(depot: Depot, tr
             at = round(dt.datetime.fromisoformat(depot.event_start).timestamp() * 1e6) * 1000
             near = [text for ns, text in depot.lines if at - 500_000 <= ns <= at + 500_000]
             assert [row["text"] for row in logs["result"]["rows"]] == near and near, (logs, near)
+            bad, run = await call(client, "get_run", run_id=HIDDEN)
+            assert not bad and run["result"]["robot_id"] == "robot-2", run
+            bad, counted = await call(client, "sql", query="SELECT count(*) AS n FROM runs", max_rows=5)
+            assert not bad and counted["result"]["rows"] == [{"n": 3}], counted
+            summary = await client.read_resource(AnyUrl(f"fleet://runs/{HIDDEN}"))
+            text = "".join(getattr(c, "text", "") for c in summary.contents)
+            assert json.loads(text)["result"]["robot_id"] == "robot-2", text
             bad, series = await call(client, "scalar_series", run_id=HIDDEN, entity="/battery", points=10)
             assert not bad and 1 <= len(series["result"]["rows"]) <= 10, series
             bad, link = await call(client, "viewer_link", run_id=HIDDEN, start=depot.event_start)
@@ -180,6 +188,10 @@ def test_an_assistant_finds_the_run_reads_its_logs_and_opens_it(depot: Depot, tr
             assert not bad and "checked" in json.dumps(tagged), tagged
             bad, found = await call(client, "find_runs", tag=["checked"])
             assert not bad and [r["id"] for r in found["result"]["runs"]] == [HIDDEN], found
+            bad, note = await call(client, "annotate_run", run_id=HIDDEN, start=depot.event_start, label="checked")
+            assert not bad and note["result"]["origin"] == "person", note
+            bad, pull = await call(client, "request_pull", run_id=HIDDEN, start=depot.event_start, include=["/logs"])
+            assert not bad and pull["result"]["pull"]["run_id"] == HIDDEN, pull
 
     anyio.run(scenario)
     for text in answers:
