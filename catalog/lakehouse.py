@@ -123,23 +123,3 @@ def done(session: Session, run_id: str, wanted: int, rows: int | None, now: dt.d
 
 def pending_count(session: Session) -> int:
     return int(session.scalar(sa.select(sa.func.count()).where(LakehouseRun.pending.is_(True))) or 0)
-
-
-@dataclass(frozen=True)
-class SyncState:
-    pending: int
-    synced: int
-    rows: int
-    last_synced_at: dt.datetime | None
-
-
-def state(session: Session) -> SyncState:
-    row = session.execute(
-        sa.select(
-            sa.func.count().filter(LakehouseRun.pending.is_(True)),
-            sa.func.count().filter(LakehouseRun.pending.is_(False)),
-            sa.func.coalesce(sa.func.sum(LakehouseRun.rows), 0),
-            sa.func.max(LakehouseRun.synced_at),
-        )
-    ).one()
-    return SyncState(int(row[0]), int(row[1]), int(row[2]), row[3])

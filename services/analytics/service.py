@@ -122,10 +122,9 @@ def prepare(ctx: Analytics, named: set[str]) -> Prepared:
     with session_scope(ctx.catalog) as session:
         per_run = analytics_files(session, ctx.root, tables) if lake is None else {}
         rows = catalog_tables(session, [t for t in SQL_CATALOG_TABLES if t in named])
-    # each run's file, read as one group whatever its columns; or the Iceberg tables' data files as of
-    # their current snapshots, grouped by their columns
-    files = {t: [paths] if paths else [] for t, paths in per_run.items()}
-    if lake is not None:
+    if lake is None:  # each run's file, read as one group whatever its columns
+        files = {t: [paths] if paths else [] for t, paths in per_run.items()}
+    else:  # the Iceberg tables' data files as of their current snapshots, grouped by their columns
         files = {table: lakehouse_scan.data_files(lake, table) for table in tables}
     return Prepared(files, rows)
 

@@ -261,7 +261,7 @@ def sandbox(
     catalog: dict[str, pa.Table],
     s3: S3Access | None,
     files: dict[str, list[list[str]]],
-    layout: str = "per-run",
+    layout: str = PER_RUN,
 ) -> Iterator[duckdb.DuckDBPyConnection]:
     """`con` with the given catalog tables and analytics views (`files`: table -> its files in
     groups, laid out as `layout` says), locked down: only those files are readable afterwards."""

@@ -21,7 +21,7 @@ from pyiceberg.exceptions import NamespaceAlreadyExistsError, NoSuchTableError, 
 from pyiceberg.table import Table
 from sqlalchemy.exc import DBAPIError, IntegrityError
 
-from services.lakehouse.schemas import NAMESPACE, TABLES, partition_spec, schema
+from services.lakehouse.schemas import NAMESPACE, partition_spec, schema
 from services.storage.objectstore import ObjectStore
 
 CATALOG_NAME = "fleet"
@@ -83,9 +83,6 @@ class Lakehouse:
                         raise
             self._made.add(name)
             return table
-
-    def tables(self) -> dict[str, Table]:
-        return {name: self.table(name) for name in TABLES}
 
     def close(self) -> None:
         with self._lock:
