@@ -17,18 +17,20 @@ import uuid
 from collections import defaultdict
 from collections.abc import Iterable
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 from urllib.parse import urlparse
 
 import pyarrow as pa
 import pyarrow.parquet as pq
-from pyiceberg.exceptions import CommitFailedException, ValidationException
-from pyiceberg.io.pyarrow import parquet_file_to_data_file, schema_to_pyarrow
-from pyiceberg.manifest import DataFile
-from pyiceberg.table import Table
 
-from services.lakehouse.schemas import TABLES
 from services.lakehouse.tables import Lakehouse
 from services.storage.objectstore import ObjectStore
+
+# pyiceberg (and the schemas, made of its types) is imported by the steps that use it: a third of a
+# second a depot's start does not pay (services.lakehouse.tables)
+if TYPE_CHECKING:
+    from pyiceberg.manifest import DataFile
+    from pyiceberg.table import Table
 
 log = logging.getLogger(__name__)
 
@@ -48,6 +50,8 @@ class MaintenanceReport:
 
 def maintain(lake: Lakehouse, warm: ObjectStore, now: dt.datetime, keep: dt.timedelta) -> MaintenanceReport:
     """One pass over every table: compact, expire snapshots older than `keep`, remove orphans."""
+    from services.lakehouse.schemas import TABLES
+
     totals = [0, 0, 0, 0]
     for name in TABLES:
         replaced, written = compact(lake.table(name))
@@ -99,6 +103,9 @@ def _groups(files: list[DataFile]) -> Iterable[list[DataFile]]:
 def _rewrite(table: Table, group: list[DataFile]) -> bool:
     """Write `group`'s rows to one new file and swap it in; False if another writer changed one of
     them first (the new file is removed: the next pass looks again)."""
+    from pyiceberg.exceptions import CommitFailedException, ValidationException
+    from pyiceberg.io.pyarrow import parquet_file_to_data_file, schema_to_pyarrow
+
     arrow_schema = schema_to_pyarrow(table.schema())  # with the field ids every engine reads by
     partition_path = table.spec().partition_to_path(group[0].partition, table.schema())
     path = f"{table.location()}/data/{partition_path}/compacted-{uuid.uuid4()}.parquet"
@@ -131,6 +138,8 @@ def _conform(batch: pa.RecordBatch, schema: pa.Schema) -> pa.RecordBatch:
 
 def expire_snapshots(table: Table, before: dt.datetime) -> int:
     """Forget the snapshots made before `before` (never the current one)."""
+    from pyiceberg.exceptions import CommitFailedException
+
     current = table.current_snapshot()
     old = [
         s.snapshot_id

@@ -13,16 +13,18 @@ import logging
 import threading
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 from urllib.parse import urlparse
 
-from pyiceberg.catalog.sql import SqlCatalog
-from pyiceberg.exceptions import NamespaceAlreadyExistsError, NoSuchTableError, TableAlreadyExistsError
-from pyiceberg.table import Table
 from sqlalchemy.exc import DBAPIError, IntegrityError
 
-from services.lakehouse.schemas import NAMESPACE, partition_spec, schema
 from services.storage.objectstore import ObjectStore
+
+# pyiceberg is imported where the catalog is first opened: its third of a second is not paid by a
+# depot start, nor by a depot that never reads or writes the tables
+if TYPE_CHECKING:
+    from pyiceberg.catalog.sql import SqlCatalog
+    from pyiceberg.table import Table
 
 CATALOG_NAME = "fleet"
 PREFIX = "lakehouse"  # under the warm store's root
@@ -46,6 +48,8 @@ class Lakehouse:
 
     @property
     def catalog(self) -> SqlCatalog:
+        from pyiceberg.catalog.sql import SqlCatalog
+
         with self._lock:
             for attempt in range(3):
                 if self._catalog is not None:
@@ -60,6 +64,10 @@ class Lakehouse:
 
     def table(self, name: str) -> Table:
         """The table as its latest commit left it (made with its schema and partitions if new)."""
+        from pyiceberg.exceptions import NamespaceAlreadyExistsError, NoSuchTableError, TableAlreadyExistsError
+
+        from services.lakehouse.schemas import NAMESPACE, partition_spec, schema
+
         if name in self._made:
             try:
                 return self.catalog.load_table((NAMESPACE, name))

@@ -4,26 +4,37 @@ A request must carry a token of the depot (`Authorization: Bearer`), checked bef
 sees it (401 as for REST); its tools then call the depot's own REST app in process with that same
 token, so they act with the caller's rights and nothing more. Stateless JSON exchanges: no session
 is kept between requests, so any node of a depot answers any request.
+
+The MCP SDK is loaded by the first request to /mcp (in a worker thread), not when the depot starts:
+importing it takes about a third of a second, which a depot that no assistant uses never pays.
 """
 
 from __future__ import annotations
 
+import logging
 from collections.abc import AsyncIterator
 from contextlib import AbstractAsyncContextManager, asynccontextmanager
 from contextvars import ContextVar
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
+import anyio
+import anyio.abc
 import anyio.to_thread
 import httpx
 from fastapi import FastAPI
-from mcp.server.fastmcp import Context
 from starlette.responses import JSONResponse
 from starlette.routing import Route
 from starlette.types import ASGIApp, Receive, Scope, Send
 
-from core.errors import FleetError
-from services.mcp_server.depot import DepotApi
-from services.mcp_server.tools import build_server
+from core.errors import FleetError, UnavailableError
+
+if TYPE_CHECKING:
+    from mcp.server.fastmcp import Context
+    from mcp.server.streamable_http_manager import StreamableHTTPSessionManager
+
+    from services.mcp_server.depot import DepotApi
+
+log = logging.getLogger(__name__)
 
 PATH = "/mcp"
 # The Authorization header of the MCP request being answered: the SDK runs a stateless request's
@@ -34,8 +45,17 @@ SURFACE = "mcp"  # how refusals of its tokens are counted
 
 
 def install(app: FastAPI) -> AbstractAsyncContextManager[object]:
-    """Serve MCP at /mcp on `app`; returns what must run while the app serves (the SDK's session
-    manager: `async with install(app): ...`)."""
+    """Serve MCP at /mcp on `app`; returns what must run while the app serves (`async with
+    install(app): ...`): the SDK's session manager, once a first request has loaded it."""
+    endpoint = _OnFirstUse(app)
+    app.router.routes.insert(0, Route(PATH, endpoint=_Authenticated(endpoint, app), methods=None))
+    return endpoint.running()
+
+
+def _build(app: FastAPI) -> tuple[ASGIApp, StreamableHTTPSessionManager]:
+    """The MCP server whose tools call `app`: its /mcp endpoint and its session manager."""
+    from services.mcp_server.depot import DepotApi
+    from services.mcp_server.tools import build_server
 
     @asynccontextmanager
     async def connect(_: Context[Any, Any, Any]) -> AsyncIterator[DepotApi]:
@@ -47,12 +67,62 @@ def install(app: FastAPI) -> AbstractAsyncContextManager[object]:
             yield DepotApi(client)
 
     server = build_server(connect, streamable_http_path=PATH, stateless_http=True, json_response=True)
-    mcp_app = server.streamable_http_app()
-    for route in mcp_app.routes:
+    for route in server.streamable_http_app().routes:
         if isinstance(route, Route) and route.path == PATH:
-            app.router.routes.insert(0, Route(PATH, endpoint=_Authenticated(route.endpoint, app), methods=None))
-    running: AbstractAsyncContextManager[object] = server.session_manager.run()
-    return running
+            return route.endpoint, server.session_manager
+    raise RuntimeError(f"the MCP SDK's app has no {PATH} route")
+
+
+class _OnFirstUse:
+    """The MCP endpoint, built by the first request; its session manager then runs in a task of
+    `running()` (an anyio task group is left by the task that entered it) until the depot stops."""
+
+    def __init__(self, app: FastAPI) -> None:
+        self.app = app
+        self._endpoint: ASGIApp | None = None
+        self._failed: str | None = None
+        self._lock = anyio.Lock()
+        self._tasks: anyio.abc.TaskGroup | None = None
+        self._stop = anyio.Event()
+
+    @asynccontextmanager
+    async def running(self) -> AsyncIterator[object]:
+        async with anyio.create_task_group() as tasks:
+            self._tasks = tasks
+            try:
+                yield self
+            finally:
+                self._stop.set()
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        async with self._lock:
+            if self._endpoint is None and self._failed is None:
+                await self._start()
+        if self._endpoint is None:
+            raise UnavailableError(f"the MCP server could not start: {self._failed}")
+        await self._endpoint(scope, receive, send)
+
+    async def _start(self) -> None:
+        if self._tasks is None:
+            raise UnavailableError("the MCP server is not running: the depot is starting or stopping")
+        endpoint, sessions = await anyio.to_thread.run_sync(_build, self.app)
+        ready = anyio.Event()
+
+        async def serve() -> None:
+            try:
+                async with sessions.run():
+                    ready.set()
+                    await self._stop.wait()
+            except Exception as exc:  # the depot serves on; /mcp says what failed
+                log.exception("the MCP server stopped")
+                self._failed = f"{type(exc).__name__}: {exc}"
+            finally:
+                ready.set()
+
+        self._tasks.start_soon(serve)
+        await ready.wait()
+        if self._failed is None:
+            self._endpoint = endpoint
 
 
 class _Authenticated:

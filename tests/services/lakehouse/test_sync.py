@@ -20,6 +20,7 @@ from catalog.db import session_scope
 from catalog.queries import ObjectRecord
 from core.states import Tier
 from services.lakehouse import sync as lake_sync
+from services.lakehouse.schemas import TABLES
 from services.lakehouse.tables import Lakehouse, open_lakehouse
 from services.sealed.tiers import Tiers
 from services.storage.objectstore import open_store
@@ -100,6 +101,30 @@ def test_a_sealed_run_is_copied_once_with_its_robot_date_and_exact_times(
     assert rows["frame"].to_pylist() == [0, 1, 2, 0, 1]
     assert sync(lake, catalog, tiers).runs == 0  # nothing pending: nothing copied again
     assert scalars(lake).num_rows == 5
+
+
+def snapshots(lake: Lakehouse, name: str) -> int:
+    return len(lake.table(name).metadata.snapshots)
+
+
+def test_a_table_the_batch_brings_nothing_to_gets_no_commit(
+    catalog: sessionmaker[Session], tiers: Tiers, lake: Lakehouse
+) -> None:
+    from catalog import corpus
+
+    seal(catalog, tiers, "run-a", [1.0, 2.0])  # scalars only: no text logs, transforms, tags, events, metrics
+    sync(lake, catalog, tiers)
+    made = {name: snapshots(lake, name) for name in TABLES}
+    assert made == {name: int(name in ("scalars", "runs")) for name in TABLES}
+    with session_scope(catalog, write=True) as session:
+        corpus.add_tags(session, "run-a", ["night-shift"], "alice", now())
+    sync(lake, catalog, tiers)
+    grown = {name for name in TABLES if snapshots(lake, name) > made[name]}
+    assert grown == {"runs", "run_tags"}  # the run's row replaced, its tag added: nothing else committed
+    with session_scope(catalog, write=True) as session:
+        corpus.remove_tags(session, "run-a", ["night-shift"])
+    sync(lake, catalog, tiers)
+    assert lake.table("run_tags").scan().to_arrow().num_rows == 0  # the delete alone is committed
 
 
 def test_new_files_replace_a_runs_rows_and_a_delete_removes_them(
