@@ -105,7 +105,12 @@ class _OnFirstUse:
     async def _start(self) -> None:
         if self._tasks is None:
             raise UnavailableError("the MCP server is not running: the depot is starting or stopping")
-        endpoint, sessions = await anyio.to_thread.run_sync(_build, self.app)
+        try:
+            endpoint, sessions = await anyio.to_thread.run_sync(_build, self.app)
+        except Exception as exc:  # the depot serves on; /mcp says what failed
+            log.exception("the MCP server could not be built")
+            self._failed = f"{type(exc).__name__}: {exc}"
+            return
         ready = anyio.Event()
 
         async def serve() -> None:
