@@ -2,7 +2,7 @@
 rows and appends their rows now (`services.lakehouse.sync` decides which runs, and when).
 
 A table the batch brings nothing to and holds nothing of gets no commit at all (no empty snapshot):
-a sealed run without tags, events or transforms costs three commits, not seven. Each run's Parquet
+a sealed run with scalars and nothing else costs two commits, not seven. Each run's Parquet
 file is opened once per batch (its size and footer), however often a lost commit is made again.
 """
 

@@ -121,6 +121,7 @@ class _OnFirstUse:
             except Exception as exc:  # the depot serves on; /mcp says what failed
                 log.exception("the MCP server stopped")
                 self._failed = f"{type(exc).__name__}: {exc}"
+                self._endpoint = None  # a manager that stopped answers nothing: 503 from now on
             finally:
                 ready.set()
 
