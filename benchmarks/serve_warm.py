@@ -9,7 +9,9 @@ beside a boto3 multipart upload of the same file: the store's own write speed). 
   URL to the store): target >= 0.8x;
 - `entity`: the same download filtered to the heaviest entity (bytes out, MB/s over them);
 - for context, the object read by 8 MiB ranged GETs one after another (boto3), what a reader that
-  does not read ahead gets.
+  does not read ahead gets, and through a bare relay (benchmarks/bare_relay.py: one thread copying
+  the store's GET to the client, no HTTP server): what any server in the middle can hope for when
+  the store, the server and the client share the same cores.
 
 Memory: the server's peak RSS (VmHWM) before and after the downloads.
 """
@@ -17,8 +19,10 @@ Memory: the server's peak RSS (VmHWM) before and after the downloads.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import shutil
+import statistics
 import subprocess
 import tempfile
 import time
@@ -28,6 +32,7 @@ from typing import Any
 import httpx
 
 from benchmarks.analytics import AWS, BUCKET, PREFIX, s3_client, seaweedfs, wait_for_bucket
+from benchmarks.bare_relay import bare_relay
 from benchmarks.codec import MB, format_table, log
 from benchmarks.ingest import FleetServer, proc_status_kb
 
@@ -140,21 +145,29 @@ def _serve(
         "store_get": lambda: curl_seconds(curl, presigned),
         "store_ranged_8mib": lambda: (ranged_seconds(client, key, size), size, None),
     }
+    relay = contextlib.ExitStack()
+    relayed = relay.enter_context(bare_relay(presigned))
+    timed["bare_relay"] = lambda: curl_seconds(curl, relayed)
     out: dict[str, Any] = {
         "promote_s": promote_s,
         "sealed_bytes": size,
         "rss_mb": {"before_promote": rss_before, "after_promote": rss_promoted},
     }
-    for name, once in timed.items():
-        runs = [once() for _ in range(repeat)]
+    times: dict[str, list[tuple[float, int, float | None]]] = {name: [] for name in timed}
+    for _ in range(repeat):  # each step in turn, so that a slow spell of the machine falls on all of them
+        for name, once in timed.items():
+            times[name].append(once())
+    for name, runs in times.items():
         best = min(r[0] for r in runs)
         firsts = [r[2] for r in runs if r[2] is not None]
         out[name] = {
             "seconds": best,
+            "median_s": statistics.median(r[0] for r in runs),
             "bytes_out": runs[0][1],
             "mb_s": runs[0][1] / MB / best,
             "first_byte_s": min(firsts) if firsts else None,
         }
+    relay.close()
     out["rss_mb"]["after_downloads"] = server.peak_rss_mb()
     return out
 
@@ -175,6 +188,7 @@ def print_warm(results: dict[str, Any], repeat: int) -> None:
         ("ours_entity", f"GET recording.rrd?include={results['entity']}"),
         ("store_get", "store: one GET of the object"),
         ("store_ranged_8mib", "store: 8 MiB ranged GETs in sequence"),
+        ("bare_relay", "bare relay of the store's GET (context)"),
     ):
         r = results[name]
         ratio = r["mb_s"] / store
@@ -210,6 +224,13 @@ def print_warm(results: dict[str, Any], repeat: int) -> None:
             rows,
             "lrrrrll",
         )
+    )
+    medians = {
+        name: results["store_get"]["median_s"] / results[name]["median_s"] for name in ("ours_whole", "bare_relay")
+    }
+    print(
+        f"medians against the store's: whole download {medians['ours_whole']:.2f}x, bare relay "
+        f"{medians['bare_relay']:.2f}x"
     )
     print(
         f"server peak RSS: {rss['before_promote']:.0f} MB after the upload, {rss['after_promote']:.0f} MB after "

@@ -181,6 +181,12 @@ class Settings(SharedSettings):
         le=64,
         description="parts of one upload sent at once; an upload holds up to this many parts in memory",
     )
+    s3_loop_reads: bool = Field(
+        True,
+        description="whole downloads of sealed runs read the S3 object on the event loop (one GET signed for the "
+        "read); false: through botocore in a thread. Off by itself where HTTPS_PROXY/HTTP_PROXY applies to the "
+        "endpoint",
+    )
     direct_reads: DirectReads = Field(
         DirectReads.OFF,
         description="off | presigned: catalog clients (Rerun's SDK) read sealed runs' chunks straight from the "

@@ -38,7 +38,7 @@ class RecordingQuery:
 
 @dataclass(frozen=True)
 class RecordingDownload:
-    body: Iterator[bytes | memoryview] | AsyncIterator[bytes]
+    body: Iterator[bytes | memoryview] | AsyncIterator[bytes | memoryview]
     etag: str
     filename: str
     warnings: list[str] = field(default_factory=list)  # filters that match no entity of the run
@@ -69,7 +69,7 @@ def recording_download(
         raise BadParameterError("follow", "follow=true streams what comes next: it takes no time window")
     filters = json.dumps([sorted(entities.include), sorted(entities.exclude), query.blueprint, repr(window)])
     etag = f'"{run_id}-{size}-{hashlib.sha256(filters.encode()).hexdigest()[:16]}"'
-    body: Iterator[bytes | memoryview] | AsyncIterator[bytes]
+    body: Iterator[bytes | memoryview] | AsyncIterator[bytes | memoryview]
     known_size = None
     if hot is not None and query.follow:  # waits for the run on the event loop, not in a thread of its own
         body = download.follow_run(hot, entities, blueprint=query.blueprint)
@@ -77,8 +77,10 @@ def recording_download(
         body = indexed.stream_hot(hot, entities, blueprint=query.blueprint, window=window)
     else:
         assert found is not None  # not hot: located sealed above
-        body = sealed.stream_sealed(found, entities, blueprint=query.blueprint, window=window)
-        known_size = found.size if sealed.whole_object(entities, query.blueprint, window) else None
+        whole = sealed.whole_object(entities, query.blueprint, window)
+        on_loop = sealed.whole_on_loop(found) if whole else None
+        body = on_loop or sealed.stream_sealed(found, entities, blueprint=query.blueprint, window=window)
+        known_size = found.size if whole else None
     warnings = entities.unmatched(_entity_paths(hot, found)) if entities.include or entities.exclude else []
     return RecordingDownload(body, etag, f"{run_id}.rrd", warnings, known_size)
 

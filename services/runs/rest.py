@@ -8,7 +8,7 @@ import asyncio
 import dataclasses
 import json
 from collections.abc import AsyncIterator, Iterator
-from typing import Annotated, Any
+from typing import Annotated, Any, cast
 
 from fastapi import APIRouter, Depends, Query, Request
 from fastapi.responses import StreamingResponse
@@ -178,13 +178,14 @@ def warnings_header(warnings: list[str]) -> dict[str, str]:
 
 
 def until_grant_ends(
-    request: Request, principal: Principal, body: Iterator[bytes | memoryview] | AsyncIterator[bytes]
+    request: Request, principal: Principal, body: Iterator[bytes | memoryview] | AsyncIterator[bytes | memoryview]
 ) -> AsyncIterator[bytes]:
     """A followed run's stream, ended (with an End message) when what let it in does: its token
     revoked or expired, its signed link expired; checked while it runs (`services.auth.standing`)."""
     assert isinstance(body, AsyncIterator)
+    followed = cast(AsyncIterator[bytes], body)  # a hot run followed: its pieces are bytes
     watch = GrantWatch(request.app.state.auth, principal, request.state.surface)
-    return while_granted(watch, body, closing=END) if watch.watched else body
+    return while_granted(watch, followed, closing=END) if watch.watched else followed
 
 
 async def first_piece(pieces: AsyncIterator[bytes]) -> AsyncIterator[bytes]:

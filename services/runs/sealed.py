@@ -1,20 +1,27 @@
 """Serving a sealed run (warm, or cold once restored) with ranged reads planned from its chunk index.
 
-An unfiltered download is the sealed object itself, copied through: one GET stream read a few
-pieces ahead of the sender where the store streams (S3), else several ranges read at once
-(`services.storage.readahead`); any other is planned from
+An unfiltered download is the sealed object itself, copied through: one GET read on the event loop
+where the store allows it (S3: `loop_read`), else one GET stream read a few pieces ahead of the
+sender in a thread, else several ranges read at once (`services.storage.readahead`); any other is
+planned from
 `chunks.parquet` like a hot run's from its index (`services.runs.indexed`), reading only the
 messages it keeps.
 """
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import AsyncIterator, Iterator
 
 from services.runs.download import FLUSH_BYTES, EntityFilter, TimeWindow
 from services.runs.indexed import IndexedRecording, open_sealed_object, stream_indexed
 from services.sealed.read import SealedRecording
-from services.storage.objectstore import StorageError, StreamingStore, supports_streaming
+from services.storage.objectstore import (
+    LoopReadingStore,
+    StorageError,
+    StreamingStore,
+    supports_loop_reads,
+    supports_streaming,
+)
 from services.storage.readahead import pieces, read_ahead, stream_ahead
 
 
@@ -46,6 +53,28 @@ def stream_resumed(store: StreamingStore, key: str, size: int) -> Iterator[bytes
             failures += 1
             if failures >= STREAM_ATTEMPTS:
                 raise
+
+
+async def loop_resumed(store: LoopReadingStore, key: str, size: int) -> AsyncIterator[memoryview]:
+    """As `stream_resumed`, read on the event loop."""
+    offset, failures = 0, 0
+    while offset < size:
+        try:
+            async for piece in store.loop_read(key, offset, size - offset):
+                offset += len(piece)
+                yield piece
+            if offset < size:
+                raise StorageError(f"{key!r} ended after {offset} of {size} bytes")
+        except StorageError:
+            failures += 1
+            if failures >= STREAM_ATTEMPTS:
+                raise
+
+
+def whole_on_loop(sealed: SealedRecording) -> AsyncIterator[memoryview] | None:
+    """The sealed object itself, read on the event loop, where its store allows it (else None)."""
+    store = sealed.store
+    return loop_resumed(store, sealed.key, sealed.size) if supports_loop_reads(store) else None
 
 
 def stream_sealed(

@@ -51,6 +51,7 @@ def open_tiers(settings: Settings) -> Tiers:
         region=settings.s3_region,
         uploads=uploads,
         presign_endpoint_url=settings.direct_reads_endpoint_url,
+        loop_reads=settings.s3_loop_reads,
     )
     cold = open_store(
         settings.cold_url, endpoint_url=settings.s3_endpoint_url, region=settings.s3_region, uploads=uploads

@@ -7,7 +7,7 @@ import datetime as dt
 import io
 import os
 import re
-from collections.abc import Iterator
+from collections.abc import AsyncIterator, Iterator
 from dataclasses import dataclass
 from typing import BinaryIO, Protocol, TypeGuard
 from urllib.parse import urlparse
@@ -86,7 +86,8 @@ def supports_archive(store: ObjectStore) -> bool:
 
 
 # Pieces of a streamed read (`StreamingStore.stream`): what a download hands on at a time.
-STREAM_PIECE_BYTES = 4 * 1024 * 1024
+STREAM_PIECE_BYTES = 1024 * 1024
+STREAM_DEPTH = 4  # pieces a stream read on the event loop holds at most (LoopReadingStore)
 
 
 class StreamingStore(ObjectStore, Protocol):
@@ -118,6 +119,22 @@ class PresigningStore(ObjectStore, Protocol):
 
 def supports_presigned(store: ObjectStore) -> TypeGuard[PresigningStore]:
     return hasattr(store, "presigned_get")
+
+
+class LoopReadingStore(ObjectStore, Protocol):
+    """A store whose reads can run on the event loop itself (S3: one GET signed for the read, its
+    socket read by the loop as it writes the client's; services/storage/loop_get.py says why)."""
+
+    loop_reads: bool  # False where they cannot (S3 behind a proxy): the caller reads in a thread
+
+    def loop_read(self, key: str, start: int, length: int) -> AsyncIterator[memoryview]:
+        """`key` from `start` to its end (`length` bytes, as the caller knows the object), in pieces
+        of at most STREAM_PIECE_BYTES, read as the caller takes them, STREAM_DEPTH ahead at most."""
+        ...
+
+
+def supports_loop_reads(store: ObjectStore) -> TypeGuard[LoopReadingStore]:
+    return getattr(store, "loop_reads", False) is True
 
 
 class RangeReader:
@@ -160,10 +177,12 @@ def open_store(
     region: str | None = None,
     uploads: Uploads | None = None,
     presign_endpoint_url: str | None = None,
+    loop_reads: bool = True,
 ) -> ObjectStore:
     """The store behind `url`: `file:///path` or `s3://bucket/prefix` (boto3 is imported only for S3).
     `presign_endpoint_url`: the endpoint an S3 store's presigned URLs name (default: `endpoint_url`),
-    for clients that reach the bucket by another address than the depot does."""
+    for clients that reach the bucket by another address than the depot does. `loop_reads`: whether an
+    S3 store may read on the event loop (LoopReadingStore; False: botocore alone sends its requests)."""
     parsed = urlparse(url)
     if parsed.scheme == "file":
         from services.storage.local import LocalStore
@@ -173,7 +192,12 @@ def open_store(
         from services.storage.s3 import S3Store
 
         return S3Store(
-            url, endpoint_url=endpoint_url, region=region, uploads=uploads, presign_endpoint_url=presign_endpoint_url
+            url,
+            endpoint_url=endpoint_url,
+            region=region,
+            uploads=uploads,
+            presign_endpoint_url=presign_endpoint_url,
+            loop_reads=loop_reads,
         )
     raise StorageError(f"unsupported store URL {url!r}: use file:///PATH or s3://BUCKET/PREFIX")
 

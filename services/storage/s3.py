@@ -2,7 +2,11 @@
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+import asyncio
+import os
+import ssl
+import urllib.request
+from collections.abc import AsyncIterator, Iterator
 from typing import Any, BinaryIO
 from urllib.parse import urlparse
 
@@ -10,10 +14,13 @@ import boto3
 from boto3.s3.transfer import TransferConfig
 from botocore.config import Config
 from botocore.exceptions import BotoCoreError, ClientError
+from botocore.httpsession import get_cert_path
 
 from core.errors import ConflictError
+from services.storage import loop_get
 from services.storage.objectstore import (
     PRESIGNED_TTL_MAX_S,
+    STREAM_DEPTH,
     STREAM_PIECE_BYTES,
     ObjectInfo,
     ObjectNotFoundError,
@@ -41,6 +48,7 @@ class S3Store:
         region: str | None = None,
         uploads: Uploads | None = None,
         presign_endpoint_url: str | None = None,
+        loop_reads: bool = True,
     ) -> None:
         uploads = uploads or Uploads()
         parsed = urlparse(url)
@@ -74,6 +82,10 @@ class S3Store:
         self._transfer.max_in_memory_upload_chunks = uploads.concurrency
         self._presign_endpoint_url = presign_endpoint_url or endpoint_url
         self._presigner: Any = None
+        self._read_signer: Any = None  # signs the depot's own reads on the event loop (loop_read)
+        self._tls: ssl.SSLContext | None = None
+        # botocore goes through a proxy where the environment names one; a read on the loop does not
+        self.loop_reads = loop_reads and not _proxied(endpoint_url or "https://s3.amazonaws.com")
 
     def access(self) -> dict[str, Any]:
         """Credentials, region and endpoint, for other readers of this store (analytics SQL)."""
@@ -159,6 +171,31 @@ class S3Store:
             raise StorageError(f"reading {key!r} from {self.url} broke off: {exc}") from exc
         finally:
             body.close()
+
+    async def loop_read(self, key: str, start: int, length: int) -> AsyncIterator[memoryview]:
+        """One GET of `key` from `start`, read on the event loop (services/storage/loop_get.py),
+        signed for this read alone: the request carries a signature good for READ_URL_TTL_S, never
+        a credential."""
+        url, tls = await asyncio.to_thread(self._signed_read, key)
+        reading = loop_get.Reading(f"{key!r} from {self.url}", STREAM_PIECE_BYTES, STREAM_DEPTH, tls=tls)
+        async for piece in loop_get.get(url, start, length, reading):
+            yield piece
+
+    def _signed_read(self, key: str) -> tuple[str, ssl.SSLContext | None]:
+        if self._read_signer is None:  # the depot's own endpoint (not the one clients reach), SigV4
+            self._read_signer = self._session.client(
+                "s3",
+                endpoint_url=self.endpoint_url,
+                region_name=self._client.meta.region_name,
+                config=Config(signature_version="s3v4", s3=self._client.meta.config.s3),
+            )
+        url: str = self._read_signer.generate_presigned_url(
+            "get_object", Params={"Bucket": self.bucket, "Key": self._key(key)}, ExpiresIn=READ_URL_TTL_S
+        )
+        if url.startswith("https:") and self._tls is None:
+            # the certificates botocore trusts (AWS_CA_BUNDLE, else its bundle), not only the system's
+            self._tls = ssl.create_default_context(cafile=os.environ.get("AWS_CA_BUNDLE") or get_cert_path(True))
+        return url, self._tls
 
     def presigned_get(self, key: str, expires_s: int) -> str:
         """A SigV4 query-signed GET of `key` (signed offline: no call to the store). Only the host
@@ -251,6 +288,14 @@ class S3Store:
 
 
 FleetErrorLike = ObjectNotFoundError | StorageError | ConflictError
+READ_URL_TTL_S = 60  # a read on the loop sends its request at once; a resumed one is signed again
+
+
+def _proxied(endpoint_url: str) -> bool:
+    """Whether the environment sends requests to `endpoint_url` through a proxy (HTTPS_PROXY, ...)."""
+    parsed = urlparse(endpoint_url)
+    proxies = urllib.request.getproxies()
+    return parsed.scheme in proxies and not urllib.request.proxy_bypass(parsed.hostname or "")
 
 
 def _range(start: int, length: int | None) -> str:

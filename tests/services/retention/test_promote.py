@@ -684,7 +684,9 @@ def test_a_large_recording_is_uploaded_in_parts_and_checked(
     tiers: Tiers, make_node: NodeFactory, monkeypatch: pytest.MonkeyPatch, tmp_path: Path
 ):
     part = 5 * 1024 * 1024  # S3's smallest part: a 14 MB run takes 3
-    warm = open_store(tiers.warm.url, region="us-east-1", uploads=Uploads(part_bytes=part, concurrency=2))
+    warm = open_store(
+        tiers.warm.url, region="us-east-1", uploads=Uploads(part_bytes=part, concurrency=2), loop_reads=False
+    )
     original = log_run(tmp_path / "large.rrd", RUN, entities=4, frames=10, points=30000, robot=ROBOT, text=False)
     clock = Clock()
     node = make_node(Tiers(warm, tiers.cold), clock=clock, promote_after_s=PROMOTE_AFTER_S)

@@ -36,14 +36,18 @@ from services.sealed import read
 from services.sealed.read import open_sealed
 from services.sealed.tiers import Tiers
 from services.sealed.write import INDEX, RECORDING
+from services.storage.objectstore import open_store
+from services.storage.s3 import S3Store
 from tests.conftest import find_rerun
 from tests.services.retention import conftest as retention
 from tests.services.retention.conftest import Clock, Node, NodeFactory, log_run
 from tests.services.runs.decoded import stream_run
+from tests.services.storage import s3_backends
 from tests.services.storage.counting import CountingStore
 
 pytestmark = pytest.mark.sdk
 tiers, make_node = retention.tiers, retention.make_node  # the retention tests' fixtures: stores and nodes
+seaweed_endpoint = s3_backends.seaweed_endpoint  # a real S3 server on loopback
 
 PROMOTE_AFTER_S = 600.0
 WIDE = "0123456789abcdef0123456789abcdef"  # ten entities
@@ -272,6 +276,37 @@ def test_unfiltered_warm_download_is_the_sealed_object(tiers: Tiers, make_node: 
     client = TestClient(_app(node))
     response = client.get(f"/v1/runs/{run_id}/recording.rrd")
     assert response.status_code == 200 and response.content == stored
+
+
+@pytest.mark.s3server
+@pytest.mark.slow
+def test_a_whole_download_from_s3_is_read_on_the_event_loop(
+    seaweed_endpoint: str,
+    make_node: NodeFactory,
+    runs: dict[str, Path],
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+):
+    """On a real S3 server the sealed object goes to the client by one GET the event loop reads
+    (`S3Store.loop_read`), not through botocore in a thread."""
+    for name in ("AWS_ACCESS_KEY_ID", "AWS_SECRET_ACCESS_KEY"):
+        monkeypatch.setenv(name, "test")
+    warm, cold = (
+        open_store(
+            f"s3://{s3_backends.BUCKET}/{tmp_path.name}/{tier}", endpoint_url=seaweed_endpoint, region="us-east-1"
+        )
+        for tier in ("warm", "cold")
+    )
+    node, run_id = _node(make_node, Tiers(warm, cold), runs["wide"])
+    stored = warm.get_range(f"{_promote(node, run_id)}/{RECORDING}")
+
+    def in_a_thread(*_: object, **__: object) -> None:
+        raise AssertionError("the whole object was read through botocore in a thread")
+
+    monkeypatch.setattr(S3Store, "stream", in_a_thread)
+    response = TestClient(_app(node)).get(f"/v1/runs/{run_id}/recording.rrd")
+    assert response.status_code == 200 and response.content == stored
+    assert response.headers["content-length"] == str(len(stored))
 
 
 # --- one URL, any tier -------------------------------------------------------------------------

@@ -1,13 +1,15 @@
-"""A whole sealed run streamed from its store (`services.runs.sealed.stream_resumed`): a stream that
-breaks off is taken up again where it stopped, and given up after a few breaks."""
+"""A whole sealed run streamed from its store (`services.runs.sealed.stream_resumed`, and
+`loop_resumed` for a store read on the event loop): a stream that breaks off is taken up again
+where it stopped, and given up after a few breaks."""
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+import asyncio
+from collections.abc import AsyncIterator, Iterator
 
 import pytest
 
-from services.runs.sealed import STREAM_ATTEMPTS, stream_resumed
+from services.runs.sealed import STREAM_ATTEMPTS, loop_resumed, stream_resumed
 from services.storage.objectstore import StorageError
 
 DATA = bytes(range(256)) * 40
@@ -31,6 +33,16 @@ class BreakingStore:
                 raise StorageError("connection reset")
             yield DATA[offset : min(offset + 1000, end)]
 
+    async def loop_read(self, key: str, start: int, length: int) -> AsyncIterator[memoryview]:
+        """As `stream`, on the event loop (a LoopReadingStore)."""
+        for piece in self.stream(key, start, length):
+            await asyncio.sleep(0)
+            yield memoryview(piece)
+
+
+async def _read_on_loop(store: BreakingStore) -> bytes:
+    return b"".join([bytes(p) async for p in loop_resumed(store, "k", len(DATA))])  # type: ignore[arg-type]
+
 
 @pytest.mark.parametrize("short", [False, True], ids=["reset", "ended-early"])
 def test_a_stream_that_breaks_off_is_taken_up_where_it_stopped(short: bool):
@@ -44,4 +56,18 @@ def test_a_stream_that_keeps_breaking_fails_the_download():
     store = BreakingStore(breaks=STREAM_ATTEMPTS)
     with pytest.raises(StorageError, match="connection reset"):
         b"".join(stream_resumed(store, "k", len(DATA)))  # type: ignore[arg-type]
+    assert len(store.opened) == STREAM_ATTEMPTS
+
+
+@pytest.mark.parametrize("short", [False, True], ids=["reset", "ended-early"])
+def test_a_read_on_the_loop_that_breaks_off_is_taken_up_where_it_stopped(short: bool):
+    store = BreakingStore(breaks=2, short=short)
+    assert asyncio.run(_read_on_loop(store)) == DATA
+    assert store.opened == [(0, len(DATA)), (3000, len(DATA) - 3000), (6000, len(DATA) - 6000)]
+
+
+def test_a_read_on_the_loop_that_keeps_breaking_fails_the_download():
+    store = BreakingStore(breaks=STREAM_ATTEMPTS)
+    with pytest.raises(StorageError, match="connection reset"):
+        asyncio.run(_read_on_loop(store))
     assert len(store.opened) == STREAM_ATTEMPTS
