@@ -24,6 +24,7 @@ import ssl
 from collections import deque
 from collections.abc import AsyncIterator
 from dataclasses import dataclass
+from typing import cast
 from urllib.parse import urlsplit
 
 from core.errors import ConflictError
@@ -68,8 +69,8 @@ class _Answer(asyncio.BufferedProtocol):
 
     # -- asyncio's side
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
-        assert isinstance(transport, asyncio.Transport)
-        self.transport = transport
+        # a socket's transport (not checked with isinstance: another loop's, uvloop's, is no subclass)
+        self.transport = cast(asyncio.Transport, transport)
 
     def get_buffer(self, sizehint: int) -> memoryview:
         if self.status == 0:

@@ -7,8 +7,9 @@ from __future__ import annotations
 
 import asyncio
 import os
-from collections.abc import AsyncIterator, Awaitable, Callable, Iterator
+from collections.abc import AsyncGenerator, AsyncIterator, Awaitable, Callable, Iterator
 from pathlib import Path
+from typing import cast
 
 import pytest
 
@@ -226,3 +227,38 @@ def test_loop_reads_are_off_behind_a_proxy_or_when_asked(monkeypatch: pytest.Mon
     assert not S3Store("s3://b/p").loop_reads  # AWS itself, through the proxy
     monkeypatch.setenv("NO_PROXY", "s3.internal")
     assert S3Store("s3://b/p", endpoint_url="https://s3.internal:8333").loop_reads
+
+
+def test_a_reader_that_stops_early_closes_the_store_s_connection():
+    """A client that goes away mid-download: the GET's socket is closed, not left open to the store."""
+
+    async def main() -> bool:
+        closed = asyncio.Event()
+        big = b"y" * (8 << 20)
+
+        async def handle(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+            await reader.readuntil(b"\r\n\r\n")
+            writer.write(ok(big))
+            try:
+                for start in range(0, len(big), 1 << 16):
+                    writer.write(big[start : start + (1 << 16)])
+                    await writer.drain()  # waits once the reader stops reading; fails once it closes
+                await reader.read()  # (or: b"" once the reader's side is closed)
+            except ConnectionError:
+                pass
+            closed.set()
+            writer.close()
+
+        server = await asyncio.start_server(handle, "127.0.0.1", 0)
+        port = server.sockets[0].getsockname()[1]
+        pieces = cast(
+            AsyncGenerator[memoryview, None],
+            loop_get.get(f"http://127.0.0.1:{port}/b/k", 0, len(big), loop_get.Reading("'k'")),
+        )
+        assert len(await anext(pieces)) == 1 << 20
+        await pieces.aclose()
+        await asyncio.wait_for(closed.wait(), 10)
+        server.close()
+        return closed.is_set()
+
+    assert asyncio.run(main())
