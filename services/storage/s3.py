@@ -5,6 +5,7 @@ from __future__ import annotations
 import asyncio
 import os
 import ssl
+import threading
 import urllib.request
 from collections.abc import AsyncIterator, Iterator
 from typing import Any, BinaryIO
@@ -81,8 +82,8 @@ class S3Store:
         # s3transfer's default holds 10 whatever the concurrency.
         self._transfer.max_in_memory_upload_chunks = uploads.concurrency
         self._presign_endpoint_url = presign_endpoint_url or endpoint_url
-        self._presigner: Any = None
-        self._read_signer: Any = None  # signs the depot's own reads on the event loop (loop_read)
+        self._signers: dict[str | None, Any] = {}  # by endpoint: clients that sign URLs (_signer)
+        self._signers_lock = threading.Lock()
         self._tls: ssl.SSLContext | None = None
         # botocore goes through a proxy where the environment names one; a read on the loop does not
         self.loop_reads = loop_reads and not _proxied(endpoint_url or "https://s3.amazonaws.com")
@@ -182,14 +183,8 @@ class S3Store:
             yield piece
 
     def _signed_read(self, key: str) -> tuple[str, ssl.SSLContext | None]:
-        if self._read_signer is None:  # the depot's own endpoint (not the one clients reach), SigV4
-            self._read_signer = self._session.client(
-                "s3",
-                endpoint_url=self.endpoint_url,
-                region_name=self._client.meta.region_name,
-                config=Config(signature_version="s3v4", s3=self._client.meta.config.s3),
-            )
-        url: str = self._read_signer.generate_presigned_url(
+        # signed for the depot's own endpoint, not the one clients reach
+        url: str = self._signer(self.endpoint_url).generate_presigned_url(
             "get_object", Params={"Bucket": self.bucket, "Key": self._key(key)}, ExpiresIn=READ_URL_TTL_S
         )
         if url.startswith("https:") and self._tls is None:
@@ -202,19 +197,24 @@ class S3Store:
         is signed, so a client may add its own Range header."""
         if not 0 < expires_s <= PRESIGNED_TTL_MAX_S:
             raise ValueError(f"a presigned URL lasts 1 to {PRESIGNED_TTL_MAX_S} s, not {expires_s}")
-        if self._presigner is None:
-            # A client of its own: the endpoint clients reach, and SigV4 (botocore's default for
-            # presigning S3 is not SigV4 in every region); it addresses buckets as the depot's does.
-            self._presigner = self._session.client(
-                "s3",
-                endpoint_url=self._presign_endpoint_url,
-                region_name=self._client.meta.region_name,
-                config=Config(signature_version="s3v4"),
-            )
-        url: str = self._presigner.generate_presigned_url(
+        url: str = self._signer(self._presign_endpoint_url).generate_presigned_url(
             "get_object", Params={"Bucket": self.bucket, "Key": self._key(key)}, ExpiresIn=expires_s
         )
         return url
+
+    def _signer(self, endpoint_url: str | None) -> Any:
+        """A client that signs URLs for `endpoint_url`, made once: SigV4 (botocore's default for
+        presigning S3 is not SigV4 in every region), addressing buckets as the depot's client does.
+        Made under a lock: a boto3 session is not safe to make clients from several threads at once."""
+        with self._signers_lock:
+            if endpoint_url not in self._signers:
+                self._signers[endpoint_url] = self._session.client(
+                    "s3",
+                    endpoint_url=endpoint_url,
+                    region_name=self._client.meta.region_name,
+                    config=Config(signature_version="s3v4", s3=self._client.meta.config.s3),
+                )
+            return self._signers[endpoint_url]
 
     def head(self, key: str) -> ObjectInfo:
         try:
