@@ -28,6 +28,9 @@ def _free(port: int) -> bool:
     return True
 
 
+PORT_ATTEMPTS = 3  # starts on fresh ports when one was taken meanwhile
+
+
 def _port_pair() -> int:
     """A free port whose +10000 (SeaweedFS's gRPC port for it) is free too."""
     for _ in range(200):
@@ -74,12 +77,18 @@ class SeaweedFS:
         self.access_key = SIGNED_ONLY_ACCESS_KEY if signed_only else ACCESS_KEY
         self.secret_key = SIGNED_ONLY_SECRET_KEY if signed_only else SECRET_KEY
         data_dir.mkdir(parents=True, exist_ok=True)
+        self.signed_only, self.identities = signed_only, identities
+        self.env = {k: v for k, v in os.environ.items() if not k.startswith("AWS_")} if signed_only else None
+        self.process = self._on_free_ports()
+        self.started = False  # once it has answered, a start again keeps its ports (an outage, not a new server)
+
+    def _on_free_ports(self) -> ServerProcess:
         self.s3, self.master, self.volume, self.filer = (_port_pair() for _ in range(4))
         # no Iceberg or Lance listeners (fixed default ports); a quick raft election on a restart
         argv = [
             weed_binary(),
             "server",
-            f"-dir={data_dir}",
+            f"-dir={self.data_dir}",
             "-ip=127.0.0.1",
             "-ip.bind=127.0.0.1",
             "-s3",
@@ -91,17 +100,16 @@ class SeaweedFS:
             f"-filer.port={self.filer}",
             "-master.electionTimeout=1s",
         ]
-        if signed_only:
-            config = data_dir.parent / f"{data_dir.name}-s3.json"
-            config.write_text(json.dumps({"identities": [IDENTITY, *identities]}))
+        if self.signed_only:
+            config = self.data_dir.parent / f"{self.data_dir.name}-s3.json"
+            config.write_text(json.dumps({"identities": [IDENTITY, *self.identities]}))
             argv.append(f"-s3.config={config}")
-        env = {k: v for k, v in os.environ.items() if not k.startswith("AWS_")} if signed_only else None
-        self.process = ServerProcess(
+        return ServerProcess(
             argv,
-            log=data_dir.parent / f"{data_dir.name}-weed.log",
+            log=self.data_dir.parent / f"{self.data_dir.name}-weed.log",
             name="weed",
             ready=answers_http(self.endpoint),
-            env=env,
+            env=self.env,
         )
 
     @property
@@ -109,7 +117,18 @@ class SeaweedFS:
         return f"http://127.0.0.1:{self.s3}"
 
     def start(self, timeout: float = 60) -> SeaweedFS:
-        self.process.start(timeout)
+        for attempt in range(1, PORT_ATTEMPTS + 1):
+            try:
+                self.process.start(timeout)
+                break
+            except AssertionError:
+                # A port free when chosen can be taken before weed binds it (its gRPC ports, at
+                # +10000, lie among the ports the kernel hands to outgoing connections): other ones.
+                taken = "address already in use" in self.process.log_tail()
+                if self.started or not taken or attempt == PORT_ATTEMPTS:
+                    raise
+                self.process = self._on_free_ports()
+        self.started = True
         try:
             self._wait_for_buckets(timeout)
         except BaseException:
