@@ -9,11 +9,11 @@ writes the client's (asyncio's `BufferedProtocol`: the kernel copies into the bu
 nothing in between), and stops reading while `depth` pieces wait to be sent, so a download holds at
 most `depth` pieces of `piece` bytes whatever the run's size.
 
-The store is asked with a URL signed for this one read (`S3Store.astream`): the request carries no
-credential, and this module knows nothing of S3 but how an object GET answers. It assumes what
+The store is asked with a URL signed for this one read (`S3Store.loop_read`): the request carries
+no credential, and this module knows nothing of S3 but how an object GET answers. It assumes what
 every S3-compatible store does on GET: HTTP/1.1 with a `Content-Length` (no chunked framing) and,
 for a range, `206` with `Content-Range` (pinned by tests/services/storage/test_loop_get.py against
-moto and SeaweedFS).
+a scripted server and SeaweedFS).
 """
 
 from __future__ import annotations
@@ -28,7 +28,7 @@ from typing import cast
 from urllib.parse import urlsplit
 
 from core.errors import ConflictError
-from services.storage.objectstore import ObjectNotFoundError, StorageError
+from services.storage.objectstore import STREAM_DEPTH, STREAM_PIECE_BYTES, ObjectNotFoundError, StorageError
 
 HEAD_LIMIT = 64 * 1024  # a store's answer head longer than this is refused
 _ERROR_CODE = re.compile(rb"<Code>([A-Za-z0-9.]{1,64})</Code>")
@@ -41,8 +41,8 @@ class Reading:
     the object in errors (never the signed URL, which opens it)."""
 
     what: str
-    piece: int = 1 << 20
-    depth: int = 4
+    piece: int = STREAM_PIECE_BYTES
+    depth: int = STREAM_DEPTH
     connect_timeout_s: float = 5.0
     read_timeout_s: float = 60.0
     tls: ssl.SSLContext | None = None

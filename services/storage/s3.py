@@ -21,7 +21,6 @@ from core.errors import ConflictError
 from services.storage import loop_get
 from services.storage.objectstore import (
     PRESIGNED_TTL_MAX_S,
-    STREAM_DEPTH,
     STREAM_PIECE_BYTES,
     ObjectInfo,
     ObjectNotFoundError,
@@ -38,6 +37,9 @@ from services.storage.readahead import READ_THREADS
 # sealing computes and the catalog keeps.) A multipart object gets a composite checksum ("...-N"):
 # each part was verified on arrival and the completion names every part's checksum.
 CHECKSUM_ALGORITHM = "CRC32"
+# Short connect timeout: during an outage callers learn quickly and retry on their own schedule.
+CONNECT_TIMEOUT_S = 5
+READ_TIMEOUT_S = 60  # a store that sends nothing this long is given up (botocore and reads on the loop)
 
 
 class S3Store:
@@ -58,7 +60,6 @@ class S3Store:
         self.url = url
         self.bucket = parsed.netloc
         self.prefix = parsed.path.strip("/")
-        # Short connect timeout: during an outage callers learn quickly and retry on their own schedule.
         self._session = boto3.session.Session(region_name=region)
         self.endpoint_url = endpoint_url
         self._client: Any = self._session.client(
@@ -66,8 +67,8 @@ class S3Store:
             endpoint_url=endpoint_url,
             config=Config(
                 retries={"max_attempts": 3, "mode": "standard"},
-                connect_timeout=5,
-                read_timeout=60,
+                connect_timeout=CONNECT_TIMEOUT_S,
+                read_timeout=READ_TIMEOUT_S,
                 # Downloads keep several ranged reads under way (up to READ_THREADS at once in a
                 # process), uploads several parts: each needs a connection of its own.
                 max_pool_connections=READ_THREADS + uploads.concurrency,
@@ -178,7 +179,8 @@ class S3Store:
         signed for this read alone: the request carries a signature good for READ_URL_TTL_S, never
         a credential."""
         url, tls = await asyncio.to_thread(self._signed_read, key)
-        reading = loop_get.Reading(f"{key!r} from {self.url}", STREAM_PIECE_BYTES, STREAM_DEPTH, tls=tls)
+        what = f"{key!r} from {self.url}"
+        reading = loop_get.Reading(what, connect_timeout_s=CONNECT_TIMEOUT_S, read_timeout_s=READ_TIMEOUT_S, tls=tls)
         async for piece in loop_get.get(url, start, length, reading):
             yield piece
 
