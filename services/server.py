@@ -163,6 +163,7 @@ def build(settings: Settings, peer_addr: str | None = None) -> Sides:
         settings.sql_threads,
         settings.sql_workers,
         settings.sql_queue,
+        settings.sql_read_ahead_files,
     )
     return Sides(node, ingest, retention, Analytics(node, limits), corpus)
 

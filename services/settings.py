@@ -276,6 +276,12 @@ class Settings(SharedSettings):
     sql_threads: int = Field(4, gt=0, description="threads a SQL query may use")
     sql_workers: int = Field(2, gt=0, description="SQL queries running at once, each in a worker process")
     sql_queue: int = Field(8, ge=0, description="SQL queries waiting for a worker; more are refused (429)")
+    sql_read_ahead_files: int = Field(
+        1000,
+        ge=0,
+        description="lakehouse data files whose footers an idle SQL worker reads ahead for the next query "
+        "(those of the tables the last query read); 0 reads none ahead",
+    )
     auth: AuthMode = Field(
         AuthMode.ON, description="on: every request and stream needs a token; off: nothing is checked (loopback only)"
     )

@@ -5,7 +5,8 @@ the threadpool FastAPI's sync handlers share) driving a worker process; up to `L
 wait; beyond that a query is refused at once (429). The time limit counts from a query's arrival,
 its wait in the queue included: one still waiting when its limit falls is refused (429 with
 Retry-After) rather than run late, so no answer comes later than the limit. Idle workers are
-started ahead (interpreter and DuckDB imported), one per running slot. While a worker runs, its
+started ahead (interpreter and DuckDB imported), one per running slot, and told which files the
+last query's tables have now, to read their footers while they wait (warming.py). While a worker runs, its
 thread watches the clock and the worker's resident memory and kills it past either limit: DuckDB's
 interrupt does not reach parsing or planning, and its memory_limit does not cover every allocation.
 """
@@ -47,7 +48,7 @@ from core.errors import (
     SqlNotAllowedError,
 )
 from services.analytics import worker
-from services.analytics.sql import Limits, SqlBusyError, out_of_memory
+from services.analytics.sql import ANALYTICS_VIEWS, Limits, SqlBusyError, out_of_memory
 from services.rrd import untrusted
 from services.rrd.errors import RrdError
 from services.storage.objectstore import StorageError
@@ -75,14 +76,30 @@ class Prepared:
     catalog: dict[str, pa.Table] = field(default_factory=dict)  # catalog view -> its rows
 
 
+# analytics tables -> what an idle worker reads ahead for them ({"root", "s3", "files"}), or None
+ReadAheadPlan = Callable[[tuple[str, ...]], dict[str, Any] | None]
+
+
+@dataclass
+class _Idle:
+    """A worker started ahead. Once a query took it, nothing but the query's frames is sent to it."""
+
+    proc: subprocess.Popen[bytes]
+    lock: threading.Lock = field(default_factory=threading.Lock)
+    taken: bool = False
+
+
 class SqlPool:
-    def __init__(self, limits: Limits, httpfs: bool) -> None:
+    def __init__(self, limits: Limits, httpfs: bool, read_ahead: ReadAheadPlan | None = None) -> None:
         self.limits = limits
         self._httpfs = httpfs
+        self._read_ahead = read_ahead
         self._workdir = tempfile.mkdtemp(prefix="fleet-sql-")  # the workers' HOME, cwd and spill folder
         self._executor = ThreadPoolExecutor(limits.workers, thread_name_prefix="fleet-sql")
+        self._planner = ThreadPoolExecutor(1, thread_name_prefix="fleet-sql-read-ahead")
         self._lock = threading.Lock()
-        self._idle: list[subprocess.Popen[bytes]] = []
+        self._idle: list[_Idle] = []
+        self._recent: tuple[str, ...] = ()  # the analytics tables the last query that read any named
         self._admitted = 0
         self._closed = False
         atexit.register(self.close)
@@ -151,6 +168,7 @@ class SqlPool:
             talk = _Conversation(proc, deadline, self.limits)
             talk.send(json.dumps(request).encode())
             named = talk.receive_json()["tables"]
+            self._recent = tuple(t for t in named if t in ANALYTICS_VIEWS) or self._recent
             prepared = prepare(set(named))
             talk.send(json.dumps({"files": prepared.files, "catalog": list(prepared.catalog)}).encode())
             for table in prepared.catalog.values():
@@ -167,12 +185,15 @@ class SqlPool:
 
     def _take(self) -> subprocess.Popen[bytes]:
         """An idle worker, else a new one."""
-        with self._lock:
-            while self._idle:
+        while True:
+            with self._lock:
+                if not self._idle:
+                    return self._spawn()
                 candidate = self._idle.pop(0)
-                if candidate.poll() is None:
-                    return candidate
-        return self._spawn()
+            with candidate.lock:  # waits for a read-ahead frame being sent: it must not split the query's
+                candidate.taken = True
+            if candidate.proc.poll() is None:
+                return candidate.proc
 
     def _spawn(self) -> subprocess.Popen[bytes]:
         root = str(Path(services.__file__).resolve().parent.parent)  # where `services` is importable from
@@ -197,18 +218,40 @@ class SqlPool:
         )
 
     def start(self) -> None:
-        """Start idle workers up to one per running slot (the first query's end does it, else)."""
+        """Start idle workers up to one per running slot (the first query's end does it, else), each
+        told what to read ahead once the tables of the last query are planned (in a thread of its own:
+        planning reads the lakehouse's metadata, and the query that ended is still answering)."""
         with self._lock:
             while len(self._idle) < self.limits.workers and not self._closed:
-                self._idle.append(self._spawn())
+                idle = _Idle(self._spawn())
+                self._idle.append(idle)
+                if self._read_ahead is not None and self._recent:
+                    self._planner.submit(self._send_read_ahead, idle, self._recent)
+
+    def _send_read_ahead(self, idle: _Idle, tables: tuple[str, ...]) -> None:
+        assert self._read_ahead is not None
+        try:
+            plan = self._read_ahead(tables)
+        except Exception as exc:  # the query will plan (and fail, if it must) by itself
+            log.debug("no read-ahead for %s: %s", tables, exc)
+            return
+        if not plan:
+            return
+        frame = json.dumps({"read_ahead": plan}).encode()
+        with idle.lock:
+            if idle.taken or idle.proc.stdin is None:
+                return
+            with contextlib.suppress(OSError, ValueError):  # it was stopped meanwhile
+                worker.write_frame(idle.proc.stdin, frame)
 
     def close(self) -> None:
         with self._lock:
             self._closed = True
             idle, self._idle = self._idle, []
-        for proc in idle:
-            _stop(proc)
+        for each in idle:
+            _stop(each.proc)
         self._executor.shutdown(wait=False, cancel_futures=True)
+        self._planner.shutdown(wait=False, cancel_futures=True)
         shutil.rmtree(self._workdir, ignore_errors=True)
 
 

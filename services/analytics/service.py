@@ -80,7 +80,8 @@ class Analytics(OnNode):
         """The SQL workers, started with the first query (or by `start`)."""
         with self._pool_lock:
             if self._pool is None:
-                self._pool = SqlPool(self.limits, httpfs=self.root.startswith("s3://"))
+                plan = functools.partial(read_ahead, self)
+                self._pool = SqlPool(self.limits, httpfs=self.root.startswith("s3://"), read_ahead=plan)
             return self._pool
 
     def start(self) -> None:
@@ -127,6 +128,23 @@ def prepare(ctx: Analytics, named: set[str]) -> Prepared:
     else:  # the Iceberg tables' data files as of their current snapshots, grouped by their columns
         files = {table: lakehouse_scan.data_files(lake, table) for table in tables}
     return Prepared(files, rows)
+
+
+def read_ahead(ctx: Analytics, tables: tuple[str, ...]) -> dict[str, Any] | None:
+    """What an idle worker reads ahead for the next query (`warming.py`): the current data files of
+    these lakehouse tables, up to `read_ahead_files` of them. Nothing without the lakehouse: a run's
+    per-run file is rewritten in place, so a footer read ahead could be stale by the query."""
+    lake = ctx.node.lakehouse
+    if lake is None or ctx.limits.read_ahead_files <= 0:
+        return None
+    files: list[str] = []
+    for table in tables:
+        files += [path for group in lakehouse_scan.data_files(lake, table) for path in group]
+    if not files:
+        return None
+    s3 = ctx.s3_access()
+    access = dataclasses.asdict(s3) if s3 else None
+    return {"root": ctx.root, "s3": access, "files": files[: ctx.limits.read_ahead_files]}
 
 
 def request(ctx: Analytics, text: str) -> dict[str, Any]:

@@ -103,6 +103,7 @@ class Limits:
     threads: int = 4
     workers: int = 2  # queries running at once (FLEET_SQL_WORKERS)
     queue: int = 8  # queries waiting for a worker beyond those (FLEET_SQL_QUEUE)
+    read_ahead_files: int = 1000  # footers an idle worker reads ahead (FLEET_SQL_READ_AHEAD_FILES)
 
     @property
     def memory_bytes(self) -> int:
@@ -267,11 +268,11 @@ def sandbox(
     groups, laid out as `layout` says), locked down: only those files are readable afterwards."""
     try:
         # the view is bound when created and again by the query: parse each footer (and HEAD each
-        # file) once; the database lives for one query, so nothing cached can go stale
-        con.execute("SET parquet_metadata_cache = true")
-        con.execute("SET enable_http_metadata_cache = true")
+        # file) once; the database lives for one query (and its worker's read-ahead of immutable
+        # lakehouse files), so nothing cached can go stale
+        cache_settings(con)
         if root.startswith("s3://") and any(files.values()):
-            _s3(con, s3, root)
+            s3_secret(con, s3, root)
         for name, table in catalog.items():
             con.register(f"_catalog_{name}", table)
             con.execute(f"CREATE VIEW {name} AS SELECT * FROM _catalog_{name}")
@@ -287,6 +288,12 @@ def sandbox(
         con.close()
 
 
+def cache_settings(con: duckdb.DuckDBPyConnection) -> None:
+    """Keep parsed footers, and each file's size and time, for the database's life."""
+    con.execute("SET parquet_metadata_cache = true")
+    con.execute("SET enable_http_metadata_cache = true")
+
+
 def analytics_view(con: duckdb.DuckDBPyConnection, table: str, groups: list[list[str]], layout: str = PER_RUN) -> None:
     """`table` over exactly these Parquet files; a table with no file is an empty view with the
     documented columns. PER_RUN: one group of a file per run under `robot_id=R/date=D/`, whose
@@ -299,12 +306,12 @@ def analytics_view(con: duckdb.DuckDBPyConnection, table: str, groups: list[list
         options = "hive_partitioning = true, hive_types = {'robot_id': VARCHAR, 'date': DATE}"
         if layout == ICEBERG:
             parts = " UNION ALL BY NAME ".join(
-                f"SELECT * FROM read_parquet([{_listed(group)}], {options})" for group in groups if group
+                f"SELECT * FROM read_parquet([{listed(group)}], {options})" for group in groups if group
             )
             source = f"SELECT * REPLACE (make_timestamp_ns(log_time_ns) AS {LOG_TIME}) FROM ({parts})"
         else:
             paths = [p for group in groups for p in group]
-            source = f"SELECT * FROM read_parquet([{_listed(paths)}], union_by_name = true, {options})"
+            source = f"SELECT * FROM read_parquet([{listed(paths)}], union_by_name = true, {options})"
         try:
             con.execute(f"CREATE VIEW {table} AS {source}")
             return
@@ -319,11 +326,11 @@ def analytics_view(con: duckdb.DuckDBPyConnection, table: str, groups: list[list
     )
 
 
-def _listed(paths: list[str]) -> str:
+def listed(paths: list[str]) -> str:
     return ", ".join("'" + p.replace("'", "''") + "'" for p in paths)
 
 
-def _s3(con: duckdb.DuckDBPyConnection, s3: S3Access | None, root: str) -> None:
+def s3_secret(con: duckdb.DuckDBPyConnection, s3: S3Access | None, root: str) -> None:
     """The credentials as a secret scoped to the analytics folder: never as s3_* settings, which
     current_setting() would show (duckdb_secrets() shows a secret's scope, never its values)."""
     if s3 is None:
@@ -335,7 +342,8 @@ def _s3(con: duckdb.DuckDBPyConnection, s3: S3Access | None, root: str) -> None:
     parts = ["TYPE s3"] + [f"{k} '{v.replace(chr(39), chr(39) * 2)}'" for k, v in options.items()]
     if s3.endpoint:
         parts += [f"ENDPOINT '{s3.endpoint}'", "URL_STYLE 'path'", f"USE_SSL {str(s3.use_ssl).lower()}"]
-    con.execute(f"CREATE SECRET fleet_s3 ({', '.join(parts)})")
+    # OR REPLACE: an idle worker's read-ahead (warming.py) may have made the same one already
+    con.execute(f"CREATE OR REPLACE SECRET fleet_s3 ({', '.join(parts)})")
 
 
 def run(con: duckdb.DuckDBPyConnection, query: str, limits: Limits, max_bytes: int) -> pa.Table:

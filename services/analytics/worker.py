@@ -5,6 +5,7 @@ private HOME), so nothing DuckDB could read of its process reveals a credential 
 It imports DuckDB while idle, then talks over stdin/stdout in length-prefixed frames:
 
     worker -> server  {}                                               (ready, after its imports)
+    server -> worker  {"read_ahead": {"root", "s3", "files"}}  (optional, while idle: warming.py)
     server -> worker  {"query", "root", "layout", "limits", "s3", "hidden"}      (JSON)
     worker -> server  {"tables": [views the query names]} | {"error"}  (JSON; the query is checked)
     server -> worker  {"files": {table: [[file, ...], ...]}, "catalog": [name, ...]}, then one Arrow IPC
@@ -59,7 +60,7 @@ def main(argv: list[str]) -> int:
     import duckdb
 
     from core.errors import FleetError
-    from services.analytics import sql
+    from services.analytics import sql, warming
 
     con = duckdb.connect(":memory:", config={"autoinstall_known_extensions": False, "autoload_known_extensions": False})
     if "--httpfs" in argv:  # while idle: a query does not wait for it
@@ -68,6 +69,10 @@ def main(argv: list[str]) -> int:
     write_frame(out, b"{}")  # ready: the server starts the query's clock now
     try:
         request = json.loads(read_frame(inp))
+        if "read_ahead" in request:  # read while idle; the query stops it
+            ahead = warming.ReadAhead(con, **request["read_ahead"])
+            request = json.loads(read_frame(inp))
+            ahead.stop()
     except EOFError:
         return 0  # the server stopped while this worker was idle
     scrub = sql.Scrubber(tuple(request["hidden"]))
