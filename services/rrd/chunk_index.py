@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from collections.abc import Iterable
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, NamedTuple
 
 from services.rrd.chunk import ChunkMeta
 from services.rrd.messages import StoreKind
@@ -20,16 +20,16 @@ STORE_INFO = "store_info"
 BLUEPRINT_ACTIVATION = "blueprint_activation"
 
 
-@dataclass(frozen=True)
-class TimelineRange:
+# Named tuples, not frozen dataclasses: a big run's index holds hundreds of thousands of them, and a
+# window's first byte waits for them to be made (a tuple is made in a third of the time).
+class TimelineRange(NamedTuple):
     name: str
     type: str
     min: int
     max: int
 
 
-@dataclass(frozen=True)
-class ComponentRange:
+class ComponentRange(NamedTuple):
     component: str
     timeline: str
     min: int

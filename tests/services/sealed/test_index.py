@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import gc
 import io
+from dataclasses import replace
 
 import pyarrow.parquet as pq
 
@@ -79,3 +81,33 @@ def test_rows_of_every_shape_round_trip_in_order():
     out = io.BytesIO()
     pq.write_table(table, out, row_group_size=2)  # read back as several chunks of each column
     assert from_parquet(out.getvalue()) == rows
+
+
+def test_a_big_index_reads_back_the_same_rows_as_plain_values():
+    """Past a few rows, names repeat and are made once per distinct value, numbers come from numpy:
+    the rows are equal all the same, and hold Python's own str, int and bool (never numpy's)."""
+    rows = [
+        replace(ROW, offset=12 + 300 * i, chunk_id=i.to_bytes(16, "big"), entity_path=f"/robot/{i % 3}")
+        if i % 10
+        else IndexRow(STORE_INFO, "recording", 12 + 300 * i, 300)
+        for i in range(1000)
+    ]
+    back = from_parquet(to_parquet(rows))
+    assert back == rows
+    chunk = back[1]
+    assert type(chunk.offset) is int and type(chunk.is_static) is bool and type(chunk.entity_path) is str
+    assert type(chunk.timelines[0].min) is int and type(chunk.component_ranges[0].rows) is int  # type: ignore[index]
+    assert back[0].entity_path is None and back[0].chunk_id is None
+
+
+def test_the_parse_leaves_the_garbage_collector_as_it_found_it():
+    data = to_parquet([ROW] * 100)
+    assert gc.isenabled()
+    from_parquet(data)
+    assert gc.isenabled()
+    gc.disable()
+    try:
+        from_parquet(data)
+        assert not gc.isenabled()
+    finally:
+        gc.enable()
