@@ -6,9 +6,10 @@ wait; beyond that a query is refused at once (429). The time limit counts from a
 its wait in the queue included: one still waiting when its limit falls is refused (429 with
 Retry-After) rather than run late, so no answer comes later than the limit. Idle workers are
 started ahead (interpreter and DuckDB imported), one per running slot, and told which files the
-last query's tables have now, to read their footers while they wait (warming.py). While a worker runs, its
-thread watches the clock and the worker's resident memory and kills it past either limit: DuckDB's
-interrupt does not reach parsing or planning, and its memory_limit does not cover every allocation.
+last query's tables have now, to read their footers while they wait (warming.py). While a worker
+runs, its thread watches the clock and the worker's resident memory and kills it past either limit:
+DuckDB's interrupt does not reach parsing or planning, and its memory_limit does not cover every
+allocation.
 """
 
 from __future__ import annotations
