@@ -170,11 +170,11 @@ def _values(values: pa.Array | pa.ChunkedArray) -> list[Any]:
     there (a third of a microsecond each, and a run of 50 GB has hundreds of thousands), numpy's
     `tolist` does not; names (entities, components, timelines) are few, so each is made once."""
     if isinstance(values, pa.ChunkedArray):
-        values = values.combine_chunks() if values.num_chunks != 1 else values.chunk(0)
+        values = _one_array(values)
     kind = values.type
     if values.null_count == 0 and (pa.types.is_integer(kind) or pa.types.is_boolean(kind)):
         return list(values.to_numpy(zero_copy_only=False).tolist())
-    if pa.types.is_string(kind) or pa.types.is_large_string(kind):
+    if pa.types.is_string(kind):  # the table was cast to SCHEMA: never large_string
         encoded = pc.dictionary_encode(values)
         if len(encoded.dictionary) * 4 < len(values):  # names, repeated: one Python string each
             names = [*encoded.dictionary.to_pylist(), None]  # index -1 (a null) -> None
@@ -183,10 +183,15 @@ def _values(values: pa.Array | pa.ChunkedArray) -> list[Any]:
     return list(values.to_pylist())
 
 
+def _one_array(column: pa.ChunkedArray) -> pa.Array:
+    """The column as one array (a file read in several row groups has several chunks)."""
+    return column.combine_chunks() if column.num_chunks != 1 else column.chunk(0)
+
+
 def _per_row(column: pa.ChunkedArray, make: Callable[[pa.Array], Iterable[Any]]) -> list[tuple[Any, ...] | None]:
     """A list column as one tuple per row (None where the row's list is null), its values made by
     `make` from all of the column's values at once."""
-    array = column.combine_chunks() if column.num_chunks != 1 else column.chunk(0)
+    array = _one_array(column)
     assert isinstance(array, pa.ListArray)
     flat = array.flatten()  # the values of the non-null lists, in order
     made = list(make(flat)) if len(flat) else []
