@@ -37,7 +37,7 @@ import httpx
 from benchmarks.analytics import AWS, BUCKET, PREFIX, s3_client, seaweedfs, wait_for_bucket
 from benchmarks.bare_relay import bare_relay
 from benchmarks.codec import MB, format_table, log
-from benchmarks.ingest import FleetServer, proc_status_kb
+from benchmarks.ingest import FleetServer, proc_status_kb, tree_cpu_s
 
 WARM_TARGET = 0.8  # of one plain GET stream of the same object
 PROMOTE_TARGET = 0.9  # of a multipart put of the same bytes
@@ -154,9 +154,11 @@ def _serve(
     rss_before = server.peak_rss_mb()
     first_promote_s = _first_promotion(base, server.workdir)
     log("promoting it to the warm tier ...")
+    cpu = tree_cpu_s(server.pid)
     start = time.perf_counter()
     promoted = httpx.post(f"{base}/v1/runs/{run_id}/promote", timeout=3600)
     promote_s = time.perf_counter() - start
+    promote_cpu_s = tree_cpu_s(server.pid) - cpu
     if promoted.status_code != 200:
         raise SystemExit(f"promote: HTTP {promoted.status_code}: {promoted.text[:500]}")
     rss_promoted = server.peak_rss_mb()
@@ -176,6 +178,7 @@ def _serve(
     timed["bare_relay"] = lambda: curl_seconds(curl, relayed)
     out: dict[str, Any] = {
         "promote_s": promote_s,
+        "promote_cpu_s": promote_cpu_s,
         "first_promote_s": first_promote_s,
         "sealed_bytes": size,
         "rss_mb": {"before_promote": rss_before, "after_promote": rss_promoted},
@@ -258,6 +261,10 @@ def print_warm(results: dict[str, Any], repeat: int) -> None:
     print(
         f"medians against the store's: whole download {medians['ours_whole']:.2f}x, bare relay "
         f"{medians['bare_relay']:.2f}x"
+    )
+    print(
+        f"the server's CPU for the promotion: {results['promote_cpu_s']:.2f} s "
+        f"({results['promote_cpu_s'] / (size / MB / 1024):.2f} s per GiB sealed)"
     )
     print(
         f"the server's first promotion (a run of a few KB, before the big one) took "

@@ -287,6 +287,7 @@ class RunEncoder:
         self._sink = _Chunks()
         self._out = cast(BinaryIO, self._sink)
         self._encoder: RrdEncoder | None = None
+        self.chunks = 0  # recording chunks encoded so far
 
     @property
     def pending(self) -> int:
@@ -334,6 +335,7 @@ class RunEncoder:
                 return
             event, meta = cut
         encoder.write_arrow(event, meta)
+        self.chunks += store.kind == StoreKind.RECORDING
 
     def finish(self) -> bytes:
         """The rest of the stream: what is held, the End message and the footer."""
@@ -352,10 +354,14 @@ def encode_run(
     metas: Mapping[int, ChunkMeta],
 ) -> Iterator[bytes | memoryview]:
     """The chosen messages of a run as one RRD stream with a footer (`RunEncoder`), in pieces of
-    about 1 MiB (a large chunk read by range as a piece of its own, not copied)."""
+    about 1 MiB (a large chunk read by range as a piece of its own, not copied). The first piece goes
+    out as soon as it holds a recording chunk: a window of a small entity is well under 1 MiB, and
+    the viewer shows its first chunk while the others are read."""
     run = RunEncoder(entities, blueprint=blueprint, window=window, keep=keep, picks=picks, metas=metas)
+    sent = False
     for event in events:
         run.add(event)
-        if run.pending >= FLUSH_BYTES:
+        if run.pending >= FLUSH_BYTES or (not sent and run.chunks):
+            sent = True
             yield from run.take_pieces()
     yield run.finish()

@@ -29,6 +29,7 @@ from services.rrd.frames import MESSAGE_HEADER_SIZE, STREAM_HEADER_SIZE, decode_
 from services.rrd.messages import ArrowMessage, Event, StreamStart
 from services.runs.download import FLUSH_BYTES, EntityFilter, TimeWindow, encode_run
 from services.runs.latest_at import ChunkEntry, pick_rows, select_chunks
+from services.sealed.index import IndexTable
 from services.storage import readahead
 from services.storage.objectstore import ObjectStore
 
@@ -183,11 +184,20 @@ class _PlanIndex:
 
     @classmethod
     def of(cls, rows: Iterable[IndexRow]) -> _PlanIndex:
-        derived = rows.derived if isinstance(rows, IndexRows) else None
+        derived = rows.derived if isinstance(rows, IndexRows | IndexTable) else None
         found = derived.get("window_plan") if derived is not None else None
         if isinstance(found, _PlanIndex):
             return found
-        listed = rows if isinstance(rows, Sequence) else list(rows)
+        if isinstance(rows, IndexTable):  # from its columns: rows are made only for the chunks chosen
+            plan = cls(rows, *rows.groups())
+        else:
+            plan = cls._grouped(rows if isinstance(rows, Sequence) else list(rows))
+        if derived is not None:
+            derived["window_plan"] = plan
+        return plan
+
+    @classmethod
+    def _grouped(cls, listed: Sequence[IndexRow]) -> _PlanIndex:
         by_entity: dict[str, list[int]] = {}
         blueprint_chunks, others = [], []
         for i, row in enumerate(listed):
@@ -197,10 +207,13 @@ class _PlanIndex:
                 by_entity.setdefault(row.entity_path or "", []).append(i)
             else:
                 blueprint_chunks.append(i)
-        plan = cls(listed, by_entity, blueprint_chunks, others)
-        if derived is not None:
-            derived["window_plan"] = plan
-        return plan
+        return cls(listed, by_entity, blueprint_chunks, others)
+
+    def at(self, positions: Iterable[int]) -> list[IndexRow]:
+        """The rows at `positions` (an index read as columns makes them together)."""
+        if isinstance(self.rows, IndexTable):
+            return self.rows.at(positions)
+        return [self.rows[i] for i in positions]
 
     def chunks(self, entities: EntityFilter) -> list[int]:
         """Positions of the chunks a window of these entities chooses from (blueprints' too), in order."""
@@ -209,16 +222,16 @@ class _PlanIndex:
 
     def entries_on(self, timeline: str, positions: list[int]) -> list[ChunkEntry]:
         known = self.entries.setdefault(timeline, {})
-        for i in positions:
-            if i not in known:
-                known[i] = _entry(self.rows[i], timeline)
+        missing = [i for i in positions if i not in known]
+        for i, row in zip(missing, self.at(missing), strict=True):
+            known[i] = _entry(row, timeline)
         return [known[i] for i in positions]
 
     def candidates(self, chunks: list[int], keep: set[bytes]) -> list[IndexRow]:
         """The rows a download of the chunks in `keep` (of those at `chunks`) chooses from
         (`choose_rows`), in file order."""
-        kept = [i for i in chunks if self.rows[i].chunk_id in keep]
-        return [self.rows[i] for i in sorted(self.others + kept)]
+        kept = [i for i, row in zip(chunks, self.at(chunks), strict=True) if row.chunk_id in keep]
+        return self.at(sorted(self.others + kept))
 
 
 def plan_window(
@@ -236,7 +249,7 @@ def _plan_window(
 ) -> tuple[set[bytes], dict[bytes, set[int]], list[int]]:
     """`plan_window`, and the positions of the chunks it chose from."""
     positions = plan.chunks(entities)
-    chunks = [plan.rows[i] for i in positions]
+    chunks = plan.at(positions)
 
     def read(ids: set[bytes]) -> Iterator[tuple[ArrowMessage, ChunkMeta]]:
         for event in read_events(recording, [r for r in chunks if r.chunk_id in ids]):

@@ -16,7 +16,6 @@ from core.clock import utcnow
 from core.errors import BadParameterError
 from services.hot.read import HotRecording, HotRuns
 from services.runs import download, indexed, sealed
-from services.sealed.index import CHUNK
 from services.sealed.read import SealedRecording, locate_sealed
 from services.storage.objectstore import ObjectStore
 
@@ -91,4 +90,4 @@ def _entity_paths(hot: HotRecording | None, found: SealedRecording | None) -> se
     if hot is not None:
         return {e.meta.entity_path for e in hot.index_entries() if e.meta is not None}
     assert found is not None
-    return {r.entity_path for r in found.rows if r.kind == CHUNK and r.entity_path}
+    return found.index.entity_paths()

@@ -26,8 +26,9 @@ from services.storage.readahead import pieces, read_ahead, stream_ahead
 
 
 def indexed_recording(sealed: SealedRecording) -> IndexedRecording:
-    """The sealed object read by range from the warm store, with the chunk index already read."""
-    return open_sealed_object(sealed.store, sealed.key, sealed.size, lambda: sealed.rows)
+    """The sealed object read by range from the warm store, with its chunk index (read on first use,
+    its rows made as they are needed)."""
+    return open_sealed_object(sealed.store, sealed.key, sealed.size, lambda: sealed.index)
 
 
 def whole_object(entities: EntityFilter, blueprint: bool, window: TimeWindow | None) -> bool:

@@ -11,9 +11,10 @@ recording's own order. The table is readable as is by DuckDB, Polars or Spark.
 from __future__ import annotations
 
 import io
-from collections.abc import Callable, Iterable
-from typing import Any
+from collections.abc import Callable, Iterable, Iterator, Sequence
+from typing import Any, overload
 
+import numpy as np
 import pyarrow as pa
 import pyarrow.compute as pc
 import pyarrow.parquet as pq
@@ -25,6 +26,7 @@ from services.rrd.chunk_index import (
     STORE_INFO,
     ComponentRange,
     IndexRow,
+    IndexRows,
     TimelineRange,
     component_ranges,
 )
@@ -36,6 +38,7 @@ __all__ = [
     "STORE_INFO",
     "ComponentRange",
     "IndexRow",
+    "IndexTable",
     "TimelineRange",
     "chunk_ids_of",
     "component_ranges",
@@ -106,17 +109,114 @@ def to_parquet(rows: Iterable[IndexRow]) -> bytes:
 
 
 def from_parquet(data: bytes) -> list[IndexRow]:
+    return list(read_index(data))
+
+
+def read_index(data: bytes) -> IndexTable:
+    """A `chunks.parquet` as read: its columns, rows made when asked for (`IndexTable`)."""
     try:
         table = pq.read_table(io.BytesIO(data))
         if "component_ranges" not in table.column_names:  # written before the column existed
             table = table.append_column(
                 "component_ranges", pa.nulls(table.num_rows, SCHEMA.field("component_ranges").type)
             )
-        table = table.select(SCHEMA.names).cast(SCHEMA)
+        table = table.select(SCHEMA.names).cast(SCHEMA).combine_chunks()
     except (pa.ArrowException, ValueError) as exc:
         raise InternalError(f"chunks.parquet is unreadable ({exc}): re-seal the run from its recording") from exc
-    with collection_paused():  # the garbage collector's passes were 40 % of the parse
-        return _rows(table)
+    return IndexTable(table)
+
+
+class IndexTable(Sequence[IndexRow]):
+    """A sealed run's chunk index as its columns, each row made into an `IndexRow` only when asked
+    for. A window of one entity needs the rows of that entity's chunks and the few other messages:
+    at 50 GB a few thousand of tens of thousands, so its first byte no longer waits for every row
+    to be made (5 us each). Which rows a window needs, the run's timelines and entities are worked
+    out from the columns. Iterating makes every row, once; `derived` keeps what readers work out
+    from the rows, as `IndexRows.derived` does."""
+
+    def __init__(self, table: pa.Table) -> None:
+        self._table = table
+        self._made: dict[int, IndexRow] = {}
+        self._all: IndexRows | None = None
+        self.derived: dict[str, Any] = {}
+
+    def __len__(self) -> int:
+        return int(self._table.num_rows)
+
+    @overload
+    def __getitem__(self, index: int) -> IndexRow: ...
+    @overload
+    def __getitem__(self, index: slice) -> list[IndexRow]: ...
+    def __getitem__(self, index: int | slice) -> IndexRow | list[IndexRow]:
+        if isinstance(index, slice):
+            return self.at(range(len(self))[index])
+        return self.at([index if index >= 0 else len(self) + index])[0]
+
+    def __iter__(self) -> Iterator[IndexRow]:
+        return iter(self.all())
+
+    @property
+    def rows_made(self) -> int:
+        """How many rows have been made so far."""
+        return len(self._all) if self._all is not None else len(self._made)
+
+    def all(self) -> IndexRows:
+        """Every row, in file order (made once)."""
+        if self._all is None:
+            with collection_paused():  # the garbage collector's passes were 40 % of the parse
+                self._all = IndexRows(_rows(self._table))
+            self._made = {}
+        return self._all
+
+    def at(self, positions: Iterable[int]) -> list[IndexRow]:
+        """The rows at `positions`, in that order; those not made yet are made together."""
+        positions = list(positions)
+        every, made = self._all, self._made  # (another thread's `all()` may replace both meanwhile)
+        if every is not None:
+            return [every[i] for i in positions]
+        missing = sorted({i for i in positions if i not in made})
+        if missing:
+            with collection_paused():
+                rows = _rows(self._table.take(pa.array(missing, pa.int64())))
+            made.update(zip(missing, rows, strict=True))
+        return [made[i] for i in positions]
+
+    def groups(self) -> tuple[dict[str, list[int]], list[int], list[int]]:
+        """Positions of the recording's chunks by entity (each in file order), of the blueprint's
+        chunks, and of every row that is not a chunk."""
+        column = self._table.column
+        chunk = _flags(pc.equal(column("kind"), CHUNK))
+        recording = _flags(pc.equal(column("store_kind"), "recording"))
+        positions = np.arange(len(self))
+        entities = pc.dictionary_encode(pc.fill_null(_one_array(column("entity_path")), ""))
+        codes = entities.indices.to_numpy()
+        names = entities.dictionary.to_pylist()
+        chosen = chunk & recording
+        by_entity: dict[str, list[int]] = {}
+        order = np.argsort(codes[chosen], kind="stable")  # by entity, each in file order
+        ranked = positions[chosen][order]
+        cuts = np.flatnonzero(np.diff(codes[chosen][order])) + 1
+        for group in np.split(ranked, cuts) if len(ranked) else []:
+            by_entity[names[codes[group[0]]]] = group.tolist()
+        return by_entity, positions[chunk & ~recording].tolist(), positions[~chunk].tolist()
+
+    def timeline_types(self) -> dict[str, str]:
+        """Each timeline of the run's chunks and its type."""
+        chunks = self._table.filter(pc.equal(self._table.column("kind"), CHUNK))
+        flat = _one_array(chunks.column("timelines")).flatten() if chunks.num_rows else None
+        if flat is None or not len(flat):
+            return {}
+        return dict(zip(_values(flat.field("name")), _values(flat.field("type")), strict=True))
+
+    def entity_paths(self) -> set[str]:
+        """The entities of the run's chunks."""
+        chunks = self._table.filter(pc.equal(self._table.column("kind"), CHUNK))
+        return {p for p in pc.unique(chunks.column("entity_path")).to_pylist() if p}
+
+
+def _flags(values: pa.ChunkedArray | pa.Array) -> Any:
+    """A boolean column as a numpy array (null: False)."""
+    return _one_array(pc.fill_null(values, False)).to_numpy(zero_copy_only=False)
 
 
 def _rows(table: pa.Table) -> list[IndexRow]:
@@ -183,8 +283,10 @@ def _values(values: pa.Array | pa.ChunkedArray) -> list[Any]:
     return list(values.to_pylist())
 
 
-def _one_array(column: pa.ChunkedArray) -> pa.Array:
+def _one_array(column: pa.ChunkedArray | pa.Array) -> pa.Array:
     """The column as one array (a file read in several row groups has several chunks)."""
+    if not isinstance(column, pa.ChunkedArray):
+        return column
     return column.combine_chunks() if column.num_chunks != 1 else column.chunk(0)
 
 

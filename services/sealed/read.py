@@ -19,23 +19,24 @@ from core.clock import aware
 from core.errors import ConflictError, GoneError
 from core.states import RestoreState, Tier
 from services.rrd.chunk_index import IndexRows
-from services.sealed.index import CHUNK, from_parquet
+from services.sealed.index import IndexTable, read_index
 from services.sealed.tiers import readable_when_cold
 from services.sealed.write import INDEX, RECORDING
 from services.storage.objectstore import ObjectStore
 
-# Chunk indexes parsed lately, kept by how many rows they hold (a few KB each in Python): a run's
-# windows asked one after another (a viewer, a dataset export) parse its index once. A run of 5 GB
-# has about 3,000 rows, which take 60 us each to parse.
+# Chunk indexes read lately, kept by how many rows they hold (as columns, a few hundred bytes a row;
+# a few KB once every row is made): a run's windows asked one after another (a viewer, a dataset
+# export) read its index once. A run of 5 GB has about 3,000 rows.
 CACHED_INDEX_ROWS = 30_000
-_indexes: LRUCache[tuple[str, str, int, str], IndexRows] = LRUCache(CACHED_INDEX_ROWS, getsizeof=len)
+_indexes: LRUCache[tuple[str, str, int, str], IndexTable] = LRUCache(CACHED_INDEX_ROWS, getsizeof=len)
 _indexes_lock = threading.Lock()
 
 
 @dataclass(frozen=True)
 class SealedRecording:
-    """A sealed run's recording in a store. Its chunk index (`rows`) is read on first use: a whole
-    download needs none of it, and a run of many GB has tens of thousands of rows to parse."""
+    """A sealed run's recording in a store. Its chunk index (`index`, every row: `rows`) is read on
+    first use: a whole download needs none of it, and a run of many GB has tens of thousands of
+    rows, of which a window makes only those it needs."""
 
     store: ObjectStore
     prefix: str
@@ -43,28 +44,30 @@ class SealedRecording:
     version: str = ""  # what tells this recording from one sealed again under the prefix (etag, time)
 
     @cached_property
-    def rows(self) -> IndexRows:
+    def index(self) -> IndexTable:
         key = (self.store.url, self.prefix, self.size, self.version)
         with _indexes_lock:
             found = _indexes.get(key) if self.version else None
         if found is None:
-            found = IndexRows(from_parquet(self.store.get_range(f"{self.prefix}/{INDEX}")))
+            found = read_index(self.store.get_range(f"{self.prefix}/{INDEX}"))
             if self.version and len(found) <= CACHED_INDEX_ROWS:
                 with _indexes_lock:
                     _indexes[key] = found
         return found
 
     @property
+    def rows(self) -> IndexRows:
+        return self.index.all()
+
+    @property
     def key(self) -> str:
         return f"{self.prefix}/{RECORDING}"
 
     def timeline_types(self) -> dict[str, str]:
-        rows = self.rows
-        types: dict[str, str] | None = rows.derived.get("timeline_types")
+        index = self.index
+        types: dict[str, str] | None = index.derived.get("timeline_types")
         if types is None:
-            types = rows.derived["timeline_types"] = {
-                t.name: t.type for r in rows if r.kind == CHUNK for t in r.timelines
-            }
+            types = index.derived["timeline_types"] = index.timeline_types()
         return dict(types)
 
 

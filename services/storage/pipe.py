@@ -25,7 +25,7 @@ class Pipe:
     def __init__(self, max_bytes: int = 16 * 1024 * 1024) -> None:
         self.max_bytes = max_bytes
         self._gathered = bytearray()  # the writer's, not yet handed over (one writer thread)
-        self._pieces: deque[bytes] = deque()
+        self._pieces: deque[bytes | bytearray | memoryview] = deque()
         self._held = 0
         self._closed = False
         self._failure: BaseException | None = None
@@ -35,14 +35,22 @@ class Pipe:
     # --- the writer's side ----------------------------------------------------------------------
 
     def write(self, data: bytes | bytearray | memoryview) -> int:
+        # Each byte is copied once on this side: gathered, or (a large write with nothing gathered)
+        # copied as it comes, as what is written may be a view of a buffer its writer reuses.
+        if not self._gathered and len(data) >= WRITE_PIECE:
+            self._hand_over(bytes(data))
+            return len(data)
         self._gathered += data
         if len(self._gathered) >= WRITE_PIECE:
-            self._hand_over()
+            self._hand_over_gathered()
         return len(data)
 
-    def _hand_over(self) -> None:
-        piece, size = bytes(self._gathered), len(self._gathered)
-        self._gathered.clear()
+    def _hand_over_gathered(self) -> None:
+        piece, self._gathered = self._gathered, bytearray()  # handed over as it is, not copied
+        self._hand_over(piece)
+
+    def _hand_over(self, piece: bytes | bytearray) -> None:
+        size = len(piece)
         if not size:
             return
         with self._changed:
@@ -56,7 +64,7 @@ class Pipe:
 
     def close(self) -> None:
         """Nothing more comes: the reader reads what is left, then the end."""
-        self._hand_over()
+        self._hand_over_gathered()
         with self._changed:
             self._closed = True
             self._changed.notify_all()
@@ -74,9 +82,10 @@ class Pipe:
 
     def read(self, n: int = -1) -> bytes:
         """Up to `n` bytes (all that is left when `n` < 0), fewer only at the end."""
-        out = bytearray()
+        parts: list[bytes | bytearray | memoryview] = []
+        taken = 0
         with self._changed:
-            while n < 0 or len(out) < n:
+            while n < 0 or taken < n:
                 while not self._pieces and not self._closed and self._failure is None:
                     self._changed.wait()
                 if self._failure is not None:
@@ -84,13 +93,16 @@ class Pipe:
                 if not self._pieces:
                     break  # closed, and all read
                 piece = self._pieces.popleft()
-                wanted = len(piece) if n < 0 else min(len(piece), n - len(out))
-                out += piece[:wanted]
-                if wanted < len(piece):
-                    self._pieces.appendleft(piece[wanted:])
+                wanted = len(piece) if n < 0 else min(len(piece), n - taken)
+                if wanted < len(piece):  # the rest stays for the next read, as a view (not copied)
+                    view = memoryview(piece)
+                    piece = view[:wanted]
+                    self._pieces.appendleft(view[wanted:])
+                parts.append(piece)
+                taken += wanted
                 self._held -= wanted
                 self._changed.notify_all()
-        return bytes(out)
+        return b"".join(parts)  # the one copy on this side
 
     def abandon(self) -> None:
         """The reader gives up: the writer's next write raises `PipeAbandonedError`."""

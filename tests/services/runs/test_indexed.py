@@ -22,6 +22,7 @@ from services.hot.read import HotRecording
 from services.ingest.service import IngestService
 from services.rrd import chunk, iter_events
 from services.rrd.chunk_index import CHUNK
+from services.rrd.decoder import RrdDecoder
 from services.rrd.footer import read_footer
 from services.rrd.manifest import is_property_entity
 from services.runs import download, indexed, trim
@@ -220,6 +221,26 @@ def test_an_unfiltered_hot_download_starts_before_the_index_is_read_through(
     assert len(first) >= 1024 and 0 < parsed < total / 2, (parsed, total)
     rest = b"".join(stream)
     assert parsed == total and bytes(first) + rest == _old(hot, (EntityFilter(), True, None))
+
+
+def test_the_first_piece_goes_out_with_the_first_chunk(hot_runs: dict[str, HotRecording]):
+    """A download well under FLUSH_BYTES (a window of a small entity, most often) does not wait for
+    its last chunk to send its first: the first piece holds the stream's start and one chunk."""
+    hot = hot_runs["points-0"]
+    expected = _old(hot, (EntityFilter(), True, None))
+    assert len(expected) < download.FLUSH_BYTES
+    stream = stream_hot(hot, EntityFilter())
+    first = bytes(next(stream))
+    rest = b"".join(stream)
+    assert rest and first + rest == expected
+    kinds = [type(e).__name__ for e in iter_events_of(first)]
+    assert kinds.count("ArrowMessage") == 1 and kinds[-1] == "ArrowMessage", kinds
+
+
+def iter_events_of(data: bytes) -> list[object]:
+    """The events whole in `data` (the start of a stream)."""
+    decoder = RrdDecoder()
+    return list(decoder.feed(data))
 
 
 def test_a_run_sealed_while_it_is_read_is_not_served_short(

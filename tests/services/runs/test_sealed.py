@@ -7,6 +7,7 @@ chunk by chunk with what the hot download gave for the same request.
 
 from __future__ import annotations
 
+import dataclasses
 import io
 import json
 import subprocess
@@ -26,12 +27,12 @@ from services.retention import archive
 from services.retention.service import PROMOTE, plan, run_plan
 from services.rrd import ArrowMessage, StoreKind, iter_events
 from services.rrd.chunk import chunk_meta, read_chunk
-from services.rrd.chunk_index import IndexRow
+from services.rrd.chunk_index import CHUNK, IndexRow
 from services.rrd.manifest import is_property_entity
 from services.runs import indexed
 from services.runs.download import EntityFilter, TimeWindow
 from services.runs.latest_at import ChunkEntry
-from services.runs.sealed import stream_sealed
+from services.runs.sealed import indexed_recording, stream_sealed
 from services.sealed import read
 from services.sealed.read import open_sealed
 from services.sealed.tiers import Tiers
@@ -263,6 +264,26 @@ def test_windows_asked_one_after_another_are_planned_from_the_cached_index(
     read._indexes.clear()  # planned from a fresh parse
     fresh = b"".join(stream_sealed(open_sealed(tiers.warm, prefix), e3, window=TimeWindow("frame", 20, 24)))
     assert _ids(fresh) == _ids(later) and _rows(fresh) == _rows(later)
+
+
+def test_a_window_makes_only_the_index_rows_of_the_entities_it_asks_for(
+    tiers: Tiers, make_node: NodeFactory, runs: dict[str, Path]
+):
+    """A sealed run's index is read as columns: a window of one entity makes the rows of that
+    entity's chunks (with the properties' and the blueprint's) and of the other messages, not every
+    row, and serves what the rows made all at once serve."""
+    node, run_id = _node(make_node, tiers, runs["chunky"])
+    prefix = _promote(node, run_id)
+    e3, window = EntityFilter(include=["/world/e3"]), TimeWindow("frame", 15, 16)
+    read._indexes.clear()
+    lazily = b"".join(stream_sealed(open_sealed(tiers.warm, prefix), e3, window=window))
+    index = open_sealed(tiers.warm, prefix).index  # the one the window read, cached
+    made = index.rows_made
+    rows = index.all()
+    wanted = [r for r in rows if r.kind != CHUNK or r.store_kind == "blueprint" or e3(r.entity_path or "")]
+    assert made == len(wanted) < len(rows) / 2
+    as_list = dataclasses.replace(indexed_recording(open_sealed(tiers.warm, prefix)), index=lambda: list(rows))
+    assert b"".join(indexed.stream_indexed(as_list, e3, window=window)) == lazily  # planned from every row
 
 
 def test_unfiltered_warm_download_is_the_sealed_object(tiers: Tiers, make_node: NodeFactory, runs: dict[str, Path]):

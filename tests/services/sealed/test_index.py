@@ -1,4 +1,6 @@
-"""`chunks.parquet`: per-component ranges round-trip, and indexes written before them still load."""
+"""`chunks.parquet`: per-component ranges round-trip, indexes written before them still load, and an
+index read as columns makes the same rows, and works out the same groups, timelines and entities,
+as its rows do."""
 
 from __future__ import annotations
 
@@ -16,6 +18,7 @@ from services.sealed.index import (
     IndexRow,
     TimelineRange,
     from_parquet,
+    read_index,
     to_parquet,
 )
 
@@ -111,3 +114,58 @@ def test_the_parse_leaves_the_garbage_collector_as_it_found_it():
         assert not gc.isenabled()
     finally:
         gc.enable()
+
+
+def _mixed_rows(count: int) -> list[IndexRow]:
+    """Chunks of three entities (one without timelines, one static), a blueprint's, store infos."""
+    rows: list[IndexRow] = []
+    for i in range(count):
+        at = 12 + 300 * i
+        if i % 10 == 0:
+            rows.append(IndexRow(STORE_INFO, "recording" if i % 20 else "blueprint", at, 300))
+        elif i % 10 == 7:
+            rows.append(IndexRow(CHUNK, "blueprint", at, 300, i.to_bytes(16, "big"), "/view", False, 1, (), (), None))
+        else:
+            timeline = (
+                TimelineRange("log_time", "timestamp", i, i + 5)
+                if i % 3 == 0
+                else TimelineRange("frame", "sequence", i, i + 2)
+            )
+            rows.append(
+                replace(
+                    ROW,
+                    offset=at,
+                    chunk_id=i.to_bytes(16, "big"),
+                    entity_path=f"/robot/{i % 3}",
+                    is_static=i % 10 == 9,
+                    timelines=(timeline,) if i % 10 != 9 else (),
+                )
+            )
+    return rows
+
+
+def test_an_index_read_as_columns_makes_the_rows_it_is_asked_for():
+    rows = _mixed_rows(200)
+    index = read_index(to_parquet(rows))
+    assert len(index) == len(rows)
+    assert index.at([150, 3, 3, 77]) == [rows[150], rows[3], rows[3], rows[77]]
+    assert index[5] == rows[5] and index[-1] == rows[-1] and index[10:13] == rows[10:13]
+    assert list(index) == rows  # every row, then served from them
+    assert index.at([4, 0]) == [rows[4], rows[0]]
+
+
+def test_an_index_read_as_columns_works_out_what_its_rows_say():
+    rows = _mixed_rows(300)
+    index = read_index(to_parquet(rows))
+    by_entity, blueprint_chunks, others = index.groups()
+    expected: dict[str, list[int]] = {}
+    for i, row in enumerate(rows):
+        if row.kind == CHUNK and row.store_kind == "recording":
+            expected.setdefault(row.entity_path or "", []).append(i)
+    assert by_entity == expected
+    assert blueprint_chunks == [i for i, r in enumerate(rows) if r.kind == CHUNK and r.store_kind == "blueprint"]
+    assert others == [i for i, r in enumerate(rows) if r.kind != CHUNK]
+    assert index.timeline_types() == {"frame": "sequence", "log_time": "timestamp"}
+    assert index.entity_paths() == {r.entity_path for r in rows if r.kind == CHUNK and r.entity_path}
+    empty = read_index(to_parquet([IndexRow(STORE_INFO, "recording", 8, 40)]))
+    assert empty.groups() == ({}, [], [0]) and empty.timeline_types() == {} and empty.entity_paths() == set()
