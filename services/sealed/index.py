@@ -109,7 +109,7 @@ def to_parquet(rows: Iterable[IndexRow]) -> bytes:
 
 
 def from_parquet(data: bytes) -> list[IndexRow]:
-    return list(read_index(data))
+    return read_index(data).all()
 
 
 def read_index(data: bytes) -> IndexTable:
@@ -192,17 +192,19 @@ class IndexTable(Sequence[IndexRow]):
         codes = entities.indices.to_numpy()
         names = entities.dictionary.to_pylist()
         chosen = chunk & recording
-        by_entity: dict[str, list[int]] = {}
         order = np.argsort(codes[chosen], kind="stable")  # by entity, each in file order
-        ranked = positions[chosen][order]
-        cuts = np.flatnonzero(np.diff(codes[chosen][order])) + 1
-        for group in np.split(ranked, cuts) if len(ranked) else []:
-            by_entity[names[codes[group[0]]]] = group.tolist()
+        ranked, ranked_codes = positions[chosen][order], codes[chosen][order]
+        cuts = np.flatnonzero(np.diff(ranked_codes)) + 1
+        by_entity = {
+            names[group_codes[0]]: group.tolist()
+            for group, group_codes in zip(np.split(ranked, cuts), np.split(ranked_codes, cuts), strict=True)
+            if len(group)
+        }
         return by_entity, positions[chunk & ~recording].tolist(), positions[~chunk].tolist()
 
     def timeline_types(self) -> dict[str, str]:
         """Each timeline of the run's chunks and its type."""
-        chunks = self._table.filter(pc.equal(self._table.column("kind"), CHUNK))
+        chunks = self._chunks()
         flat = _one_array(chunks.column("timelines")).flatten() if chunks.num_rows else None
         if flat is None or not len(flat):
             return {}
@@ -210,8 +212,11 @@ class IndexTable(Sequence[IndexRow]):
 
     def entity_paths(self) -> set[str]:
         """The entities of the run's chunks."""
-        chunks = self._table.filter(pc.equal(self._table.column("kind"), CHUNK))
-        return {p for p in pc.unique(chunks.column("entity_path")).to_pylist() if p}
+        return {p for p in pc.unique(self._chunks().column("entity_path")).to_pylist() if p}
+
+    def _chunks(self) -> pa.Table:
+        """The rows of chunks (not store infos or blueprint activations), as columns."""
+        return self._table.filter(pc.equal(self._table.column("kind"), CHUNK))
 
 
 def _flags(values: pa.ChunkedArray | pa.Array) -> Any:
