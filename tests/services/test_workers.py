@@ -124,11 +124,13 @@ def test_workers_share_the_ports_count_as_one_and_come_back(depot: LiveServer, t
     for _ in range(4):
         assert depot.metric("fleet_ingest_chunks_new_total") == chunks
 
-    def catalogued() -> bool:  # each run's row is written by its owner's next catalog flush
-        return all(httpx.get(f"{depot.url}/v1/runs/{run}", timeout=10).status_code == 200 for run in runs)
+    def catalogued() -> list[dict[str, object]] | None:
+        # Each run's row is written by its owner's next catalog flush; until then only the worker
+        # filing it answers (from its hot view), so a run found once may still be missing from the other.
+        answers = [httpx.get(f"{depot.url}/v1/runs/{run}", timeout=10) for run in runs]
+        return [a.json() for a in answers] if all(a.status_code == 200 for a in answers) else None
 
-    depot.wait_for(catalogued, what="every run in the catalog")
-    owners = {httpx.get(f"{depot.url}/v1/runs/{run}", timeout=10).json()["owner"] for run in runs}
+    owners = {answer["owner"] for answer in depot.wait_for(catalogued, what="every run in the catalog")}
     assert owners <= {"host-w0", "host-w1", None}
 
     started = {i: n["started_at"] for i, n in _nodes(depot).items()}

@@ -59,7 +59,12 @@ def test_another_robots_token_is_refused_and_the_run_kept(depot: LiveServer, tmp
     agent = AgentProcess(tmp_path / "spool", link, token=token).start()
     try:
         log_whole_run(agent, tmp_path / "copy.rrd", "run-wrong", 10)
-        refused = wait_for(lambda: agent.status()["link"].get("refused"), 60, "the depot's refusal")
+        refused = wait_for(
+            lambda: agent.status()["link"].get("refused"),
+            60,
+            "the depot's refusal",
+            detail=lambda: f"the agent said:\n{agent.log.read_text()[-6000:]}\nthe depot said:\n{depot.said()}",
+        )
         assert "robot" in refused
         assert agent.spool_bytes("run-wrong") > 0  # kept on the robot
         status = httpx.get(f"{depot.url}/v1/runs/run-wrong", headers=depot.headers, timeout=10).status_code

@@ -12,7 +12,7 @@ import grpc
 import httpx
 
 from tests.subprocess_server import ServerProcess, answers_http, free_port
-from tests.waiting import wait_for
+from tests.waiting import T, wait_for
 
 FLEET = str(Path(sys.executable).with_name("fleet"))
 WRITE_MESSAGES = "/rerun.sdk_comms.v1alpha1.MessageProxyService/WriteMessages"
@@ -92,9 +92,10 @@ class LiveServer:
         text = self.log.read_text(errors="replace") if self.log.is_file() else ""
         return "\n".join([line for line in text.splitlines() if "HTTP/1.1" not in line][-lines:])
 
-    def wait_for(self, predicate: Callable[[], object], timeout: float = 60, what: str = "condition") -> None:
-        """Wait for `predicate` with a server's patience by default; a failure quotes what the server said."""
-        wait_for(predicate, timeout, what, detail=lambda: f"the server said:\n{self.said()}")
+    def wait_for(self, predicate: Callable[[], T | None], timeout: float = 60, what: str = "condition") -> T:
+        """Wait for `predicate` with a server's patience by default and return what it last gave; a
+        failure quotes what the server said."""
+        return wait_for(predicate, timeout, what, detail=lambda: f"the server said:\n{self.said()}")
 
     def healthy(self) -> bool:
         """The process is alive and answers /healthz."""

@@ -5,12 +5,14 @@ The Postgres catalog is reached through a loopback proxy the test makes refuse o
 from __future__ import annotations
 
 import asyncio
+import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-from sqlalchemy.engine import make_url
+from sqlalchemy import event as sql_event
+from sqlalchemy.engine import Engine, make_url
 from sqlalchemy.orm import Session, sessionmaker
 
 from catalog import queries
@@ -72,6 +74,19 @@ async def stream(ingest: IngestService, path: Path, *, live: bool) -> str:
     return (await ingest.finish_upload(source, timeout_s=1.0)).catalog
 
 
+class DatabaseThreads:
+    """The threads that connected to the catalog or took a connection from its pool: the event
+    loop's must never be among them (a call there waits as long as the database does)."""
+
+    def __init__(self, engine: Engine) -> None:
+        self.seen: set[int] = set()
+        sql_event.listen(engine, "do_connect", self._saw)  # before connecting: a hung handshake still counts
+        sql_event.listen(engine, "checkout", self._saw)
+
+    def _saw(self, *_: object) -> None:
+        self.seen.add(threading.get_ident())
+
+
 def chunk_count(path: Path) -> int:
     return sum(isinstance(e, ArrowMessage) for e in iter_events(path))
 
@@ -85,6 +100,8 @@ def test_ingest_goes_on_while_the_catalog_is_hung_or_down_and_it_catches_up(
         tmp_path, catalog, default_robot="robot", sealed_lookup=sealed_lookup(catalog, tiers), lookup_timeout_s=0.5
     )
     runs = {name: log_run(tmp_path / f"{name}.rrd", name, frames=20) for name in ("live-a", "upload-b", "down-c")}
+    database = DatabaseThreads(catalog.kw["bind"])
+    loop_thread = threading.get_ident()  # asyncio.run below runs the loop on this thread
 
     async def scenario() -> dict[str, str]:
         lag = LoopLag()
@@ -108,7 +125,8 @@ def test_ingest_goes_on_while_the_catalog_is_hung_or_down_and_it_catches_up(
     started = time.monotonic()
     answers = asyncio.run(scenario())
     assert time.monotonic() - started < 20  # no stream waited for the database
-    assert float(answers["lag"]) < 0.5, answers  # the event loop never blocked on it
+    assert database.seen and loop_thread not in database.seen  # the event loop never waited for it,
+    assert float(answers["lag"]) < 2.0, answers  # nor for anything else long (a loaded machine lags too)
     assert answers["upload-b"] == answers["down-c"] == "pending"  # said so, and the data is kept:
     for name, path in runs.items():
         assert ingest.runs[name].chunk_ids and len(ingest.runs[name].chunk_ids) == chunk_count(path)
