@@ -184,9 +184,17 @@ def _serve(
         "rss_mb": {"before_promote": rss_before, "after_promote": rss_promoted},
     }
     times: dict[str, list[tuple[float, int, float | None]]] = {name: [] for name in timed}
+    # The CPU each middle spends on a whole download: the server's (its process tree), the bare
+    # relay's (a thread of this process, which is otherwise idle while curl runs).
+    cpu_of = {"ours_whole": lambda: tree_cpu_s(server.pid), "bare_relay": time.process_time}
+    cpu_s = dict.fromkeys(cpu_of, 0.0)
     for _ in range(repeat):  # each step in turn, so that a slow spell of the machine falls on all of them
         for name, once in timed.items():
+            before = cpu_of[name]() if name in cpu_of else 0.0
             times[name].append(once())
+            if name in cpu_of:
+                cpu_s[name] += cpu_of[name]() - before
+    out["cpu_s_per_gib"] = {name: cpu / (repeat * size / MB / 1024) for name, cpu in cpu_s.items()}
     for name, runs in times.items():
         best = min(r[0] for r in runs)
         firsts = [r[2] for r in runs if r[2] is not None]
@@ -261,6 +269,10 @@ def print_warm(results: dict[str, Any], repeat: int) -> None:
     print(
         f"medians against the store's: whole download {medians['ours_whole']:.2f}x, bare relay "
         f"{medians['bare_relay']:.2f}x"
+    )
+    cpu = results["cpu_s_per_gib"]
+    print(
+        f"CPU per GiB of whole download: the server {cpu['ours_whole']:.2f} s, the bare relay {cpu['bare_relay']:.2f} s"
     )
     print(
         f"the server's CPU for the promotion: {results['promote_cpu_s']:.2f} s "

@@ -6,8 +6,9 @@ fresh memory for every piece (the kernel zeroes each new page as the socket's by
 Sampled with perf during `benchmarks/serve.py --tier warm`, that was a third of the depot's CPU per
 download beside the socket copies themselves. Here the event loop reads the store's socket as it
 writes the client's (asyncio's `BufferedProtocol`: the kernel copies into the buffer handed out,
-nothing in between), and stops reading while `depth` pieces wait to be sent, so a download holds at
-most `depth` pieces of `piece` bytes whatever the run's size.
+nothing in between), and stops reading while `depth` pieces wait to be sent. The buffers of pieces
+sent are filled again, so a download holds at most `depth` + LENT_SPARE + 1 buffers of `piece` bytes
+whatever the run's size, and none is zeroed more than once.
 
 The store is asked with a URL signed for this one read (`S3Store.loop_read`): the request carries
 no credential, and this module knows nothing of S3 but how an object GET answers. It assumes what
@@ -31,6 +32,7 @@ from core.errors import ConflictError
 from services.storage.objectstore import STREAM_DEPTH, STREAM_PIECE_BYTES, ObjectNotFoundError, StorageError
 
 HEAD_LIMIT = 64 * 1024  # a store's answer head longer than this is refused
+LENT_SPARE = 2  # buffers kept beyond `depth` and the one being filled: pieces the sender still writes
 _ERROR_CODE = re.compile(rb"<Code>([A-Za-z0-9.]{1,64})</Code>")
 _CONTENT_RANGE = re.compile(rb"bytes (\d+)-(\d+)/(\d+|\*)")
 
@@ -60,7 +62,9 @@ class _Answer(asyncio.BufferedProtocol):
         self.status = 0  # 0 while the head is read
         self.refused: _Refused | None = None  # an answer that is not the object: its error body
         self.piece = bytearray()
+        self.piece_len = 0  # of `piece`, what this piece takes (the last one only what is left)
         self.filled = 0
+        self.lent: deque[bytearray] = deque()  # buffers of pieces handed out, oldest first
         self.received = 0  # body bytes so far
         self.ready: deque[memoryview] = deque()
         self.failure: Exception | None = None
@@ -77,9 +81,23 @@ class _Answer(asyncio.BufferedProtocol):
             return memoryview(self.head)[self.head_len :]
         if self.refused is not None:
             return self.refused.buffer()
-        if self.filled == len(self.piece):  # a new piece: the last one only as long as what is left
-            self.piece, self.filled = bytearray(max(1, min(self.reading.piece, self.length - self.received))), 0
-        return memoryview(self.piece)[self.filled :]
+        if self.filled == self.piece_len:  # a new piece: the last one only as long as what is left
+            self.piece_len, self.filled = max(1, min(self.reading.piece, self.length - self.received)), 0
+            self.piece = self._buffer(self.piece_len)
+        return memoryview(self.piece)[self.filled : self.piece_len]
+
+    def _buffer(self, size: int) -> bytearray:
+        """A buffer for the next piece: one lent before that nothing holds a view of any more, else a
+        new one. Reused because a new bytearray is zeroed first (7 % of the server's CPU in a whole
+        warm download, perf), only to be written over by the socket's bytes."""
+        for _ in range(len(self.lent)):
+            buffer = self.lent.popleft()
+            if len(buffer) >= size and _unviewed(buffer):
+                return buffer
+            self.lent.append(buffer)
+        if len(self.lent) > self.reading.depth + LENT_SPARE:
+            self.lent.popleft()  # viewed still, after all the others: held elsewhere for long, let it go
+        return bytearray(size)
 
     def buffer_updated(self, nbytes: int) -> None:
         if self.status == 0:
@@ -162,9 +180,10 @@ class _Answer(asyncio.BufferedProtocol):
         if self.received > self.length:
             self._fail(StorageError(f"reading {self.reading.what}: the store sent more than it announced"))
             return
-        if self.filled == len(self.piece) or self.received == self.length:
+        if self.filled == self.piece_len or self.received == self.length:
             self.ready.append(memoryview(self.piece)[: self.filled])
-            self.piece, self.filled = bytearray(), 0
+            self.lent.append(self.piece)
+            self.piece, self.piece_len, self.filled = bytearray(), 0, 0
             if len(self.ready) >= self.reading.depth and self.transport is not None:
                 self.transport.pause_reading()  # resumed as the sender takes pieces
                 self.paused = True
@@ -202,6 +221,18 @@ class _Answer(asyncio.BufferedProtocol):
             self.paused = False
             self.transport.resume_reading()
         return piece
+
+
+def _unviewed(buffer: bytearray) -> bool:
+    """Whether no view of `buffer` is alive any more (the sender's, a transport's that keeps what it
+    could not send yet): a bytearray cannot be resized while one is. Shrunk by one byte and grown
+    back, which moves nothing (bytearray keeps its allocation for a small shrink)."""
+    try:
+        del buffer[-1]
+    except BufferError:
+        return False
+    buffer.append(0)
+    return True
 
 
 ERROR_BODY_LIMIT = 4096  # of an error's body, read for the S3 error code it names

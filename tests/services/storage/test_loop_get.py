@@ -74,6 +74,39 @@ def ok(body: bytes, extra: bytes = b"") -> bytes:
     return b"HTTP/1.1 200 OK\r\nContent-Length: %d\r\n%s\r\n" % (len(body), extra)
 
 
+def sent_through(handler: Handler, length: int, piece_bytes: int, *, keep_views: bool) -> tuple[bytes, int]:
+    """The body as a sender gets it that holds on to every piece as given (`keep_views`: a view of
+    the reader's buffer, as a transport keeps what it could not send yet) or copies each and lets
+    it go; and how many distinct buffers the pieces came in."""
+
+    async def main() -> tuple[bytes, int]:
+        server = await asyncio.start_server(handler, "127.0.0.1", 0)
+        port = server.sockets[0].getsockname()[1]
+        kept: list[bytes | memoryview] = []
+        buffers: dict[int, object] = {}  # the buffers themselves (not views: holding them pins nothing)
+        try:
+            what = loop_get.Reading("'r/recording.rrd' from s3://b/p", piece=piece_bytes, depth=2)
+            async for piece in loop_get.get(f"http://127.0.0.1:{port}/b/p/r/recording.rrd", 0, length, what):
+                buffers[id(piece.obj)] = piece.obj
+                kept.append(piece if keep_views else bytes(piece))
+        finally:
+            server.close()
+        return b"".join(kept), len(buffers)
+
+    return asyncio.run(main())
+
+
+def test_buffers_of_pieces_sent_are_filled_again_and_never_one_still_viewed():
+    body, piece = os.urandom(2_000_000), 20_000
+    data, buffers = sent_through(answering(ok(body), body), len(body), piece, keep_views=False)
+    # The body's first bytes may come with the head (up to HEAD_LIMIT), cut into pieces at once;
+    # from then on: `depth` waiting, LENT_SPARE with the sender, the one being filled.
+    with_the_head = -(-loop_get.HEAD_LIMIT // piece)
+    assert data == body and buffers <= with_the_head + 2 + loop_get.LENT_SPARE + 1, buffers
+    data, buffers = sent_through(answering(ok(body), body), len(body), piece, keep_views=True)
+    assert data == body and buffers == len(body) // piece  # every piece still viewed: none written over
+
+
 def test_the_body_arrives_whole_in_pieces_of_the_reading_size():
     pieces = served(answering(ok(DATA), DATA), 0, len(DATA))
     assert b"".join(pieces) == DATA and max(len(p) for p in pieces) <= 1000
