@@ -23,6 +23,7 @@ from services.api import peer
 from services.api.app import create_app
 from services.api.grpc_front import Front
 from services.api.h2_writes import WriteServer
+from services.api.http_protocol import BoundedHttpToolsProtocol
 from services.auth.bootstrap import announce_admin, ensure_admin_token, open_auth
 from services.auth.links import MaskLinkSignatures
 from services.cluster.ownership import Ownership
@@ -349,7 +350,7 @@ async def serve(
     if sockets is not None:  # a worker: its own REST socket too, where its siblings ask for its figures
         http_sockets.append(listen_unix(worker_socket_path(settings.data_dir)))
         app.state.sibling_sockets = siblings or []
-    http = uvicorn.Server(uvicorn.Config(app, log_level="info", lifespan="off"))
+    http = uvicorn.Server(uvicorn.Config(app, http=BoundedHttpToolsProtocol, log_level="info", lifespan="off"))
     logging.getLogger("uvicorn.access").addFilter(MaskLinkSignatures())  # a link's signature opens it
     quiet_routine_requests()  # an agent's pull polls and copy reports: DEBUG, not a line every 5 s
     await grpc_server.start()
