@@ -220,6 +220,15 @@ class _PlanIndex:
         chosen = [i for entity, positions in self.by_entity.items() if entities(entity) for i in positions]
         return sorted(chosen + self.blueprint_chunks)
 
+    def window_chunks(self, positions: list[int], window: TimeWindow) -> list[int]:
+        """Of the chunks at `positions`, those `window` may keep, worked out from an index read as
+        columns (`IndexTable.window_chunks`); all of them otherwise."""
+        if isinstance(self.rows, IndexTable):
+            narrowed = self.rows.window_chunks(positions, window.timeline, window.bounds, window.latest_at)
+            if narrowed is not None:
+                return narrowed
+        return positions
+
     def entries_on(self, timeline: str, positions: list[int]) -> list[ChunkEntry]:
         known = self.entries.setdefault(timeline, {})
         missing = [i for i in positions if i not in known]
@@ -248,7 +257,7 @@ def _plan_window(
     recording: IndexedRecording, plan: _PlanIndex, entities: EntityFilter, window: TimeWindow
 ) -> tuple[set[bytes], dict[bytes, set[int]], list[int]]:
     """`plan_window`, and the positions of the chunks it chose from."""
-    positions = plan.chunks(entities)
+    positions = plan.window_chunks(plan.chunks(entities), window)
     chunks = plan.at(positions)
 
     def read(ids: set[bytes]) -> Iterator[tuple[ArrowMessage, ChunkMeta]]:
