@@ -43,7 +43,7 @@ def a_run(seed: int, chunks: int = 600) -> list[IndexRow]:
         first = max(0, clock[entity] + rng.randint(-8, 25))  # overlapping its predecessor now and then
         last = first + rng.randint(0, 30)
         clock[entity] = last
-        timelines = () if static else (TimelineRange("frame", "sequence", first, last),)
+        timelines: tuple[TimelineRange, ...] = () if static else (TimelineRange("frame", "sequence", first, last),)
         if timelines and rng.random() < 0.3:
             timelines += (TimelineRange("log_time", "timestamp", first * 10, last * 10),)
         components = tuple(sorted(rng.sample(COMPONENTS, rng.randint(1, 3))))
