@@ -20,6 +20,8 @@ from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from functools import cached_property
 
+import numpy as np
+
 from core.errors import UnavailableError
 from services.hot.read import HotRecording
 from services.rrd.chunk import ChunkMeta, chunk_meta
@@ -28,7 +30,7 @@ from services.rrd.decoder import decode_message
 from services.rrd.frames import MESSAGE_HEADER_SIZE, STREAM_HEADER_SIZE, decode_message_header, decode_stream_header
 from services.rrd.messages import ArrowMessage, Event, StreamStart
 from services.runs.download import FLUSH_BYTES, EntityFilter, TimeWindow, encode_run
-from services.runs.latest_at import ChunkEntry, pick_rows, select_chunks
+from services.runs.latest_at import ChunkEntry, may_keep, pick_rows, select_chunks
 from services.sealed.index import IndexTable
 from services.storage import readahead
 from services.storage.objectstore import ObjectStore
@@ -222,11 +224,11 @@ class _PlanIndex:
 
     def window_chunks(self, positions: list[int], window: TimeWindow) -> list[int]:
         """Of the chunks at `positions`, those `window` may keep, worked out from an index read as
-        columns (`IndexTable.window_chunks`); all of them otherwise."""
-        if isinstance(self.rows, IndexTable):
-            narrowed = self.rows.window_chunks(positions, window.timeline, window.bounds, window.latest_at)
-            if narrowed is not None:
-                return narrowed
+        columns (`latest_at.may_keep`); all of them otherwise."""
+        if isinstance(self.rows, IndexTable) and positions:
+            kept = may_keep(self.rows.columns(positions), window.timeline, window.bounds, window.latest_at)
+            if kept is not None:
+                return [positions[i] for i in np.flatnonzero(kept).tolist()]
         return positions
 
     def entries_on(self, timeline: str, positions: list[int]) -> list[ChunkEntry]:

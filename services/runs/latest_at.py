@@ -25,6 +25,7 @@ import pyarrow.compute as pc
 
 from services.rrd.chunk import ChunkMeta, read_chunk
 from services.rrd.messages import ArrowMessage
+from services.sealed.index import flags, one_array
 
 
 @dataclass(frozen=True)
@@ -101,6 +102,68 @@ def _candidates(entries: list[ChunkEntry], lo: int) -> set[bytes]:
             if last >= lo or (last == before_end and (straddle_start is None or straddle_start <= last)):
                 out.add(chunk_id)
     return out
+
+
+def may_keep(chunks: pa.Table, timeline: str, bounds: tuple[int, int], latest_at: bool) -> Any | None:
+    """`select_chunks` from a sealed index's columns (`IndexTable.columns` of chunk rows), without
+    making their rows: which of `chunks` it may keep, a boolean numpy array. Those it keeps for sure
+    (blueprint and static ones, those overlapping the window), and with `latest_at` per entity and
+    component the chunks reaching the start and those ending last before it, as `_candidates` has
+    them. Of these alone `select_chunks` keeps what it keeps of all (the newest end and every
+    straddling member of each group are among them), so a window of a long run makes the rows of a
+    few chunks, not of all its entity's. None where the columns cannot tell: an index from before
+    per-component ranges (`_known` then reads chunks)."""
+    lo, hi = bounds
+    always = ~flags(pc.equal(chunks.column("store_kind"), "recording")) | flags(chunks.column("is_static"))
+    span_min, span_max, on_timeline = _spans(one_array(chunks.column("timelines")), timeline, chunks.num_rows)
+    keep = always | (on_timeline & (span_max >= lo) & (span_min <= hi))
+    earlier = np.flatnonzero(on_timeline & (span_min < lo) & ~always)
+    if latest_at and len(earlier):
+        ranges = one_array(chunks.column("component_ranges")).take(pa.array(earlier, pa.int64()))
+        if ranges.null_count:
+            return None
+        newest = _newest_before(ranges, one_array(chunks.column("entity_path")).take(earlier), timeline, lo)
+        keep[earlier[newest]] = True
+    return keep
+
+
+def _spans(timelines: pa.ListArray, timeline: str, count: int) -> tuple[Any, Any, Any]:
+    """Each row's min and max on `timeline`, and whether it is on it (numpy arrays of `count`)."""
+    flat, parents = timelines.flatten(), pc.list_parent_indices(timelines).to_numpy()
+    on = flags(pc.equal(flat.field("name"), timeline))
+    span_min, span_max = np.zeros(count, np.int64), np.zeros(count, np.int64)
+    on_timeline = np.zeros(count, bool)
+    span_min[parents[on]] = _ints(flat.field("min"))[on]
+    span_max[parents[on]] = _ints(flat.field("max"))[on]
+    on_timeline[parents[on]] = True
+    return span_min, span_max, on_timeline
+
+
+def _newest_before(ranges: pa.ListArray, entities: pa.Array, timeline: str, lo: int) -> Any:
+    """`_candidates` over columns: which of the rows whose `ranges` (component ranges) are given hold,
+    for some (entity, component) on `timeline`, a range starting before `lo` that reaches it or ends
+    last before it: a boolean numpy array, one per row."""
+    flat, parents = ranges.flatten(), pc.list_parent_indices(ranges).to_numpy()
+    first = _ints(flat.field("min"))
+    last = _ints(flat.field("max"))
+    member = flags(pc.equal(flat.field("timeline"), timeline)) & (first < lo)
+    entity_codes = pc.dictionary_encode(pc.fill_null(entities, "")).indices.to_numpy()[parents]
+    component_codes = pc.dictionary_encode(flat.field("component")).indices.to_numpy().astype(np.int64)
+    _, group = np.unique(
+        entity_codes.astype(np.int64) * (component_codes.max(initial=0) + 1) + component_codes, return_inverse=True
+    )
+    before = member & (last < lo)
+    newest_end = np.full(group.max(initial=0) + 1, np.iinfo(np.int64).min)
+    np.maximum.at(newest_end, group[before], last[before])
+    wanted = member & ((last >= lo) | (before & (last == newest_end[group])))
+    out = np.zeros(len(ranges), bool)
+    out[parents[wanted]] = True
+    return out
+
+
+def _ints(values: pa.Array) -> Any:
+    """An int64 column as a numpy array (null, which the index never writes for a range: 0)."""
+    return pc.fill_null(values, 0).to_numpy(zero_copy_only=False)
 
 
 def _known(entries: list[ChunkEntry], lo: int, resolve: Resolve) -> list[ChunkEntry]:

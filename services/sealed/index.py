@@ -185,10 +185,10 @@ class IndexTable(Sequence[IndexRow]):
         """Positions of the recording's chunks by entity (each in file order), of the blueprint's
         chunks, and of every row that is not a chunk."""
         column = self._table.column
-        chunk = _flags(pc.equal(column("kind"), CHUNK))
-        recording = _flags(pc.equal(column("store_kind"), "recording"))
+        chunk = flags(pc.equal(column("kind"), CHUNK))
+        recording = flags(pc.equal(column("store_kind"), "recording"))
         positions = np.arange(len(self))
-        entities = pc.dictionary_encode(pc.fill_null(_one_array(column("entity_path")), ""))
+        entities = pc.dictionary_encode(pc.fill_null(one_array(column("entity_path")), ""))
         codes = entities.indices.to_numpy()
         names = entities.dictionary.to_pylist()
         chosen = chunk & recording
@@ -202,37 +202,14 @@ class IndexTable(Sequence[IndexRow]):
         }
         return by_entity, positions[chunk & ~recording].tolist(), positions[~chunk].tolist()
 
-    def window_chunks(
-        self, positions: list[int], timeline: str, bounds: tuple[int, int], latest_at: bool
-    ) -> list[int] | None:
-        """Of the chunks at `positions` (file order), those a time window on `timeline` over
-        `bounds` may keep, from the columns: the blueprint's and static ones, those overlapping the
-        window, and with `latest_at`, per entity and component, those whose rows before the start
-        may be the newest (each reaching the start, and those ending last before it). What
-        `services.runs.latest_at.select_chunks` keeps of every chunk it keeps of these alone (the
-        newest end and the straddling chunks of each component are all here), so a window of a long
-        run makes the rows of a few chunks, not of all its entity's. None where the columns cannot
-        tell: an index from before per-component ranges."""
-        if not positions:
-            return []
-        lo, hi = bounds
-        chosen = self._table.take(pa.array(positions, pa.int64()))
-        always = ~_flags(pc.equal(chosen.column("store_kind"), "recording")) | _flags(chosen.column("is_static"))
-        span_min, span_max, on_timeline = _spans(_one_array(chosen.column("timelines")), timeline, len(positions))
-        keep = always | (on_timeline & (span_max >= lo) & (span_min <= hi))
-        earlier = np.flatnonzero(on_timeline & (span_min < lo) & ~always)
-        if latest_at and len(earlier):
-            ranges = _one_array(chosen.column("component_ranges")).take(pa.array(earlier, pa.int64()))
-            if ranges.null_count:
-                return None
-            newest = _newest_before(ranges, _one_array(chosen.column("entity_path")).take(earlier), timeline, lo)
-            keep[earlier[newest]] = True
-        return [positions[i] for i in np.flatnonzero(keep).tolist()]
+    def columns(self, positions: list[int]) -> pa.Table:
+        """The rows at `positions` as columns (one chunk each), without making them."""
+        return self._table.take(pa.array(positions, pa.int64()))
 
     def timeline_types(self) -> dict[str, str]:
         """Each timeline of the run's chunks and its type."""
         chunks = self._chunks()
-        flat = _one_array(chunks.column("timelines")).flatten() if chunks.num_rows else None
+        flat = one_array(chunks.column("timelines")).flatten() if chunks.num_rows else None
         if flat is None or not len(flat):
             return {}
         return dict(zip(_values(flat.field("name")), _values(flat.field("type")), strict=True))
@@ -246,48 +223,9 @@ class IndexTable(Sequence[IndexRow]):
         return self._table.filter(pc.equal(self._table.column("kind"), CHUNK))
 
 
-def _spans(timelines: pa.ListArray, timeline: str, count: int) -> tuple[Any, Any, Any]:
-    """Each row's min and max on `timeline`, and whether it is on it (numpy arrays of `count`)."""
-    flat, parents = timelines.flatten(), pc.list_parent_indices(timelines).to_numpy()
-    on = _flags(pc.equal(flat.field("name"), timeline))
-    span_min, span_max = np.zeros(count, np.int64), np.zeros(count, np.int64)
-    on_timeline = np.zeros(count, bool)
-    span_min[parents[on]] = _ints(flat.field("min"))[on]
-    span_max[parents[on]] = _ints(flat.field("max"))[on]
-    on_timeline[parents[on]] = True
-    return span_min, span_max, on_timeline
-
-
-def _newest_before(ranges: pa.ListArray, entities: pa.Array, timeline: str, lo: int) -> Any:
-    """Which of the rows whose `ranges` (component ranges) are given hold, for some (entity,
-    component) on `timeline`, a range starting before `lo` that reaches it or ends last before it:
-    a boolean numpy array, one per row."""
-    flat, parents = ranges.flatten(), pc.list_parent_indices(ranges).to_numpy()
-    first = _ints(flat.field("min"))
-    last = _ints(flat.field("max"))
-    member = _flags(pc.equal(flat.field("timeline"), timeline)) & (first < lo)
-    entity_codes = pc.dictionary_encode(pc.fill_null(entities, "")).indices.to_numpy()[parents]
-    component_codes = pc.dictionary_encode(flat.field("component")).indices.to_numpy().astype(np.int64)
-    _, group = np.unique(
-        entity_codes.astype(np.int64) * (component_codes.max(initial=0) + 1) + component_codes, return_inverse=True
-    )
-    before = member & (last < lo)
-    newest_end = np.full(group.max(initial=0) + 1, np.iinfo(np.int64).min)
-    np.maximum.at(newest_end, group[before], last[before])
-    wanted = member & ((last >= lo) | (before & (last == newest_end[group])))
-    out = np.zeros(len(ranges), bool)
-    out[parents[wanted]] = True
-    return out
-
-
-def _ints(values: pa.Array) -> Any:
-    """An int64 column as a numpy array (null, which the index never writes for a range: 0)."""
-    return pc.fill_null(values, 0).to_numpy(zero_copy_only=False)
-
-
-def _flags(values: pa.ChunkedArray | pa.Array) -> Any:
-    """A boolean column as a numpy array (null: False)."""
-    return _one_array(pc.fill_null(values, False)).to_numpy(zero_copy_only=False)
+def flags(values: pa.ChunkedArray | pa.Array) -> Any:
+    """A boolean column as a numpy array (null: False); for readers of the index's columns too."""
+    return one_array(pc.fill_null(values, False)).to_numpy(zero_copy_only=False)
 
 
 def _rows(table: pa.Table) -> list[IndexRow]:
@@ -341,7 +279,7 @@ def _values(values: pa.Array | pa.ChunkedArray) -> list[Any]:
     there (a third of a microsecond each, and a run of 50 GB has hundreds of thousands), numpy's
     `tolist` does not; names (entities, components, timelines) are few, so each is made once."""
     if isinstance(values, pa.ChunkedArray):
-        values = _one_array(values)
+        values = one_array(values)
     kind = values.type
     if values.null_count == 0 and (pa.types.is_integer(kind) or pa.types.is_boolean(kind)):
         return list(values.to_numpy(zero_copy_only=False).tolist())
@@ -354,7 +292,7 @@ def _values(values: pa.Array | pa.ChunkedArray) -> list[Any]:
     return list(values.to_pylist())
 
 
-def _one_array(column: pa.ChunkedArray | pa.Array) -> pa.Array:
+def one_array(column: pa.ChunkedArray | pa.Array) -> pa.Array:
     """The column as one array (a file read in several row groups has several chunks)."""
     if not isinstance(column, pa.ChunkedArray):
         return column
@@ -364,7 +302,7 @@ def _one_array(column: pa.ChunkedArray | pa.Array) -> pa.Array:
 def _per_row(column: pa.ChunkedArray, make: Callable[[pa.Array], Iterable[Any]]) -> list[tuple[Any, ...] | None]:
     """A list column as one tuple per row (None where the row's list is null), its values made by
     `make` from all of the column's values at once."""
-    array = _one_array(column)
+    array = one_array(column)
     assert isinstance(array, pa.ListArray)
     flat = array.flatten()  # the values of the non-null lists, in order
     made = list(make(flat)) if len(flat) else []

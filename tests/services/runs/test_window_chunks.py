@@ -1,5 +1,5 @@
 """A time window on a sealed run's index read as columns makes the rows of the chunks it may keep
-only (`IndexTable.window_chunks`), and keeps what it keeps when it goes over all of its entities'
+only (`latest_at.may_keep`), and keeps what it keeps when it goes over all of its entities'
 chunks: windows anywhere in a run, open or closed, with and without latest-at, over sparse and
 overlapping components, static and blueprint chunks, a second timeline; an index from before
 per-component ranges goes over all of them, as before."""
@@ -14,7 +14,7 @@ import pytest
 
 from services.runs.download import EntityFilter, TimeWindow
 from services.runs.indexed import _entry, _PlanIndex
-from services.runs.latest_at import ChunkEntry, select_chunks
+from services.runs.latest_at import ChunkEntry, may_keep, select_chunks
 from services.sealed.index import (
     CHUNK,
     STORE_INFO,
@@ -120,7 +120,8 @@ def test_a_closed_window_without_latest_at_keeps_exactly_its_overlapping_static_
         or rows[i].is_static
         or any(t.name == "frame" and t.max >= 1000 and t.min <= 1100 for t in rows[i].timelines)
     ]
-    assert table.window_chunks(positions, "frame", window.bounds, False) == expected
+    kept = may_keep(table.columns(positions), "frame", window.bounds, False)
+    assert kept is not None and [positions[i] for i in kept.nonzero()[0]] == expected
 
 
 def test_an_index_from_before_component_ranges_plans_over_every_chunk():
@@ -131,7 +132,7 @@ def test_an_index_from_before_component_ranges_plans_over_every_chunk():
     plan = _PlanIndex.of(table)
     positions = plan.chunks(EntityFilter(["/robot/battery"]))
     window = TimeWindow("frame", 2000, 2100)  # latest-at: the chunks before it must be read to tell
-    assert table.window_chunks(positions, "frame", window.bounds, True) is None
+    assert may_keep(table.columns(positions), "frame", window.bounds, True) is None
     assert plan.window_chunks(positions, window) == positions
     without = TimeWindow("frame", 2000, 2100, latest_at=False)  # what overlaps is in the columns
     assert len(plan.window_chunks(positions, without)) < len(positions) / 3
