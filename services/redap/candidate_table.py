@@ -16,8 +16,8 @@ from collections.abc import Iterator, Mapping, Sequence
 
 import pyarrow as pa
 
-from services.redap.chunks import EPISODE_SEPARATOR, chunk_key, episode_chunk_id
 from services.redap.direct import DirectUrl
+from services.redap.keys import EPISODE_SEPARATOR, episode_chunk_id, key_column
 from services.rrd.frames import MESSAGE_HEADER_SIZE
 from services.sealed.index import IndexRow
 
@@ -97,7 +97,7 @@ def candidate_batch(
         "chunk_id": pa.array(shown, pa.binary(16)),
         "chunk_segment_id": pa.array([segment_id] * len(rows), pa.utf8()),
         "rerun_segment_layer": pa.array([LAYER] * len(rows), pa.utf8()),
-        "chunk_key": pa.array([chunk_key(segment_id, r.offset, r.length, i) for r, i in zip(rows, ids, strict=True)]),
+        "chunk_key": key_column(segment_id, [r.offset for r in rows], [r.length for r in rows], ids),
         "chunk_entity_path": pa.array([r.entity_path or "/" for r in rows], pa.utf8()),
         "chunk_is_static": pa.array([r.is_static for r in rows], pa.bool_()),
         "chunk_byte_len": pa.array([r.length - MESSAGE_HEADER_SIZE for r in rows], pa.uint64()),

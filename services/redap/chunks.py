@@ -1,11 +1,6 @@
-"""Chunk keys and FetchChunks: a chunk's bytes straight from its hot file or its sealed object by
-range, never re-encoded (a snapshot window's chunks: their record batches never re-encoded).
-
-A chunk key is Rerun's `ChunkKey` message, which clients treat as opaque and hand back to
-FetchChunks: the chunk's id and an `RrdChunkLocation` whose `url` is `fleet:SEGMENT` and whose
-offset and length are those of the chunk's whole frame in the run's recording (its 16-byte
-message header included, as Rerun's direct-URL readers expect). SEGMENT is the run id, or a
-snapshot's window episode `RUN~N` (`snapshots.py`), read from run RUN.
+"""FetchChunks: a chunk's bytes straight from its hot file or its sealed object by range, never
+re-encoded (a snapshot window's chunks: their record batches never re-encoded), found by the chunk
+keys clients were given (`keys.py`).
 
 FetchChunks answers with the stored `ArrowMsg` bytes exactly: each response is built as the
 protobuf encoding of `FetchChunksResponse` (field 1, length-delimited, around each stored message),
@@ -19,8 +14,11 @@ under ids of its own (`episode_chunk_id`, in its manifest and candidate rows too
 naming it: the Arrow schema's `rerun:id` and the message's fields say so, the record batch is
 copied byte for byte, the payload compressed again (`services.rrd.chunk.with_chunk_id`).
 
-Reads are by byte range, adjacent chunks of a run in one read, one read and one response (a few
-chunks, at most `RESPONSE_BYTES` unless one chunk is larger) in memory at a time. A key is checked
+Reads are by byte range, neighbouring chunks of a run (closer than `GAP_BYTES`) in one read, up
+to `READ_BYTES`; from the warm store several reads are under way at once (`readahead`: its first
+byte waits on each). The first response goes as soon as the first read is in, the next ones hold up
+to `RESPONSE_BYTES` of chunks (unless one chunk is larger): a call holds at most that and its reads
+under way (`readahead.DEPTH` + 1 of `READ_BYTES`) in memory, whatever it asks for. A key is checked
 against what it points at (a chunk frame holding that chunk id); a key from before the run was
 sealed (or sealed again) is found by its chunk id in the run's index. Which dataset a chunk belongs
 to is not part of the call (Rerun's clients send no entry header with it): the read scope is the
@@ -28,9 +26,7 @@ authorization."""
 
 from __future__ import annotations
 
-import hashlib
-import struct
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterator
 from dataclasses import dataclass
 
 import pyarrow as pa
@@ -40,100 +36,21 @@ from core.errors import InternalError, InvalidArgumentError, NotFoundError
 from services.auth.scopes import Principal
 from services.redap.dataframe import read_dataframe_part
 from services.redap.depot import Depot
+from services.redap.keys import TUID, ChunkLocation, episode_chunk_id, parse_chunk_key
 from services.redap.pb import cloud_pb2
 from services.redap.recordings import open_recording
 from services.rrd import errors as rrd_errors
 from services.rrd import limits
 from services.rrd.chunk import with_chunk_id
 from services.rrd.frames import MESSAGE_HEADER_SIZE, MessageKind, decode_message_header
-from services.rrd.protowire import fields
-from services.runs.indexed import IndexedRecording
+from services.rrd.protowire import encode_varint, fields
+from services.runs.indexed import GAP_BYTES, IndexedRecording
 from services.runs.served import count_served
+from services.storage import readahead
 
-RUN_URL_PREFIX = "fleet:"
-READ_BYTES = 8 * 1024 * 1024  # adjacent chunks are read together up to this
+READ_BYTES = 8 * 1024 * 1024  # neighbouring chunks are read together up to this
 RESPONSE_BYTES = 8 * 1024 * 1024  # chunks per response up to this (a larger chunk goes alone)
 _ARROW_CHUNK_ID_FIELD = 6
-EPISODE_SEPARATOR = "~"  # a snapshot episode's segment id: RUN~N (snapshots.SEGMENT_SEPARATOR)
-_TUID = struct.Struct(">QQ")
-
-
-@dataclass(frozen=True)
-class ChunkLocation:
-    run_id: str
-    offset: int  # of the chunk's frame (its message header) in the run's recording
-    length: int  # of the whole frame
-    chunk_id: bytes | None = None  # the 16 bytes the key names (None: the key names none)
-    episode: str = ""  # the snapshot episode's segment id (RUN~N) it is fetched for; "": the run's
-
-    @property
-    def end(self) -> int:
-        return self.offset + self.length
-
-
-def _varint(value: int) -> bytes:
-    out = bytearray()
-    while value > 0x7F:
-        out.append((value & 0x7F) | 0x80)
-        value >>= 7
-    out.append(value)
-    return bytes(out)
-
-
-def _delimited(tag: int, payload: bytes) -> bytes:
-    return bytes((tag,)) + _varint(len(payload)) + payload
-
-
-def chunk_key(segment_id: str, offset: int, length: int, chunk_id: bytes) -> bytes:
-    """The key FindChunks and GetRrdManifest hand out for a chunk of a segment (a run id, or a
-    snapshot episode's `RUN~N`; `chunk_id`: its 16 bytes).
-
-    Written field by field as protobuf serializes `ChunkKey{chunk_id: Tuid, data_source_kind: RRD,
-    location: RrdChunkLocation{url, offset, length}}` (the same bytes, checked in the tests), as a
-    manifest needs one per chunk and the message classes cost ten times more."""
-    time_ns, inc = int.from_bytes(chunk_id[:8], "big"), int.from_bytes(chunk_id[8:16], "big")
-    url = f"{RUN_URL_PREFIX}{segment_id}".encode()
-    location = _delimited(0x0A, url) + b"\x10" + _varint(offset) + b"\x18" + _varint(length)
-    tuid = b"\x09" + time_ns.to_bytes(8, "little") + b"\x11" + inc.to_bytes(8, "little")
-    return _delimited(0x0A, tuid) + b"\x10" + _varint(cloud_pb2.DATA_SOURCE_KIND_RRD) + _delimited(0x1A, location)
-
-
-def episode_chunk_id(segment_id: str, chunk_id: bytes) -> bytes:
-    """The id a snapshot episode's candidate row gives a chunk: Rerun's clients keep one candidate
-    row per chunk id over all the segments a query reads (in Rerun a chunk is one segment's), so a
-    chunk two episodes share would be read for one of them only. The chunk's 8 bytes of time, then
-    8 bytes of a digest of the segment and the chunk id; the row's key names the chunk itself."""
-    digest = hashlib.sha256(segment_id.encode() + b"\x00" + chunk_id).digest()
-    return chunk_id[:8] + digest[:8]
-
-
-def chunk_keys(
-    segment_id: str, payload_offsets: Sequence[int], payload_sizes: Sequence[int], chunk_ids: Sequence[bytes]
-) -> list[bytes]:
-    """Keys of a manifest's chunks, from its `chunk_byte_offset` and `chunk_byte_size` (those of
-    the ArrowMsg payload: the key's frame starts 16 bytes before)."""
-    return [
-        chunk_key(segment_id, offset - MESSAGE_HEADER_SIZE, size + MESSAGE_HEADER_SIZE, chunk_id)
-        for offset, size, chunk_id in zip(payload_offsets, payload_sizes, chunk_ids, strict=True)
-    ]
-
-
-def parse_chunk_key(key: bytes) -> ChunkLocation:
-    """Where a chunk key a client sent points; INVALID_ARGUMENT if it is none of ours."""
-    try:
-        parsed = cloud_pb2.ChunkKey.FromString(key)
-        location = cloud_pb2.RrdChunkLocation.FromString(parsed.location)
-    except Exception as exc:  # protobuf's DecodeError and friends: the client sent something else
-        raise InvalidArgumentError("a chunk_key is not one this depot handed out: ask GetRrdManifest again") from exc
-    if not location.url.startswith(RUN_URL_PREFIX) or location.length <= MESSAGE_HEADER_SIZE:
-        raise InvalidArgumentError("a chunk_key is not one this depot handed out: ask GetRrdManifest again")
-    # Big-endian time then counter, as Rerun's Arrow tables (and our indexes) hold chunk ids.
-    chunk_id = _TUID.pack(parsed.chunk_id.time_ns, parsed.chunk_id.inc) if parsed.HasField("chunk_id") else None
-    segment = location.url[len(RUN_URL_PREFIX) :]
-    run_id, separator, number = segment.partition(EPISODE_SEPARATOR)
-    if separator and not (run_id and number.isascii() and number.isdigit()):
-        raise InvalidArgumentError("a chunk_key is not one this depot handed out: ask GetRrdManifest again")
-    return ChunkLocation(run_id, location.offset, location.length, chunk_id, segment if separator else "")
 
 
 # --- FetchChunks ---------------------------------------------------------------------------------
@@ -184,7 +101,7 @@ def _chunk_keys(table: pa.Table) -> list[bytes]:
 
 @dataclass
 class _Read:
-    """One ranged read of a run: adjacent chunks together."""
+    """One ranged read of a run: neighbouring chunks together."""
 
     recording: IndexedRecording
     offset: int
@@ -193,7 +110,8 @@ class _Read:
 
 
 def _reads(wanted: list[ChunkLocation], runs: dict[str, IndexedRecording]) -> Iterator[_Read]:
-    """Reads in each run's order, adjacent (or overlapping) chunks merged up to `READ_BYTES`."""
+    """Reads in each run's order, chunks closer than `GAP_BYTES` (or overlapping) merged up to
+    `READ_BYTES`; the bytes between them are read and dropped, cheaper than a read's first byte."""
     by_run: dict[str, list[ChunkLocation]] = {}
     for location in wanted:
         by_run.setdefault(location.run_id, []).append(location)
@@ -202,7 +120,7 @@ def _reads(wanted: list[ChunkLocation], runs: dict[str, IndexedRecording]) -> It
         for location in sorted(locations, key=lambda loc: loc.offset):
             if (
                 current is not None
-                and location.offset <= current.end
+                and location.offset - current.end <= GAP_BYTES
                 and max(current.end, location.end) - current.offset <= READ_BYTES
             ):
                 current.end = max(current.end, location.end)
@@ -215,12 +133,16 @@ def _reads(wanted: list[ChunkLocation], runs: dict[str, IndexedRecording]) -> It
             yield current
 
 
+def _read(plan: _Read) -> memoryview:
+    return memoryview(plan.recording.read(plan.offset, plan.end - plan.offset))
+
+
 def _responses(wanted: list[ChunkLocation], runs: dict[str, IndexedRecording]) -> Iterator[bytes]:
     pieces: list[bytes | memoryview] = []
-    size = 0
+    size, first = 0, True  # the first read's chunks go at once: the viewer shows them meanwhile
+    depth = max((recording.read_ahead for recording in runs.values()), default=1)
     try:
-        for read in _reads(wanted, runs):
-            data = memoryview(read.recording.read(read.offset, read.end - read.offset))
+        for read, data in readahead.read_ahead(_reads(wanted, runs), _read, depth):
             count_served("depot", len(read.chunks), read.end - read.offset)
             for location in read.chunks:
                 message: bytes | memoryview = _arrow_message(read.recording, location, data, read.offset)
@@ -230,8 +152,11 @@ def _responses(wanted: list[ChunkLocation], runs: dict[str, IndexedRecording]) -
                 if pieces and size + entry > RESPONSE_BYTES:
                     yield b"".join(pieces)
                     pieces, size = [], 0
-                pieces += (b"\x0a" + _varint(len(message)), message)  # FetchChunksResponse.chunks (field 1)
+                pieces += (b"\x0a" + encode_varint(len(message)), message)  # FetchChunksResponse.chunks (field 1)
                 size += entry
+            if first and pieces:
+                yield b"".join(pieces)
+                pieces, size, first = [], 0, False
         if pieces:
             yield b"".join(pieces)
     finally:
@@ -301,4 +226,4 @@ def _tuid_bytes(raw: memoryview) -> bytes | None:
                 inc = int.from_bytes(raw[start : start + 8], "little")
     except rrd_errors.RrdError:
         return None
-    return _TUID.pack(time_ns, inc)
+    return TUID.pack(time_ns, inc)

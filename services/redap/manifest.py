@@ -17,8 +17,10 @@ from __future__ import annotations
 import math
 from collections.abc import Iterator
 from dataclasses import dataclass
+from typing import Any
 
 import lz4.block
+import numpy as np
 import pyarrow as pa
 import pyarrow.compute as pc
 from google.protobuf.message import DecodeError
@@ -29,9 +31,9 @@ from core.errors import InternalError, InvalidArgumentError, NotFoundError, Unav
 from services.auth.scopes import Principal
 from services.hot.read import HotRecording
 from services.redap import snapshots
-from services.redap.chunks import EPISODE_SEPARATOR, chunk_keys, episode_chunk_id
 from services.redap.datasets import segment_run
 from services.redap.depot import Depot
+from services.redap.keys import EPISODE_SEPARATOR, episode_chunk_id, key_column
 from services.redap.pb import cloud_pb2
 from services.redap.recordings import open_recording
 from services.redap.schema import narrowed
@@ -185,17 +187,22 @@ def served_manifest(
         store_id = common_pb2.StoreId()
         store_id.CopyFrom(manifest.store_id)
         store_id.recording_id = segment_id
-    ids = table.column("chunk_id").to_pylist()
-    keys = chunk_keys(
-        segment_id, table.column("chunk_byte_offset").to_pylist(), table.column("chunk_byte_size").to_pylist(), ids
+    table = table.combine_chunks()
+    # The manifest's offsets and sizes are the ArrowMsg payload's: a key names the whole frame.
+    keys = key_column(
+        segment_id,
+        _ints(table.column("chunk_byte_offset")) - MESSAGE_HEADER_SIZE,
+        _ints(table.column("chunk_byte_size")) + MESSAGE_HEADER_SIZE,
+        table.column("chunk_id"),
     )
     if EPISODE_SEPARATOR in segment_id:  # a window's chunks go by ids of its own (chunks.py)
+        ids = table.column("chunk_id").to_pylist()
         shown = pa.array([episode_chunk_id(segment_id, i) for i in ids], table.schema.field("chunk_id").type)
         table = table.set_column(table.schema.get_field_index("chunk_id"), table.schema.field("chunk_id"), shown)
     fields = [f.with_nullable(True) for f in table.schema] + [pa.field("chunk_key", pa.binary())]
     table = table.combine_chunks()
     columns = [column.chunk(0) if column.num_chunks else pa.array([], column.type) for column in table.columns]
-    served = pa.RecordBatch.from_arrays([*columns, pa.array(keys, pa.binary())], schema=pa.schema(fields))
+    served = pa.RecordBatch.from_arrays([*columns, keys], schema=pa.schema(fields))
     # Hashed again as Rerun hashes it: footers sealed before the depot did so carry another hash.
     sha256 = schema_sha256(sorbet)
     sorbet = sorbet.with_metadata({**(sorbet.metadata or {}), VERSION_KEY: SORBET_VERSION})
@@ -209,6 +216,11 @@ def served_manifest(
                 data=part,
             )
         )
+
+
+def _ints(column: pa.ChunkedArray) -> Any:
+    """An offset or size column as a numpy array of int64 (a footer's columns hold no null there)."""
+    return column.to_numpy().astype(np.int64)
 
 
 def _parts(batch: pa.RecordBatch) -> Iterator[common_pb2.DataframePart]:

@@ -104,6 +104,9 @@ def _candidates(entries: list[ChunkEntry], lo: int) -> set[bytes]:
     return out
 
 
+MAY_KEEP_READS = ("store_kind", "is_static", "timelines", "component_ranges", "entity_path")  # index columns
+
+
 def may_keep(chunks: pa.Table, timeline: str, bounds: tuple[int, int], latest_at: bool) -> Any | None:
     """`select_chunks` from a sealed index's columns (`IndexTable.columns` of chunk rows), without
     making their rows: which of `chunks` it may keep, a boolean numpy array. Those it keeps for sure

@@ -43,6 +43,7 @@ __all__ = [
     "chunk_ids_of",
     "component_ranges",
     "from_parquet",
+    "read_index",
     "to_parquet",
 ]
 
@@ -202,25 +203,29 @@ class IndexTable(Sequence[IndexRow]):
         }
         return by_entity, positions[chunk & ~recording].tolist(), positions[~chunk].tolist()
 
-    def columns(self, positions: list[int]) -> pa.Table:
-        """The rows at `positions` as columns (one chunk each), without making them."""
-        return self._table.take(pa.array(positions, pa.int64()))
+    def columns(self, positions: list[int], names: Sequence[str] | None = None) -> pa.Table:
+        """The rows at `positions` as columns (`names`, or all), without making them."""
+        table = self._table if names is None else self._table.select(list(names))
+        return table.take(pa.array(positions, pa.int64()))
 
     def timeline_types(self) -> dict[str, str]:
         """Each timeline of the run's chunks and its type."""
-        chunks = self._chunks()
-        flat = one_array(chunks.column("timelines")).flatten() if chunks.num_rows else None
-        if flat is None or not len(flat):
+        timelines = one_array(self._of_chunks("timelines"))
+        flat = timelines.flatten()
+        if not len(flat):
             return {}
-        return dict(zip(_values(flat.field("name")), _values(flat.field("type")), strict=True))
+        pairs = pa.table({"name": flat.field("name"), "type": flat.field("type")}).group_by(["name", "type"])
+        found = pairs.aggregate([])
+        return dict(zip(found.column("name").to_pylist(), found.column("type").to_pylist(), strict=True))
 
     def entity_paths(self) -> set[str]:
         """The entities of the run's chunks."""
-        return {p for p in pc.unique(self._chunks().column("entity_path")).to_pylist() if p}
+        return {p for p in pc.unique(self._of_chunks("entity_path")).to_pylist() if p}
 
-    def _chunks(self) -> pa.Table:
-        """The rows of chunks (not store infos or blueprint activations), as columns."""
-        return self._table.filter(pc.equal(self._table.column("kind"), CHUNK))
+    def _of_chunks(self, name: str) -> pa.ChunkedArray:
+        """One column's values of the chunks' rows (not store infos or blueprint activations): the
+        other columns are not copied."""
+        return pc.filter(self._table.column(name), pc.equal(self._table.column("kind"), CHUNK))
 
 
 def flags(values: pa.ChunkedArray | pa.Array) -> Any:

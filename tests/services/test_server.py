@@ -18,3 +18,16 @@ def test_the_server_loads_the_lakehouse_and_mcp_only_when_used() -> None:
     )
     done = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=120, check=True)
     assert json.loads(done.stdout) == []
+
+
+# What a run's first window or manifest after a start would otherwise import on first use.
+FIRST_WINDOW_IMPORTS = ("numpy.ma", "pyarrow.dataset")
+
+
+def test_the_server_warms_up_what_a_first_window_would_load() -> None:
+    probe = (
+        "import json, sys, services.server; before = set(sys.modules); services.server.warm_up(); "
+        f"print(json.dumps(sorted((set(sys.modules) - before) & set({FIRST_WINDOW_IMPORTS!r}))))"
+    )
+    done = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=120, check=True)
+    assert json.loads(done.stdout) == sorted(FIRST_WINDOW_IMPORTS)

@@ -14,8 +14,8 @@ import pytest
 from catalog import queries
 from catalog.db import session_scope
 from services.redap import chunks
-from services.redap.chunks import ChunkLocation, chunk_key, parse_chunk_key
 from services.redap.dataframe import dataframe_part
+from services.redap.keys import chunk_key, parse_chunk_key
 from services.redap.pb import cloud_pb2
 from services.redap.tuid import Tuid
 from services.retention import archive
@@ -38,49 +38,6 @@ pytestmark = pytest.mark.sdk
 tiers, make_node = retention.tiers, retention.make_node
 
 SCENES = ("points", "blueprint", "large", "transforms")
-
-
-# --- keys ----------------------------------------------------------------------------------------
-
-
-@pytest.mark.parametrize(
-    ("run_id", "offset", "length", "chunk_id"),
-    [
-        ("rec-points", 12, 933, bytes(range(16))),
-        ("r", 0, 17, bytes(16)),
-        ("a" * 128, 2**40 + 3, 2**33 + 1, b"\xff" * 16),
-        ("robot-7_2026.run-1", 127, 128, b"\x18\xea\x87" + bytes(13)),
-    ],
-)
-def test_a_key_is_the_chunk_key_message_protobuf_writes(run_id: str, offset: int, length: int, chunk_id: bytes):
-    expected = cloud_pb2.ChunkKey(
-        chunk_id=common_pb2.Tuid(time_ns=int.from_bytes(chunk_id[:8], "big"), inc=int.from_bytes(chunk_id[8:], "big")),
-        data_source_kind=cloud_pb2.DATA_SOURCE_KIND_RRD,
-        location=cloud_pb2.RrdChunkLocation(url=f"fleet:{run_id}", offset=offset, length=length).SerializeToString(),
-    ).SerializeToString()
-    key = chunk_key(run_id, offset, length, chunk_id)
-    assert key == expected
-    assert parse_chunk_key(key) == ChunkLocation(run_id, offset, length, chunk_id)
-
-
-@pytest.mark.parametrize(
-    "key",
-    [
-        b"",
-        b"\xff\xfe not protobuf",
-        cloud_pb2.ChunkKey(
-            location=cloud_pb2.RrdChunkLocation(url="s3://bucket/x.rrd", offset=0, length=100).SerializeToString()
-        ).SerializeToString(),
-        cloud_pb2.ChunkKey(
-            location=cloud_pb2.RrdChunkLocation(url="fleet:run", offset=0, length=10).SerializeToString()
-        ).SerializeToString(),
-        bytes(32),  # what Rerun's own server hands out: 32 opaque bytes
-    ],
-)
-def test_keys_that_are_not_ours_are_refused(key: bytes):
-    with pytest.raises(Exception) as info:
-        parse_chunk_key(key)
-    assert getattr(info.value, "grpc_status", lambda: "")() == "INVALID_ARGUMENT"
 
 
 # --- FetchChunks ---------------------------------------------------------------------------------

@@ -20,7 +20,7 @@ import pytest
 from catalog import queries
 from catalog.db import session_scope
 from services.redap import manifest as manifest_module
-from services.redap.chunks import parse_chunk_key
+from services.redap.keys import parse_chunk_key
 from services.redap.pb import cloud_pb2
 from services.redap.tuid import Tuid
 from services.retention import archive

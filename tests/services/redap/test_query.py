@@ -20,8 +20,8 @@ import pytest
 from catalog import queries
 from catalog.db import session_scope
 from services.redap import candidate_table
-from services.redap.chunks import parse_chunk_key
 from services.redap.dataframe import read_dataframe_part
+from services.redap.keys import parse_chunk_key
 from services.redap.pb import cloud_pb2
 from services.redap.tuid import Tuid
 from services.retention.service import ARCHIVE, plan, run_plan

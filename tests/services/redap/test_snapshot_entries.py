@@ -23,8 +23,8 @@ import pytest
 
 from catalog import datasets as snapshot_rows
 from catalog.db import session_scope
-from services.redap.chunks import episode_chunk_id
 from services.redap.depot import Depot as CatalogDepot
+from services.redap.keys import episode_chunk_id
 from services.redap.pb import cloud_pb2
 from services.redap.snapshots import snapshot_entry_id
 from services.redap.tuid import Tuid

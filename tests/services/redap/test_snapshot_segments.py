@@ -23,10 +23,10 @@ from core.errors import ConflictError, InvalidArgumentError, NotFoundError, Unim
 from core.ids import new_entry_id
 from services.auth.scopes import Principal, Scope
 from services.redap import entries, manifest, query, segments, snapshots
-from services.redap.chunks import ChunkLocation, chunk_key, episode_chunk_id, parse_chunk_key
 from services.redap.dataframe import read_dataframe_part
 from services.redap.depot import Depot
 from services.redap.entries import ENTRIES_TABLE_ID
+from services.redap.keys import ChunkLocation, chunk_key, episode_chunk_id, parse_chunk_key
 from services.redap.pb import cloud_pb2
 from services.redap.tuid import Tuid, epoch_ns
 from services.rrd import ArrowMessage, iter_events
