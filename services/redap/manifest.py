@@ -200,7 +200,6 @@ def served_manifest(
         shown = pa.array([episode_chunk_id(segment_id, i) for i in ids], table.schema.field("chunk_id").type)
         table = table.set_column(table.schema.get_field_index("chunk_id"), table.schema.field("chunk_id"), shown)
     fields = [f.with_nullable(True) for f in table.schema] + [pa.field("chunk_key", pa.binary())]
-    table = table.combine_chunks()
     columns = [column.chunk(0) if column.num_chunks else pa.array([], column.type) for column in table.columns]
     served = pa.RecordBatch.from_arrays([*columns, keys], schema=pa.schema(fields))
     # Hashed again as Rerun hashes it: footers sealed before the depot did so carry another hash.
