@@ -4,7 +4,7 @@ memory, which must not grow with the run's size.
 
     .venv/bin/python benchmarks/big_run.py [--gb 5,20,50] [--workdir DIR] [--upload smallest|all|none]
                                            [--window-frames 1000] [--one-server] [--check-disk]
-                                           [--json [PATH]]
+                                           [--image-side N] [--json [PATH]]
 
 Not in CI: it needs the disk. The sizes run one after the other, each in a fresh folder under
 --workdir (default: the temporary folder) deleted before the next. Before each, the disk it needs is
@@ -51,6 +51,12 @@ back the warm copy's space; the SDK's file beside its uploaded hot copy), so 2 x
 7. upload (at the smallest size only, unless --upload all): the run saved to a file by the SDK
    (`RecordingStream.save`), then `POST /v1/uploads` of it by curl to another fresh `fleet serve`,
    once everything above is done and removed.
+
+`--image-side N` makes the images N times smaller a side (and the SDK batcher's byte bound N^2
+times smaller): a run with the ticks of a --gb run, and at least its chunks (the scalar's and the
+pose's are cut by bytes more often), in 1/N^2 of its bytes. What grows with the chunk count (the
+index, a window's plan, a manifest, the catalog's first byte) is measured at the count of a run
+this disk cannot hold: `--gb 50 --image-side 4` is a 3.1 GB run with a 50 GB run's ticks.
 
 The server is restarted (same data, same ports) before promotion, the whole download, the windows,
 archive and restore, so that each step's peak RSS is a fresh server's plus what the step itself
@@ -157,7 +163,7 @@ class Depot:
     def ingest(self, total: int) -> tuple[Path, int]:
         hot = self.server.data_dir / "hot" / self.run_id / "run.rrd"
         url = f"rerun+http://127.0.0.1:{self.server.grpc_port}/proxy"
-        proc = steps.start_generator("grpc", url, total, self.run_id, self.gen_log)
+        proc = steps.start_generator("grpc", url, total, self.run_id, self.gen_log, self.args.image_side)
         try:
             with Step("ingest (gRPC, rerun-sdk)", self.server.pid, total, lambda: steps.size_of(hot)) as st:
                 assert proc.stdin is not None
@@ -264,12 +270,12 @@ class Depot:
         return self.out
 
 
-def upload_step(workdir: Path, total: int, run_id: str, curl_bin: str) -> dict[str, Any]:
+def upload_step(workdir: Path, total: int, run_id: str, curl_bin: str, side: int = 1) -> dict[str, Any]:
     folder = workdir / "upload"
     folder.mkdir()
     path, gen_log = folder / "run.rrd", folder / "generator.log"
     log("  saving the run to a file with the SDK ...")
-    proc = steps.start_generator("file", str(path), total, run_id, gen_log)
+    proc = steps.start_generator("file", str(path), total, run_id, gen_log, side)
     assert proc.stdin is not None
     proc.stdin.write("go\n")
     proc.stdin.flush()
@@ -293,7 +299,7 @@ def upload_step(workdir: Path, total: int, run_id: str, curl_bin: str) -> dict[s
 
 
 def one_size(gb: float, parent: Path, args: Any, upload: bool) -> dict[str, Any]:
-    total = int(gb * GB)
+    total = int(gb * GB) // (args.image_side * args.image_side)
     workdir = Path(tempfile.mkdtemp(prefix=f"big-run-{gb:g}gb-", dir=parent))
     run_id = f"big-{gb:g}gb-{uuid.uuid4().hex[:8]}"
     disk = Step.disk = steps.DiskWatch(workdir)
@@ -315,13 +321,14 @@ def one_size(gb: float, parent: Path, args: Any, upload: bool) -> dict[str, Any]
         shutil.rmtree(workdir / "seaweedfs")
         shutil.rmtree(workdir / "fleet")
         if upload:
-            out.append(upload_step(workdir, total, f"{run_id}-upload", args.curl))
+            out.append(upload_step(workdir, total, f"{run_id}-upload", args.curl, args.image_side))
     finally:
         used = disk.stop()
         Step.disk = None
         shutil.rmtree(workdir, ignore_errors=True)
     return {
         "gb": gb,
+        "image_side": args.image_side,
         "run_id": run_id,
         "run_bytes": out[0]["bytes"],
         "wall_s": time.perf_counter() - started,
@@ -392,6 +399,12 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument(
         "--one-server", action="store_true", help="one server process for all steps (default: restarted before most)"
     )
+    parser.add_argument(
+        "--image-side",
+        type=int,
+        default=1,
+        help="images N times smaller a side: the ticks and chunks of a --gb run in 1/N^2 of its bytes",
+    )
     parser.add_argument("--json", nargs="?", const="-", help="JSON instead of tables; with a PATH, written there too")
     args = parser.parse_args(argv)
     sizes = [float(x) for x in args.gb.split(",")]
@@ -401,7 +414,7 @@ def main(argv: list[str] | None = None) -> None:
     args.workdir.mkdir(parents=True, exist_ok=True)
     report: dict[str, Any] = {"machine": {"cpus": os.cpu_count(), "python": platform.python_version()}, "sizes": []}
     for gb in sizes:
-        need, free = disk_needed(int(gb * GB)), shutil.disk_usage(args.workdir).free
+        need, free = disk_needed(int(gb * GB) // args.image_side**2), shutil.disk_usage(args.workdir).free
         if args.check_disk:
             print(f"{gb:g} GB: needs {need / GB:.1f} GB, {free / GB:.1f} GB free: {'fits' if need <= free else 'no'}")
             continue
@@ -409,7 +422,8 @@ def main(argv: list[str] | None = None) -> None:
             report["stopped"] = f"stopped before {gb:g} GB: needs {need / GB:.1f} GB, {free / GB:.1f} GB free"
             log(report["stopped"])
             break
-        log(f"{gb:g} GB run in {args.workdir} ...")
+        shrunk = f" (images 1/{args.image_side} a side: {gb / args.image_side**2:g} GB)" if args.image_side > 1 else ""
+        log(f"{gb:g} GB run{shrunk} in {args.workdir} ...")
         size = one_size(
             gb, args.workdir, args, args.upload == "all" or (args.upload == "smallest" and gb == min(sizes))
         )

@@ -51,17 +51,20 @@ SAMPLE_S, PROGRESS_S = 0.2, 10.0
 # --- the generator (child process) -----------------------------------------------------------------
 
 
-def generate(mode: str, target: str, total: int, run_id: str) -> None:
+def generate(mode: str, target: str, total: int, run_id: str, side: int = 1) -> None:
     """Log camera images until `total` bytes of them, a scalar and a pose every tick, streamed over
     gRPC (`mode` grpc, `target` the depot's URL) or saved (`file`, `target` a path). Four random
-    frames made once, each image a copy of one with a row changed: cheap, and incompressible."""
+    frames made once, each image a copy of one with a row changed: cheap, and incompressible.
+    `side`: images that many times smaller a side, the batcher's byte bound as many squared."""
     import rerun as rr
 
+    shape = (IMAGE_SHAPE[0] // side, IMAGE_SHAPE[1] // side, IMAGE_SHAPE[2])
     rng = np.random.default_rng(7)
-    frames = [rng.integers(0, 256, IMAGE_SHAPE, dtype=np.uint8) for _ in range(4)]
+    frames = [rng.integers(0, 256, shape, dtype=np.uint8) for _ in range(4)]
     # Chunks cut by size and rows only, not by the batcher's clock, so that they do not depend on the
     # machine's speed: three images (2.8 MB), or 100 ticks (one second) of the scalar and the pose.
-    batching = rr.ChunkBatcherConfig(flush_tick=3600.0, flush_num_bytes=2 << 20, flush_num_rows=100)
+    flush_bytes = (2 << 20) // (side * side)
+    batching = rr.ChunkBatcherConfig(flush_tick=3600.0, flush_num_bytes=flush_bytes, flush_num_rows=100)
     rec = rr.RecordingStream(APPLICATION, recording_id=run_id, batcher_config=batching)
     if mode == "grpc":
         rec.connect_grpc(target)
@@ -77,7 +80,7 @@ def generate(mode: str, target: str, total: int, run_id: str) -> None:
         if tick % TICKS_PER_IMAGE == 0:
             n = tick // TICKS_PER_IMAGE
             image = frames[n % len(frames)].copy()
-            image[n % IMAGE_SHAPE[0]] ^= 0x55
+            image[n % shape[0]] ^= 0x55
             rec.log(CAMERA, rr.Image(image))
             sent += image.nbytes
         rec.log(SCALAR, rr.Scalars([100.0 - tick * 1e-5]))
@@ -89,11 +92,13 @@ def generate(mode: str, target: str, total: int, run_id: str) -> None:
     print("DONE " + json.dumps({"ticks": tick, "image_bytes": sent, "seconds": seconds, "cpu_s": cpu_s}), flush=True)
 
 
-def start_generator(mode: str, target: str, total: int, run_id: str, log_path: Path) -> subprocess.Popen[str]:
+def start_generator(
+    mode: str, target: str, total: int, run_id: str, log_path: Path, side: int = 1
+) -> subprocess.Popen[str]:
     """The generator, ready (connected, its frames made): write a line to its stdin to start it."""
     with open(log_path, "ab") as err:
         proc = subprocess.Popen(
-            [sys.executable, __file__, "gen", mode, target, str(total), run_id],
+            [sys.executable, __file__, "gen", mode, target, str(total), run_id, str(side)],
             stdin=subprocess.PIPE,
             stdout=subprocess.PIPE,
             stderr=err,
@@ -400,4 +405,4 @@ def ndjson_lines(response: httpx.Response) -> list[dict[str, Any]]:
 
 
 if __name__ == "__main__" and sys.argv[1:2] == ["gen"]:
-    generate(sys.argv[2], sys.argv[3], int(sys.argv[4]), sys.argv[5])
+    generate(sys.argv[2], sys.argv[3], int(sys.argv[4]), sys.argv[5], int(sys.argv[6]))
