@@ -54,7 +54,7 @@ from services.retention.schedule import Job, node_name, start_scheduler
 from services.retention.service import Retention
 from services.routine_logs import quiet_routine_requests
 from services.runs import totals
-from services.runs.latest_at import MAY_KEEP_READS, may_keep
+from services.runs.latest_at import may_keep
 from services.runtime import freeze_startup_objects, tune_allocator
 from services.sealed.index import CHUNK, ComponentRange, IndexRow, TimelineRange, read_index, to_parquet
 from services.sealed.tiers import open_tiers, sealed_lookup
@@ -275,8 +275,7 @@ def warm_up() -> None:
     index = read_index(to_parquet(rows))
     index.timeline_types(), index.entity_paths()
     by_entity, _, _ = index.groups()
-    positions = by_entity["/warm/1"]
-    may_keep(index.columns(positions, MAY_KEEP_READS), "frame", (25, 26), True)
+    may_keep(index, by_entity["/warm/1"], "frame", (25, 26), True)
     keys = key_column("warm-up", [row.offset for row in rows], [row.length for row in rows], [r.chunk_id for r in rows])
     read_dataframe_part(dataframe_part(pa.table({"chunk_key": keys})))
 

@@ -30,7 +30,7 @@ from services.rrd.decoder import decode_message
 from services.rrd.frames import MESSAGE_HEADER_SIZE, STREAM_HEADER_SIZE, decode_message_header, decode_stream_header
 from services.rrd.messages import ArrowMessage, Event, StreamStart
 from services.runs.download import FLUSH_BYTES, EntityFilter, TimeWindow, encode_run
-from services.runs.latest_at import MAY_KEEP_READS, ChunkEntry, may_keep, pick_rows, select_chunks
+from services.runs.latest_at import ChunkEntry, may_keep, pick_rows, select_chunks
 from services.sealed.index import IndexTable
 from services.storage import readahead
 from services.storage.objectstore import ObjectStore
@@ -226,8 +226,7 @@ class _PlanIndex:
         """Of the chunks at `positions`, those `window` may keep, worked out from an index read as
         columns (`latest_at.may_keep`); all of them otherwise."""
         if isinstance(self.rows, IndexTable) and positions:
-            columns = self.rows.columns(positions, MAY_KEEP_READS)
-            kept = may_keep(columns, window.timeline, window.bounds, window.latest_at)
+            kept = may_keep(self.rows, positions, window.timeline, window.bounds, window.latest_at)
             if kept is not None:
                 return [positions[i] for i in np.flatnonzero(kept).tolist()]
         return positions

@@ -25,7 +25,7 @@ import pyarrow.compute as pc
 
 from services.rrd.chunk import ChunkMeta, read_chunk
 from services.rrd.messages import ArrowMessage
-from services.sealed.index import flags, one_array
+from services.sealed.index import IndexTable, flags, one_array
 
 
 @dataclass(frozen=True)
@@ -104,18 +104,21 @@ def _candidates(entries: list[ChunkEntry], lo: int) -> set[bytes]:
     return out
 
 
-MAY_KEEP_READS = ("store_kind", "is_static", "timelines", "component_ranges", "entity_path")  # index columns
+_MAY_KEEP_READS = ("store_kind", "is_static", "timelines", "component_ranges", "entity_path")  # of the index
 
 
-def may_keep(chunks: pa.Table, timeline: str, bounds: tuple[int, int], latest_at: bool) -> Any | None:
-    """`select_chunks` from a sealed index's columns (`IndexTable.columns` of chunk rows), without
-    making their rows: which of `chunks` it may keep, a boolean numpy array. Those it keeps for sure
+def may_keep(
+    index: IndexTable, positions: list[int], timeline: str, bounds: tuple[int, int], latest_at: bool
+) -> Any | None:
+    """`select_chunks` from a sealed index's columns, without making their rows: which of the chunks
+    at `positions` it may keep, a boolean numpy array (one per position). Those it keeps for sure
     (blueprint and static ones, those overlapping the window), and with `latest_at` per entity and
     component the chunks reaching the start and those ending last before it, as `_candidates` has
     them. Of these alone `select_chunks` keeps what it keeps of all (the newest end and every
     straddling member of each group are among them), so a window of a long run makes the rows of a
     few chunks, not of all its entity's. None where the columns cannot tell: an index from before
     per-component ranges (`_known` then reads chunks)."""
+    chunks = index.columns(positions, _MAY_KEEP_READS)  # only what is read here is taken
     lo, hi = bounds
     always = ~flags(pc.equal(chunks.column("store_kind"), "recording")) | flags(chunks.column("is_static"))
     span_min, span_max, on_timeline = _spans(one_array(chunks.column("timelines")), timeline, chunks.num_rows)

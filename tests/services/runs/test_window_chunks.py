@@ -120,7 +120,7 @@ def test_a_closed_window_without_latest_at_keeps_exactly_its_overlapping_static_
         or rows[i].is_static
         or any(t.name == "frame" and t.max >= 1000 and t.min <= 1100 for t in rows[i].timelines)
     ]
-    kept = may_keep(table.columns(positions), "frame", window.bounds, False)
+    kept = may_keep(table, positions, "frame", window.bounds, False)
     assert kept is not None and [positions[i] for i in kept.nonzero()[0]] == expected
 
 
@@ -132,7 +132,7 @@ def test_an_index_from_before_component_ranges_plans_over_every_chunk():
     plan = _PlanIndex.of(table)
     positions = plan.chunks(EntityFilter(["/robot/battery"]))
     window = TimeWindow("frame", 2000, 2100)  # latest-at: the chunks before it must be read to tell
-    assert may_keep(table.columns(positions), "frame", window.bounds, True) is None
+    assert may_keep(table, positions, "frame", window.bounds, True) is None
     assert plan.window_chunks(positions, window) == positions
     without = TimeWindow("frame", 2000, 2100, latest_at=False)  # what overlaps is in the columns
     assert len(plan.window_chunks(positions, without)) < len(positions) / 3
