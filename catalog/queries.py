@@ -398,6 +398,17 @@ def lifecycle(session: Session, run_id: str) -> RunLifecycle | None:
     return session.get(RunLifecycle, run_id)
 
 
+def run_and_lifecycle(session: Session, run_id: str) -> tuple[Run, RunLifecycle] | None:
+    """A sealed run's row and its lifecycle in one query (what every read of a sealed run asks
+    first); None if the run is unknown or was never sealed."""
+    if not is_id(run_id):
+        return None
+    found = session.execute(
+        sa.select(Run, RunLifecycle).join(RunLifecycle, RunLifecycle.run_id == Run.id).where(Run.id == run_id)
+    ).first()
+    return (found[0], found[1]) if found is not None else None
+
+
 def run_objects(session: Session, run_id: str) -> dict[str, RunObject]:
     return {o.name: o for o in session.scalars(sa.select(RunObject).where(RunObject.run_id == run_id))}
 

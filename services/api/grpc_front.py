@@ -22,11 +22,8 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import fcntl
 import logging
-import os
 import socket
-from collections.abc import Callable
 
 from hpack import Encoder, HeaderTuple
 
@@ -42,6 +39,7 @@ from services.api.h2 import (
     header_frames,
 )
 from services.api.h2_writes import WRITE_PATH, WriteServer
+from services.storage.splice import Ending, Splice
 
 log = logging.getLogger("fleet.grpc")
 
@@ -51,8 +49,6 @@ SNIFF_LIMIT = 1 << 20
 HTTP1_LIMIT = 16384
 SNIFF_TIMEOUT_S = 10.0
 READ_BYTES = 65536
-PIPE_BYTES = 1 << 20
-_SPLICE_FLAGS = os.SPLICE_F_MOVE | os.SPLICE_F_NONBLOCK
 
 
 def _plain_scheme(value: bytes) -> bytes:
@@ -147,78 +143,11 @@ def http1_answer(request: bytes, version: str) -> bytes:
     return head if method == "HEAD" else head + data
 
 
-class _Splice:
-    """Moves a byte stream from one socket to another inside the kernel (splice(2) through a pipe):
-    no copy into Python, and one callback per read however much it moved. Stops reading while the
-    destination cannot take more (back-pressure), and half-closes the destination at end of stream."""
-
-    def __init__(
-        self, loop: asyncio.AbstractEventLoop, src: socket.socket, dst: socket.socket, done: Callable[[bool], None]
-    ) -> None:
-        self._loop, self._src, self._dst, self._done = loop, src.fileno(), dst.fileno(), done
-        self._dst_sock = dst
-        self._read_end, self._write_end = os.pipe2(os.O_NONBLOCK | os.O_CLOEXEC)
-        with contextlib.suppress(OSError):  # a larger pipe moves big messages in fewer calls
-            fcntl.fcntl(self._write_end, fcntl.F_SETPIPE_SZ, PIPE_BYTES)
-        self._room = fcntl.fcntl(self._write_end, fcntl.F_GETPIPE_SZ)
-        self._held = 0  # bytes in the pipe
-        self._eof = False
-        self.closed = False
-        loop.add_reader(self._src, self._readable)
-
-    def _readable(self) -> None:
-        try:
-            moved = os.splice(self._src, self._write_end, self._room - self._held, flags=_SPLICE_FLAGS)
-        except BlockingIOError:
-            return
-        except OSError:
-            moved = 0  # reset by the peer: the same as its end
-        if moved == 0:
-            self._eof = True
-            self._loop.remove_reader(self._src)
-        self._held += moved
-        self._flush()
-
-    def _flush(self) -> None:
-        try:
-            while self._held:
-                self._held -= os.splice(self._read_end, self._dst, self._held, flags=_SPLICE_FLAGS)
-        except BlockingIOError:  # the destination is full: wait until it drains, reading nothing
-            if not self._eof:
-                self._loop.remove_reader(self._src)
-            self._loop.add_writer(self._dst, self._writable)
-            return
-        except OSError:
-            self.close(failed=True)
-            return
-        if self._eof:
-            with contextlib.suppress(OSError):
-                self._dst_sock.shutdown(socket.SHUT_WR)
-            self.close()
-
-    def _writable(self) -> None:
-        self._loop.remove_writer(self._dst)
-        self._flush()
-        if not self.closed and not self._held and not self._eof:
-            self._loop.add_reader(self._src, self._readable)
-
-    def close(self, failed: bool = False) -> None:
-        """Stop moving bytes (at the end of the stream, or when either side failed)."""
-        if self.closed:
-            return
-        self.closed = True
-        self._loop.remove_reader(self._src)
-        self._loop.remove_writer(self._dst)
-        os.close(self._read_end)
-        os.close(self._write_end)
-        self._done(failed)
-
-
 class _Connection:
     """One client connection on the public gRPC port, from the first byte to its close.
 
     `run` reads the start of the connection and decides; from then on the kernel moves the bytes
-    (`_Splice`), except from a client whose headers need rewriting, which `run` keeps reading. The
+    (`services.storage.splice`), except from a client whose headers need rewriting, which `run` keeps reading. The
     sockets are closed by whoever finishes last, and never while `run` may still wait on them."""
 
     def __init__(
@@ -232,7 +161,7 @@ class _Connection:
         self._loop, self._upstream_path, self._version, self._writes = loop, upstream_path, version, writes
         self._client: socket.socket | None = client
         self._upstream: socket.socket | None = None
-        self._splices: list[_Splice] = []
+        self._splices: list[Splice] = []
         self._task: asyncio.Task[None] | None = None
         self._closed = False
 
@@ -288,10 +217,10 @@ class _Connection:
             client, self._client = self._require_client(), None  # the write server's from now on
             await self._writes.take(client, stream.held)
             return True
-        self._splices.append(_Splice(self._loop, upstream, self._require_client(), self._one_way_done))
+        self._splice(upstream, self._require_client())
         if out is None:  # plain: what was held back, then the kernel moves the rest
             await self._loop.sock_sendall(upstream, stream.held)
-            self._splices.append(_Splice(self._loop, self._require_client(), upstream, self._one_way_done))
+            self._splice(self._require_client(), upstream)
             return True
         await self._loop.sock_sendall(upstream, out)
         while data := await self._recv():  # rewriting, for as long as the client sends
@@ -327,6 +256,17 @@ class _Connection:
 
     def _ended(self) -> bool:
         return all(splice.closed for splice in self._splices)
+
+    def _splice(self, src: socket.socket, dst: socket.socket) -> None:
+        """From now on the kernel moves what `src` sends to `dst`; at its end, `dst` is half-closed."""
+
+        def done(ending: Ending) -> None:
+            if ending is Ending.SOURCE_ENDED:
+                with contextlib.suppress(OSError):
+                    dst.shutdown(socket.SHUT_WR)
+            self._one_way_done(ending is Ending.DESTINATION_FAILED)
+
+        self._splices.append(Splice(self._loop, src.fileno(), dst.fileno(), done))
 
     def _one_way_done(self, failed: bool) -> None:
         """A spliced direction ended. Close when either side failed, when the server has closed a

@@ -16,9 +16,14 @@ hold for a head is HEAD_LIMIT and one read more).
 
 from __future__ import annotations
 
+import asyncio
+import socket
+from collections.abc import Awaitable, Callable
 from typing import Any
 
-from uvicorn.protocols.http.httptools_impl import HttpToolsProtocol
+from uvicorn.protocols.http.httptools_impl import HttpToolsProtocol, RequestResponseCycle
+
+from services.storage.splice import SPLICE_EXTENSION, SPLICE_MESSAGE, DestinationFailed, SourceEnded, splice_exactly
 
 HEAD_LIMIT = 64 * 1024  # a request line and headers longer than this are refused
 HEAD_TOO_LARGE = (
@@ -74,10 +79,75 @@ class BoundedHttpToolsProtocol(HttpToolsProtocol):
         self._count(len(name) + len(value) + 4)  # ": " and CRLF
         super().on_header(name, value)
 
+    def connection_made(self, transport: asyncio.Transport) -> None:  # type: ignore[override]
+        super().connection_made(transport)
+        sock = transport.get_extra_info("socket")
+        # splice(2) moves bytes as they are: not into a TLS connection, whose bytes Python encrypts
+        self.splices = (
+            sock is not None
+            and transport.get_extra_info("sslcontext") is None
+            and sock.family in (socket.AF_INET, socket.AF_INET6, socket.AF_UNIX)
+        )
+
     def on_headers_complete(self) -> None:
         self.in_head, self.read_in_head = False, 0
+        if self.splices:
+            self.scope.setdefault("extensions", {})[SPLICE_EXTENSION] = {}
+        before = self.cycle
         super().on_headers_complete()
+        if self.splices and self.cycle is not None and self.cycle is not before:
+            self.cycle.send = _splicing(self.cycle, self.cycle.send)  # type: ignore[method-assign,assignment]
 
     def on_message_complete(self) -> None:
         super().on_message_complete()
         self.in_head = True  # the next request on this connection (keep-alive)
+
+
+SPLICE_STALL_S = 60.0  # a source silent this long while the client waits is given up (the store read timeout)
+
+
+def _splicing(cycle: RequestResponseCycle, send: Callable[[Any], Awaitable[None]]) -> Callable[[Any], Awaitable[None]]:
+    """`cycle`'s ASGI send, also taking SPLICE_MESSAGE: `count` bytes of the response's body moved
+    by the kernel from the socket `fd` to the client's (services/storage/splice.py)."""
+
+    async def splicing_send(message: Any) -> None:
+        if message["type"] != SPLICE_MESSAGE:
+            await send(message)
+            return
+        count = int(message["count"])
+        if not cycle.response_started or cycle.response_complete or cycle.chunked_encoding is not False:
+            raise RuntimeError("a spliced body needs a response started with a Content-Length")
+        if count > cycle.expected_content_length:
+            raise RuntimeError("Response content longer than Content-Length")
+        if cycle.disconnected or cycle.scope["method"] == "HEAD":
+            return
+        await _drained(cycle)
+        if cycle.disconnected:
+            return
+        client = cycle.transport.get_extra_info("socket")
+        try:
+            await splice_exactly(int(message["fd"]), client.fileno(), count, SPLICE_STALL_S)
+        except SourceEnded as exc:
+            cycle.expected_content_length -= exc.moved
+            raise
+        except DestinationFailed:  # the client went away: the rest of the response is dropped, as uvicorn does
+            cycle.disconnected = True
+            cycle.transport.close()
+            return
+        cycle.expected_content_length -= count
+
+    return splicing_send
+
+
+async def _drained(cycle: RequestResponseCycle) -> None:
+    """Wait until the transport holds nothing unsent (the response's head, usually sent at once), so
+    that the spliced bytes follow it on the socket."""
+    transport = cycle.transport
+    if transport.get_write_buffer_size() == 0:
+        return
+    low, high = transport.get_write_buffer_limits()
+    transport.set_write_buffer_limits(high=0)  # the protocol is paused now, and resumed once it is empty
+    try:
+        await cycle.flow.drain()
+    finally:
+        transport.set_write_buffer_limits(high=high, low=low)

@@ -22,7 +22,8 @@ from services.ingest.routing import asking_for, owner_down, owner_elsewhere
 from services.rrd.frames import MessageKind, encode_message_header
 from services.runs import links, service
 from services.runs.recording import RecordingQuery, recording_download
-from services.runs.sending import in_slices
+from services.runs.sealed import WholeOnLoop
+from services.runs.sending import WholeObjectResponse, in_slices
 from services.runs.service import RunFilter, parse_properties, parse_time
 
 router = APIRouter()
@@ -157,17 +158,20 @@ async def recording(
         if down is None:
             raise
         raise OwnerDownError(run_id, down.node_id, down.peer_addr) from None
+    headers = {
+        "Content-Disposition": f'attachment; filename="{found.filename}"',
+        "ETag": found.etag,
+        **warnings_header(found.warnings),
+        # (a client shows progress; the server sends the body as it is, without chunked framing)
+        **({"Content-Length": str(found.size)} if found.size is not None else {}),
+    }
+    if isinstance(found.body, WholeOnLoop):  # the sealed object itself: the kernel may move it
+        return WholeObjectResponse(found.body, headers)
     followed = follow and isinstance(found.body, AsyncIterator)  # a hot run: as long as it is live
     return StreamingResponse(
         in_slices(until_grant_ends(request, principal, found.body) if followed else found.body),
         media_type="application/octet-stream",
-        headers={
-            "Content-Disposition": f'attachment; filename="{found.filename}"',
-            "ETag": found.etag,
-            **warnings_header(found.warnings),
-            # (a client shows progress; the server sends the body as it is, without chunked framing)
-            **({"Content-Length": str(found.size)} if found.size is not None else {}),
-        },
+        headers=headers,
     )
 
 

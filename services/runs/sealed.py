@@ -10,7 +10,7 @@ messages it keeps.
 
 from __future__ import annotations
 
-from collections.abc import AsyncIterator, Iterator
+from collections.abc import AsyncIterator, Awaitable, Callable, Iterator
 
 from services.runs.download import FLUSH_BYTES, EntityFilter, TimeWindow
 from services.runs.indexed import IndexedRecording, open_sealed_object, stream_indexed
@@ -23,6 +23,7 @@ from services.storage.objectstore import (
     supports_streaming,
 )
 from services.storage.readahead import pieces, read_ahead, stream_ahead
+from services.storage.splice import Source, SourceEnded
 
 
 def indexed_recording(sealed: SealedRecording) -> IndexedRecording:
@@ -72,10 +73,54 @@ async def loop_resumed(store: LoopReadingStore, key: str, size: int) -> AsyncIte
                 raise
 
 
-def whole_on_loop(sealed: SealedRecording) -> AsyncIterator[memoryview] | None:
+class WholeOnLoop(AsyncIterator[memoryview]):
+    """The sealed object itself, read on the event loop: iterated, its pieces as they arrive
+    (`loop_resumed`), or, where the store's answers can be handed over, moved by the kernel from the
+    store's socket to the client's (`send_by_splice`, which a server offering it calls)."""
+
+    def __init__(self, store: LoopReadingStore, key: str, size: int) -> None:
+        self.store, self.key, self.size = store, key, size
+        self._pieces: AsyncIterator[memoryview] | None = None
+
+    async def __anext__(self) -> memoryview:
+        if self._pieces is None:
+            self._pieces = loop_resumed(self.store, self.key, self.size)
+        return await anext(self._pieces)
+
+    def splices(self) -> bool:
+        return self.store.loop_splices()
+
+    async def send_by_splice(
+        self, write: Callable[[bytes], Awaitable[None]], splice: Callable[[Source], Awaitable[None]]
+    ) -> None:
+        """The object sent with `write` (the bytes that came with a GET's head) and `splice` (the
+        rest of that GET's body; raises SourceEnded naming what it moved), a GET that breaks off
+        taken up again where it stopped, as `loop_resumed` does."""
+        offset, failures = 0, 0
+        while offset < self.size:
+            try:
+                async with self.store.loop_open(self.key, offset, self.size - offset) as source:
+                    if source.leading:
+                        await write(source.leading)
+                        offset += len(source.leading)
+                    try:
+                        await splice(source)
+                    except SourceEnded as exc:
+                        offset += exc.moved
+                        raise StorageError(
+                            f"{self.key!r} broke off after {offset} of {self.size} bytes: {exc}"
+                        ) from exc
+                    offset += source.left
+            except StorageError:
+                failures += 1
+                if failures >= STREAM_ATTEMPTS:
+                    raise
+
+
+def whole_on_loop(sealed: SealedRecording) -> WholeOnLoop | None:
     """The sealed object itself, read on the event loop, where its store allows it (else None)."""
     store = sealed.store
-    return loop_resumed(store, sealed.key, sealed.size) if supports_loop_reads(store) else None
+    return WholeOnLoop(store, sealed.key, sealed.size) if supports_loop_reads(store) else None
 
 
 def stream_sealed(

@@ -8,9 +8,14 @@ socket takes at once, each goes to the kernel as it is, a view of the piece, nev
 
 from __future__ import annotations
 
-from collections.abc import AsyncIterable, AsyncIterator, Iterable
+from collections.abc import AsyncIterable, AsyncIterator, Iterable, Mapping
 
 from starlette.concurrency import iterate_in_threadpool
+from starlette.responses import StreamingResponse
+from starlette.types import Receive, Scope, Send
+
+from services.runs.sealed import WholeOnLoop
+from services.storage.splice import SPLICE_EXTENSION, SPLICE_MESSAGE, Source
 
 SEND_BYTES = 1 << 20  # about what a loopback or LAN socket's send buffer takes in one call
 
@@ -28,3 +33,34 @@ async def in_slices(
         view = memoryview(piece)
         for start in range(0, len(view), size):
             yield view[start : start + size]
+
+
+class WholeObjectResponse(StreamingResponse):
+    """A sealed object sent whole. Where the server offers to splice into the client's connection
+    (the ASGI extension `SPLICE_EXTENSION`: the REST port's protocol, on a plain TCP connection)
+    and the store's answers can be handed over, the kernel moves the object from the store's socket
+    to the client's and the body never passes through Python; otherwise it is streamed in slices."""
+
+    def __init__(self, whole: WholeOnLoop, headers: Mapping[str, str]) -> None:
+        super().__init__(in_slices(whole), media_type="application/octet-stream", headers=headers)
+        self.whole = whole
+        self.spliced = False  # whether it was sent by splice (for tests and counters)
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        self.spliced = SPLICE_EXTENSION in scope.get("extensions", {}) and self.whole.splices()
+        await super().__call__(scope, receive, send)
+
+    async def stream_response(self, send: Send) -> None:
+        if not self.spliced:
+            await super().stream_response(send)
+            return
+        await send({"type": "http.response.start", "status": self.status_code, "headers": self.raw_headers})
+
+        async def write(data: bytes) -> None:
+            await send({"type": "http.response.body", "body": data, "more_body": True})
+
+        async def splice(source: Source) -> None:
+            await send({"type": SPLICE_MESSAGE, "fd": source.fd, "count": source.left})
+
+        await self.whole.send_by_splice(write, splice)
+        await send({"type": "http.response.body", "body": b"", "more_body": False})

@@ -77,7 +77,10 @@ def _when(value: dt.datetime | None) -> str:
 
 def locate_sealed(catalog: sessionmaker[Session], warm: ObjectStore, run_id: str, now: dt.datetime) -> SealedRecording:
     """Where a run that left the hot tier can be read: the warm store (cold runs once restored).
-    A cold run not restored is a CONFLICT saying how to restore it; a deleted one is GONE."""
+    A cold run not restored is a CONFLICT saying how to restore it; a deleted one is GONE. The
+    recording's size is the store's (a HEAD): a sealing of late data that failed half-way leaves a
+    new recording beside the catalog's old figures, and a store that cannot be reached is an error
+    before any answer has started."""
     return open_sealed(warm, sealed_prefix(catalog, run_id, now))
 
 
@@ -85,11 +88,10 @@ def sealed_prefix(catalog: sessionmaker[Session], run_id: str, now: dt.datetime)
     """The prefix of a sealed run's objects in the warm store, checked as `locate_sealed` checks it,
     for readers that need its recording but not its chunk index."""
     with session_scope(catalog) as session:
-        run = queries.get_run(session, run_id)
-        life = queries.lifecycle(session, run_id)
-        if run is None or life is None:
+        found = queries.run_and_lifecycle(session, run_id)
+        if found is None:
             raise queries.run_not_found(run_id)
-        return readable_prefix(run, life, now)
+        return readable_prefix(*found, now)
 
 
 def readable_prefix(run: Run, life: RunLifecycle, now: dt.datetime) -> str:

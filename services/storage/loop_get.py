@@ -20,6 +20,7 @@ a scripted server and SeaweedFS).
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import re
 import ssl
 from collections import deque
@@ -30,6 +31,7 @@ from urllib.parse import urlsplit
 
 from core.errors import ConflictError
 from services.storage.objectstore import STREAM_DEPTH, STREAM_PIECE_BYTES, ObjectNotFoundError, StorageError
+from services.storage.splice import Source
 
 HEAD_LIMIT = 64 * 1024  # a store's answer head longer than this is refused
 LENT_SPARE = 2  # buffers kept beyond `depth` and the one being filled: pieces the sender still writes
@@ -53,8 +55,10 @@ class Reading:
 class _Answer(asyncio.BufferedProtocol):
     """The store's answer as it arrives: its head parsed, then its body cut into pieces."""
 
-    def __init__(self, reading: Reading, start: int, length: int) -> None:
+    def __init__(self, reading: Reading, start: int, length: int, hand_over: bool = False) -> None:
         self.reading = reading
+        self.hand_over = hand_over  # stop reading once the head is in: the socket's rest is the caller's
+        self.leading = b""  # with hand_over: the body's bytes that came with the head
         self.start, self.length = start, length
         self.transport: asyncio.Transport | None = None
         self.head = bytearray(HEAD_LIMIT)
@@ -135,6 +139,13 @@ class _Answer(asyncio.BufferedProtocol):
         rest = bytes(self.head[end + 4 : self.head_len])
         self._take_head(bytes(self.head[:end]))
         self.head = bytearray()
+        if self.hand_over and self.failure is None and self.refused is None:
+            self.leading = rest[: self.length]
+            self.received = len(self.leading)
+            if self.transport is not None:
+                self.transport.pause_reading()
+            self._wake()
+            return
         while rest and self.failure is None:  # the body's first bytes came with the head
             view = self.get_buffer(len(rest))
             taken = min(len(view), len(rest))
@@ -201,6 +212,25 @@ class _Answer(asyncio.BufferedProtocol):
             self._waiter.set_result(None)
 
     # -- the reader's side
+    async def head_read(self) -> None:
+        """Wait for the head of an answer read for hand-over; raises what the store answered instead."""
+        while self.status == 0 or self.refused is not None:
+            if self.failure is not None:
+                raise self.failure
+            await self._wait()
+        if self.failure is not None:
+            raise self.failure
+
+    async def _wait(self) -> None:
+        self._waiter = asyncio.get_running_loop().create_future()
+        try:
+            async with asyncio.timeout(self.reading.read_timeout_s):
+                await self._waiter
+        except TimeoutError:
+            raise StorageError(
+                f"reading {self.reading.what}: the store sent nothing for {self.reading.read_timeout_s:g} s"
+            ) from None
+
     async def next_piece(self) -> memoryview | None:
         """The next piece of the body; None after the last."""
         while not self.ready:
@@ -208,14 +238,7 @@ class _Answer(asyncio.BufferedProtocol):
                 raise self.failure
             if self.received == self.length:
                 return None
-            self._waiter = asyncio.get_running_loop().create_future()
-            try:
-                async with asyncio.timeout(self.reading.read_timeout_s):
-                    await self._waiter
-            except TimeoutError:
-                raise StorageError(
-                    f"reading {self.reading.what}: the store sent nothing for {self.reading.read_timeout_s:g} s"
-                ) from None
+            await self._wait()
         piece = self.ready.popleft()
         if self.paused and len(self.ready) < self.reading.depth and self.transport is not None:
             self.paused = False
@@ -273,11 +296,42 @@ async def get(url: str, start: int, length: int, reading: Reading) -> AsyncItera
     any other failure (naming `reading.what`, never the URL)."""
     if length <= 0:
         return
+    answer = _Answer(reading, start, length)
+    transport = await _ask(url, start, answer, reading)
+    try:
+        while (piece := await answer.next_piece()) is not None:
+            yield piece
+    finally:
+        transport.close()
+
+
+def spliceable(url: str) -> bool:
+    """Whether a GET of `url` can be handed over (`opened`): plain HTTP, whose bytes need no decrypting."""
+    return urlsplit(url).scheme == "http"
+
+
+@contextlib.asynccontextmanager
+async def opened(url: str, start: int, length: int, reading: Reading) -> AsyncIterator[Source]:
+    """As `get`, answered and its head checked, but the body is the caller's to read from the socket
+    while the context is open (a plain-HTTP `url`: `spliceable`). The same errors as `get`."""
+    if not spliceable(url):
+        raise StorageError(f"reading {reading.what}: only a plain-HTTP answer can be handed over")
+    answer = _Answer(reading, start, length, hand_over=True)
+    transport = await _ask(url, start, answer, reading)
+    try:
+        await answer.head_read()
+        sock = transport.get_extra_info("socket")
+        yield Source(answer.leading, sock.fileno(), length - len(answer.leading))
+    finally:
+        transport.close()
+
+
+async def _ask(url: str, start: int, answer: _Answer, reading: Reading) -> asyncio.Transport:
+    """A connection to the store with the GET of `url` from `start` sent, `answer` reading it."""
     parts = urlsplit(url)
     if parts.scheme not in ("http", "https") or parts.hostname is None:
         raise StorageError(f"reading {reading.what}: not an http(s) URL")
     tls = (reading.tls or ssl.create_default_context()) if parts.scheme == "https" else None
-    answer = _Answer(reading, start, length)
     loop = asyncio.get_running_loop()
     try:
         async with asyncio.timeout(reading.connect_timeout_s):
@@ -286,13 +340,9 @@ async def get(url: str, start: int, length: int, reading: Reading) -> AsyncItera
             )
     except (OSError, TimeoutError) as exc:
         raise StorageError(f"reading {reading.what}: cannot reach the store: {exc or 'timed out'}") from None
-    try:
-        target = parts.path + (f"?{parts.query}" if parts.query else "")
-        ranged = f"Range: bytes={start}-\r\n" if start else ""  # from 0: the object as it is sent whole
-        transport.write(
-            f"GET {target} HTTP/1.1\r\nHost: {parts.netloc}\r\n{ranged}Connection: close\r\n\r\n".encode("ascii")
-        )
-        while (piece := await answer.next_piece()) is not None:
-            yield piece
-    finally:
-        transport.close()
+    target = parts.path + (f"?{parts.query}" if parts.query else "")
+    ranged = f"Range: bytes={start}-\r\n" if start else ""  # from 0: the object as it is sent whole
+    transport.write(
+        f"GET {target} HTTP/1.1\r\nHost: {parts.netloc}\r\n{ranged}Connection: close\r\n\r\n".encode("ascii")
+    )
+    return transport

@@ -8,11 +8,13 @@ import io
 import os
 import re
 from collections.abc import AsyncIterator, Iterator
+from contextlib import AbstractAsyncContextManager
 from dataclasses import dataclass
 from typing import BinaryIO, Protocol, TypeGuard
 from urllib.parse import urlparse
 
 from core.errors import NotFoundError, UnavailableError
+from services.storage.splice import Source
 
 _SAFE_KEY = re.compile(r"^[A-Za-z0-9._\-/=]+$")  # "=": Hive partitions (robot_id=R/)
 
@@ -130,6 +132,15 @@ class LoopReadingStore(ObjectStore, Protocol):
     def loop_read(self, key: str, start: int, length: int) -> AsyncIterator[memoryview]:
         """`key` from `start` to its end (`length` bytes, as the caller knows the object), in pieces
         of at most STREAM_PIECE_BYTES, read as the caller takes them, STREAM_DEPTH ahead at most."""
+        ...
+
+    def loop_splices(self) -> bool:
+        """Whether `loop_open` can hand a read over (the store spoken to in plain HTTP)."""
+        ...
+
+    def loop_open(self, key: str, start: int, length: int) -> AbstractAsyncContextManager[Source]:
+        """As `loop_read`, the answer's head read, its body left in the socket for the caller to
+        splice to a client while the context is open (only where `loop_splices`)."""
         ...
 
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import os
 import ssl
 import threading
@@ -29,6 +30,7 @@ from services.storage.objectstore import (
     check_key,
 )
 from services.storage.readahead import READ_THREADS
+from services.storage.splice import Source
 
 # Verified by the server on every put and part: a body damaged on the way is refused. CRC32, as
 # botocore and AWS's SDKs default to: it catches transmission damage as well as a digest does, needs
@@ -179,10 +181,22 @@ class S3Store:
         signed for this read alone: the request carries a signature good for READ_URL_TTL_S, never
         a credential."""
         url, tls = await asyncio.to_thread(self._signed_read, key)
-        what = f"{key!r} from {self.url}"
-        reading = loop_get.Reading(what, connect_timeout_s=CONNECT_TIMEOUT_S, read_timeout_s=READ_TIMEOUT_S, tls=tls)
-        async for piece in loop_get.get(url, start, length, reading):
+        async for piece in loop_get.get(url, start, length, self._reading(key, tls)):
             yield piece
+
+    def loop_splices(self) -> bool:
+        return self.loop_reads and loop_get.spliceable(self.endpoint_url or "https:")
+
+    @contextlib.asynccontextmanager
+    async def loop_open(self, key: str, start: int, length: int) -> AsyncIterator[Source]:
+        """As `loop_read`, its body left in the socket to be spliced to a client (plain HTTP only)."""
+        url, tls = await asyncio.to_thread(self._signed_read, key)
+        async with loop_get.opened(url, start, length, self._reading(key, tls)) as source:
+            yield source
+
+    def _reading(self, key: str, tls: ssl.SSLContext | None) -> loop_get.Reading:
+        what = f"{key!r} from {self.url}"
+        return loop_get.Reading(what, connect_timeout_s=CONNECT_TIMEOUT_S, read_timeout_s=READ_TIMEOUT_S, tls=tls)
 
     def _signed_read(self, key: str) -> tuple[str, ssl.SSLContext | None]:
         # signed for the depot's own endpoint, not the one clients reach

@@ -169,3 +169,18 @@ def test_a_row_the_catalog_refuses_is_its_error_on_both_catalogs(session: Sessio
     twice = [EntityRecord("/same", 1, 0, 1, 1, [], []), EntityRecord("/same", 2, 0, 2, 2, [], [])]
     with pytest.raises(sa.exc.IntegrityError):
         queries.save_run(session, _record(entities=twice), NOW)
+
+
+def test_a_sealed_run_and_its_lifecycle_are_one_lookup(session: Session):
+    record = _record(status="closed", ended_at=NOW)
+    queries.save_run(session, record, NOW)
+    session.flush()
+    assert queries.run_and_lifecycle(session, "run-1") is None  # not sealed: no lifecycle
+    queries.record_promotion(session, record, "warm/run-1", [], NOW, "sealed")
+    session.flush()
+    found = queries.run_and_lifecycle(session, "run-1")
+    assert found is not None
+    run, life = found
+    assert (run.id, run.status, life.run_id, life.prefix) == ("run-1", "closed", "run-1", "warm/run-1")
+    assert queries.run_and_lifecycle(session, "no-such-run") is None
+    assert queries.run_and_lifecycle(session, "../x") is None

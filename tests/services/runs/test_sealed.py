@@ -16,12 +16,14 @@ from collections import Counter
 from pathlib import Path
 from typing import Any
 
+import httpx
 import pyarrow.parquet as pq
 import pytest
 from fastapi.testclient import TestClient
 
 from catalog import queries
 from catalog.db import session_scope
+from services.api import http_protocol
 from services.api.app import create_app
 from services.retention import archive
 from services.retention.service import PROMOTE, plan, run_plan
@@ -39,7 +41,9 @@ from services.sealed.tiers import Tiers
 from services.sealed.write import INDEX, RECORDING
 from services.storage.objectstore import open_store
 from services.storage.s3 import S3Store
+from services.storage.splice import splice_exactly
 from tests.conftest import find_rerun
+from tests.services.api.served import served
 from tests.services.retention import conftest as retention
 from tests.services.retention.conftest import Clock, Node, NodeFactory, log_run
 from tests.services.runs.decoded import stream_run
@@ -307,6 +311,21 @@ def test_unfiltered_warm_download_is_the_sealed_object(tiers: Tiers, make_node: 
     assert response.status_code == 200 and response.content == stored
 
 
+def _sealed_on_seaweed(
+    endpoint: str, make_node: NodeFactory, run: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> tuple[Node, str, bytes]:
+    """A node whose tiers are in the SeaweedFS at `endpoint`, with `run` uploaded and promoted: the
+    node, the run's id and its sealed recording's bytes."""
+    for name in ("AWS_ACCESS_KEY_ID", "AWS_SECRET_ACCESS_KEY"):
+        monkeypatch.setenv(name, "test")
+    warm, cold = (
+        open_store(f"s3://{s3_backends.BUCKET}/{tmp_path.name}/{tier}", endpoint_url=endpoint, region="us-east-1")
+        for tier in ("warm", "cold")
+    )
+    node, run_id = _node(make_node, Tiers(warm, cold), run)
+    return node, run_id, warm.get_range(f"{_promote(node, run_id)}/{RECORDING}")
+
+
 @pytest.mark.s3server
 @pytest.mark.slow
 def test_a_whole_download_from_s3_is_read_on_the_event_loop(
@@ -318,16 +337,7 @@ def test_a_whole_download_from_s3_is_read_on_the_event_loop(
 ):
     """On a real S3 server the sealed object goes to the client by one GET the event loop reads
     (`S3Store.loop_read`), not through botocore in a thread."""
-    for name in ("AWS_ACCESS_KEY_ID", "AWS_SECRET_ACCESS_KEY"):
-        monkeypatch.setenv(name, "test")
-    warm, cold = (
-        open_store(
-            f"s3://{s3_backends.BUCKET}/{tmp_path.name}/{tier}", endpoint_url=seaweed_endpoint, region="us-east-1"
-        )
-        for tier in ("warm", "cold")
-    )
-    node, run_id = _node(make_node, Tiers(warm, cold), runs["wide"])
-    stored = warm.get_range(f"{_promote(node, run_id)}/{RECORDING}")
+    node, run_id, stored = _sealed_on_seaweed(seaweed_endpoint, make_node, runs["wide"], tmp_path, monkeypatch)
 
     def in_a_thread(*_: object, **__: object) -> None:
         raise AssertionError("the whole object was read through botocore in a thread")
@@ -336,6 +346,38 @@ def test_a_whole_download_from_s3_is_read_on_the_event_loop(
     response = TestClient(_app(node)).get(f"/v1/runs/{run_id}/recording.rrd")
     assert response.status_code == 200 and response.content == stored
     assert response.headers["content-length"] == str(len(stored))
+
+
+@pytest.mark.s3server
+@pytest.mark.slow
+def test_a_whole_download_from_s3_is_spliced_into_the_client_s_connection(
+    seaweed_endpoint: str,
+    make_node: NodeFactory,
+    runs: dict[str, Path],
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+):
+    """Behind the REST port's real HTTP server, the sealed object's bytes go from the store's socket
+    to the client's by splice (all but those that came with the GET's head), the connection stays
+    good for the next request, and a filtered download is streamed as before."""
+    node, run_id, stored = _sealed_on_seaweed(seaweed_endpoint, make_node, runs["wide"], tmp_path, monkeypatch)
+    spliced: list[int] = []
+
+    async def counted(src: int, dst: int, count: int, stall_s: float) -> None:
+        await splice_exactly(src, dst, count, stall_s)
+        spliced.append(count)
+
+    monkeypatch.setattr(http_protocol, "splice_exactly", counted)
+    with served(_app(node)) as url, httpx.Client(base_url=url) as client:
+        whole = client.get(f"/v1/runs/{run_id}/recording.rrd")
+        assert whole.status_code == 200 and whole.content == stored
+        assert len(spliced) == 1 and len(stored) - 65536 < spliced[0] <= len(stored)
+        one = client.get(f"/v1/runs/{run_id}/recording.rrd", params={"include": "/world/e3"})
+        assert one.status_code == 200 and one.content == _get(TestClient(_app(node)), run_id, {"include": "/world/e3"})
+        assert len(spliced) == 1  # a filtered download is made by the depot, not spliced
+        again = client.get(f"/v1/runs/{run_id}/recording.rrd")
+        assert again.content == stored and len(spliced) == 2
+        assert client.get("/healthz").status_code == 200  # the kept-alive connection after them
 
 
 # --- one URL, any tier -------------------------------------------------------------------------

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import asyncio
 import os
+import socket
 from collections.abc import AsyncGenerator, AsyncIterator, Awaitable, Callable, Iterator
 from pathlib import Path
 from typing import cast
@@ -295,3 +296,66 @@ def test_a_reader_that_stops_early_closes_the_store_s_connection():
         return closed.is_set()
 
     assert asyncio.run(main())
+
+
+def handed_over(handler: Handler, length: int) -> tuple[bytes, bytes]:
+    """What `loop_get.opened` gives for a scripted answer: the bytes that came with the head, and
+    the rest as read from the socket it hands over."""
+
+    async def main() -> tuple[bytes, bytes]:
+        server = await asyncio.start_server(handler, "127.0.0.1", 0)
+        port = server.sockets[0].getsockname()[1]
+        loop = asyncio.get_running_loop()
+        try:
+            what = loop_get.Reading("'r/recording.rrd' from s3://b/p", read_timeout_s=5)
+            url = f"http://127.0.0.1:{port}/b/p/r/recording.rrd?{SECRET_QUERY}"
+            async with loop_get.opened(url, 0, length, what) as source:
+                rest = bytearray()
+                with socket.socket(fileno=os.dup(source.fd)) as sock:  # read here as a splice would
+                    while len(rest) < source.left and (more := await loop.sock_recv(sock, source.left - len(rest))):
+                        rest += more
+                return source.leading, bytes(rest)
+        finally:
+            server.close()
+
+    return asyncio.run(main())
+
+
+def test_an_answer_handed_over_leaves_its_body_in_the_socket_after_what_came_with_the_head():
+    def handler(split: int) -> Handler:
+        async def handle(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+            await reader.readuntil(b"\r\n\r\n")
+            writer.write(ok(DATA) + DATA[:split])  # the head and the body's first bytes at once
+            await writer.drain()
+            await asyncio.sleep(0.1)
+            writer.write(DATA[split:])
+            await writer.drain()
+            writer.close()
+
+        return handle
+
+    for split in (0, 1, 4000):
+        leading, rest = handed_over(handler(split), len(DATA))
+        assert leading == DATA[:split] and leading + rest == DATA
+
+
+@pytest.mark.parametrize(
+    ("head", "error"),
+    [(b"HTTP/1.1 404 Not Found\r\n\r\n", ObjectNotFoundError), (ok(DATA[:10]), StorageError)],
+    ids=["missing", "other-size"],
+)
+def test_an_answer_handed_over_is_checked_first(head: bytes, error: type[Exception]):
+    with pytest.raises(error) as raised:
+        handed_over(answering(head, DATA[:10]), len(DATA))
+    assert "recording.rrd" in str(raised.value) and "Signature" not in str(raised.value)
+
+
+def test_only_a_plain_http_answer_is_handed_over():
+    assert loop_get.spliceable("http://127.0.0.1:9000/b/k") and not loop_get.spliceable("https://s3.example/b/k")
+    with pytest.raises(StorageError, match="only a plain-HTTP answer"):
+        asyncio.run(_open_https())
+
+
+async def _open_https() -> None:
+    async with loop_get.opened("https://s3.example/b/k", 0, 10, loop_get.Reading("k")):
+        pass
