@@ -44,7 +44,7 @@ class WholeObjectResponse(StreamingResponse):
     def __init__(self, whole: WholeOnLoop, headers: Mapping[str, str]) -> None:
         super().__init__(in_slices(whole), media_type="application/octet-stream", headers=headers)
         self.whole = whole
-        self.spliced = False  # whether it was sent by splice (for tests and counters)
+        self.spliced = False  # whether this answer goes by splice: decided per request, in __call__
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         self.spliced = SPLICE_EXTENSION in scope.get("extensions", {}) and self.whole.splices()
