@@ -103,12 +103,10 @@ class BoundedHttpToolsProtocol(HttpToolsProtocol):
         self.in_head = True  # the next request on this connection (keep-alive)
 
 
-SPLICE_STALL_S = 60.0  # a source silent this long while the client waits is given up (the store read timeout)
-
-
 def _splicing(cycle: RequestResponseCycle, send: Callable[[Any], Awaitable[None]]) -> Callable[[Any], Awaitable[None]]:
     """`cycle`'s ASGI send, also taking SPLICE_MESSAGE: `count` bytes of the response's body moved
-    by the kernel from the socket `fd` to the client's (services/storage/splice.py)."""
+    by the kernel from the socket `fd` to the client's, given up if `fd` is silent for `stall_s`
+    (services/storage/splice.py)."""
 
     async def splicing_send(message: Any) -> None:
         if message["type"] != SPLICE_MESSAGE:
@@ -126,7 +124,7 @@ def _splicing(cycle: RequestResponseCycle, send: Callable[[Any], Awaitable[None]
             return
         client = cycle.transport.get_extra_info("socket")
         try:
-            await splice_exactly(int(message["fd"]), client.fileno(), count, SPLICE_STALL_S)
+            await splice_exactly(int(message["fd"]), client.fileno(), count, float(message["stall_s"]))
         except SourceEnded as exc:
             cycle.expected_content_length -= exc.moved
             raise

@@ -60,7 +60,7 @@ class WholeObjectResponse(StreamingResponse):
             await send({"type": "http.response.body", "body": data, "more_body": True})
 
         async def splice(source: Source) -> None:
-            await send({"type": SPLICE_MESSAGE, "fd": source.fd, "count": source.left})
+            await send({"type": SPLICE_MESSAGE, "fd": source.fd, "count": source.left, "stall_s": source.stall_s})
 
         await self.whole.send_by_splice(write, splice)
         await send({"type": "http.response.body", "body": b"", "more_body": False})

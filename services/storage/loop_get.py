@@ -321,7 +321,7 @@ async def opened(url: str, start: int, length: int, reading: Reading) -> AsyncIt
     try:
         await answer.head_read()
         sock = transport.get_extra_info("socket")
-        yield Source(answer.leading, sock.fileno(), length - len(answer.leading))
+        yield Source(answer.leading, sock.fileno(), length - len(answer.leading), reading.read_timeout_s)
     finally:
         transport.close()
 

@@ -23,8 +23,9 @@ from dataclasses import dataclass
 
 # How an ASGI app asks the server to splice into the client's connection: the server lists the
 # extension in a request's scope where it can (services/api/http_protocol.py), and the app, its
-# response started with a Content-Length, sends {"type": SPLICE_MESSAGE, "fd": socket, "count": n}
-# in place of n bytes of body. The server raises SourceEnded if the socket ends first.
+# response started with a Content-Length, sends {"type": SPLICE_MESSAGE, "fd": socket, "count": n,
+# "stall_s": t} in place of n bytes of body. The server raises SourceEnded if the socket ends first
+# or sends nothing for t seconds while the client waits on it.
 SPLICE_EXTENSION = "fleet.splice"
 SPLICE_MESSAGE = "fleet.splice.body"
 PIPE_BYTES = 1 << 20  # asked for each splice's pipe (Linux grants up to fs/pipe-max-size, 1 MiB by default)
@@ -134,6 +135,7 @@ class Source:
     leading: bytes  # the body's first bytes, which came with the head: sent before the splice
     fd: int  # the socket (non-blocking), its next byte the one after `leading`; its owner closes it
     left: int  # bytes of the body still to come on it
+    stall_s: float  # how long it may send nothing before it is given up (its store's read timeout)
 
 
 class SpliceBroke(Exception):

@@ -53,7 +53,7 @@ class SplicingApp:
         thread = threading.Thread(target=_feed, args=(feeder, payload[:cut] if cut is not None else payload))
         thread.start()
         try:
-            await send({"type": SPLICE_MESSAGE, "fd": source.fileno(), "count": n})
+            await send({"type": SPLICE_MESSAGE, "fd": source.fileno(), "count": n, "stall_s": 30})
             await send({"type": "http.response.body", "body": b""})
             self.outcomes.append("spliced")
         except SourceEnded as exc:

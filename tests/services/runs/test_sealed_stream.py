@@ -99,7 +99,7 @@ class SplicingStore(BreakingStore):
         thread = threading.Thread(target=_feed, args=(feeder, body[LEADING:]))
         thread.start()
         try:
-            yield Source(body[:LEADING], sock.fileno(), length - LEADING)
+            yield Source(body[:LEADING], sock.fileno(), length - LEADING, stall_s=10)
         finally:
             sock.close()
             await asyncio.to_thread(thread.join)
@@ -122,7 +122,7 @@ async def _spliced(store: SplicingStore) -> bytes:
         await loop.sock_sendall(out, data)
 
     async def splice(source: Source) -> None:
-        await splice_exactly(source.fd, out.fileno(), source.left, stall_s=10)
+        await splice_exactly(source.fd, out.fileno(), source.left, source.stall_s)
 
     async def read() -> None:
         while more := await loop.sock_recv(client, 65536):

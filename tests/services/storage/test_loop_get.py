@@ -310,6 +310,7 @@ def handed_over(handler: Handler, length: int) -> tuple[bytes, bytes]:
             what = loop_get.Reading("'r/recording.rrd' from s3://b/p", read_timeout_s=5)
             url = f"http://127.0.0.1:{port}/b/p/r/recording.rrd?{SECRET_QUERY}"
             async with loop_get.opened(url, 0, length, what) as source:
+                assert source.stall_s == what.read_timeout_s  # the store's read timeout, for the splice
                 rest = bytearray()
                 with socket.socket(fileno=os.dup(source.fd)) as sock:  # read here as a splice would
                     while len(rest) < source.left and (more := await loop.sock_recv(sock, source.left - len(rest))):
