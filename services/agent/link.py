@@ -21,6 +21,7 @@ import httpx
 
 from core.backoff import backoff_delay, jittered
 from core.errors import FleetError, InvalidArgumentError
+from sdk_client.grpc_status import ended, keep_status
 from sdk_client.rest import FleetClient, ServiceError
 
 log = logging.getLogger("fleet.agent")
@@ -125,7 +126,7 @@ class DepotLink:
 
     def open_stream(self) -> tuple[grpc.aio.StreamUnaryCall[Any, Any], int]:
         """A new stream, and the generation of the channel it runs on."""
-        return self._write(metadata=self._metadata, wait_for_ready=False), self.generation
+        return keep_status(self._write(metadata=self._metadata, wait_for_ready=False)), self.generation
 
     async def probe(self, timeout_s: float) -> bool:
         """Ask the depot's version on the streams' channel: an answer (any answer) within
@@ -212,6 +213,11 @@ def cancelled() -> bool:
     call on a channel that was closed ends with CancelledError too)."""
     task = asyncio.current_task()
     return task is not None and task.cancelling() > 0
+
+
+async def stream_ended(call: Any, failed: BaseException) -> Exception:
+    """What a failed write or half-close of `call` means, from the status the depot sent."""
+    return stream_failure(await ended(call, failed))
 
 
 def stream_failure(exc: BaseException) -> Exception:

@@ -25,11 +25,9 @@ from collections import deque
 from collections.abc import Callable
 from typing import Any
 
-import grpc
-
 from services.agent.bandwidth import Priority, TokenBucket
 from services.agent.lanes import Lane, PullJob
-from services.agent.link import Backoff, DepotLink, DepotRefused, LinkDown, cancelled, stream_failure
+from services.agent.link import Backoff, DepotLink, DepotRefused, LinkDown, cancelled, stream_ended
 from services.agent.spool import Spool
 from services.agent.state import AgentState, RunState
 from services.hot.index import HotEntry
@@ -203,8 +201,9 @@ class RunSender:
                 raise
             raise LinkDown("the connection to the depot was dropped (silent link)") from None
         except Exception as exc:  # grpc errors of the stream: refused or broken
+            failure = await stream_ended(call, exc)
             call.cancel()
-            raise stream_failure(exc) from exc
+            raise failure from exc
         finally:
             self.streaming = False
 
@@ -482,7 +481,7 @@ class RunSender:
                 raise
             raise LinkDown("the connection to the depot was dropped (silent link)") from None
         except Exception as exc:
-            raise stream_failure(await _outcome(call, exc)) from exc
+            raise await stream_ended(call, exc) from exc
         self.ctx.counters["messages_sent"] += 1
         self.ctx.counters["bytes_sent"] += len(request)
 
@@ -569,16 +568,3 @@ class RunSender:
             self.state.confirmed = True
             log.info("run %s: the depot holds it sealed (%s); the robot may delete its copy", self.run_id, held.tier)
         self.ctx.state.save_run(self.state)
-
-
-async def _outcome(call: Any, failed: Exception) -> BaseException:
-    """Why a write failed: a stream the depot ended (a refusal) says so in its own status, which the
-    failed write does not carry."""
-    try:
-        await asyncio.wait_for(call, 2.0)
-    except grpc.aio.AioRpcError as ended:
-        status: BaseException = ended
-        return status
-    except Exception:  # no status in time: the write's own error is all there is
-        return failed
-    return failed

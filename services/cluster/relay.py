@@ -18,6 +18,7 @@ from typing import Any
 import grpc
 
 from core.errors import ErrorCode, FleetError, UnavailableError
+from sdk_client.grpc_status import ended, keep_status, server_status
 from services.cluster.ownership import Owner
 from services.rrd.messages import ArrowMessage, BlueprintActivationMessage, Event, StoreInfoMessage
 from services.rrd.protowire import log_msg_envelope
@@ -130,13 +131,13 @@ class Relay:
     async def open(cls, channels: Channels, owner: Owner, metadata: Metadata) -> Relay:
         channel = await channels.ready(owner.peer_addr)
         method = channel.stream_unary(WRITE_METHOD, request_serializer=None, response_deserializer=None)
-        return cls(owner, method(metadata=tuple(metadata)))
+        return cls(owner, keep_status(method(metadata=tuple(metadata))))
 
     async def send(self, request: bytes | memoryview) -> None:
         try:  # grpc.aio writes bytes only (the front hands large requests over as views)
             await self._call.write(request if isinstance(request, bytes) else bytes(request))
-        except grpc.aio.AioRpcError as exc:
-            raise refusal_of(exc, self.owner) from None
+        except grpc.aio.AioRpcError as exc:  # the owner's refusal, when it is one, is in the call's status
+            raise refusal_of(await ended(self._call, exc), self.owner) from None
         except asyncio.InvalidStateError:  # the call already ended: its status says why
             await self.finish()
             raise UnavailableError(f"node {self.owner.node_id} ended the relay of run {self.owner.run_id}") from None
@@ -148,7 +149,7 @@ class Relay:
             await self._call
             return report_of(await self._call.trailing_metadata())
         except grpc.aio.AioRpcError as exc:
-            raise refusal_of(exc, self.owner) from None
+            raise refusal_of(server_status(self._call, exc), self.owner) from None
 
     def cancel(self) -> None:
         self._call.cancel()
