@@ -2,9 +2,9 @@
 
 grpc.aio replaces a stream's status with its own INTERNAL "Internal error from Core" when a write
 fails in the client's core after the server's answer arrived: a write still in flight as the server
-refused the stream mid-way (4 to 14% of such refusals here). The server's refusal would then read
-as a broken call, retried as one. `keep_status` records the status a call first ends with; `ended`
-gives the server's status of a failed write or half-close.
+refused the stream mid-way (7 to 43 of 300 refusals of a writing client here). The server's refusal
+would then read as a broken call, retried as one. `keep_status` records the status a call first
+ends with; `ended` gives the server's status of a failed write or half-close.
 
 The first status is read from the call's `_cython_call._status`, which grpc.aio itself reads to
 raise; tests/sdk_client/test_grpc_status.py pins it against a real server.
