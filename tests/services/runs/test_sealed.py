@@ -218,10 +218,11 @@ def test_exact_window_reads_only_the_candidate_chunks(
         out = io.BytesIO()
         pq.write_table(index.drop_columns(["component_ranges"]), out)
         tiers.warm.put(f"{prefix}/{INDEX}", out.getvalue())
-        # as a depot started after an older one sealed the run: no index of it parsed yet (the
-        # same recording sealed by another test in the same second would be found parsed)
-        with read._indexes_lock:
-            read._indexes.clear()
+    # As a depot started after the run was sealed: no index of it parsed yet. The same recording,
+    # sealed by another test of this process in the same second, has the same store, prefix, size and
+    # version: its index (perhaps the older one above) would be found parsed.
+    with read._indexes_lock:
+        read._indexes.clear()
     counting = CountingStore(tiers.warm)
     sealed = open_sealed(counting, prefix)
     assert (sealed.rows[-1].component_ranges is None) == old_index
