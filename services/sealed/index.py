@@ -116,7 +116,7 @@ def from_parquet(data: bytes) -> list[IndexRow]:
 def read_index(data: bytes) -> IndexTable:
     """A `chunks.parquet` as read: its columns, rows made when asked for (`IndexTable`)."""
     try:
-        table = pq.read_table(io.BytesIO(data))
+        table = pq.ParquetFile(io.BytesIO(data)).read()
         if "component_ranges" not in table.column_names:  # written before the column existed
             table = table.append_column(
                 "component_ranges", pa.nulls(table.num_rows, SCHEMA.field("component_ranges").type)
