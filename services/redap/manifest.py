@@ -31,6 +31,7 @@ from core.errors import InternalError, InvalidArgumentError, NotFoundError, Unav
 from services.auth.scopes import Principal
 from services.hot.read import HotRecording
 from services.redap import snapshots
+from services.redap.dataframe import ipc_stream
 from services.redap.datasets import segment_run
 from services.redap.depot import Depot
 from services.redap.keys import EPISODE_SEPARATOR, episode_chunk_id, key_column
@@ -224,25 +225,17 @@ def _ints(column: pa.ChunkedArray) -> Any:
 
 def _parts(batch: pa.RecordBatch) -> Iterator[common_pb2.DataframePart]:
     """One record batch per part (what Rerun's clients read of a part)."""
-    whole = _ipc(batch)
+    whole = ipc_stream(batch)
     count = max(1, math.ceil(len(whole) / PART_BYTES))
     if count == 1:
         yield _lz4_part(whole)
         return
     rows = math.ceil(batch.num_rows / count)
     for start in range(0, batch.num_rows, rows):
-        yield _lz4_part(_ipc(batch.slice(start, rows)))
+        yield _lz4_part(ipc_stream(batch.slice(start, rows)))
 
 
-def _ipc(batch: pa.RecordBatch) -> bytes:
-    sink = pa.BufferOutputStream()
-    with pa.ipc.new_stream(sink, batch.schema) as writer:
-        writer.write_batch(batch)
-    ipc: bytes = sink.getvalue().to_pybytes()
-    return ipc
-
-
-def _lz4_part(ipc: bytes) -> common_pb2.DataframePart:
+def _lz4_part(ipc: pa.Buffer) -> common_pb2.DataframePart:
     return common_pb2.DataframePart(
         encoder_version=common_pb2.ENCODER_VERSION_V0,
         payload=lz4.block.compress(ipc, store_size=False),
