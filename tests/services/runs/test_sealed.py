@@ -13,6 +13,7 @@ import json
 import subprocess
 import sys
 from collections import Counter
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -58,6 +59,17 @@ PROMOTE_AFTER_S = 600.0
 WIDE = "0123456789abcdef0123456789abcdef"  # ten entities
 CHUNKY = "fedcba9876543210fedcba9876543210"  # ten entities, five rows a chunk
 SPARSE = "5a5a5a5a5a5a5a5a5a5a5a5a5a5a5a5a"  # one entity, one component only in some rows, compacted
+
+
+@pytest.fixture(autouse=True)
+def no_index_parsed_yet() -> Iterator[None]:
+    """Each test starts as a depot that has parsed no chunk index: the tests of one process seal the
+    same recordings, often within the same second, and such a recording has the same store, prefix,
+    size and version as another test's (its parsed index, perhaps an older one a test wrote, would
+    be found in the cache, and the reads a test counts would not happen)."""
+    with read._indexes_lock:
+        read._indexes.clear()
+    yield
 
 
 @pytest.fixture(scope="module")
@@ -218,11 +230,6 @@ def test_exact_window_reads_only_the_candidate_chunks(
         out = io.BytesIO()
         pq.write_table(index.drop_columns(["component_ranges"]), out)
         tiers.warm.put(f"{prefix}/{INDEX}", out.getvalue())
-    # As a depot started after the run was sealed: no index of it parsed yet. The same recording,
-    # sealed by another test of this process in the same second, has the same store, prefix, size and
-    # version: its index (perhaps the older one above) would be found parsed.
-    with read._indexes_lock:
-        read._indexes.clear()
     counting = CountingStore(tiers.warm)
     sealed = open_sealed(counting, prefix)
     assert (sealed.rows[-1].component_ranges is None) == old_index
