@@ -26,6 +26,7 @@ from tests.waiting import wait_for
 pytestmark = [pytest.mark.sdk, pytest.mark.slow]
 
 FRAMES = 25  # per step: about 1.5 MB
+H2_DEFAULT_WINDOW = 65_535
 
 
 @pytest.fixture
@@ -52,6 +53,12 @@ def caught_up(depot: LiveServer, agent: AgentProcess, run_id: str) -> bool:
     except Exception:  # the spool's last message half written: ask again
         return False
     return spooled > 0 and depot_chunks(depot, run_id) >= spooled
+
+
+def largest_message(agent: AgentProcess, run_id: str) -> int:
+    """The largest message of the run the agent spooled, in bytes."""
+    path = agent.spool / "runs" / run_id / "run.rrd"
+    return max(e.size for e in iter_events(path) if isinstance(e, ArrowMessage))
 
 
 @pytest.mark.parametrize("how", [REFUSE, HANG])
@@ -87,8 +94,14 @@ def test_a_cut_link_loses_nothing_and_resends_little(
     robot.finish()
     depot_equals_copy(depot, "run-cut", copy, rerun_bin, tmp_path)
     resent = resent_bytes(depot, agent)
+    # Beyond what was counted then, what cannot be counted on a loaded machine: a write under way
+    # (not yet counted as sent) when the test read the count, as large as a message, and what a
+    # connection the agent opens into a silent link after that takes before its stream's first
+    # window (HTTP/2's default 64 KiB: the depot never answered it) is spent. Twice in CI the re-sent
+    # bytes went 104 and 107 KB over the bound without these; the gap is over 1.3 MB.
+    in_flight = largest_message(agent, "run-cut") + (H2_DEFAULT_WINDOW if how == HANG else 0)
     print(f"link {how}: gap {gap} bytes, swallowed {swallowed:.0f} bytes, re-sent {resent} bytes")
-    assert resent <= swallowed + 0.05 * gap, (resent, swallowed, gap)
+    assert resent <= swallowed + in_flight + 0.05 * gap, (resent, swallowed, in_flight, gap)
 
 
 def test_a_depot_killed_mid_run_loses_nothing(depot: LiveServer, agent: AgentProcess, tmp_path: Path, rerun_bin: str):
