@@ -25,9 +25,19 @@ from collections import deque
 from collections.abc import Callable
 from typing import Any
 
+import grpc
+
 from services.agent.bandwidth import Priority, TokenBucket
 from services.agent.lanes import Lane, PullJob
-from services.agent.link import Backoff, DepotLink, DepotRefused, LinkDown, cancelled, stream_ended
+from services.agent.link import (
+    Backoff,
+    DepotLink,
+    DepotRefused,
+    LinkDown,
+    cancelled,
+    stream_ended,
+    stream_failure,
+)
 from services.agent.spool import Spool
 from services.agent.state import AgentState, RunState
 from services.hot.index import HotEntry
@@ -200,10 +210,13 @@ class RunSender:
             if cancelled():
                 raise
             raise LinkDown("the connection to the depot was dropped (silent link)") from None
-        except Exception as exc:  # grpc errors of the stream: refused or broken
-            failure = await stream_ended(call, exc)
+        except (grpc.aio.AioRpcError, asyncio.InvalidStateError) as exc:  # the stream ended: refused or broken
+            failure = await stream_ended(call, exc)  # (its status says which)
             call.cancel()
             raise failure from exc
+        except Exception as exc:  # anything else: no status to wait for
+            call.cancel()
+            raise stream_failure(exc) from exc
         finally:
             self.streaming = False
 
