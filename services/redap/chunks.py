@@ -44,7 +44,7 @@ from services.rrd import limits
 from services.rrd.chunk import with_chunk_id
 from services.rrd.frames import MESSAGE_HEADER_SIZE, MessageKind, decode_message_header
 from services.rrd.protowire import encode_varint, fields
-from services.runs.indexed import GAP_BYTES, IndexedRecording
+from services.runs.indexed import FIRST_READ_BYTES, GAP_BYTES, IndexedRecording
 from services.runs.served import count_served
 from services.storage import readahead
 
@@ -110,27 +110,33 @@ class _Read:
 
 
 def _reads(wanted: list[ChunkLocation], runs: dict[str, IndexedRecording]) -> Iterator[_Read]:
-    """Reads in each run's order, chunks closer than `GAP_BYTES` (or overlapping) merged up to
-    `READ_BYTES`; the bytes between them are read and dropped, cheaper than a read's first byte."""
+    """Reads in each run's order, chunks closer than `GAP_BYTES` (or overlapping) merged; the bytes
+    between them are read and dropped, cheaper than a read's first byte. The first read holds up to
+    `FIRST_READ_BYTES` (a larger chunk alone), each next one up to twice the last, up to
+    `READ_BYTES`: the first response is out while the client's connection still opens its window
+    (a new HTTP/2 stream takes a large first message in many small steps)."""
     by_run: dict[str, list[ChunkLocation]] = {}
     for location in wanted:
         by_run.setdefault(location.run_id, []).append(location)
+    limit = min(FIRST_READ_BYTES, READ_BYTES)
     for run_id, locations in by_run.items():
         current: _Read | None = None
         for location in sorted(locations, key=lambda loc: loc.offset):
             if (
                 current is not None
                 and location.offset - current.end <= GAP_BYTES
-                and max(current.end, location.end) - current.offset <= READ_BYTES
+                and max(current.end, location.end) - current.offset <= limit
             ):
                 current.end = max(current.end, location.end)
                 current.chunks.append(location)
                 continue
             if current is not None:
                 yield current
+                limit = min(2 * limit, READ_BYTES)
             current = _Read(runs[run_id], location.offset, location.end, [location])
         if current is not None:
             yield current
+            limit = min(2 * limit, READ_BYTES)
 
 
 def _read(plan: _Read) -> memoryview:
@@ -142,7 +148,7 @@ def _responses(wanted: list[ChunkLocation], runs: dict[str, IndexedRecording]) -
     size, first = 0, True  # the first read's chunks go at once: the viewer shows them meanwhile
     depth = max((recording.read_ahead for recording in runs.values()), default=1)
     try:
-        for read, data in readahead.read_ahead(_reads(wanted, runs), _read, depth):
+        for read, data in readahead.read_ahead(_reads(wanted, runs), _read, depth, lambda r: r.end - r.offset):
             count_served("depot", len(read.chunks), read.end - read.offset)
             for location in read.chunks:
                 message: bytes | memoryview = _arrow_message(read.recording, location, data, read.offset)

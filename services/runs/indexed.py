@@ -15,6 +15,7 @@ no chunk id, gets it appended, as in any download).
 
 from __future__ import annotations
 
+import itertools
 import os
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field, replace
@@ -263,7 +264,7 @@ def _plan_window(
     chunks = plan.at(positions)
 
     def read(ids: set[bytes]) -> Iterator[tuple[ArrowMessage, ChunkMeta]]:
-        for event in read_events(recording, [r for r in chunks if r.chunk_id in ids]):
+        for event in read_events(recording, [r for r in chunks if r.chunk_id in ids], header=False):
             if isinstance(event, ArrowMessage):
                 yield event, recording.metas.get(event.offset) or chunk_meta(event)
 
@@ -333,16 +334,31 @@ def _reads(rows: Iterable[IndexRow]) -> Iterator[tuple[int, int, list[IndexRow]]
         yield start, end, group
 
 
-def read_events(recording: IndexedRecording, rows: Iterable[IndexRow]) -> Iterator[Event]:
-    """The stream's start, then the messages of `rows` (decoded, their payloads left as they are:
-    views of what was read)."""
-    yield StreamStart(0, 0, decode_stream_header(recording.read(0, STREAM_HEADER_SIZE), 0))
+def read_events(recording: IndexedRecording, rows: Iterable[IndexRow], *, header: bool = True) -> Iterator[Event]:
+    """The stream's start (unless not `header`), then the messages of `rows` (decoded, their payloads
+    left as they are: views of what was read). The stream's header comes with the first messages
+    where they are near the start (a sealed run's store info follows it): one read, not a store's
+    first byte twice."""
+    plans = _reads(rows)
+    first = next(plans, None)
+    with_header = header and first is not None and first[0] - STREAM_HEADER_SIZE <= GAP_BYTES
+    if header and not with_header:
+        yield StreamStart(0, 0, decode_stream_header(recording.read(0, STREAM_HEADER_SIZE), 0))
+    if first is None:
+        return
+    plans = itertools.chain([(0, *first[1:]) if with_header else first], plans)
 
     def read(plan: tuple[int, int, list[IndexRow]]) -> bytes:
         return recording.read(plan[0], plan[1] - plan[0])
 
-    for (start, _, group), got in readahead.read_ahead(_reads(rows), read, recording.read_ahead):
+    def size(plan: tuple[int, int, list[IndexRow]]) -> int:
+        return plan[1] - plan[0]
+
+    for (start, _, group), got in readahead.read_ahead(plans, read, recording.read_ahead, size):
         data = memoryview(got)
+        if with_header:
+            yield StreamStart(0, 0, decode_stream_header(bytes(data[:STREAM_HEADER_SIZE]), 0))
+            with_header = False
         for row in group:
             at = row.offset - start
             kind, length = decode_message_header(data, at)

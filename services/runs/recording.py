@@ -59,9 +59,11 @@ def recording_download(
     if hot is not None:
         types, size = hot.timeline_types, hot.size
     else:  # 404 naming the run, 409 for a cold run not restored, 410 for a deleted one
-        found = locate_sealed(catalog, warm, run_id, utcnow())
-        # (its chunk index is read only when a time window needs the run's timelines)
+        # (its chunk index is read only when a time window needs the run's timelines, and
+        # while the recording is looked at when anything is filtered out)
         windowed = query.timeline is not None or query.start is not None or query.end is not None
+        filtered = windowed or not sealed.whole_object(entities, query.blueprint, None)
+        found = locate_sealed(catalog, warm, run_id, utcnow(), index=filtered)
         types, size = found.timeline_types() if windowed else {}, found.size
     window = download.window_from_query(types, query.timeline, query.start, query.end, query.latest_at, query.exact)
     if query.follow and window is not None:

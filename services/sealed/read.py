@@ -6,7 +6,8 @@ from __future__ import annotations
 
 import datetime as dt
 import threading
-from dataclasses import dataclass
+from concurrent.futures import Future
+from dataclasses import dataclass, field
 from functools import cached_property
 
 from cachetools import LRUCache
@@ -23,6 +24,7 @@ from services.sealed.index import IndexTable, read_index
 from services.sealed.tiers import readable_when_cold
 from services.sealed.write import INDEX, RECORDING
 from services.storage.objectstore import ObjectStore
+from services.storage.readahead import read_soon
 
 # Chunk indexes read lately, kept by how many rows they hold (as columns, a few hundred bytes a row;
 # a few KB once every row is made): a run's windows asked one after another (a viewer, a dataset
@@ -42,6 +44,7 @@ class SealedRecording:
     prefix: str
     size: int  # of recording.rrd
     version: str = ""  # what tells this recording from one sealed again under the prefix (etag, time)
+    index_read: Future[bytes] | None = field(default=None, compare=False)  # its bytes, asked for already
 
     @cached_property
     def index(self) -> IndexTable:
@@ -49,7 +52,8 @@ class SealedRecording:
         with _indexes_lock:
             found = _indexes.get(key) if self.version else None
         if found is None:
-            found = read_index(self.store.get_range(f"{self.prefix}/{INDEX}"))
+            data = self.index_read.result() if self.index_read is not None else None
+            found = read_index(data if data is not None else self.store.get_range(f"{self.prefix}/{INDEX}"))
             if self.version and len(found) <= CACHED_INDEX_ROWS:
                 with _indexes_lock:
                     _indexes[key] = found
@@ -75,13 +79,16 @@ def _when(value: dt.datetime | None) -> str:
     return value.strftime("%Y-%m-%d %H:%M UTC") if value is not None else "an unknown time"
 
 
-def locate_sealed(catalog: sessionmaker[Session], warm: ObjectStore, run_id: str, now: dt.datetime) -> SealedRecording:
+def locate_sealed(
+    catalog: sessionmaker[Session], warm: ObjectStore, run_id: str, now: dt.datetime, *, index: bool = False
+) -> SealedRecording:
     """Where a run that left the hot tier can be read: the warm store (cold runs once restored).
     A cold run not restored is a CONFLICT saying how to restore it; a deleted one is GONE. The
     recording's size is the store's (a HEAD): a sealing of late data that failed half-way leaves a
     new recording beside the catalog's old figures, and a store that cannot be reached is an error
-    before any answer has started."""
-    return open_sealed(warm, sealed_prefix(catalog, run_id, now))
+    before any answer has started. `index`: its chunk index will be needed (a window), so unless
+    one of the run's is cached it is read while the HEAD is under way, not after it."""
+    return open_sealed(warm, sealed_prefix(catalog, run_id, now), index=index)
 
 
 def sealed_prefix(catalog: sessionmaker[Session], run_id: str, now: dt.datetime) -> str:
@@ -116,6 +123,14 @@ def readable_prefix(run: Run, life: RunLifecycle, now: dt.datetime) -> str:
     return life.prefix
 
 
-def open_sealed(store: ObjectStore, prefix: str) -> SealedRecording:
+def open_sealed(store: ObjectStore, prefix: str, *, index: bool = False) -> SealedRecording:
+    index_read = read_soon(store.get_range, f"{prefix}/{INDEX}") if index and not _cached(store, prefix) else None
     info = store.head(f"{prefix}/{RECORDING}")
-    return SealedRecording(store, prefix, info.size, f"{info.etag or ''}@{info.last_modified.isoformat()}")
+    version = f"{info.etag or ''}@{info.last_modified.isoformat()}"
+    return SealedRecording(store, prefix, info.size, version, index_read)
+
+
+def _cached(store: ObjectStore, prefix: str) -> bool:
+    """Whether an index of the prefix's recording is cached (of which version, the HEAD says)."""
+    with _indexes_lock:
+        return any(url == store.url and at == prefix for url, at, _, _ in _indexes)

@@ -15,12 +15,13 @@ import queue
 import threading
 from collections import deque
 from collections.abc import Callable, Generator, Iterable, Iterator
-from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor, wait
 from dataclasses import dataclass
 from typing import Any, TypeVar
 
 PIECE_BYTES = 16 * 1024 * 1024  # a whole object is read in ranges of this size
 DEPTH = 4  # reads under way at once for one download
+ALONE_BYTES = 1024 * 1024  # a first read this large runs alone (`read_ahead`)
 # Shared by every download of the process: a download's own reads never wait on each other (the
 # caller waits for them, outside the pool), so a busy pool only queues them.
 READ_THREADS = 32
@@ -31,19 +32,30 @@ Data = TypeVar("Data")
 
 
 def read_ahead(
-    plans: Iterable[Plan], read: Callable[[Plan], Data], depth: int = DEPTH
+    plans: Iterable[Plan],
+    read: Callable[[Plan], Data],
+    depth: int = DEPTH,
+    size: Callable[[Plan], int] | None = None,
 ) -> Generator[tuple[Plan, Data], None, None]:
     """Each of `plans` with what `read` gave for it, in the plans' order, with up to `depth` reads
-    under way at once (1: one after another, on the caller's thread). Reads not yet handed on when
-    the caller stops are cancelled (those under way finish and are dropped)."""
+    under way at once (1: one after another, on the caller's thread). A first read of at least
+    `ALONE_BYTES` (by `size`) runs alone, the next ones start as it ends: the store's bandwidth goes
+    to the bytes a client waits for first, not shared with reads it will need later (a smaller one
+    waits mostly for the store's first byte, which it may as well wait for beside the next ones).
+    Reads not yet handed on when the caller stops are cancelled (those under way finish and are
+    dropped)."""
     if depth <= 1:
         for plan in plans:
             yield plan, read(plan)
         return
     pending: deque[tuple[Plan, Future[Data]]] = deque()
+    starting = True  # the first plan
     try:
         for plan in plans:
             pending.append((plan, _READS.submit(read, plan)))
+            if starting and size is not None and size(plan) >= ALONE_BYTES:
+                wait([pending[0][1]])  # its error, if any, is raised where it is handed on
+            starting = False
             if len(pending) >= depth:
                 first, future = pending.popleft()
                 yield first, future.result()
@@ -53,6 +65,11 @@ def read_ahead(
     finally:
         for _, future in pending:
             future.cancel()
+
+
+def read_soon(read: Callable[..., Data], *args: Any) -> Future[Data]:
+    """`read(*args)` started now on the read threads: its result is asked for later."""
+    return _READS.submit(read, *args)
 
 
 _DONE = object()

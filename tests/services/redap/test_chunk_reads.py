@@ -73,6 +73,35 @@ def test_reads_are_merged_up_to_the_read_size(monkeypatch: pytest.MonkeyPatch):
     assert [length for _, length in reads] == [2 * 416, 2 * 416, 416]
 
 
+def test_the_first_read_is_small_and_each_next_twice_the_last(monkeypatch: pytest.MonkeyPatch):
+    # The first response is out soon, even of large chunks; then reads grow to the read size.
+    monkeypatch.setattr(chunks, "FIRST_READ_BYTES", 1000)
+    monkeypatch.setattr(chunks, "READ_BYTES", 4000)
+    data, wanted = recording([(400, 0)] * 20)
+    reads: list[tuple[int, int]] = []
+
+    def read(offset: int, length: int) -> bytes:
+        reads.append((offset, length))
+        return data[offset : offset + length]
+
+    answers = list(chunks._responses(wanted, opened(data, read, 1)))
+    assert [length // 416 for _, length in reads] == [2, 4, 9, 5]
+    assert len(messages(answers[0])) == 2  # the first read's chunks, at once
+
+
+def test_a_chunk_larger_than_the_first_read_is_read_alone(monkeypatch: pytest.MonkeyPatch):
+    monkeypatch.setattr(chunks, "FIRST_READ_BYTES", 1000)
+    data, wanted = recording([(3000, 0), (100, 0), (100, 0)])
+    reads: list[tuple[int, int]] = []
+
+    def read(offset: int, length: int) -> bytes:
+        reads.append((offset, length))
+        return data[offset : offset + length]
+
+    list(chunks._responses(wanted, opened(data, read, 1)))
+    assert reads == [(wanted[0].offset, wanted[0].length), (wanted[1].offset, wanted[2].end - wanted[1].offset)]
+
+
 def test_the_first_response_goes_while_later_reads_are_under_way():
     # Far apart: one read each. The reads after the first are held back until the first response
     # is in: it must not wait for them, and they must already be under way.

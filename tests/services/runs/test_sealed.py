@@ -31,6 +31,7 @@ from services.retention.service import PROMOTE, plan, run_plan
 from services.rrd import ArrowMessage, StoreKind, iter_events
 from services.rrd.chunk import chunk_meta, read_chunk
 from services.rrd.chunk_index import CHUNK, IndexRow
+from services.rrd.frames import STREAM_HEADER_SIZE
 from services.rrd.manifest import is_property_entity
 from services.runs import indexed
 from services.runs.download import EntityFilter, TimeWindow
@@ -210,6 +211,23 @@ def test_one_entity_of_ten_reads_a_small_part_of_the_object(
         if isinstance(e, ArrowMessage) and chunk_meta(e).entity_path == "/world/e3"
     )
     assert 0.05 * size < e3 <= counting.read
+
+
+def test_a_filtered_download_reads_the_stream_header_with_its_first_messages(
+    tiers: Tiers, make_node: NodeFactory, runs: dict[str, Path]
+):
+    """The stream's 12 bytes come with the run's first messages (its store info follows them): one
+    read, not a store's first byte twice before anything is sent."""
+    node, run_id = _node(make_node, tiers, runs["wide"])
+    one = EntityFilter(include=["/world/e3"])
+    hot = _hot(node, run_id, one)
+    prefix = _promote(node, run_id)
+    counting = CountingStore(tiers.warm)
+    warm = b"".join(stream_sealed(open_sealed(counting, prefix), one))
+    assert _ids(warm) == _ids(hot) and _rows(warm) == _rows(hot)
+    recording_reads = [(start, got) for key, start, _, got in counting.reads if key.endswith(RECORDING)]
+    from_start = [got for start, got in recording_reads if start == 0]  # (reads are recorded as they end)
+    assert len(from_start) == 1 and from_start[0] > STREAM_HEADER_SIZE, recording_reads
 
 
 @pytest.mark.parametrize("old_index", [False, True])

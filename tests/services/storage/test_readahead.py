@@ -7,7 +7,7 @@ from collections.abc import Iterator
 
 import pytest
 
-from services.storage.readahead import pieces, read_ahead, stream_ahead
+from services.storage.readahead import ALONE_BYTES, pieces, read_ahead, stream_ahead
 from tests.waiting import wait_for
 
 
@@ -37,6 +37,26 @@ def test_reads_overlap_up_to_the_depth_and_come_back_in_order() -> None:
     got = list(read_ahead(range(20), reads, depth=4))
     assert got == [(plan, f"data {plan}") for plan in range(20)]
     assert reads.most == 4  # never more than the depth at once (and the barrier saw four)
+
+
+@pytest.mark.parametrize("first_size", [ALONE_BYTES, ALONE_BYTES - 1])
+def test_a_large_first_read_runs_alone(first_size: int) -> None:
+    # The bytes a client waits for first get the store's whole bandwidth: a large first read gives
+    # the next one half a second to start beside it (which it did at once before), and none does;
+    # a small one has the next ones beside it (what it waits for is the store's first byte).
+    second_started = threading.Event()
+    overlapped: list[bool] = []
+
+    def read(plan: int) -> int:
+        if plan == 0:
+            overlapped.append(second_started.wait(0.5 if first_size >= ALONE_BYTES else 10))
+        else:
+            second_started.set()
+        return plan
+
+    sizes = [first_size] + [ALONE_BYTES] * 9
+    assert [data for _, data in read_ahead(range(10), read, 4, sizes.__getitem__)] == list(range(10))
+    assert overlapped == [first_size < ALONE_BYTES]
 
 
 def test_depth_one_reads_on_the_callers_thread_one_after_another() -> None:
