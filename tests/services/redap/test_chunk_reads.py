@@ -42,14 +42,20 @@ def messages(answer: bytes) -> list[bytes]:
     return [answer[start:end] for number, _, start, end in fields(answer) if number == 1]
 
 
-def test_chunks_closer_than_the_gap_are_read_together_and_farther_ones_apart():
-    data, wanted = recording([(100, 0), (200, GAP_BYTES), (300, GAP_BYTES + 1), (50, 0)])
+def recorded(data: bytes) -> tuple[list[tuple[int, int]], Callable[[int, int], bytes]]:
+    """A read of `data` that records each (offset, length) asked for, and its record."""
     reads: list[tuple[int, int]] = []
 
     def read(offset: int, length: int) -> bytes:
         reads.append((offset, length))
         return data[offset : offset + length]
 
+    return reads, read
+
+
+def test_chunks_closer_than_the_gap_are_read_together_and_farther_ones_apart():
+    data, wanted = recording([(100, 0), (200, GAP_BYTES), (300, GAP_BYTES + 1), (50, 0)])
+    reads, read = recorded(data)
     answers = list(chunks._responses(wanted, opened(data, read, 1)))
     got = [m for answer in answers for m in messages(answer)]
     assert got == [data[w.offset + MESSAGE_HEADER_SIZE : w.end] for w in wanted]
@@ -63,12 +69,7 @@ def test_chunks_closer_than_the_gap_are_read_together_and_farther_ones_apart():
 def test_reads_are_merged_up_to_the_read_size(monkeypatch: pytest.MonkeyPatch):
     monkeypatch.setattr(chunks, "READ_BYTES", 1000)
     data, wanted = recording([(400, 0)] * 5)
-    reads: list[tuple[int, int]] = []
-
-    def read(offset: int, length: int) -> bytes:
-        reads.append((offset, length))
-        return data[offset : offset + length]
-
+    reads, read = recorded(data)
     list(chunks._responses(wanted, opened(data, read, 1)))
     assert [length for _, length in reads] == [2 * 416, 2 * 416, 416]
 
@@ -78,12 +79,7 @@ def test_the_first_read_is_small_and_each_next_twice_the_last(monkeypatch: pytes
     monkeypatch.setattr(chunks, "FIRST_READ_BYTES", 1000)
     monkeypatch.setattr(chunks, "READ_BYTES", 4000)
     data, wanted = recording([(400, 0)] * 20)
-    reads: list[tuple[int, int]] = []
-
-    def read(offset: int, length: int) -> bytes:
-        reads.append((offset, length))
-        return data[offset : offset + length]
-
+    reads, read = recorded(data)
     answers = list(chunks._responses(wanted, opened(data, read, 1)))
     assert [length // 416 for _, length in reads] == [2, 4, 9, 5]
     assert len(messages(answers[0])) == 2  # the first read's chunks, at once
@@ -92,12 +88,7 @@ def test_the_first_read_is_small_and_each_next_twice_the_last(monkeypatch: pytes
 def test_a_chunk_larger_than_the_first_read_is_read_alone(monkeypatch: pytest.MonkeyPatch):
     monkeypatch.setattr(chunks, "FIRST_READ_BYTES", 1000)
     data, wanted = recording([(3000, 0), (100, 0), (100, 0)])
-    reads: list[tuple[int, int]] = []
-
-    def read(offset: int, length: int) -> bytes:
-        reads.append((offset, length))
-        return data[offset : offset + length]
-
+    reads, read = recorded(data)
     list(chunks._responses(wanted, opened(data, read, 1)))
     assert reads == [(wanted[0].offset, wanted[0].length), (wanted[1].offset, wanted[2].end - wanted[1].offset)]
 
