@@ -67,8 +67,10 @@ def test_a_full_destination_holds_the_splice_back_until_it_reads():
         payload = os.urandom(20_000_000)  # far more than two sockets' buffers and the pipe hold
         loop = asyncio.get_running_loop()
         sending = asyncio.create_task(loop.sock_sendall(store_side, payload))
-        splicing = asyncio.create_task(splice_exactly(source.fileno(), destination.fileno(), len(payload), stall_s=0.2))
-        await asyncio.sleep(1.0)  # the client reads nothing for five stall timeouts: not a stall
+        # (a stall timeout long enough that a busy machine's scheduling does not pass for one: the
+        # source is fed from this same loop, so a process held off the CPU resumes with the timer due)
+        splicing = asyncio.create_task(splice_exactly(source.fileno(), destination.fileno(), len(payload), stall_s=0.5))
+        await asyncio.sleep(1.5)  # the client reads nothing for three stall timeouts: not a stall
         assert not splicing.done()
         assert await read_exactly(client_side, len(payload)) == payload
         await splicing
