@@ -3,9 +3,11 @@
 A real S3 server (SeaweedFS on loopback, as in benchmarks/analytics.py) holds the warm tier of a
 fresh `fleet serve`. big.rrd is uploaded, then sealed into the warm tier (`POST .../promote`, timed
 once the promotion of a run of a few KB has warmed the process up, as a server that has been up a
-while is; that first one is printed too), beside a boto3 multipart upload of the same file: the
-store's own write speed. Then, each best of --repeat, with curl for both sides so that the client
-is the same native one:
+while is; that first one is printed too), beside a boto3 multipart upload of the same file (the
+depot's part size and concurrency): the store's own write speed. Both read their bytes from the
+disk, not the page cache: a run's file is dropped from the cache once on disk, and the file put is
+too. Then, each best of --repeat, with curl for both sides so that the client is the same native
+one:
 
 - `whole`: `GET /v1/runs/RUN/recording.rrd` against one plain GET of the sealed object (a presigned
   URL to the store): target >= 0.8x;
@@ -33,12 +35,18 @@ from pathlib import Path
 from typing import Any
 
 import httpx
+from boto3.s3.transfer import TransferConfig
 
 from benchmarks.analytics import AWS, BUCKET, PREFIX, s3_client, seaweedfs, wait_for_bucket
 from benchmarks.bare_relay import bare_relay
-from benchmarks.codec import MB, format_table, log
+from benchmarks.codec import MB, drop_page_cache, format_table, log
 from benchmarks.ingest import FleetServer, proc_status_kb, tree_cpu_s
+from services.storage.objectstore import PART_BYTES, UPLOAD_CONCURRENCY
 
+# The multipart put beside promotion sends parts as the depot does by default
+DEPOT_PARTS = TransferConfig(
+    multipart_threshold=PART_BYTES, multipart_chunksize=PART_BYTES, max_concurrency=UPLOAD_CONCURRENCY
+)
 WARM_TARGET = 0.8  # of one plain GET stream of the same object
 PROMOTE_TARGET = 0.9  # of a multipart put of the same bytes
 
@@ -105,8 +113,9 @@ def run_warm(source: Path, run_id: str, chosen: str, repeat: int) -> dict[str, A
         with seaweedfs(workdir / "seaweedfs") as endpoint:
             client = s3_client(endpoint)
             wait_for_bucket(client)
+            drop_page_cache(source)
             start = time.perf_counter()
-            client.upload_file(str(source), BUCKET, "bench-multipart/recording.rrd")
+            client.upload_file(str(source), BUCKET, "bench-multipart/recording.rrd", Config=DEPOT_PARTS)
             results["multipart_put_s"] = time.perf_counter() - start
             client.delete_object(Bucket=BUCKET, Key="bench-multipart/recording.rrd")
             server = WarmServer(workdir / "fleet", endpoint)
@@ -154,6 +163,7 @@ def _serve(
     rss_before = server.peak_rss_mb()
     first_promote_s = _first_promotion(base, server.workdir)
     log("promoting it to the warm tier ...")
+    drop_page_cache(server.data_dir / "hot" / run_id / "run.rrd")  # as the depot leaves it (and as the put read)
     cpu = tree_cpu_s(server.pid)
     start = time.perf_counter()
     promoted = httpx.post(f"{base}/v1/runs/{run_id}/promote", timeout=3600)

@@ -12,8 +12,9 @@ import time
 from collections.abc import AsyncGenerator, Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Protocol
+from typing import BinaryIO, Protocol
 
+from services.hot.direct import DirectFile
 from services.hot.index import HotChunkIndex, HotEntry, iter_hot_index, read_hot_index
 from services.hot.store import Changes
 from services.rrd.decoder import RrdDecoder
@@ -63,8 +64,12 @@ class HotReader:
     """A run's file decoded from its start, a piece at a time, up to a size the caller gives (the
     bytes of whole messages it knows of). Not thread-safe: one step at a time, on any thread."""
 
-    def __init__(self, path: Path) -> None:
-        self._file = open(path, "rb")  # noqa: SIM115 - closed by close(), the reader outlives a `with`
+    def __init__(self, path: Path, *, direct: bool = False) -> None:
+        # `direct`: a whole run read once, around the page cache (services.hot.direct); a live run's
+        # followers read its newest bytes, which the page cache keeps for them
+        self._file: DirectFile | BinaryIO = (
+            DirectFile(path, READ_BYTES) if direct else open(path, "rb")  # noqa: SIM115 - closed by close()
+        )
         self._decoder = RrdDecoder()
         self.position = 0
 
@@ -84,8 +89,9 @@ class HotReader:
 
 
 def read_events(path: Path, size: int) -> Iterator[Event]:
-    """Events of the first `size` bytes of a run's file (following a live run: `follow_sizes`)."""
-    reader = HotReader(path)
+    """Events of the first `size` bytes of a run's file (following a live run: `follow_sizes`), read
+    once around the page cache."""
+    reader = HotReader(path, direct=True)
     try:
         while reader.position < size:
             before = reader.position

@@ -13,6 +13,7 @@ import pytest
 
 from services.hot.read import HotReader, read_events
 from services.rrd.decoder import LARGE_MESSAGE, RrdDecoder
+from tests.services.hot.page_cache import direct_reads_work, resident_bytes, uncache
 
 RUN = """
 import numpy as np, rerun as rr
@@ -73,3 +74,14 @@ def test_a_hot_reader_gives_what_the_bytes_hold(run_file: Path, limit: int, cut:
 def test_read_events_of_a_whole_run_match_the_bytes(run_file: Path) -> None:
     data = run_file.read_bytes()
     assert _plain(list(read_events(run_file, len(data)))) == _fed(data, finish=True)
+
+
+def test_a_whole_run_is_read_around_the_page_cache(run_file: Path) -> None:
+    """Sealing, hand-over and scrub read a run's file once, from the disk (its pages were dropped once
+    written): read directly, it leaves the cache as it was, and costs the kernel no copy through it."""
+    data = run_file.read_bytes()
+    uncache(run_file)
+    if not direct_reads_work(run_file) or resident_bytes(run_file) > len(data) // 2:
+        pytest.skip(f"the file system under {run_file.parent} reads through the page cache whatever is asked")
+    assert _plain(list(read_events(run_file, len(data)))) == _fed(data, finish=True)
+    assert resident_bytes(run_file) < len(data) // 8, "the run was read through the page cache"
