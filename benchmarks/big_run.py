@@ -103,9 +103,10 @@ from benchmarks import big_run_steps as steps  # noqa: E402
 from benchmarks.analytics import BUCKET, s3_client, wait_for_bucket  # noqa: E402
 from benchmarks.big_run_steps import APPLICATION, CAMERA, SCALAR, Step  # noqa: E402
 from benchmarks.catalog import find_entry  # noqa: E402
-from benchmarks.codec import MB, drop_page_cache, format_table, log  # noqa: E402
+from benchmarks.codec import MB, format_table, log  # noqa: E402
 from benchmarks.ingest import FleetServer  # noqa: E402
 from benchmarks.serve_warm import WarmServer, sealed_key  # noqa: E402
+from tests.services.hot.page_cache import uncache  # noqa: E402
 
 GB = 10**9
 COLD_BUCKET, SCRATCH, SCRATCH_COPY = "fleet-cold", "bench-put", "bench-copy"  # scratch buckets: one use each
@@ -186,13 +187,13 @@ class Depot:
         self.client.create_bucket(Bucket=SCRATCH)
         # Both read the file from the disk: the depot drops a run's pages from the page cache once
         # they are on disk, and the put would leave them cached for the promotion after it.
-        drop_page_cache(hot)
+        uncache(hot)
         with Step("store: multipart put", None, size, lambda: done[0]) as raw:
             count = lambda n: done.__setitem__(0, done[0] + n)  # noqa: E731
             self.client.upload_file(str(hot), SCRATCH, "put", Config=TRANSFER, Callback=count)
         steps.drop_bucket(self.client, SCRATCH)
         restart = self.fresh()  # the hot run recovered from disk, as after a crash
-        drop_page_cache(hot)
+        uncache(hot)
         with Step("promotion", self.server.pid, size, self.stored()) as st:
             answer = httpx.post(f"{self.base}/v1/runs/{self.run_id}/promote", timeout=LIMIT_S)
         if answer.status_code != 200:

@@ -320,18 +320,6 @@ def warm_page_cache(path: Path) -> None:
             pass
 
 
-def drop_page_cache(path: Path) -> None:
-    """Evict a file's pages from the page cache (written back first): its next reader reads the disk.
-    The state a hot run's file is in when it is promoted (the depot drops a run's pages once they are
-    on disk), so a reference that reads the same bytes starts from the same state."""
-    fd = os.open(path, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-        os.posix_fadvise(fd, 0, 0, os.POSIX_FADV_DONTNEED)
-    finally:
-        os.close(fd)
-
-
 def find_rerun_binary(explicit: str | None) -> tuple[str, str]:
     """The native `rerun` executable (the venv's `rerun` script is a Python wrapper that adds ~70 ms
     of interpreter start-up to every call, so it is bypassed), and how it was found."""

@@ -39,9 +39,10 @@ from boto3.s3.transfer import TransferConfig
 
 from benchmarks.analytics import AWS, BUCKET, PREFIX, s3_client, seaweedfs, wait_for_bucket
 from benchmarks.bare_relay import bare_relay
-from benchmarks.codec import MB, drop_page_cache, format_table, log
+from benchmarks.codec import MB, format_table, log
 from benchmarks.ingest import FleetServer, proc_status_kb, tree_cpu_s
 from services.storage.objectstore import PART_BYTES, UPLOAD_CONCURRENCY
+from tests.services.hot.page_cache import uncache
 
 # The multipart put beside promotion sends parts as the depot does by default
 DEPOT_PARTS = TransferConfig(
@@ -113,7 +114,7 @@ def run_warm(source: Path, run_id: str, chosen: str, repeat: int) -> dict[str, A
         with seaweedfs(workdir / "seaweedfs") as endpoint:
             client = s3_client(endpoint)
             wait_for_bucket(client)
-            drop_page_cache(source)
+            uncache(source)
             start = time.perf_counter()
             client.upload_file(str(source), BUCKET, "bench-multipart/recording.rrd", Config=DEPOT_PARTS)
             results["multipart_put_s"] = time.perf_counter() - start
@@ -163,7 +164,7 @@ def _serve(
     rss_before = server.peak_rss_mb()
     first_promote_s = _first_promotion(base, server.workdir)
     log("promoting it to the warm tier ...")
-    drop_page_cache(server.data_dir / "hot" / run_id / "run.rrd")  # as the depot leaves it (and as the put read)
+    uncache(server.data_dir / "hot" / run_id / "run.rrd")  # as the depot leaves it (and as the put read)
     cpu = tree_cpu_s(server.pid)
     start = time.perf_counter()
     promoted = httpx.post(f"{base}/v1/runs/{run_id}/promote", timeout=3600)

@@ -25,6 +25,8 @@ def resident_bytes(path: Path) -> int:
 
 
 def uncache(path: Path) -> None:
+    """Evict a file's pages from the page cache (written back first): its next reader reads the disk,
+    as a hot run's file is read when it is promoted (the depot drops a run's pages once on disk)."""
     fd = os.open(path, os.O_RDONLY)
     try:
         os.fsync(fd)
