@@ -389,15 +389,19 @@ def catalog_window(port: int, entry: str, segment: str, entity: str, window: tup
 
 
 def wait_run(base: str, run_id: str, done: Callable[[dict[str, Any]], bool], what: str, limit_s: float) -> None:
-    """Poll `GET /v1/runs/RUN` until `done(answer)`."""
+    """Poll `GET /v1/runs/RUN` until `done(answer)`: every 0.1 s at first, then less often, up to
+    once a second. (A run's page costs the server about 34 ms of CPU on the embedded catalog: polled
+    every 0.1 s through a 20 GB restore, about 40 s of the 77 s of CPU the restore was charged with.)"""
     deadline = time.monotonic() + limit_s
+    pause = 0.1
     while True:
         answer = httpx.get(f"{base}/v1/runs/{run_id}", timeout=60)
         if answer.status_code == 200 and done(answer.json()):
             return
         if time.monotonic() > deadline:
             raise SystemExit(f"run {run_id} not {what} after {limit_s:.0f} s: {answer.text[:500]}")
-        time.sleep(0.1)  # polling the run's state, bounded by the deadline
+        time.sleep(pause)  # polling the run's state, bounded by the deadline
+        pause = min(1.0, pause * 1.5)
 
 
 def ndjson_lines(response: httpx.Response) -> list[dict[str, Any]]:
