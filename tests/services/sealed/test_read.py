@@ -4,6 +4,7 @@ once for the windows asked of one recording, again once the recording is sealed 
 from __future__ import annotations
 
 import threading
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from services.rrd.chunk_index import IndexRow
@@ -39,13 +40,14 @@ def test_the_index_is_read_when_asked_for_and_parsed_once_per_recording(tmp_path
     assert len(open_sealed(store, PREFIX).rows) == 5 and _index_reads(store) == 2
 
 
+@dataclass
 class WatchedStore(CountingStore):
     """A store whose HEAD waits, while `head_waits`, until the index's read has begun (10 s at most),
     and records whether it had."""
 
-    head_waits = True
-    index_asked = threading.Event()
-    overlapped: list[bool] = []
+    head_waits: bool = True
+    index_asked: threading.Event = field(default_factory=threading.Event)
+    overlapped: list[bool] = field(default_factory=list)
 
     def get_range(self, key: str, start: int = 0, length: int | None = None) -> bytes:
         if key.endswith(INDEX):
@@ -59,7 +61,6 @@ class WatchedStore(CountingStore):
 
 def test_an_index_a_window_will_need_is_read_while_the_recording_is_looked_at(tmp_path: Path):
     store = WatchedStore(open_store((tmp_path / "warm").as_uri()))
-    store.index_asked, store.overlapped = threading.Event(), []
     _seal(store, b"x" * 1000, chunks=3)
     first = open_sealed(store, PREFIX, index=True)
     assert store.overlapped == [True]  # asked for before the HEAD answered
