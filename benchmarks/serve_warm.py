@@ -153,6 +153,14 @@ def _first_promotion(base: str, workdir: Path) -> float:
     return time.perf_counter() - start
 
 
+def promotion_steps(server_log: Path, run_id: str) -> str:
+    """How long each step of the run's promotion took, as the server logged it."""
+    for line in reversed(server_log.read_text(errors="replace").splitlines()):
+        if f"promoted run {run_id}:" in line and line.endswith(")"):
+            return line[line.rindex("(") + 1 : -1]
+    return "not logged"
+
+
 def _serve(
     server: WarmServer, client: Any, curl: str, source: Path, run_id: str, chosen: str, repeat: int
 ) -> dict[str, Any]:
@@ -173,6 +181,7 @@ def _serve(
     if promoted.status_code != 200:
         raise SystemExit(f"promote: HTTP {promoted.status_code}: {promoted.text[:500]}")
     rss_promoted = server.peak_rss_mb()
+    steps = promotion_steps(server.log_path, run_id)
     key = sealed_key(client, run_id)
     size = client.head_object(Bucket=BUCKET, Key=key)["ContentLength"]
     presigned = client.generate_presigned_url("get_object", Params={"Bucket": BUCKET, "Key": key}, ExpiresIn=900)
@@ -191,6 +200,7 @@ def _serve(
         "promote_s": promote_s,
         "promote_cpu_s": promote_cpu_s,
         "first_promote_s": first_promote_s,
+        "promote_steps": steps,
         "sealed_bytes": size,
         "rss_mb": {"before_promote": rss_before, "after_promote": rss_promoted},
     }
@@ -287,7 +297,7 @@ def print_warm(results: dict[str, Any], repeat: int) -> None:
     )
     print(
         f"the server's CPU for the promotion: {results['promote_cpu_s']:.2f} s "
-        f"({results['promote_cpu_s'] / (size / MB / 1024):.2f} s per GiB sealed)"
+        f"({results['promote_cpu_s'] / (size / MB / 1024):.2f} s per GiB sealed); its steps: {results['promote_steps']}"
     )
     print(
         f"the server's first promotion (a run of a few KB, before the big one) took "

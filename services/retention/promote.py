@@ -21,6 +21,7 @@ import logging
 import os
 import shutil
 import threading
+import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -265,6 +266,7 @@ def _seal_and_switch(
     actor: str,
 ) -> RunRecord:
     tiers, catalog = node.tiers, node.catalog
+    took = _Stopwatch()
     prefix = adds_to.prefix if adds_to else None
     base_size = tiers.warm.head(f"{prefix}/{RECORDING}").size if prefix is not None else 0
     _check_room(run, tiers, base_size, reserve_bytes)
@@ -282,6 +284,7 @@ def _seal_and_switch(
     sealed = seal_to_store(
         tiers.warm, f"{prefix}/{RECORDING}", sources, run.run_id, now, analytics.add, node.secret_fields
     )
+    took.lap("sealed")
     record = _sealed_record(run, adds_to, sealed, node.default_robot)
     objects = [
         ObjectRecord(RECORDING, f"{prefix}/{RECORDING}", Tier.WARM, sealed.recording_size, sealed.recording_sha256),
@@ -293,6 +296,7 @@ def _seal_and_switch(
         held = tiers.warm.head(obj.key).size
         if held != obj.size:
             raise StorageError(f"{tiers.warm.url}/{obj.key} holds {held} bytes after upload, {obj.size} were sealed")
+    took.lap("index and analytics")
     detail = f"{sealed.recording_size} bytes, {len(sealed.chunk_ids)} chunks to {tiers.warm.url}/{prefix}/"
     stale: set[str] = set()
 
@@ -305,12 +309,31 @@ def _seal_and_switch(
         return SealedInfo(Tier.WARM, prefix, record.robot_id, record.date, frozenset(sealed.chunk_ids))
 
     left = ingest.hand_over(run, switch, doing="being sealed", then="promoted later")
+    took.lap("catalog")
     for key in stale:  # analytics written earlier under another robot or date: one copy per run
         tiers.warm.delete(key)
     shutil.rmtree(left.folder, ignore_errors=True)  # (5)
+    took.lap("hot copy removed")
     copy_now(node.lakehouse, catalog, tiers.warm, node.clock, [run.run_id])  # its rows in the Iceberg tables
-    log.info("promoted run %s: %s", run.run_id, detail)
+    took.lap("lakehouse")
+    log.info("promoted run %s: %s (%s)", run.run_id, detail, took)
     return record
+
+
+class _Stopwatch:
+    """How long each step of a promotion took, for its log line."""
+
+    def __init__(self) -> None:
+        self._last = time.perf_counter()
+        self._laps: list[tuple[str, float]] = []
+
+    def lap(self, step: str) -> None:
+        now = time.perf_counter()
+        self._laps.append((step, now - self._last))
+        self._last = now
+
+    def __str__(self) -> str:
+        return ", ".join(f"{step} {seconds:.2f} s" for step, seconds in self._laps)
 
 
 def _give_up_lease(session: Session, run_id: str, lease: Lease | None, ingest: IngestService, node: Node) -> None:

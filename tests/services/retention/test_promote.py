@@ -11,6 +11,8 @@ import hashlib
 import io
 import itertools
 import json
+import logging
+import re
 import shutil
 import subprocess
 import sys
@@ -173,8 +175,14 @@ def assert_warm(node: Node, want: set[bytes], run_id: str = RUN) -> tuple[str, b
 
 
 def test_a_closed_run_is_sealed_once_idle_for_promote_after(
-    tiers: Tiers, make_node: NodeFactory, sdk_runs: SdkRuns, rerun_bin: str, tmp_path: Path
+    tiers: Tiers,
+    make_node: NodeFactory,
+    sdk_runs: SdkRuns,
+    rerun_bin: str,
+    tmp_path: Path,
+    caplog: pytest.LogCaptureFixture,
 ):
+    caplog.set_level(logging.INFO, logger="services.retention.promote")
     clock = Clock()
     node = make_node(tiers, clock=clock, promote_after_s=PROMOTE_AFTER_S)
     report = node.upload(sdk_runs.first)
@@ -190,6 +198,9 @@ def test_a_closed_run_is_sealed_once_idle_for_promote_after(
     assert "closed and idle for 10m01s" in action.reason
     outcomes = promote_job(node.retention, wait=True)
     assert outcomes is not None and [o.ok for o in outcomes] == [True], outcomes
+    (logged,) = [r.getMessage() for r in caplog.records if r.getMessage().startswith(f"promoted run {RUN}:")]
+    steps = "sealed", "index and analytics", "catalog", "hot copy removed", "lakehouse"  # what took the time
+    assert re.search(", ".join(rf"{step} \d+\.\d\d s" for step in steps) + r"\)$", logged), logged
     with session_scope(node.catalog) as session:
         (job,) = queries.recent_jobs(session)
         assert (job.job, job.outcome) == ("promote", "ok")
