@@ -38,6 +38,7 @@ from benchmarks.catalog import (  # noqa: E402
 )
 from benchmarks.codec import MB, log  # noqa: E402
 from benchmarks.ingest import proc_tree, tree_cpu_s, tree_status_kb  # noqa: E402
+from core.backoff import backoff_delay  # noqa: E402
 from services.redap.dataframe import dataframe_part  # noqa: E402
 from services.redap.pb import cloud_pb2  # noqa: E402
 
@@ -393,15 +394,15 @@ def wait_run(base: str, run_id: str, done: Callable[[dict[str, Any]], bool], wha
     once a second. (A run's page costs the server about 34 ms of CPU on the embedded catalog: polled
     every 0.1 s through a 20 GB restore, about 40 s of the 77 s of CPU the restore was charged with.)"""
     deadline = time.monotonic() + limit_s
-    pause = 0.1
+    polls = 0
     while True:
         answer = httpx.get(f"{base}/v1/runs/{run_id}", timeout=60)
         if answer.status_code == 200 and done(answer.json()):
             return
         if time.monotonic() > deadline:
             raise SystemExit(f"run {run_id} not {what} after {limit_s:.0f} s: {answer.text[:500]}")
-        time.sleep(pause)  # polling the run's state, bounded by the deadline
-        pause = min(1.0, pause * 1.5)
+        polls += 1
+        time.sleep(backoff_delay(polls, first=0.1, cap=1.0))  # polling the run's state, bounded by the deadline
 
 
 def ndjson_lines(response: httpx.Response) -> list[dict[str, Any]]:
